@@ -1,0 +1,25 @@
+"""Shared test helpers: one tolerance table keyed by dtype, and error reports that say where."""
+
+import torch
+
+# Absolute tolerances for quantities in [0, 1] (alpha, transmittance, normalised radiance).
+TOL = {torch.float32: 1e-4, torch.float64: 1e-9}
+
+
+def assert_close(actual, expected, *, atol=None, what="value"):
+    """Fail with the largest error and its index, not a wall of numbers."""
+    actual = torch.as_tensor(actual)
+    expected = torch.as_tensor(expected, dtype=actual.dtype).expand_as(actual)
+    tol = TOL[actual.dtype] if atol is None else atol
+    err = (actual - expected).abs()
+    bad = ~torch.isfinite(actual)
+    if bad.any():
+        idx = tuple(int(i) for i in bad.nonzero()[0])
+        raise AssertionError(f"{what}: non-finite value {actual[idx].item()} at {idx}")
+    worst = err.max() if err.numel() else torch.tensor(0.0)
+    if worst > tol:
+        idx = tuple(int(i) for i in torch.nonzero(err == worst)[0])
+        raise AssertionError(
+            f"{what}: max error {worst.item():.3e} > {tol:.1e} at {idx}: "
+            f"got {actual[idx].item():.10g}, expected {expected[idx].item():.10g}"
+        )

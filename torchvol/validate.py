@@ -1,0 +1,31 @@
+"""The one boundary check: every user-input error is raised here, naming key path, value and rule."""
+
+from __future__ import annotations
+
+import difflib
+import math
+from typing import Any, Iterable, NoReturn
+
+
+class SceneError(ValueError):
+    """Bad user input: `path` is the key path (e.g. ``volumes[0].sigma_t``)."""
+
+    def __init__(self, path: str, value: Any, allowed: str):
+        self.path, self.value, self.allowed = path, value, allowed
+        super().__init__(f"{path or '<root>'}: got {value!r}; {allowed}")
+
+
+def fail(path: str, value: Any, allowed: str) -> NoReturn:
+    raise SceneError(path, value, allowed)
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    close = difflib.get_close_matches(word, list(choices), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def finite(path: str, value: Any) -> float:
+    """A finite real number (bools refused)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        fail(path, value, "expected a finite number")
+    return float(value)
