@@ -1,0 +1,31 @@
+"""The protocol every density field follows, and the per-scene grouping helper."""
+
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import torch
+from torch import Tensor
+
+
+class Field(Protocol):
+    homogeneous: bool
+
+    def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        """`points`: [N, 3]; `scene_index`: [N] long; `lod`: [N] octave counts or None. -> [N]."""
+        ...
+
+
+def per_scene(
+    points: Tensor, scene_index: Tensor, batch: int, fn: Callable[[int, Tensor, Tensor], Tensor]
+) -> Tensor:
+    """Evaluate `fn(b, mask_index, points_b) -> [n_b]` on the points of each scene b, for fields
+    whose per-scene state (a seed, a texture, a grid) cannot be gathered per point."""
+    if batch == 1:
+        return fn(0, torch.arange(points.shape[0], device=points.device), points)
+    out = points.new_zeros(points.shape[0])
+    for b in range(batch):
+        idx = (scene_index == b).nonzero().squeeze(1)
+        if idx.numel():
+            out[idx] = fn(b, idx, points[idx])
+    return out

@@ -1,0 +1,15 @@
+"""A homogeneous medium: one density per scene."""
+
+from __future__ import annotations
+
+from torch import Tensor
+
+
+class Constant:
+    homogeneous = True
+
+    def __init__(self, value: Tensor):  # (B,)
+        self.value = value
+
+    def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        return self.value[scene_index]

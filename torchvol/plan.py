@@ -1,0 +1,130 @@
+"""Scene -> the passes it calls for, and nothing else; quality levels -> march settings.
+
+A term the scene does not ask for is not in the plan and costs nothing: no shadow pass without a
+light with `shadow`, no sky pass without `[sky]`, no march without volumes, no post pass at its
+identity setting. A homogeneous medium in a box, sphere or slab with no shadowed light is
+integrated in closed form (one exact segment) instead of marched.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from .scene import March, Scene
+from .volume.march import StepRule
+
+Quality = Literal["draft", "default", "high", "reference"]
+
+
+@dataclass(frozen=True)
+class MarchSettings:
+    rule: StepRule
+    integrator: Literal["riemann", "frostbite", "alpha"]
+    dither: Literal["none", "hash", "sin"]
+    dither_scale: float
+    max_distance: float
+    min_transmittance: float
+    density_threshold: float
+    lod_scale: float | None
+    closed_form: bool
+    depth_threshold: float
+    dtype: torch.dtype
+
+
+# Each level: (steps, min_transmittance, dtype). Count placement, frostbite, hashed dither.
+QUALITY: dict[str, tuple[int, float, torch.dtype]] = {
+    "draft": (32, 1e-2, torch.float32),
+    "default": (128, 1e-4, torch.float32),
+    "high": (384, 1e-5, torch.float32),
+    "reference": (2048, 1e-12, torch.float64),
+}
+
+
+def march_settings(march: March) -> MarchSettings:
+    steps, min_t, dtype = QUALITY[march.quality]
+    reference = march.quality == "reference"
+    placement = march.placement or ("size" if march.step_size is not None and march.steps is None else "count")
+    if placement == "size" and march.steps is None:
+        steps = 1_000_000  # bounded by the exit, not by a count
+    rule = StepRule(
+        placement=placement,
+        steps=march.steps if march.steps is not None else steps,
+        step_size=march.step_size if march.step_size is not None else 0.05,
+        step_growth=march.step_growth if march.step_growth is not None else 0.0,
+    )
+    return MarchSettings(
+        rule=rule,
+        integrator=march.integrator or "frostbite",
+        dither=march.dither or ("none" if reference else "hash"),
+        dither_scale=march.dither_scale if march.dither_scale is not None else 1.0,
+        max_distance=march.max_distance if march.max_distance is not None else 1e5,
+        min_transmittance=march.min_transmittance if march.min_transmittance is not None else min_t,
+        density_threshold=march.density_threshold if march.density_threshold is not None else 0.0,
+        lod_scale=march.lod.scale if march.lod is not None else None,
+        closed_form=march.closed_form,
+        depth_threshold=march.depth_threshold,
+        dtype=dtype,
+    )
+
+
+@dataclass(frozen=True)
+class Pass:
+    name: str
+    kind: str
+    index: int | None = None
+
+
+def uses_closed_form(scene: Scene, v: int, settings: MarchSettings) -> bool:
+    vol = scene.volumes[v]
+    return (
+        settings.closed_form
+        and vol.density.kind == "constant"
+        and vol.shading == "physical"
+        and settings.integrator != "alpha"
+        and not any(light.shadow is not None for light in scene.lights)
+    )
+
+
+def make_plan(scene: Scene, settings: MarchSettings) -> list[Pass]:
+    passes = [Pass("rays", "rays")]
+    for v, vol in enumerate(scene.volumes):
+        if uses_closed_form(scene, v, settings):
+            passes.append(Pass(f"volume{v}.closed_form", "closed_form", v))
+            continue
+        passes.append(Pass(f"volume{v}.march", "march", v))
+        if vol.shading == "physical":
+            passes += [Pass(f"volume{v}.shadow{l}", "shadow", l) for l, li in enumerate(scene.lights) if li.shadow]
+        elif vol.shader.light == "derivative" and scene.lights:
+            passes.append(Pass(f"volume{v}.derivative_light", "derivative_light", 0))
+    if scene.sky is not None:
+        passes.append(Pass("sky", "sky"))
+    passes.append(Pass("composite", "composite"))
+    if scene.sky is not None and scene.sky.flare is not None and scene.lights:
+        passes.append(Pass("post.flare", "flare"))
+    if scene.image.spp > 1:
+        passes.append(Pass("resolve", "resolve"))
+    post = scene.post
+    if post.fog is not None and scene.volumes:
+        passes.append(Pass("post.fog", "fog"))
+    if post.exposure != 1.0:
+        passes.append(Pass("post.exposure", "exposure"))
+    if post.tonemap != "none":
+        passes.append(Pass(f"post.tonemap.{post.tonemap}", "tonemap"))
+    if post.vignette > 0:
+        passes.append(Pass("post.vignette", "vignette"))
+    return passes
+
+
+def with_quality(scene: Scene, quality: Quality) -> Scene:
+    """The same scene at another named quality level (explicit march keys still win)."""
+    return scene.model_copy(update={"march": replace_march(scene.march, quality=quality)})
+
+
+def replace_march(march: March, **changes) -> March:
+    return March.model_validate({**march.model_dump(), **changes})
+
+
+__all__ = ["MarchSettings", "Pass", "QUALITY", "march_settings", "make_plan", "uses_closed_form", "with_quality"]

@@ -1,0 +1,69 @@
+"""Bundled scenes (one TOML each) and their documented parameters.
+
+`preset(name, **params)`: every preset takes `width` and `height`; others as listed in PARAMS.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..validate import did_you_mean, fail
+
+HERE = Path(__file__).parent
+
+
+def _template_clouds(data: dict, *, time: float = 0.0, mouse=(0.0, 0.0), noise_texture: Any = None) -> None:
+    """The template's mainImage camera: m = iMouse.xy / iResolution.xy;
+    ro = 4·normalize(sin 3m.x, 0.8 m.y, cos 3m.x) + (0, 0.5, 0); ta = (0, −1, 0); roll cr = 0.07 cos(0.25 t)."""
+    w, h = data["image"]["width"], data["image"]["height"]
+    mouse = tuple(mouse)
+    if len(mouse) != 2:
+        fail("mouse", mouse, "expected (x, y) in pixels")
+    mx, my = mouse[0] / w, mouse[1] / h
+    ro = np.array([math.sin(3.0 * mx), 0.8 * my, math.cos(3.0 * mx)])
+    ro = 4.0 * ro / np.linalg.norm(ro)
+    ro[1] += 0.5
+    cr = 0.07 * math.cos(0.25 * time)
+    data["time"] = time
+    data["camera"].update(eye=ro.tolist(), up=[math.sin(cr), math.cos(cr), 0.0])
+    if noise_texture is not None:
+        clouds = data["volumes"][0]["density"]["clouds"]
+        clouds["texture"] = str(noise_texture) if isinstance(noise_texture, (str, Path)) else noise_texture
+
+
+def _cloud_puff(data: dict, *, sigma_t: float | None = None, g: float | None = None, steps: int | None = None) -> None:
+    vol = data["volumes"][0]
+    if sigma_t is not None:
+        vol["sigma_t"] = sigma_t
+    if g is not None:
+        vol["phase"] = {"hg": {"g": g}}
+    if steps is not None:
+        data["lights"][0]["shadow"]["steps"] = steps
+
+
+PARAMS: dict[str, Callable[..., None]] = {
+    "template-clouds": _template_clouds,
+    "cloud-puff": _cloud_puff,
+}
+
+
+def preset_dict(name: str, **params: Any) -> dict:
+    """The preset's scene as a dict, with `params` applied (width, height, then the preset's own)."""
+    with open(HERE / f"{name}.toml", "rb") as f:
+        data = tomllib.load(f)
+    for key in ("width", "height"):
+        if key in params:
+            data["image"][key] = params.pop(key)
+    apply = PARAMS.get(name)
+    allowed = ["width", "height"] + (list(apply.__kwdefaults__) if apply else [])
+    for key in params:
+        if key not in allowed:
+            fail(f"{name}.{key}", params[key], f"unknown preset parameter; allowed: {', '.join(allowed)}{did_you_mean(key, allowed)}")
+    if apply is not None:
+        apply(data, **params)  # also with no params: the defaults fill what the TOML leaves out
+    return data

@@ -1,0 +1,499 @@
+"""render(): runs a scene's plan over memory-bounded ray chunks and returns a RenderOutput."""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Iterator, Sequence
+
+import torch
+from torch import Tensor
+
+from . import noise, post, sky
+from .camera import Camera, Rays
+from .fields import Field, make_field
+from .plan import MarchSettings, Pass, make_plan, march_settings, uses_closed_form
+from .rays import clip_to_ray, intersect_box, intersect_slab, intersect_sphere
+from .scene import Scene, load_scene
+from .validate import fail
+from .volume import light as lighting
+from .volume.integrate import frostbite_step
+from .volume.march import LN2, StepRule, expected_depth_fraction, march
+
+DEFAULT_CHUNK_RAYS = 1 << 16
+
+
+@dataclass
+class RenderOutput:
+    """`image`, `radiance` (B, 3, H, W); `depth`, `alpha` (B, 1, H, W); `aovs` {name: (B, C, H, W)};
+    `camera` the Camera used; `stats` {"passes", "density_evals", "time_s", ...}."""
+
+    image: Tensor
+    radiance: Tensor
+    depth: Tensor
+    alpha: Tensor
+    aovs: dict[str, Tensor]
+    camera: Camera
+    stats: dict
+
+
+class Timer:
+    """Exclusive wall time per pass: a nested section pauses the one around it."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+        self._stack: list[list] = []
+
+    @contextmanager
+    def section(self, name: str) -> Iterator[None]:
+        now = time.perf_counter()
+        if self._stack:
+            outer = self._stack[-1]
+            self.seconds[outer[0]] = self.seconds.get(outer[0], 0.0) + now - outer[1]
+        self._stack.append([name, now])
+        try:
+            yield
+        finally:
+            end = time.perf_counter()
+            self.seconds[name] = self.seconds.get(name, 0.0) + end - self._stack.pop()[1]
+            if self._stack:
+                self._stack[-1][1] = end
+
+
+class Counter:
+    def __init__(self):
+        self.density_evals = 0
+
+
+class CountedField:
+    """A field that counts the points it evaluates (stats["density_evals"])."""
+
+    def __init__(self, inner: Field, counter: Counter, compiled: bool):
+        self.inner, self.counter = inner, counter
+        self.homogeneous = inner.homogeneous
+        self._call = torch.compile(inner.__call__, dynamic=True) if compiled else inner.__call__
+
+    def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        self.counter.density_evals += points.shape[0]
+        return self._call(points, scene_index, lod)
+
+
+def _t(values, dtype, device) -> Tensor:
+    return torch.tensor(values, dtype=dtype, device=device)
+
+
+def _same_structure(scenes: Sequence[Scene]) -> None:
+    """Scenes of one batch share everything but numeric values."""
+    first = scenes[0]
+
+    def shape(s: Scene):
+        return (
+            s.image, s.march, s.post.tonemap, s.post.vignette > 0, s.post.fog is None, s.sky is None and None or s.sky.kind,
+            s.sky is not None and (s.sky.halo is None, s.sky.flare is None), s.camera.fov_y is None, s.camera.focal is None,
+            [(li.kind, li.shadow) for li in s.lights],
+            [(v.bounds.kind, v.density.kind, v.phase.kind, v.shading, v.shader.light) for v in s.volumes],
+        )
+
+    ref = shape(first)
+    for b, s in enumerate(scenes[1:], start=1):
+        if shape(s) != ref:
+            fail(f"scenes[{b}]", "<scene>", "scenes rendered in one batch must share image, march, post, sky kind, "
+                 "light and volume kinds; only numeric values may differ")
+
+
+def camera_for(scenes: Sequence[Scene], dtype, device) -> Camera:
+    cams = [s.camera for s in scenes]
+    focal = None if cams[0].focal is None else _t([c.focal for c in cams], dtype, device)
+    fov = None if focal is not None else _t([c.resolved_fov_y for c in cams], dtype, device)
+    return Camera.look_at(
+        _t([c.eye for c in cams], dtype, device), _t([c.target for c in cams], dtype, device),
+        _t([c.up for c in cams], dtype, device), width=scenes[0].image.width, height=scenes[0].image.height,
+        fov_y=fov, focal=focal, roll=_t([c.roll for c in cams], dtype, device),
+    )
+
+
+class Lights:
+    """Per-scene light parameters: `direction` (L, B, 3) unit, towards the sun; `radiance` (L, B, 3)."""
+
+    def __init__(self, scenes: Sequence[Scene], dtype, device):
+        n = len(scenes[0].lights)
+        d = _t([[li.direction for li in s.lights] for s in scenes], dtype, device).reshape(len(scenes), n, 3)
+        self.direction = torch.nn.functional.normalize(d, dim=-1).transpose(0, 1)
+        self.radiance = _t([[[c * li.intensity for c in li.color] for li in s.lights] for s in scenes], dtype, device)
+        self.radiance = self.radiance.reshape(len(scenes), n, 3).transpose(0, 1)
+        self.shadow = [li.shadow for li in scenes[0].lights]
+
+    def __len__(self) -> int:
+        return len(self.shadow)
+
+
+class VolumeSlot:
+    """One volume index across the B scenes: its field and per-scene parameter tensors."""
+
+    def __init__(self, scenes: Sequence[Scene], v: int, counter: Counter, compiled: bool, dtype, device):
+        vols = [s.volumes[v] for s in scenes]
+        self.spec = vols[0]
+        times = _t([s.time for s in scenes], dtype, device)
+        self.field = CountedField(make_field([x.density for x in vols], [x.bounds for x in vols], times), counter, compiled)
+        self.sigma_t = _t([x.sigma_t for x in vols], dtype, device)
+        self.albedo = _t([x.albedo for x in vols], dtype, device)
+        self.emission = _t([x.emission for x in vols], dtype, device)
+        self.emissive = any(max(x.emission) > 0 for x in vols)
+        kind = self.spec.bounds.kind
+        self.bounds_kind = kind
+        if kind == "box":
+            self.b0 = _t([x.bounds.box.min for x in vols], dtype, device)
+            self.b1 = _t([x.bounds.box.max for x in vols], dtype, device)
+        elif kind == "sphere":
+            self.b0 = _t([x.bounds.sphere.center for x in vols], dtype, device)
+            self.b1 = _t([x.bounds.sphere.radius for x in vols], dtype, device)
+        else:
+            self.b0 = _t([x.bounds.slab.y_min for x in vols], dtype, device)
+            self.b1 = _t([x.bounds.slab.y_max for x in vols], dtype, device)
+        phase = self.spec.phase.kind
+        self.phase_kind = phase
+        if phase in ("hg", "mie"):
+            self.phase_params = _t([[getattr(x.phase.value, "g")] for x in vols], dtype, device)
+        elif phase == "dual_hg":
+            self.phase_params = _t([[x.phase.dual_hg.g_forward, x.phase.dual_hg.g_backward, x.phase.dual_hg.weight] for x in vols], dtype, device)
+        look = [x.shader for x in vols]
+        self.look = {
+            k: _t([getattr(s, k) for s in look], dtype, device)
+            for k in ("light_offset", "light_scale", "ambient", "color_lit", "color_dark", "alpha_scale", "fog")
+        }
+
+    def intersect(self, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+        """Entry/exit distances of rays `o`, `d` [n, 3] of scenes `s` [n]."""
+        if self.bounds_kind == "box":
+            return intersect_box(o, d, self.b0[s], self.b1[s])
+        if self.bounds_kind == "sphere":
+            return intersect_sphere(o, d, self.b0[s], self.b1[s])
+        return intersect_slab(o, d, self.b0[s], self.b1[s])
+
+    def phase(self, cos: Tensor, s: Tensor) -> Tensor:
+        if self.phase_kind == "isotropic":
+            return lighting.isotropic(cos)
+        if self.phase_kind == "rayleigh":
+            return lighting.rayleigh(cos)
+        p = self.phase_params[s]
+        if self.phase_kind == "hg":
+            return lighting.henyey_greenstein(cos, p[:, 0])
+        if self.phase_kind == "mie":
+            return lighting.mie_cornette_shanks(cos, p[:, 0])
+        return lighting.dual_henyey_greenstein(cos, p[:, 0], p[:, 1], p[:, 2])
+
+
+class Renderer:
+    """Holds one batch's per-scene tensors and runs its plan chunk by chunk."""
+
+    def __init__(self, scenes: Sequence[Scene], settings: MarchSettings, *, seed: int, device, dtype, compiled: bool):
+        self.scenes, self.settings, self.seed = scenes, settings, seed
+        self.kw = dict(dtype=dtype, device=device)
+        self.timer, self.counter = Timer(), Counter()
+        self.plan = make_plan(scenes[0], settings)
+        self.names = {(p.kind, p.index): p.name for p in self.plan}
+        self.lights = Lights(scenes, dtype, device)
+        self.volumes = [VolumeSlot(scenes, v, self.counter, compiled, dtype, device) for v in range(len(scenes[0].volumes))]
+        first = scenes[0]
+        self.sky_spec = first.sky
+        if first.sky is not None:
+            skies = [s.sky for s in scenes]
+            self.sky = {k: _t([getattr(x, k) for x in skies], dtype, device) for k in ("radiance", "horizon", "slope")}
+            for glow in ("halo", "flare"):
+                if getattr(first.sky, glow) is not None:
+                    self.sky[glow + "_color"] = _t([getattr(x, glow).color for x in skies], dtype, device)
+                    self.sky[glow + "_power"] = _t([getattr(x, glow).power for x in skies], dtype, device)
+        self.steps_total = 0
+        self.truncated = 0
+
+    # -- per-chunk passes -------------------------------------------------------------------
+
+    def sky_radiance(self, rays: Rays) -> Tensor:
+        s = rays.scene_index
+        if self.sky_spec is None:
+            return rays.origins.new_zeros(len(rays), 3)
+        if self.sky_spec.kind == "constant":
+            base = self.sky["radiance"][s]
+        else:
+            base = sky.gradient_sky(rays.directions, self.sky["horizon"][s], self.sky["slope"][s])
+        if "halo_color" in self.sky and len(self.lights):
+            base = base + sky.sun_glow(rays.directions, self.lights.direction[0][s], self.sky["halo_color"][s], self.sky["halo_power"][s])
+        return base
+
+    def dither(self, rays: Rays) -> Tensor | None:
+        mode = self.settings.dither
+        if mode == "none":
+            return None
+        if mode == "sin":  # the seeds' fract(sin(px.x*73 + px.y*311) * 43758.5453), GL pixel coordinates
+            px = rays.pixel[:, 0]
+            py = self.scenes[0].image.height - 1 - rays.pixel[:, 1]
+            x = torch.sin((px * 73 + py * 311).to(rays.origins.dtype)) * 43758.5453
+            return self.settings.dither_scale * (x - torch.floor(x))
+        cells = torch.stack([rays.pixel[:, 0], rays.pixel[:, 1], rays.scene_index], dim=1)
+        sub = torch.arange(len(rays), device=cells.device) % self.scenes[0].image.spp
+        return noise.hash3(cells * 1024 + sub[:, None], self.seed, dtype=rays.origins.dtype)
+
+    def lod(self, t: Tensor) -> Tensor | None:
+        if self.settings.lod_scale is None:
+            return None
+        octaves = 5
+        return octaves - torch.floor(torch.log2(1.0 + t * self.settings.lod_scale)).long()
+
+    def in_scatter(self, slot: VolumeSlot, v: int, p: Tensor, d: Tensor, s: Tensor, sigma_s: Tensor) -> Tensor:
+        """Σ over suns of σs · p(θ) · E · T_light at points `p` [n, 3] seen along `d` [n, 3]. -> [n, 3]."""
+        out = p.new_zeros(p.shape[0], 3)
+        for l in range(len(self.lights)):
+            sun = self.lights.direction[l][s]
+            radiance = self.lights.radiance[l][s] * (sigma_s * slot.phase((d * sun).sum(dim=1), s))[:, None]
+            shadow = self.lights.shadow[l]
+            if shadow is not None:
+                with self.timer.section(self.names[("shadow", l)]):
+                    exit_t = slot.intersect(p, sun, s)[1].clamp(0.0, self.settings.max_distance)
+                    radiance = radiance * lighting.shadow_transmittance(
+                        p, sun, exit_t, lambda q, owner: slot.sigma_t[s[owner]] * slot.field(q, s[owner]),
+                        steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step,
+                    )[:, None]
+            out = out + radiance
+        return out
+
+    def physical_medium(self, slot: VolumeSlot, v: int, rays: Rays):
+        o, d, s_all = rays.origins, rays.directions, rays.scene_index
+        threshold = self.settings.density_threshold
+
+        def medium(ids: Tensor, t: Tensor, dt: Tensor):
+            s = s_all[ids]
+            p = o[ids] + t[:, None] * d[ids]
+            density = slot.field(p, s, self.lod(t))
+            sigma_t = slot.sigma_t[s] * density
+            source = p.new_zeros(p.shape[0], 3)
+            lit = (density > threshold).nonzero().squeeze(1)
+            if lit.numel() and len(self.lights):
+                sigma_s = slot.albedo[s[lit]] * sigma_t[lit]
+                source[lit] = self.in_scatter(slot, v, p[lit], d[ids][lit], s[lit], sigma_s)
+            if slot.emissive:
+                source = source + slot.emission[s] * density[:, None]
+            return sigma_t, source
+
+        return medium
+
+    def shader_medium(self, slot: VolumeSlot, v: int, rays: Rays, background: Tensor):
+        """The seeds' look: alpha = density·scale; colour = mix(lit, dark, density)·(sun·dif + ambient),
+        fogged towards the sky colour by 1 − exp(−fog·t²)."""
+        o, d, s_all = rays.origins, rays.directions, rays.scene_index
+        look, threshold = slot.look, self.settings.density_threshold
+        derivative = slot.spec.shader.light == "derivative" and len(self.lights) > 0
+
+        def medium(ids: Tensor, t: Tensor, dt: Tensor):
+            s = s_all[ids]
+            p = o[ids] + t[:, None] * d[ids]
+            lod = self.lod(t)
+            density = slot.field(p, s, lod)
+            alpha = torch.zeros_like(density)
+            color = p.new_zeros(p.shape[0], 3)
+            keep = (density > threshold).nonzero().squeeze(1)
+            if keep.numel():
+                sk, dk, tk = s[keep], density[keep], t[keep]
+                lin = look["ambient"][sk]
+                if derivative:
+                    with self.timer.section(self.names[("derivative_light", 0)]):
+                        sun = self.lights.direction[0][sk]
+                        ahead = slot.field(p[keep] + look["light_offset"][sk, None] * sun, sk, None if lod is None else lod[keep])
+                        dif = lighting.derivative_light(dk, ahead, scale=look["light_scale"][sk])
+                        lin = self.lights.radiance[0][sk] * dif[:, None] + lin
+                col = torch.lerp(look["color_lit"][sk], look["color_dark"][sk], dk[:, None]) * lin
+                fog = look["fog"][sk]
+                col = torch.lerp(col, background[ids][keep], (1.0 - torch.exp(-fog * tk * tk))[:, None])
+                color[keep] = col
+                alpha[keep] = dk * look["alpha_scale"][sk]
+            return alpha, color
+
+        return medium
+
+    def volume(self, slot: VolumeSlot, v: int, rays: Rays, background: Tensor) -> dict[str, Tensor]:
+        """Radiance [n,3], transmittance, weight sums, median t and entry t of one volume."""
+        st = self.settings
+        t_near, t_far = slot.intersect(rays.origins, rays.directions, rays.scene_index)
+        shader = slot.spec.shading == "shader"
+        if shader:  # the seeds: march whenever the exit is ahead, from max(t_near, 0)
+            t0 = t_near.clamp_min(0.0)
+            t1 = t_far.clamp_max(st.max_distance)
+            hit = (t_far >= 0) & (t_far >= t_near)
+        else:
+            t0, t1, hit = clip_to_ray(t_near, t_far, st.max_distance)
+        if uses_closed_form(self.scenes[0], v, st):
+            with self.timer.section(self.names[("closed_form", v)]):
+                return self.closed_form(slot, v, rays, t0, t1, hit)
+        with self.timer.section(self.names[("march", v)]):
+            if shader:
+                medium = self.shader_medium(slot, v, rays, background)
+            else:
+                medium = self.physical_medium(slot, v, rays)
+            res = march(
+                t0, t1, hit, medium, rule=st.rule, integrator=st.integrator,
+                semantics="shader" if shader else "segments", dither=self.dither(rays),
+                min_transmittance=st.min_transmittance,
+            )
+        self.steps_total += int(res.steps.sum())
+        self.truncated += int(res.truncated.sum())
+        radiance, trans = res.radiance, res.transmittance
+        if shader:  # the template's clamp(sum, 0, 1)
+            radiance, trans = radiance.clamp(0.0, 1.0), 1.0 - (1.0 - trans).clamp(0.0, 1.0)
+        return dict(radiance=radiance, transmittance=trans, weight_sum=res.weight_sum, weighted_t=res.weighted_t,
+                    median_t=res.median_t, t0=torch.where(hit, t0, torch.full_like(t0, math.inf)))
+
+    def closed_form(self, slot: VolumeSlot, v: int, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> dict[str, Tensor]:
+        """Homogeneous medium, unshadowed suns: one exact frostbite segment over the whole chord."""
+        s, d = rays.scene_index, rays.directions
+        length = torch.where(hit, t1 - t0, torch.zeros_like(t0))
+        mid = rays.origins + (0.5 * (t0 + t1))[:, None] * d
+        density = slot.field(mid, s)
+        sigma_t = slot.sigma_t[s] * density
+        source = slot.emission[s] * density[:, None]
+        if len(self.lights):
+            source = source + self.in_scatter(slot, v, mid, d, s, slot.albedo[s] * sigma_t)
+        radiance, trans = frostbite_step(source, sigma_t, length)
+        alpha = 1.0 - trans
+        x = sigma_t * length
+        t_mean = t0 + length * expected_depth_fraction(x)
+        median = torch.where(trans <= 0.5, t0 + LN2 / sigma_t.clamp_min(torch.finfo(t0.dtype).tiny), torch.zeros_like(t0))
+        return dict(radiance=radiance, transmittance=trans, weight_sum=alpha, weighted_t=alpha * t_mean,
+                    median_t=median, t0=torch.where(hit, t0, torch.full_like(t0, math.inf)))
+
+    def chunk(self, rays: Rays) -> dict[str, Tensor]:
+        n = len(rays)
+        background = None
+        if self.sky_spec is not None:
+            with self.timer.section("sky"):
+                background = self.sky_radiance(rays)
+        parts = [self.volume(slot, v, rays, background) for v, slot in enumerate(self.volumes)]
+        with self.timer.section("composite"):
+            radiance = rays.origins.new_zeros(n, 3)
+            trans = torch.ones_like(rays.origins[:, 0])
+            wsum, wt, median = torch.zeros_like(trans), torch.zeros_like(trans), torch.zeros_like(trans)
+            if parts:
+                order = torch.argsort(torch.stack([p["t0"] for p in parts]), dim=0)  # front to back per ray
+                for k in range(len(parts)):
+                    pick = order[k]
+                    def g(key):
+                        stacked = torch.stack([p[key] for p in parts])
+                        return stacked.gather(0, pick.view(1, -1, *([1] * (stacked.dim() - 2))).expand(1, *stacked.shape[1:]))[0]
+                    radiance = radiance + trans[:, None] * g("radiance")
+                    wsum, wt = wsum + trans * g("weight_sum"), wt + trans * g("weighted_t")
+                    med = g("median_t")
+                    median = torch.where((median == 0) & (trans > 0.5) & (trans * g("transmittance") <= 0.5), med, median)
+                    trans = trans * g("transmittance")
+            if background is not None:
+                radiance = radiance + trans[:, None] * background
+        if ("flare", None) in self.names:
+            with self.timer.section("post.flare"):
+                s = rays.scene_index
+                radiance = radiance + sky.sun_glow(rays.directions, self.lights.direction[0][s], self.sky["flare_color"][s], self.sky["flare_power"][s])
+        alpha = 1.0 - trans
+        distance = torch.where(wsum > 0, wt / wsum.clamp_min(torch.finfo(wsum.dtype).tiny), torch.zeros_like(wsum))
+        valid = (alpha >= self.settings.depth_threshold) & (wsum > 0)
+        distance = torch.where(valid, distance, torch.zeros_like(distance))
+        return dict(radiance=radiance, alpha=alpha, depth=distance * rays.forward_cos,
+                    distance=distance, depth_median=median * rays.forward_cos)
+
+
+def _resolve(values: Tensor, b: int, h: int, w: int, spp: int, *, valid_only: bool = False) -> Tensor:
+    """[R, C] in (scene, row, column, sample) order -> (B, C, H, W) averaged over samples."""
+    x = values.reshape(b, h, w, spp, -1)
+    if valid_only and spp > 1:  # depth: mean over the sub-samples that hit
+        n = (x > 0).sum(dim=3)
+        x = x.sum(dim=3) / n.clamp_min(1)
+    else:
+        x = x.mean(dim=3)
+    return x.permute(0, 3, 1, 2).contiguous()
+
+
+def render(
+    scene,
+    *,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype | None = None,
+    chunk_rays: int = DEFAULT_CHUNK_RAYS,
+    compile: bool = False,
+) -> RenderOutput:
+    """Render a scene (or a list of scenes of one structure, as one batch).
+
+    `scene`: a Scene, a dict, a .toml path or a preset name (or a list of those). `seed` drives the
+    dither and sub-pixel jitter. `dtype` defaults to the quality level's (float64 for reference).
+    `chunk_rays` bounds peak memory. `compile` wraps the density fields in torch.compile."""
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        fail("seed", seed, "expected an integer")
+    if isinstance(chunk_rays, bool) or not isinstance(chunk_rays, int) or chunk_rays < 1:
+        fail("chunk_rays", chunk_rays, "expected an integer >= 1")
+    scenes = [load_scene(s) for s in (scene if isinstance(scene, (list, tuple)) else [scene])]
+    if not scenes:
+        fail("scene", scene, "expected at least one scene")
+    _same_structure(scenes)
+    settings = march_settings(scenes[0].march)
+    dtype = dtype or settings.dtype
+    start = time.perf_counter()
+    r = Renderer(scenes, settings, seed=seed, device=torch.device(device), dtype=dtype, compiled=compile)
+    img = scenes[0].image
+    b, h, w, spp = len(scenes), img.height, img.width, img.spp
+    with r.timer.section("rays"):
+        camera = camera_for(scenes, dtype, torch.device(device))
+        gen = torch.Generator(device="cpu").manual_seed(seed)
+        rays = camera.rays(spp=spp, generator=gen)
+    outs: dict[str, list[Tensor]] = {}
+    for part in rays.chunks(chunk_rays):
+        for key, value in r.chunk(part).items():
+            outs.setdefault(key, []).append(value.to(torch.float32).reshape(len(part), -1))
+    flat = {k: torch.cat(v) for k, v in outs.items()}
+    with r.timer.section("resolve") if spp > 1 else _noop():
+        radiance = _resolve(flat["radiance"], b, h, w, spp)
+        alpha = _resolve(flat["alpha"], b, h, w, spp)
+        depth = _resolve(flat["depth"], b, h, w, spp, valid_only=True)
+        aovs = {}
+        if scenes[0].volumes:
+            aovs["depth_median"] = _resolve(flat["depth_median"], b, h, w, spp, valid_only=True)
+            aovs["distance"] = _resolve(flat["distance"], b, h, w, spp, valid_only=True)
+    image = _post(scenes, r, radiance, aovs.get("distance"))
+    stats = {
+        "passes": [p.name for p in r.plan],
+        "density_evals": r.counter.density_evals,
+        "time_s": {p.name: r.timer.seconds.get(p.name, 0.0) for p in r.plan},
+        "total_s": time.perf_counter() - start,
+        "rays": len(rays),
+        "march_steps": r.steps_total,
+        "truncated_rays": r.truncated,
+        "dtype": str(dtype).removeprefix("torch."),
+    }
+    return RenderOutput(image=image, radiance=radiance, depth=depth, alpha=alpha, aovs=aovs, camera=camera, stats=stats)
+
+
+@contextmanager
+def _noop():
+    yield
+
+
+def _post(scenes: Sequence[Scene], r: Renderer, radiance: Tensor, distance: Tensor | None) -> Tensor:
+    p = scenes[0].post
+    x = radiance
+    names = {pp.kind: pp.name for pp in r.plan}
+    if "fog" in names:
+        with r.timer.section(names["fog"]):
+            color = torch.tensor([s.post.fog.color for s in scenes], dtype=x.dtype)
+            density = torch.tensor([s.post.fog.density for s in scenes], dtype=x.dtype)
+            x = post.distance_fog(x, distance, color, density)
+    if "exposure" in names:
+        with r.timer.section(names["exposure"]):
+            x = x * torch.tensor([s.post.exposure for s in scenes], dtype=x.dtype)[:, None, None, None]
+    if "tonemap" in names:
+        with r.timer.section(names["tonemap"]):
+            if p.tonemap == "smoothstep":
+                x = post.smoothstep(p.smoothstep_edges[0], p.smoothstep_edges[1], x)
+            elif p.tonemap == "reinhard":
+                x = post.reinhard(x.clamp_min(0.0))
+            else:
+                x = post.aces(x.clamp_min(0.0))
+    if "vignette" in names:
+        with r.timer.section(names["vignette"]):
+            x = post.vignette(x, p.vignette)
+    return x.clamp(0.0, 1.0)

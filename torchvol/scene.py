@@ -1,0 +1,481 @@
+"""The scene schema, validated once at the boundary; `load_scene` and `preset`.
+
+Every model forbids unknown keys and non-finite numbers. Validation errors surface as one
+`SceneError` (a ValueError) naming the key path, the value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_core import PydanticCustomError
+
+from .validate import SceneError, did_you_mean, fail
+
+Vec3 = tuple[float, float, float]
+PRESET_DIR = Path(__file__).parent / "presets"
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, arbitrary_types_allowed=True, frozen=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known_keys(cls, data: Any) -> Any:
+        if isinstance(data, Mapping):
+            for key in data:
+                if key not in cls.model_fields:
+                    allowed = ", ".join(cls.model_fields)
+                    raise PydanticCustomError(
+                        "unknown_key",
+                        "unknown key{hint}; allowed keys: {allowed}",
+                        {"key": str(key), "hint": did_you_mean(str(key), cls.model_fields), "allowed": allowed},
+                    )
+        return data
+
+
+def _nonneg(v: Vec3, what: str = "components") -> Vec3:
+    if min(v) < 0:
+        raise ValueError(f"{what} must be >= 0")
+    return v
+
+
+class One(Strict):
+    """A choice written as a table with exactly one key, e.g. ``{ box = {...} }``."""
+
+    @model_validator(mode="after")
+    def _exactly_one(self):
+        given = [k for k in type(self).model_fields if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"give exactly one of {', '.join(type(self).model_fields)}")
+        return self
+
+    @property
+    def kind(self) -> str:
+        return next(k for k in type(self).model_fields if getattr(self, k) is not None)
+
+    @property
+    def value(self) -> Any:
+        return getattr(self, self.kind)
+
+
+class Image(Strict):
+    width: int = Field(256, ge=1, le=16384)
+    height: int = Field(256, ge=1, le=16384)
+    spp: int = Field(1, ge=1, le=1024)
+
+
+class CameraSpec(Strict):
+    eye: Vec3 = (0.0, 1.0, -5.0)
+    target: Vec3 = (0.0, 0.0, 0.0)
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov_y: float | None = Field(None, gt=0.0, lt=180.0, description="full vertical field of view, degrees")
+    focal: float | None = Field(None, gt=0.0, description="the seeds' shader focal length (fy = focal·H/2)")
+    roll: float = 0.0
+
+    @model_validator(mode="after")
+    def _geometry(self):
+        if self.fov_y is not None and self.focal is not None:
+            raise ValueError("give fov_y or focal, not both")
+        forward = np.subtract(self.target, self.eye)
+        if np.linalg.norm(forward) < 1e-9:
+            raise ValueError(f"eye {self.eye} equals target: no view direction")
+        up = np.asarray(self.up)
+        if np.linalg.norm(up) < 1e-9:
+            raise ValueError("up must be a non-zero vector")
+        cross = np.linalg.norm(np.cross(forward / np.linalg.norm(forward), up / np.linalg.norm(up)))
+        if cross < 1e-6:
+            raise ValueError("up is parallel to the view direction (target - eye)")
+        return self
+
+    @property
+    def resolved_fov_y(self) -> float | None:
+        return 45.0 if self.fov_y is None and self.focal is None else self.fov_y
+
+
+class Glow(Strict):
+    """An additive lobe around the sun: color · clamp(dot(sun, rd), 0, 1)^power."""
+
+    color: Vec3
+    power: float = Field(gt=0.0)
+    _c = field_validator("color")(lambda v: _nonneg(v))
+
+
+class Sky(Strict):
+    kind: Literal["constant", "gradient"] = "constant"
+    radiance: Vec3 = (0.0, 0.0, 0.0)
+    horizon: Vec3 = (0.675, 0.785, 0.825)  # gradient: colour at rd.y = 0
+    slope: Vec3 = (0.2, 0.1, 0.2)  # gradient: colour = horizon − rd.y · slope
+    halo: Glow | None = None  # added to the sky (seen through volumes)
+    flare: Glow | None = None  # added over everything, after compositing
+    _r = field_validator("radiance")(lambda v: _nonneg(v))
+
+
+class Shadow(Strict):
+    steps: int = Field(16, ge=1, le=4096)
+    growth: float = Field(1.0, ge=1.0, le=4.0)
+    first_step: float | None = Field(None, gt=0.0)
+
+
+class Light(Strict):
+    kind: Literal["sun"] = "sun"
+    direction: Vec3 = (1.0, 1.0, -0.5)
+    color: Vec3 = (1.0, 1.0, 1.0)
+    intensity: float = Field(1.0, ge=0.0)
+    shadow: Shadow | None = None
+
+    @field_validator("direction")
+    @classmethod
+    def _nonzero(cls, v):
+        if math.hypot(*v) < 1e-12:
+            raise ValueError("direction must be a non-zero vector (it points towards the sun)")
+        return v
+
+    _c = field_validator("color")(lambda v: _nonneg(v))
+
+
+class Box(Strict):
+    min: Vec3 = (-0.5, -0.5, -0.5)
+    max: Vec3 = (0.5, 0.5, 0.5)
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if any(hi <= lo for lo, hi in zip(self.min, self.max)):
+            raise ValueError(f"max {self.max} must exceed min {self.min} on every axis")
+        return self
+
+
+class Sphere(Strict):
+    center: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = Field(1.0, gt=0.0)
+
+
+class Slab(Strict):
+    y_min: float = -1.0
+    y_max: float = 1.0
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.y_max <= self.y_min:
+            raise ValueError(f"y_max {self.y_max} must exceed y_min {self.y_min}")
+        return self
+
+
+class Bounds(One):
+    box: Box | None = None
+    sphere: Sphere | None = None
+    slab: Slab | None = None
+
+
+class GridDensity(Strict):
+    """grid[k, j, i] is the value at the centre of cell (i, j, k) of the volume's box."""
+
+    path: str | None = None
+    data: Any = None
+
+    @model_validator(mode="after")
+    def _load(self):
+        if (self.path is None) == (self.data is None):
+            raise ValueError("give path (a .npy file) or data (an array), not both")
+        if self.path is not None:
+            if not Path(self.path).is_file():
+                raise ValueError(f"no such file: {self.path}")
+            array = np.load(self.path)
+        else:
+            array = np.asarray(self.data)
+        if array.ndim != 3 or min(array.shape) < 1:
+            raise ValueError(f"grid must be a 3D array [k, j, i], got shape {array.shape}")
+        if not np.issubdtype(array.dtype, np.number) or not np.all(np.isfinite(array)) or array.min() < 0:
+            raise ValueError("grid values must be finite numbers >= 0")
+        object.__setattr__(self, "data", array.astype(np.float64, copy=False))
+        return self
+
+
+class FbmDensity(Strict):
+    """density = max(bias + amplitude · fbm(frequency · (p − wind·time) + offset), 0)."""
+
+    octaves: int = Field(5, ge=1, le=12)
+    frequency: float = Field(1.0, gt=0.0, le=1e6)
+    noise: Literal["value", "perlin", "worley"] = "value"
+    seed: int = 0
+    amplitude: float = 1.0
+    bias: float = 0.0
+    offset: Vec3 = (0.0, 0.0, 0.0)
+    wind: Vec3 = (0.0, 0.0, 0.0)
+
+
+class CloudsDensity(Strict):
+    """The seed template's cloud layer `map()`:
+    clamp(bias − p.y + density_scale · fbm(p − wind·time), 0, 1), fbm of texture noise in [−1, 1]."""
+
+    texture_seed: int = 0
+    texture: Any = None  # a PNG path or a uint8 array (256, 256, 4) [y, x, channel]
+    octaves: int = Field(5, ge=1, le=5)
+    density_scale: float = 1.75
+    bias: float = -0.5
+    wind: Vec3 = (0.0, 0.1, 1.0)
+
+    @field_validator("texture")
+    @classmethod
+    def _texture(cls, v):
+        if v is None:
+            return None
+        if isinstance(v, (str, Path)):
+            if not Path(v).is_file():
+                raise ValueError(f"no such file: {v}")
+            from PIL import Image as PILImage
+
+            v = np.asarray(PILImage.open(v).convert("RGBA"))
+        array = np.asarray(v)
+        if array.shape != (256, 256, 4) or array.dtype != np.uint8:
+            raise ValueError(f"noise texture must be uint8 (256, 256, 4), got {array.dtype} {array.shape}")
+        return array
+
+
+class Density(One):
+    constant: float | None = Field(None, ge=0.0)
+    grid: GridDensity | None = None
+    fbm: FbmDensity | None = None
+    clouds: CloudsDensity | None = None
+
+
+class HG(Strict):
+    g: float = Field(0.0, gt=-1.0, lt=1.0)
+
+
+class DualHG(Strict):
+    g_forward: float = Field(0.8, gt=-1.0, lt=1.0)
+    g_backward: float = Field(-0.2, gt=-1.0, lt=1.0)
+    weight: float = Field(0.5, ge=0.0, le=1.0)
+
+
+class Empty(Strict):
+    pass
+
+
+class Phase(One):
+    isotropic: Empty | None = None
+    hg: HG | None = None
+    dual_hg: DualHG | None = None
+    rayleigh: Empty | None = None
+    mie: HG | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _shorthand(cls, data):
+        return {data: {}} if isinstance(data, str) else data
+
+
+class ShaderLook(Strict):
+    """The seeds' non-physical look (shading = "shader"): alpha = density·alpha_scale, colour =
+    mix(color_lit, color_dark, density) · (sun_color · derivative light + ambient), fog towards the sky."""
+
+    light: Literal["derivative", "none"] = "derivative"
+    light_offset: float = Field(0.3, gt=0.0)
+    light_scale: float = Field(0.6, gt=0.0)
+    ambient: Vec3 = (0.91, 0.98, 1.05)
+    color_lit: Vec3 = (1.0, 0.95, 0.8)
+    color_dark: Vec3 = (0.25, 0.3, 0.35)
+    alpha_scale: float = Field(0.4, ge=0.0)
+    fog: float = Field(0.0, ge=0.0)  # mix towards the sky by 1 − exp(−fog·t²)
+
+
+class Volume(Strict):
+    bounds: Bounds = Field(default_factory=lambda: Bounds(box=Box()))
+    density: Density = Field(default_factory=lambda: Density(constant=1.0))
+    sigma_t: float = Field(1.0, ge=0.0, le=1e12)
+    albedo: float = Field(1.0, ge=0.0, le=1.0)
+    emission: Vec3 = (0.0, 0.0, 0.0)
+    phase: Phase = Field(default_factory=lambda: Phase(isotropic=Empty()))
+    shading: Literal["physical", "shader"] = "physical"
+    shader: ShaderLook = Field(default_factory=ShaderLook)
+    _e = field_validator("emission")(lambda v: _nonneg(v))
+
+    @model_validator(mode="after")
+    def _grid_needs_box(self):
+        if self.density.kind == "grid" and self.bounds.kind != "box":
+            raise ValueError("a grid density needs box bounds (the grid spans the box)")
+        return self
+
+
+class Lod(Strict):
+    """Octaves at distance t: octaves − floor(log2(1 + scale·t)) (the template's LOD)."""
+
+    scale: float = Field(0.5, gt=0.0)
+
+
+class March(Strict):
+    quality: Literal["draft", "default", "high", "reference"] = "default"
+    integrator: Literal["riemann", "frostbite", "alpha"] | None = None
+    placement: Literal["count", "size", "adaptive"] | None = None
+    steps: int | None = Field(None, ge=1, le=1_000_000)
+    step_size: float | None = Field(None, gt=0.0)
+    step_growth: float | None = Field(None, ge=0.0)  # adaptive: dt = max(step_size, step_growth·t)
+    dither: Literal["none", "hash", "sin"] | None = None
+    dither_scale: float | None = Field(None, ge=0.0)  # sin dither: t0 += dither_scale · hash(pixel)
+    max_distance: float | None = Field(None, gt=0.0)
+    min_transmittance: float | None = Field(None, ge=0.0, lt=1.0)
+    density_threshold: float | None = Field(None, ge=0.0)
+    lod: Lod | None = None
+    closed_form: bool = True
+    depth_threshold: float = Field(0.01, ge=0.0, le=1.0)
+
+
+class Fog(Strict):
+    color: Vec3 = (0.5, 0.6, 0.7)
+    density: float = Field(0.01, ge=0.0)
+    _c = field_validator("color")(lambda v: _nonneg(v))
+
+
+class Post(Strict):
+    tonemap: Literal["none", "smoothstep", "reinhard", "aces"] = "none"
+    exposure: float = Field(1.0, gt=0.0)
+    smoothstep_edges: tuple[float, float] = (0.15, 1.1)
+    vignette: float = Field(0.0, ge=0.0, le=1.0)
+    fog: Fog | None = None
+
+    @field_validator("smoothstep_edges")
+    @classmethod
+    def _edges(cls, v):
+        if v[1] <= v[0]:
+            raise ValueError("smoothstep_edges must be increasing")
+        return v
+
+
+class Scene(Strict):
+    time: float = 0.0
+    image: Image = Field(default_factory=Image)
+    camera: CameraSpec = Field(default_factory=CameraSpec)
+    sky: Sky | None = None
+    lights: list[Light] = Field(default_factory=list)
+    volumes: list[Volume] = Field(default_factory=list)
+    march: March = Field(default_factory=March)
+    post: Post = Field(default_factory=Post)
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+
+
+def _path_str(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out
+
+
+def _lookup(data: Any, loc: tuple) -> Any:
+    for part in loc:
+        try:
+            data = data[part]
+        except (KeyError, IndexError, TypeError):
+            return None
+    return data
+
+
+def _scene_error(err: ValidationError, raw: Any) -> SceneError:
+    """Turn pydantic's first error into our one message shape."""
+    e = err.errors(include_url=False)[0]
+    loc = tuple(p for p in e["loc"] if not (isinstance(p, str) and ("[" in p or p.startswith("function-"))))
+    if e["type"] == "unknown_key":
+        key = e["ctx"]["key"]
+        loc = loc + (key,)
+        return SceneError(_path_str(loc), _lookup(raw, loc), e["msg"])
+    value = e.get("input")
+    msg = e["msg"].removeprefix("Value error, ")
+    if isinstance(value, Mapping) and len(repr(value)) > 120:
+        value = f"{{{', '.join(map(str, value))}}}"
+    return SceneError(_path_str(loc), value, msg)
+
+
+def _set_path(data: dict, dotted: str, value: Any) -> None:
+    """Apply one override ``a.b[0].c`` / ``a.b.0.c`` to a nested dict/list, creating tables."""
+    parts = [p for p in dotted.replace("[", ".").replace("]", "").split(".") if p]
+    if not parts:
+        fail(dotted, value, "an override key must be a dotted path like 'camera.fov_y'")
+    node: Any = data
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                fail(_path_str(tuple(parts[: i + 1])), value, f"index out of range (the list has {len(node)} items)")
+            part = int(part)
+        elif not isinstance(node, dict):
+            fail(dotted, value, f"{'.'.join(parts[:i])} is not a table")
+        if last:
+            node[part] = value
+        else:
+            if isinstance(node, dict) and part not in node:
+                node[part] = {}
+            node = node[part]
+
+
+def parse_value(text: str) -> Any:
+    """A command-line value: TOML syntax where it parses (numbers, [1,2,3], true), else a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def read_source(source: str | Path | Mapping) -> dict:
+    """A scene or recipe source as a plain dict: a .toml path, a preset name or a mapping."""
+    if isinstance(source, BaseModel):
+        return source.model_dump()
+    if isinstance(source, Mapping):
+        return copy.deepcopy(dict(source))
+    path = Path(source)
+    if path.suffix == ".toml" or path.exists():
+        if not path.is_file():
+            fail("source", str(source), "no such scene file")
+        try:
+            with open(path, "rb") as f:
+                return tomllib.load(f)
+        except tomllib.TOMLDecodeError as exc:
+            fail("source", str(source), f"not valid TOML: {exc}")
+    name = str(source)
+    if (PRESET_DIR / f"{name}.toml").is_file():
+        from .presets import preset_dict
+
+        return preset_dict(name)
+    fail("source", name, "expected a .toml path, a mapping or a preset name" + did_you_mean(name, preset_names()))
+
+
+def validate_scene(data: Mapping) -> Scene:
+    try:
+        return Scene.model_validate(data)
+    except ValidationError as err:
+        raise _scene_error(err, data) from None
+
+
+def load_scene(source: str | Path | Mapping | Scene, overrides: Mapping[str, Any] | None = None) -> Scene:
+    """A validated Scene from a .toml path, a preset name, a dict or a Scene; `overrides` maps
+    dotted key paths to values (``{"camera.fov_y": 30}``)."""
+    if isinstance(source, Scene) and not overrides:
+        return source
+    data = read_source(source)
+    for key, value in (overrides or {}).items():
+        _set_path(data, key, value)
+    return validate_scene(data)
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+
+
+def preset(name: str, **params: Any) -> Scene:
+    """A bundled scene with its documented parameters (see `torchvol.presets`)."""
+    from .presets import preset_dict
+
+    if name not in preset_names():
+        fail("preset", name, "unknown preset; available: " + ", ".join(preset_names()) + did_you_mean(name, preset_names()))
+    return validate_scene(preset_dict(name, **params))

@@ -1,0 +1,72 @@
+"""Per-step integrators of the volume rendering equation, and a dense reference composite.
+
+One march step covers a segment of length ``dt`` with extinction ``sigma_t`` and a source term
+``source`` (radiance scattered or emitted towards the camera per unit length, divided by nothing).
+Each integrator returns the segment's contribution *before* the transmittance in front of it and
+the segment's own transmittance, so the march loop is the same for all of them:
+
+    radiance += T * contribution;  T *= segment_transmittance
+
+- ``riemann``:   contribution = S·dt                       (the seeds' naive S·dt)
+- ``frostbite``: contribution = (S − S·e^{−σΔt}) / σ       (exact for S, σ constant on the segment)
+- ``alpha``:     the seeds' premultiplied front-to-back compositing, a = clamp(density·scale, 0, 1)
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+Integrator = Literal["riemann", "frostbite", "alpha"]
+
+# Below this optical depth the series of (1 - e^-x)/x is used: its next term is x^3/24 < 1e-17.
+_SERIES_BELOW = 1e-4
+
+
+def one_minus_exp_over_x(x: Tensor) -> Tensor:
+    """(1 − e^{−x}) / x for x ≥ 0, stable as x → 0 (→ 1) and for huge x (→ 1/x). `x`: any shape."""
+    small = x < _SERIES_BELOW
+    safe = torch.where(small, torch.ones_like(x), x)
+    exact = -torch.expm1(-safe) / safe
+    series = 1.0 - x * (0.5 - x / 6.0)
+    return torch.where(small, series, exact)
+
+
+def segment_transmittance(sigma_t: Tensor, dt: Tensor) -> Tensor:
+    """Beer-Lambert e^{−σ·Δt}. `sigma_t`, `dt`: [N]."""
+    return torch.exp(-sigma_t * dt)
+
+
+def riemann_step(source: Tensor, sigma_t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+    """Contribution S·Δt and transmittance. `source`: [N, C]; `sigma_t`, `dt`: [N]."""
+    return source * dt[:, None], segment_transmittance(sigma_t, dt)
+
+
+def frostbite_step(source: Tensor, sigma_t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+    """Contribution (S − S e^{−σΔt})/σ, written as S·Δt·(1 − e^{−x})/x with x = σΔt (no 0/0).
+
+    `source`: [N, C]; `sigma_t`, `dt`: [N]."""
+    x = sigma_t * dt
+    return source * (dt * one_minus_exp_over_x(x))[:, None], torch.exp(-x)
+
+
+def alpha_step(color: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
+    """The seeds' premultiplied compositing: contribution colour·a, transmittance 1 − a.
+
+    `color`: [N, C]; `alpha`: [N] already in [0, 1]."""
+    return color * alpha[:, None], 1.0 - alpha
+
+
+def composite(contribution: Tensor, transmittance: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Dense front-to-back composite of S samples per ray: the obvious reference for the march loop.
+
+    `contribution`: [R, S, C]; `transmittance`: [R, S] (per segment).
+    Returns radiance [R, C], final transmittance [R], and weights w_i = T_i (1 − t_i) [R, S].
+    """
+    ones = torch.ones_like(transmittance[:, :1])
+    before = torch.cumprod(torch.cat([ones, transmittance[:, :-1]], dim=1), dim=1)  # [R, S]
+    radiance = (before[..., None] * contribution).sum(dim=1)
+    weights = before * (1.0 - transmittance)
+    return radiance, before[:, -1] * transmittance[:, -1], weights
