@@ -1,0 +1,379 @@
+"""Pinhole camera in OpenCV/kornia conventions, and the flat primary-ray bundle.
+
+Conventions (normative, see ``shared/DESIGN.md``):
+
+* World: right-handed, y up.
+* Camera axes (OpenCV): x right, y down, z forward. ``world_to_camera`` (B, 4, 4) maps world points
+  to camera points; ``K`` (B, 3, 3) maps camera points to pixels with *integer* pixel centres
+  (column ``i`` covers ``[i - 0.5, i + 0.5]``), row 0 the top of the picture.
+* ``fov_y`` is the full vertical field of view in degrees: ``fy = H / (2 tan(fov_y / 2))``.
+* Shader focal ``f`` (the seeds' ``rd = normalize(p.x*u + p.y*v + f*w)`` with
+  ``p = (2*fragCoord - res) / res.y``): ``fx = fy = f * H / 2``. Hence ``f = 1 / tan(fov_y / 2)``.
+* Principal point of :meth:`Camera.look_at`: ``cx = W/2 - 0.5``, ``cy = H/2 - 0.5``.
+
+Shapes follow ``docs/ARCHITECTURE.md``: ``B`` scenes, ``R = B*H*W*spp`` flat rays.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterator, Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = ["Camera", "Rays", "strata_shape"]
+
+
+@dataclass(frozen=True)
+class Rays:
+    """A flat bundle of rays.
+
+    origins     [R, 3]  ray origins (the camera eye for primary rays)
+    directions  [R, 3]  unit directions
+    scene_index [R]     long, index into per-scene tensors (B, ...)
+    pixel       [R, 2]  long, (column, row), row 0 the top of the picture
+    forward_cos [R]     dot(direction, camera forward); planar depth z = t * forward_cos
+    """
+
+    origins: Tensor
+    directions: Tensor
+    scene_index: Tensor
+    pixel: Tensor
+    forward_cos: Tensor
+
+    def __len__(self) -> int:
+        return int(self.origins.shape[0])
+
+    @property
+    def num_rays(self) -> int:
+        return int(self.origins.shape[0])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.origins.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.origins.device
+
+    def slice(self, start: int, stop: int) -> "Rays":
+        """Rays ``start:stop`` (views, no copy)."""
+        return Rays(
+            origins=self.origins[start:stop],
+            directions=self.directions[start:stop],
+            scene_index=self.scene_index[start:stop],
+            pixel=self.pixel[start:stop],
+            forward_cos=self.forward_cos[start:stop],
+        )
+
+    def chunks(self, size: int) -> Iterator["Rays"]:
+        """Consecutive slices of at most ``size`` rays, in order (views, no copy)."""
+        if size <= 0:
+            raise ValueError(f"chunk size must be positive, got {size}")
+        n = self.num_rays
+        for start in range(0, n, size):
+            yield self.slice(start, min(start + size, n))
+
+    def select(self, mask_or_index: Tensor) -> "Rays":
+        """Rays picked by a boolean mask ``[R]`` or a long index ``[N]``."""
+        return Rays(
+            origins=self.origins[mask_or_index],
+            directions=self.directions[mask_or_index],
+            scene_index=self.scene_index[mask_or_index],
+            pixel=self.pixel[mask_or_index],
+            forward_cos=self.forward_cos[mask_or_index],
+        )
+
+
+def strata_shape(spp: int) -> tuple[int, int]:
+    """``(nx, ny)`` strata per pixel, ``nx * ny == spp``, as square as possible, ``nx >= ny``.
+
+    E.g. 1 -> (1, 1), 2 -> (2, 1), 4 -> (2, 2), 6 -> (3, 2), 8 -> (4, 2), 16 -> (4, 4), 7 -> (7, 1).
+    """
+    if spp < 1:
+        raise ValueError(f"spp must be >= 1, got {spp}")
+    ny = int(math.isqrt(spp))
+    while spp % ny:
+        ny -= 1
+    return spp // ny, ny
+
+
+def _float_dtype(*values) -> tuple[torch.dtype, torch.device]:
+    """Floating dtype and device implied by the tensor arguments (default dtype, CPU otherwise)."""
+    dtype = None
+    device = None
+    for v in values:
+        if isinstance(v, Tensor):
+            if device is None:
+                device = v.device
+            if v.is_floating_point():
+                dtype = v.dtype if dtype is None else torch.promote_types(dtype, v.dtype)
+    if dtype is None:
+        dtype = torch.get_default_dtype()
+    return dtype, (device if device is not None else torch.device("cpu"))
+
+
+def _vec3(x, dtype, device) -> Tensor:
+    t = torch.as_tensor(x, dtype=dtype, device=device)
+    if t.ndim == 1:
+        t = t[None]
+    if t.ndim != 2 or t.shape[-1] != 3:
+        raise ValueError(f"expected a 3-vector or [B, 3], got shape {tuple(t.shape)}")
+    return t
+
+
+def _per_scene(x, B: int, dtype, device) -> Tensor:
+    t = torch.as_tensor(x, dtype=dtype, device=device)
+    if t.ndim == 0:
+        t = t.expand(B)
+    if t.ndim != 1 or t.shape[0] not in (1, B):
+        raise ValueError(f"expected a scalar or [B={B}], got shape {tuple(t.shape)}")
+    return t.expand(B)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole cameras for a batch of B scenes (OpenCV axes: x right, y down, z forward).
+
+    K               (B, 3, 3)  intrinsics in pixels, integer pixel centres
+    world_to_camera (B, 4, 4)  rigid world -> camera transform
+    width, height   image size in pixels (shared by the batch)
+    """
+
+    K: Tensor
+    world_to_camera: Tensor
+    width: int
+    height: int
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def batch_size(self) -> int:
+        return int(self.K.shape[0])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.K.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.K.device
+
+    @property
+    def rotation(self) -> Tensor:
+        """(B, 3, 3) world -> camera rotation R (rows: camera x, y, z axes in world)."""
+        return self.world_to_camera[:, :3, :3]
+
+    @property
+    def camera_to_world(self) -> Tensor:
+        """(B, 4, 4) inverse of ``world_to_camera``, via R^T (the transform is rigid)."""
+        R = self.rotation
+        t = self.world_to_camera[:, :3, 3]
+        Rt = R.transpose(-1, -2)
+        out = torch.zeros_like(self.world_to_camera)
+        out[:, :3, :3] = Rt
+        out[:, :3, 3] = -(Rt @ t[..., None])[..., 0]
+        out[:, 3, 3] = 1
+        return out
+
+    @property
+    def eye(self) -> Tensor:
+        """(B, 3) camera centre in world coordinates: -R^T t."""
+        R = self.rotation
+        t = self.world_to_camera[:, :3, 3]
+        return -(R.transpose(-1, -2) @ t[..., None])[..., 0]
+
+    @property
+    def forward(self) -> Tensor:
+        """(B, 3) camera +z (viewing direction) in world coordinates: the third row of R."""
+        return self.rotation[:, 2, :]
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def look_at(
+        cls,
+        eye,
+        target,
+        up,
+        *,
+        width: int,
+        height: int,
+        fov_y=None,
+        focal=None,
+        roll=0.0,
+    ) -> "Camera":
+        """Cameras at ``eye`` [B,3] looking at ``target`` [B,3] with ``up`` [B,3] (3-vectors broadcast).
+
+        Exactly one of ``fov_y`` (degrees, full vertical FOV, scalar or [B]) and ``focal`` (the seeds'
+        shader focal length, scalar or [B]; fy = fx = focal * H / 2) must be given.
+
+        Basis as in the seeds: ``w = normalize(target - eye)`` (forward),
+        ``u = normalize(cross(w, up))`` (screen right), ``v = cross(u, w)`` (screen up).
+        ``roll`` (degrees, scalar or [B]) rotates the camera about ``w``:
+        ``u' = cos(r) u + sin(r) v``, ``v' = -sin(r) u + cos(r) v`` — positive roll turns the camera's
+        right/up axes counter-clockwise as drawn on the screen (u right, v up), so the *picture*
+        content turns clockwise. This equals the seeds' ``setCamera(ro, ta, cr)`` with
+        ``cr = radians(roll)`` when ``up = (0,1,0)`` and the view is along world z.
+
+        Camera axes (OpenCV): x = u', y = -v', z = w; ``world_to_camera = [[R, -R eye], [0, 1]]`` with
+        R's rows (u', -v', w) (det R = +1). ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``,
+        ``cx = W/2 - 0.5``, ``cy = H/2 - 0.5``.
+
+        Math happens in the floating dtype of the tensor arguments (default dtype for python
+        numbers) on their device. Raises ``ValueError`` for non-finite input, eye == target, or an
+        up vector parallel to the view direction (a last guard; the scene layer validates first).
+        """
+        if (fov_y is None) == (focal is None):
+            raise ValueError("Camera.look_at: give exactly one of fov_y and focal")
+        width, height = int(width), int(height)
+        if width < 1 or height < 1:
+            raise ValueError(f"Camera.look_at: image size must be positive, got {width}x{height}")
+        dtype, device = _float_dtype(eye, target, up, fov_y, focal, roll)
+        eye_t, target_t, up_t = torch.broadcast_tensors(
+            _vec3(eye, dtype, device), _vec3(target, dtype, device), _vec3(up, dtype, device)
+        )
+        B = eye_t.shape[0]
+        for name, v in (("eye", eye_t), ("target", target_t), ("up", up_t)):
+            if not torch.isfinite(v).all():
+                raise ValueError(f"Camera.look_at: {name} must be finite, got {v.tolist()}")
+
+        fwd = target_t - eye_t
+        fwd_len = torch.linalg.vector_norm(fwd, dim=-1)
+        if (fwd_len == 0).any():
+            raise ValueError("Camera.look_at: eye and target coincide; the view direction is undefined")
+        w = fwd / fwd_len[:, None]
+        up_len = torch.linalg.vector_norm(up_t, dim=-1)
+        if (up_len == 0).any():
+            raise ValueError("Camera.look_at: up vector is zero")
+        right = torch.linalg.cross(w, up_t, dim=-1)
+        right_len = torch.linalg.vector_norm(right, dim=-1)
+        # |cross(w, up)| / |up| = sin(angle between view and up).
+        if (right_len <= 16 * torch.finfo(dtype).eps * up_len).any():
+            raise ValueError("Camera.look_at: up vector is parallel to the view direction")
+        u = right / right_len[:, None]
+        v = torch.linalg.cross(u, w, dim=-1)
+
+        r = torch.deg2rad(_per_scene(roll, B, dtype, device))
+        cr, sr = torch.cos(r)[:, None], torch.sin(r)[:, None]
+        u, v = cr * u + sr * v, cr * v - sr * u
+
+        R = torch.stack([u, -v, w], dim=-2)  # (B, 3, 3) rows: camera x, y, z in world
+        w2c = torch.zeros(B, 4, 4, dtype=dtype, device=device)
+        w2c[:, :3, :3] = R
+        w2c[:, :3, 3] = -(R @ eye_t[..., None])[..., 0]
+        w2c[:, 3, 3] = 1
+
+        if fov_y is not None:
+            half = torch.deg2rad(_per_scene(fov_y, B, dtype, device)) / 2
+            fy = height / (2 * torch.tan(half))
+        else:
+            fy = _per_scene(focal, B, dtype, device) * (height / 2)
+        K = torch.zeros(B, 3, 3, dtype=dtype, device=device)
+        K[:, 0, 0] = fy
+        K[:, 1, 1] = fy
+        K[:, 0, 2] = width / 2 - 0.5
+        K[:, 1, 2] = height / 2 - 0.5
+        K[:, 2, 2] = 1
+        return cls(K=K, world_to_camera=w2c, width=width, height=height)
+
+    # ------------------------------------------------------------------ rays
+    def subpixel_offsets(self, spp: int, generator: torch.Generator | None = None) -> Tensor:
+        """Sub-pixel offsets in (-0.5, 0.5): ``[spp, 2]`` (x, y) without generator (stratum centres),
+        ``[B, H, W, spp, 2]`` with one (uniform jitter inside each stratum).
+
+        Strata: ``(nx, ny) = strata_shape(spp)``; sub-sample ``s = sy * nx + sx`` (row-major, top
+        row first). The jitter is drawn as one ``torch.rand((B, H, W, spp, 2), float64)`` call from
+        ``generator`` on the generator's device, so it is reproducible across dtypes and processes.
+        """
+        nx, ny = strata_shape(spp)
+        dtype, device = self.dtype, self.device
+        sy, sx = torch.meshgrid(
+            torch.arange(ny, dtype=torch.float64), torch.arange(nx, dtype=torch.float64), indexing="ij"
+        )
+        base = torch.stack([sx.reshape(-1), sy.reshape(-1)], dim=-1)  # [spp, 2]
+        scale = torch.tensor([nx, ny], dtype=torch.float64)
+        if spp == 1:
+            return torch.zeros(1, 2, dtype=dtype, device=device)
+        if generator is None:
+            off = (base + 0.5) / scale - 0.5
+        else:
+            shape = (self.batch_size, self.height, self.width, spp, 2)
+            xi = torch.rand(shape, generator=generator, dtype=torch.float64, device=generator.device)
+            off = (base + xi.cpu()) / scale - 0.5
+        off = off.to(dtype=dtype, device=device)
+        lo = torch.nextafter(torch.tensor(-0.5, dtype=dtype), torch.tensor(0.0, dtype=dtype)).item()
+        hi = torch.nextafter(torch.tensor(0.5, dtype=dtype), torch.tensor(0.0, dtype=dtype)).item()
+        return off.clamp(lo, hi)
+
+    def rays(self, *, spp: int = 1, generator: torch.Generator | None = None) -> Rays:
+        """Primary rays, ``R = B*H*W*spp``, ordered scene-major, then row, column, sub-sample.
+
+        Pixel (column i, row j) shoots through image point ``(i + dx, j + dy)``: the exact pixel
+        centre for ``spp == 1``; stratified offsets (see :meth:`subpixel_offsets`) for ``spp > 1``.
+        Camera-space direction ``((x - cx - s*y') / fx, y', 1)`` with ``y' = (y - cy) / fy``
+        (closed form of K^-1, skew ``s = K[0,1]`` normally 0), world direction ``R^T d``,
+        normalised. ``forward_cos = d_z / |d|``.
+        """
+        B, H, W = self.batch_size, self.height, self.width
+        dtype, device = self.dtype, self.device
+        off = self.subpixel_offsets(spp, generator)
+        cols = torch.arange(W, dtype=dtype, device=device)
+        rows = torch.arange(H, dtype=dtype, device=device)
+        if off.ndim == 2:  # [spp, 2] shared by all pixels
+            px = cols[None, None, :, None] + off[:, 0]  # [1, 1, W, spp]
+            py = rows[None, :, None, None] + off[:, 1]  # [1, H, 1, spp]
+        else:  # [B, H, W, spp, 2]
+            px = cols[None, None, :, None] + off[..., 0]
+            py = rows[None, :, None, None] + off[..., 1]
+        K = self.K
+        fx = K[:, 0, 0].view(B, 1, 1, 1)
+        fy = K[:, 1, 1].view(B, 1, 1, 1)
+        cx = K[:, 0, 2].view(B, 1, 1, 1)
+        cy = K[:, 1, 2].view(B, 1, 1, 1)
+        skew = K[:, 0, 1].view(B, 1, 1, 1)
+        yc = (py - cy) / fy
+        xc = (px - cx - skew * yc) / fx
+        xc, yc = torch.broadcast_tensors(xc, yc)
+        xc = xc.expand(B, H, W, spp)
+        yc = yc.expand(B, H, W, spp)
+        ones = torch.ones_like(xc)
+        d_cam = torch.stack([xc, yc, ones], dim=-1).reshape(B, H * W * spp, 3)
+        inv_len = torch.rsqrt((d_cam * d_cam).sum(-1))  # [B, HWspp]
+        forward_cos = inv_len  # d_z = 1
+        R = self.rotation
+        d_world = d_cam @ R  # row vectors: (R^T d)^T = d^T R
+        directions = d_world / torch.linalg.vector_norm(d_world, dim=-1, keepdim=True)
+
+        n = H * W * spp
+        origins = self.eye[:, None, :].expand(B, n, 3).reshape(B * n, 3)
+        scene_index = torch.arange(B, device=device).repeat_interleave(n)
+        jj, ii = torch.meshgrid(
+            torch.arange(H, device=device), torch.arange(W, device=device), indexing="ij"
+        )
+        pix = torch.stack([ii, jj], dim=-1).reshape(H * W, 1, 2).expand(H * W, spp, 2).reshape(-1, 2)
+        pixel = pix.repeat(B, 1)
+        return Rays(
+            origins=origins,
+            directions=directions.reshape(B * n, 3),
+            scene_index=scene_index,
+            pixel=pixel,
+            forward_cos=forward_cos.reshape(B * n),
+        )
+
+    # ------------------------------------------------------------------ helpers
+    def project(self, points: Tensor, scene_index: Tensor | None = None) -> Tensor:
+        """World points ``[N, 3]`` (of scene ``scene_index [N]``; all scene 0 if None) -> ``[N, 3]``
+        (pixel x, pixel y, camera z)."""
+        if scene_index is None:
+            scene_index = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
+        w2c = self.world_to_camera[scene_index]
+        pc = (w2c[:, :3, :3] @ points[..., None])[..., 0] + w2c[:, :3, 3]
+        K = self.K[scene_index]
+        uvw = (K @ pc[..., None])[..., 0]
+        return torch.stack([uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2], pc[:, 2]], dim=-1)
+
+    def select(self, index: Sequence[int] | Tensor | int) -> "Camera":
+        """The cameras of the given scenes (keeps the batch dimension)."""
+        idx = torch.as_tensor(index, dtype=torch.long, device=self.K.device).reshape(-1)
+        return Camera(self.K[idx], self.world_to_camera[idx], self.width, self.height)
