@@ -36,19 +36,15 @@ _M32 = 0xFFFFFFFF
 # --------------------------------------------------------------------------------------------
 
 
-def _mul32(a: Tensor, k: int) -> Tensor:
-    """(a * k) mod 2**32 for int64 ``a`` in [0, 2**32) without int64 overflow (k < 2**32)."""
-    lo = a * (k & 0xFFFF)
-    hi = (a * (k >> 16)) & 0xFFFF
-    return (lo + (hi << 16)) & _M32
-
-
 def _mix32(h: Tensor) -> Tensor:
-    """Wellons' ``lowbias32`` finaliser on int64 holding uint32 values (a bijection of uint32)."""
+    """A lowbias32-style finaliser on int64 holding uint32 values (a bijection of uint32).
+
+    Both multipliers are odd and below 2**31, so ``h * k`` < 2**63 never overflows int64 and one
+    multiply plus a mask is the exact product mod 2**32."""
     h = h ^ (h >> 16)
-    h = _mul32(h, 0x7FEB352D)
+    h = (h * 0x7FEB352D) & _M32
     h = h ^ (h >> 15)
-    h = _mul32(h, 0x846CA68B)
+    h = (h * 0x1B873593) & _M32
     h = h ^ (h >> 16)
     return h
 

@@ -90,7 +90,7 @@ def _same_structure(scenes: Sequence[Scene]) -> None:
 
     def shape(s: Scene):
         return (
-            s.image, s.march, s.post.tonemap, s.post.vignette > 0, s.post.fog is None, s.sky is None and None or s.sky.kind,
+            s.image, s.march, s.post.tonemap, s.post.vignette > 0, s.post.fog is None, None if s.sky is None else s.sky.kind,
             s.sky is not None and (s.sky.halo is None, s.sky.flare is None), s.camera.fov_y is None, s.camera.focal is None,
             [(li.kind, li.shadow) for li in s.lights],
             [(v.bounds.kind, v.density.kind, v.phase.kind, v.shading, v.shader.light) for v in s.volumes],

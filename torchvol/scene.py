@@ -238,9 +238,18 @@ class CloudsDensity(Strict):
         return array
 
 
+class ExponentialDensity(Strict):
+    """density = value · e^{−(y − base)/scale_height}."""
+
+    value: float = Field(1.0, ge=0.0)
+    base: float = 0.0
+    scale_height: float = Field(1.0, gt=0.0)
+
+
 class Density(One):
     constant: float | None = Field(None, ge=0.0)
     grid: GridDensity | None = None
+    exponential: ExponentialDensity | None = None
     fbm: FbmDensity | None = None
     clouds: CloudsDensity | None = None
 

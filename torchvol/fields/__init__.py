@@ -14,10 +14,11 @@ import torch
 from .base import Field, per_scene
 from .clouds import CloudLayer
 from .constant import Constant
+from .exponential import Exponential
 from .fbm import FbmField
 from .grid import Grid
 
-__all__ = ["Field", "per_scene", "make_field", "Constant", "Grid", "FbmField", "CloudLayer"]
+__all__ = ["Field", "per_scene", "make_field", "Constant", "Exponential", "Grid", "FbmField", "CloudLayer"]
 
 
 def make_field(specs: Sequence, bounds: Sequence, times: torch.Tensor) -> Field:
@@ -29,6 +30,8 @@ def make_field(specs: Sequence, bounds: Sequence, times: torch.Tensor) -> Field:
         return Constant(torch.tensor(values, dtype=times.dtype, device=times.device))
     if kind == "grid":
         return Grid([v.data for v in values], [b.box for b in bounds], dtype=times.dtype, device=times.device)
+    if kind == "exponential":
+        return Exponential(values, dtype=times.dtype, device=times.device)
     if kind == "fbm":
         return FbmField(values, times)
     if kind == "clouds":

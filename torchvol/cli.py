@@ -1,0 +1,108 @@
+"""`torchvol render | ...`: thin shell over the library; errors print as one line, exit code 2."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .scene import load_scene, parse_value, preset
+from .validate import SceneError, fail
+
+
+def _pairs(items: Sequence[str], flag: str) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            fail(flag, item, "expected KEY=VALUE")
+        out[key.strip()] = parse_value(value.strip())
+    return out
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    """`image`: (H, W, 3) or (H, W) float in [0, 1] -> 8-bit PNG."""
+    from PIL import Image
+
+    Image.fromarray(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)).save(path)
+
+
+def write_depth_png(path: Path, depth: np.ndarray) -> None:
+    """16-bit PNG for viewing: value = depth / depth_scale · 65535, depth_scale stored as PNG text.
+    Exact float32 depth is written with --npy."""
+    from PIL import Image, PngImagePlugin
+
+    scale = float(depth.max()) if depth.max() > 0 else 1.0
+    info = PngImagePlugin.PngInfo()
+    info.add_text("depth_scale", repr(scale))
+    info.add_text("depth", "planar z along the camera's forward axis, world units; 0 = nothing hit")
+    Image.fromarray(np.round(depth / scale * 65535).astype(np.uint16)).save(path, pnginfo=info)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from .render import render
+
+    overrides = _pairs(args.set, "--set")
+    if args.preset is not None:
+        if args.scene is not None:
+            fail("SCENE", args.scene, "give a scene file or --preset, not both")
+        scene = load_scene(preset(args.preset, **_pairs(args.param, "--param")), overrides)
+    elif args.scene is not None:
+        if args.param:
+            fail("--param", args.param, "--param sets preset parameters; use --set for scene keys")
+        scene = load_scene(args.scene, overrides)
+    else:
+        fail("SCENE", None, "give a scene (.toml path or preset name) or --preset NAME")
+    out = render(scene, seed=args.seed, chunk_rays=args.chunk_rays, compile=args.compile, device=args.device)
+    path = Path(args.out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    stem = path.with_suffix("")
+    write_png(path, out.image[0].permute(1, 2, 0).numpy())
+    write_depth_png(Path(f"{stem}_depth.png"), out.depth[0, 0].numpy())
+    written = [str(path), f"{stem}_depth.png"]
+    if args.npy:
+        arrays = {"radiance": out.radiance, "depth": out.depth, "alpha": out.alpha, **out.aovs}
+        for name, value in arrays.items():
+            np.save(f"{stem}_{name}.npy", value[0].numpy())
+            written.append(f"{stem}_{name}.npy")
+        np.save(f"{stem}_K.npy", out.camera.K[0].cpu().numpy())
+        np.save(f"{stem}_world_to_camera.npy", out.camera.world_to_camera[0].cpu().numpy())
+        written += [f"{stem}_K.npy", f"{stem}_world_to_camera.npy"]
+    stats = {k: out.stats[k] for k in ("passes", "density_evals", "total_s", "march_steps")}
+    print(json.dumps({"written": written, **stats}))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="torchvol", description="Batched PyTorch renderer of volumes and voxels.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("render", help="render one scene to PNG (+ depth, + float arrays with --npy)")
+    r.add_argument("scene", nargs="?", help="scene .toml path or preset name")
+    r.add_argument("--preset", help="bundled preset name (its parameters via --param)")
+    r.add_argument("--param", action="append", default=[], metavar="K=V", help="preset parameter")
+    r.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a scene key")
+    r.add_argument("--out", required=True, help="output PNG path")
+    r.add_argument("--npy", action="store_true", help="also write float32 .npy arrays and the camera")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--device", default="cpu")
+    r.add_argument("--chunk-rays", type=int, default=1 << 16)
+    r.add_argument("--compile", action="store_true", help="torch.compile the density fields")
+    r.set_defaults(func=cmd_render)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except SceneError as err:
+        print(f"torchvol: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
