@@ -12,6 +12,7 @@ bilinear filter bit for bit (see its docstring), so float32 results equal the GL
 from __future__ import annotations
 
 import weakref
+import functools
 from collections.abc import Callable, Sequence
 
 import torch
@@ -24,6 +25,9 @@ __all__ = [
     "worley_noise",
     "default_noise_texture",
     "texture_noise",
+    "texture_noise_table",
+    "texture_table",
+    "compiled",
     "fbm",
     "LLVMPIPE_FILTER_BITS",
 ]
@@ -198,8 +202,8 @@ def default_noise_texture(seed: int = 0) -> Tensor:
 _PACKED: dict[int, tuple] = {}  # id(texture) -> (weakref, (version, device), table)
 
 
-def _packed_gr(texture, device: torch.device) -> Tensor:
-    """``(256, 256, 4)`` uint8 -> ``[65536]`` int64 with G in bits 0..7 and R in bits 32..39.
+def texture_table(texture, device: torch.device | str = "cpu") -> Tensor:
+    """``(256, 256, 4)`` uint8 -> ``[65536, 2]`` float64 table of (G, R) in 0..255.
 
     Cached per live texture tensor (weak reference; invalidated by in-place edits via the version counter).
     """
@@ -215,15 +219,12 @@ def _packed_gr(texture, device: torch.device) -> Tensor:
         if hit is not None and hit[0]() is texture and hit[1] == key:
             return hit[2]
     flat = tex.reshape(-1, 4).to(device)
-    table = flat[:, 1].to(torch.int64) | (flat[:, 0].to(torch.int64) << 32)
+    table = flat[:, [1, 0]].to(torch.float64)
     if isinstance(texture, Tensor):
         for k in [k for k, v in _PACKED.items() if v[0]() is None]:  # drop dead textures
             del _PACKED[k]
         _PACKED[id(texture)] = (weakref.ref(texture), key, table)
     return table
-
-
-_LANES = 0xFF | (0xFF << 32)
 
 
 def texture_noise(p: Tensor, texture: Tensor, *, filter_bits: int | None = LLVMPIPE_FILTER_BITS) -> Tensor:
@@ -255,8 +256,13 @@ def texture_noise(p: Tensor, texture: Tensor, *, filter_bits: int | None = LLVMP
     * ``None`` — ideal GL_LINEAR: exact float bilinear weights ``fract(uv)`` on texels / 255.
     """
     _check_points(p)
+    return texture_noise_table(p, texture_table(texture, p.device), filter_bits=filter_bits)
+
+
+def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = LLVMPIPE_FILTER_BITS) -> Tensor:
+    """`texture_noise` on a prepared `texture_table` ``[65536, 2]``: no Python-side caching, so
+    it compiles with torch.compile into one fused kernel."""
     dtype, dev = p.dtype, p.device
-    table = _packed_gr(texture, dev)
     fl = torch.floor(p)
     f = p - fl
     f = f * f * (3.0 - 2.0 * f)
@@ -268,11 +274,9 @@ def texture_noise(p: Tensor, texture: Tensor, *, filter_bits: int | None = LLVMP
         i0 = fu.to(torch.int64)
         x0, y0 = i0[:, 0] & 255, i0[:, 1] & 255
         x1, y1 = (x0 + 1) & 255, (y0 + 1) & 255
-        t = table.reshape(_TEX, _TEX)
-
         def fetch(y: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
-            v = t[y, x]
-            return (v & 0xFF).to(dtype) / 255.0, (v >> 32).to(dtype) / 255.0
+            v = table[y * 256 + x].to(dtype) / 255.0
+            return v[:, 0], v[:, 1]
 
         (g00, r00), (g01, r01) = fetch(y0, x0), fetch(y0, x1)
         (g10, r10), (g11, r11) = fetch(y1, x0), fetch(y1, x1)
@@ -283,27 +287,35 @@ def texture_noise(p: Tensor, texture: Tensor, *, filter_bits: int | None = LLVMP
         bits = int(filter_bits)
         if not 1 <= bits <= 15:
             raise ValueError(f"filter_bits: got {filter_bits!r}; None or an int in 1..15")
-        one, half = 1 << bits, 1 << (bits - 1)
+        one, half = float(1 << bits), float(1 << (bits - 1))
         # (uv + 0.5) / 256 * (256 << bits): the /256 and *2**k are exact in binary floating point
-        s = torch.round((uv + 0.5) * float(one))
+        s = torch.round((uv + 0.5) * one)
         bad = ~(s.abs() < 2.0**31)  # x86 cvt overflow / NaN -> 0x80000000
-        s = torch.where(bad, torch.full_like(s, -(2.0**31)), s).to(torch.int64)
-        s = ((s - half + 2**31) & _M32) - 2**31  # int32 wrap of the -0.5 texel shift
-        i0 = s >> bits
-        w = s & (one - 1)  # [N, 2] int64 weights in [0, 2**bits)
-        x0, y0 = i0[:, 0] & 255, i0[:, 1] & 255
-        x1, y1 = (x0 + 1) & 255, (y0 + 1) & 255
-        wx, wy = w[:, 0], w[:, 1]
-        rnd = half | (half << 32)
-        # a + ((w (b - a) + half) >> bits) == (a (one - w) + b w + half) >> bits: both lanes at once
-        row0 = ((table[y0 * 256 + x0] * (one - wx) + table[y0 * 256 + x1] * wx + rnd) >> bits) & _LANES
-        row1 = ((table[y1 * 256 + x0] * (one - wx) + table[y1 * 256 + x1] * wx + rnd) >> bits) & _LANES
-        v = ((row0 * (one - wy) + row1 * wy + rnd) >> bits) & _LANES
+        # the integer steps in float64: exact for these magnitudes, and torch.compile-friendly
+        s = torch.where(bad, torch.full_like(s, -(2.0**31)), s).to(torch.float64)
+        s = torch.remainder(s - half + 2.0**31, 2.0**32) - 2.0**31  # int32 wrap of the -0.5 texel shift
+        i0 = torch.floor(s / one)
+        w = s - i0 * one  # [N, 2] weights in [0, 2**bits)
+        x0, y0 = torch.remainder(i0[:, 0], 256.0), torch.remainder(i0[:, 1], 256.0)
+        x1, y1 = torch.remainder(x0 + 1.0, 256.0), torch.remainder(y0 + 1.0, 256.0)
+        wx, wy = w[:, 0:1], w[:, 1:2]
+        at = lambda y, x: table[(y * 256.0 + x).long()]  # noqa: E731  [N, 2] (G, R)
+
+        def lerp(a: Tensor, b: Tensor, wt: Tensor) -> Tensor:  # a + ((w (b − a) + half) >> bits)
+            return torch.floor((a * (one - wt) + b * wt + half) / one)
+
+        v = lerp(lerp(at(y0, x0), at(y0, x1), wx), lerp(at(y1, x0), at(y1, x1), wx), wy)
         inv255 = torch.tensor(1.0 / 255.0, dtype=dtype, device=dev)  # unorm8 -> float, as llvmpipe
-        g = (v & 0xFF).to(dtype) * inv255
-        r = (v >> 32).to(dtype) * inv255
+        g = v[:, 0].to(dtype) * inv255
+        r = v[:, 1].to(dtype) * inv255
     fz = f[:, 2]
     return g + fz * (r - g)
+
+
+@functools.cache
+def compiled(fn: Callable) -> Callable:
+    """`fn` under torch.compile (dynamic shapes: the march compacts its batch every step)."""
+    return torch.compile(fn, dynamic=True)
 
 
 # --------------------------------------------------------------------------------------------

@@ -70,14 +70,13 @@ class Counter:
 class CountedField:
     """A field that counts the points it evaluates (stats["density_evals"])."""
 
-    def __init__(self, inner: Field, counter: Counter, compiled: bool):
+    def __init__(self, inner: Field, counter: Counter):
         self.inner, self.counter = inner, counter
         self.homogeneous = inner.homogeneous
-        self._call = torch.compile(inner.__call__, dynamic=True) if compiled else inner.__call__
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         self.counter.density_evals += points.shape[0]
-        return self._call(points, scene_index, lod)
+        return self.inner(points, scene_index, lod)
 
 
 def _t(values, dtype, device) -> Tensor:
@@ -136,7 +135,8 @@ class VolumeSlot:
         vols = [s.volumes[v] for s in scenes]
         self.spec = vols[0]
         times = _t([s.time for s in scenes], dtype, device)
-        self.field = CountedField(make_field([x.density for x in vols], [x.bounds for x in vols], times), counter, compiled)
+        inner = make_field([x.density for x in vols], [x.bounds for x in vols], times, compiled=compiled)
+        self.field = CountedField(inner, counter)
         self.sigma_t = _t([x.sigma_t for x in vols], dtype, device)
         self.albedo = _t([x.albedo for x in vols], dtype, device)
         self.emission = _t([x.emission for x in vols], dtype, device)
@@ -422,7 +422,7 @@ def render(
 
     `scene`: a Scene, a dict, a .toml path or a preset name (or a list of those). `seed` drives the
     dither and sub-pixel jitter. `dtype` defaults to the quality level's (float64 for reference).
-    `chunk_rays` bounds peak memory. `compile` wraps the density fields in torch.compile."""
+    `chunk_rays` bounds peak memory. `compile` runs the noise kernels under torch.compile."""
     if isinstance(seed, bool) or not isinstance(seed, int):
         fail("seed", seed, "expected an integer")
     if isinstance(chunk_rays, bool) or not isinstance(chunk_rays, int) or chunk_rays < 1:

@@ -21,9 +21,10 @@ from .grid import Grid
 __all__ = ["Field", "per_scene", "make_field", "Constant", "Exponential", "Grid", "FbmField", "CloudLayer"]
 
 
-def make_field(specs: Sequence, bounds: Sequence, times: torch.Tensor) -> Field:
+def make_field(specs: Sequence, bounds: Sequence, times: torch.Tensor, *, compiled: bool = False) -> Field:
     """The field for one volume slot of B scenes. `specs`: B `Density` models of one kind;
-    `bounds`: their B `Bounds`; `times`: (B,) scene times (for wind)."""
+    `bounds`: their B `Bounds`; `times`: (B,) scene times (for wind); `compiled`: noise kernels
+    under torch.compile."""
     kind = specs[0].kind
     values = [s.value for s in specs]
     if kind == "constant":
@@ -33,7 +34,7 @@ def make_field(specs: Sequence, bounds: Sequence, times: torch.Tensor) -> Field:
     if kind == "exponential":
         return Exponential(values, dtype=times.dtype, device=times.device)
     if kind == "fbm":
-        return FbmField(values, times)
+        return FbmField(values, times, compiled=compiled)
     if kind == "clouds":
-        return CloudLayer(values, times)
+        return CloudLayer(values, times, compiled=compiled)
     raise NotImplementedError(kind)

@@ -18,14 +18,17 @@ from .base import per_scene
 class CloudLayer:
     homogeneous = False
 
-    def __init__(self, specs: Sequence, times: Tensor):
+    def __init__(self, specs: Sequence, times: Tensor, *, compiled: bool = False):
         kw = dict(dtype=times.dtype, device=times.device)
         self.specs = list(specs)
-        self.textures = [
-            torch.as_tensor(s.texture, device=times.device) if s.texture is not None
-            else noise.default_noise_texture(s.texture_seed).to(times.device)
+        self.tables = [
+            noise.texture_table(
+                torch.as_tensor(s.texture) if s.texture is not None else noise.default_noise_texture(s.texture_seed),
+                times.device,
+            )
             for s in specs
         ]
+        self.kernel = noise.compiled(noise.texture_noise_table) if compiled else noise.texture_noise_table
         self.shift = torch.tensor([s.wind for s in specs], **kw) * times[:, None]  # (B, 3)
         self.scale = torch.tensor([s.density_scale for s in specs], **kw)
         self.bias = torch.tensor([s.bias for s in specs], **kw)
@@ -34,9 +37,9 @@ class CloudLayer:
         q = points - self.shift[scene_index]
 
         def one_scene(b: int, idx: Tensor, q_b: Tensor) -> Tensor:
-            tex = self.textures[b]
+            table = self.tables[b]
             return noise.fbm(
-                q_b, lambda x: noise.texture_noise(x, tex) * 2.0 - 1.0,
+                q_b, lambda x: self.kernel(x, table) * 2.0 - 1.0,
                 octaves=self.specs[b].octaves, lod=None if lod is None else lod[idx],
             )
 

@@ -16,9 +16,10 @@ NOISES = {"value": noise.value_noise, "perlin": noise.perlin_noise, "worley": no
 class FbmField:
     homogeneous = False
 
-    def __init__(self, specs: Sequence, times: Tensor):
+    def __init__(self, specs: Sequence, times: Tensor, *, compiled: bool = False):
         kw = dict(dtype=times.dtype, device=times.device)
         self.specs = list(specs)
+        self.bases = {name: noise.compiled(fn) if compiled else fn for name, fn in NOISES.items()}
         self.frequency = torch.tensor([s.frequency for s in specs], **kw)
         self.amplitude = torch.tensor([s.amplitude for s in specs], **kw)
         self.bias = torch.tensor([s.bias for s in specs], **kw)
@@ -30,7 +31,7 @@ class FbmField:
 
         def one_scene(b: int, idx: Tensor, q_b: Tensor) -> Tensor:
             spec = self.specs[b]
-            basis = NOISES[spec.noise]
+            basis = self.bases[spec.noise]
             return noise.fbm(q_b, lambda x: basis(x, seed=spec.seed), octaves=spec.octaves, lod=None if lod is None else lod[idx])
 
         f = per_scene(q, scene_index, len(self.specs), one_scene)
