@@ -1,0 +1,139 @@
+"""Effects cost nothing when absent: the plan (stats["passes"]) and the work done (density_evals)
+of a scene with and without each optional term."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+
+import torchvol as tv
+from torchvol.plan import make_plan, march_settings
+
+
+def base(**march):
+    s = {
+        "image": {"width": 10, "height": 8},
+        "camera": {"eye": [0.0, 0.5, -3.0], "target": [0.0, 0.0, 0.0], "fov_y": 40.0},
+        "volumes": [{"bounds": {"box": {"min": [-0.6, -0.6, -0.6], "max": [0.6, 0.6, 0.6]}},
+                     "density": {"fbm": {"octaves": 2, "frequency": 2.0, "bias": 0.5}}, "sigma_t": 3.0, "albedo": 0.9}],
+        "march": {"quality": "draft", **march},
+    }
+    return s
+
+
+def with_(s, **changes):
+    s = copy.deepcopy(s)
+    for k, v in changes.items():
+        s[k] = v
+    return s
+
+
+SUN = {"kind": "sun", "direction": [1.0, 1.0, -0.5], "color": [1.0, 1.0, 1.0], "intensity": 1.0}
+SHADOWED = {**SUN, "shadow": {"steps": 8}}
+SKY = {"kind": "constant", "radiance": [0.2, 0.3, 0.4]}
+
+
+def check_stats(out):
+    st = out.stats
+    assert list(st["time_s"]) == st["passes"], "time_s keys must equal the passes, in order"
+    assert all(v >= 0 for v in st["time_s"].values())
+    assert st["passes"][0] == "rays" and "composite" in st["passes"]
+    assert len(set(st["passes"])) == len(st["passes"])
+    return st
+
+
+def test_shadow_pass_only_with_shadowed_light():
+    s = base()
+    plain = check_stats(tv.render(with_(s, lights=[SUN])))
+    shadowed = check_stats(tv.render(with_(s, lights=[SHADOWED])))
+    assert "volume0.shadow0" not in plain["passes"]
+    assert "volume0.shadow0" in shadowed["passes"]
+    assert plain["passes"] == [p for p in shadowed["passes"] if p != "volume0.shadow0"]
+    assert plain["density_evals"] < shadowed["density_evals"]
+    # the march itself is the same (same steps), only the shadow rays add work
+    assert plain["march_steps"] == shadowed["march_steps"]
+    # an unlit scene does no shadow work either
+    unlit = check_stats(tv.render(s))
+    assert unlit["density_evals"] == plain["density_evals"]
+    assert not any("shadow" in p for p in unlit["passes"])
+
+
+def test_second_light_shadow_indexed():
+    out = tv.render(with_(base(), lights=[SUN, SHADOWED]))
+    passes = check_stats(out)["passes"]
+    assert "volume0.shadow1" in passes and "volume0.shadow0" not in passes
+
+
+def test_sky_pass_only_with_sky():
+    s = base()
+    no_sky = check_stats(tv.render(s))
+    sky = check_stats(tv.render(with_(s, sky=SKY)))
+    assert "sky" not in no_sky["passes"] and "sky" in sky["passes"]
+    assert no_sky["passes"] == [p for p in sky["passes"] if p != "sky"]
+    assert sky["density_evals"] == no_sky["density_evals"]
+
+
+def test_no_volumes_no_march():
+    s = with_(base(), volumes=[], sky=SKY)
+    out = tv.render(s)
+    st = check_stats(out)
+    assert not any(p.startswith("volume") for p in st["passes"])
+    assert st["density_evals"] == 0
+    assert st["march_steps"] == 0
+    assert (out.alpha == 0).all() and (out.depth == 0).all()
+    # the sky alone: radiance is the sky everywhere
+    assert (out.radiance - out.radiance.new_tensor(SKY["radiance"])[None, :, None, None]).abs().max() < 1e-7
+
+
+@pytest.mark.parametrize("bounds", [
+    {"box": {"min": [-0.6, -0.6, -0.6], "max": [0.6, 0.6, 0.6]}},
+    {"sphere": {"center": [0.0, 0.0, 0.0], "radius": 0.7}},
+    {"slab": {"y_min": -0.3, "y_max": 0.2}},
+])
+def test_homogeneous_uses_closed_form(bounds):
+    s = base()
+    s["volumes"][0].update(bounds=bounds, density={"constant": 1.0})
+    s["lights"] = [SUN]  # unshadowed light: still closed form
+    closed = check_stats(tv.render(s))
+    assert "volume0.closed_form" in closed["passes"] and "volume0.march" not in closed["passes"]
+    assert closed["march_steps"] == 0
+    forced = copy.deepcopy(s)
+    forced["march"]["closed_form"] = False
+    marched = check_stats(tv.render(forced))
+    assert "volume0.march" in marched["passes"] and "volume0.closed_form" not in marched["passes"]
+    n_rays = 10 * 8
+    assert 0 < closed["density_evals"] <= n_rays
+    assert closed["density_evals"] * 4 < marched["density_evals"], (closed, marched)
+    # a shadowed light needs the march (the shadow varies along the ray)
+    shadow = copy.deepcopy(s)
+    shadow["lights"] = [SHADOWED]
+    st = check_stats(tv.render(shadow))
+    assert "volume0.march" in st["passes"] and "volume0.shadow0" in st["passes"]
+
+
+def test_post_passes_only_when_not_identity():
+    s = base()
+    st = check_stats(tv.render(s))
+    assert not any(p.startswith("post.") for p in st["passes"])
+    assert "resolve" not in st["passes"]
+    s2 = copy.deepcopy(s)
+    s2["post"] = {"tonemap": "aces", "exposure": 1.5, "vignette": 0.3}
+    passes = check_stats(tv.render(s2))["passes"]
+    assert {"post.tonemap.aces", "post.exposure", "post.vignette"} <= set(passes)
+    s3 = copy.deepcopy(s)
+    s3["image"]["spp"] = 2
+    assert "resolve" in check_stats(tv.render(s3))["passes"]
+
+
+def test_plan_function_matches_render_stats():
+    s = tv.load_scene(with_(base(), lights=[SHADOWED], sky=SKY))
+    names = [p.name for p in make_plan(s, march_settings(s.march))]
+    assert names == tv.render(s).stats["passes"]
+
+
+def test_density_evals_scale_with_steps():
+    few = check_stats(tv.render(base(steps=4, dither="none")))
+    many = check_stats(tv.render(base(steps=16, dither="none", min_transmittance=0.0)))
+    assert 0 < few["density_evals"] < many["density_evals"]
+    assert few["density_evals"] == few["march_steps"]
