@@ -637,11 +637,7 @@ def _two_volume_depth_expected(eye, dirs):
 
 
 @pytest.mark.parametrize("mode", [
-    pytest.param("closed_form", marks=pytest.mark.xfail(strict=True, reason=(
-        "render.py:359-361 Renderer.closed_form: for a ray that misses the volume, clip_to_ray leaves t0 = +inf, "
-        "so t_mean = t0 + 0·frac = inf and weighted_t = alpha·t_mean = 0·inf = NaN; with one volume the NaN "
-        "is hidden by wsum == 0, but a ray that hits another volume gets wsum > 0 and distance/depth NaN. "
-        "Mask with hit (e.g. torch.where(hit, alpha * t_mean, 0))."))),
+    "closed_form",
     "march",
 ])
 def test_two_volumes_expected_depth(mode):

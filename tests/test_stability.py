@@ -328,12 +328,6 @@ def test_bad_input_from_dict_without_overrides():
         tv.render(s)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "integrator='alpha' with shading='physical': render.py:277 Renderer.physical_medium returns the raw "
-    "extinction σ_t·density as the step's value, and volume/march.py:136 march() feeds it to alpha_step() "
-    "as an opacity (alpha_step documents 'alpha already in [0, 1]'), so segment transmittance 1 − σ "
-    "goes negative and out.alpha = 1000 for σ_t = 1e3. Either clamp/convert (a = 1 − e^{−σΔt}) or refuse "
-    "the combination at validation (scene.py:324 March.integrator)."))
 @pytest.mark.parametrize("sigma", [3.0, 1e3])
 def test_alpha_integrator_physical_shading_in_range(sigma):
     s = good_scene()

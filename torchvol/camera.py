@@ -316,49 +316,41 @@ class Camera:
         normalised. ``forward_cos = d_z / |d|``.
         """
         B, H, W = self.batch_size, self.height, self.width
-        dtype, device = self.dtype, self.device
         off = self.subpixel_offsets(spp, generator)
-        cols = torch.arange(W, dtype=dtype, device=device)
-        rows = torch.arange(H, dtype=dtype, device=device)
-        if off.ndim == 2:  # [spp, 2] shared by all pixels
-            px = cols[None, None, :, None] + off[:, 0]  # [1, 1, W, spp]
-            py = rows[None, :, None, None] + off[:, 1]  # [1, H, 1, spp]
-        else:  # [B, H, W, spp, 2]
-            px = cols[None, None, :, None] + off[..., 0]
-            py = rows[None, :, None, None] + off[..., 1]
-        K = self.K
-        fx = K[:, 0, 0].view(B, 1, 1, 1)
-        fy = K[:, 1, 1].view(B, 1, 1, 1)
-        cx = K[:, 0, 2].view(B, 1, 1, 1)
-        cy = K[:, 1, 2].view(B, 1, 1, 1)
-        skew = K[:, 0, 1].view(B, 1, 1, 1)
-        yc = (py - cy) / fy
-        xc = (px - cx - skew * yc) / fx
-        xc, yc = torch.broadcast_tensors(xc, yc)
-        xc = xc.expand(B, H, W, spp)
-        yc = yc.expand(B, H, W, spp)
-        ones = torch.ones_like(xc)
-        d_cam = torch.stack([xc, yc, ones], dim=-1).reshape(B, H * W * spp, 3)
-        inv_len = torch.rsqrt((d_cam * d_cam).sum(-1))  # [B, HWspp]
-        forward_cos = inv_len  # d_z = 1
-        R = self.rotation
-        d_world = d_cam @ R  # row vectors: (R^T d)^T = d^T R
-        directions = d_world / torch.linalg.vector_norm(d_world, dim=-1, keepdim=True)
+        n = B * H * W * spp
+        off = off.reshape(-1, 2).repeat(n // off.reshape(-1, 2).shape[0], 1)  # [R, 2] in ray order
+        return self.ray_range(0, n, spp=spp, offsets=off)
 
-        n = H * W * spp
-        origins = self.eye[:, None, :].expand(B, n, 3).reshape(B * n, 3)
-        scene_index = torch.arange(B, device=device).repeat_interleave(n)
-        jj, ii = torch.meshgrid(
-            torch.arange(H, device=device), torch.arange(W, device=device), indexing="ij"
-        )
-        pix = torch.stack([ii, jj], dim=-1).reshape(H * W, 1, 2).expand(H * W, spp, 2).reshape(-1, 2)
-        pixel = pix.repeat(B, 1)
+    def ray_range(self, start: int, stop: int, *, spp: int = 1, offsets: Tensor | None = None) -> Rays:
+        """Rays ``start:stop`` of the flat order of :meth:`rays` (scene, row, column, sub-sample),
+        built without the others: a renderer makes one chunk at a time, so memory stays bounded.
+
+        offsets: ``[stop - start, 2]`` sub-pixel offsets (x, y) in (-0.5, 0.5); None gives the
+        stratum centres (the pixel centre for spp == 1).
+        """
+        B, H, W = self.batch_size, self.height, self.width
+        dtype, device = self.dtype, self.device
+        ids = torch.arange(start, stop, device=device)
+        sample, pix = ids % spp, ids // spp
+        col, row, b = pix % W, (pix // W) % H, pix // (W * H)
+        if offsets is None:
+            centres = self.subpixel_offsets(spp)  # [spp, 2]
+            offsets = centres[sample] if spp > 1 else centres.expand(ids.shape[0], 2)
+        px = col.to(dtype) + offsets[:, 0].to(dtype)
+        py = row.to(dtype) + offsets[:, 1].to(dtype)
+        K = self.K[b]  # [n, 3, 3]
+        yc = (py - K[:, 1, 2]) / K[:, 1, 1]
+        xc = (px - K[:, 0, 2] - K[:, 0, 1] * yc) / K[:, 0, 0]
+        d_cam = torch.stack([xc, yc, torch.ones_like(xc)], dim=-1)  # [n, 3]
+        forward_cos = torch.rsqrt((d_cam * d_cam).sum(-1))  # d_z = 1
+        d_world = (d_cam[:, None, :] @ self.rotation[b])[:, 0]  # row vectors: (R^T d)^T = d^T R
+        directions = d_world / torch.linalg.vector_norm(d_world, dim=-1, keepdim=True)
         return Rays(
-            origins=origins,
-            directions=directions.reshape(B * n, 3),
-            scene_index=scene_index,
-            pixel=pixel,
-            forward_cos=forward_cos.reshape(B * n),
+            origins=self.eye[b],
+            directions=directions,
+            scene_index=b,
+            pixel=torch.stack([col, row], dim=-1),
+            forward_cos=forward_cos,
         )
 
     # ------------------------------------------------------------------ helpers

@@ -344,10 +344,17 @@ class Renderer:
                     median_t=res.median_t, t0=torch.where(hit, t0, torch.full_like(t0, math.inf)))
 
     def closed_form(self, slot: VolumeSlot, v: int, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> dict[str, Tensor]:
-        """Homogeneous medium, unshadowed suns: one exact frostbite segment over the whole chord."""
-        s, d = rays.scene_index, rays.directions
-        length = torch.where(hit, t1 - t0, torch.zeros_like(t0))
-        mid = rays.origins + (0.5 * (t0 + t1))[:, None] * d
+        """Homogeneous medium, unshadowed suns: one exact frostbite segment over the whole chord,
+        evaluated on the rays that hit only."""
+        n = len(rays)
+        out = dict(radiance=t0.new_zeros(n, 3), transmittance=torch.ones_like(t0), weight_sum=torch.zeros_like(t0),
+                   weighted_t=torch.zeros_like(t0), median_t=torch.zeros_like(t0), t0=torch.full_like(t0, math.inf))
+        ids = hit.nonzero().squeeze(1)
+        if ids.numel() == 0:
+            return out
+        s, d, a, b = rays.scene_index[ids], rays.directions[ids], t0[ids], t1[ids]
+        length = b - a
+        mid = rays.origins[ids] + (0.5 * (a + b))[:, None] * d
         density = slot.field(mid, s)
         sigma_t = slot.sigma_t[s] * density
         source = slot.emission[s] * density[:, None]
@@ -355,11 +362,12 @@ class Renderer:
             source = source + self.in_scatter(slot, v, mid, d, s, slot.albedo[s] * sigma_t)
         radiance, trans = frostbite_step(source, sigma_t, length)
         alpha = 1.0 - trans
-        x = sigma_t * length
-        t_mean = t0 + length * expected_depth_fraction(x)
-        median = torch.where(trans <= 0.5, t0 + LN2 / sigma_t.clamp_min(torch.finfo(t0.dtype).tiny), torch.zeros_like(t0))
-        return dict(radiance=radiance, transmittance=trans, weight_sum=alpha, weighted_t=alpha * t_mean,
-                    median_t=median, t0=torch.where(hit, t0, torch.full_like(t0, math.inf)))
+        t_mean = a + length * expected_depth_fraction(sigma_t * length)
+        median = torch.where(trans <= 0.5, a + LN2 / sigma_t.clamp_min(torch.finfo(a.dtype).tiny), torch.zeros_like(a))
+        for key, value in dict(radiance=radiance, transmittance=trans, weight_sum=alpha, weighted_t=alpha * t_mean,
+                               median_t=median, t0=a).items():
+            out[key][ids] = value
+        return out
 
     def chunk(self, rays: Rays) -> dict[str, Tensor]:
         n = len(rays)

@@ -9,7 +9,9 @@ the segment's own transmittance, so the march loop is the same for all of them:
 
 - ``riemann``:   contribution = S·dt                       (the seeds' naive S·dt)
 - ``frostbite``: contribution = (S − S·e^{−σΔt}) / σ       (exact for S, σ constant on the segment)
-- ``alpha``:     the seeds' premultiplied front-to-back compositing, a = clamp(density·scale, 0, 1)
+- ``alpha``:     the seeds' premultiplied front-to-back compositing. Shader look: the medium gives
+                 a = clamp(density·scale, 0, 1) directly; physical media: a = min(σΔt, 1) (the seeds'
+                 `min(col.a * dt, 1)` mapping) with colour S/σ, so contribution = S·min(Δt, 1/σ)
 """
 
 from __future__ import annotations
@@ -57,6 +59,15 @@ def alpha_step(color: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
 
     `color`: [N, C]; `alpha`: [N] already in [0, 1]."""
     return color * alpha[:, None], 1.0 - alpha
+
+
+def alpha_linear_step(source: Tensor, sigma_t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+    """The seeds' density→alpha mapping for a physical medium: a = min(σΔt, 1), colour S/σ.
+
+    Contribution S·min(Δt, 1/σ) (no division: 1/0 = inf is fine in the min). `source`: [N, C];
+    `sigma_t`, `dt`: [N]. First order; converges to the exact result as Δt → 0."""
+    reach = torch.minimum(dt, 1.0 / sigma_t)
+    return source * reach[:, None], 1.0 - (sigma_t * dt).clamp(max=1.0)
 
 
 def composite(contribution: Tensor, transmittance: Tensor) -> tuple[Tensor, Tensor, Tensor]:

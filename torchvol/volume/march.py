@@ -21,7 +21,7 @@ from typing import Callable, Literal
 import torch
 from torch import Tensor
 
-from .integrate import alpha_step, frostbite_step, riemann_step
+from .integrate import alpha_linear_step, alpha_step, frostbite_step, riemann_step
 
 Placement = Literal["count", "size", "adaptive"]
 # medium(ray_ids [n], t [n], dt [n]) -> (sigma_t or alpha [n], source or colour [n, C])
@@ -84,7 +84,10 @@ def march(
     min_transmittance: float = 0.0,
 ) -> MarchResult:
     """March R rays through [t0, t1] where `hit`. `t0`, `t1`: [R]; `hit`: [R] bool; `dither`: [R]
-    in [0, 1) (segments: fraction of the first step) or an absolute start offset (shader)."""
+    in [0, 1) (segments: fraction of the first step) or an absolute start offset (shader).
+
+    `medium` returns (σ_t, source) for ``segments`` and (alpha, colour) for ``shader``, whose
+    samples always composite as the seeds' alpha; `integrator` applies to ``segments``."""
     r = t0.shape[0]
     zeros = t0.new_zeros(r)
     out = MarchResult(
@@ -108,7 +111,7 @@ def march(
     trans = torch.ones_like(t)
     radiance = t.new_zeros(t.shape[0], channels)
     wsum, wt, median = torch.zeros_like(t), torch.zeros_like(t), torch.zeros_like(t)
-    step_fn = {"riemann": riemann_step, "frostbite": frostbite_step}.get(integrator)
+    step_fn = {"riemann": riemann_step, "frostbite": frostbite_step, "alpha": alpha_linear_step}[integrator]
 
     def retire(keep: Tensor, truncated: Tensor | None = None) -> None:
         done = ~keep
@@ -132,7 +135,7 @@ def march(
         else:
             t_sample = t
         value, color = medium(ids, t_sample, dt)
-        if integrator == "alpha":
+        if semantics == "shader":  # the medium gives opacities directly
             contrib, seg_trans = alpha_step(color, value)
         else:
             contrib, seg_trans = step_fn(color, value, dt)
@@ -143,7 +146,7 @@ def march(
         new_trans = trans * seg_trans
         crossed = (trans > 0.5) & (new_trans <= 0.5)
         if crossed.any():
-            if integrator == "alpha" or semantics == "shader":
+            if semantics == "shader":
                 t_cross = t_sample
             else:  # exponential inside the segment: T(s) = T·e^{−σ s}
                 sigma = value.clamp_min(torch.finfo(t.dtype).tiny)
