@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from . import noise, post, sky
-from .camera import Camera, Rays
+from .camera import Camera, Rays, strata_shape
 from .fields import Field, make_field
 from .plan import MarchSettings, Pass, make_plan, march_settings, uses_closed_form
 from .rays import clip_to_ray, intersect_box, intersect_slab, intersect_sphere
@@ -188,8 +188,9 @@ class VolumeSlot:
 class Renderer:
     """Holds one batch's per-scene tensors and runs its plan chunk by chunk."""
 
-    def __init__(self, scenes: Sequence[Scene], settings: MarchSettings, *, seed: int, device, dtype, compiled: bool):
-        self.scenes, self.settings, self.seed = scenes, settings, seed
+    def __init__(self, scenes: Sequence[Scene], settings: MarchSettings, *, seeds: Sequence[int], device, dtype, compiled: bool):
+        self.scenes, self.settings = scenes, settings
+        self.seeds = torch.tensor([int(x) % 2**32 for x in seeds], dtype=torch.int64, device=device)  # (B,)
         self.kw = dict(dtype=dtype, device=device)
         self.timer, self.counter = Timer(), Counter()
         self.plan = make_plan(scenes[0], settings)
@@ -231,9 +232,26 @@ class Renderer:
             py = self.scenes[0].image.height - 1 - rays.pixel[:, 1]
             x = torch.sin((px * 73 + py * 311).to(rays.origins.dtype)) * 43758.5453
             return self.settings.dither_scale * (x - torch.floor(x))
-        cells = torch.stack([rays.pixel[:, 0], rays.pixel[:, 1], rays.scene_index], dim=1)
-        sub = torch.arange(len(rays), device=cells.device) % self.scenes[0].image.spp
-        return noise.hash3(cells * 1024 + sub[:, None], self.seed, dtype=rays.origins.dtype)
+        spp = self.scenes[0].image.spp
+        sub = torch.arange(len(rays), device=rays.pixel.device) % spp  # chunks hold whole pixels
+        cells = torch.stack([rays.pixel[:, 0] * spp + sub, rays.pixel[:, 1], self.seeds[rays.scene_index]], dim=1)
+        return noise.hash3(cells, 0x5EED, dtype=rays.origins.dtype)
+
+    def jitter(self, start: int, stop: int) -> Tensor | None:
+        """Sub-pixel offsets [n, 2] of rays start:stop: stratum + a hash of (seed, ray), so the same
+        seed gives the same rays whatever the chunking. None (stratum centres) for spp == 1."""
+        spp = self.scenes[0].image.spp
+        if spp == 1:
+            return None
+        ids = torch.arange(start, stop, device=self.kw["device"])
+        nx, ny = strata_shape(spp)
+        per_scene = self.scenes[0].image.width * self.scenes[0].image.height * spp
+        sample, scene = ids % spp, ids // per_scene
+        cells = torch.stack([ids % per_scene, self.seeds[scene], torch.zeros_like(ids)], dim=1)
+        xi = torch.stack([noise.hash3(cells, 0x717E + k, dtype=torch.float64) for k in (0, 1)], dim=1)
+        strata = torch.stack([sample % nx, sample // nx], dim=1).to(torch.float64)
+        off = (strata + xi) / torch.tensor([nx, ny], dtype=torch.float64, device=ids.device) - 0.5
+        return off.clamp(-0.5 + 1e-7, 0.5 - 1e-7).to(self.kw["dtype"])
 
     def lod(self, t: Tensor) -> Tensor | None:
         if self.settings.lod_scale is None:
@@ -406,21 +424,10 @@ class Renderer:
                     distance=distance, depth_median=median * rays.forward_cos)
 
 
-def _resolve(values: Tensor, b: int, h: int, w: int, spp: int, *, valid_only: bool = False) -> Tensor:
-    """[R, C] in (scene, row, column, sample) order -> (B, C, H, W) averaged over samples."""
-    x = values.reshape(b, h, w, spp, -1)
-    if valid_only and spp > 1:  # depth: mean over the sub-samples that hit
-        n = (x > 0).sum(dim=3)
-        x = x.sum(dim=3) / n.clamp_min(1)
-    else:
-        x = x.mean(dim=3)
-    return x.permute(0, 3, 1, 2).contiguous()
-
-
 def render(
     scene,
     *,
-    seed: int = 0,
+    seed: int | Sequence[int] = 0,
     device: str | torch.device = "cpu",
     dtype: torch.dtype | None = None,
     chunk_rays: int = DEFAULT_CHUNK_RAYS,
@@ -428,47 +435,58 @@ def render(
 ) -> RenderOutput:
     """Render a scene (or a list of scenes of one structure, as one batch).
 
-    `scene`: a Scene, a dict, a .toml path or a preset name (or a list of those). `seed` drives the
-    dither and sub-pixel jitter. `dtype` defaults to the quality level's (float64 for reference).
+    `scene`: a Scene, a dict, a .toml path or a preset name (or a list of those). `seed` (one int, or
+    one per scene) drives the dither and sub-pixel jitter, hashed per (seed, pixel, sample): a scene
+    renders the same alone or anywhere in a batch, for any chunking. `dtype` defaults to the quality level's (float64 for reference).
     `chunk_rays` bounds peak memory. `compile` runs the noise kernels under torch.compile."""
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        fail("seed", seed, "expected an integer")
+    seeds = list(seed) if isinstance(seed, (list, tuple)) else None
     if isinstance(chunk_rays, bool) or not isinstance(chunk_rays, int) or chunk_rays < 1:
         fail("chunk_rays", chunk_rays, "expected an integer >= 1")
     scenes = [load_scene(s) for s in (scene if isinstance(scene, (list, tuple)) else [scene])]
     if not scenes:
         fail("scene", scene, "expected at least one scene")
     _same_structure(scenes)
+    seeds = [seed] * len(scenes) if seeds is None else seeds
+    if len(seeds) != len(scenes) or any(isinstance(x, bool) or not isinstance(x, int) for x in seeds):
+        fail("seed", seed, f"expected an integer or one integer per scene ({len(scenes)})")
     settings = march_settings(scenes[0].march)
     dtype = dtype or settings.dtype
     start = time.perf_counter()
-    r = Renderer(scenes, settings, seed=seed, device=torch.device(device), dtype=dtype, compiled=compile)
+    r = Renderer(scenes, settings, seeds=seeds, device=torch.device(device), dtype=dtype, compiled=compile)
     img = scenes[0].image
     b, h, w, spp = len(scenes), img.height, img.width, img.spp
     with r.timer.section("rays"):
         camera = camera_for(scenes, dtype, torch.device(device))
-        gen = torch.Generator(device="cpu").manual_seed(seed)
-        rays = camera.rays(spp=spp, generator=gen)
-    outs: dict[str, list[Tensor]] = {}
-    for part in rays.chunks(chunk_rays):
-        for key, value in r.chunk(part).items():
-            outs.setdefault(key, []).append(value.to(torch.float32).reshape(len(part), -1))
-    flat = {k: torch.cat(v) for k, v in outs.items()}
-    with r.timer.section("resolve") if spp > 1 else _noop():
-        radiance = _resolve(flat["radiance"], b, h, w, spp)
-        alpha = _resolve(flat["alpha"], b, h, w, spp)
-        depth = _resolve(flat["depth"], b, h, w, spp, valid_only=True)
-        aovs = {}
-        if scenes[0].volumes:
-            aovs["depth_median"] = _resolve(flat["depth_median"], b, h, w, spp, valid_only=True)
-            aovs["distance"] = _resolve(flat["distance"], b, h, w, spp, valid_only=True)
+    pixels = b * h * w
+    chunk_pixels = max(1, chunk_rays // spp)  # chunks hold whole pixels: sub-samples resolve in place
+    keys = ["radiance", "alpha", "depth"] + (["distance", "depth_median"] if scenes[0].volumes else [])
+    buffers: dict[str, Tensor] = {}
+    for first in range(0, pixels, chunk_pixels):
+        last = min(pixels, first + chunk_pixels)
+        with r.timer.section("rays"):
+            rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=r.jitter(first * spp, last * spp))
+        values = r.chunk(rays)
+        with r.timer.section("resolve") if spp > 1 else _noop():
+            for key in keys:
+                value = values[key].to(torch.float32).reshape(last - first, spp, -1)
+                if key == "radiance" or key == "alpha" or spp == 1:
+                    value = value.mean(dim=1)
+                else:  # depths: mean over the sub-samples that hit
+                    value = value.sum(dim=1) / (value > 0).sum(dim=1).clamp_min(1)
+                if key not in buffers:
+                    buffers[key] = torch.empty(pixels, value.shape[1], dtype=torch.float32, device=value.device)
+                buffers[key][first:last] = value
+    images = {k: v.reshape(b, h, w, -1).permute(0, 3, 1, 2).contiguous() for k, v in buffers.items()}
+    radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
+    aovs = images
+    n_rays = pixels * spp
     image = _post(scenes, r, radiance, aovs.get("distance"))
     stats = {
         "passes": [p.name for p in r.plan],
         "density_evals": r.counter.density_evals,
         "time_s": {p.name: r.timer.seconds.get(p.name, 0.0) for p in r.plan},
         "total_s": time.perf_counter() - start,
-        "rays": len(rays),
+        "rays": n_rays,
         "march_steps": r.steps_total,
         "truncated_rays": r.truncated,
         "dtype": str(dtype).removeprefix("torch."),

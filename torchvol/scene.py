@@ -416,7 +416,8 @@ def _set_path(data: dict, dotted: str, value: Any) -> None:
         last = i == len(parts) - 1
         if isinstance(node, list):
             if not part.isdigit() or int(part) >= len(node):
-                fail(_path_str(tuple(parts[: i + 1])), value, f"index out of range (the list has {len(node)} items)")
+                where = _path_str(tuple(int(p) if p.isdigit() else p for p in parts[: i + 1]))
+                fail(where, value, f"index out of range (the list has {len(node)} items)")
             part = int(part)
         elif not isinstance(node, dict):
             fail(dotted, value, f"{'.'.join(parts[:i])} is not a table")

@@ -1,0 +1,57 @@
+"""`torchvol render` end to end: files written, exact float arrays, errors as one line."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import torchvol as tv
+from torchvol.cli import main
+
+
+def test_render_preset_writes_png_depth_and_arrays(tmp_path, capsys):
+    out = tmp_path / "sub" / "clouds.png"
+    code = main(["render", "--preset", "template-clouds", "--param", "width=24", "--param", "height=16",
+                 "--param", "mouse=[3, 4]", "--out", str(out), "--npy"])
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["passes"][0] == "rays" and report["density_evals"] > 0
+    image = np.asarray(Image.open(out))
+    assert image.shape == (16, 24, 3) and image.dtype == np.uint8
+    depth_png = Image.open(tmp_path / "sub" / "clouds_depth.png")
+    assert np.asarray(depth_png).dtype == np.uint16 and "depth_scale" in depth_png.info
+    direct = tv.render(tv.preset("template-clouds", width=24, height=16, mouse=(3, 4)))
+    assert np.array_equal(np.load(tmp_path / "sub" / "clouds_depth.npy"), direct.depth[0].numpy())
+    assert np.array_equal(image, np.round(direct.image[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8))
+    assert np.array_equal(np.load(tmp_path / "sub" / "clouds_K.npy"), direct.camera.K[0].numpy())
+
+
+def test_render_scene_file_with_overrides(tmp_path):
+    scene = tmp_path / "s.toml"
+    scene.write_text('[image]\nwidth = 8\nheight = 6\n[[volumes]]\nsigma_t = 2.0\n')
+    assert main(["render", str(scene), "--set", "volumes[0].sigma_t=5", "--set", "camera.fov_y=30",
+                 "--out", str(tmp_path / "o.png")]) == 0
+    assert Image.open(tmp_path / "o.png").size == (8, 6)
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["render", "--preset", "nope"], "preset: got 'nope'"),
+        (["render", "missing.toml"], "no such scene file"),
+        (["render", "--preset", "cloud-puff", "--set", "volumes[0].albedo=2"], "volumes[0].albedo"),
+        (["render", "--preset", "cloud-puff", "--set", "nonsense"], "expected KEY=VALUE"),
+    ],
+)
+def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys, args, needle):
+    assert main(args + ["--out", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_console_script_runs():
+    done = subprocess.run([sys.executable, "-m", "torchvol.cli", "render", "--help"], capture_output=True, text=True)
+    assert done.returncode == 0 and "--preset" in done.stdout
