@@ -105,3 +105,14 @@ def test_template_preset_parameters_move_the_camera():
     assert np.allclose(a.camera.eye, ro) and a.time == 4.0
     cr = 0.07 * np.cos(0.25 * 4.0)
     assert np.allclose(a.camera.up, [np.sin(cr), np.cos(cr), 0.0])
+
+
+def test_height_ambient_gradient_darkens_the_cloud_base():
+    """Seed Step 6 Method C: ambient = mix(bottom, top, normalised height) in the shader look."""
+    base = tv.preset("template-clouds", width=32, height=18)
+    flat = tv.load_scene(base, {"volumes[0].shader.ambient": [0.2, 0.2, 0.2]})
+    graded = tv.load_scene(flat, {"volumes[0].shader.ambient_top": [1.0, 1.0, 1.0]})
+    a, b = tv.render(flat), tv.render(graded)
+    cloudy = a.alpha > 0.3
+    assert cloudy.any() and (b.radiance - a.radiance)[cloudy.expand_as(a.radiance)].min() >= 0
+    assert (b.radiance - a.radiance).max() > 0.05

@@ -92,7 +92,7 @@ def _same_structure(scenes: Sequence[Scene]) -> None:
             s.image, s.march, s.post.tonemap, s.post.vignette > 0, s.post.fog is None, None if s.sky is None else s.sky.kind,
             s.sky is not None and (s.sky.halo is None, s.sky.flare is None), s.camera.fov_y is None, s.camera.focal is None,
             [(li.kind, li.shadow) for li in s.lights],
-            [(v.bounds.kind, v.density.kind, v.phase.kind, v.shading, v.shader.light) for v in s.volumes],
+            [(v.bounds.kind, v.density.kind, v.phase.kind, v.shading, v.shader.light, v.shader.ambient_top is None) for v in s.volumes],
         )
 
     ref = shape(first)
@@ -159,10 +159,30 @@ class VolumeSlot:
         elif phase == "dual_hg":
             self.phase_params = _t([[x.phase.dual_hg.g_forward, x.phase.dual_hg.g_backward, x.phase.dual_hg.weight] for x in vols], dtype, device)
         look = [x.shader for x in vols]
+        self.height_gradient = look[0].ambient_top is not None
+        if self.height_gradient:
+            self.ambient_top = _t([x.ambient_top for x in look], dtype, device)
+            self.y_range = _t([self.height_range(x.bounds) for x in vols], dtype, device)  # (B, 2)
         self.look = {
             k: _t([getattr(s, k) for s in look], dtype, device)
             for k in ("light_offset", "light_scale", "ambient", "color_lit", "color_dark", "alpha_scale", "fog")
         }
+
+    @staticmethod
+    def height_range(bounds) -> tuple[float, float]:
+        if bounds.kind == "box":
+            return bounds.box.min[1], bounds.box.max[1]
+        if bounds.kind == "sphere":
+            return bounds.sphere.center[1] - bounds.sphere.radius, bounds.sphere.center[1] + bounds.sphere.radius
+        return bounds.slab.y_min, bounds.slab.y_max
+
+    def ambient(self, p: Tensor, s: Tensor) -> Tensor:
+        """The shader look's ambient light at points `p` [n, 3] of scenes `s` [n] -> [n, 3]."""
+        if not self.height_gradient:
+            return self.look["ambient"][s]
+        lo, hi = self.y_range[s, 0], self.y_range[s, 1]
+        height = ((p[:, 1] - lo) / (hi - lo)).clamp(0.0, 1.0)
+        return torch.lerp(self.look["ambient"][s], self.ambient_top[s], height[:, None])
 
     def intersect(self, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
         """Entry/exit distances of rays `o`, `d` [n, 3] of scenes `s` [n]."""
@@ -313,7 +333,7 @@ class Renderer:
             keep = (density > threshold).nonzero().squeeze(1)
             if keep.numel():
                 sk, dk, tk = s[keep], density[keep], t[keep]
-                lin = look["ambient"][sk]
+                lin = slot.ambient(p[keep], sk)
                 if derivative:
                     with self.timer.section(self.names[("derivative_light", 0)]):
                         sun = self.lights.direction[0][sk]

@@ -289,6 +289,9 @@ class ShaderLook(Strict):
     light_offset: float = Field(0.3, gt=0.0)
     light_scale: float = Field(0.6, gt=0.0)
     ambient: Vec3 = (0.91, 0.98, 1.05)
+    # height gradient (seed Step 6 Method C): ambient = mix(ambient, ambient_top, normalised height
+    # in the bounds); e.g. ambient = [0.229, 0.394, 0.512], ambient_top = [0.876, 0.982, 1.176]
+    ambient_top: Vec3 | None = None
     color_lit: Vec3 = (1.0, 0.95, 0.8)
     color_dark: Vec3 = (0.25, 0.3, 0.35)
     alpha_scale: float = Field(0.4, ge=0.0)
