@@ -90,6 +90,16 @@ def uses_closed_form(scene: Scene, v: int, settings: MarchSettings) -> bool:
 
 def make_plan(scene: Scene, settings: MarchSettings) -> list[Pass]:
     passes = [Pass("rays", "rays")]
+    vx = scene.voxels
+    if vx is not None:  # the surface pass runs before the volumes (they march up to its depth)
+        passes.append(Pass("voxels.dda", "voxels.dda"))
+        if vx.rounded is not None:
+            passes.append(Pass("voxels.rounded", "voxels.rounded"))
+        passes.append(Pass("voxels.shade", "voxels.shade"))
+        if vx.ao is not None:
+            passes.append(Pass("voxels.ao", "voxels.ao"))
+        if vx.shadow is not None:
+            passes += [Pass(f"voxels.shadow{l}", "voxels.shadow", l) for l in range(len(scene.lights))]
     for v, vol in enumerate(scene.volumes):
         if uses_closed_form(scene, v, settings):
             passes.append(Pass(f"volume{v}.closed_form", "closed_form", v))

@@ -21,6 +21,7 @@ from .validate import fail
 from .volume import light as lighting
 from .volume.integrate import frostbite_step
 from .volume.march import LN2, StepRule, expected_depth_fraction, march
+from .voxel.surface import VoxelSurface, surface_aovs
 
 DEFAULT_CHUNK_RAYS = 1 << 16
 
@@ -93,6 +94,7 @@ def _same_structure(scenes: Sequence[Scene]) -> None:
             s.sky is not None and (s.sky.halo is None, s.sky.flare is None), s.camera.fov_y is None, s.camera.focal is None,
             [(li.kind, li.shadow) for li in s.lights],
             [(v.bounds.kind, v.density.kind, v.phase.kind, v.shading, v.shader.light, v.shader.ambient_top is None) for v in s.volumes],
+            s.camera.matrix is None, _voxel_structure(s.voxels),
         )
 
     ref = shape(first)
@@ -102,8 +104,19 @@ def _same_structure(scenes: Sequence[Scene]) -> None:
                  "light and volume kinds; only numeric values may differ")
 
 
+def _voxel_structure(v):
+    if v is None:
+        return None
+    return (v.occupancy.kind, v.traversal, v.max_steps, len(v.materials) > 1, v.ao is None, v.texture is None,
+            v.shadow and v.shadow.steps, v.glow is None, v.rounded, v.fog and v.fog.shadow_steps)
+
+
 def camera_for(scenes: Sequence[Scene], dtype, device) -> Camera:
     cams = [s.camera for s in scenes]
+    if cams[0].matrix is not None:  # given matrices (e.g. the voxel seed's mirrored camera)
+        return Camera(K=_t([c.matrix.K for c in cams], dtype, device),
+                      world_to_camera=_t([c.matrix.world_to_camera for c in cams], dtype, device),
+                      width=scenes[0].image.width, height=scenes[0].image.height)
     focal = None if cams[0].focal is None else _t([c.focal for c in cams], dtype, device)
     fov = None if focal is not None else _t([c.resolved_fov_y for c in cams], dtype, device)
     return Camera.look_at(
@@ -226,6 +239,9 @@ class Renderer:
                 if getattr(first.sky, glow) is not None:
                     self.sky[glow + "_color"] = _t([getattr(x, glow).color for x in skies], dtype, device)
                     self.sky[glow + "_power"] = _t([getattr(x, glow).power for x in skies], dtype, device)
+        self.surface = None
+        if first.voxels is not None:
+            self.surface = VoxelSurface([s.voxels for s in scenes], self.lights.direction, self.lights.radiance, dtype=dtype, device=device)
         self.steps_total = 0
         self.truncated = 0
 
@@ -349,8 +365,9 @@ class Renderer:
 
         return medium
 
-    def volume(self, slot: VolumeSlot, v: int, rays: Rays, background: Tensor) -> dict[str, Tensor]:
-        """Radiance [n,3], transmittance, weight sums, median t and entry t of one volume."""
+    def volume(self, slot: VolumeSlot, v: int, rays: Rays, background: Tensor, t_limit: Tensor | None = None) -> dict[str, Tensor]:
+        """Radiance [n,3], transmittance, weight sums, median t and entry t of one volume, marched
+        up to `t_limit` [n] (the voxel surface's distance) where given."""
         st = self.settings
         t_near, t_far = slot.intersect(rays.origins, rays.directions, rays.scene_index)
         shader = slot.spec.shading == "shader"
@@ -360,6 +377,9 @@ class Renderer:
             hit = (t_far >= 0) & (t_far >= t_near)
         else:
             t0, t1, hit = clip_to_ray(t_near, t_far, st.max_distance)
+        if t_limit is not None:
+            t1 = torch.minimum(t1, t_limit)
+            hit = hit & (t1 > t0)
         if uses_closed_form(self.scenes[0], v, st):
             with self.timer.section(self.names[("closed_form", v)]):
                 return self.closed_form(slot, v, rays, t0, t1, hit)
@@ -413,7 +433,12 @@ class Renderer:
         if self.sky_spec is not None:
             with self.timer.section("sky"):
                 background = self.sky_radiance(rays)
-        parts = [self.volume(slot, v, rays, background) for v, slot in enumerate(self.volumes)]
+        surf = None
+        if self.surface is not None:
+            sky_bg = background if background is not None else rays.origins.new_zeros(n, 3)
+            surf = self.surface.run(rays.origins, rays.directions, rays.scene_index, rays.forward_cos, sky_bg, self.timer.section)
+        t_limit = None if surf is None else surf["t"]
+        parts = [self.volume(slot, v, rays, background, t_limit) for v, slot in enumerate(self.volumes)]
         with self.timer.section("composite"):
             radiance = rays.origins.new_zeros(n, 3)
             trans = torch.ones_like(rays.origins[:, 0])
@@ -430,8 +455,9 @@ class Renderer:
                     med = g("median_t")
                     median = torch.where((median == 0) & (trans > 0.5) & (trans * g("transmittance") <= 0.5), med, median)
                     trans = trans * g("transmittance")
-            if background is not None:
-                radiance = radiance + trans[:, None] * background
+            behind = background if surf is None else surf["color"]  # the shaded surface where hit
+            if behind is not None:
+                radiance = radiance + trans[:, None] * behind
         if ("flare", None) in self.names:
             with self.timer.section("post.flare"):
                 s = rays.scene_index
@@ -440,8 +466,16 @@ class Renderer:
         distance = torch.where(wsum > 0, wt / wsum.clamp_min(torch.finfo(wsum.dtype).tiny), torch.zeros_like(wsum))
         valid = (alpha >= self.settings.depth_threshold) & (wsum > 0)
         distance = torch.where(valid, distance, torch.zeros_like(distance))
+        extra = {}
+        if surf is not None:  # the surface is an opaque terminal weight T at its distance
+            hit, ts = surf["hit"], torch.where(surf["hit"], surf["t"], torch.zeros_like(trans))
+            denom = (wsum + trans).clamp_min(torch.finfo(wsum.dtype).tiny)
+            distance = torch.where(hit, (wt + trans * ts) / denom, distance)
+            median = torch.where(hit & (median == 0), ts, median)
+            alpha = torch.where(hit, torch.ones_like(alpha), alpha)
+            extra = surf["aovs"]
         return dict(radiance=radiance, alpha=alpha, depth=distance * rays.forward_cos,
-                    distance=distance, depth_median=median * rays.forward_cos)
+                    distance=distance, depth_median=median * rays.forward_cos, **extra)
 
 
 def render(
@@ -480,6 +514,8 @@ def render(
     pixels = b * h * w
     chunk_pixels = max(1, chunk_rays // spp)  # chunks hold whole pixels: sub-samples resolve in place
     keys = ["radiance", "alpha", "depth"] + (["distance", "depth_median"] if scenes[0].volumes else [])
+    if scenes[0].voxels is not None:
+        keys += surface_aovs(scenes[0].voxels, len(scenes[0].lights))
     buffers: dict[str, Tensor] = {}
     for first in range(0, pixels, chunk_pixels):
         last = min(pixels, first + chunk_pixels)
@@ -489,7 +525,9 @@ def render(
         with r.timer.section("resolve") if spp > 1 else _noop():
             for key in keys:
                 value = values[key].to(torch.float32).reshape(last - first, spp, -1)
-                if key == "radiance" or key == "alpha" or spp == 1:
+                if key == "material":  # ids do not average: the first sub-sample's
+                    value = value[:, 0]
+                elif key in ("radiance", "alpha", "normal", "uv", "ao", "shadow") or spp == 1:
                     value = value.mean(dim=1)
                 else:  # depths: mean over the sub-samples that hit
                     value = value.sum(dim=1) / (value > 0).sum(dim=1).clamp_min(1)
@@ -509,6 +547,7 @@ def render(
         "rays": n_rays,
         "march_steps": r.steps_total,
         "truncated_rays": r.truncated,
+        **({"voxel_steps": r.surface.steps_total} if r.surface is not None else {}),
         "dtype": str(dtype).removeprefix("torch."),
     }
     return RenderOutput(image=image, radiance=radiance, depth=depth, alpha=alpha, aovs=aovs, camera=camera, stats=stats)

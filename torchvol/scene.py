@@ -71,6 +71,27 @@ class Image(Strict):
     spp: int = Field(1, ge=1, le=1024)
 
 
+class CameraMatrix(Strict):
+    """A camera given by its matrices (OpenCV axes): K 3×3 in pixels, world_to_camera 4×4 rigid
+    (orthonormal rotation; determinant −1 allowed: a mirrored camera such as the voxel seed's)."""
+
+    K: tuple[Vec3, Vec3, Vec3]
+    world_to_camera: tuple[tuple[float, float, float, float], ...]
+
+    @model_validator(mode="after")
+    def _valid(self):
+        K = np.asarray(self.K, dtype=np.float64)
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or tuple(K[2]) != (0.0, 0.0, 1.0):
+            raise ValueError("K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+        M = np.asarray(self.world_to_camera, dtype=np.float64)
+        if M.shape != (4, 4) or tuple(M[3]) != (0.0, 0.0, 0.0, 1.0):
+            raise ValueError("world_to_camera must be 4x4 with last row [0, 0, 0, 1]")
+        R = M[:3, :3]
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-6:
+            raise ValueError("world_to_camera's 3x3 block must be orthonormal")
+        return self
+
+
 class CameraSpec(Strict):
     eye: Vec3 = (0.0, 1.0, -5.0)
     target: Vec3 = (0.0, 0.0, 0.0)
@@ -78,6 +99,7 @@ class CameraSpec(Strict):
     fov_y: float | None = Field(None, gt=0.0, lt=180.0, description="full vertical field of view, degrees")
     focal: float | None = Field(None, gt=0.0, description="the seeds' shader focal length (fy = focal·H/2)")
     roll: float = 0.0
+    matrix: CameraMatrix | None = None  # given: K and world_to_camera are used as they are
 
     @model_validator(mode="after")
     def _geometry(self):
@@ -360,6 +382,218 @@ class Post(Strict):
         return v
 
 
+# ---------------------------------------------------------------------------------------------
+# Voxels (see docs/VOXELS.md)
+
+Int3 = tuple[int, int, int]
+
+
+class SdfSphere(Strict):
+    center: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = Field(1.0, gt=0.0)
+
+
+class SdfBox(Strict):
+    center: Vec3 = (0.0, 0.0, 0.0)
+    half_size: Vec3 = (1.0, 1.0, 1.0)
+    _h = field_validator("half_size")(lambda v: _nonneg(v))
+
+
+class SdfRoundedBox(SdfBox):
+    radius: float = Field(0.1, ge=0.0)
+
+
+class SdfPair(Strict):
+    a: "SdfNode"
+    b: "SdfNode"
+
+
+class SdfNode(One):
+    """One SDF node: a primitive, or CSG over nodes (union/intersection lists, subtraction a − b)."""
+
+    sphere: SdfSphere | None = None
+    box: SdfBox | None = None
+    rounded_box: SdfRoundedBox | None = None
+    union: list["SdfNode"] | None = Field(None, min_length=1)
+    intersection: list["SdfNode"] | None = Field(None, min_length=1)
+    subtraction: SdfPair | None = None
+
+
+SdfPair.model_rebuild()
+
+
+class SdfOccupancy(Strict):
+    """Cells whose centre (world) has sdf < 0 hold `material` (the seed's getVoxel)."""
+
+    shape: SdfNode
+    material: int = Field(1, ge=1, le=255)
+
+
+class TerrainOccupancy(Strict):
+    """Heightmap h(x, z) = base + amplitude · Σ_k gain^k · value_noise(frequency · lacunarity^k · (x, z));
+    cell (i, j, k) with j > h is air, else grass (j > h − 1), dirt (j > h − 1 − dirt_depth), stone."""
+
+    seed: int = 0
+    base: float = 0.0
+    amplitude: float = Field(8.0, ge=0.0)
+    frequency: float = Field(0.05, gt=0.0)
+    octaves: int = Field(4, ge=1, le=12)
+    gain: float = Field(0.5, gt=0.0, le=1.0)
+    lacunarity: float = Field(2.0, gt=0.0)
+    dirt_depth: float = Field(3.0, ge=0.0)
+    materials: Int3 = (1, 2, 3)  # grass, dirt, stone ids
+
+
+class GridOccupancy(Strict):
+    """grid[k, j, i] = material id (uint8, 0 empty) of cell (i, j, k) counted from `voxels.cells.min`."""
+
+    path: str | None = None
+    data: Any = None
+
+    @model_validator(mode="after")
+    def _load(self):
+        if (self.path is None) == (self.data is None):
+            raise ValueError("give path (a .npy file) or data (an array), not both")
+        if self.path is not None:
+            if not Path(self.path).is_file():
+                raise ValueError(f"no such file: {self.path}")
+            array = np.load(self.path)
+        else:
+            array = np.asarray(self.data.numpy() if hasattr(self.data, "numpy") else self.data)
+        if array.ndim != 3 or min(array.shape) < 1:
+            raise ValueError(f"grid must be a 3D array [k, j, i], got shape {array.shape}")
+        if not np.issubdtype(array.dtype, np.integer) or array.min() < 0 or array.max() > 255:
+            raise ValueError("grid values must be integer material ids in 0..255")
+        object.__setattr__(self, "data", array.astype(np.uint8, copy=False))
+        return self
+
+
+class FunctionOccupancy(Strict):
+    """A Python callable: cells [N, 3] (int64, i j k) -> material ids [N] (0 empty)."""
+
+    fn: Any
+
+    @field_validator("fn")
+    @classmethod
+    def _callable(cls, v):
+        if not callable(v):
+            raise ValueError("expected a callable mapping integer cells [N, 3] to material ids [N]")
+        return v
+
+
+class Occupancy(One):
+    sdf: SdfOccupancy | None = None
+    terrain: TerrainOccupancy | None = None
+    grid: GridOccupancy | None = None
+    function: FunctionOccupancy | None = None
+
+
+class CellRange(Strict):
+    """Integer cell range [min, max) covered by the voxel grid."""
+
+    min: Int3 = (0, 0, 0)
+    max: Int3 = (16, 16, 16)
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if any(hi <= lo for lo, hi in zip(self.min, self.max)):
+            raise ValueError(f"max {self.max} must exceed min {self.min} on every axis")
+        if math.prod(hi - lo for lo, hi in zip(self.min, self.max)) > 2**30:
+            raise ValueError("at most 2**30 cells")
+        return self
+
+
+class VoxelAO(Strict):
+    """Neighbour AO (seed Step 7): ao = bilinear(vertex AO)^gamma."""
+
+    gamma: float = Field(1.0, gt=0.0)
+
+
+class VoxelShadow(Strict):
+    """DDA shadow rays towards each sun from hit + offset·normal (seed Step 8)."""
+
+    steps: int = Field(32, ge=1, le=100_000)
+    offset: float = Field(0.01, ge=0.0)
+
+
+class VoxelTexture(Strict):
+    """Atlas (H, W, 3|4) uint8 (or a PNG path) of tiles × tiles tiles; material m uses tile m − 1
+    (row-major from the top left), sampled at the face UV (nearest texel)."""
+
+    atlas: Any
+    tiles: int = Field(4, ge=1, le=256)
+
+    @field_validator("atlas")
+    @classmethod
+    def _atlas(cls, v):
+        if isinstance(v, (str, Path)):
+            if not Path(v).is_file():
+                raise ValueError(f"no such file: {v}")
+            from PIL import Image as PILImage
+
+            v = np.asarray(PILImage.open(v).convert("RGB"))
+        array = np.asarray(v.numpy() if hasattr(v, "numpy") else v)
+        if array.ndim != 3 or array.shape[2] not in (3, 4) or array.dtype != np.uint8:
+            raise ValueError(f"atlas must be uint8 (H, W, 3|4), got {array.dtype} {array.shape}")
+        return array[..., :3]
+
+
+class VoxelGlow(Strict):
+    """Seed variant 1: glow += intensity / (epsilon + d²) per DDA step, d the sdf at the cell;
+    radiance += glow · color. Needs an sdf occupancy."""
+
+    intensity: float = Field(0.015, ge=0.0)
+    epsilon: float = Field(0.01, gt=0.0)
+    color: Vec3 = (0.4, 0.6, 1.0)
+
+
+class VoxelRounded(Strict):
+    """Seed variant 2: per-voxel rounded box of radius min + range · hash(cell), refined by `steps`
+    SDF-march steps inside the hit voxel (converged where h < threshold)."""
+
+    radius_min: float = Field(0.05, ge=0.0, le=0.5)
+    radius_range: float = Field(0.35, ge=0.0, le=0.5)
+    steps: int = Field(6, ge=1, le=64)
+    threshold: float = Field(0.025, gt=0.0)
+    seed: int = 0
+    retries: int = Field(8, ge=0, le=64)  # rays that miss a rounded voxel continue this many times
+
+
+class VoxelFog(Strict):
+    """Fog inside the DDA: per visited empty cell σ = density·e^{−(y − base)/scale_height}, in-scatter
+    color · sun · shadow (a DDA shadow ray from the cell centre, `shadow_steps`) · e^{−τ}."""
+
+    density: float = Field(0.05, ge=0.0)
+    base: float = 0.0
+    scale_height: float = Field(1e9, gt=0.0)
+    color: Vec3 = (1.0, 1.0, 1.0)
+    shadow_steps: int = Field(16, ge=1, le=10_000)
+
+
+class Voxels(Strict):
+    occupancy: Occupancy
+    cells: CellRange = Field(default_factory=CellRange)
+    origin: Vec3 = (0.0, 0.0, 0.0)  # world position of cell (0, 0, 0)'s min corner
+    voxel_size: float = Field(1.0, gt=0.0)
+    max_steps: int = Field(256, ge=1, le=1_000_000)
+    traversal: Literal["dda", "hybrid"] = "dda"
+    materials: list[Vec3] = Field(default_factory=lambda: [(1.0, 1.0, 1.0)], min_length=1, max_length=255)
+    face_tones: Vec3 = (0.5, 1.0, 0.75)  # x, y, z faces (seed Step 5); [1, 1, 1] turns it off
+    ambient: Vec3 = (0.3, 0.3, 0.3)
+    ao: VoxelAO | None = None
+    shadow: VoxelShadow | None = None
+    texture: VoxelTexture | None = None
+    glow: VoxelGlow | None = None
+    rounded: VoxelRounded | None = None
+    fog: VoxelFog | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.glow is not None and self.occupancy.kind != "sdf":
+            raise ValueError("glow needs an sdf occupancy (it accumulates the sdf distance)")
+        return self
+
+
 class Scene(Strict):
     time: float = 0.0
     image: Image = Field(default_factory=Image)
@@ -367,6 +601,7 @@ class Scene(Strict):
     sky: Sky | None = None
     lights: list[Light] = Field(default_factory=list)
     volumes: list[Volume] = Field(default_factory=list)
+    voxels: Voxels | None = None
     march: March = Field(default_factory=March)
     post: Post = Field(default_factory=Post)
 

@@ -46,7 +46,38 @@ def _cloud_puff(data: dict, *, sigma_t: float | None = None, g: float | None = N
         data["lights"][0]["shadow"]["steps"] = steps
 
 
+def shader_camera_matrix(width: int, height: int, eye, focal: float = 0.8) -> dict:
+    """The voxel seed's camera as K and world_to_camera: ray = (0, 0, focal) + sx·(1, 0, 0) +
+    sy·(0, H/W, 0) with (sx, sy) = 2·fragCoord/res − 1. Pixel centres give fx = fy = focal·W/2,
+    cx = W/2 − 0.5, cy = H/2 − 0.5; camera x = world +x, camera y = world −y, z = +z: R = diag(1, −1, 1),
+    a mirrored camera (det −1)."""
+    f = focal * width / 2.0
+    ex, ey, ez = (float(v) for v in eye)
+    return {
+        "K": [[f, 0.0, width / 2.0 - 0.5], [0.0, f, height / 2.0 - 0.5], [0.0, 0.0, 1.0]],
+        "world_to_camera": [[1.0, 0.0, 0.0, -ex], [0.0, -1.0, 0.0, ey], [0.0, 0.0, 1.0, -ez], [0.0, 0.0, 0.0, 1.0]],
+    }
+
+
+def _vec3_param(name: str, v) -> list[float]:
+    v = list(v) if isinstance(v, (list, tuple, np.ndarray)) else None
+    if v is None or len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
+        fail(name, v, "expected three finite numbers")
+    return [float(x) for x in v]
+
+
+def _voxel_carved_box(data: dict, *, eye=(0.0, 2.0, -12.0), sun_dir=(-0.5, 0.6, 0.7)) -> None:
+    eye = _vec3_param("voxel-carved-box.eye", eye)
+    sun = np.asarray(_vec3_param("voxel-carved-box.sun_dir", sun_dir))
+    if np.linalg.norm(sun) == 0:
+        fail("voxel-carved-box.sun_dir", sun_dir, "expected a non-zero vector")
+    w, h = data["image"]["width"], data["image"]["height"]
+    data["camera"] = {"matrix": shader_camera_matrix(w, h, eye)}
+    data["lights"][0]["direction"] = (sun / np.linalg.norm(sun)).tolist()
+
+
 PARAMS: dict[str, Callable[..., None]] = {
+    "voxel-carved-box": _voxel_carved_box,
     "template-clouds": _template_clouds,
     "cloud-puff": _cloud_puff,
 }

@@ -1,0 +1,154 @@
+"""Occupancy: dense material-id grids (uint8, 0 = empty) placed in the world by origin and voxel size.
+
+Every occupancy kind of the scene schema becomes one dense grid over its integer cell range
+``[lo, hi)`` (cell ``(i, j, k)`` spans ``origin + [i, i+1) · voxel_size`` etc.):
+
+* ``grid``: the array itself, ``grid[k, j, i]`` for cell ``lo + (i, j, k)``;
+* ``sdf``: `sdf.evaluate` at the world cell centres ``origin + (c + 0.5) · voxel_size`` — the seed's
+  ``getVoxel`` (``d < 0`` occupied);
+* ``terrain``: an fbm heightmap with grass / dirt / stone layers (`terrain_materials`);
+* ``function``: any callable mapping integer cells ``[N, 3]`` to material ids ``[N]``.
+
+`VoxelGrid` stacks the grids of B scenes (zero-padded to a common shape) so that one gather looks
+up the cells of a flat ray batch, each ray in its own scene.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from .. import noise, sdf
+from .dda import chebyshev_distance
+
+__all__ = ["VoxelGrid", "cell_range", "dense_materials", "terrain_height", "terrain_materials", "cell_centres"]
+
+
+def cell_range(spec) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
+    """(lo, hi) integer cell range of a `Voxels` spec (a grid's own shape for grid occupancy)."""
+    lo = tuple(spec.cells.min)
+    if spec.occupancy.kind == "grid":
+        z, y, x = spec.occupancy.grid.data.shape
+        return lo, (lo[0] + x, lo[1] + y, lo[2] + z)
+    return lo, tuple(spec.cells.max)
+
+
+def _cells(lo, hi, device) -> Tensor:
+    """All cells of [lo, hi) as [N, 3] long, in [k, j, i] (z-major) order."""
+    axes = [torch.arange(lo[a], hi[a], device=device) for a in (2, 1, 0)]
+    k, j, i = torch.meshgrid(*axes, indexing="ij")
+    return torch.stack([i.reshape(-1), j.reshape(-1), k.reshape(-1)], dim=1)
+
+
+def cell_centres(cells: Tensor, origin, voxel_size, dtype) -> Tensor:
+    """World centres [N, 3] of integer cells [N, 3]: origin + (c + 0.5) · voxel_size."""
+    o = torch.as_tensor(origin, dtype=dtype, device=cells.device)
+    return o + (cells.to(dtype) + 0.5) * voxel_size
+
+
+def terrain_height(x: Tensor, z: Tensor, spec) -> Tensor:
+    """Heightmap [N] at cell columns x, z [N]: base + amplitude · Σ_k gain^k · value_noise_k."""
+    h = torch.zeros_like(x)
+    freq, amp = spec.frequency, 1.0
+    for k in range(spec.octaves):
+        p = torch.stack([x * freq, torch.full_like(x, 0.5), z * freq], dim=1)
+        h = h + amp * noise.value_noise(p, seed=spec.seed * 131 + k)
+        freq, amp = freq * spec.lacunarity, amp * spec.gain
+    return spec.base + spec.amplitude * h
+
+
+def terrain_materials(cells: Tensor, spec, dtype=torch.float32) -> Tensor:
+    """Material ids [N] (long) of cells [N, 3]: the seed's layers — air above h, grass within 1 below,
+    dirt `dirt_depth` further, stone beneath."""
+    h = terrain_height(cells[:, 0].to(dtype), cells[:, 2].to(dtype), spec)
+    y = cells[:, 1].to(dtype)
+    grass, dirt, stone = spec.materials
+    out = torch.full_like(cells[:, 0], stone)
+    out = torch.where(y > h - 1.0 - spec.dirt_depth, torch.full_like(out, dirt), out)
+    out = torch.where(y > h - 1.0, torch.full_like(out, grass), out)
+    return torch.where(y > h, torch.zeros_like(out), out)
+
+
+def dense_materials(spec, *, dtype=torch.float32, device="cpu", batch_cells: int = 1 << 22) -> Tensor:
+    """The (Z, Y, X) uint8 material grid of one `Voxels` spec over its cell range."""
+    occ = spec.occupancy
+    lo, hi = cell_range(spec)
+    if occ.kind == "grid":
+        return torch.as_tensor(occ.grid.data, device=device)
+    shape = (hi[2] - lo[2], hi[1] - lo[1], hi[0] - lo[0])
+    cells = _cells(lo, hi, device)
+    out = torch.empty(cells.shape[0], dtype=torch.uint8, device=device)
+    for a in range(0, cells.shape[0], batch_cells):
+        c = cells[a:a + batch_cells]
+        if occ.kind == "sdf":
+            d = sdf.evaluate(occ.sdf.shape, cell_centres(c, spec.origin, spec.voxel_size, dtype))
+            m = torch.where(d < 0, occ.sdf.material, 0)
+        elif occ.kind == "terrain":
+            m = terrain_materials(c, occ.terrain, dtype)
+        else:
+            m = torch.as_tensor(occ.function.fn(c), device=device).reshape(-1)
+        out[a:a + batch_cells] = m.to(torch.long).clamp(0, 255).to(torch.uint8)
+    return out.reshape(shape)
+
+
+@dataclass
+class VoxelGrid:
+    """The voxel grids of B scenes.
+
+    materials (B, Z, Y, X) uint8, zero-padded; lo (B, 3) long: cell (i, j, k) of materials[b, 0, 0, 0];
+    hi (B, 3) long: end of each scene's range; origin (B, 3) and voxel_size (B,) float: placement.
+    `distance` (B, Z, Y, X) uint8 Chebyshev distance field (for hybrid traversal) or None."""
+
+    materials: Tensor
+    lo: Tensor
+    hi: Tensor
+    origin: Tensor
+    voxel_size: Tensor
+    distance: Tensor | None = None
+
+    @classmethod
+    def from_specs(cls, specs: Sequence, *, dtype, device, with_distance: bool = False) -> "VoxelGrid":
+        grids = [dense_materials(s, dtype=dtype, device=device) for s in specs]
+        shape = [max(g.shape[a] for g in grids) for a in range(3)]
+        mats = torch.zeros(len(grids), *shape, dtype=torch.uint8, device=device)
+        for b, g in enumerate(grids):
+            mats[b, : g.shape[0], : g.shape[1], : g.shape[2]] = g
+        ranges = [cell_range(s) for s in specs]
+        lo = torch.tensor([r[0] for r in ranges], dtype=torch.long, device=device)
+        hi = torch.tensor([r[1] for r in ranges], dtype=torch.long, device=device)
+        origin = torch.tensor([s.origin for s in specs], dtype=dtype, device=device)
+        size = torch.tensor([s.voxel_size for s in specs], dtype=dtype, device=device)
+        dist = None
+        if with_distance:
+            dist = torch.stack([chebyshev_distance(m > 0) for m in mats])
+        return cls(mats, lo, hi, origin, size, dist)
+
+    def _gather(self, table: Tensor, cells: Tensor, scene: Tensor, outside: int) -> Tensor:
+        B, Z, Y, X = table.shape
+        rel = cells - self.lo[scene]
+        inside = ((cells >= self.lo[scene]) & (cells < self.hi[scene])).all(dim=1)
+        rel = torch.where(inside[:, None], rel, torch.zeros_like(rel))
+        flat = ((scene * Z + rel[:, 2]) * Y + rel[:, 1]) * X + rel[:, 0]
+        vals = table.reshape(-1)[flat].to(torch.long)
+        return torch.where(inside, vals, torch.full_like(vals, outside))
+
+    def lookup(self, cells: Tensor, scene: Tensor) -> Tensor:
+        """Material ids [N] long of cells [N, 3] long in scenes [N]; 0 outside a scene's range."""
+        return self._gather(self.materials, cells, scene, 0)
+
+    def empty_radius(self, cells: Tensor, scene: Tensor) -> Tensor:
+        """Chebyshev distance [N] long to the nearest occupied cell (cells outside: 1, no jump)."""
+        return self._gather(self.distance, cells, scene, 1)
+
+    def to_grid(self, points: Tensor, scene: Tensor) -> Tensor:
+        """World points [N, 3] -> grid coordinates [N, 3] (cell units)."""
+        return (points - self.origin[scene]) / self.voxel_size[scene, None]
+
+    def to_world(self, g: Tensor, scene: Tensor) -> Tensor:
+        return self.origin[scene] + g * self.voxel_size[scene, None]
+
+
+Occupied = Callable[[Tensor, Tensor], Tensor]

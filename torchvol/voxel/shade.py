@@ -1,0 +1,101 @@
+"""Voxel face shading as plain functions: face normal, face UV, three-tone faces, neighbour AO,
+Lambert sun, rounded-voxel refinement and texture-atlas lookup (seed 001 Steps 5–8, variant 2)."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from .. import noise
+from ..sdf import sd_rounded_box
+
+__all__ = ["face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_refine"]
+
+
+def face_normal(axis: Tensor, directions: Tensor) -> Tensor:
+    """Outward normal [N, 3] of the face entered along `axis` [N] by rays `directions` [N, 3]:
+    −sign(d_axis) on that axis (the seed's ``-mask * rayStep``)."""
+    n = torch.zeros_like(directions)
+    s = -torch.sign(directions.gather(1, axis[:, None]))
+    return n.scatter_(1, axis[:, None], s)
+
+
+def face_uv(local: Tensor, axis: Tensor) -> Tensor:
+    """Face UV [N, 2] from voxel-local hit coordinates `local` [N, 3] (hit − cell, in [0, 1]) of a face
+    on `axis` [N]: x faces (y, z), y faces (z, x), z faces (x, y) — seed Step 6."""
+    a1 = (axis + 1) % 3
+    a2 = (axis + 2) % 3
+    return torch.stack([local.gather(1, a1[:, None])[:, 0], local.gather(1, a2[:, None])[:, 0]], dim=1)
+
+
+def face_tone(axis: Tensor, tones: Tensor) -> Tensor:
+    """Three-tone face brightness [N] from per-ray tones [N, 3] (x, y, z faces) — seed Step 5."""
+    return tones.gather(1, axis[:, None])[:, 0]
+
+
+def vertex_ao(side1: Tensor, side2: Tensor, corner: Tensor) -> Tensor:
+    """Occlusion of one face vertex from its two edge neighbours and its corner (0/1 floats)."""
+    return (side1 + side2 + torch.maximum(corner, side1 * side2)) / 3.0
+
+
+def voxel_ao(occupied: Callable[[Tensor], Tensor], cell: Tensor, normal: Tensor, axis: Tensor, uv: Tensor, *, gamma: float | Tensor = 1.0) -> Tensor:
+    """Seed Step 7: neighbour AO at the hit face, [N].
+
+    occupied(cells [M, 3] long) -> [M] float 0/1 (M = 8N: the 4 edge and 4 corner neighbours of the
+    empty cell in front of the face, ``pos = cell + normal``, stepped along d1 = e[(axis+1)%3] and
+    d2 = e[(axis+2)%3]); cell [N, 3] long; normal [N, 3]; axis [N]; uv [N, 2] face UV.
+    ao = mix(mix(a.z, a.w, u), mix(a.y, a.x, u), v) ^ gamma with a = 1 − vertexAo per vertex."""
+    n = cell.shape[0]
+    pos = cell + normal.to(torch.long)
+    eye = torch.eye(3, dtype=torch.long, device=cell.device)
+    d1, d2 = eye[(axis + 1) % 3], eye[(axis + 2) % 3]
+    offs = torch.stack([d1, d2, -d1, -d2, d1 + d2, -d1 + d2, -d1 - d2, d1 - d2])  # [8, N, 3]
+    occ = occupied((pos[None] + offs).reshape(-1, 3)).reshape(8, n).to(uv.dtype)
+    sx, sy, sz, sw, cx, cy, cz, cw = occ.unbind(0)
+    ax = 1.0 - vertex_ao(sx, sy, cx)
+    ay = 1.0 - vertex_ao(sy, sz, cy)
+    az = 1.0 - vertex_ao(sz, sw, cz)
+    aw = 1.0 - vertex_ao(sw, sx, cw)
+    u, v = uv[:, 0], uv[:, 1]
+    ao = torch.lerp(torch.lerp(az, aw, u), torch.lerp(ay, ax, u), v)
+    return torch.pow(ao, gamma)
+
+
+def lambert(normal: Tensor, sun: Tensor) -> Tensor:
+    """max(dot(n, l), 0) [N] for normals and sun directions [N, 3] (towards the sun)."""
+    return (normal * sun).sum(dim=1).clamp_min(0.0)
+
+
+def atlas_sample(atlas: Tensor, tiles: int, material: Tensor, uv: Tensor) -> Tensor:
+    """Nearest texel [N, 3] in [0, 1] of a (H, W, 3) uint8 atlas: material m uses tile m − 1
+    (row-major from the top left), u to the right, v up (uv [N, 2] in [0, 1])."""
+    H, W = atlas.shape[0], atlas.shape[1]
+    tile = (material - 1).clamp_min(0)
+    row, col = tile // tiles, tile % tiles
+    x = ((col.to(uv.dtype) + uv[:, 0].clamp(0, 1)) / tiles * W).floor().long().clamp(0, W - 1)
+    y = ((row.to(uv.dtype) + 1.0 - uv[:, 1].clamp(0, 1)) / tiles * H).floor().long().clamp(0, H - 1)
+    return atlas[y, x].to(uv.dtype) / 255.0
+
+
+def rounded_refine(local: Tensor, direction: Tensor, cell: Tensor, *, radius_min: float, radius_range: float,
+                   steps: int, threshold: float, seed: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Seed variant 2 inside hit voxels: march sdRoundedBox(p, w) from the voxel entry.
+
+    local [N, 3]: entry point − cell centre (voxel units); direction [N, 3] unit; cell [N, 3] long.
+    w = radius_min + radius_range · hash3(cell). Returns (converged [N] bool, advance [N] in voxel
+    units, normal [N, 3]: the rounded box's gradient at the converged point)."""
+    w = radius_min + radius_range * noise.hash3(cell, seed, dtype=local.dtype)
+    p = local.clone()
+    advance = torch.zeros_like(w)
+    done = torch.zeros_like(w, dtype=torch.bool)
+    for _ in range(steps):
+        h = sd_rounded_box(p, 0.5, w)
+        done = done | (h < threshold)
+        step = torch.where(done, torch.zeros_like(h), h.clamp_min(0.0))
+        p = p + direction * step[:, None]
+        advance = advance + step
+    q = (p.abs() - 0.5 + w[:, None]).clamp_min(0.0) * torch.sign(p)
+    normal = torch.nn.functional.normalize(q, dim=1)
+    return done, advance, normal
