@@ -25,11 +25,18 @@ def isotropic(cos_theta: Tensor) -> Tensor:
 def henyey_greenstein(cos_theta: Tensor, g: Tensor | float) -> Tensor:
     """(1 − g²) / (4π (1 + g² − 2g cos θ)^{3/2}). `cos_theta`: [N]; `g`: [N] or scalar, |g| < 1.
 
-    The denominator is written (1 − g)² + 2g(1 − cos θ): no cancellation for g → ±1."""
+    The denominator is evaluated as `_hg_base`: no cancellation for g → ±1 at either peak."""
     g = torch.as_tensor(g, dtype=cos_theta.dtype, device=cos_theta.device)
-    denom = (1.0 - g) ** 2 + 2.0 * g * (1.0 - cos_theta)
-    denom = denom.clamp_min(torch.finfo(cos_theta.dtype).tiny)
-    return INV_4PI * (1.0 - g * g) / (denom * denom.sqrt())
+    denom = _hg_base(cos_theta, g)
+    return INV_4PI * (1.0 - g) * (1.0 + g) / (denom * denom.sqrt())
+
+
+def _hg_base(cos_theta: Tensor, g: Tensor) -> Tensor:
+    """1 + g² − 2g cos θ written (1 − |g|)² + 2|g|(1 − sign(g) cos θ): both terms ≥ 0, so the
+    peak value (1 − |g|)² (cos θ = sign g) has no cancellation for either sign of g."""
+    a = g.abs()
+    base = (1.0 - a) ** 2 + 2.0 * a * (1.0 - torch.copysign(torch.ones_like(g), g) * cos_theta)
+    return base.clamp_min(torch.finfo(cos_theta.dtype).tiny)
 
 
 def dual_henyey_greenstein(cos_theta: Tensor, g_forward, g_backward, weight) -> Tensor:
@@ -49,8 +56,8 @@ def rayleigh(cos_theta: Tensor) -> Tensor:
 def mie_cornette_shanks(cos_theta: Tensor, g: Tensor | float) -> Tensor:
     """Cornette-Shanks Mie approximation 3(1−g²)(1+c²) / (8π(2+g²)(1+g²−2gc)^{3/2}), normalised."""
     g = torch.as_tensor(g, dtype=cos_theta.dtype, device=cos_theta.device)
-    denom = ((1.0 - g) ** 2 + 2.0 * g * (1.0 - cos_theta)).clamp_min(torch.finfo(cos_theta.dtype).tiny)
-    return (3.0 / (8.0 * math.pi)) * (1.0 - g * g) * (1.0 + cos_theta**2) / ((2.0 + g * g) * denom * denom.sqrt())
+    denom = _hg_base(cos_theta, g)
+    return (3.0 / (8.0 * math.pi)) * (1.0 - g) * (1.0 + g) * (1.0 + cos_theta**2) / ((2.0 + g * g) * denom * denom.sqrt())
 
 
 def shadow_distances(
