@@ -241,7 +241,8 @@ class Renderer:
                     self.sky[glow + "_power"] = _t([getattr(x, glow).power for x in skies], dtype, device)
         self.surface = None
         if first.voxels is not None:
-            self.surface = VoxelSurface([s.voxels for s in scenes], self.lights.direction, self.lights.radiance, dtype=dtype, device=device)
+            self.surface = VoxelSurface([s.voxels for s in scenes], self.lights.direction, self.lights.radiance,
+                                        dtype=dtype, device=device, compiled=compiled)
         self.steps_total = 0
         self.truncated = 0
 

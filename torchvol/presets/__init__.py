@@ -76,7 +76,46 @@ def _voxel_carved_box(data: dict, *, eye=(0.0, 2.0, -12.0), sun_dir=(-0.5, 0.6, 
     data["lights"][0]["direction"] = (sun / np.linalg.norm(sun)).tolist()
 
 
+def _voxel_terrain(data: dict, *, size: int | None = None, seed: int | None = None, traversal: str | None = None) -> None:
+    vx = data["voxels"]
+    if size is not None:
+        if isinstance(size, bool) or not isinstance(size, int) or size < 2:
+            fail("voxel-terrain.size", size, "expected an integer >= 2 (cells per side)")
+        scale = size / 64  # the default 64-cell landscape, scaled
+        lo, hi = -(size // 2), size - size // 2
+        vx["cells"] = {"min": [lo, -max(1, round(8 * scale)), lo], "max": [hi, max(2, round(24 * scale)), hi]}
+        vx["max_steps"] = 8 * size
+        terrain = vx["occupancy"]["terrain"]
+        terrain["amplitude"] = 10.0 * scale
+        terrain["frequency"] = 0.05 / scale
+        data["camera"]["eye"] = [-40.0 * scale, 30.0 * scale, -40.0 * scale]
+        data["camera"]["target"] = [0.0, 4.0 * scale, 0.0]
+    if seed is not None:
+        vx["occupancy"]["terrain"]["seed"] = seed
+    if traversal is not None:
+        vx["traversal"] = traversal
+
+
+def _voxel_glow(data: dict, *, intensity: float | None = None) -> None:
+    if intensity is not None:
+        data["voxels"]["glow"]["intensity"] = intensity
+
+
+def _voxel_rounded(data: dict, *, seed: int | None = None) -> None:
+    if seed is not None:
+        data["voxels"]["rounded"]["seed"] = seed
+
+
+def _voxel_fog(data: dict, *, density: float | None = None) -> None:
+    if density is not None:
+        data["voxels"]["fog"]["density"] = density
+
+
 PARAMS: dict[str, Callable[..., None]] = {
+    "voxel-terrain": _voxel_terrain,
+    "voxel-glow": _voxel_glow,
+    "voxel-rounded": _voxel_rounded,
+    "voxel-fog": _voxel_fog,
     "voxel-carved-box": _voxel_carved_box,
     "template-clouds": _template_clouds,
     "cloud-puff": _cloud_puff,

@@ -110,11 +110,13 @@ def traverse(
     t_min: Optional[Tensor] = None,
     t_max: Optional[Tensor] = None,
     visit: Optional[Visit] = None,
+    compiled: bool = False,
 ) -> Hits:
     """Plain DDA. origins, directions [R, 3] (grid coordinates; directions need not be unit);
     lo, hi [3] or [R, 3] long: the cell range [lo, hi); t_min, t_max [R] optional limits.
-    Active rays are compacted every step: finished rays cost nothing."""
-    return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit)
+    Active rays are compacted every step: finished rays cost nothing. `compiled` runs each step's
+    arithmetic (`dda_step`) under torch.compile."""
+    return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit, compiled=compiled)
 
 
 def hybrid_traverse(
@@ -129,6 +131,7 @@ def hybrid_traverse(
     switch: int = 2,
     t_min: Optional[Tensor] = None,
     t_max: Optional[Tensor] = None,
+    compiled: bool = False,
 ) -> Hits:
     """DDA near surfaces, distance-field jumps in open space; the same hits as `traverse`.
 
@@ -139,10 +142,32 @@ def hybrid_traverse(
     from the cell it lands in. A jump never passes any occupied cell, and the DDA after it uses
     the same per-step crossing formula, so hits (and ties) are the plain DDA's. `steps` counts DDA
     lookups plus jumps; `max_steps` bounds their sum."""
-    return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, distance=distance, switch=switch)
+    return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, distance=distance, switch=switch, compiled=compiled)
 
 
-def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance=None, switch=2) -> Hits:
+def dda_step(cell: Tensor, o: Tensor, d: Tensor, step: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """One branchless DDA step of N rays: cells [N, 3] long, o/d [N, 3], step = sign(d) [N, 3] long
+    -> (axis [N], crossing distance [N], next cell [N, 3]); exactly one axis, the first nearest."""
+    side = _crossings(cell, o, d)
+    ax = torch.argmin(side, dim=1)
+    t_next = side.gather(1, ax[:, None])[:, 0]
+    new = cell.clone()
+    new.scatter_add_(1, ax[:, None], step.gather(1, ax[:, None]))
+    return ax, t_next, new
+
+
+_COMPILED: dict = {}
+
+
+def compiled_dda_step():
+    """`dda_step` under torch.compile (dynamic shapes), built once per process."""
+    if "step" not in _COMPILED:
+        _COMPILED["step"] = torch.compile(dda_step, dynamic=True)
+    return _COMPILED["step"]
+
+
+def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance=None, switch=2, compiled=False) -> Hits:
+    step_fn = compiled_dda_step() if compiled else dda_step
     R = o.shape[0]
     dev = o.device
     lo, hi = _bounds(lo, o), _bounds(hi, o)
@@ -181,9 +206,7 @@ def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance
         mat = lookup(cell, idx).to(torch.long)
         n += 1
         hit = mat > 0
-        side = _crossings(cell, oa, da)
-        ax = torch.argmin(side, dim=1)
-        t_next = side.gather(1, ax[:, None])[:, 0]
+        ax, t_next, new = step_fn(cell, oa, da, stepv)
         if visit is not None:
             visit(idx, cell, t, torch.where(hit, t, t_next), hit)
         if bool(hit.any()):
@@ -192,8 +215,6 @@ def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance
             out.hit[g] = True
             out.cell[g], out.axis[g], out.t[g], out.material[g] = cell[h], axis[h], t[h], mat[h]
             out.steps[g], out.t_exit[g] = n[h], t[h]
-        new = cell.clone()
-        new.scatter_add_(1, ax[:, None], stepv.gather(1, ax[:, None]))
         inside = ((new >= loa) & (new < hia)).all(dim=1)
         if tmax_a is not None:
             inside &= t_next <= tmax_a

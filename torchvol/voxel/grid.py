@@ -79,6 +79,14 @@ def dense_materials(spec, *, dtype=torch.float32, device="cpu", batch_cells: int
     if occ.kind == "grid":
         return torch.as_tensor(occ.grid.data, device=device)
     shape = (hi[2] - lo[2], hi[1] - lo[1], hi[0] - lo[0])
+    if occ.kind == "terrain":  # one height per column, layers broadcast over y
+        t = occ.terrain
+        z, x = torch.meshgrid(torch.arange(lo[2], hi[2], device=device), torch.arange(lo[0], hi[0], device=device), indexing="ij")
+        h = terrain_height(x.reshape(-1).to(dtype), z.reshape(-1).to(dtype), t).reshape(shape[0], 1, shape[2])
+        y = torch.arange(lo[1], hi[1], device=device).to(dtype).reshape(1, -1, 1)
+        grass, dirt, stone = t.materials
+        m = torch.where(y > h, 0, torch.where(y > h - 1.0, grass, torch.where(y > h - 1.0 - t.dirt_depth, dirt, stone)))
+        return m.to(torch.uint8)
     cells = _cells(lo, hi, device)
     out = torch.empty(cells.shape[0], dtype=torch.uint8, device=device)
     for a in range(0, cells.shape[0], batch_cells):

@@ -38,8 +38,8 @@ def surface_aovs(spec, n_lights: int) -> list[str]:
 class VoxelSurface:
     """One batch's voxel grids and shading parameters. `sun_dir`, `sun_radiance` (L, B, 3)."""
 
-    def __init__(self, specs: Sequence, sun_dir: Tensor, sun_radiance: Tensor, *, dtype, device):
-        self.specs, self.spec = specs, specs[0]
+    def __init__(self, specs: Sequence, sun_dir: Tensor, sun_radiance: Tensor, *, dtype, device, compiled: bool = False):
+        self.specs, self.spec, self.compiled = specs, specs[0], compiled
         self.kw = dict(dtype=dtype, device=device)
         self.grid = VoxelGrid.from_specs(specs, dtype=dtype, device=device, with_distance=self.spec.traversal == "hybrid")
         self.sun_dir, self.sun_radiance = sun_dir, sun_radiance
@@ -69,8 +69,8 @@ class VoxelSurface:
         lo, hi = g.lo[s], g.hi[s]
         if self.spec.traversal == "hybrid" and visit is None and not plain:
             return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, s[ids]), lo, hi,
-                                   max_steps=max_steps, t_min=t_min)
-        return traverse(og, dg, lookup, lo, hi, max_steps=max_steps, t_min=t_min, visit=visit)
+                                   max_steps=max_steps, t_min=t_min, compiled=self.compiled)
+        return traverse(og, dg, lookup, lo, hi, max_steps=max_steps, t_min=t_min, visit=visit, compiled=self.compiled)
 
     def _shadow(self, p: Tensor, sun: Tensor, s: Tensor, steps: int) -> Tensor:
         """Visibility [n] (1 lit, 0 occluded) of points p [n, 3] towards sun [n, 3]."""
