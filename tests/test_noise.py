@@ -9,6 +9,8 @@ from torchvol.noise import (
     default_noise_texture,
     fbm,
     hash3,
+    lattice_hash,
+    lattice_values,
     perlin_noise,
     texture_noise,
     value_noise,
@@ -82,10 +84,18 @@ def test_continuity(name, dtype):
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_value_noise_equals_hash_at_lattice_points(dtype):
+def test_value_noise_equals_lattice_value_at_lattice_points(dtype):
     cells = torch.randint(-50, 50, (500, 3), generator=torch.Generator().manual_seed(2))
     v = value_noise(cells.to(dtype), seed=9)
-    assert torch.equal(v, hash3(cells, 9, dtype=dtype))
+    assert torch.equal(v, lattice_values(cells, 9, dtype)[:, 0])
+
+
+def test_lattice_hash_is_a_period_256_permutation_chain():
+    cells = torch.randint(-1000, 1000, (2000, 3), generator=torch.Generator().manual_seed(4))
+    h = lattice_hash(cells, 5)
+    assert torch.equal(h, lattice_hash(cells + 256 * torch.tensor([1, -2, 3]), 5))
+    assert h.min() >= 0 and h.max() < 256 and len(h.unique()) > 200
+    assert not torch.equal(h, lattice_hash(cells, 6))
 
 
 def test_perlin_zero_at_lattice_points():
@@ -95,7 +105,7 @@ def test_perlin_zero_at_lattice_points():
 
 def test_worley_zero_at_feature_point():
     cell = torch.tensor([[3, -4, 5]])
-    feat = torch.stack([hash3(cell, 11 + k, dtype=torch.float64) for k in range(3)], -1)
+    feat = lattice_values(cell, 11, torch.float64)
     assert worley_noise(cell.double() + feat, seed=11).item() < 1e-12
 
 
