@@ -119,3 +119,13 @@ def test_height_ambient_gradient_darkens_the_cloud_base():
     cloudy = a.alpha > 0.3
     assert cloudy.any() and (b.radiance - a.radiance)[cloudy.expand_as(a.radiance)].min() >= 0
     assert (b.radiance - a.radiance).max() > 0.05
+
+
+@pytest.mark.parametrize("kwargs,key", [
+    ({"device": "nope"}, "device"), ({"dtype": torch.int32}, "dtype"), ({"chunk_rays": 0}, "chunk_rays"),
+    ({"seed": "a"}, "seed"), ({"seed": [1, 2]}, "seed"),
+])
+def test_bad_render_arguments_name_the_argument(kwargs, key):
+    with pytest.raises(ValueError) as err:
+        tv.render(small("homogeneous-box"), **kwargs)
+    assert str(err.value).startswith(key), str(err.value)

@@ -497,6 +497,13 @@ def render(
     seeds = list(seed) if isinstance(seed, (list, tuple)) else None
     if isinstance(chunk_rays, bool) or not isinstance(chunk_rays, int) or chunk_rays < 1:
         fail("chunk_rays", chunk_rays, "expected an integer >= 1")
+    if dtype not in (None, torch.float32, torch.float64):
+        fail("dtype", dtype, "expected torch.float32, torch.float64 or None (the quality level's)")
+    try:
+        device = torch.device(device)
+        torch.empty(0, device=device)
+    except (RuntimeError, TypeError, AssertionError) as err:
+        fail("device", str(device), f"not a usable torch device here ({str(err).splitlines()[0]})")
     scenes = [load_scene(s) for s in (scene if isinstance(scene, (list, tuple)) else [scene])]
     if not scenes:
         fail("scene", scene, "expected at least one scene")
