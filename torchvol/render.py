@@ -235,6 +235,11 @@ class Renderer:
         if first.sky is not None:
             skies = [s.sky for s in scenes]
             self.sky = {k: _t([getattr(x, k) for x in skies], dtype, device) for k in ("radiance", "horizon", "slope")}
+            if first.sky.kind == "atmosphere":
+                atm = [x.atmosphere for x in skies]
+                self.atmosphere = {k: _t([getattr(a, k) for a in atm], dtype, device) for k in (
+                    "planet_radius", "eye_height", "rayleigh", "mie", "rayleigh_height", "mie_height", "mie_g", "sun_intensity")}
+                self.atmosphere["atmosphere_radius"] = _t([a.planet_radius + a.atmosphere_height for a in atm], dtype, device)
             for glow in ("halo", "flare"):
                 if getattr(first.sky, glow) is not None:
                     self.sky[glow + "_color"] = _t([getattr(x, glow).color for x in skies], dtype, device)
@@ -254,6 +259,12 @@ class Renderer:
             return rays.origins.new_zeros(len(rays), 3)
         if self.sky_spec.kind == "constant":
             base = self.sky["radiance"][s]
+        elif self.sky_spec.kind == "atmosphere":
+            atm = self.sky_spec.atmosphere
+            base = sky.atmosphere_sky(
+                rays.directions, self.lights.direction[0][s], steps=atm.steps, light_steps=atm.light_steps,
+                **{k: v[s] for k, v in self.atmosphere.items()},
+            )
         else:
             base = sky.gradient_sky(rays.directions, self.sky["horizon"][s], self.sky["slope"][s])
         if "halo_color" in self.sky and len(self.lights):

@@ -129,8 +129,33 @@ class Glow(Strict):
     _c = field_validator("color")(lambda v: _nonneg(v))
 
 
+class Atmosphere(Strict):
+    """Rayleigh + Mie single scattering around a spherical planet (lengths in world units; the
+    defaults are Earth's in metres). The sun is the scene's first light."""
+
+    planet_radius: float = Field(6.36e6, gt=0.0)
+    atmosphere_height: float = Field(6.0e4, gt=0.0)
+    eye_height: float = Field(1.0, ge=0.0)
+    rayleigh: Vec3 = (5.8e-6, 13.5e-6, 33.1e-6)
+    mie: float = Field(21e-6, ge=0.0)
+    rayleigh_height: float = Field(7994.0, gt=0.0)
+    mie_height: float = Field(1200.0, gt=0.0)
+    mie_g: float = Field(0.76, gt=-1.0, lt=1.0)
+    sun_intensity: float = Field(20.0, ge=0.0)
+    steps: int = Field(16, ge=1, le=1024)
+    light_steps: int = Field(8, ge=1, le=1024)
+    _r = field_validator("rayleigh")(lambda v: _nonneg(v))
+
+    @model_validator(mode="after")
+    def _eye_inside(self):
+        if self.eye_height >= self.atmosphere_height:
+            raise ValueError("eye_height must be below atmosphere_height")
+        return self
+
+
 class Sky(Strict):
-    kind: Literal["constant", "gradient"] = "constant"
+    kind: Literal["constant", "gradient", "atmosphere"] = "constant"
+    atmosphere: Atmosphere = Field(default_factory=Atmosphere)
     radiance: Vec3 = (0.0, 0.0, 0.0)
     horizon: Vec3 = (0.675, 0.785, 0.825)  # gradient: colour at rd.y = 0
     slope: Vec3 = (0.2, 0.1, 0.2)  # gradient: colour = horizon − rd.y · slope
@@ -604,6 +629,12 @@ class Scene(Strict):
     voxels: Voxels | None = None
     march: March = Field(default_factory=March)
     post: Post = Field(default_factory=Post)
+
+    @model_validator(mode="after")
+    def _atmosphere_needs_a_sun(self):
+        if self.sky is not None and self.sky.kind == "atmosphere" and not self.lights:
+            raise ValueError("sky.kind = 'atmosphere' is lit by the first light: add a [[lights]] sun")
+        return self
 
 
 # ---------------------------------------------------------------------------------------------
