@@ -149,3 +149,22 @@ def test_grid_values_validated():
     s["voxels"]["occupancy"]["grid"]["data"] = np.full((1, 2, 2), 0.5)
     with pytest.raises(ValueError, match=r"voxels\.occupancy\.grid"):
         tv.load_scene(s)
+
+
+def test_spp_resolves_surface_aovs():
+    s = tv.load_scene(tv.preset("voxel-carved-box", width=24, height=16), overrides={"image.spp": 4})
+    out = tv.render(s)
+    a = out.alpha[0, 0]
+    assert ((a > 0) & (a < 1)).any(), "silhouette pixels are partially covered"
+    assert set(out.aovs) == {"normal", "ao", "shadow", "uv"}
+    n = out.aovs["normal"][0]
+    full = a == 1
+    assert (n[:, full].abs().sum(0) <= 1 + 1e-6).all() and (out.depth[0, 0][a > 0] > 0).all()
+
+
+def test_camera_inside_the_grid():
+    s = wall_scene()
+    s["voxels"]["cells"] = {"min": [-4, -4, -8]}
+    s["voxels"]["occupancy"]["grid"]["data"] = np.concatenate([np.zeros((11, 8, 8), np.uint8), np.ones((1, 8, 8), np.uint8)])
+    out = tv.render(s)  # camera at z = -5 inside the range [-8, 4): the wall at cell z = 3 as before
+    assert_close(out.depth[0, 0], torch.full((10, 12), 8.0), atol=1e-5, what="depth from inside the grid")

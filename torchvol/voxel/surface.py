@@ -136,8 +136,11 @@ class VoxelSurface:
                 m = mat[ids]
                 albedo = self.materials[sh, (m - 1).clamp(0, self.materials.shape[1] - 1)]
                 if spec.texture is not None:
-                    tex = torch.stack([atlas_sample(self.atlases[b], spec.texture.tiles, m[k:k + 1], uv[k:k + 1])[0] for k, b in enumerate(sh.tolist())]) \
-                        if len(self.atlases) > 1 else atlas_sample(self.atlases[0], spec.texture.tiles, m, uv)
+                    tex = torch.empty_like(albedo)
+                    for b, atlas in enumerate(self.atlases):  # one atlas per scene: group the rays
+                        k = (sh == b).nonzero().squeeze(1)
+                        if k.numel():
+                            tex[k] = atlas_sample(atlas, spec.texture.tiles, m[k], uv[k])
                     albedo = albedo * tex
                 base = albedo * face_tone(ah, self.tones[sh])[:, None]
             ao = None
