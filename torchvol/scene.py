@@ -245,7 +245,8 @@ class GridDensity(Strict):
 
 
 class FbmDensity(Strict):
-    """density = max(bias + amplitude · fbm(frequency · (p − wind·time) + offset), 0)."""
+    """density = max(bias + amplitude · fbm(frequency · (p − wind·time) + offset) − radial·|p − center|, 0):
+    `radial` > 0 thins the noise out away from `center` (a puff instead of a filled bound)."""
 
     octaves: int = Field(5, ge=1, le=12)
     frequency: float = Field(1.0, gt=0.0, le=1e6)
@@ -255,6 +256,8 @@ class FbmDensity(Strict):
     bias: float = 0.0
     offset: Vec3 = (0.0, 0.0, 0.0)
     wind: Vec3 = (0.0, 0.0, 0.0)
+    radial: float = Field(0.0, ge=0.0)
+    center: Vec3 = (0.0, 0.0, 0.0)
 
 
 class CloudsDensity(Strict):

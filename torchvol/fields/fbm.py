@@ -1,4 +1,5 @@
-"""An fbm noise cloud: density = max(bias + amplitude · fbm(frequency · (p − wind·time) + offset), 0)."""
+"""An fbm noise cloud: density = max(bias + amplitude · fbm(frequency · (p − wind·time) + offset)
+− radial · |p − center|, 0)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,8 @@ class FbmField:
         self.bias = torch.tensor([s.bias for s in specs], **kw)
         self.offset = torch.tensor([s.offset for s in specs], **kw)
         self.shift = torch.tensor([s.wind for s in specs], **kw) * times[:, None]  # (B, 3)
+        self.radial = torch.tensor([s.radial for s in specs], **kw)
+        self.center = torch.tensor([s.center for s in specs], **kw)
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         q = self.frequency[scene_index, None] * (points - self.shift[scene_index]) + self.offset[scene_index]
@@ -35,4 +38,5 @@ class FbmField:
             return noise.fbm(q_b, lambda x: basis(x, seed=spec.seed), octaves=spec.octaves, lod=None if lod is None else lod[idx])
 
         f = per_scene(q, scene_index, len(self.specs), one_scene)
-        return (self.bias[scene_index] + self.amplitude[scene_index] * f).clamp_min(0.0)
+        falloff = self.radial[scene_index] * (points - self.center[scene_index]).norm(dim=1)
+        return (self.bias[scene_index] + self.amplitude[scene_index] * f - falloff).clamp_min(0.0)
