@@ -1,5 +1,6 @@
 """Shared test helpers: one tolerance table keyed by dtype, and error reports that say where."""
 
+import pytest
 import torch
 
 # Absolute tolerances for quantities in [0, 1] (alpha, transmittance, normalised radiance).
@@ -23,3 +24,13 @@ def assert_close(actual, expected, *, atol=None, what="value"):
             f"{what}: max error {worst.item():.3e} > {tol:.1e} at {idx}: "
             f"got {actual[idx].item():.10g}, expected {expected[idx].item():.10g}"
         )
+
+
+@pytest.fixture
+def one_thread():
+    """Run a test with one torch thread (tiny tensors: thread hand-offs cost more than they save,
+    badly so on a loaded machine), restoring the count after."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -21,12 +21,7 @@ pytestmark = [
 SOURCE = shadertoy_source((Path(tv.__file__).parent / "testing" / "voxel_carved_box.glsl").read_text())
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # small ops: threads only add overhead
 
 
 def glsl(width, height, eye, sun, sky):

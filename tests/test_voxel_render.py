@@ -15,12 +15,7 @@ from conftest import assert_close
 from torchvol.voxel.grid import terrain_height, terrain_materials
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # small ops: threads only add overhead
 
 
 def wall_scene(**voxels):

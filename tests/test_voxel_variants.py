@@ -13,12 +13,7 @@ import torchvol as tv
 from conftest import assert_close
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # small ops: threads only add overhead
 
 
 def test_hybrid_terrain_same_image_fewer_steps():

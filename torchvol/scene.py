@@ -220,11 +220,15 @@ class Bounds(One):
     slab: Slab | None = None
 
 
-class GridDensity(Strict):
-    """grid[k, j, i] is the value at the centre of cell (i, j, k) of the volume's box."""
+class GridSource(Strict):
+    """A 3D array given as `path` (a .npy file) or `data` (an array or tensor), indexed [k, j, i]."""
 
     path: str | None = None
     data: Any = None
+
+    def _check(self, array: np.ndarray) -> np.ndarray:
+        """Subclasses: validate the values and return the stored array."""
+        raise NotImplementedError
 
     @model_validator(mode="after")
     def _load(self):
@@ -235,13 +239,20 @@ class GridDensity(Strict):
                 raise ValueError(f"no such file: {self.path}")
             array = np.load(self.path)
         else:
-            array = np.asarray(self.data)
+            array = np.asarray(self.data.numpy() if hasattr(self.data, "numpy") else self.data)
         if array.ndim != 3 or min(array.shape) < 1:
             raise ValueError(f"grid must be a 3D array [k, j, i], got shape {array.shape}")
+        object.__setattr__(self, "data", self._check(array))
+        return self
+
+
+class GridDensity(GridSource):
+    """grid[k, j, i] is the value at the centre of cell (i, j, k) of the volume's box."""
+
+    def _check(self, array: np.ndarray) -> np.ndarray:
         if not np.issubdtype(array.dtype, np.number) or not np.all(np.isfinite(array)) or array.min() < 0:
             raise ValueError("grid values must be finite numbers >= 0")
-        object.__setattr__(self, "data", array.astype(np.float64, copy=False))
-        return self
+        return array.astype(np.float64, copy=False)
 
 
 class FbmDensity(Strict):
@@ -472,28 +483,13 @@ class TerrainOccupancy(Strict):
     materials: Int3 = (1, 2, 3)  # grass, dirt, stone ids
 
 
-class GridOccupancy(Strict):
+class GridOccupancy(GridSource):
     """grid[k, j, i] = material id (uint8, 0 empty) of cell (i, j, k) counted from `voxels.cells.min`."""
 
-    path: str | None = None
-    data: Any = None
-
-    @model_validator(mode="after")
-    def _load(self):
-        if (self.path is None) == (self.data is None):
-            raise ValueError("give path (a .npy file) or data (an array), not both")
-        if self.path is not None:
-            if not Path(self.path).is_file():
-                raise ValueError(f"no such file: {self.path}")
-            array = np.load(self.path)
-        else:
-            array = np.asarray(self.data.numpy() if hasattr(self.data, "numpy") else self.data)
-        if array.ndim != 3 or min(array.shape) < 1:
-            raise ValueError(f"grid must be a 3D array [k, j, i], got shape {array.shape}")
+    def _check(self, array: np.ndarray) -> np.ndarray:
         if not np.issubdtype(array.dtype, np.integer) or array.min() < 0 or array.max() > 255:
             raise ValueError("grid values must be integer material ids in 0..255")
-        object.__setattr__(self, "data", array.astype(np.uint8, copy=False))
-        return self
+        return array.astype(np.uint8, copy=False)
 
 
 class FunctionOccupancy(Strict):
