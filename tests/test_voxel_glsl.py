@@ -16,12 +16,10 @@ from torchvol.testing.glsl import gl_context, run_fragment, shadertoy_source
 pytestmark = [
     pytest.mark.gl,
     pytest.mark.skipif(gl_context() is None, reason="no GL context (moderngl/EGL) on this machine"),
+    pytest.mark.usefixtures("one_thread"),  # small ops: threads only add overhead
 ]
 
 SOURCE = shadertoy_source((Path(tv.__file__).parent / "testing" / "voxel_carved_box.glsl").read_text())
-
-
-pytestmark = pytest.mark.usefixtures("one_thread")  # small ops: threads only add overhead
 
 
 def glsl(width, height, eye, sun, sky):
