@@ -1,4 +1,4 @@
-"""`torchvol render | ...`: thin shell over the library; errors print as one line, exit code 2."""
+"""`torchvol render | generate | sweep`: thin shell over the library; errors print as one line, exit code 2."""
 
 from __future__ import annotations
 
@@ -77,6 +77,32 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_generate(args: argparse.Namespace) -> int:
+    from .generate import generate
+
+    report = generate(args.recipe, count=args.count, out=args.out, seed=args.seed, workers=args.workers,
+                      layout=args.format, overrides=_pairs(args.set, "--set"), batch=args.batch,
+                      shard_size=args.shard_size, threads=args.threads, scheduler=args.scheduler)
+    print(json.dumps(report))
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from .sweep import split_values, sweep
+
+    params = {}
+    for item in args.param:
+        key, sep, values = item.partition("=")
+        if not sep or not key.strip() or not values.strip():
+            fail("--param", item, "expected KEY=V1,V2,...")
+        params[key.strip()] = [parse_value(v) for v in split_values(values)]
+    if not params:
+        fail("--param", None, "give at least one --param KEY=V1,V2,...")
+    rows = sweep(args.scene, params, out=args.out, seed=args.seed, overrides=_pairs(args.set, "--set"))
+    print(json.dumps({"out": args.out, "combinations": len(rows)}))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchvol", description="Batched PyTorch renderer of volumes and voxels.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -92,6 +118,28 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--chunk-rays", type=int, default=1 << 16)
     r.add_argument("--compile", action="store_true", help="torch.compile the density fields")
     r.set_defaults(func=cmd_render)
+
+    g = sub.add_parser("generate", help="render recipe samples into a dataset folder or webdataset shards (resumable)")
+    g.add_argument("recipe", help="recipe .toml path (see datasets/)")
+    g.add_argument("--count", type=int, required=True, help="number of samples")
+    g.add_argument("--out", required=True, help="output folder (a re-run finishes an interrupted one)")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--workers", type=int, default=1, help="local worker processes")
+    g.add_argument("--threads", type=int, default=None, help="torch threads per worker (default: cores / workers)")
+    g.add_argument("--format", choices=["folder", "webdataset"], default="folder")
+    g.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key")
+    g.add_argument("--batch", type=int, default=4, help="samples rendered as one batch")
+    g.add_argument("--shard-size", type=int, default=64, help="samples per webdataset shard")
+    g.add_argument("--scheduler", default=None, metavar="ADDRESS", help="run the tasks on this Dask cluster")
+    g.set_defaults(func=cmd_generate)
+
+    w = sub.add_parser("sweep", help="render every combination of swept values; results.csv, contact sheet, plots")
+    w.add_argument("scene", help="scene .toml path or preset name")
+    w.add_argument("--param", action="append", default=[], metavar="A.B=V1,V2,...", help="a swept key and its values")
+    w.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a scene key")
+    w.add_argument("--out", required=True, help="output folder")
+    w.add_argument("--seed", type=int, default=0)
+    w.set_defaults(func=cmd_sweep)
     return parser
 
 

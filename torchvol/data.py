@@ -1,0 +1,223 @@
+"""Datasets: SceneDataset renders recipe samples on the fly; FolderDataset reads a generated folder.
+
+One sample is a dict: image (3,H,W) float32 in [0,1], depth (1,H,W) float32 (planar z, 0 = no hit),
+alpha (1,H,W), K (3,3), world_to_camera (4,4), index, seed, params (the drawn values by key path)
+and the recipe's AOVs (C,H,W). `encode_sample` / `decode_sample` turn one into named files (PNG for
+image and alpha, exact float32 .npy for depth and AOVs, a JSON record) and back; the generator and
+FolderDataset share them so the two stay in step.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from .recipe import Recipe, mix_seed, render_seed
+from .validate import SceneError, fail
+
+# The conventions a generated dataset states in meta.json (DESIGN.md, Conventions).
+CONVENTIONS = {
+    "image": "8-bit sRGB-encoded PNG of the display-referred image in [0, 1] (row 0 = top)",
+    "depth": "planar z along the camera's forward axis (not ray distance), float32 .npy of shape (H, W), "
+             "world units; 0 where nothing was hit (invalid)",
+    "alpha": "8-bit PNG of 1 - transmittance of the whole ray",
+    "aovs": "float32 .npy of shape (C, H, W)",
+    "units": "world units; angles in degrees; right-handed world, y up",
+    "camera": "OpenCV/kornia: camera axes x right, y down, z forward; K in pixels with pixel centres at "
+              "integer coordinates (centred principal point cx = W/2 - 0.5); world_to_camera maps world "
+              "points to camera coordinates",
+    "invalid_depth": 0.0,
+}
+
+
+def epoch_seed(seed: int, epoch: int | None) -> int:
+    """The seed a dataset draws from: `seed` itself, or mixed with `epoch` for fresh samples."""
+    return seed if epoch is None else mix_seed("torchvol.epoch", int(seed), int(epoch)) % 2**31
+
+
+def _compatible(a, b) -> bool:
+    from .render import _same_structure
+
+    try:
+        _same_structure([a, b])
+    except SceneError:
+        return False
+    return True
+
+
+def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aovs: Sequence[str] | None = None,
+                   chunk_rays: int | None = None) -> list[dict]:
+    """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
+    e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch."""
+    from .render import DEFAULT_CHUNK_RAYS, render
+
+    aovs = recipe.aovs if aovs is None else tuple(aovs)
+    drawn = [recipe.sample_with_params(int(i), seed) for i in indices]
+    groups: list[list[int]] = []
+    for k, (scene, _) in enumerate(drawn):
+        home = next((g for g in groups if _compatible(drawn[g[0]][0], scene)), None)
+        home.append(k) if home is not None else groups.append([k])
+    items: list[dict | None] = [None] * len(drawn)
+    for group in groups:
+        out = render([drawn[k][0] for k in group], seed=[render_seed(int(indices[k]), seed) for k in group],
+                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS)
+        for b, k in enumerate(group):
+            missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
+            if missing:
+                fail("dataset.aovs", missing, f"this scene does not compute them; it gives: {sorted(out.aovs) + ['radiance']}")
+            extra = {a: (out.radiance if a == "radiance" else out.aovs[a])[b].float().contiguous() for a in aovs}
+            items[k] = {
+                "image": out.image[b].float().contiguous(),
+                "depth": out.depth[b].float().contiguous(),
+                "alpha": out.alpha[b].float().contiguous(),
+                "K": out.camera.K[b].float().contiguous(),
+                "world_to_camera": out.camera.world_to_camera[b].float().contiguous(),
+                "index": int(indices[k]),
+                "seed": int(seed),
+                "params": drawn[k][1],
+                **extra,
+            }
+    return items
+
+
+class SceneDataset(Dataset):
+    """Map-style dataset of `length` samples of `recipe` (a Recipe or anything Recipe.load takes).
+
+    ds[i] depends only on (seed, epoch, i): the same in any process, DataLoader worker or order.
+    `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes."""
+
+    def __init__(self, recipe: Recipe | str | Path | Mapping, length: int, seed: int = 0, epoch: int | None = None, *,
+                 aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None):
+        if isinstance(length, bool) or not isinstance(length, int) or length < 0:
+            fail("length", length, "expected an integer >= 0")
+        if isinstance(seed, bool) or not isinstance(seed, int):
+            fail("seed", seed, "expected an integer")
+        if epoch is not None and (isinstance(epoch, bool) or not isinstance(epoch, int)):
+            fail("epoch", epoch, "expected an integer or None")
+        self.recipe = Recipe.load(recipe, overrides)
+        self.length, self.base_seed, self.epoch = length, seed, epoch
+        self.seed = epoch_seed(seed, epoch)
+        self.aovs = self.recipe.aovs if aovs is None else tuple(aovs)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def _check(self, index: int) -> int:
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not -self.length <= index < self.length:
+            raise IndexError(f"index {index!r} out of range for a dataset of {self.length}")
+        return int(index) % self.length if self.length else int(index)
+
+    def __getitem__(self, index: int) -> dict:
+        return self.batch([index])[0]
+
+    def batch(self, indices: Sequence[int]) -> list[dict]:
+        """Several samples rendered as one batch (the generator's path); same values as ds[i]."""
+        return render_samples(self.recipe, [self._check(i) for i in indices], seed=self.seed, aovs=self.aovs)
+
+
+def collate(items: Sequence[dict]) -> dict:
+    """DataLoader collate: tensors stacked, index/seed as tensors, params kept as a list of dicts
+    (drawn values may be vectors, strings or tables, which the default collate cannot stack)."""
+    out: dict[str, Any] = {}
+    for key in items[0]:
+        values = [item[key] for item in items]
+        if key == "params":
+            out[key] = values
+        elif isinstance(values[0], torch.Tensor):
+            out[key] = torch.stack(values)
+        else:
+            out[key] = torch.tensor(values)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Files of one sample
+
+
+def sample_record(item: Mapping, files: Mapping[str, str]) -> dict:
+    """The manifest record of one sample (JSON-safe)."""
+    return {
+        "index": item["index"],
+        "seed": item["seed"],
+        "files": dict(files),
+        "K": item["K"].tolist(),
+        "world_to_camera": item["world_to_camera"].tolist(),
+        "params": item["params"],
+    }
+
+
+def _png(array: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(array, dtype=np.float32), allow_pickle=False)
+    return buf.getvalue()
+
+
+def to_uint8(x: torch.Tensor) -> np.ndarray:
+    return np.round(np.clip(x.numpy(), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
+    """{suffix: bytes}: image.png, depth.npy (H, W), alpha.png, one <aov>.npy each (C, H, W)."""
+    files = {
+        "image.png": _png(to_uint8(item["image"].permute(1, 2, 0))),
+        "depth.npy": _npy(item["depth"][0].numpy()),
+        "alpha.png": _png(to_uint8(item["alpha"][0])),
+    }
+    for name in aovs:
+        files[f"{name}.npy"] = _npy(item[name].numpy())
+    return files
+
+
+def decode_file(suffix: str, data: bytes) -> torch.Tensor:
+    """Inverse of encode_sample for one file: image (3,H,W), alpha/depth (1,H,W), AOV (C,H,W)."""
+    if suffix.endswith(".png"):
+        from PIL import Image
+
+        array = np.asarray(Image.open(io.BytesIO(data)))
+        x = torch.from_numpy(array.astype(np.float32) / 255.0)
+        return x.permute(2, 0, 1).contiguous() if x.ndim == 3 else x[None]
+    array = torch.from_numpy(np.load(io.BytesIO(data), allow_pickle=False))
+    return array[None] if suffix == "depth.npy" else array
+
+
+class FolderDataset(Dataset):
+    """A folder written by `torchvol generate --format folder`, read back with SceneDataset's keys.
+    image and alpha are 8-bit (quantised); depth and AOVs are exact float32."""
+
+    def __init__(self, path: str | Path):
+        self.root = Path(path)
+        manifest = self.root / "manifest.jsonl"
+        if not manifest.is_file():
+            fail("path", str(path), "not a generated dataset folder (no manifest.jsonl)")
+        self.meta = json.loads((self.root / "meta.json").read_text()) if (self.root / "meta.json").is_file() else {}
+        if self.meta.get("layout", "folder") != "folder":
+            fail("path", str(path), f"holds a {self.meta.get('layout')!r} dataset; FolderDataset reads the folder layout")
+        self.records = [json.loads(line) for line in manifest.read_text().splitlines() if line.strip()]
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __getitem__(self, index: int) -> dict:
+        rec = self.records[index]
+        item: dict[str, Any] = {}
+        for key, rel in rec["files"].items():
+            suffix = Path(rel).name.split(".", 1)[1]
+            item[key] = decode_file(suffix, (self.root / rel).read_bytes())
+        item["K"] = torch.tensor(rec["K"], dtype=torch.float32)
+        item["world_to_camera"] = torch.tensor(rec["world_to_camera"], dtype=torch.float32)
+        item["index"], item["seed"], item["params"] = rec["index"], rec["seed"], rec["params"]
+        return item
