@@ -56,3 +56,18 @@ def test_empty_space_costs_few_samples():
     fixed_err = (fixed.transmittance - ref.transmittance).abs().max()
     assert adaptive_err <= 1e-2 and fixed_err > adaptive_err, (
         f"adaptive {adaptive_err:.2e} with {int(out.evaluations.max())} samples vs fixed {fixed_err:.2e}")
+
+
+def test_render_with_tolerance_reports_its_estimate_and_meets_it_on_a_smooth_medium():
+    import torchvol as tv
+
+    scene = {"image": {"width": 10, "height": 8}, "camera": {"eye": [0.3, 0.2, -3.0], "fov_y": 40},
+             "lights": [{"direction": [0.3, 1.0, -0.4], "intensity": 2.0, "shadow": {"steps": 4}}],
+             "volumes": [{"bounds": {"slab": {"y_min": -1.0, "y_max": 1.0}}, "sigma_t": 3.0,
+                          "density": {"exponential": {"value": 1.0, "scale_height": 0.4}}}],
+             "march": {"tolerance": 1e-3, "steps": 8, "max_distance": 8.0}}
+    out = tv.render(scene)
+    assert "error_estimate" in out.stats and out.stats["passes"][1] == "volume0.march"
+    ref = tv.render(tv.load_scene(scene, {"march": {"quality": "reference", "steps": 4096, "max_distance": 8.0}}))
+    assert (out.alpha - ref.alpha).abs().max() <= 1e-3
+    assert ((out.radiance - ref.radiance).abs().max() / 2.0) <= 1e-3

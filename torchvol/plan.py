@@ -32,6 +32,7 @@ class MarchSettings:
     closed_form: bool
     depth_threshold: float
     dtype: torch.dtype
+    tolerance: float | None
 
 
 # Each level: (steps, min_transmittance, dtype). Count placement, frostbite, hashed dither.
@@ -67,6 +68,7 @@ def march_settings(march: March) -> MarchSettings:
         closed_form=march.closed_form,
         depth_threshold=march.depth_threshold,
         dtype=dtype,
+        tolerance=march.tolerance,
     )
 
 

@@ -20,7 +20,7 @@ from .scene import Scene, load_scene
 from .validate import fail
 from .volume import light as lighting
 from .volume.integrate import frostbite_step
-from .volume.march import LN2, StepRule, expected_depth_fraction, march
+from .volume.march import LN2, StepRule, expected_depth_fraction, march, march_adaptive
 from .voxel.surface import VoxelSurface, surface_aovs
 
 DEFAULT_CHUNK_RAYS = 1 << 16
@@ -250,6 +250,7 @@ class Renderer:
                                         dtype=dtype, device=device, compiled=compiled)
         self.steps_total = 0
         self.truncated = 0
+        self.error_estimate = 0.0
 
     # -- per-chunk passes -------------------------------------------------------------------
 
@@ -300,6 +301,13 @@ class Renderer:
         strata = torch.stack([sample % nx, sample // nx], dim=1).to(torch.float64)
         off = (strata + xi) / torch.tensor([nx, ny], dtype=torch.float64, device=ids.device) - 0.5
         return off.clamp(-0.5 + 1e-7, 0.5 - 1e-7).to(self.kw["dtype"])
+
+    def radiance_scale(self, scene_index: Tensor) -> Tensor:
+        """What `march.tolerance` is relative to, per ray [R]: the brightest light channel (1 if
+        the scene has no light, e.g. pure emission)."""
+        if not len(self.lights):
+            return torch.ones_like(scene_index, dtype=self.kw["dtype"])
+        return self.lights.radiance.amax(dim=(0, 2))[scene_index].clamp_min(1e-12)
 
     def lod(self, t: Tensor) -> Tensor | None:
         if self.settings.lod_scale is None:
@@ -400,11 +408,19 @@ class Renderer:
                 medium = self.shader_medium(slot, v, rays, background)
             else:
                 medium = self.physical_medium(slot, v, rays)
-            res = march(
-                t0, t1, hit, medium, rule=st.rule, integrator=st.integrator,
-                semantics="shader" if shader else "segments", dither=self.dither(rays),
-                min_transmittance=st.min_transmittance,
-            )
+            if st.tolerance is not None and not shader:
+                res = march_adaptive(
+                    t0, t1, hit, medium, tolerance=st.tolerance, integrator=st.integrator,
+                    radiance_scale=self.radiance_scale(rays.scene_index), min_transmittance=st.min_transmittance,
+                    max_steps_per_span=st.rule.steps if st.rule.placement == "count" else None,
+                )
+                self.error_estimate = max(self.error_estimate, float(res.error.max()) if len(res.error) else 0.0)
+            else:
+                res = march(
+                    t0, t1, hit, medium, rule=st.rule, integrator=st.integrator,
+                    semantics="shader" if shader else "segments", dither=self.dither(rays),
+                    min_transmittance=st.min_transmittance,
+                )
         self.steps_total += int(res.steps.sum())
         self.truncated += int(res.truncated.sum())
         radiance, trans = res.radiance, res.transmittance
@@ -566,6 +582,7 @@ def render(
         "rays": n_rays,
         "march_steps": r.steps_total,
         "truncated_rays": r.truncated,
+        **({"error_estimate": r.error_estimate} if settings.tolerance is not None else {}),
         **({"voxel_steps": r.surface.steps_total} if r.surface is not None else {}),
         "dtype": str(dtype).removeprefix("torch."),
     }

@@ -398,6 +398,15 @@ class March(Strict):
     lod: Lod | None = None
     closed_form: bool = True
     depth_threshold: float = Field(0.01, ge=0.0, le=1.0)
+    # error-controlled marching: absolute on transmittance and on radiance relative to the light;
+    # each ray picks its steps by step doubling (physical shading; replaces placement/steps)
+    tolerance: float | None = Field(None, gt=0.0, lt=1.0)
+
+    @model_validator(mode="after")
+    def _tolerance_integrator(self):
+        if self.tolerance is not None and self.integrator == "alpha":
+            raise ValueError("march.tolerance needs integrator riemann or frostbite")
+        return self
 
 
 class Fog(Strict):

@@ -209,6 +209,7 @@ def march_adaptive(
     integrator: Literal["riemann", "frostbite"] = "frostbite",
     radiance_scale: Tensor | float = 1.0,
     first_step: float | None = None,
+    max_steps_per_span: int | None = None,
     min_step: float = 1e-6,
     max_iterations: int = 4096,
     min_transmittance: float = 0.0,
@@ -220,6 +221,10 @@ def march_adaptive(
     errors of a whole ray add up to at most about `tolerance`. The next step grows or shrinks by (allowed/error)^(1/3) (the local error of a midpoint
     step is third order in dt). Errors are absolute on transmittance and on radiance divided by
     `radiance_scale` ([R] or scalar: e.g. the lights' radiance).
+
+    `max_steps_per_span`: steps are never longer than (t1 − t0)/max_steps_per_span — the estimate
+    only sees the medium at its samples, so a cap keeps thin features between them from being
+    stepped over; the march then refines below that where the error asks for it.
 
     `t0`, `t1`, `hit`: [R]; `medium(ids, t, dt) -> (σ_t [n], source [n, C])`."""
     r = t0.shape[0]
@@ -237,6 +242,7 @@ def march_adaptive(
     scale = torch.as_tensor(radiance_scale, dtype=t0.dtype, device=t0.device).expand(r)[ids].clamp_min(1e-30)
     t, t_end = t0[ids].clone(), t1[ids]
     span = (t_end - t).clamp_min(1e-30)
+    max_dt = span / max_steps_per_span if max_steps_per_span is not None else span
     dt = span / 8 if first_step is None else torch.full_like(t, first_step)
     trans = torch.ones_like(t)
     radiance = t.new_zeros(t.shape[0], channels)
@@ -245,7 +251,7 @@ def march_adaptive(
     evals = torch.zeros_like(ids)
 
     for _ in range(max_iterations):
-        dt = torch.minimum(torch.maximum(dt, torch.full_like(dt, min_step)), t_end - t)
+        dt = torch.minimum(torch.minimum(torch.maximum(dt, torch.full_like(dt, min_step)), max_dt), t_end - t)
         n = t.shape[0]
         quarter = 0.25 * dt
         where = torch.cat([t + 2 * quarter, t + quarter, t + 3 * quarter])
@@ -286,6 +292,7 @@ def march_adaptive(
             return out
         k = keep.nonzero().squeeze(1)
         ids, t, t_end, span, dt, trans, radiance, scale = ids[k], t[k], t_end[k], span[k], dt[k], trans[k], radiance[k], scale[k]
+        max_dt = max_dt[k]
         wsum, wt, median, err, steps, evals = wsum[k], wt[k], median[k], err[k], steps[k], evals[k]
     for name, value in (("radiance", radiance), ("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt),
                         ("median_t", median), ("error", err), ("steps", steps), ("evaluations", evals)):
