@@ -72,3 +72,16 @@ def test_docs_training_example_runs(monkeypatch):
     assert "depth_to_3d_v2" in code and "DataLoader" in code
     monkeypatch.chdir(ROOT)
     exec(compile(code, "docs/DATASETS.md", "exec"), {})
+
+
+def test_voxel_terrain_recipe_gives_surface_labels():
+    tiny = {"image.width": 16, "image.height": 12, "voxels.cells": {"min": [-8, -4, -8], "max": [8, 8, 8]},
+            "march.steps": 4, "voxels.shadow.steps": 8, "voxels.fog.shadow_steps": 2}
+    ds = tv.SceneDataset(ROOT / "datasets" / "voxel-terrain.toml", 2, overrides=tiny, seed=3)
+    item = ds[1]
+    for key, channels in {"normal": 3, "material": 1, "ao": 1, "shadow": 1, "uv": 2}.items():
+        assert item[key].shape == (channels, 12, 16), key
+    hit = item["alpha"][0] > 0.99
+    assert hit.any() and (item["depth"][0][hit] > 0).all()
+    assert torch.equal(item["image"], ds[1]["image"])  # deterministic per (seed, index)
+    assert "voxels.occupancy.terrain.seed" in item["params"]

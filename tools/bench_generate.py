@@ -20,7 +20,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchvol.generate import generate  # noqa: E402
 
-BUNDLED = ["clouds", "template-clouds"]
+BUNDLED = ["clouds", "template-clouds", "voxel-terrain"]
 
 
 def main() -> None:
