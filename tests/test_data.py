@@ -65,13 +65,13 @@ def test_bad_arguments():
         dataset()[4]
 
 
-def test_docs_training_example_runs(monkeypatch):
-    text = (ROOT / "docs" / "DATASETS.md").read_text()
+def test_readme_training_example_runs(monkeypatch):
+    text = (ROOT / "README.md").read_text()
     section = text.split("## Training use", 1)[1]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     assert "depth_to_3d_v2" in code and "DataLoader" in code
     monkeypatch.chdir(ROOT)
-    exec(compile(code, "docs/DATASETS.md", "exec"), {})
+    exec(compile(code, "README.md", "exec"), {})
 
 
 def test_voxel_terrain_recipe_gives_surface_labels():
