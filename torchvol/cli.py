@@ -1,4 +1,4 @@
-"""`torchvol render | generate | sweep`: thin shell over the library; errors print as one line, exit code 2."""
+"""`torchvol render | generate | sweep | bench`: thin shell over the library; errors print as one line, exit code 2."""
 
 from __future__ import annotations
 
@@ -103,6 +103,19 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_accuracy(args: argparse.Namespace) -> int:
+    from .bench import accuracy
+
+    def names(text: str | None) -> list[str] | None:
+        return None if text is None else [v.strip() for v in text.split(",") if v.strip()]
+
+    rows = accuracy(args.out, width=args.width, height=args.height, repeat=args.repeat,
+                    scenes=names(args.scenes), knob_names=names(args.knobs), seed=args.seed)
+    print(json.dumps({"written": [str(Path(args.out) / "accuracy.md"), str(Path(args.out) / "accuracy.png")],
+                      "rows": len(rows)}))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchvol", description="Batched PyTorch renderer of volumes and voxels.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -140,6 +153,17 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--out", required=True, help="output folder")
     w.add_argument("--seed", type=int, default=0)
     w.set_defaults(func=cmd_sweep)
+
+    b = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="bench", required=True)
+    a = b.add_parser("accuracy", help="error against time per knob and quality level: DIR/accuracy.md, DIR/accuracy.png")
+    a.add_argument("--out", required=True, help="output folder")
+    a.add_argument("--width", type=int, default=64)
+    a.add_argument("--height", type=int, default=36)
+    a.add_argument("--repeat", type=int, default=3, help="renders per point; time is their median")
+    a.add_argument("--scenes", default=None, help="comma-separated presets (default: template-clouds, cloud-puff, voxel-terrain)")
+    a.add_argument("--knobs", default=None, help="comma-separated subset of steps, integrator, shadow_steps, lod, spp, compile")
+    a.add_argument("--seed", type=int, default=0)
+    a.set_defaults(func=cmd_bench_accuracy)
     return parser
 
 

@@ -25,7 +25,7 @@ class MarchSettings:
     integrator: Literal["riemann", "frostbite", "alpha"]
     dither: Literal["none", "hash", "sin"]
     dither_scale: float
-    max_distance: float
+    max_distance: float | None  # None: see VolumeSlot.distance_cap
     min_transmittance: float
     density_threshold: float
     lod_scale: float | None
@@ -35,17 +35,53 @@ class MarchSettings:
     tolerance: float | None
 
 
-# Each level: (steps, min_transmittance, dtype). Count placement, frostbite, hashed dither.
-QUALITY: dict[str, tuple[int, float, torch.dtype]] = {
-    "draft": (32, 1e-2, torch.float32),
-    "default": (128, 1e-4, torch.float32),
-    "high": (384, 1e-5, torch.float32),
-    "reference": (2048, 1e-12, torch.float64),
+@dataclass(frozen=True)
+class Level:
+    """What a named quality level sets where the scene does not say (explicit keys win)."""
+
+    steps: int  # volume march steps (count placement)
+    min_transmittance: float  # rays stop below it
+    dtype: torch.dtype
+    shadow_steps: int  # a light's `shadow.steps`
+    voxel_shadow_steps: int  # `voxels.shadow.steps` (DDA step limit of a shadow ray)
+    spp: int  # `image.spp`: the reference integrates each pixel, so aliasing counts as error
+
+
+# Count placement, frostbite, hashed dither (none at reference) at every level. `default` equals
+# the schema's former fixed defaults (shadow 16, voxel shadow 32, spp 1): scenes that relied on them
+# render unchanged. `high` takes the reference's spp: the same seeded sub-samples, so what is left
+# of its error is the march's.
+QUALITY: dict[str, Level] = {
+    "draft": Level(32, 1e-2, torch.float32, shadow_steps=8, voxel_shadow_steps=16, spp=1),
+    "default": Level(128, 1e-4, torch.float32, shadow_steps=16, voxel_shadow_steps=32, spp=1),
+    "high": Level(384, 1e-5, torch.float32, shadow_steps=32, voxel_shadow_steps=128, spp=4),
+    "reference": Level(2048, 1e-12, torch.float64, shadow_steps=64, voxel_shadow_steps=1024, spp=4),
 }
 
 
+def at_level(scene: Scene) -> Scene:
+    """The scene with every key its quality level decides filled in (`image.spp`, lights'
+    `shadow.steps`, `voxels.shadow.steps`); idempotent. Everything after this sees plain ints."""
+    level = QUALITY[scene.march.quality]
+    update: dict = {}
+    if scene.image.spp is None:
+        update["image"] = scene.image.model_copy(update={"spp": level.spp})
+    if any(li.shadow is not None and li.shadow.steps is None for li in scene.lights):
+        update["lights"] = [
+            li if li.shadow is None or li.shadow.steps is not None
+            else li.model_copy(update={"shadow": li.shadow.model_copy(update={"steps": level.shadow_steps})})
+            for li in scene.lights
+        ]
+    vx = scene.voxels
+    if vx is not None and vx.shadow is not None and vx.shadow.steps is None:
+        shadow = vx.shadow.model_copy(update={"steps": level.voxel_shadow_steps})
+        update["voxels"] = vx.model_copy(update={"shadow": shadow})
+    return scene.model_copy(update=update) if update else scene
+
+
 def march_settings(march: March) -> MarchSettings:
-    steps, min_t, dtype = QUALITY[march.quality]
+    level = QUALITY[march.quality]
+    steps, min_t, dtype = level.steps, level.min_transmittance, level.dtype
     reference = march.quality == "reference"
     placement = march.placement or ("size" if march.step_size is not None and march.steps is None else "count")
     if placement == "size" and march.steps is None:
@@ -61,7 +97,7 @@ def march_settings(march: March) -> MarchSettings:
         integrator=march.integrator or "frostbite",
         dither=march.dither or ("none" if reference else "hash"),
         dither_scale=march.dither_scale if march.dither_scale is not None else 1.0,
-        max_distance=march.max_distance if march.max_distance is not None else 1e5,
+        max_distance=march.max_distance,
         min_transmittance=march.min_transmittance if march.min_transmittance is not None else min_t,
         density_threshold=march.density_threshold if march.density_threshold is not None else 0.0,
         lod_scale=march.lod.scale if march.lod is not None else None,
@@ -91,6 +127,7 @@ def uses_closed_form(scene: Scene, v: int, settings: MarchSettings) -> bool:
 
 
 def make_plan(scene: Scene, settings: MarchSettings) -> list[Pass]:
+    scene = at_level(scene)
     passes = [Pass("rays", "rays")]
     vx = scene.voxels
     if vx is not None:  # the surface pass runs before the volumes (they march up to its depth)
@@ -139,4 +176,4 @@ def replace_march(march: March, **changes) -> March:
     return March.model_validate({**march.model_dump(), **changes})
 
 
-__all__ = ["MarchSettings", "Pass", "QUALITY", "march_settings", "make_plan", "uses_closed_form", "with_quality"]
+__all__ = ["Level", "MarchSettings", "Pass", "QUALITY", "at_level", "march_settings", "make_plan", "uses_closed_form", "with_quality"]

@@ -14,7 +14,7 @@ from torch import Tensor
 from . import noise, post, sky
 from .camera import Camera, Rays, strata_shape
 from .fields import Field, make_field
-from .plan import MarchSettings, Pass, make_plan, march_settings, uses_closed_form
+from .plan import MarchSettings, Pass, at_level, make_plan, march_settings, uses_closed_form
 from .rays import clip_to_ray, intersect_box, intersect_slab, intersect_sphere
 from .scene import Scene, load_scene
 from .validate import fail
@@ -24,6 +24,7 @@ from .volume.march import LN2, StepRule, expected_depth_fraction, march, march_a
 from .voxel.surface import VoxelSurface, surface_aovs
 
 DEFAULT_CHUNK_RAYS = 1 << 16
+SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
 
 
 @dataclass
@@ -197,6 +198,14 @@ class VolumeSlot:
         height = ((p[:, 1] - lo) / (hi - lo)).clamp(0.0, 1.0)
         return torch.lerp(self.look["ambient"][s], self.ambient_top[s], height[:, None])
 
+    def distance_cap(self, settings: MarchSettings) -> float:
+        """How far a ray or shadow ray may travel in this volume: `march.max_distance` if given;
+        else unbounded for boxes and spheres (their exits are finite: far volumes stay visible)
+        and SLAB_REACH for slabs, whose exit is at infinity along their planes."""
+        if settings.max_distance is not None:
+            return settings.max_distance
+        return SLAB_REACH if self.bounds_kind == "slab" else math.inf
+
     def intersect(self, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
         """Entry/exit distances of rays `o`, `d` [n, 3] of scenes `s` [n]."""
         if self.bounds_kind == "box":
@@ -324,7 +333,7 @@ class Renderer:
             shadow = self.lights.shadow[l]
             if shadow is not None:
                 with self.timer.section(self.names[("shadow", l)]):
-                    exit_t = slot.intersect(p, sun, s)[1].clamp(0.0, self.settings.max_distance)
+                    exit_t = slot.intersect(p, sun, s)[1].clamp(0.0, slot.distance_cap(self.settings))
                     radiance = radiance * lighting.shadow_transmittance(
                         p, sun, exit_t, lambda q, owner: slot.sigma_t[s[owner]] * slot.field(q, s[owner]),
                         steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step,
@@ -393,10 +402,10 @@ class Renderer:
         shader = slot.spec.shading == "shader"
         if shader:  # the seeds: march whenever the exit is ahead, from max(t_near, 0)
             t0 = t_near.clamp_min(0.0)
-            t1 = t_far.clamp_max(st.max_distance)
+            t1 = t_far.clamp_max(slot.distance_cap(st))
             hit = (t_far >= 0) & (t_far >= t_near)
         else:
-            t0, t1, hit = clip_to_ray(t_near, t_far, st.max_distance)
+            t0, t1, hit = clip_to_ray(t_near, t_far, slot.distance_cap(st))
         if t_limit is not None:
             t1 = torch.minimum(t1, t_limit)
             hit = hit & (t1 > t0)
@@ -531,7 +540,7 @@ def render(
         torch.empty(0, device=device)
     except (RuntimeError, TypeError, AssertionError) as err:
         fail("device", str(device), f"not a usable torch device here ({str(err).splitlines()[0]})")
-    scenes = [load_scene(s) for s in (scene if isinstance(scene, (list, tuple)) else [scene])]
+    scenes = [at_level(load_scene(s)) for s in (scene if isinstance(scene, (list, tuple)) else [scene])]
     if not scenes:
         fail("scene", scene, "expected at least one scene")
     _same_structure(scenes)

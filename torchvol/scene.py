@@ -68,7 +68,7 @@ class One(Strict):
 class Image(Strict):
     width: int = Field(256, ge=1, le=16384)
     height: int = Field(256, ge=1, le=16384)
-    spp: int = Field(1, ge=1, le=1024)
+    spp: int | None = Field(None, ge=1, le=1024, description="samples per pixel; None: the quality level's")
 
 
 class CameraMatrix(Strict):
@@ -165,7 +165,7 @@ class Sky(Strict):
 
 
 class Shadow(Strict):
-    steps: int = Field(16, ge=1, le=4096)
+    steps: int | None = Field(None, ge=1, le=4096, description="None: the quality level's")
     growth: float = Field(1.0, ge=1.0, le=4.0)
     first_step: float | None = Field(None, gt=0.0)
 
@@ -545,7 +545,7 @@ class VoxelAO(Strict):
 class VoxelShadow(Strict):
     """DDA shadow rays towards each sun from hit + offset·normal (seed Step 8)."""
 
-    steps: int = Field(32, ge=1, le=100_000)
+    steps: int | None = Field(None, ge=1, le=100_000, description="None: the quality level's")
     offset: float = Field(0.01, ge=0.0)
 
 

@@ -1,10 +1,10 @@
 """`torchvol sweep`: render every combination of swept values; time, cost and error per combination.
 
 Error is measured against a reference-quality render of the same scene (`march.quality =
-"reference"`, the scene's own step settings removed). Swept `march.*` keys only change the
-approximation, so the reference is rendered once per distinct combination of the other keys.
-Writes DIR/results.csv, DIR/contact_sheet.png (each cell labelled with its values) and one
-DIR/plot_<key>.png per swept key (time and error against that key).
+"reference"`, the scene's own step, shadow-step and spp settings removed: `at_quality`). Swept
+`march.*` keys only change the approximation, so the reference is rendered once per distinct
+combination of the other keys. Writes DIR/results.csv, DIR/contact_sheet.png (each cell labelled
+with its values) and one DIR/plot_<key>.png per swept key (time and error against that key).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
+from .plan import Quality
 from .scene import Scene, _set_path, load_scene, read_source
 from .validate import fail
 
@@ -48,22 +49,44 @@ def split_values(text: str) -> list[str]:
     return [p for p in parts if p]
 
 
-def reference_overrides(base: Mapping) -> dict:
-    """The march table of the reference render: quality "reference", approximation keys removed
-    (the alpha integrator is kept: it is the shader look, not an approximation)."""
+def reference_overrides(base: Mapping, quality: Quality = "reference") -> dict:
+    """The march table at `quality`: approximation keys removed (the alpha integrator is kept: it
+    is the shader look, not an approximation)."""
     march = {k: v for k, v in dict(base.get("march") or {}).items() if k not in APPROXIMATION_KEYS}
     if march.get("integrator") != "alpha":
         march.pop("integrator", None)
-    march["quality"] = "reference"
+    march["quality"] = quality
     return march
+
+
+def at_quality(data: Mapping, quality: Quality) -> dict:
+    """A scene dict at level `quality` with every key the level decides removed, so the level sets
+    it: the march's approximation keys, `image.spp`, lights' and voxels' `shadow.steps`."""
+    data = copy.deepcopy(dict(data))
+    data["march"] = reference_overrides(data, quality)
+    (data.get("image") or {}).pop("spp", None)
+    for shadow in [light.get("shadow") for light in data.get("lights") or []] + [(data.get("voxels") or {}).get("shadow")]:
+        if shadow:
+            shadow.pop("steps", None)
+    return data
+
+
+def image_error(image: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
+    """RMSE, RMSE relative to the reference's RMS, and PSNR (kornia, peak 1) of `image` against
+    `reference`, both (B, 3, H, W) in [0, 1]."""
+    from kornia.metrics import psnr
+
+    image, reference = image.float(), reference.float()
+    mse = torch.mean((image - reference) ** 2).item()
+    rms = math.sqrt(torch.mean(reference**2).item())
+    return {"rmse": math.sqrt(mse), "rel_rmse": math.sqrt(mse) / rms if rms > 0 else math.inf,
+            "psnr": float(psnr(image, reference, 1.0)) if mse > 0 else math.inf}
 
 
 def sweep(scene: str | Path | Mapping | Scene, params: Mapping[str, Sequence[Any]], *, out: str | Path,
           seed: int = 0, overrides: Mapping[str, Any] | None = None) -> list[dict]:
     """Render every combination of `params` ({key path: [values]}) over `scene` (+ `overrides`);
     write results, contact sheet and plots to `out`. Returns the result rows."""
-    from kornia.metrics import psnr
-
     from .render import render
 
     if not params:
@@ -90,17 +113,14 @@ def sweep(scene: str | Path | Mapping | Scene, params: Mapping[str, Sequence[Any
             for k, v in values.items():
                 if not k.startswith("march."):
                     _set_path(ref_data, k, v)
-            ref_data["march"] = reference_overrides(ref_data)
-            references[other] = render(load_scene(ref_data), seed=seed).image.float()
-        ref = references[other]
-        img = result.image.float()
-        mse = torch.mean((img - ref) ** 2).item()
+            references[other] = render(load_scene(at_quality(ref_data, "reference")), seed=seed).image
+        error = image_error(result.image, references[other])
         rows.append({
             **{k: _cell(v) for k, v in values.items()},
             "time_s": result.stats["total_s"],
             "density_evals": result.stats["density_evals"],
-            "rmse": math.sqrt(mse),
-            "psnr": float(psnr(img, ref, 1.0)) if mse > 0 else math.inf,
+            "rmse": error["rmse"],
+            "psnr": error["psnr"],
         })
         images.append((values, result.image[0]))
     with open(out / "results.csv", "w", newline="") as f:

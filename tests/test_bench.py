@@ -1,0 +1,77 @@
+"""`torchvol bench accuracy` end to end on tiny images, and the quality levels it reports."""
+
+import torch
+from PIL import Image
+
+import torchvol as tv
+from torchvol.cli import main
+from torchvol.plan import QUALITY, at_level, march_settings
+from torchvol.sweep import at_quality, image_error
+
+PHYSICAL = {  # a shadowed fbm cloud filling the frame (no silhouette: level errors are march errors)
+    "image": {"width": 6, "height": 4},
+    "camera": {"eye": [0.0, 0.0, -1.5], "target": [0.0, 0.0, 0.0], "fov_y": 30.0},
+    "sky": {"kind": "constant", "radiance": [0.3, 0.45, 0.7]},
+    "lights": [{"direction": [0.5, 0.8, -0.6], "intensity": 6.0, "shadow": {}}],
+    "volumes": [{"bounds": {"box": {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}}, "sigma_t": 3.0, "albedo": 0.9,
+                 "density": {"fbm": {"octaves": 1, "frequency": 1.0, "bias": 0.5}}}],
+}
+
+
+def test_bench_accuracy_writes_table_and_plot(tmp_path, capsys, one_thread):
+    out = tmp_path / "bench"
+    assert main(["bench", "accuracy", "--out", str(out), "--width", "16", "--height", "12", "--repeat", "1",
+                 "--scenes", "voxel-terrain", "--knobs", "spp,shadow_steps"]) == 0
+    lines = (out / "accuracy.md").read_text().splitlines()
+    assert [c.strip() for c in lines[0].strip("|").split("|")] == [
+        "scene", "knob", "setting", "time (s)", "rel. RMSE", "PSNR (dB)"]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[2:]]
+    assert {r[0] for r in rows} == {"voxel terrain"}
+    got = [(r[1], r[2]) for r in rows]
+    assert got == ([("shadow_steps", v) for v in ("8", "16", "32", "64", "128")] + [("spp", v) for v in ("1", "2", "4")]
+                   + [("level", q) for q in QUALITY])
+    assert all(float(r[3]) > 0 for r in rows)
+    assert rows[-1][4:] == ["0.00e+00", "∞"]  # the reference against itself
+    assert Image.open(out / "accuracy.png").format == "PNG"
+
+
+def test_bench_bad_input(tmp_path, capsys):
+    assert main(["bench", "accuracy", "--out", str(tmp_path), "--knobs", "stepz"]) == 2
+    err = capsys.readouterr().err
+    assert "--knobs: got 'stepz'" in err and "did you mean 'steps'" in err
+    assert main(["bench", "accuracy", "--out", str(tmp_path), "--scenes", "cloud-puf"]) == 2
+
+
+def test_levels_are_ordered_on_a_physical_scene(one_thread):
+    reference = tv.render(at_quality(PHYSICAL, "reference"))
+    assert reference.stats["dtype"] == "float64"
+    errors = [image_error(tv.render(at_quality(PHYSICAL, q)).image, reference.image)["rel_rmse"]
+              for q in ("draft", "default", "high")]
+    assert errors[0] >= errors[1] >= errors[2] > 0, errors
+
+
+def test_explicit_keys_win_over_the_level():
+    terrain = tv.preset("voxel-terrain", width=8, height=6)
+    for quality, level in QUALITY.items():
+        given = at_level(tv.load_scene(PHYSICAL, {"march.quality": quality, "lights[0].shadow.steps": 5,
+                                                   "image.spp": 3, "march.steps": 7}))
+        assert (given.lights[0].shadow.steps, given.image.spp, march_settings(given.march).rule.steps) == (5, 3, 7)
+        assert march_settings(given.march).dtype == level.dtype
+        implied = at_level(tv.load_scene(PHYSICAL, {"march.quality": quality}))
+        assert (implied.lights[0].shadow.steps, implied.image.spp) == (level.shadow_steps, level.spp)
+        assert march_settings(implied.march).rule.steps == level.steps
+        assert at_level(tv.load_scene(terrain, {"march.quality": quality})).voxels.shadow.steps == 64  # the preset's
+        bare = at_quality(terrain.model_dump(), quality)
+        assert at_level(tv.load_scene(bare)).voxels.shadow.steps == level.voxel_shadow_steps
+
+
+def test_default_level_keeps_former_defaults():
+    """Scenes that relied on the schema's former fixed defaults render as before at `default`."""
+    scene = at_level(tv.load_scene({**PHYSICAL, "voxels": None}))
+    assert (scene.image.spp, scene.lights[0].shadow.steps) == (1, 16)
+    assert QUALITY["default"].voxel_shadow_steps == 32
+
+
+def test_reference_renders_in_float64():
+    out = tv.render(at_quality(tv.preset("voxel-terrain", width=8, height=6).model_dump(), "reference"))
+    assert out.stats["dtype"] == "float64" and out.image.dtype == torch.float32

@@ -1,0 +1,169 @@
+"""`torchvol bench accuracy`: error against time on the bundled scenes, per knob and per quality level.
+
+Each knob is a curve: the scene as bundled with one setting changed (primary steps, integrator,
+shadow steps, LOD, spp, torch.compile). Each quality level is one row: the scene with every key the
+level decides removed (`sweep.at_quality`). Error is against the `reference` level render of the same
+scene (relative RMSE and PSNR, `sweep.image_error`); time is the median wall time of `repeat` renders
+(a compiled render's first call, which compiles, is not counted; the reference is timed once). Writes DIR/accuracy.md (a
+Markdown table) and DIR/accuracy.png (error against time, one panel per scene).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+
+from .plan import QUALITY, Quality
+from .presets import preset_dict
+from .render import render
+from .scene import load_scene
+from .sweep import at_quality, image_error
+from .validate import did_you_mean, fail
+
+# report name -> bundled preset
+SCENES = {"template clouds": "template-clouds", "physical clouds": "cloud-puff", "voxel terrain": "voxel-terrain"}
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One point of a knob's curve: scene key overrides ({key path: value}) and the compile flag."""
+
+    label: str
+    overrides: dict[str, Any] = field(default_factory=dict)
+    compile: bool = False
+
+
+def _values(key: str, values: Sequence[Any]) -> list[Setting]:
+    return [Setting(f"{value}", {key: value}) for value in values]
+
+
+def knobs(preset: str) -> dict[str, list[Setting]]:
+    """The knobs that apply to `preset`, each a list of settings over the scene as bundled."""
+    volumes, voxels = preset != "voxel-terrain", preset == "voxel-terrain"
+    physical = preset == "cloud-puff"
+    out: dict[str, list[Setting]] = {}
+    if volumes:
+        out["steps"] = _values("march.steps", [16, 32, 64, 128, 256])
+    if physical:  # the template's alpha integrator is its look, not an approximation
+        out["integrator"] = _values("march.integrator", ["alpha", "riemann", "frostbite"])
+        out["shadow_steps"] = _values("lights[0].shadow.steps", [2, 4, 8, 16, 32])
+    if voxels:
+        out["shadow_steps"] = _values("voxels.shadow.steps", [8, 16, 32, 64, 128])
+    if volumes:
+        out["lod"] = [Setting("off", {"march.lod": None}), Setting("on", {"march.lod": {"scale": 0.5}})]
+    out["spp"] = _values("image.spp", [1, 2, 4])
+    out["compile"] = [Setting("off"), Setting("on", compile=True)]
+    return out
+
+
+KNOBS = ("steps", "integrator", "shadow_steps", "lod", "spp", "compile")
+
+
+def scene_data(preset: str, *, width: int, height: int, quality: Quality | None = None) -> dict:
+    """The preset's scene dict at `width`×`height`; at `quality` (the level's keys removed) if given."""
+    data = preset_dict(preset, width=width, height=height)
+    return data if quality is None else at_quality(data, quality)
+
+
+def measure(data: dict, reference: torch.Tensor, setting: Setting, *, repeat: int, seed: int = 0) -> dict[str, float]:
+    """Median render time of `repeat` renders of `data` with `setting`, and the image's error
+    against `reference` (B, 3, H, W)."""
+    scene = load_scene(data, setting.overrides)
+    if setting.compile:
+        render(scene, seed=seed, compile=True)  # compilation is not what is measured
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        out = render(scene, seed=seed, compile=setting.compile)
+        times.append(time.perf_counter() - start)
+    return {"time_s": statistics.median(times), **image_error(out.image, reference)}
+
+
+def scene_rows(name: str, *, width: int, height: int, repeat: int, knob_names: Sequence[str], seed: int = 0) -> list[dict]:
+    """Rows (scene, knob, setting, time_s, rmse, rel_rmse, psnr) of one report scene: every
+    applicable knob in `knob_names`, then one row per quality level. The `reference` row is the
+    reference render itself, timed once (the slowest render of the report; its error is 0)."""
+    preset = SCENES[name]
+    start = time.perf_counter()
+    reference = render(load_scene(scene_data(preset, width=width, height=height, quality="reference")), seed=seed).image
+    reference_row = {"scene": name, "knob": "level", "setting": "reference", "time_s": time.perf_counter() - start,
+                     **image_error(reference, reference)}
+    rows = []
+    bundled = scene_data(preset, width=width, height=height)
+    for knob, settings in knobs(preset).items():
+        if knob in knob_names:
+            for setting in settings:
+                rows.append({"scene": name, "knob": knob, "setting": setting.label,
+                             **measure(bundled, reference, setting, repeat=repeat, seed=seed)})
+    for level in (q for q in QUALITY if q != "reference"):
+        data = scene_data(preset, width=width, height=height, quality=level)
+        rows.append({"scene": name, "knob": "level", "setting": level,
+                     **measure(data, reference, Setting(level), repeat=repeat, seed=seed)})
+    return rows + [reference_row]
+
+
+def table(rows: Sequence[dict]) -> str:
+    """The rows as a Markdown table."""
+    lines = ["| scene | knob | setting | time (s) | rel. RMSE | PSNR (dB) |", "| --- | --- | --- | ---: | ---: | ---: |"]
+    for r in rows:
+        psnr = "∞" if math.isinf(r["psnr"]) else f"{r['psnr']:.1f}"
+        lines.append(f"| {r['scene']} | {r['knob']} | {r['setting']} | {r['time_s']:.3f} | {r['rel_rmse']:.2e} | {psnr} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: Sequence[dict], path: Path) -> None:
+    """Relative RMSE against time (log-log), one panel per scene, one curve per knob, levels labelled."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(dict.fromkeys(r["scene"] for r in rows))
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
+    floor = min((r["rel_rmse"] for r in rows if r["rel_rmse"] > 0), default=1e-6) / 2  # exact renders: plottable on log axes
+    for ax, name in zip(axes[0], names):
+        for knob in dict.fromkeys(r["knob"] for r in rows if r["scene"] == name):
+            pts = [r for r in rows if r["scene"] == name and r["knob"] == knob]
+            xs, ys = [r["time_s"] for r in pts], [max(r["rel_rmse"], floor) for r in pts]
+            if knob == "level":
+                ax.plot(xs, ys, "k*--", label="quality level", markersize=9)
+                for r, x, y in zip(pts, xs, ys):
+                    ax.annotate(r["setting"], (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+            else:
+                ax.plot(xs, ys, "o-", label=knob, markersize=3)
+        ax.set(xscale="log", yscale="log", title=name, xlabel="time (s)", ylabel="relative RMSE vs reference")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=72)
+    plt.close(fig)
+
+
+def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int = 3, scenes: Sequence[str] | None = None,
+             knob_names: Sequence[str] | None = None, seed: int = 0) -> list[dict]:
+    """The accuracy report: writes `out`/accuracy.md and `out`/accuracy.png; returns the rows.
+    `scenes`: report scene names or presets (default all of SCENES); `knob_names`: subset of KNOBS."""
+    by_preset = {v: k for k, v in SCENES.items()}
+    names = []
+    for s in scenes if scenes is not None else list(SCENES):
+        if s not in SCENES and s not in by_preset:
+            fail("--scenes", s, "expected one of " + ", ".join(SCENES.values()) + did_you_mean(s, by_preset))
+        names.append(by_preset.get(s, s))
+    for k in knob_names if knob_names is not None else ():
+        if k not in KNOBS:
+            fail("--knobs", k, "expected some of " + ", ".join(KNOBS) + did_you_mean(k, KNOBS))
+    for key, value in (("--width", width), ("--height", height), ("--repeat", repeat)):
+        if value < 1:
+            fail(key, value, "expected an integer >= 1")
+    rows = [row for name in names for row in scene_rows(name, width=width, height=height, repeat=repeat,
+                                                          knob_names=KNOBS if knob_names is None else knob_names, seed=seed)]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "accuracy.md").write_text(table(rows))
+    plot(rows, out / "accuracy.png")
+    return rows
