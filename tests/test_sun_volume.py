@@ -52,3 +52,27 @@ def test_grid_cloud_matches_a_fine_shadow_march():
     marched = shadow_transmittance(points, direction, exit_t, ext, steps=512)
     err = (grid.lookup(points) - marched).abs()
     assert err.max() < 1e-2, f"max error {err.max():.2e} at {points[err.argmax()].tolist()}"
+
+
+def test_render_with_a_shadow_grid_is_close_to_the_shadow_march_and_cheaper():
+    import torchvol as tv
+    from torchvol.testing.mitsuba import puff_grid, relative_rmse, sigma_for, torchvol_scene
+
+    grid = puff_grid(24)
+    sigma = sigma_for(grid)
+    march = torchvol_scene(grid, sigma, size=20, spp=1, shadow_steps=48)
+    tabled = torchvol_scene(grid, sigma, size=20, spp=1, shadow_steps=48)
+    tabled["lights"][0]["shadow"].update(method="grid", resolution=64)
+    a, b = tv.render(march), tv.render(tabled)
+    err = relative_rmse(b.radiance[0].numpy(), a.radiance[0].numpy())
+    assert err < 0.01, f"shadow grid vs shadow march: relative RMSE {err:.3%}"
+    assert b.stats["density_evals"] < a.stats["density_evals"]
+    assert "volume0.shadow0" in b.stats["passes"]
+
+
+def test_shadow_grid_refuses_slab_bounds():
+    import torchvol as tv
+
+    scene = {"lights": [{"shadow": {"method": "grid"}}], "volumes": [{"bounds": {"slab": {"y_min": 0, "y_max": 1}}}]}
+    with pytest.raises(ValueError, match=r"lights\[0\]\.shadow\.method"):
+        tv.load_scene(scene)

@@ -13,13 +13,14 @@ from torch import Tensor
 
 from . import noise, post, sky
 from .camera import Camera, Rays, strata_shape
-from .fields import Field, make_field
+from .fields import Field, make_field, per_scene
 from .plan import MarchSettings, Pass, at_level, make_plan, march_settings, uses_closed_form
 from .rays import clip_to_ray, intersect_box, intersect_slab, intersect_sphere
 from .scene import Scene, load_scene
 from .validate import fail
 from .volume import light as lighting
 from .volume.integrate import frostbite_step
+from .volume.sun_volume import SunGrid, sun_transmittance_grid
 from .volume.march import LN2, StepRule, expected_depth_fraction, march, march_adaptive
 from .voxel.surface import VoxelSurface, surface_aovs
 
@@ -198,6 +199,12 @@ class VolumeSlot:
         height = ((p[:, 1] - lo) / (hi - lo)).clamp(0.0, 1.0)
         return torch.lerp(self.look["ambient"][s], self.ambient_top[s], height[:, None])
 
+    def aabb(self, b: int) -> tuple[Tensor, Tensor]:
+        """Scene b's bounds as a box (min [3], max [3]); boxes and spheres only."""
+        if self.bounds_kind == "box":
+            return self.b0[b], self.b1[b]
+        return self.b0[b] - self.b1[b], self.b0[b] + self.b1[b]
+
     def distance_cap(self, settings: MarchSettings) -> float:
         """How far a ray or shadow ray may travel in this volume: `march.max_distance` if given;
         else unbounded for boxes and spheres (their exits are finite: far volumes stay visible)
@@ -257,6 +264,7 @@ class Renderer:
         if first.voxels is not None:
             self.surface = VoxelSurface([s.voxels for s in scenes], self.lights.direction, self.lights.radiance,
                                         dtype=dtype, device=device, compiled=compiled)
+        self._sun_grids: dict[tuple[int, int], list[SunGrid]] = {}
         self.steps_total = 0
         self.truncated = 0
         self.error_estimate = 0.0
@@ -331,7 +339,11 @@ class Renderer:
             sun = self.lights.direction[l][s]
             radiance = self.lights.radiance[l][s] * (sigma_s * slot.phase((d * sun).sum(dim=1), s))[:, None]
             shadow = self.lights.shadow[l]
-            if shadow is not None:
+            if shadow is not None and shadow.method == "grid":
+                with self.timer.section(self.names[("shadow", l)]):
+                    grids = self.sun_grids(slot, v, l)
+                    radiance = radiance * per_scene(p, s, len(grids), lambda b, _, q: grids[b].lookup(q))[:, None]
+            elif shadow is not None:
                 with self.timer.section(self.names[("shadow", l)]):
                     exit_t = slot.intersect(p, sun, s)[1].clamp(0.0, slot.distance_cap(self.settings))
                     radiance = radiance * lighting.shadow_transmittance(
@@ -340,6 +352,22 @@ class Renderer:
                     )[:, None]
             out = out + radiance
         return out
+
+    def sun_grids(self, slot: VolumeSlot, v: int, l: int) -> list[SunGrid]:
+        """Transmittance to sun `l` through volume `v`, one grid per scene, built on first use and
+        kept for every chunk of this render."""
+        key = (v, l)
+        if key not in self._sun_grids:
+            resolution = self.lights.shadow[l].resolution
+            grids = []
+            for b in range(len(self.scenes)):
+                lo, hi = slot.aabb(b)
+                owner = lambda q: torch.full((q.shape[0],), b, dtype=torch.long, device=q.device)  # noqa: E731
+                grids.append(sun_transmittance_grid(
+                    lambda q: slot.sigma_t[b] * slot.field(q, owner(q)), lo, hi, self.lights.direction[l][b],
+                    resolution=resolution))
+            self._sun_grids[key] = grids
+        return self._sun_grids[key]
 
     def physical_medium(self, slot: VolumeSlot, v: int, rays: Rays):
         o, d, s_all = rays.origins, rays.directions, rays.scene_index

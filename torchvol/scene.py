@@ -40,6 +40,11 @@ class Strict(BaseModel):
         return data
 
 
+def _refuse(path: str, value: Any, allowed: str):
+    """A cross-key rule broken: an error naming `path` (from the scene's root), not the model's."""
+    raise PydanticCustomError("at_path", "{allowed}", {"path": path, "value": value, "allowed": allowed})
+
+
 def _nonneg(v: Vec3, what: str = "components") -> Vec3:
     if min(v) < 0:
         raise ValueError(f"{what} must be >= 0")
@@ -165,9 +170,17 @@ class Sky(Strict):
 
 
 class Shadow(Strict):
+    """How a sun's transmittance through the volumes is found: `march` (a shadow march from every lit
+    sample) or `grid` (tabulated once per scene on a sun-aligned grid of `resolution`³ nodes over
+    each volume's bounds, then looked up trilinearly: far cheaper; box and sphere bounds only).
+    Measured on the Mitsuba parity cloud (64³ grid, optical depth 10): mean |ΔT| on lit samples
+    0.24% at resolution 96, 0.14% at 128, 0.07% at 192; building the 128³ grid takes ~0.1 s."""
+
+    method: Literal["march", "grid"] = "march"
     steps: int | None = Field(None, ge=1, le=4096, description="None: the quality level's")
     growth: float = Field(1.0, ge=1.0, le=4.0)
     first_step: float | None = Field(None, gt=0.0)
+    resolution: int = Field(128, ge=4, le=1024)
 
 
 class Light(Strict):
@@ -639,9 +652,19 @@ class Scene(Strict):
     post: Post = Field(default_factory=Post)
 
     @model_validator(mode="after")
+    def _shadow_grid_needs_finite_bounds(self):
+        for l, light in enumerate(self.lights):
+            if light.shadow is not None and light.shadow.method == "grid":
+                for v, vol in enumerate(self.volumes):
+                    if vol.bounds.kind == "slab":
+                        _refuse(f"lights[{l}].shadow.method", "grid",
+                                f"'grid' needs box or sphere bounds and volumes[{v}] is a slab (use 'march')")
+        return self
+
+    @model_validator(mode="after")
     def _atmosphere_needs_a_sun(self):
         if self.sky is not None and self.sky.kind == "atmosphere" and not self.lights:
-            raise ValueError("sky.kind = 'atmosphere' is lit by the first light: add a [[lights]] sun")
+            _refuse("sky.kind", "atmosphere", "the atmosphere is lit by the first light: add a [[lights]] sun")
         return self
 
 
@@ -672,6 +695,8 @@ def _scene_error(err: ValidationError, raw: Any) -> SceneError:
     """Turn pydantic's first error into our one message shape."""
     e = err.errors(include_url=False)[0]
     loc = tuple(p for p in e["loc"] if not (isinstance(p, str) and ("[" in p or p.startswith("function-"))))
+    if e["type"] == "at_path":
+        return SceneError(e["ctx"]["path"], e["ctx"]["value"], e["msg"])
     if e["type"] == "unknown_key":
         key = e["ctx"]["key"]
         loc = loc + (key,)

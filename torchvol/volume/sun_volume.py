@@ -20,10 +20,12 @@ from torch import Tensor
 
 @dataclass(frozen=True)
 class SunGrid:
-    """T to the sun on a grid: `transmittance` (Nw, Nv, Nu) over the frame `origin` + a·u + b·v + c·w
-    with (a, b, c) in [0, size]; `frame` (3, 3) rows u, v, w (w towards the sun)."""
+    """Optical depth to the sun on a grid: `optical_depth` (Nw, Nv, Nu) over the frame `origin` +
+    a·u + b·v + c·w with (a, b, c) in [0, size]; `frame` (3, 3) rows u, v, w (w towards the sun).
+    Lookups interpolate the optical depth (smooth, near-linear along w) and exponentiate after:
+    interpolating e^{−τ} itself is less accurate where τ changes fast."""
 
-    transmittance: Tensor
+    optical_depth: Tensor
     origin: Tensor
     frame: Tensor
     size: Tensor
@@ -33,8 +35,8 @@ class SunGrid:
         local = (points - self.origin) @ self.frame.T / self.size  # [N, 3] in [0, 1] inside
         # grid nodes sit at 0, 1/(n−1), ..., 1: align_corners=True addresses exactly those
         coords = (2.0 * local - 1.0).reshape(1, 1, 1, -1, 3)
-        value = F.grid_sample(self.transmittance[None, None], coords, mode="bilinear", padding_mode="border", align_corners=True)
-        return value.reshape(-1)
+        tau = F.grid_sample(self.optical_depth[None, None], coords, mode="bilinear", padding_mode="border", align_corners=True)
+        return torch.exp(-tau.reshape(-1))
 
 
 def sun_frame(sun_dir: Tensor) -> Tensor:
@@ -79,4 +81,4 @@ def sun_transmittance_grid(
     cells = 0.5 * (sigma[1:] + sigma[:-1]) * dw  # (n−1, n, n)
     tau = torch.flip(torch.cumsum(torch.flip(cells, [0]), 0), [0])
     tau = torch.cat([tau, torch.zeros_like(sigma[:1])], dim=0)
-    return SunGrid(transmittance=torch.exp(-tau), origin=origin, frame=frame, size=size)
+    return SunGrid(optical_depth=tau, origin=origin, frame=frame, size=size)
