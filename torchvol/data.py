@@ -42,10 +42,10 @@ def epoch_seed(seed: int, epoch: int | None) -> int:
 
 
 def _compatible(a, b) -> bool:
-    from .render import _same_structure
+    from .render import check_same_structure
 
     try:
-        _same_structure([a, b])
+        check_same_structure([a, b])
     except SceneError:
         return False
     return True

@@ -86,8 +86,9 @@ def _t(values, dtype, device) -> Tensor:
     return torch.tensor(values, dtype=dtype, device=device)
 
 
-def _same_structure(scenes: Sequence[Scene]) -> None:
-    """Scenes of one batch share everything but numeric values."""
+def check_same_structure(scenes: Sequence[Scene]) -> None:
+    """Scenes of one batch share everything but numeric values: a SceneError naming the first that
+    does not (the dataset uses it to group samples into batches)."""
     first = scenes[0]
 
     def shape(s: Scene):
@@ -571,7 +572,7 @@ def render(
     scenes = [at_level(load_scene(s)) for s in (scene if isinstance(scene, (list, tuple)) else [scene])]
     if not scenes:
         fail("scene", scene, "expected at least one scene")
-    _same_structure(scenes)
+    check_same_structure(scenes)
     seeds = [seed] * len(scenes) if seeds is None else seeds
     if len(seeds) != len(scenes) or any(isinstance(x, bool) or not isinstance(x, int) for x in seeds):
         fail("seed", seed, f"expected an integer or one integer per scene ({len(scenes)})")
