@@ -510,17 +510,20 @@ class Renderer:
             trans = torch.ones_like(rays.origins[:, 0])
             wsum, wt, median = torch.zeros_like(trans), torch.zeros_like(trans), torch.zeros_like(trans)
             if parts:
-                order = torch.argsort(torch.stack([p["t0"] for p in parts]), dim=0)  # front to back per ray
+                order = torch.argsort(torch.stack([p["t0"] for p in parts]), dim=0)  # [V, n]: front to back per ray
+                ordered = {}
+                for key in ("radiance", "transmittance", "weight_sum", "weighted_t", "median_t"):
+                    stacked = torch.stack([p[key] for p in parts])  # [V, n] or [V, n, 3]
+                    index = order.view(*order.shape, *([1] * (stacked.dim() - 2))).expand_as(stacked)
+                    ordered[key] = stacked.gather(0, index)
                 for k in range(len(parts)):
-                    pick = order[k]
-                    def g(key):
-                        stacked = torch.stack([p[key] for p in parts])
-                        return stacked.gather(0, pick.view(1, -1, *([1] * (stacked.dim() - 2))).expand(1, *stacked.shape[1:]))[0]
-                    radiance = radiance + trans[:, None] * g("radiance")
-                    wsum, wt = wsum + trans * g("weight_sum"), wt + trans * g("weighted_t")
-                    med = g("median_t")
-                    median = torch.where((median == 0) & (trans > 0.5) & (trans * g("transmittance") <= 0.5), med, median)
-                    trans = trans * g("transmittance")
+                    part_trans = ordered["transmittance"][k]
+                    radiance = radiance + trans[:, None] * ordered["radiance"][k]
+                    wsum = wsum + trans * ordered["weight_sum"][k]
+                    wt = wt + trans * ordered["weighted_t"][k]
+                    crossed = (median == 0) & (trans > 0.5) & (trans * part_trans <= 0.5)
+                    median = torch.where(crossed, ordered["median_t"][k], median)
+                    trans = trans * part_trans
             behind = background if surf is None else surf["color"]  # the shaded surface where hit
             if behind is not None:
                 radiance = radiance + trans[:, None] * behind
