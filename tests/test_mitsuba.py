@@ -3,7 +3,6 @@
 Mitsuba's estimate is unbiased but noisy: at 1024 spp its relative RMSE against torchvol's float64
 reference must sit at its own noise level (measured ~2.8% at 32×32) and its mean within 1%."""
 
-import numpy as np
 import pytest
 
 import torchvol as tv

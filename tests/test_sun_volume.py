@@ -1,6 +1,5 @@
 """The precomputed transmittance-to-sun grid against exact and marched transmittance."""
 
-import numpy as np
 import pytest
 import torch
 

@@ -4,7 +4,6 @@ validation messages name the key path."""
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest

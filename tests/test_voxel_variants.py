@@ -3,8 +3,6 @@ DDA — each against a limit with a known answer."""
 
 from __future__ import annotations
 
-import copy
-import math
 
 import pytest
 import torch

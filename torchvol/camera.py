@@ -328,7 +328,7 @@ class Camera:
         offsets: ``[stop - start, 2]`` sub-pixel offsets (x, y) in (-0.5, 0.5); None gives the
         stratum centres (the pixel centre for spp == 1).
         """
-        B, H, W = self.batch_size, self.height, self.width
+        H, W = self.height, self.width
         dtype, device = self.dtype, self.device
         ids = torch.arange(start, stop, device=device)
         sample, pix = ids % spp, ids // spp

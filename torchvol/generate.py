@@ -22,7 +22,7 @@ import sys
 import tarfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal, Mapping, Sequence
+from typing import Any, Literal, Mapping, Sequence
 
 from .data import CONVENTIONS, encode_sample, render_samples, sample_record
 from .recipe import Recipe

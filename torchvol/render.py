@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Iterator, Sequence
 
 import torch
@@ -14,14 +14,14 @@ from torch import Tensor
 from . import noise, post, sky
 from .camera import Camera, Rays, strata_shape
 from .fields import Field, make_field, per_scene
-from .plan import MarchSettings, Pass, at_level, make_plan, march_settings, uses_closed_form
+from .plan import MarchSettings, at_level, make_plan, march_settings, uses_closed_form
 from .rays import clip_to_ray, intersect_box, intersect_slab, intersect_sphere
 from .scene import Scene, load_scene
 from .validate import fail
 from .volume import light as lighting
 from .volume.integrate import frostbite_step
 from .volume.sun_volume import SunGrid, sun_transmittance_grid
-from .volume.march import LN2, StepRule, expected_depth_fraction, march, march_adaptive
+from .volume.march import LN2, expected_depth_fraction, march, march_adaptive
 from .voxel.surface import VoxelSurface, surface_aovs
 
 DEFAULT_CHUNK_RAYS = 1 << 16

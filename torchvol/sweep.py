@@ -138,7 +138,6 @@ def _cell(value: Any) -> Any:
 
 def contact_sheet(images: Sequence[tuple[dict, torch.Tensor]], path: Path, *, columns: int | None = None) -> None:
     """A grid of the renders, each upscaled to at least 160 px wide and labelled with its values."""
-    import numpy as np
     from PIL import Image, ImageDraw
 
     from .data import to_uint8

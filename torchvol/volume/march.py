@@ -69,6 +69,14 @@ class MarchResult:
     steps: Tensor
     truncated: Tensor
 
+    @classmethod
+    def empty(cls, like: Tensor, channels: int):
+        """Rays that met nothing: no radiance, full transmittance. `like`: [R], for size/dtype/device."""
+        r, long = like.shape[0], dict(dtype=torch.long, device=like.device)
+        return cls(radiance=like.new_zeros(r, channels), transmittance=torch.ones_like(like), weight_sum=torch.zeros_like(like),
+                   weighted_t=torch.zeros_like(like), median_t=torch.zeros_like(like), steps=torch.zeros(r, **long),
+                   truncated=torch.zeros(r, dtype=torch.bool, device=like.device))
+
 
 def march(
     t0: Tensor,
@@ -88,13 +96,7 @@ def march(
 
     `medium` returns (σ_t, source) for ``segments`` and (alpha, colour) for ``shader``, whose
     samples always composite as the seeds' alpha; `integrator` applies to ``segments``."""
-    r = t0.shape[0]
-    zeros = t0.new_zeros(r)
-    out = MarchResult(
-        radiance=t0.new_zeros(r, channels), transmittance=torch.ones_like(t0), weight_sum=zeros.clone(),
-        weighted_t=zeros.clone(), median_t=zeros.clone(), steps=torch.zeros(r, dtype=torch.long, device=t0.device),
-        truncated=torch.zeros(r, dtype=torch.bool, device=t0.device),
-    )
+    out = MarchResult.empty(t0, channels)
     ids = hit.nonzero().squeeze(1)
     if ids.numel() == 0:
         return out
@@ -229,13 +231,8 @@ def march_adaptive(
     `t0`, `t1`, `hit`: [R]; `medium(ids, t, dt) -> (σ_t [n], source [n, C])`."""
     r = t0.shape[0]
     step_fn = {"riemann": riemann_step, "frostbite": frostbite_step}[integrator]
-    zeros = t0.new_zeros(r)
-    out = AdaptiveResult(
-        radiance=t0.new_zeros(r, channels), transmittance=torch.ones_like(t0), weight_sum=zeros.clone(),
-        weighted_t=zeros.clone(), median_t=zeros.clone(), steps=torch.zeros(r, dtype=torch.long, device=t0.device),
-        truncated=torch.zeros(r, dtype=torch.bool, device=t0.device), error=zeros.clone(),
-        evaluations=torch.zeros(r, dtype=torch.long, device=t0.device),
-    )
+    out = AdaptiveResult.empty(t0, channels)
+    out.error, out.evaluations = torch.zeros_like(t0), torch.zeros_like(out.steps)
     ids = hit.nonzero().squeeze(1)
     if ids.numel() == 0:
         return out

@@ -86,7 +86,8 @@ class VoxelSurface:
         """o, d [n, 3] world rays (d unit); s [n] scenes; forward_cos [n]; background [n, 3]."""
         spec, g, n = self.spec, self.grid, o.shape[0]
         dt = o.dtype
-        visit, glow, fog_tau, fog_light = None, None, None, None
+        glow, fog_tau, fog_light = None, None, None
+        visit = None  # a per-cell callback only when glow or fog accumulate
         if spec.glow is not None or spec.fog is not None:
             glow = o.new_zeros(n)
             fog_tau, fog_light = o.new_zeros(n), o.new_zeros(n, 3)
