@@ -432,7 +432,7 @@ def test_grid_ramp_axis_aligned_rays(use_path, tmp_path):
     scenes = [scene([-3.0, y0, z0], [0.0, y0, z0], bounds, sigma=sigma, density=density, march=keys, width=9, height=7)]
     scenes += [scene([x, 2.5, z0], [x, 0.0, z0], bounds, sigma=sigma, density=density, march=keys, width=9, height=7) for x in xs]
     out = tv.render(scenes, dtype=F64)
-    assert out.stats["passes"][1] == "volume0.march"
+    assert "volume0.march" in out.stats["passes"]
     want_x = sigma * (_ramp_antiderivative(GRID_HI[0]) - _ramp_antiderivative(GRID_LO[0]))
     got = out.alpha[:, 0, 3, 4].double()
     assert_close(got[0], torch.tensor(-math.expm1(-want_x), dtype=F64), atol=2e-7, what="x-aligned grid ray alpha")

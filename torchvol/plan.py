@@ -126,6 +126,18 @@ def uses_closed_form(scene: Scene, v: int, settings: MarchSettings) -> bool:
     )
 
 
+def uses_skipping(scene: Scene, v: int, settings: MarchSettings) -> bool:
+    """A grid medium knows where it is empty: the physical march skips that space (same result)."""
+    vol = scene.volumes[v]
+    return (
+        vol.density.kind == "grid"
+        and vol.shading == "physical"
+        and settings.tolerance is None
+        and settings.rule.placement in ("count", "size")
+        and not uses_closed_form(scene, v, settings)
+    )
+
+
 def make_plan(scene: Scene, settings: MarchSettings) -> list[Pass]:
     scene = at_level(scene)
     passes = [Pass("rays", "rays")]
@@ -143,6 +155,8 @@ def make_plan(scene: Scene, settings: MarchSettings) -> list[Pass]:
         if uses_closed_form(scene, v, settings):
             passes.append(Pass(f"volume{v}.closed_form", "closed_form", v))
             continue
+        if uses_skipping(scene, v, settings):
+            passes.append(Pass(f"volume{v}.skip", "skip", v))
         passes.append(Pass(f"volume{v}.march", "march", v))
         if vol.shading == "physical":
             passes += [Pass(f"volume{v}.shadow{l}", "shadow", l) for l, li in enumerate(scene.lights) if li.shadow]
@@ -176,4 +190,4 @@ def replace_march(march: March, **changes) -> March:
     return March.model_validate({**march.model_dump(), **changes})
 
 
-__all__ = ["Level", "MarchSettings", "Pass", "QUALITY", "at_level", "march_settings", "make_plan", "uses_closed_form", "with_quality"]
+__all__ = ["Level", "MarchSettings", "Pass", "QUALITY", "at_level", "march_settings", "make_plan", "uses_closed_form", "uses_skipping", "with_quality"]

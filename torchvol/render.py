@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 from contextlib import contextmanager
+from functools import partial
 from dataclasses import dataclass
 from typing import Iterator, Sequence
 
@@ -13,8 +14,8 @@ from torch import Tensor
 
 from . import noise, post, sky
 from .camera import Camera, Rays, strata_shape
-from .fields import Field, make_field, per_scene
-from .plan import MarchSettings, at_level, make_plan, march_settings, uses_closed_form
+from .fields import Field, Grid, make_field, per_scene
+from .plan import MarchSettings, at_level, make_plan, march_settings, uses_closed_form, uses_skipping
 from .rays import clip_to_ray, intersect_box, intersect_slab, intersect_sphere
 from .scene import Scene, load_scene
 from .validate import fail
@@ -22,6 +23,7 @@ from .volume import light as lighting
 from .volume.integrate import frostbite_step
 from .volume.sun_volume import SunGrid, sun_transmittance_grid
 from .volume.march import LN2, expected_depth_fraction, march, march_adaptive
+from .volume.skip import macro_occupancy, occupied_span
 from .voxel.surface import VoxelSurface, surface_aovs
 
 DEFAULT_CHUNK_RAYS = 1 << 16
@@ -153,6 +155,7 @@ class VolumeSlot:
         times = _t([s.time for s in scenes], dtype, device)
         inner = make_field([x.density for x in vols], [x.bounds for x in vols], times, compiled=compiled)
         self.field = CountedField(inner, counter)
+        self.grid = inner if isinstance(inner, Grid) else None  # a known occupancy: empty space is skipped
         self.sigma_t = _t([x.sigma_t for x in vols], dtype, device)
         self.albedo = _t([x.albedo for x in vols], dtype, device)
         self.emission = _t([x.emission for x in vols], dtype, device)
@@ -266,6 +269,7 @@ class Renderer:
             self.surface = VoxelSurface([s.voxels for s in scenes], self.lights.direction, self.lights.radiance,
                                         dtype=dtype, device=device, compiled=compiled)
         self._sun_grids: dict[tuple[int, int], list[SunGrid]] = {}
+        self._macro: dict[tuple[VolumeSlot, int], tuple[Tensor, Tensor]] = {}  # per render: macro cells and their size
         self.steps_total = 0
         self.truncated = 0
         self.error_estimate = 0.0
@@ -333,9 +337,11 @@ class Renderer:
         octaves = 5
         return octaves - torch.floor(torch.log2(1.0 + t * self.settings.lod_scale)).long()
 
-    def in_scatter(self, slot: VolumeSlot, v: int, p: Tensor, d: Tensor, s: Tensor, sigma_s: Tensor) -> Tensor:
-        """Σ over suns of σs · p(θ) · E · T_light at points `p` [n, 3] seen along `d` [n, 3]. -> [n, 3]."""
+    def in_scatter(self, slot: VolumeSlot, v: int, p: Tensor, d: Tensor, s: Tensor, sigma_t: Tensor) -> Tensor:
+        """Σ over suns of σs · p(θ) · E · T_light at points `p` [n, 3] of extinction `sigma_t` [n],
+        seen along `d` [n, 3]. -> [n, 3]."""
         out = p.new_zeros(p.shape[0], 3)
+        sigma_s = slot.albedo[s] * sigma_t
         for l in range(len(self.lights)):
             sun = self.lights.direction[l][s]
             radiance = self.lights.radiance[l][s] * (sigma_s * slot.phase((d * sun).sum(dim=1), s))[:, None]
@@ -343,7 +349,8 @@ class Renderer:
             if shadow is not None and shadow.method == "grid":
                 with self.timer.section(self.names[("shadow", l)]):
                     grids = self.sun_grids(slot, v, l)
-                    radiance = radiance * per_scene(p, s, len(grids), lambda b, _, q: grids[b].lookup(q))[:, None]
+                    radiance = radiance * per_scene(p, s, len(grids), lambda b, i, q: grids[b].lookup(
+                        q, sigma_t[i], lambda feet: slot.sigma_t[b] * slot.field(feet, s[i])))[:, None]
             elif shadow is not None:
                 with self.timer.section(self.names[("shadow", l)]):
                     exit_t = slot.intersect(p, sun, s)[1].clamp(0.0, slot.distance_cap(self.settings))
@@ -366,7 +373,7 @@ class Renderer:
                 owner = lambda q: torch.full((q.shape[0],), b, dtype=torch.long, device=q.device)  # noqa: E731
                 grids.append(sun_transmittance_grid(
                     lambda q: slot.sigma_t[b] * slot.field(q, owner(q)), lo, hi, self.lights.direction[l][b],
-                    resolution=resolution))
+                    resolution=resolution, occupied=None if slot.grid is None else partial(slot.grid.occupied, b)))
             self._sun_grids[key] = grids
         return self._sun_grids[key]
 
@@ -382,8 +389,7 @@ class Renderer:
             source = p.new_zeros(p.shape[0], 3)
             lit = (density > threshold).nonzero().squeeze(1)
             if lit.numel() and len(self.lights):
-                sigma_s = slot.albedo[s[lit]] * sigma_t[lit]
-                source[lit] = self.in_scatter(slot, v, p[lit], d[ids][lit], s[lit], sigma_s)
+                source[lit] = self.in_scatter(slot, v, p[lit], d[ids][lit], s[lit], sigma_t[lit])
             if slot.emissive:
                 source = source + slot.emission[s] * density[:, None]
             return sigma_t, source
@@ -454,10 +460,14 @@ class Renderer:
                 )
                 self.error_estimate = max(self.error_estimate, float(res.error.max()) if len(res.error) else 0.0)
             else:
+                occupied, marched = None, hit
+                if uses_skipping(self.scenes[0], v, st):
+                    with self.timer.section(self.names[("skip", v)]):
+                        occupied, marched = self.occupied_span(slot, rays, t0, t1, hit)
                 res = march(
-                    t0, t1, hit, medium, rule=st.rule, integrator=st.integrator,
+                    t0, t1, marched, medium, rule=st.rule, integrator=st.integrator,
                     semantics="shader" if shader else "segments", dither=self.dither(rays),
-                    min_transmittance=st.min_transmittance,
+                    min_transmittance=st.min_transmittance, occupied=occupied,
                 )
         self.steps_total += int(res.steps.sum())
         self.truncated += int(res.truncated.sum())
@@ -466,6 +476,22 @@ class Renderer:
             radiance, trans = radiance.clamp(0.0, 1.0), 1.0 - (1.0 - trans).clamp(0.0, 1.0)
         return dict(radiance=radiance, transmittance=trans, weight_sum=res.weight_sum, weighted_t=res.weighted_t,
                     median_t=res.median_t, t0=torch.where(hit, t0, torch.full_like(t0, math.inf)))
+
+    def occupied_span(self, slot: VolumeSlot, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor):
+        """((t_first, t_last), hit) [n]: the span of each ray through the grid's occupied macro
+        cells; rays that cross none leave `hit`."""
+        first, last = t0.clone(), t1.clone()
+        found = torch.zeros_like(hit)
+        for b in range(len(self.scenes)):
+            idx = (hit & (rays.scene_index == b)).nonzero().squeeze(1)
+            if idx.numel():
+                grid = slot.grid
+                if (slot, b) not in self._macro:
+                    self._macro[slot, b] = macro_occupancy(grid.occupancy[b], grid.box_min[b], grid.box_max[b])
+                macro, cell = self._macro[slot, b]
+                first[idx], last[idx], found[idx] = occupied_span(
+                    rays.origins[idx], rays.directions[idx], t0[idx], t1[idx], macro, grid.box_min[b], cell)
+        return (first, last), hit & found
 
     def closed_form(self, slot: VolumeSlot, v: int, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> dict[str, Tensor]:
         """Homogeneous medium, unshadowed suns: one exact frostbite segment over the whole chord,
@@ -483,7 +509,7 @@ class Renderer:
         sigma_t = slot.sigma_t[s] * density
         source = slot.emission[s] * density[:, None]
         if len(self.lights):
-            source = source + self.in_scatter(slot, v, mid, d, s, slot.albedo[s] * sigma_t)
+            source = source + self.in_scatter(slot, v, mid, d, s, sigma_t)
         radiance, trans = frostbite_step(source, sigma_t, length)
         alpha = 1.0 - trans
         t_mean = a + length * expected_depth_fraction(sigma_t * length)

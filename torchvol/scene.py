@@ -171,10 +171,12 @@ class Sky(Strict):
 
 class Shadow(Strict):
     """How a sun's transmittance through the volumes is found: `march` (a shadow march from every lit
-    sample) or `grid` (tabulated once per scene on a sun-aligned grid of `resolution`³ nodes over
-    each volume's bounds, then looked up trilinearly: far cheaper; box and sphere bounds only).
-    Measured on the Mitsuba parity cloud (64³ grid, optical depth 10): mean |ΔT| on lit samples
-    0.24% at resolution 96, 0.14% at 128, 0.07% at 192; building the 128³ grid takes ~0.1 s."""
+    sample) or `grid` (optical depth tabulated once per scene on `resolution`² × (resolution/2 + 1)
+    sun-aligned nodes over each volume's bounds, looked up bicubically across the sun plus the exact
+    gap to the next plane: far cheaper; box and sphere bounds only). Measured on the Mitsuba parity
+    cloud (64³ grid, optical depth 10) at 256², 96 steps, against the exact float64 reference:
+    relative RMSE 0.11% with the grid at resolution 128 (0.06% of it is the primary march's, as with
+    exact shadows) in 0.53 s, where a 32-step shadow march takes several seconds."""
 
     method: Literal["march", "grid"] = "march"
     steps: int | None = Field(None, ge=1, le=4096, description="None: the quality level's")

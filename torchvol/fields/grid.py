@@ -25,6 +25,13 @@ def sample_grid(grid: Tensor, box_min: Tensor, box_max: Tensor, points: Tensor) 
     return torch.where(inside, value.reshape(-1), torch.zeros_like(unit[:, 0]))
 
 
+def grid_occupancy(grid: Tensor) -> Tensor:
+    """Cells (D, H, W) bool where the trilinear density may be non-zero. Inside cell i the
+    interpolation blends the values at cell centres i − 1, i, i + 1: a 3-wide dilation of grid > 0."""
+    positive = (grid > 0).to(torch.float32)[None, None]
+    return F.max_pool3d(positive, kernel_size=3, stride=1, padding=1)[0, 0] > 0
+
+
 class Grid:
     homogeneous = False
 
@@ -32,6 +39,16 @@ class Grid:
         self.grids = [torch.as_tensor(a, dtype=dtype, device=device) for a in arrays]
         self.box_min = torch.tensor([b.min for b in boxes], dtype=dtype, device=device)  # (B, 3)
         self.box_max = torch.tensor([b.max for b in boxes], dtype=dtype, device=device)
+        self.occupancy = [grid_occupancy(g) for g in self.grids]
+
+    def occupied(self, b: int, points: Tensor) -> Tensor:
+        """Whether scene b's density may be non-zero at `points` [N, 3] -> bool [N] (False outside)."""
+        occ = self.occupancy[b]
+        shape = torch.tensor(occ.shape[::-1], device=points.device)  # (W, H, D) = cells along x, y, z
+        unit = (points - self.box_min[b]) / (self.box_max[b] - self.box_min[b])
+        inside = ((unit >= 0) & (unit <= 1)).all(dim=1)
+        cell = torch.minimum((unit.clamp(0.0, 1.0) * shape).long(), shape - 1)
+        return inside & occ[cell[:, 2], cell[:, 1], cell[:, 0]]
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         return per_scene(

@@ -90,12 +90,18 @@ def march(
     semantics: Literal["segments", "shader"] = "segments",
     dither: Tensor | None = None,
     min_transmittance: float = 0.0,
+    occupied: tuple[Tensor, Tensor] | None = None,
 ) -> MarchResult:
     """March R rays through [t0, t1] where `hit`. `t0`, `t1`: [R]; `hit`: [R] bool; `dither`: [R]
     in [0, 1) (segments: fraction of the first step) or an absolute start offset (shader).
 
     `medium` returns (σ_t, source) for ``segments`` and (alpha, colour) for ``shader``, whose
-    samples always composite as the seeds' alpha; `integrator` applies to ``segments``."""
+    samples always composite as the seeds' alpha; `integrator` applies to ``segments``.
+
+    `occupied` = (t_first, t_last) [R] (``segments`` with count or size placement): σ_t is known
+    to be 0 outside that span, so the march starts at the last segment boundary before t_first and
+    stops once past t_last. The boundaries stay where the full march puts them: same samples where
+    the medium is, none where it is not."""
     out = MarchResult.empty(t0, channels)
     ids = hit.nonzero().squeeze(1)
     if ids.numel() == 0:
@@ -110,6 +116,17 @@ def march(
         t = t_start.clone()
         first = torch.ones_like(t, dtype=torch.bool) if dither is not None else torch.zeros_like(t, dtype=torch.bool)
         frac = dither[ids] if dither is not None else None
+    t_stop = t_end
+    if occupied is not None:
+        if semantics != "segments" or rule.placement == "adaptive":
+            raise ValueError("march(occupied=...) needs segments with count or size placement")
+        step = rule.length(t, span)  # uniform: boundaries at t0, b1 = t0 + frac·Δ, b1 + Δ, ...
+        b1 = t_start + (step * frac if dither is not None else step)
+        j = torch.floor((occupied[0][ids] - b1) / step)
+        later = j >= 0  # t_first lies past b1: start at the boundary b1 + jΔ just before it
+        t = torch.where(later, b1 + j.clamp_min(0) * step, t)
+        first = first & ~later
+        t_stop = torch.minimum(occupied[1][ids], t_end)
     trans = torch.ones_like(t)
     radiance = t.new_zeros(t.shape[0], channels)
     wsum, wt, median = torch.zeros_like(t), torch.zeros_like(t), torch.zeros_like(t)
@@ -158,7 +175,7 @@ def march(
         t = t + dt
         if semantics == "segments":
             first = torch.zeros_like(first)
-            inside = t < t_end
+            inside = t < t_stop
         else:
             inside = t <= t_end
         keep = inside & (trans >= min_transmittance) if min_transmittance > 0 else inside
@@ -171,7 +188,8 @@ def march(
         if keep_idx.numel() == 0:
             break
         if keep_idx.numel() < keep.numel():
-            ids, t, t_end, span, trans, radiance = ids[keep_idx], t[keep_idx], t_end[keep_idx], span[keep_idx], trans[keep_idx], radiance[keep_idx]
+            ids, t, t_end, t_stop, span = ids[keep_idx], t[keep_idx], t_end[keep_idx], t_stop[keep_idx], span[keep_idx]
+            trans, radiance = trans[keep_idx], radiance[keep_idx]
             wsum, wt, median, first = wsum[keep_idx], wt[keep_idx], median[keep_idx], first[keep_idx]
             if semantics == "segments" and dither is not None:
                 frac = frac[keep_idx]
