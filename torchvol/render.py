@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import time
 from contextlib import contextmanager
-from functools import partial
 from dataclasses import dataclass
 from typing import Iterator, Sequence
 
@@ -86,6 +85,14 @@ class CountedField:
 
 def _t(values, dtype, device) -> Tensor:
     return torch.tensor(values, dtype=dtype, device=device)
+
+
+def take(param: Tensor, s: Tensor) -> Tensor:
+    """Per-scene `param` (B, ...) at scene indices `s` [n] -> [n, ...]. With one scene, a broadcast
+    view: the gather would copy n rows of the same value (millions of samples per chunk)."""
+    if param.shape[0] == 1:
+        return param[0].expand(s.shape[0], *param.shape[1:])
+    return param[s]
 
 
 def check_same_structure(scenes: Sequence[Scene]) -> None:
@@ -230,7 +237,7 @@ class VolumeSlot:
             return lighting.isotropic(cos)
         if self.phase_kind == "rayleigh":
             return lighting.rayleigh(cos)
-        p = self.phase_params[s]
+        p = take(self.phase_params, s)
         if self.phase_kind == "hg":
             return lighting.henyey_greenstein(cos, p[:, 0])
         if self.phase_kind == "mie":
@@ -341,10 +348,10 @@ class Renderer:
         """Σ over suns of σs · p(θ) · E · T_light at points `p` [n, 3] of extinction `sigma_t` [n],
         seen along `d` [n, 3]. -> [n, 3]."""
         out = p.new_zeros(p.shape[0], 3)
-        sigma_s = slot.albedo[s] * sigma_t
+        sigma_s = take(slot.albedo, s) * sigma_t
         for l in range(len(self.lights)):
-            sun = self.lights.direction[l][s]
-            radiance = self.lights.radiance[l][s] * (sigma_s * slot.phase((d * sun).sum(dim=1), s))[:, None]
+            sun = take(self.lights.direction[l], s)
+            radiance = take(self.lights.radiance[l], s) * (sigma_s * slot.phase((d * sun).sum(dim=1), s))[:, None]
             shadow = self.lights.shadow[l]
             if shadow is not None and shadow.method == "grid":
                 with self.timer.section(self.names[("shadow", l)]):
@@ -373,7 +380,7 @@ class Renderer:
                 owner = lambda q: torch.full((q.shape[0],), b, dtype=torch.long, device=q.device)  # noqa: E731
                 grids.append(sun_transmittance_grid(
                     lambda q: slot.sigma_t[b] * slot.field(q, owner(q)), lo, hi, self.lights.direction[l][b],
-                    resolution=resolution, occupied=None if slot.grid is None else partial(slot.grid.occupied, b)))
+                    resolution=resolution))
             self._sun_grids[key] = grids
         return self._sun_grids[key]
 
@@ -383,15 +390,16 @@ class Renderer:
 
         def medium(ids: Tensor, t: Tensor, dt: Tensor):
             s = s_all[ids]
-            p = o[ids] + t[:, None] * d[ids]
+            d_ids = d[ids]
+            p = o[ids] + t[:, None] * d_ids
             density = slot.field(p, s, self.lod(t))
-            sigma_t = slot.sigma_t[s] * density
+            sigma_t = take(slot.sigma_t, s) * density
             source = p.new_zeros(p.shape[0], 3)
             lit = (density > threshold).nonzero().squeeze(1)
             if lit.numel() and len(self.lights):
-                source[lit] = self.in_scatter(slot, v, p[lit], d[ids][lit], s[lit], sigma_t[lit])
+                source[lit] = self.in_scatter(slot, v, p[lit], d_ids[lit], s[lit], sigma_t[lit])
             if slot.emissive:
-                source = source + slot.emission[s] * density[:, None]
+                source = source + take(slot.emission, s) * density[:, None]
             return sigma_t, source
 
         return medium

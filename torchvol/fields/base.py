@@ -17,12 +17,13 @@ class Field(Protocol):
 
 
 def per_scene(
-    points: Tensor, scene_index: Tensor, batch: int, fn: Callable[[int, Tensor, Tensor], Tensor]
+    points: Tensor, scene_index: Tensor, batch: int, fn: Callable[[int, Tensor | slice, Tensor], Tensor]
 ) -> Tensor:
-    """Evaluate `fn(b, mask_index, points_b) -> [n_b]` on the points of each scene b, for fields
-    whose per-scene state (a seed, a texture, a grid) cannot be gathered per point."""
+    """Evaluate `fn(b, index, points_b) -> [n_b]` on the points of each scene b, for fields whose
+    per-scene state (a seed, a texture, a grid) cannot be gathered per point. `index` selects scene
+    b's points from per-point tensors: an index tensor, or `slice(None)` when there is one scene."""
     if batch == 1:
-        return fn(0, torch.arange(points.shape[0], device=points.device), points)
+        return fn(0, slice(None), points)
     out = points.new_zeros(points.shape[0])
     for b in range(batch):
         idx = (scene_index == b).nonzero().squeeze(1)

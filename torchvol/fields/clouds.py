@@ -36,7 +36,7 @@ class CloudLayer:
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         q = points - self.shift[scene_index]
 
-        def one_scene(b: int, idx: Tensor, q_b: Tensor) -> Tensor:
+        def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
             table = self.tables[b]
             return noise.fbm(
                 q_b, lambda x: self.kernel(x, table) * 2.0 - 1.0,

@@ -32,7 +32,7 @@ class FbmField:
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         q = self.frequency[scene_index, None] * (points - self.shift[scene_index]) + self.offset[scene_index]
 
-        def one_scene(b: int, idx: Tensor, q_b: Tensor) -> Tensor:
+        def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
             spec = self.specs[b]
             basis = self.bases[spec.noise]
             return noise.fbm(q_b, lambda x: basis(x, seed=spec.seed), octaves=spec.octaves, lod=None if lod is None else lod[idx])

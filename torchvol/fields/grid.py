@@ -41,15 +41,6 @@ class Grid:
         self.box_max = torch.tensor([b.max for b in boxes], dtype=dtype, device=device)
         self.occupancy = [grid_occupancy(g) for g in self.grids]
 
-    def occupied(self, b: int, points: Tensor) -> Tensor:
-        """Whether scene b's density may be non-zero at `points` [N, 3] -> bool [N] (False outside)."""
-        occ = self.occupancy[b]
-        shape = torch.tensor(occ.shape[::-1], device=points.device)  # (W, H, D) = cells along x, y, z
-        unit = (points - self.box_min[b]) / (self.box_max[b] - self.box_min[b])
-        inside = ((unit >= 0) & (unit <= 1)).all(dim=1)
-        cell = torch.minimum((unit.clamp(0.0, 1.0) * shape).long(), shape - 1)
-        return inside & occ[cell[:, 2], cell[:, 1], cell[:, 0]]
-
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         return per_scene(
             points, scene_index, len(self.grids),

@@ -12,7 +12,7 @@ with τ_plane interpolated bicubically inside the plane (the planes are laid sid
 atlas so that one `grid_sample` call serves every point). Interpolating across L is what costs
 accuracy: on the Mitsuba parity cloud bicubic planes are ~3× closer to the exact transmittance than
 trilinear interpolation of the same table, and the gap term removes the interpolation along L.
-Cost: one density evaluation per occupied table node, plus one per lookup (σ_t at q).
+Cost: one density evaluation per table node, plus one per lookup (σ_t at q).
 """
 
 from __future__ import annotations
@@ -77,14 +77,12 @@ def sun_transmittance_grid(
     sun_dir: Tensor,
     *,
     resolution: int,
-    occupied: Callable[[Tensor], Tensor] | None = None,
 ) -> SunGrid:
     """Tabulate τ to the sun over the box [box_min, box_max] (each [3]).
 
     `extinction(points [M, 3]) -> σ_t [M]` (0 outside the medium); `resolution` nodes across the
-    sun and resolution // 2 + 1 stored planes along it (integrated on twice as many); `occupied(points
-    [M, 3]) -> bool [M]`, where given, marks where σ_t may be non-zero: extinction is evaluated there
-    only. Nodes on the sun-side face have τ = 0 (nothing lies beyond the box towards the sun)."""
+    sun and resolution // 2 + 1 stored planes along it (integrated on twice as many). Nodes on the
+    sun-side face have τ = 0 (nothing lies beyond the box towards the sun)."""
     frame = sun_frame(sun_dir)
     corners = torch.stack(torch.meshgrid(*[torch.stack([box_min[i], box_max[i]]) for i in range(3)], indexing="ij"), -1)
     local = corners.reshape(-1, 3) @ frame.T  # corners in (u, v, w)
@@ -97,10 +95,8 @@ def sun_transmittance_grid(
     across, along = torch.linspace(0.0, 1.0, n, **kw), torch.linspace(0.0, 1.0, steps + 1, **kw)
     c, b, a = torch.meshgrid(along, across, across, indexing="ij")  # w slowest
     points = origin + (torch.stack([a, b, c], -1).reshape(-1, 3) * size) @ frame
-    sigma = points.new_zeros(points.shape[0])
-    live = slice(None) if occupied is None else occupied(points).nonzero().squeeze(1)
-    sigma[live] = extinction(points[live])
-    sigma = sigma.reshape(steps + 1, n, n)
+    # every node is evaluated: testing occupancy first costs as much as the grid lookup it saves
+    sigma = extinction(points).reshape(steps + 1, n, n)
     # optical depth from sub-plane k to the sun-side face: trapezoid sums of cells k..end, reversed
     cells = 0.5 * (sigma[1:] + sigma[:-1]) * (size[2] / steps)
     tau = torch.flip(torch.cumsum(torch.flip(cells, [0]), 0), [0])
