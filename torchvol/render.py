@@ -641,10 +641,10 @@ def render(
                     value = value.mean(dim=1)
                 else:  # depths: mean over the sub-samples that hit
                     value = value.sum(dim=1) / (value > 0).sum(dim=1).clamp_min(1)
-                if key not in buffers:
-                    buffers[key] = torch.empty(pixels, value.shape[1], dtype=torch.float32, device=value.device)
-                buffers[key][first:last] = value
-    images = {k: v.reshape(b, h, w, -1).permute(0, 3, 1, 2).contiguous() for k, v in buffers.items()}
+                if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
+                    buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
+                buffers[key][:, first:last] = value.T
+    images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
     radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
     aovs = images
     n_rays = pixels * spp
