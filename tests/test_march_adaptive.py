@@ -73,3 +73,28 @@ def test_render_with_tolerance_reports_its_estimate_and_meets_it_on_a_smooth_med
                                           "image.spp": 1}))
     assert (out.alpha - ref.alpha).abs().max() <= 1e-3
     assert ((out.radiance - ref.radiance).abs().max() / 2.0) <= 1e-3
+
+
+@pytest.mark.parametrize("capped", [True, False])
+def test_tolerance_holds_on_an_fbm_cloud_only_with_the_feature_cap(capped, monkeypatch):
+    """Step doubling cannot see an fbm island that falls between its samples: with steps capped at
+    half the finest octave's period (the field's `feature_size`) the tolerance holds; without the
+    cap, at 8 steps per span, islands are stepped over and the error exceeds it."""
+    import torchvol as tv
+    from torchvol.fields.fbm import FbmField
+    from torchvol.presets import preset_dict
+
+    scene = preset_dict("cloud-puff", width=24, height=16)
+    scene["image"]["spp"] = 1
+    if not capped:
+        init = FbmField.__init__
+        monkeypatch.setattr(FbmField, "__init__", lambda self, *a, **k: (init(self, *a, **k), setattr(self, "feature_size", None))[0])
+    tolerance, light = 1e-3, 40.0  # the preset's sun intensity: radiance errors are relative to it
+    out = tv.render(tv.load_scene(scene, {"march.tolerance": tolerance, "march.steps": 8}))
+    ref = tv.render(tv.load_scene(scene, {"march.quality": "reference", "march.steps": 1024, "march.dither": "none",
+                                          "march.min_transmittance": 1e-9}))
+    err = max((out.alpha - ref.alpha).abs().max().item(), ((out.radiance - ref.radiance).abs().max() / light).item())
+    if capped:
+        assert err <= tolerance, f"error {err:.2e} over the tolerance {tolerance:g} (estimate {out.stats['error_estimate']:.2e})"
+    else:
+        assert err > tolerance, f"without the cap the error {err:.2e} should exceed {tolerance:g}: the test lost its teeth"

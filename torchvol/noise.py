@@ -31,6 +31,7 @@ __all__ = [
     "texture_table",
     "compiled",
     "fbm",
+    "finest_period",
     "LLVMPIPE_FILTER_BITS",
 ]
 
@@ -389,6 +390,16 @@ def _mesa_folded_scales(steps: Sequence[float], dtype: torch.dtype, device) -> l
         c = value(const)
         out.append(c if src == 0 else out[src - 1] * c)
     return out
+
+
+def finest_period(octaves: int, lacunarity: float | Sequence[float] = (2.02, 2.03, 2.01, 2.02)) -> float:
+    """The lattice period of `fbm`'s last octave, in units of its input: the scale below which
+    nothing in the sum varies (the noise bases have period 1 on their lattice)."""
+    lac = [lacunarity] if isinstance(lacunarity, (int, float)) else list(lacunarity)
+    scale = 1.0
+    for k in range(octaves - 1):
+        scale *= lac[k % len(lac)]
+    return 1.0 / scale
 
 
 def fbm(

@@ -76,7 +76,7 @@ class CountedField:
 
     def __init__(self, inner: Field, counter: Counter):
         self.inner, self.counter = inner, counter
-        self.homogeneous = inner.homogeneous
+        self.homogeneous, self.feature_size = inner.homogeneous, inner.feature_size
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         self.counter.density_evals += points.shape[0]
@@ -465,6 +465,7 @@ class Renderer:
                     t0, t1, hit, medium, tolerance=st.tolerance, integrator=st.integrator,
                     radiance_scale=self.radiance_scale(rays.scene_index), min_transmittance=st.min_transmittance,
                     max_steps_per_span=st.rule.steps if st.rule.placement == "count" else None,
+                    max_step=None if slot.field.feature_size is None else 0.5 * take(slot.field.feature_size, rays.scene_index),
                 )
                 self.error_estimate = max(self.error_estimate, float(res.error.max()) if len(res.error) else 0.0)
             else:

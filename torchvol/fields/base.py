@@ -10,6 +10,10 @@ from torch import Tensor
 
 class Field(Protocol):
     homogeneous: bool
+    # (B,) world length below which the density has no detail of its own (a grid's cell, an fbm's
+    # finest octave), or None where there is none to resolve: error-controlled marching never
+    # steps over half of it, since its estimate cannot see features that fall between samples
+    feature_size: Tensor | None
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         """`points`: [N, 3]; `scene_index`: [N] long; `lod`: [N] octave counts or None. -> [N]."""

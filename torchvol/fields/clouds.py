@@ -32,6 +32,7 @@ class CloudLayer:
         self.shift = torch.tensor([s.wind for s in specs], **kw) * times[:, None]  # (B, 3)
         self.scale = torch.tensor([s.density_scale for s in specs], **kw)
         self.bias = torch.tensor([s.bias for s in specs], **kw)
+        self.feature_size = torch.tensor([noise.finest_period(s.octaves) for s in specs], **kw)
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         q = points - self.shift[scene_index]

@@ -7,6 +7,7 @@ from torch import Tensor
 
 class Constant:
     homogeneous = True
+    feature_size = None
 
     def __init__(self, value: Tensor):  # (B,)
         self.value = value

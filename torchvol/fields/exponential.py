@@ -13,6 +13,7 @@ from ..volume.integrate import one_minus_exp_over_x
 
 class Exponential:
     homogeneous = False
+    feature_size = None  # smooth: the step-doubling estimate sees its curvature
 
     def __init__(self, specs: Sequence, *, dtype, device):
         self.value = torch.tensor([s.value for s in specs], dtype=dtype, device=device)

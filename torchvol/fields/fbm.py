@@ -28,6 +28,7 @@ class FbmField:
         self.shift = torch.tensor([s.wind for s in specs], **kw) * times[:, None]  # (B, 3)
         self.radial = torch.tensor([s.radial for s in specs], **kw)
         self.center = torch.tensor([s.center for s in specs], **kw)
+        self.feature_size = torch.tensor([noise.finest_period(s.octaves) for s in specs], **kw) / self.frequency
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         q = self.frequency[scene_index, None] * (points - self.shift[scene_index]) + self.offset[scene_index]

@@ -40,6 +40,8 @@ class Grid:
         self.box_min = torch.tensor([b.min for b in boxes], dtype=dtype, device=device)  # (B, 3)
         self.box_max = torch.tensor([b.max for b in boxes], dtype=dtype, device=device)
         self.occupancy = [grid_occupancy(g) for g in self.grids]
+        cells = torch.tensor([a.shape[::-1] for a in arrays], dtype=dtype, device=device)  # (B, 3) cells along x, y, z
+        self.feature_size = ((self.box_max - self.box_min) / cells).amin(dim=1)
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         return per_scene(

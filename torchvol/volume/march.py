@@ -230,6 +230,7 @@ def march_adaptive(
     radiance_scale: Tensor | float = 1.0,
     first_step: float | None = None,
     max_steps_per_span: int | None = None,
+    max_step: Tensor | None = None,
     min_step: float = 1e-6,
     max_iterations: int = 4096,
     min_transmittance: float = 0.0,
@@ -244,7 +245,9 @@ def march_adaptive(
 
     `max_steps_per_span`: steps are never longer than (t1 − t0)/max_steps_per_span — the estimate
     only sees the medium at its samples, so a cap keeps thin features between them from being
-    stepped over; the march then refines below that where the error asks for it.
+    stepped over; the march then refines below that where the error asks for it. `max_step` [R]
+    caps them in length as well (half the medium's `feature_size`: detail finer than a step is
+    invisible to the estimate, and an fbm island between two samples would be missed whole).
 
     `t0`, `t1`, `hit`: [R]; `medium(ids, t, dt) -> (σ_t [n], source [n, C])`."""
     r = t0.shape[0]
@@ -258,6 +261,8 @@ def march_adaptive(
     t, t_end = t0[ids].clone(), t1[ids]
     span = (t_end - t).clamp_min(1e-30)
     max_dt = span / max_steps_per_span if max_steps_per_span is not None else span
+    if max_step is not None:
+        max_dt = torch.minimum(max_dt, max_step[ids])
     dt = span / 8 if first_step is None else torch.full_like(t, first_step)
     trans = torch.ones_like(t)
     radiance = t.new_zeros(t.shape[0], channels)
