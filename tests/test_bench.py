@@ -33,6 +33,14 @@ def test_bench_accuracy_writes_table_and_plot(tmp_path, capsys, one_thread):
     assert all(float(r[3]) > 0 for r in rows)
     assert rows[-1][4:] == ["0.00e+00", "∞"]  # the reference against itself
     assert Image.open(out / "accuracy.png").format == "PNG"
+    # a second run into the same folder reuses the stored reference instead of rendering it again
+    (stored,) = (out / "references").glob("reference-*.pt")
+    before = stored.stat().st_mtime_ns
+    assert main(["bench", "accuracy", "--out", str(out), "--width", "16", "--height", "12", "--repeat", "1",
+                 "--scenes", "voxel-terrain", "--knobs", "spp"]) == 0
+    assert stored.stat().st_mtime_ns == before
+    again = [[c.strip() for c in line.strip("|").split("|")] for line in (out / "accuracy.md").read_text().splitlines()[2:]]
+    assert again[-1] == rows[-1]  # the same reference row, time included
 
 
 def test_bench_bad_input(tmp_path, capsys):

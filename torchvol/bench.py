@@ -5,11 +5,15 @@ shadow steps, LOD, spp, torch.compile). Each quality level is one row: the scene
 level decides removed (`sweep.at_quality`). Error is against the `reference` level render of the same
 scene (relative RMSE and PSNR, `sweep.image_error`); time is the median wall time of `repeat` renders
 (a compiled render's first call, which compiles, is not counted; the reference is timed once). Writes DIR/accuracy.md (a
-Markdown table) and DIR/accuracy.png (error against time, one panel per scene).
+Markdown table) and DIR/accuracy.png (error against time, one panel per scene). References are kept
+in DIR/references/, keyed by a hash of the reference scene and seed: a re-run into the same DIR
+(another knob, more repeats) reuses them instead of re-rendering the slowest part of the report.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import statistics
 import time
@@ -85,14 +89,34 @@ def measure(data: dict, reference: torch.Tensor, setting: Setting, *, repeat: in
     return {"time_s": statistics.median(times), **image_error(out.image, reference)}
 
 
-def scene_rows(name: str, *, width: int, height: int, repeat: int, knob_names: Sequence[str], seed: int = 0) -> list[dict]:
+def reference_image(data: dict, *, seed: int, cache: Path | None) -> tuple[torch.Tensor, float]:
+    """The `reference` render's image of scene dict `data` and its render time, from `cache` (a
+    folder) when it holds one for exactly this scene and seed, else rendered (and stored there)."""
+    key = hashlib.sha256(json.dumps([data, seed], sort_keys=True, default=repr).encode()).hexdigest()[:16]
+    path = None if cache is None else cache / f"reference-{key}.pt"
+    if path is not None and path.is_file():
+        stored = torch.load(path)
+        return stored["image"], stored["time_s"]
+    start = time.perf_counter()
+    image = render(load_scene(data), seed=seed).image
+    seconds = time.perf_counter() - start
+    if path is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(".partial")
+        torch.save({"image": image, "time_s": seconds}, partial)
+        partial.replace(path)  # a killed run leaves no half-written reference behind
+    return image, seconds
+
+
+def scene_rows(name: str, *, width: int, height: int, repeat: int, knob_names: Sequence[str], seed: int = 0,
+               cache: Path | None = None) -> list[dict]:
     """Rows (scene, knob, setting, time_s, rmse, rel_rmse, psnr) of one report scene: every
     applicable knob in `knob_names`, then one row per quality level. The `reference` row is the
-    reference render itself, timed once (the slowest render of the report; its error is 0)."""
+    reference render itself, timed once (the slowest render of the report; its error is 0), kept in
+    `cache` when given."""
     preset = SCENES[name]
-    start = time.perf_counter()
-    reference = render(load_scene(scene_data(preset, width=width, height=height, quality="reference")), seed=seed).image
-    reference_row = {"scene": name, "knob": "level", "setting": "reference", "time_s": time.perf_counter() - start,
+    reference, seconds = reference_image(scene_data(preset, width=width, height=height, quality="reference"), seed=seed, cache=cache)
+    reference_row = {"scene": name, "knob": "level", "setting": "reference", "time_s": seconds,
                      **image_error(reference, reference)}
     rows = []
     bundled = scene_data(preset, width=width, height=height)
@@ -160,9 +184,10 @@ def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int 
     for key, value in (("--width", width), ("--height", height), ("--repeat", repeat)):
         if value < 1:
             fail(key, value, "expected an integer >= 1")
-    rows = [row for name in names for row in scene_rows(name, width=width, height=height, repeat=repeat,
-                                                          knob_names=KNOBS if knob_names is None else knob_names, seed=seed)]
     out = Path(out)
+    rows = [row for name in names for row in scene_rows(name, width=width, height=height, repeat=repeat, seed=seed,
+                                                          knob_names=KNOBS if knob_names is None else knob_names,
+                                                          cache=out / "references")]
     out.mkdir(parents=True, exist_ok=True)
     (out / "accuracy.md").write_text(table(rows))
     plot(rows, out / "accuracy.png")
