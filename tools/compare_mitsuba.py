@@ -58,11 +58,7 @@ def parity(grid: np.ndarray, sigma: float, size: int, spps: list[int], variant: 
 
 def levels(grid: np.ndarray, sigma: float, size: int, stride: int) -> None:
     """Each quality level, one ray through each pixel centre, against the exact reference."""
-    exact, mask, seconds = exact_rays(grid, sigma, size, stride=stride)
-    print(f"\n## Quality levels, {size}×{size}, rays through pixel centres; error = relative RMSE against the exact "
-          f"reference on {int(mask.sum())} pixels ({seconds:.1f} s)\n")
-    print("| level | time (s) | relative RMSE | mean / reference mean |")
-    print("| --- | ---: | ---: | ---: |")
+    exact, mask = exact_table(grid, sigma, size, stride, "Quality levels", ["level", "time (s)", "relative RMSE", "mean / reference mean"])
     for quality in ("draft", "default", "high", "reference"):
         start = time.perf_counter()
         out = tv.render(torchvol_scene(grid, sigma, size=size, spp=1, shadow_steps=None, quality=quality))
@@ -85,12 +81,20 @@ def exact_rays(grid: np.ndarray, sigma: float, size: int, *, spp: int = 1, strid
     return radiance, mask, time.perf_counter() - start
 
 
-def time_to_accuracy(grid: np.ndarray, sigma: float, size: int, stride: int) -> None:
+def exact_table(grid: np.ndarray, sigma: float, size: int, stride: int, title: str, columns: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exact radiance at pixel centres on every `stride`-th pixel and its mask; prints the table's
+    heading and header row (the first column left-aligned, the others right-aligned)."""
     exact, mask, seconds = exact_rays(grid, sigma, size, stride=stride)
-    print(f"\n## Time to accuracy, {size}×{size}, rays through pixel centres; error = relative RMSE against the "
-          f"exact reference on {int(mask.sum())} pixels ({seconds:.1f} s)\n")
-    print("| shadows | steps | time (s), median of 3 | relative RMSE | density evals | march steps |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: |")
+    print(f"\n## {title}, {size}×{size}, rays through pixel centres; error = relative RMSE against the exact "
+          f"reference on {int(mask.sum())} pixels ({seconds:.1f} s)\n")
+    print("| " + " | ".join(columns) + " |")
+    print("| --- |" + " ---: |" * (len(columns) - 1))
+    return exact, mask
+
+
+def time_to_accuracy(grid: np.ndarray, sigma: float, size: int, stride: int) -> None:
+    exact, mask = exact_table(grid, sigma, size, stride, "Time to accuracy",
+                              ["shadows", "steps", "time (s), median of 3", "relative RMSE", "density evals", "march steps"])
     settings = [("march", n, n // 2) for n in (32, 64, 128)] + [("grid", n, None) for n in (48, 64, 96, 128, 192)]
     for method, steps, shadow_steps in settings:
         scene = torchvol_scene(grid, sigma, size=size, spp=1, steps=steps, shadow_steps=shadow_steps or 16)
