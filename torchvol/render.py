@@ -356,8 +356,7 @@ class Renderer:
             if shadow is not None and shadow.method == "grid":
                 with self.timer.section(self.names[("shadow", l)]):
                     grids = self.sun_grids(slot, v, l)
-                    radiance = radiance * per_scene(p, s, len(grids), lambda b, i, q: grids[b].lookup(
-                        q, sigma_t[i], lambda feet: slot.sigma_t[b] * slot.field(feet, s[i])))[:, None]
+                    radiance = radiance * per_scene(p, s, len(grids), lambda b, i, q: grids[b].lookup(q, sigma_t[i]))[:, None]
             elif shadow is not None:
                 with self.timer.section(self.names[("shadow", l)]):
                     exit_t = slot.intersect(p, sun, s)[1].clamp(0.0, slot.distance_cap(self.settings))
