@@ -76,3 +76,23 @@ def test_shadow_grid_refuses_slab_bounds():
     scene = {"lights": [{"shadow": {"method": "grid"}}], "volumes": [{"bounds": {"slab": {"y_min": 0, "y_max": 1}}}]}
     with pytest.raises(ValueError, match=r"lights\[0\]\.shadow\.method"):
         tv.load_scene(scene)
+
+
+def test_shadow_grid_sees_only_the_medium_inside_sphere_bounds():
+    """An fbm field is non-zero outside its sphere bounds (in the box's corners): the grid must not
+    count that density, as the shadow march (which stops at the sphere) does not."""
+    import torchvol as tv
+    from torchvol.testing.mitsuba import relative_rmse
+
+    scene = {"image": {"width": 20, "height": 16, "spp": 1}, "camera": {"eye": [0.0, 0.2, -3.0], "fov_y": 40},
+             "lights": [{"direction": [0.6, 0.7, -0.4], "intensity": 5.0, "shadow": {"steps": 64}}],
+             "volumes": [{"bounds": {"sphere": {"center": [0, 0, 0], "radius": 1.0}}, "sigma_t": 4.0,
+                          "density": {"fbm": {"octaves": 2, "frequency": 1.5, "bias": 0.8}}}],
+             "march": {"steps": 64}}
+    march = tv.render(scene)
+    scene["lights"][0]["shadow"].update(method="grid", resolution=192)
+    grid = tv.render(scene)
+    err = relative_rmse(grid.radiance[0].numpy(), march.radiance[0].numpy())
+    # counting the corners gave 99%; what is left is the sphere's hard surface smeared over a grid
+    # cell (1.9%, 0.69%, 0.30% at resolution 96, 192, 384)
+    assert err < 0.01, f"shadow grid vs shadow march in a sphere: relative RMSE {err:.2%}"

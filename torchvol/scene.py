@@ -176,7 +176,9 @@ class Shadow(Strict):
     gap to the next plane: far cheaper; box and sphere bounds only). Measured on the Mitsuba parity
     cloud (64³ grid, optical depth 10) at 256², 96 steps, against the exact float64 reference:
     relative RMSE 0.11% with the grid at resolution 128 (0.06% of it is the primary march's, as with
-    exact shadows) in 0.53 s, where a 32-step shadow march takes several seconds."""
+    exact shadows) in 0.47 s, where a 32-step shadow march takes several seconds. Hard surfaces of
+    the medium (a dense field cut by sphere bounds) smear over a grid cell: 1.9%, 0.69%, 0.30%
+    relative RMSE against the march at resolution 96, 192, 384 on such a sphere."""
 
     method: Literal["march", "grid"] = "march"
     steps: int | None = Field(None, ge=1, le=4096, description="None: the quality level's")
