@@ -18,7 +18,7 @@ from torchvol.render import camera_for
 from torchvol.testing.mitsuba import IRRADIANCE, SUN, puff_grid, relative_rmse, sigma_for, torchvol_scene
 from torchvol.volume.exact import grid_optical_depth, grid_single_scatter
 from torchvol.volume.light import henyey_greenstein
-from torchvol.volume.skip import macro_occupancy, occupied_span
+from torchvol.volume.skip import macro_grid, occupied_span
 from torchvol.volume.sun_volume import sun_transmittance_grid
 
 F64 = torch.float64
@@ -84,12 +84,12 @@ def test_single_scatter_of_a_constant_grid_matches_the_closed_form():
 def test_occupied_span_holds_every_occupied_point(seed, fill, axis_parallel):
     g = torch.Generator().manual_seed(seed)
     grid = (torch.rand(9, 7, 11, generator=g, dtype=F64) < fill).to(F64)
-    macro, cell = macro_occupancy(grid_occupancy(grid), LO, HI, cells=4)  # 11, 7, 9 cells: pooled by 3, not dividing
+    macro = macro_grid(grid_occupancy(grid), LO, HI, cells=4)  # 11, 7, 9 cells: pooled by 3, not dividing
     o, d = random_rays(64, seed, axis_parallel=axis_parallel)
     t0, t1 = intersect_box(o, d, LO, HI)
     t0, hit = t0.clamp_min(0), t1 > t0.clamp_min(0)
     o, d, t0, t1 = o[hit], d[hit], t0[hit], t1[hit]
-    first, last, found = occupied_span(o, d, t0, t1, macro, LO, cell)
+    first, last, found = occupied_span(o, d, t0, t1, macro, LO)
     t = t0[:, None] + (t1 - t0)[:, None] * torch.linspace(0, 1, 801, dtype=F64)  # [R, 801]
     density = sample_grid(grid, LO, HI, (o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)).reshape(t.shape)
     outside = (density > 0) & ((t < first[:, None] - 1e-9) | (t > last[:, None] + 1e-9) | ~found[:, None])

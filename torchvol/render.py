@@ -22,7 +22,7 @@ from .volume import light as lighting
 from .volume.integrate import frostbite_step
 from .volume.sun_volume import SunGrid, sun_transmittance_grid
 from .volume.march import LN2, expected_depth_fraction, march, march_adaptive
-from .volume.skip import macro_occupancy, occupied_span
+from .volume.skip import MacroGrid, macro_grid, occupied_span
 from .voxel.surface import VoxelSurface, surface_aovs
 
 DEFAULT_CHUNK_RAYS = 1 << 16
@@ -285,7 +285,7 @@ class Renderer:
             self.surface = VoxelSurface([s.voxels for s in scenes], self.lights.direction, self.lights.radiance,
                                         dtype=dtype, device=device, compiled=compiled)
         self._sun_grids: dict[tuple[int, int], list[SunGrid]] = {}
-        self._macro: dict[tuple[VolumeSlot, int], tuple[Tensor, Tensor]] = {}  # per render: macro cells and their size
+        self._macro: dict[tuple[VolumeSlot, int], MacroGrid] = {}  # per render: the skip pass's macro cells
         self.steps_total = 0
         self.truncated = 0
         self.error_estimate = 0.0
@@ -509,10 +509,9 @@ class Renderer:
             if idx.numel():
                 grid = slot.grid
                 if (slot, b) not in self._macro:
-                    self._macro[slot, b] = macro_occupancy(grid.occupancy[b], grid.box_min[b], grid.box_max[b])
-                macro, cell = self._macro[slot, b]
+                    self._macro[slot, b] = macro_grid(grid.occupancy[b], grid.box_min[b], grid.box_max[b])
                 first[idx], last[idx], found[idx] = occupied_span(
-                    rays.origins[idx], rays.directions[idx], t0[idx], t1[idx], macro, grid.box_min[b], cell)
+                    rays.origins[idx], rays.directions[idx], t0[idx], t1[idx], self._macro[slot, b], grid.box_min[b])
         return (first, last), hit & found
 
     def closed_form(self, slot: VolumeSlot, v: int, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> dict[str, Tensor]:
