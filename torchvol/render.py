@@ -353,14 +353,22 @@ class Renderer:
         octaves = 5
         return octaves - torch.floor(torch.log2(1.0 + t * self.settings.lod_scale)).long()
 
-    def in_scatter(self, slot: VolumeSlot, v: int, p: Tensor, d: Tensor, s: Tensor, sigma_t: Tensor) -> Tensor:
-        """Σ over suns of σs · p(θ) · E · T_light at points `p` [n, 3] of extinction `sigma_t` [n],
-        seen along `d` [n, 3]. -> [n, 3]."""
+    def sun_response(self, slot: VolumeSlot, d: Tensor, s: Tensor) -> Tensor:
+        """E · p(θ) of each sun seen along directions `d` [n, 3] of scenes `s` [n] -> [L, n, 3]. Suns
+        are directional: θ is the same all along a ray, so a march computes this once per ray."""
+        return torch.stack([
+            take(self.lights.radiance[l], s) * slot.phase((d * take(self.lights.direction[l], s)).sum(dim=1), s)[:, None]
+            for l in range(len(self.lights))
+        ])
+
+    def in_scatter(self, slot: VolumeSlot, v: int, p: Tensor, s: Tensor, sigma_t: Tensor, response: Tensor) -> Tensor:
+        """Σ over suns of σs · p(θ) · E · T_light at points `p` [n, 3] of extinction `sigma_t` [n];
+        `response` [L, n, 3]: each sun's E · p(θ) there (`sun_response`). -> [n, 3]."""
         out = p.new_zeros(p.shape[0], 3)
         sigma_s = take(slot.albedo, s) * sigma_t
         for l in range(len(self.lights)):
             sun = take(self.lights.direction[l], s)
-            radiance = take(self.lights.radiance[l], s) * (sigma_s * slot.phase((d * sun).sum(dim=1), s))[:, None]
+            radiance = response[l] * sigma_s[:, None]
             shadow = self.lights.shadow[l]
             if shadow is not None and shadow.method == "grid":
                 with self.timer.section(self.names[("shadow", l)]):
@@ -400,17 +408,17 @@ class Renderer:
     def physical_medium(self, slot: VolumeSlot, v: int, rays: Rays):
         o, d, s_all = rays.origins, rays.directions, rays.scene_index
         threshold = self.settings.density_threshold
+        response = self.sun_response(slot, d, s_all) if len(self.lights) else None  # [L, R, 3]
 
         def medium(ids: Tensor, t: Tensor, dt: Tensor):
             s = s_all[ids]
-            d_ids = d[ids]
-            p = o[ids] + t[:, None] * d_ids
+            p = o[ids] + t[:, None] * d[ids]
             density = slot.field(p, s, self.lod(t))
             sigma_t = take(slot.sigma_t, s) * density
             source = p.new_zeros(p.shape[0], 3)
             lit = (density > threshold).nonzero().squeeze(1)
-            if lit.numel() and len(self.lights):
-                source[lit] = self.in_scatter(slot, v, p[lit], d_ids[lit], s[lit], sigma_t[lit])
+            if lit.numel() and response is not None:
+                source[lit] = self.in_scatter(slot, v, p[lit], s[lit], sigma_t[lit], response[:, ids[lit]])
             if slot.emissive:
                 source = source + take(slot.emission, s) * density[:, None]
             return sigma_t, source
@@ -530,7 +538,7 @@ class Renderer:
         sigma_t = slot.sigma_t[s] * density
         source = slot.emission[s] * density[:, None]
         if len(self.lights):
-            source = source + self.in_scatter(slot, v, mid, d, s, sigma_t)
+            source = source + self.in_scatter(slot, v, mid, s, sigma_t, self.sun_response(slot, d, s))
         radiance, trans = frostbite_step(source, sigma_t, length)
         alpha = 1.0 - trans
         t_mean = a + length * expected_depth_fraction(sigma_t * length)
