@@ -120,7 +120,7 @@ def march(
     if occupied is not None:
         if semantics != "segments" or rule.placement == "adaptive":
             raise ValueError("march(occupied=...) needs segments with count or size placement")
-        step = rule.length(t, span)  # uniform: boundaries at t0, b1 = t0 + frac·Δ, b1 + Δ, ...
+        step = rule.length(t, span).clamp_min(torch.finfo(t.dtype).tiny)  # uniform: boundaries t0, b1 = t0 + frac·Δ, b1 + Δ, ...
         b1 = t_start + (step * frac if dither is not None else step)
         j = torch.floor((occupied[0][ids] - b1) / step)
         later = j >= 0  # t_first lies past b1: start at the boundary b1 + jΔ just before it
