@@ -23,17 +23,12 @@ from torch import Tensor
 
 Integrator = Literal["riemann", "frostbite", "alpha"]
 
-# Below this optical depth the series of (1 - e^-x)/x is used: its next term is x^3/24 < 1e-17.
-_SERIES_BELOW = 1e-4
-
-
 def one_minus_exp_over_x(x: Tensor) -> Tensor:
-    """(1 − e^{−x}) / x for x ≥ 0, stable as x → 0 (→ 1) and for huge x (→ 1/x). `x`: any shape."""
-    small = x < _SERIES_BELOW
-    safe = torch.where(small, torch.ones_like(x), x)
-    exact = -torch.expm1(-safe) / safe
-    series = 1.0 - x * (0.5 - x / 6.0)
-    return torch.where(small, series, exact)
+    """(1 − e^{−x}) / x for x ≥ 0, → 1 as x → 0 and → 1/x for huge x. `x`: any shape. expm1 keeps
+    it exact near 0 (relative error ~1e-7 in float32, ~1e-14 in float64 against the series), and x
+    is clamped to the smallest normal number so that 0 gives 1, not 0/0: three ops, no branches."""
+    safe = x.clamp_min(torch.finfo(x.dtype).tiny)
+    return -torch.expm1(-safe) / safe
 
 
 def segment_transmittance(sigma_t: Tensor, dt: Tensor) -> Tensor:

@@ -120,11 +120,11 @@ def march(
     if occupied is not None:
         if semantics != "segments" or rule.placement == "adaptive":
             raise ValueError("march(occupied=...) needs segments with count or size placement")
-        step = rule.length(t, span).clamp_min(torch.finfo(t.dtype).tiny)  # uniform: boundaries t0, b1 = t0 + frac·Δ, b1 + Δ, ...
-        b1 = t_start + (step * frac if dither is not None else step)
-        j = torch.floor((occupied[0][ids] - b1) / step)
+        delta = rule.length(t, span).clamp_min(torch.finfo(t.dtype).tiny)  # uniform: boundaries t0, b1 = t0 + frac·Δ, b1 + Δ, ...
+        b1 = t_start + (delta * frac if dither is not None else delta)
+        j = torch.floor((occupied[0][ids] - b1) / delta)
         later = j >= 0  # t_first lies past b1: start at the boundary b1 + jΔ just before it
-        t = torch.where(later, b1 + j.clamp_min(0) * step, t)
+        t = torch.where(later, b1 + j.clamp_min(0) * delta, t)
         first = first & ~later
         t_stop = torch.minimum(occupied[1][ids], t_end)
     trans = torch.ones_like(t)
@@ -147,7 +147,7 @@ def march(
     for step in range(rule.max_iterations):
         dt = rule.length(t, span)
         if semantics == "segments":
-            if dither is not None:
+            if dither is not None and step == 0:  # only a ray's first segment is dithered (`first` is all False after)
                 dt = torch.where(first, dt * frac, dt)
             dt = torch.minimum(dt, t_end - t)
             t_sample = t + 0.5 * dt
