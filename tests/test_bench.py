@@ -77,7 +77,23 @@ def test_default_level_keeps_former_defaults():
     """Scenes that relied on the schema's former fixed defaults render as before at `default`."""
     scene = at_level(tv.load_scene({**PHYSICAL, "voxels": None}))
     assert (scene.image.spp, scene.lights[0].shadow.steps) == (1, 16)
-    assert QUALITY["default"].voxel_shadow_steps == 32
+    default = QUALITY["default"]
+    assert (default.voxel_shadow_steps, default.voxel_max_steps, default.fog_shadow_steps, default.atmosphere_steps) == (32, 256, 16, (16, 8))
+
+
+def test_levels_fill_voxel_and_sky_step_limits_and_explicit_keys_win():
+    fog = tv.load_scene(tv.preset("voxel-fog", width=8, height=6).model_dump(), {})
+    bare = at_quality(fog.model_dump(), "reference")
+    bare["sky"] = {"kind": "atmosphere"}
+    for quality, level in QUALITY.items():
+        bare["march"]["quality"] = quality
+        filled = at_level(tv.load_scene(bare))
+        assert (filled.voxels.max_steps, filled.voxels.fog.shadow_steps) == (level.voxel_max_steps, level.fog_shadow_steps)
+        assert (filled.sky.atmosphere.steps, filled.sky.atmosphere.light_steps) == level.atmosphere_steps
+        given = at_level(tv.load_scene(bare, {"voxels.max_steps": 77, "voxels.fog.shadow_steps": 5, "sky.atmosphere.steps": 3}))
+        assert (given.voxels.max_steps, given.voxels.fog.shadow_steps, given.sky.atmosphere.steps) == (77, 5, 3)
+        assert given.sky.atmosphere.light_steps == level.atmosphere_steps[1]
+        assert at_level(filled) == filled  # idempotent
 
 
 def test_reference_renders_in_float64():

@@ -45,6 +45,9 @@ class Level:
     shadow_steps: int  # a light's `shadow.steps`
     voxel_shadow_steps: int  # `voxels.shadow.steps` (DDA step limit of a shadow ray)
     spp: int  # `image.spp`: the reference integrates each pixel, so aliasing counts as error
+    voxel_max_steps: int  # `voxels.max_steps`: a primary DDA ray stopped by it is a hole in the image
+    fog_shadow_steps: int  # `voxels.fog.shadow_steps`
+    atmosphere_steps: tuple[int, int]  # `sky.atmosphere.steps`, `.light_steps`
 
 
 # Count placement, frostbite, hashed dither (none at reference) at every level. `default` equals
@@ -52,16 +55,21 @@ class Level:
 # render unchanged. `high` takes the reference's spp: the same seeded sub-samples, so what is left
 # of its error is the march's.
 QUALITY: dict[str, Level] = {
-    "draft": Level(32, 1e-2, torch.float32, shadow_steps=8, voxel_shadow_steps=16, spp=1),
-    "default": Level(128, 1e-4, torch.float32, shadow_steps=16, voxel_shadow_steps=32, spp=1),
-    "high": Level(384, 1e-5, torch.float32, shadow_steps=32, voxel_shadow_steps=128, spp=4),
-    "reference": Level(2048, 1e-12, torch.float64, shadow_steps=64, voxel_shadow_steps=1024, spp=4),
+    "draft": Level(32, 1e-2, torch.float32, shadow_steps=8, voxel_shadow_steps=16, spp=1,
+                   voxel_max_steps=256, fog_shadow_steps=8, atmosphere_steps=(8, 4)),
+    "default": Level(128, 1e-4, torch.float32, shadow_steps=16, voxel_shadow_steps=32, spp=1,
+                     voxel_max_steps=256, fog_shadow_steps=16, atmosphere_steps=(16, 8)),
+    "high": Level(384, 1e-5, torch.float32, shadow_steps=32, voxel_shadow_steps=128, spp=4,
+                  voxel_max_steps=1024, fog_shadow_steps=32, atmosphere_steps=(32, 16)),
+    "reference": Level(2048, 1e-12, torch.float64, shadow_steps=64, voxel_shadow_steps=1024, spp=4,
+                       voxel_max_steps=4096, fog_shadow_steps=64, atmosphere_steps=(64, 32)),
 }
 
 
 def at_level(scene: Scene) -> Scene:
     """The scene with every key its quality level decides filled in (`image.spp`, lights'
-    `shadow.steps`, `voxels.shadow.steps`); idempotent. Everything after this sees plain ints."""
+    `shadow.steps`, `voxels.shadow.steps`, `voxels.max_steps`, `voxels.fog.shadow_steps`,
+    `sky.atmosphere.steps` and `.light_steps`); idempotent. Everything after this sees plain ints."""
     level = QUALITY[scene.march.quality]
     update: dict = {}
     if scene.image.spp is None:
@@ -73,9 +81,22 @@ def at_level(scene: Scene) -> Scene:
             for li in scene.lights
         ]
     vx = scene.voxels
-    if vx is not None and vx.shadow is not None and vx.shadow.steps is None:
-        shadow = vx.shadow.model_copy(update={"steps": level.voxel_shadow_steps})
-        update["voxels"] = vx.model_copy(update={"shadow": shadow})
+    if vx is not None:
+        fill: dict = {}
+        if vx.shadow is not None and vx.shadow.steps is None:
+            fill["shadow"] = vx.shadow.model_copy(update={"steps": level.voxel_shadow_steps})
+        if vx.max_steps is None:
+            fill["max_steps"] = level.voxel_max_steps
+        if vx.fog is not None and vx.fog.shadow_steps is None:
+            fill["fog"] = vx.fog.model_copy(update={"shadow_steps": level.fog_shadow_steps})
+        if fill:
+            update["voxels"] = vx.model_copy(update=fill)
+    atm = None if scene.sky is None else scene.sky.atmosphere
+    if atm is not None and (atm.steps is None or atm.light_steps is None):
+        steps, light_steps = level.atmosphere_steps
+        atm = atm.model_copy(update={"steps": steps if atm.steps is None else atm.steps,
+                                     "light_steps": light_steps if atm.light_steps is None else atm.light_steps})
+        update["sky"] = scene.sky.model_copy(update={"atmosphere": atm})
     return scene.model_copy(update=update) if update else scene
 
 

@@ -147,8 +147,8 @@ class Atmosphere(Strict):
     mie_height: float = Field(1200.0, gt=0.0)
     mie_g: float = Field(0.76, gt=-1.0, lt=1.0)
     sun_intensity: float = Field(20.0, ge=0.0)
-    steps: int = Field(16, ge=1, le=1024)
-    light_steps: int = Field(8, ge=1, le=1024)
+    steps: int | None = Field(None, ge=1, le=1024, description="None: the quality level's")
+    light_steps: int | None = Field(None, ge=1, le=1024, description="None: the quality level's")
     _r = field_validator("rayleigh")(lambda v: _nonneg(v))
 
     @model_validator(mode="after")
@@ -619,7 +619,7 @@ class VoxelFog(Strict):
     base: float = 0.0
     scale_height: float = Field(1e9, gt=0.0)
     color: Vec3 = (1.0, 1.0, 1.0)
-    shadow_steps: int = Field(16, ge=1, le=10_000)
+    shadow_steps: int | None = Field(None, ge=1, le=10_000, description="None: the quality level's")
 
 
 class Voxels(Strict):
@@ -627,7 +627,7 @@ class Voxels(Strict):
     cells: CellRange = Field(default_factory=CellRange)
     origin: Vec3 = (0.0, 0.0, 0.0)  # world position of cell (0, 0, 0)'s min corner
     voxel_size: float = Field(1.0, gt=0.0)
-    max_steps: int = Field(256, ge=1, le=1_000_000)
+    max_steps: int | None = Field(None, ge=1, le=1_000_000, description="None: the quality level's")
     traversal: Literal["dda", "hybrid"] = "dda"
     materials: list[Vec3] = Field(default_factory=lambda: [(1.0, 1.0, 1.0)], min_length=1, max_length=255)
     face_tones: Vec3 = (0.5, 1.0, 0.75)  # x, y, z faces (seed Step 5); [1, 1, 1] turns it off

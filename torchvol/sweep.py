@@ -61,13 +61,20 @@ def reference_overrides(base: Mapping, quality: Quality = "reference") -> dict:
 
 def at_quality(data: Mapping, quality: Quality) -> dict:
     """A scene dict at level `quality` with every key the level decides removed, so the level sets
-    it: the march's approximation keys, `image.spp`, lights' and voxels' `shadow.steps`."""
+    it: the march's approximation keys, `image.spp`, lights' and voxels' `shadow.steps`,
+    `voxels.max_steps`, `voxels.fog.shadow_steps`, `sky.atmosphere.steps` and `.light_steps`."""
     data = copy.deepcopy(dict(data))
     data["march"] = reference_overrides(data, quality)
     (data.get("image") or {}).pop("spp", None)
-    for shadow in [light.get("shadow") for light in data.get("lights") or []] + [(data.get("voxels") or {}).get("shadow")]:
+    voxels = data.get("voxels") or {}
+    for shadow in [light.get("shadow") for light in data.get("lights") or []] + [voxels.get("shadow")]:
         if shadow:
             shadow.pop("steps", None)
+    voxels.pop("max_steps", None)
+    (voxels.get("fog") or {}).pop("shadow_steps", None)
+    atmosphere = (data.get("sky") or {}).get("atmosphere") or {}
+    for key in ("steps", "light_steps"):
+        atmosphere.pop(key, None)
     return data
 
 
