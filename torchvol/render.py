@@ -205,10 +205,10 @@ class VolumeSlot:
     def ambient(self, p: Tensor, s: Tensor) -> Tensor:
         """The shader look's ambient light at points `p` [n, 3] of scenes `s` [n] -> [n, 3]."""
         if not self.height_gradient:
-            return self.look["ambient"][s]
+            return take(self.look["ambient"], s)
         lo, hi = self.y_range[s, 0], self.y_range[s, 1]
         height = ((p[:, 1] - lo) / (hi - lo)).clamp(0.0, 1.0)
-        return torch.lerp(self.look["ambient"][s], self.ambient_top[s], height[:, None])
+        return torch.lerp(take(self.look["ambient"], s), take(self.ambient_top, s), height[:, None])
 
     def aabb(self, b: int) -> tuple[Tensor, Tensor]:
         """Scene b's bounds as a box (min [3], max [3]); boxes and spheres only."""
@@ -236,10 +236,10 @@ class VolumeSlot:
     def intersect(self, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
         """Entry/exit distances of rays `o`, `d` [n, 3] of scenes `s` [n]."""
         if self.bounds_kind == "box":
-            return intersect_box(o, d, self.b0[s], self.b1[s])
+            return intersect_box(o, d, take(self.b0, s), take(self.b1, s))
         if self.bounds_kind == "sphere":
-            return intersect_sphere(o, d, self.b0[s], self.b1[s])
-        return intersect_slab(o, d, self.b0[s], self.b1[s])
+            return intersect_sphere(o, d, take(self.b0, s), take(self.b1, s))
+        return intersect_slab(o, d, take(self.b0, s), take(self.b1, s))
 
     def phase(self, cos: Tensor, s: Tensor) -> Tensor:
         if self.phase_kind == "isotropic":
@@ -297,17 +297,17 @@ class Renderer:
         if self.sky_spec is None:
             return rays.origins.new_zeros(len(rays), 3)
         if self.sky_spec.kind == "constant":
-            base = self.sky["radiance"][s]
+            base = take(self.sky["radiance"], s)
         elif self.sky_spec.kind == "atmosphere":
             atm = self.sky_spec.atmosphere
             base = sky.atmosphere_sky(
-                rays.directions, self.lights.direction[0][s], steps=atm.steps, light_steps=atm.light_steps,
-                **{k: v[s] for k, v in self.atmosphere.items()},
+                rays.directions, take(self.lights.direction[0], s), steps=atm.steps, light_steps=atm.light_steps,
+                **{k: take(v, s) for k, v in self.atmosphere.items()},
             )
         else:
-            base = sky.gradient_sky(rays.directions, self.sky["horizon"][s], self.sky["slope"][s])
+            base = sky.gradient_sky(rays.directions, take(self.sky["horizon"], s), take(self.sky["slope"], s))
         if "halo_color" in self.sky and len(self.lights):
-            base = base + sky.sun_glow(rays.directions, self.lights.direction[0][s], self.sky["halo_color"][s], self.sky["halo_power"][s])
+            base = base + sky.sun_glow(rays.directions, take(self.lights.direction[0], s), take(self.sky["halo_color"], s), take(self.sky["halo_power"], s))
         return base
 
     def dither(self, rays: Rays) -> Tensor | None:
@@ -517,7 +517,7 @@ class Renderer:
             if idx.numel():
                 grid = slot.grid
                 if (slot, b) not in self._macro:
-                    self._macro[slot, b] = macro_grid(grid.occupancy[b], grid.box_min[b], grid.box_max[b])
+                    self._macro[slot, b] = macro_grid(grid.occupancy(b), grid.box_min[b], grid.box_max[b])
                 first[idx], last[idx], found[idx] = occupied_span(
                     rays.origins[idx], rays.directions[idx], t0[idx], t1[idx], self._macro[slot, b], grid.box_min[b])
         return (first, last), hit & found
@@ -535,8 +535,8 @@ class Renderer:
         length = b - a
         mid = rays.origins[ids] + (0.5 * (a + b))[:, None] * d
         density = slot.field(mid, s)
-        sigma_t = slot.sigma_t[s] * density
-        source = slot.emission[s] * density[:, None]
+        sigma_t = take(slot.sigma_t, s) * density
+        source = take(slot.emission, s) * density[:, None]
         if len(self.lights):
             source = source + self.in_scatter(slot, v, mid, s, sigma_t, self.sun_response(slot, d, s))
         radiance, trans = frostbite_step(source, sigma_t, length)
@@ -585,7 +585,7 @@ class Renderer:
         if ("flare", None) in self.names:
             with self.timer.section("post.flare"):
                 s = rays.scene_index
-                radiance = radiance + sky.sun_glow(rays.directions, self.lights.direction[0][s], self.sky["flare_color"][s], self.sky["flare_power"][s])
+                radiance = radiance + sky.sun_glow(rays.directions, take(self.lights.direction[0], s), take(self.sky["flare_color"], s), take(self.sky["flare_power"], s))
         alpha = 1.0 - trans
         distance = torch.where(wsum > 0, wt / wsum.clamp_min(torch.finfo(wsum.dtype).tiny), torch.zeros_like(wsum))
         valid = (alpha >= self.settings.depth_threshold) & (wsum > 0)

@@ -39,9 +39,12 @@ class Grid:
         self.grids = [torch.as_tensor(a, dtype=dtype, device=device) for a in arrays]
         self.box_min = torch.tensor([b.min for b in boxes], dtype=dtype, device=device)  # (B, 3)
         self.box_max = torch.tensor([b.max for b in boxes], dtype=dtype, device=device)
-        self.occupancy = [grid_occupancy(g) for g in self.grids]
         cells = torch.tensor([a.shape[::-1] for a in arrays], dtype=dtype, device=device)  # (B, 3) cells along x, y, z
         self.feature_size = ((self.box_max - self.box_min) / cells).amin(dim=1)
+
+    def occupancy(self, b: int) -> Tensor:
+        """Scene b's `grid_occupancy`: computed on demand, the skip pass keeps what it builds from it."""
+        return grid_occupancy(self.grids[b])
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         return per_scene(
