@@ -49,14 +49,20 @@ def _patch_nodes(a: Tensor, b: Tensor, nodes) -> tuple[Tensor, Tensor]:
     return mid[..., None] + half[..., None] * x, half
 
 
+def patch_optical_depths(grid: Tensor, box_min: Tensor, box_max: Tensor, origins: Tensor, directions: Tensor,
+                         breakpoints: Tensor) -> Tensor:
+    """Exact ∫ density dt over each patch [breakpoints[:, k], breakpoints[:, k + 1]] -> [R, K − 1]."""
+    t, half = _patch_nodes(breakpoints[:, :-1], breakpoints[:, 1:], GL2)  # [R, K − 1, 2]
+    points = origins[:, None, None] + t[..., None] * directions[:, None, None]
+    density = sample_grid(grid, box_min, box_max, points.reshape(-1, 3)).reshape(t.shape)
+    return density.sum(-1) * half
+
+
 def grid_optical_depth(grid: Tensor, box_min: Tensor, box_max: Tensor, origins: Tensor, directions: Tensor,
                        t0: Tensor, t1: Tensor) -> Tensor:
     """Exact ∫ density dt over [t0, t1] of the trilinear `grid` (D, H, W) in the box. -> [R]."""
     bp = lattice_breakpoints(origins, directions, t0, t1, tuple(grid.shape), box_min, box_max)
-    t, half = _patch_nodes(bp[:, :-1], bp[:, 1:], GL2)  # [R, K, 2]
-    points = origins[:, None, None] + t[..., None] * directions[:, None, None]
-    density = sample_grid(grid, box_min, box_max, points.reshape(-1, 3)).reshape(t.shape)
-    return (density.sum(-1) * half).sum(-1)
+    return patch_optical_depths(grid, box_min, box_max, origins, directions, bp).sum(-1)
 
 
 def grid_single_scatter(
@@ -84,15 +90,15 @@ def grid_single_scatter(
             lead = (o.shape[0],) + (1,) * (t.dim() - 1) + (3,)
             return o.view(lead) + t[..., None] * d.view(lead)
 
-        t2, half = _patch_nodes(a, b, GL2)
-        patch_depth = sigma_t * density(along(t2)).sum(-1) * half  # exact, [r, K]
+        patch_depth = sigma_t * patch_optical_depths(grid, box_min, box_max, o, d, bp)  # exact, [r, K]
         before = torch.cumsum(patch_depth, dim=1) - patch_depth
-        t, _ = _patch_nodes(a, b, nodes)  # [r, K, m]
+        t, half = _patch_nodes(a, b, nodes)  # [r, K, m]
         tp, partial_half = _patch_nodes(a[..., None].expand_as(t), t, GL2)  # exact ∫ from the patch start
         partial = sigma_t * density(along(tp)).sum(-1) * partial_half
-        inside = sigma_t * density(along(t))
+        points = along(t)
+        inside = sigma_t * density(points)
         to_sun = torch.zeros_like(inside).reshape(-1)
-        points = along(t).reshape(-1, 3)
+        points = points.reshape(-1, 3)
         for chunk in (inside.reshape(-1) > 0).nonzero().squeeze(1).split(shadow_batch):
             q = points[chunk]
             towards = sun.expand_as(q)
