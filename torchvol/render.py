@@ -6,7 +6,7 @@ import math
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import torch
 from torch import Tensor
@@ -27,6 +27,7 @@ from .voxel.surface import VoxelSurface, surface_aovs
 
 DEFAULT_CHUNK_RAYS = 1 << 16
 SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
+DENSE_LIT = 0.5  # in-scatter every sample (masked) once this fraction is lit: cheaper than gathering the lit ones
 
 
 @dataclass
@@ -93,6 +94,19 @@ def take(param: Tensor, s: Tensor) -> Tensor:
     if param.shape[0] == 1:
         return param[0].expand(s.shape[0], *param.shape[1:])
     return param[s]
+
+
+def gathered(gather: Callable[[Tensor], tuple]) -> Callable[[Tensor], tuple]:
+    """`gather(ids)` memoised on the identity of `ids` [n]: the march hands the medium the same ids
+    tensor until it compacts, so per-ray gathers (origin, direction, ...) are redone only then."""
+    last: list = [None, None]
+
+    def at(ids: Tensor) -> tuple:
+        if last[0] is not ids:
+            last[0], last[1] = ids, gather(ids)
+        return last[1]
+
+    return at
 
 
 def check_same_structure(scenes: Sequence[Scene]) -> None:
@@ -410,15 +424,20 @@ class Renderer:
         threshold = self.settings.density_threshold
         response = self.sun_response(slot, d, s_all) if len(self.lights) else None  # [L, R, 3]
 
+        at = gathered(lambda ids: (s_all[ids], o[ids], d[ids], None if response is None else response[:, ids]))
+
         def medium(ids: Tensor, t: Tensor, dt: Tensor):
-            s = s_all[ids]
-            p = o[ids] + t[:, None] * d[ids]
+            s, o_ids, d_ids, response_ids = at(ids)
+            p = torch.addcmul(o_ids, t[:, None], d_ids)
             density = slot.field(p, s, self.lod(t))
             sigma_t = take(slot.sigma_t, s) * density
             source = p.new_zeros(p.shape[0], 3)
-            lit = (density > threshold).nonzero().squeeze(1)
-            if lit.numel() and response is not None:
-                source[lit] = self.in_scatter(slot, v, p[lit], s[lit], sigma_t[lit], response[:, ids[lit]])
+            lit_mask = density > threshold
+            lit = lit_mask.nonzero().squeeze(1)
+            if lit.numel() >= DENSE_LIT * p.shape[0] and response is not None:  # gathering the lit would cost more
+                source = self.in_scatter(slot, v, p, s, sigma_t, response_ids) * lit_mask[:, None]
+            elif lit.numel() and response is not None:
+                source[lit] = self.in_scatter(slot, v, p[lit], s[lit], sigma_t[lit], response_ids[:, lit])
             if slot.emissive:
                 source = source + take(slot.emission, s) * density[:, None]
             return sigma_t, source
@@ -432,9 +451,11 @@ class Renderer:
         look, threshold = slot.look, self.settings.density_threshold
         derivative = slot.spec.shader.light == "derivative" and len(self.lights) > 0
 
+        at = gathered(lambda ids: (s_all[ids], o[ids], d[ids]))
+
         def medium(ids: Tensor, t: Tensor, dt: Tensor):
-            s = s_all[ids]
-            p = o[ids] + t[:, None] * d[ids]
+            s, o_ids, d_ids = at(ids)
+            p = torch.addcmul(o_ids, t[:, None], d_ids)
             lod = self.lod(t)
             density = slot.field(p, s, lod)
             alpha = torch.zeros_like(density)

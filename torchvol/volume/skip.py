@@ -1,10 +1,19 @@
 """Empty-space skipping: where along each ray a medium with a known occupancy can be non-zero.
 
 A grid medium knows which of its cells may hold density (`fields.grid.grid_occupancy`). Pooled to
-macro cells, a DDA from the ray's entry finds the first occupied macro cell and a DDA from its exit
-(backwards) the last one: the march then samples only between them. Samples outside that span see
-σ = 0 and contribute nothing, so skipping changes the cost, never the result (the march keeps its
-step lattice: see `march(occupied=...)`).
+at most `MACRO_CELLS` macro cells a side, each ray is sampled at a spacing just under the smallest
+macro-cell side: between two consecutive samples the cell index moves by at most one on every axis,
+so the segment between them lies in the 2×2×2 block of macro cells that starts at the
+componentwise minimum of their two cells. `MacroGrid.blocks` says whether that block holds an
+occupied cell; the occupied span runs from the start of the first such segment to the end of the
+last. It is conservative (every point with density lies inside it, tested with hypothesis) and at
+most a segment looser than the exact macro-cell span at each end. The march then samples only
+inside it; samples outside would see σ = 0, so skipping changes the cost, never the result (the
+march keeps its step lattice: see `march(occupied=...)`).
+
+One gather per sample, in chunks of whole rays: on the 64³ Mitsuba parity cloud at 256² this takes
+0.031 s for a span of 0.398 of the chords, where a hybrid DDA over 32³ macro cells (forwards for the
+first cell, backwards for the last) took 0.113 s for 0.406.
 """
 
 from __future__ import annotations
@@ -15,20 +24,18 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..voxel.dda import chebyshev_distance, hybrid_traverse
-
-MACRO_CELLS = 32  # along the longest axis: 0.095 s for 256² rays through the parity cloud; 16 cells
-# take 0.066 s but leave 19% more span to march, 64 take 0.12 s; a coarse-to-fine pair is slower still
+MACRO_CELLS = 64  # along the longest axis: the samples per ray grow with it (0.016 s at 32 for a 17% longer span)
+CHUNK_SAMPLES = 1 << 19  # samples per chunk: whole rays, ~2 MB per float32 temporary
+SPACING = 0.99  # of the smallest macro-cell side: rounding must never move a sample two cells on
 
 
 @dataclass(frozen=True)
 class MacroGrid:
-    """`occupied` (D, H, W) bool macro cells of size `cell` [3] from the box's min corner, and
-    `far` (D, H, W) long: the Chebyshev distance to the nearest occupied one (for DDA jumps)."""
+    """`blocks` (D, H, W) bool: whether any macro cell of the 2×2×2 block from (i, j, k) is
+    occupied; macro cells of size `cell` [3] tile from the box's min corner."""
 
-    occupied: Tensor
+    blocks: Tensor
     cell: Tensor
-    far: Tensor
 
 
 def macro_grid(occupancy: Tensor, box_min: Tensor, box_max: Tensor, *, cells: int = MACRO_CELLS) -> MacroGrid:
@@ -37,34 +44,42 @@ def macro_grid(occupancy: Tensor, box_min: Tensor, box_max: Tensor, *, cells: in
     cells is. Where the factor does not divide a side the last macro cells reach past the box (they
     are as empty there as outside)."""
     factor = max(1, -(-max(occupancy.shape) // cells))
-    pooled = F.max_pool3d(occupancy.to(torch.float32)[None, None], kernel_size=factor, stride=factor, ceil_mode=True)[0, 0] > 0
+    pooled = F.max_pool3d(occupancy.to(torch.float32)[None, None], kernel_size=factor, stride=factor, ceil_mode=True)
+    blocks = F.max_pool3d(F.pad(pooled, (0, 1, 0, 1, 0, 1)), kernel_size=2, stride=1)[0, 0] > 0
     fine = (box_max - box_min) / torch.tensor(occupancy.shape[::-1], dtype=box_min.dtype, device=box_min.device)
-    return MacroGrid(occupied=pooled, cell=fine * factor, far=chebyshev_distance(pooled).long())
+    return MacroGrid(blocks=blocks, cell=fine * factor)
 
 
 def occupied_span(
     origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, level: MacroGrid, box_min: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Per ray [R]: (t_first, t_last, any): the part of [t0, t1] that crosses occupied macro cells
-    of `level`, which tile from the corner `box_min` [3]; `origins`, `directions` [R, 3]. Where
-    `any` is False the ray meets no occupied cell."""
-    depth, height, width = level.occupied.shape
-    material = level.occupied.long().reshape(-1)
-    far = level.far.reshape(-1)  # empty space is crossed in jumps, not cell by cell
-
-    def flat(c: Tensor) -> Tensor:  # one 1D gather is far cheaper than indexing with three tensors
-        return (c[:, 2] * height + c[:, 1]) * width + c[:, 0]
-
-    lookup = lambda c, _: material[flat(c)]  # noqa: E731
-    distance = lambda c, _: far[flat(c)]  # noqa: E731
-    hi = torch.tensor([width, height, depth], device=origins.device)
-    steps = int(hi.sum()) + 3
+    """Per ray [R]: (t_first, t_last, any): a part of [t0, t1] that holds every point of the ray in
+    an occupied macro cell of `level`, which tiles from the corner `box_min` [3]; `origins`,
+    `directions` [R, 3]. Where `any` is False the ray meets no occupied cell."""
+    depth, height, width = level.blocks.shape
+    first, last = t0.clone(), t0.clone()
+    found = torch.zeros_like(t0, dtype=torch.bool)
+    if t0.numel() == 0:
+        return first, last, found
+    spacing = SPACING * float(level.cell.min()) / directions.norm(dim=1)  # [R] in t
+    samples = int(torch.ceil(((t1 - t0) / spacing).max()).clamp_min(1)) + 1
+    k = torch.arange(samples, dtype=t0.dtype, device=t0.device)
     grid_o, grid_d = (origins - box_min) / level.cell, directions / level.cell
-    front = hybrid_traverse(grid_o, grid_d, lookup, distance, 0, hi, max_steps=steps, t_min=t0, t_max=t1)
-    # backwards from the exit: the first occupied cell met is the last one along the ray
-    back_o = grid_o + t1[:, None] * grid_d
-    back = hybrid_traverse(back_o, -grid_d, lookup, distance, 0, hi, max_steps=steps, t_min=torch.zeros_like(t1), t_max=t1 - t0)
-    found = front.hit & back.hit
-    t_first = torch.where(found, front.t, t0)
-    t_last = torch.where(found, t1 - back.t, t0)
-    return t_first.clamp(t0, t1), t_last.clamp(t0, t1), found
+    flat = level.blocks.reshape(-1)
+    top, stride = (width - 1, height - 1, depth - 1), (1.0, float(width), float(width * height))
+    rows = max(1, CHUNK_SAMPLES // samples)
+    for a in range(0, t0.shape[0], rows):
+        r = slice(a, a + rows)
+        t = torch.minimum(torch.addcmul(t0[r, None], k, spacing[r, None]), t1[r, None])  # [n, S]
+        block = None  # [n, S − 1]: flat index of each segment's block, built axis by axis in place
+        for axis in range(3):
+            c = torch.addcmul(grid_o[r, axis, None], t, grid_d[r, axis, None]).floor_().clamp_(0, top[axis])
+            c = torch.minimum(c[:, 1:], c[:, :-1]).mul_(stride[axis])
+            block = c if block is None else block.add_(c)
+        occupied = flat[block.long()]  # [n, S − 1]: segment s = [t_s, t_s+1] may meet density
+        hits = occupied.to(torch.uint8)
+        found[r] = occupied.any(dim=1)
+        first[r] = t.gather(1, hits.argmax(dim=1, keepdim=True))[:, 0]
+        last[r] = t.gather(1, samples - 1 - hits.flip(1).argmax(dim=1, keepdim=True))[:, 0]
+    first, last = torch.where(found, first, t0), torch.where(found, last, t0)
+    return first, last, found
