@@ -30,9 +30,11 @@ def test_homogeneous_box_matches_beer_lambert_to_the_exit(sun):
     direction = torch.nn.functional.normalize(torch.tensor(sun, dtype=F64), dim=0).expand(500, 3)
     exact = torch.exp(-sigma * intersect_box(points, direction, lo, hi)[1])
     err = (grid.lookup(points, ext(points)) - exact).abs()
-    # a hard face (density 0 → σ) smears over one cell of an oblique grid: worst near the faces
+    # a hard face (density 0 → σ) smears over one cell of an oblique grid: worst near the faces.
+    # Simpson's rule along the sun is a little worse on this step than the trapezoid rule (mean
+    # 5.1e-3 against 4.4e-3) and better on smooth media (the parity cloud's image: 0.079% against 0.090%)
     assert err.max() < 4e-2, f"max error {err.max():.2e} at point {points[err.argmax()].tolist()}"
-    assert err.mean() < 5e-3, f"mean error {err.mean():.2e}"
+    assert err.mean() < 6e-3, f"mean error {err.mean():.2e}"
 
 
 def test_grid_cloud_matches_a_fine_shadow_march():

@@ -238,15 +238,6 @@ class VolumeSlot:
             return settings.max_distance
         return SLAB_REACH if self.bounds_kind == "slab" else math.inf
 
-    def contains(self, p: Tensor, s: Tensor) -> Tensor:
-        """Whether points `p` [n, 3] of scenes `s` [n] lie inside the bounds -> bool [n]. A field
-        may be non-zero outside them (an fbm in a sphere's box corners): only this part is medium."""
-        if self.bounds_kind == "box":
-            return ((p >= take(self.b0, s)) & (p <= take(self.b1, s))).all(dim=1)
-        if self.bounds_kind == "sphere":
-            return (p - take(self.b0, s)).norm(dim=1) <= take(self.b1, s)
-        return (p[:, 1] >= take(self.b0, s)) & (p[:, 1] <= take(self.b1, s))
-
     def intersect(self, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
         """Entry/exit distances of rays `o`, `d` [n, 3] of scenes `s` [n]."""
         if self.bounds_kind == "box":
@@ -408,14 +399,14 @@ class Renderer:
             for b in range(len(self.scenes)):
                 lo, hi = slot.aabb(b)
 
-                def extinction(q: Tensor, b: int = b) -> Tensor:  # σ_t inside the bounds, 0 elsewhere (not evaluated there)
-                    owner = torch.full((q.shape[0],), b, dtype=torch.long, device=q.device)
-                    inside = slot.contains(q, owner).nonzero().squeeze(1)
-                    out = q.new_zeros(q.shape[0])
-                    out[inside] = slot.sigma_t[b] * slot.field(q[inside], owner[inside])
-                    return out
+                def owner(q: Tensor, b: int = b) -> Tensor:
+                    return torch.full((q.shape[0],), b, dtype=torch.long, device=q.device)
 
-                grids.append(sun_transmittance_grid(extinction, lo, hi, self.lights.direction[l][b], resolution=resolution))
+                def extinction(q: Tensor, b: int = b) -> Tensor:  # called on nodes inside the bounds only
+                    return slot.sigma_t[b] * slot.field(q, owner(q))
+
+                grids.append(sun_transmittance_grid(extinction, lo, hi, self.lights.direction[l][b], resolution=resolution,
+                                                    chord=lambda o, d: slot.intersect(o, d, owner(o))))
             self._sun_grids[key] = grids
         return self._sun_grids[key]
 

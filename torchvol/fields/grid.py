@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..voxel.dda import dilate
 from .base import per_scene
 
 
@@ -28,8 +29,7 @@ def sample_grid(grid: Tensor, box_min: Tensor, box_max: Tensor, points: Tensor) 
 def grid_occupancy(grid: Tensor) -> Tensor:
     """Cells (D, H, W) bool where the trilinear density may be non-zero. Inside cell i the
     interpolation blends the values at cell centres i − 1, i, i + 1: a 3-wide dilation of grid > 0."""
-    positive = (grid > 0).to(torch.float32)[None, None]
-    return F.max_pool3d(positive, kernel_size=3, stride=1, padding=1)[0, 0] > 0
+    return dilate(grid > 0)
 
 
 class Grid:

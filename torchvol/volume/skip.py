@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..voxel.dda import dilate
+
 MACRO_CELLS = 64  # along the longest axis: the samples per ray grow with it (0.016 s at 32 for a 17% longer span)
 CHUNK_SAMPLES = 1 << 19  # samples per chunk: whole rays, ~2 MB per float32 temporary
 SPACING = 0.99  # of the smallest macro-cell side: rounding must never move a sample two cells on
@@ -44,10 +46,11 @@ def macro_grid(occupancy: Tensor, box_min: Tensor, box_max: Tensor, *, cells: in
     cells is. Where the factor does not divide a side the last macro cells reach past the box (they
     are as empty there as outside)."""
     factor = max(1, -(-max(occupancy.shape) // cells))
-    pooled = F.max_pool3d(occupancy.to(torch.float32)[None, None], kernel_size=factor, stride=factor, ceil_mode=True)
-    blocks = F.max_pool3d(F.pad(pooled, (0, 1, 0, 1, 0, 1)), kernel_size=2, stride=1)[0, 0] > 0
+    pooled = occupancy
+    if factor > 1:
+        pooled = F.max_pool3d(occupancy.to(torch.float32)[None, None], kernel_size=factor, stride=factor, ceil_mode=True)[0, 0] > 0
     fine = (box_max - box_min) / torch.tensor(occupancy.shape[::-1], dtype=box_min.dtype, device=box_min.device)
-    return MacroGrid(blocks=blocks, cell=fine * factor)
+    return MacroGrid(blocks=dilate(pooled, before=0, after=1), cell=fine * factor)
 
 
 def occupied_span(

@@ -2,8 +2,9 @@
 
 A shadow march per sample costs K density evaluations per lit sample. For a directional light the
 optical depth τ(p) = ∫ σ_t(p + s·L) ds can instead be tabulated once: sample the extinction on
-planes across the sun direction L (two sub-planes per stored plane), accumulate τ towards the sun
-with a reverse cumulative sum (trapezoid rule), and keep every second plane. A lookup then needs
+planes across the sun direction L (two sub-planes per stored plane), and accumulate τ towards the
+sun with a reverse cumulative sum of Simpson's rule over each pair of sub-planes. Only the nodes
+inside the medium's bounds are evaluated (`chord`). A lookup then needs
 only what lies between the point and the next stored plane towards the sun:
 
     τ(p) = τ_plane(u, v) + ½·gap·(σ_t(p) + σ_plane(u, v)),
@@ -31,28 +32,30 @@ PAD = 2  # replicated border around each plane in the atlas: bicubic taps reach 
 
 @dataclass(frozen=True)
 class SunGrid:
-    """Optical depth to the sun on `optical_depth` (Nw, Nv, Nu) planes over the frame `origin` +
-    a·u + b·v + c·w with (a, b, c) in [0, size]; `frame` (3, 3) rows u, v, w (w towards the sun);
+    """Optical depth to the sun on `optical_depth` (Nw, Nv, Nu) planes, w towards the sun;
     `atlas` (1, 2, Nv + 2·PAD, Nw·(Nu + 2·PAD)): the planes side by side, for lookups, with τ in
-    channel 0 and σ_t on the plane in channel 1."""
+    channel 0 and σ_t on the plane in channel 1. A world point p maps to q = p @ `to_atlas` +
+    `offset` [3], clamped to [`low`, `high`] (the table's box): q = (atlas x within plane 0,
+    atlas y, w in plane units), each in `grid_sample`'s normalised coordinates but w; plane k sits
+    k·`plane_stride` further along atlas x, and planes are `plane_gap` apart in the world."""
 
     optical_depth: Tensor
-    origin: Tensor
-    frame: Tensor
-    size: Tensor
     atlas: Tensor
+    to_atlas: Tensor
+    offset: Tensor
+    low: Tensor
+    high: Tensor
+    plane_stride: float
+    plane_gap: float
 
     def lookup(self, points: Tensor, sigma_t: Tensor) -> Tensor:
         """T to the sun at `points` [N, 3], whose extinction is `sigma_t` [N]. -> [N]."""
-        nw, nv, nu = self.optical_depth.shape
-        local = ((points - self.origin) @ self.frame.T / self.size).clamp(0.0, 1.0)  # [N, 3]
-        w = local[:, 2] * (nw - 1)
+        q = torch.addmm(self.offset, points, self.to_atlas).clamp_(self.low, self.high)  # one affine map: few ops per point
+        w = q[:, 2]
         plane = torch.ceil(w)
-        gap = (plane - w) * (self.size[2] / (nw - 1))  # world distance to the plane, along L
-        height, width = self.atlas.shape[-2:]
-        x = plane * (nu + 2 * PAD) + PAD + local[:, 0] * (nu - 1)
-        y = PAD + local[:, 1] * (nv - 1)
-        coords = torch.stack([2.0 * x / (width - 1) - 1.0, 2.0 * y / (height - 1) - 1.0], dim=1)
+        gap = (plane - w) * self.plane_gap  # world distance to the next plane towards the sun
+        x = torch.addcmul(q[:, 0], plane, torch.tensor(self.plane_stride, dtype=q.dtype, device=q.device))
+        coords = torch.stack([x, q[:, 1]], dim=1)
         tau, sigma_feet = F.grid_sample(self.atlas, coords.reshape(1, 1, -1, 2), mode="bicubic", padding_mode="border",
                                         align_corners=True).reshape(2, -1)
         # bicubic weights are negative in places: an overshoot below 0 would mean T > 1
@@ -79,12 +82,17 @@ def sun_transmittance_grid(
     sun_dir: Tensor,
     *,
     resolution: int,
+    chord: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None,
 ) -> SunGrid:
     """Tabulate τ to the sun over the box [box_min, box_max] (each [3]).
 
     `extinction(points [M, 3]) -> σ_t [M]` (0 outside the medium); `resolution` nodes across the
     sun and resolution // 2 + 1 stored planes along it (integrated on twice as many). Nodes on the
-    sun-side face have τ = 0 (nothing lies beyond the box towards the sun)."""
+    sun-side face have τ = 0 (nothing lies beyond the box towards the sun).
+
+    `chord(origins [M, 3], directions [M, 3]) -> (t_in, t_out) [M]`, where given, is where lines
+    meet the medium's bounds: only the nodes inside are evaluated, the others are 0. The box around
+    a tilted box or a sphere is mostly outside it (74% of the nodes for the parity scene's sun)."""
     frame = sun_frame(sun_dir)
     corners = torch.stack(torch.meshgrid(*[torch.stack([box_min[i], box_max[i]]) for i in range(3)], indexing="ij"), -1)
     local = corners.reshape(-1, 3) @ frame.T  # corners in (u, v, w)
@@ -94,16 +102,36 @@ def sun_transmittance_grid(
     n, planes = resolution, resolution // 2 + 1
     steps = 2 * (planes - 1)  # integration sub-planes: every second one is stored
     kw = dict(dtype=box_min.dtype, device=box_min.device)
-    across, along = torch.linspace(0.0, 1.0, n, **kw), torch.linspace(0.0, 1.0, steps + 1, **kw)
-    c, b, a = torch.meshgrid(along, across, across, indexing="ij")  # w slowest
-    points = origin + (torch.stack([a, b, c], -1).reshape(-1, 3) * size) @ frame
-    # every node is evaluated: testing occupancy first costs as much as the grid lookup it saves
-    sigma = extinction(points).reshape(steps + 1, n, n)
-    # optical depth from sub-plane k to the sun-side face: trapezoid sums of cells k..end, reversed
-    cells = 0.5 * (sigma[1:] + sigma[:-1]) * (size[2] / steps)
-    tau = torch.flip(torch.cumsum(torch.flip(cells, [0]), 0), [0])
-    tau = torch.cat([tau, torch.zeros_like(sigma[:1])], dim=0)[::2].contiguous()  # (planes, n, n)
+    across = torch.linspace(0.0, 1.0, n, **kw)
+    b, a = torch.meshgrid(across, across, indexing="ij")
+    base = origin + (torch.stack([a * size[0], b * size[1]], -1).reshape(-1, 2)) @ frame[:2]  # [n², 3]: the back plane
+    spacing = size[2] / steps
+    if chord is None:
+        first = torch.zeros(n * n, dtype=torch.long, device=base.device)
+        count = torch.full_like(first, steps + 1)
+    else:  # nodes k·spacing within [t_in, t_out] of the line from each back-plane node towards the sun
+        t_in, t_out = chord(base, frame[2].expand_as(base))
+        first = torch.ceil(t_in / spacing).clamp(0, steps + 1).long()
+        count = (torch.floor(t_out / spacing).clamp(-1, steps).long() + 1 - first).clamp_min(0)
+    column = torch.repeat_interleave(torch.arange(n * n, device=base.device), count)
+    k = torch.arange(column.shape[0], device=base.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count) + first[column]
+    # every node in the chords is evaluated: testing occupancy first costs as much as the grid lookup it saves
+    sigma = base.new_zeros(steps + 1, n * n)
+    sigma[k, column] = extinction(torch.addcmul(base[column], (k * spacing)[:, None], frame[2]))
+    sigma = sigma.reshape(steps + 1, n, n)
+    # optical depth from stored plane k to the sun-side face: Simpson's rule on each pair of
+    # sub-planes (k, k + ½, k + 1), summed from the sun side. On the parity cloud this takes the
+    # image error from 0.090% to 0.079% for the same evaluations as the trapezoid rule.
+    pairs = (sigma[0:-1:2] + 4.0 * sigma[1::2] + sigma[2::2]) * (spacing / 3.0)
+    tau = torch.flip(torch.cumsum(torch.flip(pairs, [0]), 0), [0])
+    tau = torch.cat([tau, torch.zeros_like(sigma[:1])], dim=0)  # (planes, n, n)
     planes_of = torch.stack([tau, sigma[::2]], dim=1)  # (planes, 2, n, n): τ and σ_t on each stored plane
     padded = F.pad(planes_of, (PAD, PAD, PAD, PAD), mode="replicate")  # (planes, 2, n + 2P, n + 2P)
     atlas = padded.permute(1, 2, 0, 3).reshape(1, 2, n + 2 * PAD, planes * (n + 2 * PAD))
-    return SunGrid(optical_depth=tau, origin=origin, frame=frame, size=size, atlas=atlas)
+    # (u, v, w) in [0, 1] of the table's box -> atlas x and y normalised for grid_sample, w in planes
+    height, width = atlas.shape[-2:]
+    scale = torch.tensor([2.0 * (n - 1) / (width - 1), 2.0 * (n - 1) / (height - 1), planes - 1], **kw)
+    low = torch.tensor([2.0 * PAD / (width - 1) - 1.0, 2.0 * PAD / (height - 1) - 1.0, 0.0], **kw)
+    to_atlas = frame.T * (scale / size)
+    return SunGrid(optical_depth=tau, atlas=atlas, to_atlas=to_atlas, offset=low - origin @ to_atlas, low=low, high=low + scale,
+                   plane_stride=2.0 * (n + 2 * PAD) / (width - 1), plane_gap=float(size[2]) / (planes - 1))
