@@ -338,3 +338,30 @@ def test_alpha_integrator_physical_shading_in_range(sigma):
         assert "march.integrator" in str(exc) or "shading" in str(exc)
         return
     check_output(out, what=f"alpha integrator σ={sigma}")
+
+
+@FAST
+@given(bumps=bumps, compact_below=st.sampled_from([0.0, 0.5, 0.75]), semantics=st.sampled_from(["segments", "shader"]),
+       min_t=st.sampled_from([0.0, 1e-2]), limit=st.sampled_from([12, 1000]))
+def test_when_the_march_compacts_does_not_change_its_result(bumps, compact_below, semantics, min_t, limit):
+    """Finished rays kept in the batch (zero-length steps) until it compacts give what compacting
+    after every step gives: radiance, transmittance, weights, median, step counts, truncation."""
+    c, w, h = map(list, zip(*bumps))
+    R = 7
+    t0 = torch.linspace(0.0, 1.0, R, dtype=torch.float64)
+    t1 = t0 + torch.linspace(0.2, 4.0, R, dtype=torch.float64)
+    hit = torch.ones(R, dtype=torch.bool)
+    hit[3] = False
+    rule = StepRule("size", limit, step_size=0.25)
+    dither = torch.linspace(0.1, 0.9, R, dtype=torch.float64)
+    bumpy = bumpy_medium(c, w, h)
+
+    def medium(ids, t, dt):  # the shader semantics wants opacities
+        sigma, source = bumpy(ids, t, dt)
+        return ((sigma * 0.05).clamp(max=1.0), source) if semantics == "shader" else (sigma, source)
+
+    runs = [march(t0, t1, hit, medium, rule=rule, integrator="frostbite", semantics=semantics, dither=dither,
+                  min_transmittance=min_t, compact_below=cb) for cb in (1.0, compact_below)]
+    for name in ("radiance", "transmittance", "weight_sum", "weighted_t", "median_t"):
+        assert_close(getattr(runs[1], name), getattr(runs[0], name), atol=1e-12, what=name)
+    assert torch.equal(runs[1].steps, runs[0].steps) and torch.equal(runs[1].truncated, runs[0].truncated)

@@ -21,13 +21,13 @@ from .validate import fail
 from .volume import light as lighting
 from .volume.integrate import frostbite_step
 from .volume.sun_volume import SunGrid, sun_transmittance_grid
-from .volume.march import LN2, expected_depth_fraction, march, march_adaptive
+from .volume.march import COMPACT_BELOW, LN2, expected_depth_fraction, march, march_adaptive
 from .volume.skip import MacroGrid, macro_grid, occupied_span
 from .voxel.surface import VoxelSurface, surface_aovs
 
 DEFAULT_CHUNK_RAYS = 1 << 16
 SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
-DENSE_LIT = 0.5  # in-scatter every sample (masked) once this fraction is lit: cheaper than gathering the lit ones
+DENSE_LIT = 0.5  # with grid or no shadows, in-scatter every sample (masked) once this fraction is lit: cheaper than gathering the lit ones
 
 
 @dataclass
@@ -416,6 +416,7 @@ class Renderer:
         response = self.sun_response(slot, d, s_all) if len(self.lights) else None  # [L, R, 3]
 
         at = gathered(lambda ids: (s_all[ids], o[ids], d[ids], None if response is None else response[:, ids]))
+        cheap_shadows = all(sh is None or sh.method == "grid" for sh in self.lights.shadow)  # a lookup, not a march, per sample
 
         def medium(ids: Tensor, t: Tensor, dt: Tensor):
             s, o_ids, d_ids, response_ids = at(ids)
@@ -423,9 +424,9 @@ class Renderer:
             density = slot.field(p, s, self.lod(t))
             sigma_t = take(slot.sigma_t, s) * density
             source = p.new_zeros(p.shape[0], 3)
-            lit_mask = density > threshold
+            lit_mask = (density > threshold) & (dt > 0)  # dt = 0: a finished ray the march has not dropped yet
             lit = lit_mask.nonzero().squeeze(1)
-            if lit.numel() >= DENSE_LIT * p.shape[0] and response is not None:  # gathering the lit would cost more
+            if cheap_shadows and lit.numel() >= DENSE_LIT * p.shape[0] and response is not None:  # gathering the lit would cost more
                 source = self.in_scatter(slot, v, p, s, sigma_t, response_ids) * lit_mask[:, None]
             elif lit.numel() and response is not None:
                 source[lit] = self.in_scatter(slot, v, p[lit], s[lit], sigma_t[lit], response_ids[:, lit])
@@ -510,6 +511,8 @@ class Renderer:
                     t0, t1, marched, medium, rule=st.rule, integrator=st.integrator,
                     semantics="shader" if shader else "segments", dither=self.dither(rays),
                     min_transmittance=st.min_transmittance, occupied=occupied,
+                    # a grid sample is one trilinear lookup, cheaper than a compaction; fbm octaves are not
+                    compact_below=COMPACT_BELOW if slot.grid is not None else 1.0,
                 )
         self.steps_total += int(res.steps.sum())
         self.truncated += int(res.truncated.sum())
