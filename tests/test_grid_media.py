@@ -97,6 +97,31 @@ def test_occupied_span_holds_every_occupied_point(seed, fill, axis_parallel):
     assert not outside.any(), f"density {density[outside].max():.3g} outside the span of ray {outside.any(1).nonzero()[0].item()}"
 
 
+@pytest.mark.parametrize("thin_axis", [0, 1, 2])
+def test_occupied_span_in_a_box_thin_along_one_axis(thin_axis):
+    """A box 1e-7 thick: rays along its plane cross many cells of the other axes but the samples
+    per ray stay bounded by the cells crossed (a spacing set by the thin axis alone would ask for
+    ~1e9 per ray), and the span still holds every point with density."""
+    lo, hi = LO.clone(), HI.clone()
+    hi[thin_axis] = lo[thin_axis] + 1e-7
+    grid = (torch.rand(9, 7, 11, generator=torch.Generator().manual_seed(1), dtype=F64) < 0.2).to(F64)
+    macro = macro_grid(grid_occupancy(grid), lo, hi)
+    g = torch.Generator().manual_seed(2)
+    targets = lo + (hi - lo) * torch.rand(64, 3, generator=g, dtype=F64)
+    d = torch.randn(64, 3, generator=g, dtype=F64)
+    d[:, thin_axis] *= torch.linspace(0.0, 1e-3, 64, dtype=F64)  # from exactly along the plane to slightly across
+    d = torch.nn.functional.normalize(d, dim=1)
+    o = targets - 4.0 * d
+    t0, t1 = intersect_box(o, d, lo, hi)
+    t0, hit = t0.clamp_min(0), t1 > t0.clamp_min(0)
+    o, d, t0, t1 = o[hit], d[hit], t0[hit], t1[hit]
+    first, last, found = occupied_span(o, d, t0, t1, macro, lo)
+    t = t0[:, None] + (t1 - t0)[:, None] * torch.linspace(0, 1, 801, dtype=F64)
+    density = sample_grid(grid, lo, hi, (o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)).reshape(t.shape)
+    outside = (density > 0) & ((t < first[:, None] - 1e-9) | (t > last[:, None] + 1e-9) | ~found[:, None])
+    assert hit.sum() > 32 and not outside.any(), f"{int(hit.sum())} rays hit; density outside the span: {int(outside.sum())} points"
+
+
 def parity_rays(size: int):
     scene = tv.load_scene(torchvol_scene(puff_grid(32), 1.0, size=size, spp=1))
     return camera_for([scene], F64, "cpu").rays()

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -234,12 +234,12 @@ def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance
     return out
 
 
-def dilate(occupied: Tensor, before: int = 1, after: int = 1) -> Tensor:
+def dilate(occupied: Tensor, before: int = 1, after: int = 1, axes: Sequence[int] = (0, 1, 2)) -> Tensor:
     """(Z, Y, X) bool -> (Z, Y, X) bool: True where a cell from `before` cells back to `after`
-    cells forward on every axis is occupied (a box dilation). Separable boolean ORs of shifted
+    cells forward on each of `axes` is occupied (a box dilation). Separable boolean ORs of shifted
     slices: on a 64³ grid about 20× cheaper than max_pool3d, which also computes indices on CPU."""
     grown = occupied
-    for axis in range(3):
+    for axis in axes:
         n = grown.shape[axis]
         g = grown.clone()
         for s in range(1, min(before, n - 1) + 1):
