@@ -148,7 +148,7 @@ def march(
     final[_TRANS] = 1.0
     truncated = torch.zeros_like(hit)
     step_fn = {"riemann": riemann_step, "frostbite": frostbite_step, "alpha": alpha_linear_step}[integrator]
-    active = None  # None: every row is active; else [n] bool, rows that finished but are not compacted away yet
+    active = None  # None: every row is active; else [n] 1.0 / 0.0 (a float mask: it scales), rows finished but not compacted away yet
 
     for step in range(rule.max_iterations):
         t, t_end, t_stop, span, trans = state[_T], state[_T_END], state[_T_STOP], state[_SPAN], state[_TRANS]
@@ -166,7 +166,7 @@ def march(
         if semantics == "shader":  # the medium gives opacities directly
             contrib, seg_trans = alpha_step(color, value)
             if active is not None:
-                contrib, seg_trans = contrib * active[:, None], torch.where(active, seg_trans, 1.0)
+                contrib, seg_trans = contrib * active[:, None], 1.0 - active * (1.0 - seg_trans)
         else:
             contrib, seg_trans = step_fn(color, value, dt)
         weight = trans * (1.0 - seg_trans)
@@ -188,7 +188,7 @@ def march(
         inside = t < t_stop if semantics == "segments" else t <= t_end
         keep = inside & (trans >= min_transmittance) if min_transmittance > 0 else inside
         if active is not None:
-            keep = keep & active
+            keep = keep & (active > 0)
         if step == rule.max_iterations - 1:
             truncated[ids] = keep
             break
@@ -201,7 +201,7 @@ def march(
             keep_idx = keep.nonzero().squeeze(1)
             state, ids, active = state[:, keep_idx], ids[keep_idx], None
         else:
-            active = keep
+            active = keep.to(t.dtype)
     final[:, ids] = state
     return MarchResult(radiance=final[_RADIANCE:].T.contiguous(), transmittance=final[_TRANS], weight_sum=final[_WSUM],
                        weighted_t=final[_WT], median_t=final[_MEDIAN], steps=final[_STEPS].long(), truncated=truncated)

@@ -86,8 +86,9 @@ def occupied_span(
         block = None  # [n, S − 1]: flat index of each segment's block, built axis by axis in place
         for axis in range(3):
             c = torch.addcmul(grid_o[r, axis, None], t, grid_d[r, axis, None]).floor_().clamp_(0, top[axis])
-            moved = (c[:, 1:] != c[:, :-1]).to(c.dtype).mul_(float(1 << axis) * cells)  # the block's extent on this axis
-            index = torch.minimum(c[:, 1:], c[:, :-1]).mul_(stride[axis]).add_(moved)
+            step = c[:, 1:] - c[:, :-1]  # −1, 0 or 1: where the segment's end cells differ, the block is two cells wide
+            index = (c[:, :-1] + step.clamp_max(0.0)).mul_(stride[axis])  # the lower of the two cells
+            index.add_(step.abs_(), alpha=float(1 << axis) * cells)
             block = index if block is None else block.add_(index)
         occupied = flat[block.long()]  # [n, S − 1]: segment s = [t_s, t_s+1] may meet density
         hits = occupied.to(torch.uint8)

@@ -54,7 +54,7 @@ class SunGrid:
         w = q[:, 2]
         plane = torch.ceil(w)
         gap = (plane - w) * self.plane_gap  # world distance to the next plane towards the sun
-        x = torch.addcmul(q[:, 0], plane, torch.tensor(self.plane_stride, dtype=q.dtype, device=q.device))
+        x = torch.add(q[:, 0], plane, alpha=self.plane_stride)
         coords = torch.stack([x, q[:, 1]], dim=1)
         tau, sigma_feet = F.grid_sample(self.atlas, coords.reshape(1, 1, -1, 2), mode="bicubic", padding_mode="border",
                                         align_corners=True).reshape(2, -1)
