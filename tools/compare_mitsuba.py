@@ -3,6 +3,7 @@
     pip install mitsuba
     python tools/compare_mitsuba.py [--size 32] [--spp 256,1024,4096] [--variant scalar_rgb]
                                     [--target-size 256] [--stride 4]
+    python tools/compare_mitsuba.py --converge 16 [--pass-spp 65536] [--torchvol-spp 1024] [--size 32]
     # llvm_ad_rgb needs an LLVM newer than Debian 12's 15 (which crashes it):
     apt-get install libllvm19 && export DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so
 
@@ -17,6 +18,9 @@ one sun, no sky, fov 40°). Three tables:
 3. Time to accuracy (`--target-size`², rays through pixel centres): torchvol settings against the
    exact float64 reference (`volume.exact`, integrated between the grid's interpolation planes), on
    every `--stride`-th pixel each way. Times are medians of 3 renders.
+
+`--converge PASSES` instead compares torchvol's levels directly with a converged Mitsuba render
+(pixel averages at `--size`², PASSES × `--pass-spp` spp, torchvol at `--torchvol-spp` strata).
 """
 
 from __future__ import annotations
@@ -54,6 +58,30 @@ def parity(grid: np.ndarray, sigma: float, size: int, spps: list[int], variant: 
     for spp in spps:
         img, seconds = render_mitsuba(grid, sigma, size=size, spp=spp, variant=variant)
         print(f"| Mitsuba 3 ({variant}) | {spp} spp | {seconds:.2f} | {relative_rmse(img, ref):.4%} | {img.mean() / ref.mean():.4f} |", flush=True)
+
+
+def converged(grid: np.ndarray, sigma: float, size: int, passes: int, per_pass: int, variant: str, torchvol_spp: int) -> None:
+    """A converged Mitsuba render: the mean of `passes` renders of `per_pass` spp (seeds 0, 1, ...),
+    with its own noise (half the relative RMSE between the means of the even and the odd passes),
+    and each torchvol level at `torchvol_spp` stratified samples per pixel against it."""
+    images, seconds = [], 0.0
+    for seed in range(passes):
+        image, took = render_mitsuba(grid, sigma, size=size, spp=per_pass, variant=variant, seed=seed)
+        images.append(image)
+        seconds += took
+    mitsuba = np.mean(images, axis=0)
+    noise = relative_rmse(np.mean(images[0::2], axis=0), np.mean(images[1::2], axis=0)) / 2
+    print(f"\n## Against a converged Mitsuba render, {size}×{size} pixel averages: Mitsuba 3 ({variant}) at "
+          f"{passes * per_pass:,} spp ({passes} passes, {seconds:.0f} s; its own noise ≈ {noise:.4%}); torchvol at "
+          f"{torchvol_spp} stratified samples per pixel\n")
+    print("| torchvol level | time (s) | relative RMSE against Mitsuba | mean / Mitsuba mean |")
+    print("| --- | ---: | ---: | ---: |")
+    for quality in ("default", "high", "reference"):
+        start = time.perf_counter()
+        out = tv.render(torchvol_scene(grid, sigma, size=size, spp=torchvol_spp, shadow_steps=None, quality=quality))
+        image = out.radiance[0].permute(1, 2, 0).numpy()
+        print(f"| {quality} | {time.perf_counter() - start:.1f} | {relative_rmse(image, mitsuba):.4%} | "
+              f"{image.mean() / mitsuba.mean():.4f} |", flush=True)
 
 
 def levels(grid: np.ndarray, sigma: float, size: int, stride: int) -> None:
@@ -117,9 +145,16 @@ def main() -> None:
     parser.add_argument("--variant", default="scalar_rgb")
     parser.add_argument("--target-size", type=int, default=256)
     parser.add_argument("--stride", type=int, default=4)
+    parser.add_argument("--converge", type=int, default=0, metavar="PASSES",
+                        help="also compare the levels with a Mitsuba render of PASSES × --pass-spp spp at --size² (then only that)")
+    parser.add_argument("--pass-spp", type=int, default=65536)
+    parser.add_argument("--torchvol-spp", type=int, default=1024)
     args = parser.parse_args()
     grid = puff_grid()
     sigma = sigma_for(grid)
+    if args.converge:
+        converged(grid, sigma, args.size, args.converge, args.pass_spp, args.variant, args.torchvol_spp)
+        return
     if args.spp:
         parity(grid, sigma, args.size, [int(s) for s in args.spp.split(",")], args.variant)
     levels(grid, sigma, args.target_size, args.stride)
