@@ -99,3 +99,18 @@ def test_levels_fill_voxel_and_sky_step_limits_and_explicit_keys_win():
 def test_reference_renders_in_float64():
     out = tv.render(at_quality(tv.preset("voxel-terrain", width=8, height=6).model_dump(), "reference"))
     assert out.stats["dtype"] == "float64" and out.image.dtype == torch.float32
+
+
+def test_bench_tolerance_table_in_the_tolerance_units(tmp_path, one_thread):
+    out = tmp_path / "bench"
+    assert main(["bench", "accuracy", "--out", str(out), "--width", "8", "--height", "6", "--repeat", "1",
+                 "--scenes", "cloud-puff", "--knobs", "tolerance"]) == 0
+    text = (out / "accuracy.md").read_text()
+    section = text.split("## Error-controlled marching")[1].splitlines()
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in section if line.startswith("| physical clouds")]
+    assert [r[1] for r in rows] == ["32 steps", "64 steps", "128 steps", "256 steps", "tolerance 0.01", "tolerance 0.001", "tolerance 0.0001"]
+    fixed, adaptive = rows[:4], rows[4:]
+    assert all(r[5] == "" for r in fixed) and all(float(r[5]) > 0 for r in adaptive)  # only the tolerance march estimates
+    assert float(fixed[-1][3]) < float(fixed[0][3]) and float(fixed[-1][4]) < float(fixed[0][4])  # more steps, less error
+    verdicts = [line for line in section if line.startswith("- physical clouds, tolerance")]
+    assert len(verdicts) == 3 and all(("tolerance holds" in v or "tolerance does NOT hold" in v) and " s, where " in v for v in verdicts)

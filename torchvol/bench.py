@@ -5,7 +5,10 @@ shadow steps, LOD, spp, torch.compile). Each quality level is one row: the scene
 level decides removed (`sweep.at_quality`). Error is against the `reference` level render of the same
 scene (relative RMSE and PSNR, `sweep.image_error`); time is the median wall time of `repeat` renders
 (a compiled render's first call, which compiles, is not counted; the reference is timed once). Writes DIR/accuracy.md (a
-Markdown table) and DIR/accuracy.png (error against time, one panel per scene). References are kept
+Markdown table) and DIR/accuracy.png (error against time, one panel per scene). For physical scenes
+the `tolerance` knob adds a second table to accuracy.md: `march.tolerance` against fixed step counts
+in the tolerance's own units (radiance over the light, alpha), against the reference march of the
+same rays, with whether each tolerance held and what the cheapest as-accurate fixed count took. References are kept
 in DIR/references/, keyed by a hash of the reference scene and seed: a re-run into the same DIR
 (another knob, more repeats) reuses them instead of re-rendering the slowest part of the report.
 """
@@ -23,7 +26,7 @@ from typing import Any, Sequence
 
 import torch
 
-from .plan import QUALITY, Quality
+from .plan import QUALITY, Quality, at_level
 from .presets import preset_dict
 from .render import render
 from .scene import load_scene
@@ -32,6 +35,10 @@ from .validate import did_you_mean, fail
 
 # report name -> bundled preset
 SCENES = {"template clouds": "template-clouds", "physical clouds": "cloud-puff", "voxel terrain": "voxel-terrain"}
+# the tolerance table: error-controlled marching against fixed step counts
+TOLERANCES = (1e-2, 1e-3, 1e-4)
+FIXED_STEPS = (32, 64, 128, 256)
+NO_EARLY_EXIT = {"march.min_transmittance": 1e-12}  # early termination leaves an error floor of its own
 
 
 @dataclass(frozen=True)
@@ -63,10 +70,12 @@ def knobs(preset: str) -> dict[str, list[Setting]]:
         out["lod"] = [Setting("off", {"march.lod": None}), Setting("on", {"march.lod": {"scale": 0.5}})]
     out["spp"] = _values("image.spp", [1, 2, 4])
     out["compile"] = [Setting("off"), Setting("on", compile=True)]
+    if physical:  # its own table, in the tolerance's units: `tolerance_rows`
+        out["tolerance"] = _values("march.tolerance", TOLERANCES)
     return out
 
 
-KNOBS = ("steps", "integrator", "shadow_steps", "lod", "spp", "compile")
+KNOBS = ("steps", "integrator", "shadow_steps", "lod", "spp", "compile", "tolerance")
 
 
 def scene_data(preset: str, *, width: int, height: int, quality: Quality | None = None) -> dict:
@@ -89,23 +98,24 @@ def measure(data: dict, reference: torch.Tensor, setting: Setting, *, repeat: in
     return {"time_s": statistics.median(times), **image_error(out.image, reference)}
 
 
-def reference_image(data: dict, *, seed: int, cache: Path | None) -> tuple[torch.Tensor, float]:
-    """The `reference` render's image of scene dict `data` and its render time, from `cache` (a
-    folder) when it holds one for exactly this scene and seed, else rendered (and stored there)."""
-    key = hashlib.sha256(json.dumps([data, seed], sort_keys=True, default=repr).encode()).hexdigest()[:16]
+def reference_render(data: dict, *, seed: int, cache: Path | None, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The reference render of scene dict `data` (with key `overrides`): {"image", "radiance",
+    "alpha", "time_s"}, from `cache` (a folder) when it holds one for exactly this scene, overrides
+    and seed, else rendered (and stored there)."""
+    overrides = overrides or {}
+    key = hashlib.sha256(json.dumps([data, overrides, seed], sort_keys=True, default=repr).encode()).hexdigest()[:16]
     path = None if cache is None else cache / f"reference-{key}.pt"
     if path is not None and path.is_file():
-        stored = torch.load(path)
-        return stored["image"], stored["time_s"]
+        return torch.load(path)
     start = time.perf_counter()
-    image = render(load_scene(data), seed=seed).image
-    seconds = time.perf_counter() - start
+    out = render(load_scene(data, overrides), seed=seed)
+    stored = {"image": out.image, "radiance": out.radiance, "alpha": out.alpha, "time_s": time.perf_counter() - start}
     if path is not None:
         cache.mkdir(parents=True, exist_ok=True)
         partial = path.with_suffix(".partial")
-        torch.save({"image": image, "time_s": seconds}, partial)
+        torch.save(stored, partial)
         partial.replace(path)  # a killed run leaves no half-written reference behind
-    return image, seconds
+    return stored
 
 
 def scene_rows(name: str, *, width: int, height: int, repeat: int, knob_names: Sequence[str], seed: int = 0,
@@ -115,13 +125,14 @@ def scene_rows(name: str, *, width: int, height: int, repeat: int, knob_names: S
     reference render itself, timed once (the slowest render of the report; its error is 0), kept in
     `cache` when given."""
     preset = SCENES[name]
-    reference, seconds = reference_image(scene_data(preset, width=width, height=height, quality="reference"), seed=seed, cache=cache)
-    reference_row = {"scene": name, "knob": "level", "setting": "reference", "time_s": seconds,
+    stored = reference_render(scene_data(preset, width=width, height=height, quality="reference"), seed=seed, cache=cache)
+    reference = stored["image"]
+    reference_row = {"scene": name, "knob": "level", "setting": "reference", "time_s": stored["time_s"],
                      **image_error(reference, reference)}
     rows = []
     bundled = scene_data(preset, width=width, height=height)
     for knob, settings in knobs(preset).items():
-        if knob in knob_names:
+        if knob in knob_names and knob != "tolerance":
             for setting in settings:
                 rows.append({"scene": name, "knob": knob, "setting": setting.label,
                              **measure(bundled, reference, setting, repeat=repeat, seed=seed)})
@@ -130,6 +141,61 @@ def scene_rows(name: str, *, width: int, height: int, repeat: int, knob_names: S
         rows.append({"scene": name, "knob": "level", "setting": level,
                      **measure(data, reference, Setting(level), repeat=repeat, seed=seed)})
     return rows + [reference_row]
+
+
+def tolerance_rows(name: str, *, width: int, height: int, repeat: int, seed: int = 0, cache: Path | None = None) -> list[dict]:
+    """`march.tolerance` against fixed step counts on a physical report scene, in the tolerance's
+    units: the largest radiance error over the brightest light channel and the largest alpha
+    (1 − transmittance) error, against the `reference` level's march (float64, 2048 steps) of the
+    same rays (the bundled spp). Early termination is off in every render here: at the levels'
+    1e-4 it leaves a floor of ~1e-5 of the light that is not the march's. Rows (scene, march,
+    time_s, radiance_error, alpha_error, estimate)."""
+    preset = SCENES[name]
+    bundled = scene_data(preset, width=width, height=height)
+    scene = at_level(load_scene(bundled))  # the spp its level gives it
+    light = max([c * li.intensity for li in scene.lights for c in li.color] or [1.0])
+    reference = reference_render(scene_data(preset, width=width, height=height, quality="reference"), seed=seed, cache=cache,
+                                 overrides={**NO_EARLY_EXIT, "image.spp": scene.image.spp})
+    settings = [(f"{n} steps", {"march.steps": n}) for n in FIXED_STEPS]
+    settings += [(f"tolerance {tol:g}", {"march.tolerance": tol}) for tol in TOLERANCES]
+    rows = []
+    for label, overrides in settings:
+        case = load_scene(bundled, {**NO_EARLY_EXIT, **overrides})
+        times = []
+        for _ in range(repeat):
+            start = time.perf_counter()
+            out = render(case, seed=seed)
+            times.append(time.perf_counter() - start)
+        rows.append({"scene": name, "march": label, "time_s": statistics.median(times),
+                     "radiance_error": float((out.radiance.double() - reference["radiance"].double()).abs().max()) / light,
+                     "alpha_error": float((out.alpha.double() - reference["alpha"].double()).abs().max()),
+                     "estimate": out.stats.get("error_estimate")})
+    return rows
+
+
+def tolerance_table(rows: Sequence[dict]) -> str:
+    """The tolerance rows as a Markdown table, then per tolerance whether it held and what the
+    cheapest fixed step count with errors as small took."""
+    lines = ["| scene | march | time (s) | max radiance error / light | max alpha error | estimate in `stats` |",
+             "| --- | --- | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        estimate = "" if r["estimate"] is None else f"{r['estimate']:.1e}"
+        lines.append(f"| {r['scene']} | {r['march']} | {r['time_s']:.3f} | {r['radiance_error']:.1e} | {r['alpha_error']:.1e} | {estimate} |")
+    lines.append("")
+    for r in rows:
+        if r["estimate"] is None:
+            continue
+        tol = float(r["march"].split()[-1])
+        held = "holds" if max(r["radiance_error"], r["alpha_error"]) <= tol else "does NOT hold"
+        fixed = [f for f in rows if f["scene"] == r["scene"] and f["estimate"] is None
+                 and f["radiance_error"] <= r["radiance_error"] and f["alpha_error"] <= r["alpha_error"]]
+        if fixed:
+            best = min(fixed, key=lambda f: f["time_s"])
+            versus = f"the cheapest fixed count as accurate, {best['march']}, takes {best['time_s']:.3f} s ({best['time_s'] / r['time_s']:.2f}×)"
+        else:
+            versus = f"no fixed count up to {FIXED_STEPS[-1]} steps is as accurate"
+        lines.append(f"- {r['scene']}, {r['march']}: the tolerance {held}; {r['time_s']:.3f} s, where {versus}.")
+    return "\n".join(lines) + "\n"
 
 
 def table(rows: Sequence[dict]) -> str:
@@ -185,10 +251,16 @@ def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int 
         if value < 1:
             fail(key, value, "expected an integer >= 1")
     out = Path(out)
+    knob_names = KNOBS if knob_names is None else knob_names
     rows = [row for name in names for row in scene_rows(name, width=width, height=height, repeat=repeat, seed=seed,
-                                                          knob_names=KNOBS if knob_names is None else knob_names,
-                                                          cache=out / "references")]
+                                                          knob_names=knob_names, cache=out / "references")]
+    text = table(rows)
+    if "tolerance" in knob_names:
+        tolerance = [row for name in names if "tolerance" in knobs(SCENES[name])
+                     for row in tolerance_rows(name, width=width, height=height, repeat=repeat, seed=seed, cache=out / "references")]
+        if tolerance:
+            text += "\n## Error-controlled marching (`march.tolerance`) against fixed step counts\n\n" + tolerance_table(tolerance)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "accuracy.md").write_text(table(rows))
+    (out / "accuracy.md").write_text(text)
     plot(rows, out / "accuracy.png")
     return rows

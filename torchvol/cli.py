@@ -161,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--height", type=int, default=36)
     a.add_argument("--repeat", type=int, default=3, help="renders per point; time is their median")
     a.add_argument("--scenes", default=None, help="comma-separated presets (default: template-clouds, cloud-puff, voxel-terrain)")
-    a.add_argument("--knobs", default=None, help="comma-separated subset of steps, integrator, shadow_steps, lod, spp, compile")
+    a.add_argument("--knobs", default=None, help="comma-separated subset of steps, integrator, shadow_steps, lod, spp, compile, tolerance")
     a.add_argument("--seed", type=int, default=0)
     a.set_defaults(func=cmd_bench_accuracy)
     return parser
