@@ -4,6 +4,7 @@ import torch
 from PIL import Image
 
 import torchvol as tv
+from torchvol.bench import FIXED_STEPS
 from torchvol.cli import main
 from torchvol.plan import QUALITY, at_level, march_settings
 from torchvol.sweep import at_quality, image_error
@@ -108,8 +109,8 @@ def test_bench_tolerance_table_in_the_tolerance_units(tmp_path, one_thread):
     text = (out / "accuracy.md").read_text()
     section = text.split("## Error-controlled marching")[1].splitlines()
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in section if line.startswith("| physical clouds")]
-    assert [r[1] for r in rows] == ["32 steps", "64 steps", "128 steps", "256 steps", "tolerance 0.01", "tolerance 0.001", "tolerance 0.0001"]
-    fixed, adaptive = rows[:4], rows[4:]
+    assert [r[1] for r in rows] == [f"{n} steps" for n in FIXED_STEPS] + ["tolerance 0.01", "tolerance 0.001", "tolerance 0.0001"]
+    fixed, adaptive = rows[:len(FIXED_STEPS)], rows[len(FIXED_STEPS):]
     assert all(r[5] == "" for r in fixed) and all(float(r[5]) > 0 for r in adaptive)  # only the tolerance march estimates
     assert float(fixed[-1][3]) < float(fixed[0][3]) and float(fixed[-1][4]) < float(fixed[0][4])  # more steps, less error
     verdicts = [line for line in section if line.startswith("- physical clouds, tolerance")]
