@@ -27,7 +27,6 @@ from .voxel.surface import VoxelSurface, surface_aovs
 
 DEFAULT_CHUNK_RAYS = 1 << 16
 SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
-DENSE_LIT = 0.5  # with grid or no shadows, in-scatter every sample (masked) once this fraction is lit: cheaper than gathering the lit ones
 
 
 @dataclass
@@ -416,7 +415,6 @@ class Renderer:
         response = self.sun_response(slot, d, s_all) if len(self.lights) else None  # [L, R, 3]
 
         at = gathered(lambda ids: (s_all[ids], o[ids], d[ids], None if response is None else response[:, ids]))
-        cheap_shadows = all(sh is None or sh.method == "grid" for sh in self.lights.shadow)  # a lookup, not a march, per sample
 
         def medium(ids: Tensor, t: Tensor, dt: Tensor):
             s, o_ids, d_ids, response_ids = at(ids)
@@ -424,11 +422,8 @@ class Renderer:
             density = slot.field(p, s, self.lod(t))
             sigma_t = take(slot.sigma_t, s) * density
             source = p.new_zeros(p.shape[0], 3)
-            lit_mask = (density > threshold) & (dt > 0)  # dt = 0: a finished ray the march has not dropped yet
-            lit = lit_mask.nonzero().squeeze(1)
-            if cheap_shadows and lit.numel() >= DENSE_LIT * p.shape[0] and response is not None:  # gathering the lit would cost more
-                source = self.in_scatter(slot, v, p, s, sigma_t, response_ids) * lit_mask[:, None]
-            elif lit.numel() and response is not None:
+            lit = ((density > threshold) & (dt > 0)).nonzero().squeeze(1)  # dt = 0: a finished ray not dropped yet
+            if lit.numel() and response is not None:
                 source[lit] = self.in_scatter(slot, v, p[lit], s[lit], sigma_t[lit], response_ids[:, lit])
             if slot.emissive:
                 source = source + take(slot.emission, s) * density[:, None]
