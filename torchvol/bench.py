@@ -54,10 +54,15 @@ def _values(key: str, values: Sequence[Any]) -> list[Setting]:
     return [Setting(f"{value}", {key: value}) for value in values]
 
 
+def is_physical(preset: str) -> bool:
+    """Whether a report scene is physically shaded: integrator and `march.tolerance` apply to it."""
+    return preset == "cloud-puff"
+
+
 def knobs(preset: str) -> dict[str, list[Setting]]:
     """The knobs that apply to `preset`, each a list of settings over the scene as bundled."""
     volumes, voxels = preset != "voxel-terrain", preset == "voxel-terrain"
-    physical = preset == "cloud-puff"
+    physical = is_physical(preset)
     out: dict[str, list[Setting]] = {}
     if volumes:
         out["steps"] = _values("march.steps", [16, 32, 64, 128, 256])
@@ -70,11 +75,10 @@ def knobs(preset: str) -> dict[str, list[Setting]]:
         out["lod"] = [Setting("off", {"march.lod": None}), Setting("on", {"march.lod": {"scale": 0.5}})]
     out["spp"] = _values("image.spp", [1, 2, 4])
     out["compile"] = [Setting("off"), Setting("on", compile=True)]
-    if physical:  # its own table, in the tolerance's units: `tolerance_rows`
-        out["tolerance"] = _values("march.tolerance", TOLERANCES)
     return out
 
 
+# the curves of the main table, and `tolerance`: a table of its own, in the tolerance's units (`tolerance_rows`)
 KNOBS = ("steps", "integrator", "shadow_steps", "lod", "spp", "compile", "tolerance")
 
 
@@ -132,7 +136,7 @@ def scene_rows(name: str, *, width: int, height: int, repeat: int, knob_names: S
     rows = []
     bundled = scene_data(preset, width=width, height=height)
     for knob, settings in knobs(preset).items():
-        if knob in knob_names and knob != "tolerance":
+        if knob in knob_names:
             for setting in settings:
                 rows.append({"scene": name, "knob": knob, "setting": setting.label,
                              **measure(bundled, reference, setting, repeat=repeat, seed=seed)})
@@ -149,7 +153,8 @@ def tolerance_rows(name: str, *, width: int, height: int, repeat: int, seed: int
     (1 − transmittance) error, against the same scene and rays (its spp, shadow steps, ...) with
     only the march made exact (float64, the `reference` level's 2048 steps). Early termination is
     off in every render here: at the levels' 1e-4 it leaves a floor of ~1e-5 of the light that is
-    not the march's. Rows (scene, march, time_s, radiance_error, alpha_error, estimate)."""
+    not the march's. Rows (scene, march, tolerance (None for a fixed count), time_s,
+    radiance_error, alpha_error, estimate)."""
     preset = SCENES[name]
     bundled = scene_data(preset, width=width, height=height)
     scene = at_level(load_scene(bundled))  # the spp its level gives it
@@ -157,17 +162,17 @@ def tolerance_rows(name: str, *, width: int, height: int, repeat: int, seed: int
     # the same scene (its shadow steps, spp, ...) with only the march made exact: float64, the reference's steps
     reference = reference_render(bundled, seed=seed, cache=cache, overrides={
         **NO_EARLY_EXIT, "march.quality": "reference", "march.steps": QUALITY["reference"].steps, "image.spp": scene.image.spp})
-    settings = [(f"{n} steps", {"march.steps": n}) for n in FIXED_STEPS]
-    settings += [(f"tolerance {tol:g}", {"march.tolerance": tol}) for tol in TOLERANCES]
+    settings = [(f"{n} steps", {"march.steps": n}, None) for n in FIXED_STEPS]
+    settings += [(f"tolerance {tol:g}", {"march.tolerance": tol}, tol) for tol in TOLERANCES]
     rows = []
-    for label, overrides in settings:
+    for label, overrides, tolerance in settings:
         case = load_scene(bundled, {**NO_EARLY_EXIT, **overrides})
         times = []
         for _ in range(repeat):
             start = time.perf_counter()
             out = render(case, seed=seed)
             times.append(time.perf_counter() - start)
-        rows.append({"scene": name, "march": label, "time_s": statistics.median(times),
+        rows.append({"scene": name, "march": label, "tolerance": tolerance, "time_s": statistics.median(times),
                      "radiance_error": float((out.radiance.double() - reference["radiance"].double()).abs().max()) / light,
                      "alpha_error": float((out.alpha.double() - reference["alpha"].double()).abs().max()),
                      "estimate": out.stats.get("error_estimate")})
@@ -183,12 +188,9 @@ def tolerance_table(rows: Sequence[dict]) -> str:
         estimate = "" if r["estimate"] is None else f"{r['estimate']:.1e}"
         lines.append(f"| {r['scene']} | {r['march']} | {r['time_s']:.3f} | {r['radiance_error']:.1e} | {r['alpha_error']:.1e} | {estimate} |")
     lines.append("")
-    for r in rows:
-        if r["estimate"] is None:
-            continue
-        tol = float(r["march"].split()[-1])
-        held = "holds" if max(r["radiance_error"], r["alpha_error"]) <= tol else "does NOT hold"
-        fixed = [f for f in rows if f["scene"] == r["scene"] and f["estimate"] is None
+    for r in (r for r in rows if r["tolerance"] is not None):
+        held = "holds" if max(r["radiance_error"], r["alpha_error"]) <= r["tolerance"] else "does NOT hold"
+        fixed = [f for f in rows if f["scene"] == r["scene"] and f["tolerance"] is None
                  and f["radiance_error"] <= r["radiance_error"] and f["alpha_error"] <= r["alpha_error"]]
         if fixed:
             best = min(fixed, key=lambda f: f["time_s"])
@@ -258,7 +260,7 @@ def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int 
                                                           knob_names=knob_names, cache=out / "references")]
     text = table(rows)
     if "tolerance" in knob_names:
-        tolerance = [row for name in names if "tolerance" in knobs(SCENES[name])
+        tolerance = [row for name in names if is_physical(SCENES[name])
                      for row in tolerance_rows(name, width=width, height=height, repeat=repeat, seed=seed, cache=out / "references")]
         if tolerance:
             text += "\n## Error-controlled marching (`march.tolerance`) against fixed step counts\n\n" + tolerance_table(tolerance)
