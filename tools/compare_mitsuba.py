@@ -41,6 +41,14 @@ from torchvol.volume.light import henyey_greenstein
 F64 = torch.float64
 
 
+def torchvol_image(grid: np.ndarray, sigma: float, *, size: int, spp: int, quality: str, shadow_steps: int | None = None) -> tuple[np.ndarray, float]:
+    """torchvol's radiance (H, W, 3) of the scene at a quality level, and its wall time in seconds
+    (`shadow_steps` None: the level's)."""
+    start = time.perf_counter()
+    out = tv.render(torchvol_scene(grid, sigma, size=size, spp=spp, shadow_steps=shadow_steps, quality=quality))
+    return out.radiance[0].permute(1, 2, 0).numpy(), time.perf_counter() - start
+
+
 def parity(grid: np.ndarray, sigma: float, size: int, spps: list[int], variant: str) -> None:
     """Pixel averages: Mitsuba's and torchvol's (64 stratified samples) against the exact reference
     averaged over 8×8 jittered strata."""
@@ -51,9 +59,7 @@ def parity(grid: np.ndarray, sigma: float, size: int, spps: list[int], variant: 
     print("| renderer | setting | time (s) | relative RMSE | mean / reference mean |")
     print("| --- | --- | ---: | ---: | ---: |")
     for quality in ("default", "high"):
-        start = time.perf_counter()
-        img = tv.render(torchvol_scene(grid, sigma, size=size, spp=64, quality=quality)).radiance[0].permute(1, 2, 0).numpy()
-        seconds = time.perf_counter() - start
+        img, seconds = torchvol_image(grid, sigma, size=size, spp=64, quality=quality, shadow_steps=32)
         print(f"| torchvol | {quality}, 64 spp | {seconds:.2f} | {relative_rmse(img, ref):.4%} | {img.mean() / ref.mean():.4f} |", flush=True)
     for spp in spps:
         img, seconds = render_mitsuba(grid, sigma, size=size, spp=spp, variant=variant)
@@ -77,10 +83,8 @@ def converged(grid: np.ndarray, sigma: float, size: int, passes: int, per_pass: 
     print("| torchvol level | time (s) | relative RMSE against Mitsuba | mean / Mitsuba mean |")
     print("| --- | ---: | ---: | ---: |")
     for quality in ("default", "high", "reference"):
-        start = time.perf_counter()
-        out = tv.render(torchvol_scene(grid, sigma, size=size, spp=torchvol_spp, shadow_steps=None, quality=quality))
-        image = out.radiance[0].permute(1, 2, 0).numpy()
-        print(f"| {quality} | {time.perf_counter() - start:.1f} | {relative_rmse(image, mitsuba):.4%} | "
+        image, seconds = torchvol_image(grid, sigma, size=size, spp=torchvol_spp, quality=quality)
+        print(f"| {quality} | {seconds:.1f} | {relative_rmse(image, mitsuba):.4%} | "
               f"{image.mean() / mitsuba.mean():.4f} |", flush=True)
 
 
@@ -88,10 +92,8 @@ def levels(grid: np.ndarray, sigma: float, size: int, stride: int) -> None:
     """Each quality level, one ray through each pixel centre, against the exact reference."""
     exact, mask = exact_table(grid, sigma, size, stride, "Quality levels", ["level", "time (s)", "relative RMSE", "mean / reference mean"])
     for quality in ("draft", "default", "high", "reference"):
-        start = time.perf_counter()
-        out = tv.render(torchvol_scene(grid, sigma, size=size, spp=1, shadow_steps=None, quality=quality))
-        seconds = time.perf_counter() - start
-        got = out.radiance[0, 0].reshape(-1).double()[mask]
+        image, seconds = torchvol_image(grid, sigma, size=size, spp=1, quality=quality)
+        got = torch.from_numpy(image[..., 0]).reshape(-1).double()[mask]
         print(f"| {quality} | {seconds:.2f} | {relative_rmse(got.numpy(), exact.numpy()):.4%} | {float(got.mean() / exact.mean()):.4f} |", flush=True)
 
 

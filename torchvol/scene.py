@@ -176,10 +176,10 @@ class Shadow(Strict):
     across the sun plus a trapezoid over the gap to the next plane: far cheaper; box and sphere
     bounds only). Measured on the Mitsuba parity cloud (64³ grid, optical depth 10) at 256², 96
     steps, against the exact float64 reference: relative RMSE 0.093% with the grid at resolution 128
-    (0.026% is the primary march's alone) in 0.26 s, where a 32-step shadow march takes 1.2 s for
-    0.12% at 64 steps. Hard surfaces of
-    the medium (a dense field cut by sphere bounds) smear over a grid cell: 1.9%, 0.69%, 0.30%
-    relative RMSE against the march at resolution 96, 192, 384 on such a sphere."""
+    (0.026% is the primary march's alone) in 0.27 s, where a 32-step shadow march takes 1.2 s for
+    0.12% at 64 steps. Hard surfaces of the medium (a dense field cut by sphere bounds) smear over
+    a grid cell: 1.9%, 0.69%, 0.30% relative RMSE against the march at resolution 96, 192, 384 on
+    such a sphere."""
 
     method: Literal["march", "grid"] = "march"
     steps: int | None = Field(None, ge=1, le=4096, description="None: the quality level's")
