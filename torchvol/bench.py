@@ -37,7 +37,7 @@ from .validate import did_you_mean, fail
 SCENES = {"template clouds": "template-clouds", "physical clouds": "cloud-puff", "voxel terrain": "voxel-terrain"}
 # the tolerance table: error-controlled marching against fixed step counts
 TOLERANCES = (1e-2, 1e-3, 1e-4)
-FIXED_STEPS = (32, 48, 64, 96, 128, 160, 192, 256, 384)  # fine enough that "as accurate" is a fair match
+FIXED_STEPS = (32, 48, 64, 96, 128, 160, 192, 256, 384, 512, 768)  # fine enough that "as accurate" is a fair match
 NO_EARLY_EXIT = {"march.min_transmittance": 1e-12}  # early termination leaves an error floor of its own
 
 

@@ -82,6 +82,10 @@ class CountedField:
         self.counter.density_evals += points.shape[0]
         return self.inner(points, scene_index, lod)
 
+    def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        self.counter.density_evals += points.shape[0]
+        return self.inner.signed(points, scene_index, lod)
+
 
 def _t(values, dtype, device) -> Tensor:
     return torch.tensor(values, dtype=dtype, device=device)
@@ -409,7 +413,10 @@ class Renderer:
             self._sun_grids[key] = grids
         return self._sun_grids[key]
 
-    def physical_medium(self, slot: VolumeSlot, v: int, rays: Rays):
+    def physical_medium(self, slot: VolumeSlot, v: int, rays: Rays, *, signed: bool = False):
+        """The medium of a physically shaded volume: (σ_t [n], in-scattered + emitted source [n, 3]).
+        `signed`: σ_t is the field's signed value times its σ_t, negative where there is no density
+        (what `march_adaptive` interpolates between samples); the source is that of the density."""
         o, d, s_all = rays.origins, rays.directions, rays.scene_index
         threshold = self.settings.density_threshold
         response = self.sun_response(slot, d, s_all) if len(self.lights) else None  # [L, R, 3]
@@ -419,15 +426,17 @@ class Renderer:
         def medium(ids: Tensor, t: Tensor, dt: Tensor):
             s, o_ids, d_ids, response_ids = at(ids)
             p = torch.addcmul(o_ids, t[:, None], d_ids)
-            density = slot.field(p, s, self.lod(t))
-            sigma_t = take(slot.sigma_t, s) * density
+            raw = (slot.field.signed if signed else slot.field)(p, s, self.lod(t))
+            density = raw.clamp_min(0.0) if signed else raw
+            sigma_raw = take(slot.sigma_t, s) * raw
+            sigma_t = sigma_raw.clamp_min(0.0) if signed else sigma_raw
             source = p.new_zeros(p.shape[0], 3)
             lit = ((density > threshold) & (dt > 0)).nonzero().squeeze(1)  # dt = 0: a finished ray not dropped yet
             if lit.numel() and response is not None:
                 source[lit] = self.in_scatter(slot, v, p[lit], s[lit], sigma_t[lit], response_ids[:, lit])
             if slot.emissive:
                 source = source + take(slot.emission, s) * density[:, None]
-            return sigma_t, source
+            return sigma_raw, source
 
         return medium
 
@@ -488,12 +497,13 @@ class Renderer:
             if shader:
                 medium = self.shader_medium(slot, v, rays, background)
             else:
-                medium = self.physical_medium(slot, v, rays)
+                medium = self.physical_medium(slot, v, rays, signed=st.tolerance is not None)
             if st.tolerance is not None and not shader:
                 res = march_adaptive(
                     t0, t1, hit, medium, tolerance=st.tolerance, integrator=st.integrator,
                     radiance_scale=self.radiance_scale(rays.scene_index), min_transmittance=st.min_transmittance,
-                    max_steps_per_span=st.rule.steps if st.rule.placement == "count" else None,
+                    # a field's detail caps the steps; a smooth one's steps are capped by march.steps
+                    max_steps_per_span=st.rule.steps if st.rule.placement == "count" and slot.field.feature_size is None else None,
                     max_step=None if slot.field.feature_size is None else 0.5 * take(slot.field.feature_size, rays.scene_index),
                 )
                 self.error_estimate = max(self.error_estimate, float(res.error.max()) if len(res.error) else 0.0)

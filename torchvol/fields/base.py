@@ -18,6 +18,13 @@ class Field(Protocol):
         """`points`: [N, 3]; `scene_index`: [N] long; `lod`: [N] octave counts or None. -> [N]."""
         ...
 
+    def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        """The density before its clamp at 0, same arguments -> [N]: negative where the field is
+        empty, by how far it is from having density there (the density itself for a field never
+        clamped). Smooth where the density has kinks, so error-controlled marching can interpolate
+        it to find density between samples that all read 0."""
+        ...
+
 
 def per_scene(
     points: Tensor, scene_index: Tensor, batch: int, fn: Callable[[int, Tensor | slice, Tensor], Tensor]

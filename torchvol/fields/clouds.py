@@ -35,6 +35,9 @@ class CloudLayer:
         self.feature_size = torch.tensor([noise.finest_period(s.octaves) for s in specs], **kw)
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        return self.signed(points, scene_index, lod).clamp_min(0.0)
+
+    def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         q = points - self.shift[scene_index]
 
         def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
@@ -45,4 +48,4 @@ class CloudLayer:
             )
 
         f = per_scene(q, scene_index, len(self.specs), one_scene)
-        return (self.bias[scene_index] - points[:, 1] + self.scale[scene_index] * f).clamp(0.0, 1.0)
+        return (self.bias[scene_index] - points[:, 1] + self.scale[scene_index] * f).clamp_max(1.0)

@@ -14,3 +14,5 @@ class Constant:
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         return self.value[scene_index]
+
+    signed = __call__  # never clamped: the density is its own signed value

@@ -24,6 +24,8 @@ class Exponential:
         h = (points[:, 1] - self.base[scene_index]) / self.scale_height[scene_index]
         return self.value[scene_index] * torch.exp(-h)
 
+    signed = __call__  # never clamped: the density is its own signed value
+
 
 def optical_depth(o_y: Tensor, d_y: Tensor, t0: Tensor, t1: Tensor, *, value: float, base: float, scale_height: float) -> Tensor:
     """∫_{t0}^{t1} value·e^{−(o_y + t d_y − base)/H} dt in closed form (d_y → 0 handled). All [R]."""

@@ -31,6 +31,9 @@ class FbmField:
         self.feature_size = torch.tensor([noise.finest_period(s.octaves) for s in specs], **kw) / self.frequency
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        return self.signed(points, scene_index, lod).clamp_min(0.0)
+
+    def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         q = self.frequency[scene_index, None] * (points - self.shift[scene_index]) + self.offset[scene_index]
 
         def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
@@ -40,4 +43,4 @@ class FbmField:
 
         f = per_scene(q, scene_index, len(self.specs), one_scene)
         falloff = self.radial[scene_index] * (points - self.center[scene_index]).norm(dim=1)
-        return (self.bias[scene_index] + self.amplitude[scene_index] * f - falloff).clamp_min(0.0)
+        return self.bias[scene_index] + self.amplitude[scene_index] * f - falloff

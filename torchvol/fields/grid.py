@@ -51,3 +51,5 @@ class Grid:
             points, scene_index, len(self.grids),
             lambda b, _, p: sample_grid(self.grids[b], self.box_min[b], self.box_max[b], p),
         )
+
+    signed = __call__  # never clamped: the density is its own signed value
