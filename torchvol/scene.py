@@ -417,9 +417,9 @@ class March(Strict):
     closed_form: bool = True
     depth_threshold: float = Field(0.01, ge=0.0, le=1.0)
     # error-controlled marching: absolute on transmittance and on radiance relative to the light;
-    # each ray picks its steps by step doubling (physical shading; replaces placement/steps, which
-    # caps the step at span/steps); steps never exceed half the density's feature size (a grid's
-    # cell, an fbm's finest octave), which the estimate cannot see below
+    # each ray picks its steps by step doubling (physical shading; replaces placement/steps); steps
+    # never exceed half the density's feature size (a grid's cell, an fbm's finest octave), which
+    # the estimate cannot see below, or span/steps for a density with none (exponential)
     tolerance: float | None = Field(None, gt=0.0, lt=1.0)
 
     @model_validator(mode="after")
