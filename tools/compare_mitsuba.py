@@ -20,7 +20,12 @@ one sun, no sky, fov 40°). Three tables:
    every `--stride`-th pixel each way. Times are medians of 3 renders.
 
 `--converge PASSES` instead compares torchvol's levels directly with a converged Mitsuba render
-(pixel averages at `--size`², PASSES × `--pass-spp` spp, torchvol at `--torchvol-spp` strata).
+(pixel averages at `--size`², PASSES × `--pass-spp` spp, torchvol at `--torchvol-spp` strata, 0:
+each level's own spp): the relative RMSE against the passes' mean, and that RMSE less the mean's
+own noise, estimated from the spread of the passes (`debiased_relative_rmse`), which is the RMSE
+against the render the passes converge to. At 256², 64 passes of 1024 spp take ~50 minutes on 2 cores:
+    python tools/compare_mitsuba.py --converge 64 --pass-spp 1024 --size 256 --torchvol-spp 0 \
+        --variant llvm_ad_rgb --cache mitsuba-passes
 """
 
 from __future__ import annotations
@@ -28,22 +33,24 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 
 import torchvol as tv
 from torchvol.render import camera_for
-from torchvol.testing.mitsuba import IRRADIANCE, SUN, puff_grid, relative_rmse, render_mitsuba, sigma_for, torchvol_scene
+from torchvol.testing.mitsuba import (IRRADIANCE, SUN, debiased_relative_rmse, puff_grid, relative_rmse, render_mitsuba,
+                                     sigma_for, torchvol_scene)
 from torchvol.volume.exact import grid_single_scatter
 from torchvol.volume.light import henyey_greenstein
 
 F64 = torch.float64
 
 
-def torchvol_image(grid: np.ndarray, sigma: float, *, size: int, spp: int, quality: str, shadow_steps: int | None = None) -> tuple[np.ndarray, float]:
+def torchvol_image(grid: np.ndarray, sigma: float, *, size: int, spp: int | None, quality: str, shadow_steps: int | None = None) -> tuple[np.ndarray, float]:
     """torchvol's radiance (H, W, 3) of the scene at a quality level, and its wall time in seconds
-    (`shadow_steps` None: the level's)."""
+    (`spp`, `shadow_steps` None: the level's)."""
     start = time.perf_counter()
     out = tv.render(torchvol_scene(grid, sigma, size=size, spp=spp, shadow_steps=shadow_steps, quality=quality))
     return out.radiance[0].permute(1, 2, 0).numpy(), time.perf_counter() - start
@@ -66,25 +73,41 @@ def parity(grid: np.ndarray, sigma: float, size: int, spps: list[int], variant: 
         print(f"| Mitsuba 3 ({variant}) | {spp} spp | {seconds:.2f} | {relative_rmse(img, ref):.4%} | {img.mean() / ref.mean():.4f} |", flush=True)
 
 
-def converged(grid: np.ndarray, sigma: float, size: int, passes: int, per_pass: int, variant: str, torchvol_spp: int) -> None:
-    """A converged Mitsuba render: the mean of `passes` renders of `per_pass` spp (seeds 0, 1, ...),
-    with its own noise (half the relative RMSE between the means of the even and the odd passes),
-    and each torchvol level at `torchvol_spp` stratified samples per pixel against it."""
+def converged(grid: np.ndarray, sigma: float, size: int, passes: int, per_pass: int, variant: str,
+              torchvol_spp: int | None, cache: Path | None) -> None:
+    """torchvol's levels (at `torchvol_spp` stratified samples per pixel, or each level's own spp
+    when None) against the render that `passes` Mitsuba renders of `per_pass` spp (seeds 0, 1, ...)
+    converge to: the relative RMSE against their mean, and that RMSE less the mean's own noise
+    (`debiased_relative_rmse`, with two standard errors either side). Passes are kept in `cache`
+    (a folder) when given, so a re-run renders only what is missing."""
+    results = []
+    for quality in ("default", "high", "reference"):  # first, so that Mitsuba's passes do not slow them
+        image, seconds = torchvol_image(grid, sigma, size=size, spp=torchvol_spp, quality=quality)
+        results.append((quality, image, seconds))
     images, seconds = [], 0.0
     for seed in range(passes):
+        path = None if cache is None else cache / f"mitsuba-{size}-{variant}-{per_pass}spp-seed{seed}.npy"
+        if path is not None and path.is_file():
+            images.append(np.load(path))
+            continue
         image, took = render_mitsuba(grid, sigma, size=size, spp=per_pass, variant=variant, seed=seed)
         images.append(image)
         seconds += took
-    mitsuba = np.mean(images, axis=0)
-    noise = relative_rmse(np.mean(images[0::2], axis=0), np.mean(images[1::2], axis=0)) / 2
+        if path is not None:
+            cache.mkdir(parents=True, exist_ok=True)
+            np.save(path, image)
+    images = np.stack(images)
+    mitsuba = images.mean(axis=0)
+    noise = debiased_relative_rmse(mitsuba, images)["noise"]
+    strata = "each level's own spp" if torchvol_spp is None else f"{torchvol_spp} stratified samples per pixel"
     print(f"\n## Against a converged Mitsuba render, {size}×{size} pixel averages: Mitsuba 3 ({variant}) at "
-          f"{passes * per_pass:,} spp ({passes} passes, {seconds:.0f} s; its own noise ≈ {noise:.4%}); torchvol at "
-          f"{torchvol_spp} stratified samples per pixel\n")
-    print("| torchvol level | time (s) | relative RMSE against Mitsuba | mean / Mitsuba mean |")
-    print("| --- | ---: | ---: | ---: |")
-    for quality in ("default", "high", "reference"):
-        image, seconds = torchvol_image(grid, sigma, size=size, spp=torchvol_spp, quality=quality)
-        print(f"| {quality} | {seconds:.1f} | {relative_rmse(image, mitsuba):.4%} | "
+          f"{passes * per_pass:,} spp ({passes} passes; {seconds:.0f} s rendered in this run; the mean's own noise ≈ "
+          f"{noise:.4%}); torchvol at {strata}\n")
+    print("| torchvol level | time (s) | relative RMSE against the passes' mean | against the converged render (± 2 s.e.) | mean / Mitsuba mean |")
+    print("| --- | ---: | ---: | ---: | ---: |")
+    for quality, image, took in results:
+        e = debiased_relative_rmse(image, images)
+        print(f"| {quality} | {took:.1f} | {e['raw']:.4%} | {e['rmse']:.4%} ({e['low']:.4%} – {e['high']:.4%}) | "
               f"{image.mean() / mitsuba.mean():.4f} |", flush=True)
 
 
@@ -150,12 +173,13 @@ def main() -> None:
     parser.add_argument("--converge", type=int, default=0, metavar="PASSES",
                         help="also compare the levels with a Mitsuba render of PASSES × --pass-spp spp at --size² (then only that)")
     parser.add_argument("--pass-spp", type=int, default=65536)
-    parser.add_argument("--torchvol-spp", type=int, default=1024)
+    parser.add_argument("--torchvol-spp", type=int, default=1024, help="0: each level's own spp")
+    parser.add_argument("--cache", type=Path, default=None, help="folder that keeps Mitsuba's passes between runs")
     args = parser.parse_args()
     grid = puff_grid()
     sigma = sigma_for(grid)
     if args.converge:
-        converged(grid, sigma, args.size, args.converge, args.pass_spp, args.variant, args.torchvol_spp)
+        converged(grid, sigma, args.size, args.converge, args.pass_spp, args.variant, args.torchvol_spp or None, args.cache)
         return
     if args.spp:
         parity(grid, sigma, args.size, [int(s) for s in args.spp.split(",")], args.variant)

@@ -77,3 +77,29 @@ def render_mitsuba(grid: np.ndarray, sigma: float, *, size: int, spp: int, varia
 
 def relative_rmse(image: np.ndarray, reference: np.ndarray) -> float:
     return float(np.sqrt(((image - reference) ** 2).mean()) / np.sqrt((reference**2).mean()))
+
+
+def debiased_relative_rmse(image: np.ndarray, passes: np.ndarray) -> dict[str, float]:
+    """The relative RMSE of `image` (H, W, C) against the *converged* render that independent
+    Monte Carlo `passes` (P, H, W, C) average to, without rendering it: the mean of the passes
+    carries noise of variance v per value (their sample variance / P, averaged over the image),
+    which adds v to the mean squared difference, so MSE − v estimates the squared difference to the
+    converged render, unbiased. Its standard error (difference b² = MSE − v, N = H·W pixels; the
+    channels of a grey scene are not independent) is √((2v² + 4b²v)/N + 2v²/(N(P − 1))): the
+    noise's own square and its cross term with the difference, and the spread of v's estimate.
+    Returns {"rmse": the estimate, "low", "high": two standard errors either side (clamped at 0),
+    "noise": √v, "raw": the plain relative RMSE against the mean of the passes}, all relative to the
+    converged render's RMS value."""
+    count = passes.shape[0]
+    mean = passes.mean(axis=0)
+    v = float((passes.var(axis=0, ddof=1) / count).mean())
+    mse = float(((image - mean) ** 2).mean())
+    b2 = mse - v
+    n = image.shape[0] * image.shape[1]
+    se = float(np.sqrt((2 * v * v + 4 * max(b2, 0.0) * v) / n + 2 * v * v / (n * (count - 1))))
+    rms = float(np.sqrt((mean**2).mean() - v))
+
+    def rel(x: float) -> float:
+        return float(np.sqrt(max(x, 0.0)) / rms)
+
+    return {"rmse": rel(b2), "low": rel(b2 - 2 * se), "high": rel(b2 + 2 * se), "noise": rel(v), "raw": rel(mse)}
