@@ -76,6 +76,22 @@ def test_fbm_extreme_frequencies_and_octaves(octaves, frequency, kind):
     check(tv.render(scene), f"fbm {kind} x{octaves} @ {frequency}: ")
 
 
+@SETTINGS
+@given(sigma=st.sampled_from([0.0, 1e-3, 1.0, 1e3, 1e7]), frequency=st.sampled_from([1e-3, 1.0, 30.0]),
+       g=st.sampled_from([-0.999, 0.0, 0.999]), inside=st.booleans(), tolerance=st.sampled_from([1e-1, 1e-3]))
+def test_error_controlled_march(sigma, frequency, g, inside, tolerance):
+    """`march.tolerance` on fbm (its signed value, islands, the light's curvature) from σ = 0 to 1e7,
+    at g near ±1, with the camera inside the cloud or outside it."""
+    scene = {"image": {"width": 6, "height": 5}, "camera": {"eye": [0.1, 0.2, -0.3 if inside else -2.5], "fov_y": 60},
+             "lights": [{"direction": [0.3, 1.0, -0.2], "intensity": 3.0, "shadow": {"steps": 3}}],
+             "volumes": [{"bounds": {"sphere": {"radius": 1.0}}, "sigma_t": sigma, "phase": {"hg": {"g": g}},
+                          "density": {"fbm": {"octaves": 3, "frequency": frequency, "radial": 0.5}}}],
+             "march": {"tolerance": tolerance}}
+    out = tv.render(scene)
+    check(out, f"tolerance {tolerance}, σ {sigma}, frequency {frequency}, g {g}: ")
+    assert math.isfinite(out.stats["error_estimate"])
+
+
 @pytest.mark.parametrize("name", ["cloud-puff", "homogeneous-box", "voxel-terrain"])
 def test_float32_within_tolerance_of_float64(name):
     scene = tv.preset(name, width=16, height=12)

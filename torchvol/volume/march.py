@@ -221,6 +221,8 @@ def expected_depth_fraction(x: Tensor) -> Tensor:
 
 
 LN2 = math.log(2.0)
+
+
 def positive_part_integral(c: Tensor, b: Tensor, a: Tensor, lo: float, hi: float) -> Tensor:
     """∫ max(c + b·x + a·x², 0) dx over [lo, hi], exactly: the quadratic's real roots cut the
     interval into three pieces of constant sign. `c`, `b`, `a`: [n] -> [n]. Roots are taken in the
@@ -284,7 +286,7 @@ def march_adaptive(
     The whole step samples σ_t alone: its source is its σ_t times the halves' source per unit σ_t
     (in-scattered light is σ_t times a light that varies slowly: the shadow's transmittance), so
     a step traces two shadow rays, not three (on `cloud-puff` at tolerance 1e-3: 976k → 714k
-    density evaluations, 0.86 → 0.69 s, the same 53,346 steps and errors).
+    density evaluations, 0.82–0.86 → 0.67–0.69 s; 53,346 → 53,328 steps, the same errors).
     A step is accepted when that error, times the transmittance in front of it, is within
     `tolerance`·dt/(t1 − t0) — so the errors of a whole ray add up to at most about `tolerance`.
     The next step grows or shrinks by (allowed/error)^(1/3) (the local error of a midpoint step is
