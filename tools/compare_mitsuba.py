@@ -23,8 +23,11 @@ one sun, no sky, fov 40°). Three tables:
 (pixel averages at `--size`², PASSES × `--pass-spp` spp, torchvol at `--torchvol-spp` strata, 0:
 each level's own spp): the relative RMSE against the passes' mean, and that RMSE less the mean's
 own noise, estimated from the spread of the passes (`debiased_relative_rmse`), which is the RMSE
-against the render the passes converge to. At 256², 64 passes of 1024 spp take ~50 minutes on 2 cores:
-    python tools/compare_mitsuba.py --converge 64 --pass-spp 1024 --size 256 --torchvol-spp 0 \
+against the render the passes converge to. `--torchvol-centres K` renders torchvol at K·size
+through pixel centres and averages K×K blocks: the same pixel-area averages as Mitsuba's film,
+without the jitter noise of the levels' own spp. At 256², 64 passes of 1024 spp take ~52 minutes
+on 2 cores (docs/PARITY.md):
+    python tools/compare_mitsuba.py --converge 64 --pass-spp 1024 --size 256 --torchvol-centres 2 \
         --variant llvm_ad_rgb --cache mitsuba-passes
 """
 
@@ -74,15 +77,21 @@ def parity(grid: np.ndarray, sigma: float, size: int, spps: list[int], variant: 
 
 
 def converged(grid: np.ndarray, sigma: float, size: int, passes: int, per_pass: int, variant: str,
-              torchvol_spp: int | None, cache: Path | None) -> None:
+              torchvol_spp: int | None, cache: Path | None, centres: int = 0) -> None:
     """torchvol's levels (at `torchvol_spp` stratified samples per pixel, or each level's own spp
-    when None) against the render that `passes` Mitsuba renders of `per_pass` spp (seeds 0, 1, ...)
-    converge to: the relative RMSE against their mean, and that RMSE less the mean's own noise
+    when None; or, with `centres` k > 0, rendered at k·size through pixel centres and averaged over
+    k×k blocks: the k×k midpoint rule of each pixel's area average, deterministic) against the
+    render that `passes` Mitsuba renders of `per_pass` spp (seeds 0, 1, ...) converge to: the
+    relative RMSE against their mean, and that RMSE less the mean's own noise
     (`debiased_relative_rmse`, with two standard errors either side). Passes are kept in `cache`
     (a folder) when given, so a re-run renders only what is missing."""
     results = []
     for quality in ("default", "high", "reference"):  # first, so that Mitsuba's passes do not slow them
-        image, seconds = torchvol_image(grid, sigma, size=size, spp=torchvol_spp, quality=quality)
+        if centres:
+            fine, seconds = torchvol_image(grid, sigma, size=centres * size, spp=1, quality=quality)
+            image = fine.reshape(size, centres, size, centres, 3).mean(axis=(1, 3))
+        else:
+            image, seconds = torchvol_image(grid, sigma, size=size, spp=torchvol_spp, quality=quality)
         results.append((quality, image, seconds))
     images, seconds = [], 0.0
     for seed in range(passes):
@@ -99,7 +108,8 @@ def converged(grid: np.ndarray, sigma: float, size: int, passes: int, per_pass: 
     images = np.stack(images)
     mitsuba = images.mean(axis=0)
     noise = debiased_relative_rmse(mitsuba, images)["noise"]
-    strata = "each level's own spp" if torchvol_spp is None else f"{torchvol_spp} stratified samples per pixel"
+    strata = ("each level's own spp" if torchvol_spp is None else f"{torchvol_spp} stratified samples per pixel") if not centres \
+        else f"{centres}×{centres} pixel centres of a {centres * size}² render per pixel"
     print(f"\n## Against a converged Mitsuba render, {size}×{size} pixel averages: Mitsuba 3 ({variant}) at "
           f"{passes * per_pass:,} spp ({passes} passes; {seconds:.0f} s rendered in this run; the mean's own noise ≈ "
           f"{noise:.4%}); torchvol at {strata}\n")
@@ -175,11 +185,14 @@ def main() -> None:
     parser.add_argument("--pass-spp", type=int, default=65536)
     parser.add_argument("--torchvol-spp", type=int, default=1024, help="0: each level's own spp")
     parser.add_argument("--cache", type=Path, default=None, help="folder that keeps Mitsuba's passes between runs")
+    parser.add_argument("--torchvol-centres", type=int, default=0, metavar="K",
+                        help="torchvol at K·size through pixel centres, averaged K×K (instead of --torchvol-spp)")
     args = parser.parse_args()
     grid = puff_grid()
     sigma = sigma_for(grid)
     if args.converge:
-        converged(grid, sigma, args.size, args.converge, args.pass_spp, args.variant, args.torchvol_spp or None, args.cache)
+        converged(grid, sigma, args.size, args.converge, args.pass_spp, args.variant, args.torchvol_spp or None, args.cache,
+                  args.torchvol_centres)
         return
     if args.spp:
         parity(grid, sigma, args.size, [int(s) for s in args.spp.split(",")], args.variant)
