@@ -85,14 +85,14 @@ def converged(grid: np.ndarray, sigma: float, size: int, passes: int, per_pass: 
     relative RMSE against their mean, and that RMSE less the mean's own noise
     (`debiased_relative_rmse`, with two standard errors either side). Passes are kept in `cache`
     (a folder) when given, so a re-run renders only what is missing."""
-    results = []
-    for quality in ("default", "high", "reference"):  # first, so that Mitsuba's passes do not slow them
-        if centres:
-            fine, seconds = torchvol_image(grid, sigma, size=centres * size, spp=1, quality=quality)
-            image = fine.reshape(size, centres, size, centres, 3).mean(axis=(1, 3))
-        else:
-            image, seconds = torchvol_image(grid, sigma, size=size, spp=torchvol_spp, quality=quality)
-        results.append((quality, image, seconds))
+    def pixel_averages(quality: str) -> tuple[np.ndarray, float]:
+        if not centres:
+            return torchvol_image(grid, sigma, size=size, spp=torchvol_spp, quality=quality)
+        fine, seconds = torchvol_image(grid, sigma, size=centres * size, spp=1, quality=quality)
+        return fine.reshape(size, centres, size, centres, 3).mean(axis=(1, 3)), seconds
+
+    # torchvol first, so that Mitsuba's passes do not slow it
+    results = [(quality, *pixel_averages(quality)) for quality in ("default", "high", "reference")]
     images, seconds = [], 0.0
     for seed in range(passes):
         path = None if cache is None else cache / f"mitsuba-{size}-{variant}-{per_pass}spp-seed{seed}.npy"
@@ -107,16 +107,17 @@ def converged(grid: np.ndarray, sigma: float, size: int, passes: int, per_pass: 
             np.save(path, image)
     images = np.stack(images)
     mitsuba = images.mean(axis=0)
-    noise = debiased_relative_rmse(mitsuba, images)["noise"]
-    strata = ("each level's own spp" if torchvol_spp is None else f"{torchvol_spp} stratified samples per pixel") if not centres \
-        else f"{centres}×{centres} pixel centres of a {centres * size}² render per pixel"
+    errors = [debiased_relative_rmse(image, images) for _, image, _ in results]
+    if centres:
+        strata = f"{centres}×{centres} pixel centres of a {centres * size}² render per pixel"
+    else:
+        strata = "each level's own spp" if torchvol_spp is None else f"{torchvol_spp} stratified samples per pixel"
     print(f"\n## Against a converged Mitsuba render, {size}×{size} pixel averages: Mitsuba 3 ({variant}) at "
           f"{passes * per_pass:,} spp ({passes} passes; {seconds:.0f} s rendered in this run; the mean's own noise ≈ "
-          f"{noise:.4%}); torchvol at {strata}\n")
+          f"{errors[0]['noise']:.4%}); torchvol at {strata}\n")
     print("| torchvol level | time (s) | relative RMSE against the passes' mean | against the converged render (± 2 s.e.) | mean / Mitsuba mean |")
     print("| --- | ---: | ---: | ---: | ---: |")
-    for quality, image, took in results:
-        e = debiased_relative_rmse(image, images)
+    for (quality, image, took), e in zip(results, errors):
         print(f"| {quality} | {took:.1f} | {e['raw']:.4%} | {e['rmse']:.4%} ({e['low']:.4%} – {e['high']:.4%}) | "
               f"{image.mean() / mitsuba.mean():.4f} |", flush=True)
 

@@ -327,6 +327,11 @@ def march_adaptive(
     evals = torch.zeros_like(ids)
     # the light per unit σ_t at the last accepted step's second half, and where (NaN: none yet)
     light_prev, at_prev = t.new_zeros(t.shape[0], channels), torch.full_like(t, math.nan)
+    samples = ids.repeat(3)  # the ray of each sample: whole step, first half, second half
+
+    def results() -> dict[str, Tensor]:  # the active rays' results, as they stand
+        return {"radiance": radiance, "transmittance": trans, "weight_sum": wsum, "weighted_t": wt,
+                "median_t": median, "error": err, "steps": steps, "evaluations": evals}
 
     for _ in range(max_iterations):
         dt = torch.minimum(torch.minimum(torch.maximum(dt, torch.full_like(dt, min_step)), max_dt), t_end - t)
@@ -336,11 +341,11 @@ def march_adaptive(
         lengths = torch.cat([dt, 2 * quarter, 2 * quarter])
         # the whole step's sample asks for σ_t alone (dt = 0): its source is its σ_t times the
         # halves' light per unit σ_t, averaged (in-scattered light is σ_t times a slowly varying light)
-        signed, source = medium(ids.repeat(3), where, torch.cat([torch.zeros_like(dt), lengths[n:]]))
+        signed, source = medium(samples, where, torch.cat([torch.zeros_like(dt), lengths[n:]]))
         sigma = signed.clamp_min(0.0)
         halves_sigma = sigma[n:].view(2, n)
-        light = torch.where(halves_sigma[..., None] > 0, source[n:].view(2, n, -1) / halves_sigma.clamp_min(1e-30)[..., None], 0.0)
         lit = halves_sigma > 0
+        light = torch.where(lit[..., None], source[n:].view(2, n, -1) / halves_sigma.clamp_min(1e-30)[..., None], 0.0)
         source = torch.cat([sigma[:n, None] * light.sum(0) / lit.sum(0).clamp_min(1)[:, None], source[n:]])
         contrib, seg = step_fn(source, sigma, lengths)
         c_full, c_a, c_b = contrib[:n], contrib[n:2 * n], contrib[2 * n:]
@@ -376,21 +381,19 @@ def march_adaptive(
         factor = (0.9 * (allowed / local.clamp_min(1e-300)) ** (1.0 / 3.0)).clamp(0.2, 4.0)
         dt = dt * factor
         keep = (t < t_end) & (trans >= min_transmittance)
+        if bool(keep.all()):  # nothing finished: the batch, and the ids the medium has gathered for, stay
+            continue
         done = ~keep
-        if done.any():
-            d_ids = ids[done]
-            for name, value in (("radiance", radiance), ("transmittance", trans), ("weight_sum", wsum),
-                                ("weighted_t", wt), ("median_t", median), ("error", err), ("steps", steps),
-                                ("evaluations", evals)):
-                getattr(out, name)[d_ids] = value[done]
+        for name, value in results().items():
+            getattr(out, name)[ids[done]] = value[done]
         if not keep.any():
             return out
         k = keep.nonzero().squeeze(1)
         ids, t, t_end, span, dt, trans, radiance, scale = ids[k], t[k], t_end[k], span[k], dt[k], trans[k], radiance[k], scale[k]
         max_dt, light_prev, at_prev = max_dt[k], light_prev[k], at_prev[k]
         wsum, wt, median, err, steps, evals = wsum[k], wt[k], median[k], err[k], steps[k], evals[k]
-    for name, value in (("radiance", radiance), ("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt),
-                        ("median_t", median), ("error", err), ("steps", steps), ("evaluations", evals)):
+        samples = ids.repeat(3)
+    for name, value in results().items():
         getattr(out, name)[ids] = value
     out.truncated[ids] = True
     return out
