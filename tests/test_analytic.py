@@ -335,19 +335,6 @@ def _exp_expected(out):
     return alpha, alpha / EXP_SIGMA
 
 
-def test_exponential_optical_depth_matches_closed_form_helper():
-    """Our optical depth and the package's `optical_depth` agree (both are closed forms)."""
-    from torchvol.fields.exponential import optical_depth
-
-    out = tv.render(_exp_scene(8, "frostbite"), dtype=F64)
-    eye, dirs, _ = camera_rays(out, 0)
-    t0, t1, _ = slab_interval(eye, dirs, *SLAB)
-    alpha, _ = _exp_expected(out)
-    tau = optical_depth(torch.full(t0.shape, eye[1], dtype=F64), torch.from_numpy(dirs[..., 1]), torch.from_numpy(t0),
-                        torch.from_numpy(t1), **EXP)
-    assert_close(-torch.expm1(-EXP_SIGMA * tau), torch.from_numpy(alpha), atol=TOL[F64], what="exponential alpha")
-
-
 @pytest.mark.parametrize("integrator", ["riemann", "frostbite"])
 def test_exponential_slab_convergence_order(integrator):
     """Midpoint sampling: transmittance converges at order 2 for both integrators; emitted

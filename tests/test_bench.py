@@ -6,7 +6,7 @@ from PIL import Image
 import torchvol as tv
 from torchvol.bench import FIXED_STEPS
 from torchvol.cli import main
-from torchvol.plan import QUALITY, at_level, march_settings
+from torchvol.quality import QUALITY, at_level, march_settings
 from torchvol.sweep import at_quality, image_error
 
 PHYSICAL = {  # a shadowed fbm cloud filling the frame (no silhouette: level errors are march errors)

@@ -8,7 +8,7 @@ import copy
 import pytest
 
 import torchvol as tv
-from torchvol.plan import make_plan, march_settings
+from torchvol.plan import make_plan
 
 
 def base(**march):
@@ -128,8 +128,8 @@ def test_post_passes_only_when_not_identity():
 
 def test_plan_function_matches_render_stats():
     s = tv.load_scene(with_(base(), lights=[SHADOWED], sky=SKY))
-    names = [p.name for p in make_plan(s, march_settings(s.march))]
-    assert names == tv.render(s).stats["passes"]
+    out = tv.render(s)
+    assert make_plan(s).names() == out.stats["plan"] == out.stats["passes"]
 
 
 def test_density_evals_scale_with_steps():

@@ -103,7 +103,7 @@ def scenes(draw, *, sky=None, lights=None):
     if sky is not None:
         s["sky"] = sky
     elif draw(st.booleans()):
-        s["sky"] = {"kind": draw(st.sampled_from(["constant", "gradient"])), "radiance": [1.0, 1.0, 1.0]}
+        s["sky"] = draw(st.sampled_from([{"kind": "constant", "radiance": [1.0, 1.0, 1.0]}, {"kind": "gradient"}]))
     return s
 
 

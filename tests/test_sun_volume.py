@@ -6,7 +6,7 @@ import torch
 from conftest import assert_close
 from torchvol.fields.grid import sample_grid
 from torchvol.rays import intersect_box
-from torchvol.volume.light import shadow_transmittance
+from torchvol.volume.shadow import shadow_transmittance
 from torchvol.volume.sun_volume import sun_frame, sun_transmittance_grid
 
 F64 = torch.float64

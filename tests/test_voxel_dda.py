@@ -10,7 +10,8 @@ import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from torchvol.voxel.dda import chebyshev_distance, hybrid_traverse, reference_traverse, traverse
+from torchvol.grid_ops import chebyshev_distance
+from torchvol.voxel.dda import hybrid_traverse, reference_traverse, traverse
 
 
 @pytest.fixture(autouse=True)

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 import torchvol as tv
+from torchvol.batch import stack
 from torchvol.render import camera_for
 from torchvol.testing.mitsuba import (IRRADIANCE, SUN, debiased_relative_rmse, puff_grid, relative_rmse, render_mitsuba,
                                      sigma_for, torchvol_scene)
@@ -134,7 +135,7 @@ def levels(grid: np.ndarray, sigma: float, size: int, stride: int) -> None:
 def exact_rays(grid: np.ndarray, sigma: float, size: int, *, spp: int = 1, stride: int = 1) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Exact radiance of the scene's rays (pixel centres for spp = 1, jittered strata otherwise) on
     every `stride`-th pixel each way, the ray mask, and the time it took."""
-    camera = camera_for([tv.load_scene(torchvol_scene(grid, sigma, size=size, spp=1))], F64, "cpu")
+    camera = camera_for(stack([tv.load_scene(torchvol_scene(grid, sigma, size=size, spp=1))], dtype=F64))
     rays = camera.rays(spp=spp, generator=None if spp == 1 else torch.Generator().manual_seed(0))
     mask = ((rays.pixel[:, 0] % stride) == stride // 2) & ((rays.pixel[:, 1] % stride) == stride // 2)
     box = -torch.ones(3, dtype=F64), torch.ones(3, dtype=F64)

@@ -26,7 +26,7 @@ from typing import Any, Sequence
 
 import torch
 
-from .plan import QUALITY, Quality, at_level
+from .quality import QUALITY, Quality, at_level
 from .presets import preset_dict
 from .render import render
 from .scene import load_scene

@@ -10,7 +10,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .scene import load_scene, parse_value, preset
+from .keypath import parse_value
+from .scene import load_scene, preset
 from .validate import SceneError, fail
 
 

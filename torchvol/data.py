@@ -18,8 +18,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from .batch import structure_key
+from .quality import at_level
 from .recipe import Recipe, mix_seed, render_seed
-from .validate import SceneError, fail
+from .validate import fail
 
 # The conventions a generated dataset states in meta.json (DESIGN.md, Conventions).
 CONVENTIONS = {
@@ -41,16 +43,6 @@ def epoch_seed(seed: int, epoch: int | None) -> int:
     return seed if epoch is None else mix_seed("torchvol.epoch", int(seed), int(epoch)) % 2**31
 
 
-def _compatible(a, b) -> bool:
-    from .render import check_same_structure
-
-    try:
-        check_same_structure([a, b])
-    except SceneError:
-        return False
-    return True
-
-
 def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aovs: Sequence[str] | None = None,
                    chunk_rays: int | None = None) -> list[dict]:
     """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
@@ -59,12 +51,11 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
 
     aovs = recipe.aovs if aovs is None else tuple(aovs)
     drawn = [recipe.sample_with_params(int(i), seed) for i in indices]
-    groups: list[list[int]] = []
+    groups: dict[tuple, list[int]] = {}
     for k, (scene, _) in enumerate(drawn):
-        home = next((g for g in groups if _compatible(drawn[g[0]][0], scene)), None)
-        home.append(k) if home is not None else groups.append([k])
+        groups.setdefault(structure_key(at_level(scene)), []).append(k)
     items: list[dict | None] = [None] * len(drawn)
-    for group in groups:
+    for group in groups.values():
         out = render([drawn[k][0] for k in group], seed=[render_seed(int(indices[k]), seed) for k in group],
                      chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS)
         for b, k in enumerate(group):

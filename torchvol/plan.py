@@ -1,9 +1,15 @@
-"""Scene -> the passes it calls for, and nothing else; quality levels -> march settings.
+"""A batch of scenes -> the plan: the passes it calls for, as data, and nothing else.
 
-A term the scene does not ask for is not in the plan and costs nothing: no shadow pass without a
-light with `shadow`, no sky pass without `[sky]`, no march without volumes, no post pass at its
-identity setting. A homogeneous medium in a box, sphere or slab with no shadowed light is
-integrated in closed form (one exact segment) instead of marched.
+Every decision is made here, once: which strategy integrates each volume (closed form, fixed march,
+fixed march over the occupied span, error-controlled march), which lights shade it and how their
+shadows are found, which voxel passes run, which post effects apply. `render` executes the plan by
+looking each pass up, and decides nothing again. A term the batch does not ask for is not in the
+plan and costs nothing: no shadow pass without a light with `shadow`, no sky pass without `[sky]`,
+no march without volumes, no post pass at its identity setting.
+
+Decisions read only values a batch shares (its structure), or ask whether *any* scene of the batch
+needs a term (an effect at its identity setting gives the scene that does not need it the same
+image, to the bit).
 """
 
 from __future__ import annotations
@@ -11,204 +17,130 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-import torch
+from .aovs import produced
+from .batch import Stacked, stack
+from .fields import DENSITIES
+from .lights import LIGHTS
+from .post import POST
+from .quality import MarchSettings, at_level, march_settings
+from .scene import Scene
+from .volume.shading import SHADINGS
 
-from .scene import March, Scene
-from .volume.march import StepRule
-
-Quality = Literal["draft", "default", "high", "reference"]
-
-
-@dataclass(frozen=True)
-class MarchSettings:
-    rule: StepRule
-    integrator: Literal["riemann", "frostbite", "alpha"]
-    dither: Literal["none", "hash", "sin"]
-    dither_scale: float
-    max_distance: float | None  # None: see VolumeSlot.distance_cap
-    min_transmittance: float
-    density_threshold: float
-    lod_scale: float | None
-    closed_form: bool
-    depth_threshold: float
-    dtype: torch.dtype
-    tolerance: float | None
+Strategy = Literal["closed_form", "march", "skip", "tolerance"]
 
 
 @dataclass(frozen=True)
-class Level:
-    """What a named quality level sets where the scene does not say (explicit keys win)."""
+class LightPass:
+    """Light `light` shading a volume or the voxels; `name` is its pass in `stats` (its shadow, or
+    the shader look's derivative light); `shadow` its shadow settings (None: unshadowed)."""
 
-    steps: int  # volume march steps (count placement)
-    min_transmittance: float  # rays stop below it
-    dtype: torch.dtype
-    shadow_steps: int  # a light's `shadow.steps`
-    voxel_shadow_steps: int  # `voxels.shadow.steps` (DDA step limit of a shadow ray)
-    spp: int  # `image.spp`: the reference integrates each pixel, so aliasing counts as error
-    voxel_max_steps: int  # `voxels.max_steps`: a primary DDA ray stopped by it is a hole in the image
-    fog_shadow_steps: int  # `voxels.fog.shadow_steps`
-    atmosphere_steps: tuple[int, int]  # `sky.atmosphere.steps`, `.light_steps`
-
-
-# Count placement, frostbite, hashed dither (none at reference) at every level. `default` equals
-# the schema's former fixed defaults (shadow 16, voxel shadow 32, spp 1): scenes that relied on them
-# render unchanged. `high` takes the reference's spp: the same seeded sub-samples, so what is left
-# of its error is the march's.
-QUALITY: dict[str, Level] = {
-    "draft": Level(32, 1e-2, torch.float32, shadow_steps=8, voxel_shadow_steps=16, spp=1,
-                   voxel_max_steps=256, fog_shadow_steps=8, atmosphere_steps=(8, 4)),
-    "default": Level(128, 1e-4, torch.float32, shadow_steps=16, voxel_shadow_steps=32, spp=1,
-                     voxel_max_steps=256, fog_shadow_steps=16, atmosphere_steps=(16, 8)),
-    "high": Level(384, 1e-5, torch.float32, shadow_steps=32, voxel_shadow_steps=128, spp=4,
-                  voxel_max_steps=1024, fog_shadow_steps=32, atmosphere_steps=(32, 16)),
-    "reference": Level(2048, 1e-12, torch.float64, shadow_steps=64, voxel_shadow_steps=1024, spp=4,
-                       voxel_max_steps=4096, fog_shadow_steps=64, atmosphere_steps=(64, 32)),
-}
-
-
-def at_level(scene: Scene) -> Scene:
-    """The scene with every key its quality level decides filled in (`image.spp`, lights'
-    `shadow.steps`, `voxels.shadow.steps`, `voxels.max_steps`, `voxels.fog.shadow_steps`,
-    `sky.atmosphere.steps` and `.light_steps`); idempotent. Everything after this sees plain ints."""
-    level = QUALITY[scene.march.quality]
-    update: dict = {}
-    if scene.image.spp is None:
-        update["image"] = scene.image.model_copy(update={"spp": level.spp})
-    if any(li.shadow is not None and li.shadow.steps is None for li in scene.lights):
-        update["lights"] = [
-            li if li.shadow is None or li.shadow.steps is not None
-            else li.model_copy(update={"shadow": li.shadow.model_copy(update={"steps": level.shadow_steps})})
-            for li in scene.lights
-        ]
-    vx = scene.voxels
-    if vx is not None:
-        fill: dict = {}
-        if vx.shadow is not None and vx.shadow.steps is None:
-            fill["shadow"] = vx.shadow.model_copy(update={"steps": level.voxel_shadow_steps})
-        if vx.max_steps is None:
-            fill["max_steps"] = level.voxel_max_steps
-        if vx.fog is not None and vx.fog.shadow_steps is None:
-            fill["fog"] = vx.fog.model_copy(update={"shadow_steps": level.fog_shadow_steps})
-        if fill:
-            update["voxels"] = vx.model_copy(update=fill)
-    atm = None if scene.sky is None else scene.sky.atmosphere
-    if atm is not None and (atm.steps is None or atm.light_steps is None):
-        steps, light_steps = level.atmosphere_steps
-        atm = atm.model_copy(update={"steps": steps if atm.steps is None else atm.steps,
-                                     "light_steps": light_steps if atm.light_steps is None else atm.light_steps})
-        update["sky"] = scene.sky.model_copy(update={"atmosphere": atm})
-    return scene.model_copy(update=update) if update else scene
-
-
-def march_settings(march: March) -> MarchSettings:
-    level = QUALITY[march.quality]
-    steps, min_t, dtype = level.steps, level.min_transmittance, level.dtype
-    reference = march.quality == "reference"
-    placement = march.placement or ("size" if march.step_size is not None and march.steps is None else "count")
-    if placement == "size" and march.steps is None:
-        steps = 1_000_000  # bounded by the exit, not by a count
-    rule = StepRule(
-        placement=placement,
-        steps=march.steps if march.steps is not None else steps,
-        step_size=march.step_size if march.step_size is not None else 0.05,
-        step_growth=march.step_growth if march.step_growth is not None else 0.0,
-    )
-    return MarchSettings(
-        rule=rule,
-        integrator=march.integrator or "frostbite",
-        dither=march.dither or ("none" if reference else "hash"),
-        dither_scale=march.dither_scale if march.dither_scale is not None else 1.0,
-        max_distance=march.max_distance,
-        min_transmittance=march.min_transmittance if march.min_transmittance is not None else min_t,
-        density_threshold=march.density_threshold if march.density_threshold is not None else 0.0,
-        lod_scale=march.lod.scale if march.lod is not None else None,
-        closed_form=march.closed_form,
-        depth_threshold=march.depth_threshold,
-        dtype=dtype,
-        tolerance=march.tolerance,
-    )
-
-
-@dataclass(frozen=True)
-class Pass:
+    light: int
     name: str
-    kind: str
-    index: int | None = None
+    shadow: object | None
+    directional: bool
 
 
-def uses_closed_form(scene: Scene, v: int, settings: MarchSettings) -> bool:
-    vol = scene.volumes[v]
-    return (
-        settings.closed_form
-        and vol.density.kind == "constant"
-        and vol.shading == "physical"
-        and settings.integrator != "alpha"
-        and not any(light.shadow is not None for light in scene.lights)
-    )
+@dataclass(frozen=True)
+class VolumePass:
+    index: int
+    name: str  # "volume0"
+    strategy: Strategy
+    shading: str
+    lights: tuple[LightPass, ...]
+    emissive: bool  # some scene of the batch emits
+
+    @property
+    def step_pass(self) -> str:
+        return f"{self.name}.closed_form" if self.strategy == "closed_form" else f"{self.name}.march"
+
+    @property
+    def skip_pass(self) -> str:
+        return f"{self.name}.skip"
+
+    def names(self) -> list[str]:
+        timed = [li.name for li in self.lights if li.shadow is not None or self.shading != "physical"]
+        return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + timed
 
 
-def uses_skipping(scene: Scene, v: int, settings: MarchSettings) -> bool:
-    """A grid medium knows where it is empty: the physical march skips that space (same result)."""
-    vol = scene.volumes[v]
-    return (
-        vol.density.kind == "grid"
-        and vol.shading == "physical"
-        and settings.tolerance is None
-        and settings.rule.placement in ("count", "size")
-        and not uses_closed_form(scene, v, settings)
-    )
+@dataclass(frozen=True)
+class VoxelPass:
+    rounded: bool
+    ao: bool
+    shadows: tuple[LightPass, ...]  # one per light when `voxels.shadow` is set
+
+    def names(self) -> list[str]:
+        return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
+                + (["voxels.ao"] if self.ao else []) + [li.name for li in self.shadows])
 
 
-def make_plan(scene: Scene, settings: MarchSettings) -> list[Pass]:
-    scene = at_level(scene)
-    passes = [Pass("rays", "rays")]
-    vx = scene.voxels
+@dataclass(frozen=True)
+class Plan:
+    settings: MarchSettings
+    sky: str | None  # the sky kind
+    flare: bool
+    voxels: VoxelPass | None
+    volumes: tuple[VolumePass, ...]
+    spp: int
+    post: tuple[tuple[str, str], ...]  # (POST kind, pass name), in order
+    aovs: tuple[str, ...]  # the AOVs the render outputs
+
+    def names(self) -> list[str]:
+        """Every planned pass, in the order the render runs them."""
+        return (["rays"] + (["sky"] if self.sky else []) + (self.voxels.names() if self.voxels else [])
+                + [n for v in self.volumes for n in v.names()] + ["composite"] + (["post.flare"] if self.flare else [])
+                + (["resolve"] if self.spp > 1 else []) + [name for _, name in self.post])
+
+
+def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
+    shading = SHADINGS[vol.shading]
+    if not shading.caps["physical"]:
+        return "march"
+    lights = [LIGHTS[li.kind] for li in batch.lights]
+    if (settings.closed_form and DENSITIES[vol.density.kind].caps.get("homogeneous") and settings.integrator != "alpha"
+            and all(k.caps["directional"] for k in lights) and not any(li.shadow is not None for li in batch.lights)):
+        return "closed_form"  # the source is constant along a ray: one exact segment
+    if settings.tolerance is not None:
+        return "tolerance"
+    if DENSITIES[vol.density.kind].caps.get("skippable") and settings.rule.placement in ("count", "size"):
+        return "skip"
+    return "march"
+
+
+def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
+    vol, name = batch.volumes[v], f"volume{v}"
+    shading = SHADINGS[vol.shading]
+    lights = list(enumerate(batch.lights))
+    if shading.caps["lights"] == "first":  # the shader look's derivative light
+        uses = tuple(LightPass(l, f"{name}.derivative_light", None, LIGHTS[li.kind].caps["directional"])
+                     for l, li in lights[:1] if vol.shader.light == "derivative")
+    else:
+        uses = tuple(LightPass(l, f"{name}.shadow{l}", li.shadow, LIGHTS[li.kind].caps["directional"]) for l, li in lights)
+    return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
+                      emissive=bool((vol.emission > 0).any()))
+
+
+def make_plan(batch: Stacked | Scene) -> Plan:
+    """The plan of a batch (a `Stacked` view of scenes at their quality level), or of one scene."""
+    if isinstance(batch, Scene):
+        batch = stack([at_level(batch)])
+    settings = march_settings(batch.march)
+    vx = batch.voxels
+    voxels = None
     if vx is not None:  # the surface pass runs before the volumes (they march up to its depth)
-        passes.append(Pass("voxels.dda", "voxels.dda"))
-        if vx.rounded is not None:
-            passes.append(Pass("voxels.rounded", "voxels.rounded"))
-        passes.append(Pass("voxels.shade", "voxels.shade"))
-        if vx.ao is not None:
-            passes.append(Pass("voxels.ao", "voxels.ao"))
-        if vx.shadow is not None:
-            passes += [Pass(f"voxels.shadow{l}", "voxels.shadow", l) for l in range(len(scene.lights))]
-    for v, vol in enumerate(scene.volumes):
-        if uses_closed_form(scene, v, settings):
-            passes.append(Pass(f"volume{v}.closed_form", "closed_form", v))
-            continue
-        if uses_skipping(scene, v, settings):
-            passes.append(Pass(f"volume{v}.skip", "skip", v))
-        passes.append(Pass(f"volume{v}.march", "march", v))
-        if vol.shading == "physical":
-            passes += [Pass(f"volume{v}.shadow{l}", "shadow", l) for l, li in enumerate(scene.lights) if li.shadow]
-        elif vol.shader.light == "derivative" and scene.lights:
-            passes.append(Pass(f"volume{v}.derivative_light", "derivative_light", 0))
-    if scene.sky is not None:
-        passes.append(Pass("sky", "sky"))
-    passes.append(Pass("composite", "composite"))
-    if scene.sky is not None and scene.sky.flare is not None and scene.lights:
-        passes.append(Pass("post.flare", "flare"))
-    if scene.image.spp > 1:
-        passes.append(Pass("resolve", "resolve"))
-    post = scene.post
-    if post.fog is not None and scene.volumes:
-        passes.append(Pass("post.fog", "fog"))
-    if post.exposure != 1.0:
-        passes.append(Pass("post.exposure", "exposure"))
-    if post.tonemap != "none":
-        passes.append(Pass(f"post.tonemap.{post.tonemap}", "tonemap"))
-    if post.vignette > 0:
-        passes.append(Pass("post.vignette", "vignette"))
-    return passes
+        shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow, LIGHTS[li.kind].caps["directional"])
+                        for l, li in enumerate(batch.lights)) if vx.shadow is not None else ()
+        voxels = VoxelPass(rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows)
+    post = tuple((k.name, k.pass_name(batch.post)) for k in POST if k.active(batch.post))
+    return Plan(
+        settings=settings,
+        sky=None if batch.sky is None else batch.sky.kind,
+        flare=batch.sky is not None and batch.sky.flare is not None,
+        voxels=voxels,
+        volumes=tuple(volume_pass(batch, v, settings) for v in range(len(batch.volumes))),
+        spp=batch.image.spp,
+        post=post,
+        aovs=tuple(produced(batch)),
+    )
 
 
-def with_quality(scene: Scene, quality: Quality) -> Scene:
-    """The same scene at another named quality level (explicit march keys still win)."""
-    return scene.model_copy(update={"march": replace_march(scene.march, quality=quality)})
-
-
-def replace_march(march: March, **changes) -> March:
-    return March.model_validate({**march.model_dump(), **changes})
-
-
-__all__ = ["Level", "MarchSettings", "Pass", "QUALITY", "at_level", "march_settings", "make_plan", "uses_closed_form", "uses_skipping", "with_quality"]
+__all__ = ["LightPass", "Plan", "VolumePass", "VoxelPass", "make_plan"]

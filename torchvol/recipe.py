@@ -35,12 +35,13 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-from .scene import Scene, _path_str, _set_path, read_source, validate_scene
+from .aovs import AOVS
+from .keypath import lookup, path_str, set_path
+from .scene import Scene, read_source, schema_keys, validate_scene
 from .validate import SceneError, did_you_mean, fail, finite
 
 DIST_KINDS = ("uniform", "loguniform", "normal", "integer", "choice", "hemisphere", "orbit")
 RECIPE_KEYS = ("aovs",)
-AOV_NAMES = ("radiance", "distance", "depth_median", "normal", "ao", "shadow", "uv", "material")
 
 
 def mix_seed(*parts: Any) -> int:
@@ -243,7 +244,7 @@ def _is_dist(node: Any) -> bool:
 def _find_dists(node: Any, loc: tuple, out: dict[str, Dist]) -> None:
     """Collect the distributions of a raw recipe dict, keyed by key path, in document order."""
     if _is_dist(node):
-        path = _path_str(loc)
+        path = path_str(loc)
         out[path] = parse_dist(path, node)
         return
     if isinstance(node, Mapping):
@@ -251,17 +252,12 @@ def _find_dists(node: Any, loc: tuple, out: dict[str, Dist]) -> None:
             if isinstance(value, Mapping) and len(value) == 1 and next(iter(value)) not in DIST_KINDS:
                 only = next(iter(value))
                 hint = did_you_mean(str(only), DIST_KINDS)
-                if hint and isinstance(only, str) and only not in _SCENE_WORDS:
-                    fail(_path_str(loc + (key, only)), value[only], "unknown distribution" + hint + "; distributions: " + ", ".join(DIST_KINDS))
+                if hint and isinstance(only, str) and only not in schema_keys():
+                    fail(path_str(loc + (key, only)), value[only], "unknown distribution" + hint + "; distributions: " + ", ".join(DIST_KINDS))
             _find_dists(value, loc + (key,), out)
     elif isinstance(node, list):
         for i, value in enumerate(node):
             _find_dists(value, loc + (i,), out)
-
-
-# One-key tables that are scene choices, not misspelt distributions (e.g. { constant = 1 }).
-_SCENE_WORDS = frozenset({"box", "sphere", "slab", "constant", "grid", "exponential", "fbm", "clouds", "isotropic",
-                          "hg", "dual_hg", "rayleigh", "mie", "scale", "steps"})
 
 
 @dataclass(frozen=True)
@@ -286,7 +282,7 @@ class Recipe:
             name = Path(source).stem if isinstance(source, (str, Path)) else "recipe"
             data = read_source(source)
         for key, value in (overrides or {}).items():
-            _set_path(data, key, value)
+            set_path(data, key, value)
         raw = copy.deepcopy(data)
         meta = data.pop("dataset", None) or {}
         if not isinstance(meta, Mapping):
@@ -295,8 +291,8 @@ class Recipe:
             if key not in RECIPE_KEYS:
                 fail(f"dataset.{key}", meta[key], "unknown key" + did_you_mean(key, RECIPE_KEYS) + "; allowed: " + ", ".join(RECIPE_KEYS))
         aovs = meta.get("aovs", [])
-        if not isinstance(aovs, list) or any(a not in AOV_NAMES for a in aovs) or len(set(aovs)) != len(aovs):
-            fail("dataset.aovs", aovs, "expected a list of distinct AOV names from: " + ", ".join(AOV_NAMES))
+        if not isinstance(aovs, list) or any(a not in AOVS for a in aovs) or len(set(aovs)) != len(aovs):
+            fail("dataset.aovs", aovs, "expected a list of distinct AOV names from: " + ", ".join(AOVS.names()))
         dists: dict[str, Dist] = {}
         _find_dists(data, (), dists)
         recipe = cls(template=data, dists=dists, aovs=tuple(aovs), name=name, source=raw)
@@ -318,14 +314,14 @@ class Recipe:
                               or p.startswith(err.path + "[")), None)
                 if owner is None:
                     raise
-                raw = _lookup_raw(self.template, owner)
+                raw = lookup(self.template, owner)
                 fail(owner, raw, f"the distribution can give {values[owner]!r}, which is invalid: "
                      f"{err.path}: {err.allowed}")
 
     def _scene(self, values: Mapping[str, Any]) -> Scene:
         data = copy.deepcopy(self.template)
         for path, value in values.items():
-            _set_path(data, path, value)
+            set_path(data, path, value)
         return validate_scene(data)
 
     def sample_params(self, index: int, seed: int = 0) -> dict[str, Any]:
@@ -360,10 +356,3 @@ def _check_index(index: Any, seed: Any) -> None:
         fail("index", index, "expected an integer >= 0")
     if isinstance(seed, bool) or not isinstance(seed, int):
         fail("seed", seed, "expected an integer")
-
-
-def _lookup_raw(data: Any, path: str) -> Any:
-    parts = [p for p in path.replace("[", ".").replace("]", "").split(".") if p]
-    for p in parts:
-        data = data[int(p)] if isinstance(data, list) else data[p]
-    return data

@@ -1,7 +1,10 @@
 """The scene schema, validated once at the boundary; `load_scene` and `preset`.
 
-Every model forbids unknown keys and non-finite numbers. Validation errors surface as one
-`SceneError` (a ValueError) naming the key path, the value and what is allowed.
+Every model forbids unknown keys and non-finite numbers (`torchvol.schema`). The technique tables
+(bounds, density, phase, lights, sky) are built from the registries, so a registered kind is a
+valid key. Validation errors surface as one `SceneError` (a ValueError) naming the key path, the
+value and what is allowed. Each field's batch role (per scene or shared by a batch) is declared
+here, beside its type (`torchvol.schema`).
 """
 
 from __future__ import annotations
@@ -9,65 +12,26 @@ from __future__ import annotations
 import copy
 import math
 import tomllib
+from functools import lru_cache
 from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Annotated, Any, Literal, Mapping
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
-from pydantic_core import PydanticCustomError
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
+from .bounds import BOUNDS, Box
+from .fields import DENSITIES
+from .keypath import lookup, path_str, set_path
+from .lights import LIGHTS
+from .post import Post
+from .schema import EACH, SHARED, GridSource, One, Strict, Vec3, nonneg, reachable_models, refuse
+from .sky import SKIES
 from .validate import SceneError, did_you_mean, fail
+from .volume.phase import PHASES, Empty, PhaseChoice
+from .volume.shader_look import ShaderLook
+from .volume.shading import SHADINGS
 
-Vec3 = tuple[float, float, float]
 PRESET_DIR = Path(__file__).parent / "presets"
-
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, arbitrary_types_allowed=True, frozen=True)
-
-    @model_validator(mode="before")
-    @classmethod
-    def _known_keys(cls, data: Any) -> Any:
-        if isinstance(data, Mapping):
-            for key in data:
-                if key not in cls.model_fields:
-                    allowed = ", ".join(cls.model_fields)
-                    raise PydanticCustomError(
-                        "unknown_key",
-                        "unknown key{hint}; allowed keys: {allowed}",
-                        {"key": str(key), "hint": did_you_mean(str(key), cls.model_fields), "allowed": allowed},
-                    )
-        return data
-
-
-def _refuse(path: str, value: Any, allowed: str):
-    """A cross-key rule broken: an error naming `path` (from the scene's root), not the model's."""
-    raise PydanticCustomError("at_path", "{allowed}", {"path": path, "value": value, "allowed": allowed})
-
-
-def _nonneg(v: Vec3, what: str = "components") -> Vec3:
-    if min(v) < 0:
-        raise ValueError(f"{what} must be >= 0")
-    return v
-
-
-class One(Strict):
-    """A choice written as a table with exactly one key, e.g. ``{ box = {...} }``."""
-
-    @model_validator(mode="after")
-    def _exactly_one(self):
-        given = [k for k in type(self).model_fields if getattr(self, k) is not None]
-        if len(given) != 1:
-            raise ValueError(f"give exactly one of {', '.join(type(self).model_fields)}")
-        return self
-
-    @property
-    def kind(self) -> str:
-        return next(k for k in type(self).model_fields if getattr(self, k) is not None)
-
-    @property
-    def value(self) -> Any:
-        return getattr(self, self.kind)
 
 
 class Image(Strict):
@@ -126,255 +90,13 @@ class CameraSpec(Strict):
         return 45.0 if self.fov_y is None and self.focal is None else self.fov_y
 
 
-class Glow(Strict):
-    """An additive lobe around the sun: color · clamp(dot(sun, rd), 0, 1)^power."""
-
-    color: Vec3
-    power: float = Field(gt=0.0)
-    _c = field_validator("color")(lambda v: _nonneg(v))
-
-
-class Atmosphere(Strict):
-    """Rayleigh + Mie single scattering around a spherical planet (lengths in world units; the
-    defaults are Earth's in metres). The sun is the scene's first light."""
-
-    planet_radius: float = Field(6.36e6, gt=0.0)
-    atmosphere_height: float = Field(6.0e4, gt=0.0)
-    eye_height: float = Field(1.0, ge=0.0)
-    rayleigh: Vec3 = (5.8e-6, 13.5e-6, 33.1e-6)
-    mie: float = Field(21e-6, ge=0.0)
-    rayleigh_height: float = Field(7994.0, gt=0.0)
-    mie_height: float = Field(1200.0, gt=0.0)
-    mie_g: float = Field(0.76, gt=-1.0, lt=1.0)
-    sun_intensity: float = Field(20.0, ge=0.0)
-    steps: int | None = Field(None, ge=1, le=1024, description="None: the quality level's")
-    light_steps: int | None = Field(None, ge=1, le=1024, description="None: the quality level's")
-    _r = field_validator("rayleigh")(lambda v: _nonneg(v))
-
-    @model_validator(mode="after")
-    def _eye_inside(self):
-        if self.eye_height >= self.atmosphere_height:
-            raise ValueError("eye_height must be below atmosphere_height")
-        return self
-
-
-class Sky(Strict):
-    kind: Literal["constant", "gradient", "atmosphere"] = "constant"
-    atmosphere: Atmosphere = Field(default_factory=Atmosphere)
-    radiance: Vec3 = (0.0, 0.0, 0.0)
-    horizon: Vec3 = (0.675, 0.785, 0.825)  # gradient: colour at rd.y = 0
-    slope: Vec3 = (0.2, 0.1, 0.2)  # gradient: colour = horizon − rd.y · slope
-    halo: Glow | None = None  # added to the sky (seen through volumes)
-    flare: Glow | None = None  # added over everything, after compositing
-    _r = field_validator("radiance")(lambda v: _nonneg(v))
-
-
-class Shadow(Strict):
-    """How a sun's transmittance through the volumes is found: `march` (a shadow march from every lit
-    sample) or `grid` (optical depth tabulated once per scene on `resolution`² × (resolution/2 + 1)
-    sun-aligned nodes over each volume's bounds (Simpson's rule along the sun), looked up bicubically
-    across the sun plus a trapezoid over the gap to the next plane: far cheaper; box and sphere
-    bounds only). Measured on the Mitsuba parity cloud (64³ grid, optical depth 10) at 256², 96
-    steps, against the exact float64 reference: relative RMSE 0.093% with the grid at resolution 128
-    (0.026% is the primary march's alone) in 0.27 s, where a 32-step shadow march takes 1.2 s for
-    0.12% at 64 steps. Hard surfaces of the medium (a dense field cut by sphere bounds) smear over
-    a grid cell: 1.9%, 0.69%, 0.30% relative RMSE against the march at resolution 96, 192, 384 on
-    such a sphere."""
-
-    method: Literal["march", "grid"] = "march"
-    steps: int | None = Field(None, ge=1, le=4096, description="None: the quality level's")
-    growth: float = Field(1.0, ge=1.0, le=4.0)
-    first_step: float | None = Field(None, gt=0.0)
-    resolution: int = Field(128, ge=4, le=1024)
-
-
-class Light(Strict):
-    kind: Literal["sun"] = "sun"
-    direction: Vec3 = (1.0, 1.0, -0.5)
-    color: Vec3 = (1.0, 1.0, 1.0)
-    intensity: float = Field(1.0, ge=0.0)
-    shadow: Shadow | None = None
-
-    @field_validator("direction")
-    @classmethod
-    def _nonzero(cls, v):
-        if math.hypot(*v) < 1e-12:
-            raise ValueError("direction must be a non-zero vector (it points towards the sun)")
-        return v
-
-    _c = field_validator("color")(lambda v: _nonneg(v))
-
-
-class Box(Strict):
-    min: Vec3 = (-0.5, -0.5, -0.5)
-    max: Vec3 = (0.5, 0.5, 0.5)
-
-    @model_validator(mode="after")
-    def _ordered(self):
-        if any(hi <= lo for lo, hi in zip(self.min, self.max)):
-            raise ValueError(f"max {self.max} must exceed min {self.min} on every axis")
-        return self
-
-
-class Sphere(Strict):
-    center: Vec3 = (0.0, 0.0, 0.0)
-    radius: float = Field(1.0, gt=0.0)
-
-
-class Slab(Strict):
-    y_min: float = -1.0
-    y_max: float = 1.0
-
-    @model_validator(mode="after")
-    def _ordered(self):
-        if self.y_max <= self.y_min:
-            raise ValueError(f"y_max {self.y_max} must exceed y_min {self.y_min}")
-        return self
-
-
-class Bounds(One):
-    box: Box | None = None
-    sphere: Sphere | None = None
-    slab: Slab | None = None
-
-
-class GridSource(Strict):
-    """A 3D array given as `path` (a .npy file) or `data` (an array or tensor), indexed [k, j, i]."""
-
-    path: str | None = None
-    data: Any = None
-
-    def _check(self, array: np.ndarray) -> np.ndarray:
-        """Subclasses: validate the values and return the stored array."""
-        raise NotImplementedError
-
-    @model_validator(mode="after")
-    def _load(self):
-        if (self.path is None) == (self.data is None):
-            raise ValueError("give path (a .npy file) or data (an array), not both")
-        if self.path is not None:
-            if not Path(self.path).is_file():
-                raise ValueError(f"no such file: {self.path}")
-            array = np.load(self.path)
-        else:
-            array = np.asarray(self.data.numpy() if hasattr(self.data, "numpy") else self.data)
-        if array.ndim != 3 or min(array.shape) < 1:
-            raise ValueError(f"grid must be a 3D array [k, j, i], got shape {array.shape}")
-        object.__setattr__(self, "data", self._check(array))
-        return self
-
-
-class GridDensity(GridSource):
-    """grid[k, j, i] is the value at the centre of cell (i, j, k) of the volume's box."""
-
-    def _check(self, array: np.ndarray) -> np.ndarray:
-        if not np.issubdtype(array.dtype, np.number) or not np.all(np.isfinite(array)) or array.min() < 0:
-            raise ValueError("grid values must be finite numbers >= 0")
-        return array.astype(np.float64, copy=False)
-
-
-class FbmDensity(Strict):
-    """density = max(bias + amplitude · fbm(frequency · (p − wind·time) + offset) − radial·|p − center|, 0):
-    `radial` > 0 thins the noise out away from `center` (a puff instead of a filled bound)."""
-
-    octaves: int = Field(5, ge=1, le=12)
-    frequency: float = Field(1.0, gt=0.0, le=1e6)
-    noise: Literal["value", "perlin", "worley"] = "value"
-    seed: int = 0
-    amplitude: float = 1.0
-    bias: float = 0.0
-    offset: Vec3 = (0.0, 0.0, 0.0)
-    wind: Vec3 = (0.0, 0.0, 0.0)
-    radial: float = Field(0.0, ge=0.0)
-    center: Vec3 = (0.0, 0.0, 0.0)
-
-
-class CloudsDensity(Strict):
-    """The seed template's cloud layer `map()`:
-    clamp(bias − p.y + density_scale · fbm(p − wind·time), 0, 1), fbm of texture noise in [−1, 1]."""
-
-    texture_seed: int = 0
-    texture: Any = None  # a PNG path or a uint8 array (256, 256, 4) [y, x, channel]
-    octaves: int = Field(5, ge=1, le=5)
-    density_scale: float = 1.75
-    bias: float = -0.5
-    wind: Vec3 = (0.0, 0.1, 1.0)
-
-    @field_validator("texture")
-    @classmethod
-    def _texture(cls, v):
-        if v is None:
-            return None
-        if isinstance(v, (str, Path)):
-            if not Path(v).is_file():
-                raise ValueError(f"no such file: {v}")
-            from PIL import Image as PILImage
-
-            v = np.asarray(PILImage.open(v).convert("RGBA"))
-        array = np.asarray(v)
-        if array.shape != (256, 256, 4) or array.dtype != np.uint8:
-            raise ValueError(f"noise texture must be uint8 (256, 256, 4), got {array.dtype} {array.shape}")
-        return array
-
-
-class ExponentialDensity(Strict):
-    """density = value · e^{−(y − base)/scale_height}."""
-
-    value: float = Field(1.0, ge=0.0)
-    base: float = 0.0
-    scale_height: float = Field(1.0, gt=0.0)
-
-
-class Density(One):
-    constant: float | None = Field(None, ge=0.0)
-    grid: GridDensity | None = None
-    exponential: ExponentialDensity | None = None
-    fbm: FbmDensity | None = None
-    clouds: CloudsDensity | None = None
-
-
-class HG(Strict):
-    g: float = Field(0.0, gt=-1.0, lt=1.0)
-
-
-class DualHG(Strict):
-    g_forward: float = Field(0.8, gt=-1.0, lt=1.0)
-    g_backward: float = Field(-0.2, gt=-1.0, lt=1.0)
-    weight: float = Field(0.5, ge=0.0, le=1.0)
-
-
-class Empty(Strict):
-    pass
-
-
-class Phase(One):
-    isotropic: Empty | None = None
-    hg: HG | None = None
-    dual_hg: DualHG | None = None
-    rayleigh: Empty | None = None
-    mie: HG | None = None
-
-    @model_validator(mode="before")
-    @classmethod
-    def _shorthand(cls, data):
-        return {data: {}} if isinstance(data, str) else data
-
-
-class ShaderLook(Strict):
-    """The seeds' non-physical look (shading = "shader"): alpha = density·alpha_scale, colour =
-    mix(color_lit, color_dark, density) · (sun_color · derivative light + ambient), fog towards the sky."""
-
-    light: Literal["derivative", "none"] = "derivative"
-    light_offset: float = Field(0.3, gt=0.0)
-    light_scale: float = Field(0.6, gt=0.0)
-    ambient: Vec3 = (0.91, 0.98, 1.05)
-    # height gradient (seed Step 6 Method C): ambient = mix(ambient, ambient_top, normalised height
-    # in the bounds); e.g. ambient = [0.229, 0.394, 0.512], ambient_top = [0.876, 0.982, 1.176]
-    ambient_top: Vec3 | None = None
-    color_lit: Vec3 = (1.0, 0.95, 0.8)
-    color_dark: Vec3 = (0.25, 0.3, 0.35)
-    alpha_scale: float = Field(0.4, ge=0.0)
-    fog: float = Field(0.0, ge=0.0)  # mix towards the sky by 1 − exp(−fog·t²)
+Bounds = BOUNDS.one_of("Bounds", "Where the medium is: `{ box = {...} }`, `{ sphere = {...} }` or `{ slab = {...} }`.")
+Density = DENSITIES.one_of("Density", "The density field: one of the registered kinds, e.g. `{ fbm = {...} }`.")
+Phase = PHASES.one_of("Phase", "The phase function: `{ hg = { g = 0.8 } }`, or a kind's name alone.", base=PhaseChoice)
+Light = LIGHTS.tagged_union(default="sun")
+Sky = SKIES.tagged_union(default="constant")
+Shading = Literal[SHADINGS.names()]
+_TAGS = set(LIGHTS.names()) | set(SKIES.names())  # the tables chosen by their `kind` key
 
 
 class Volume(Strict):
@@ -384,14 +106,14 @@ class Volume(Strict):
     albedo: float = Field(1.0, ge=0.0, le=1.0)
     emission: Vec3 = (0.0, 0.0, 0.0)
     phase: Phase = Field(default_factory=lambda: Phase(isotropic=Empty()))
-    shading: Literal["physical", "shader"] = "physical"
+    shading: Shading = "physical"
     shader: ShaderLook = Field(default_factory=ShaderLook)
-    _e = field_validator("emission")(lambda v: _nonneg(v))
+    _e = field_validator("emission")(lambda v: nonneg(v))
 
     @model_validator(mode="after")
-    def _grid_needs_box(self):
-        if self.density.kind == "grid" and self.bounds.kind != "box":
-            raise ValueError("a grid density needs box bounds (the grid spans the box)")
+    def _density_fits_bounds(self):
+        if DENSITIES[self.density.kind].caps.get("needs_box") and self.bounds.kind != "box":
+            raise ValueError(f"a {self.density.kind} density needs box bounds (it spans the box)")
         return self
 
 
@@ -402,6 +124,8 @@ class Lod(Strict):
 
 
 class March(Strict):
+    """How volumes are marched: accuracy settings, shared by a batch (one march per batch)."""
+
     quality: Literal["draft", "default", "high", "reference"] = "default"
     integrator: Literal["riemann", "frostbite", "alpha"] | None = None
     placement: Literal["count", "size", "adaptive"] | None = None
@@ -429,27 +153,6 @@ class March(Strict):
         return self
 
 
-class Fog(Strict):
-    color: Vec3 = (0.5, 0.6, 0.7)
-    density: float = Field(0.01, ge=0.0)
-    _c = field_validator("color")(lambda v: _nonneg(v))
-
-
-class Post(Strict):
-    tonemap: Literal["none", "smoothstep", "reinhard", "aces"] = "none"
-    exposure: float = Field(1.0, gt=0.0)
-    smoothstep_edges: tuple[float, float] = (0.15, 1.1)
-    vignette: float = Field(0.0, ge=0.0, le=1.0)
-    fog: Fog | None = None
-
-    @field_validator("smoothstep_edges")
-    @classmethod
-    def _edges(cls, v):
-        if v[1] <= v[0]:
-            raise ValueError("smoothstep_edges must be increasing")
-        return v
-
-
 # ---------------------------------------------------------------------------------------------
 # Voxels (see docs/VOXELS.md)
 
@@ -464,7 +167,7 @@ class SdfSphere(Strict):
 class SdfBox(Strict):
     center: Vec3 = (0.0, 0.0, 0.0)
     half_size: Vec3 = (1.0, 1.0, 1.0)
-    _h = field_validator("half_size")(lambda v: _nonneg(v))
+    _h = field_validator("half_size")(lambda v: nonneg(v))
 
 
 class SdfRoundedBox(SdfBox):
@@ -570,11 +273,11 @@ class VoxelShadow(Strict):
 
 
 class VoxelTexture(Strict):
-    """Atlas (H, W, 3|4) uint8 (or a PNG path) of tiles × tiles tiles; material m uses tile m − 1
+    """Atlas (H, W, 3|4) uint8 (or a PNG path) of tiles × tiles tiles, per scene; material m uses tile m − 1
     (row-major from the top left), sampled at the face UV (nearest texel)."""
 
-    atlas: Any
-    tiles: int = Field(4, ge=1, le=256)
+    atlas: Annotated[Any, EACH]
+    tiles: Annotated[int, EACH] = Field(4, ge=1, le=256)
 
     @field_validator("atlas")
     @classmethod
@@ -608,7 +311,7 @@ class VoxelRounded(Strict):
     radius_range: float = Field(0.35, ge=0.0, le=0.5)
     steps: int = Field(6, ge=1, le=64)
     threshold: float = Field(0.025, gt=0.0)
-    seed: int = 0
+    seed: int = 0  # shared by a batch: the hash of each cell's radius
     retries: int = Field(8, ge=0, le=64)  # rays that miss a rounded voxel continue this many times
 
 
@@ -624,8 +327,11 @@ class VoxelFog(Strict):
 
 
 class Voxels(Strict):
-    occupancy: Occupancy
-    cells: CellRange = Field(default_factory=CellRange)
+    """A voxel world. Its occupancy and cell range are per scene (each scene's grid is built on its
+    own); materials are per scene too, their count shared by a batch."""
+
+    occupancy: Annotated[Occupancy, EACH]
+    cells: Annotated[CellRange, EACH] = Field(default_factory=CellRange)
     origin: Vec3 = (0.0, 0.0, 0.0)  # world position of cell (0, 0, 0)'s min corner
     voxel_size: float = Field(1.0, gt=0.0)
     max_steps: int | None = Field(None, ge=1, le=1_000_000, description="None: the quality level's")
@@ -655,23 +361,40 @@ class Scene(Strict):
     lights: list[Light] = Field(default_factory=list)
     volumes: list[Volume] = Field(default_factory=list)
     voxels: Voxels | None = None
-    march: March = Field(default_factory=March)
+    march: Annotated[March, SHARED] = Field(default_factory=March)
     post: Post = Field(default_factory=Post)
 
     @model_validator(mode="after")
-    def _shadow_grid_needs_finite_bounds(self):
+    def _shadow_grid_needs_a_sun_and_finite_bounds(self):
         for l, light in enumerate(self.lights):
             if light.shadow is not None and light.shadow.method == "grid":
+                if not LIGHTS[light.kind].caps["directional"]:
+                    refuse(f"lights[{l}].shadow.method", "grid", f"'grid' tabulates a sun's shadow; a {light.kind} "
+                           "light needs 'march'")
                 for v, vol in enumerate(self.volumes):
-                    if vol.bounds.kind == "slab":
-                        _refuse(f"lights[{l}].shadow.method", "grid",
-                                f"'grid' needs box or sphere bounds and volumes[{v}] is a slab (use 'march')")
+                    if not BOUNDS[vol.bounds.kind].caps["finite"]:
+                        refuse(f"lights[{l}].shadow.method", "grid",
+                               f"'grid' needs box or sphere bounds and volumes[{v}] is a {vol.bounds.kind} (use 'march')")
         return self
 
     @model_validator(mode="after")
-    def _atmosphere_needs_a_sun(self):
-        if self.sky is not None and self.sky.kind == "atmosphere" and not self.lights:
-            _refuse("sky.kind", "atmosphere", "the atmosphere is lit by the first light: add a [[lights]] sun")
+    def _sky_lit_by_a_sun(self):
+        if self.sky is None:
+            return self
+        sun = bool(self.lights) and LIGHTS[self.lights[0].kind].caps["directional"]
+        if SKIES[self.sky.kind].caps.get("needs_sun") and not sun:
+            refuse("sky.kind", self.sky.kind, "the atmosphere is lit by the first light: make lights[0] a sun")
+        for glow in ("halo", "flare"):
+            if getattr(self.sky, glow) is not None and not sun:
+                refuse(f"sky.{glow}", "<glow>", f"the {glow} is a lobe around the sun: make lights[0] a sun")
+        return self
+
+    @model_validator(mode="after")
+    def _keys_that_need_something_to_act_on(self):
+        if self.post.fog is not None and not self.volumes and self.voxels is None:
+            refuse("post.fog", "<fog>", "distance fog needs something to fog: add volumes or voxels")
+        if self.march.lod is not None and not any(DENSITIES[v.density.kind].caps.get("octaves") for v in self.volumes):
+            refuse("march.lod", "<lod>", "no volume has a density with octaves to drop (fbm, clouds)")
         return self
 
 
@@ -679,71 +402,33 @@ class Scene(Strict):
 # Loading
 
 
-def _path_str(loc: tuple) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        else:
-            out += ("." if out else "") + str(part)
-    return out
-
-
-def _lookup(data: Any, loc: tuple) -> Any:
-    for part in loc:
-        try:
-            data = data[part]
-        except (KeyError, IndexError, TypeError):
-            return None
-    return data
-
-
 def _scene_error(err: ValidationError, raw: Any) -> SceneError:
-    """Turn pydantic's first error into our one message shape."""
+    """Turn pydantic's first error into our one message shape. A kind-tagged table's tag (e.g. a
+    light's 'point') is left out of the path: it is the table's own `kind` value, not a key."""
     e = err.errors(include_url=False)[0]
-    loc = tuple(p for p in e["loc"] if not (isinstance(p, str) and ("[" in p or p.startswith("function-"))))
+    loc: tuple = ()
+    for part in e["loc"]:
+        if isinstance(part, str) and ("[" in part or part.startswith("function-")):
+            continue
+        node = lookup(raw, loc)
+        if part in _TAGS and isinstance(node, Mapping) and part not in node and node.get("kind", part) == part:
+            continue  # a tagged union's tag
+        loc = loc + (part,)
     if e["type"] == "at_path":
         return SceneError(e["ctx"]["path"], e["ctx"]["value"], e["msg"])
+    if e["type"] == "union_tag_invalid":  # a `kind` no registry holds
+        tag, allowed = e["ctx"]["tag"], [t.strip(" '") for t in e["ctx"]["expected_tags"].split(",")]
+        return SceneError(path_str(loc + ("kind",)), tag, "unknown kind" + did_you_mean(tag, allowed)
+                          + "; kinds: " + ", ".join(allowed))
     if e["type"] == "unknown_key":
         key = e["ctx"]["key"]
         loc = loc + (key,)
-        return SceneError(_path_str(loc), _lookup(raw, loc), e["msg"])
+        return SceneError(path_str(loc), lookup(raw, loc), e["msg"])
     value = e.get("input")
     msg = e["msg"].removeprefix("Value error, ")
     if isinstance(value, Mapping) and len(repr(value)) > 120:
         value = f"{{{', '.join(map(str, value))}}}"
-    return SceneError(_path_str(loc), value, msg)
-
-
-def _set_path(data: dict, dotted: str, value: Any) -> None:
-    """Apply one override ``a.b[0].c`` / ``a.b.0.c`` to a nested dict/list, creating tables."""
-    parts = [p for p in dotted.replace("[", ".").replace("]", "").split(".") if p]
-    if not parts:
-        fail(dotted, value, "an override key must be a dotted path like 'camera.fov_y'")
-    node: Any = data
-    for i, part in enumerate(parts):
-        last = i == len(parts) - 1
-        if isinstance(node, list):
-            if not part.isdigit() or int(part) >= len(node):
-                where = _path_str(tuple(int(p) if p.isdigit() else p for p in parts[: i + 1]))
-                fail(where, value, f"index out of range (the list has {len(node)} items)")
-            part = int(part)
-        elif not isinstance(node, dict):
-            fail(dotted, value, f"{'.'.join(parts[:i])} is not a table")
-        if last:
-            node[part] = value
-        else:
-            if isinstance(node, dict) and part not in node:
-                node[part] = {}
-            node = node[part]
-
-
-def parse_value(text: str) -> Any:
-    """A command-line value: TOML syntax where it parses (numbers, [1,2,3], true), else a string."""
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
+    return SceneError(path_str(loc), value, msg)
 
 
 def read_source(source: str | Path | Mapping) -> dict:
@@ -783,8 +468,15 @@ def load_scene(source: str | Path | Mapping | Scene, overrides: Mapping[str, Any
         return source
     data = read_source(source)
     for key, value in (overrides or {}).items():
-        _set_path(data, key, value)
+        set_path(data, key, value)
     return validate_scene(data)
+
+
+@lru_cache(maxsize=1)
+def schema_keys() -> frozenset[str]:
+    """Every key any table of the scene schema may hold (recipes tell a scene's one-key table,
+    e.g. `{ fbm = {...} }`, from a misspelt distribution by it)."""
+    return frozenset(name for cls in reachable_models(Scene) for name in cls.model_fields)
 
 
 def preset_names() -> list[str]:

@@ -19,8 +19,9 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-from .plan import Quality
-from .scene import Scene, _set_path, load_scene, read_source
+from .quality import Quality
+from .keypath import set_path
+from .scene import Scene, load_scene, read_source
 from .validate import fail
 
 # march keys that only set the approximation: the reference replaces them with its own
@@ -103,7 +104,7 @@ def sweep(scene: str | Path | Mapping | Scene, params: Mapping[str, Sequence[Any
             fail(f"--param {key}", values, "expected a non-empty list of values")
     base = read_source(scene)
     for key, value in (overrides or {}).items():
-        _set_path(base, key, value)
+        set_path(base, key, value)
     load_scene(base)  # validated once, with key paths, before any rendering
     keys = list(params)
     out = Path(out)
@@ -119,7 +120,7 @@ def sweep(scene: str | Path | Mapping | Scene, params: Mapping[str, Sequence[Any
             ref_data = copy.deepcopy(base)
             for k, v in values.items():
                 if not k.startswith("march."):
-                    _set_path(ref_data, k, v)
+                    set_path(ref_data, k, v)
             references[other] = render(load_scene(at_quality(ref_data, "reference")), seed=seed).image
         error = image_error(result.image, references[other])
         rows.append({

@@ -1,40 +1,34 @@
-"""Density fields: callables `field(points [N,3], scene_index [N], lod [N] | None) -> density [N]`.
+"""Density fields: the `DENSITIES` registry. Each kind is its schema model (the table under
+`density = { kind = ... }`), its field class (built per batch: `fn(params, times, compiled=...)`,
+called as `field(points [N, 3], scene_index [N], lod [N] | None) -> density [N]`) and its
+capabilities:
+
+- ``homogeneous``: constant in space (a medium with a closed form along any ray);
+- ``skippable``: the field knows where it is empty (`occupancy(b)`), so the march skips the rest;
+- ``needs_box``: spans its volume's box (the box is handed to `fn` as ``box_min``, ``box_max``);
+- ``cheap``: a sample costs less than compacting the march's batch (the march keeps finished rays
+  in the batch longer);
+- ``octaves``: a sum of octaves that `march.lod` may cut short with distance.
 
 Each field holds per-scene parameter tensors of shape (B, ...) and calls plain noise / sampling
-functions, so B scenes of one structure evaluate in one call. `homogeneous` marks fields whose
-density is constant in space (the planner may integrate those in closed form).
+functions, so B scenes of one structure evaluate in one call.
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from ..registry import Registry
+from .base import Field
+from .clouds import CloudLayer, CloudsDensity
+from .constant import Constant, ConstantDensity
+from .exponential import Exponential, ExponentialDensity
+from .fbm import FbmDensity, FbmField
+from .grid import Grid, GridDensity
 
-import torch
+DENSITIES = Registry("density")
+DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True)
+DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True)
+DENSITIES.register("exponential", ExponentialDensity, Exponential)
+DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True)
+DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True)
 
-from .base import Field, per_scene
-from .clouds import CloudLayer
-from .constant import Constant
-from .exponential import Exponential
-from .fbm import FbmField
-from .grid import Grid
-
-__all__ = ["Field", "per_scene", "make_field", "Constant", "Exponential", "Grid", "FbmField", "CloudLayer"]
-
-
-def make_field(specs: Sequence, bounds: Sequence, times: torch.Tensor, *, compiled: bool = False) -> Field:
-    """The field for one volume slot of B scenes. `specs`: B `Density` models of one kind;
-    `bounds`: their B `Bounds`; `times`: (B,) scene times (for wind); `compiled`: noise kernels
-    under torch.compile."""
-    kind = specs[0].kind
-    values = [s.value for s in specs]
-    if kind == "constant":
-        return Constant(torch.tensor(values, dtype=times.dtype, device=times.device))
-    if kind == "grid":
-        return Grid([v.data for v in values], [b.box for b in bounds], dtype=times.dtype, device=times.device)
-    if kind == "exponential":
-        return Exponential(values, dtype=times.dtype, device=times.device)
-    if kind == "fbm":
-        return FbmField(values, times, compiled=compiled)
-    if kind == "clouds":
-        return CloudLayer(values, times, compiled=compiled)
-    raise NotImplementedError(kind)
+__all__ = ["DENSITIES", "Field"]

@@ -6,46 +6,70 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from pathlib import Path
+from typing import Annotated, Any
 
+import numpy as np
 import torch
+from pydantic import Field, field_validator
 from torch import Tensor
 
 from .. import noise
-from .base import per_scene
+from ..batch import Stacked, per_scene, take
+from ..schema import EACH, Strict, Vec3
+
+
+class CloudsDensity(Strict):
+    """The seed template's cloud layer `map()`:
+    clamp(bias − p.y + density_scale · fbm(p − wind·time), 0, 1), fbm of texture noise in [−1, 1]."""
+
+    texture_seed: Annotated[int, EACH] = 0
+    texture: Annotated[Any, EACH] = None  # a PNG path or a uint8 array (256, 256, 4) [y, x, channel]
+    octaves: int = Field(5, ge=1, le=5)
+    density_scale: float = 1.75
+    bias: float = -0.5
+    wind: Vec3 = (0.0, 0.1, 1.0)
+
+    @field_validator("texture")
+    @classmethod
+    def _texture(cls, v):
+        if v is None:
+            return None
+        if isinstance(v, (str, Path)):
+            if not Path(v).is_file():
+                raise ValueError(f"no such file: {v}")
+            from PIL import Image as PILImage
+
+            v = np.asarray(PILImage.open(v).convert("RGBA"))
+        array = np.asarray(v)
+        if array.shape != (256, 256, 4) or array.dtype != np.uint8:
+            raise ValueError(f"noise texture must be uint8 (256, 256, 4), got {array.dtype} {array.shape}")
+        return array
 
 
 class CloudLayer:
-    homogeneous = False
-
-    def __init__(self, specs: Sequence, times: Tensor, *, compiled: bool = False):
-        kw = dict(dtype=times.dtype, device=times.device)
-        self.specs = list(specs)
+    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+        self.p = params
         self.tables = [
-            noise.texture_table(
-                torch.as_tensor(s.texture) if s.texture is not None else noise.default_noise_texture(s.texture_seed),
-                times.device,
-            )
-            for s in specs
+            noise.texture_table(torch.as_tensor(tex) if tex is not None else noise.default_noise_texture(seed), times.device)
+            for tex, seed in zip(params.texture, params.texture_seed)
         ]
         self.kernel = noise.compiled(noise.texture_noise_table) if compiled else noise.texture_noise_table
-        self.shift = torch.tensor([s.wind for s in specs], **kw) * times[:, None]  # (B, 3)
-        self.scale = torch.tensor([s.density_scale for s in specs], **kw)
-        self.bias = torch.tensor([s.bias for s in specs], **kw)
-        self.feature_size = torch.tensor([noise.finest_period(s.octaves) for s in specs], **kw)
+        self.shift = params.wind * times[:, None]  # (B, 3)
+        self.feature_size = torch.full_like(times, noise.finest_period(params.octaves))
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         return self.signed(points, scene_index, lod).clamp_min(0.0)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
-        q = points - self.shift[scene_index]
+        p, s = self.p, scene_index
+        q = points - take(self.shift, s)
+        octaves = None if lod is None else p.octaves - lod
 
         def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
             table = self.tables[b]
-            return noise.fbm(
-                q_b, lambda x: self.kernel(x, table) * 2.0 - 1.0,
-                octaves=self.specs[b].octaves, lod=None if lod is None else lod[idx],
-            )
+            return noise.fbm(q_b, lambda x: self.kernel(x, table) * 2.0 - 1.0, octaves=p.octaves,
+                             lod=None if octaves is None else octaves[idx])
 
-        f = per_scene(q, scene_index, len(self.specs), one_scene)
-        return (self.bias[scene_index] - points[:, 1] + self.scale[scene_index] * f).clamp_max(1.0)
+        f = per_scene(q, s, len(p), one_scene)
+        return (take(p.bias, s) - points[:, 1] + take(p.density_scale, s) * f).clamp_max(1.0)

@@ -1,18 +1,24 @@
-"""A homogeneous medium: one density per scene."""
+"""A homogeneous medium: one density per scene (`density = { constant = 1.0 }`)."""
 
 from __future__ import annotations
 
+from typing import Annotated
+
+from pydantic import Field
 from torch import Tensor
+
+from ..batch import take
+
+ConstantDensity = Annotated[float, Field(ge=0.0)]
 
 
 class Constant:
-    homogeneous = True
     feature_size = None
 
-    def __init__(self, value: Tensor):  # (B,)
+    def __init__(self, value: Tensor, times: Tensor, *, compiled: bool = False):  # value (B,)
         self.value = value
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
-        return self.value[scene_index]
+        return take(self.value, scene_index)
 
     signed = __call__  # never clamped: the density is its own signed value

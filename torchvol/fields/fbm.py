@@ -3,44 +3,55 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Annotated, Literal
 
-import torch
+from pydantic import Field
 from torch import Tensor
 
 from .. import noise
-from .base import per_scene
+from ..batch import Stacked, per_scene, take
+from ..schema import EACH, Strict, Vec3
 
 NOISES = {"value": noise.value_noise, "perlin": noise.perlin_noise, "worley": noise.worley_noise}
 
 
-class FbmField:
-    homogeneous = False
+class FbmDensity(Strict):
+    """density = max(bias + amplitude · fbm(frequency · (p − wind·time) + offset) − radial·|p − center|, 0):
+    `radial` > 0 thins the noise out away from `center` (a puff instead of a filled bound)."""
 
-    def __init__(self, specs: Sequence, times: Tensor, *, compiled: bool = False):
-        kw = dict(dtype=times.dtype, device=times.device)
-        self.specs = list(specs)
-        self.bases = {name: noise.compiled(fn) if compiled else fn for name, fn in NOISES.items()}
-        self.frequency = torch.tensor([s.frequency for s in specs], **kw)
-        self.amplitude = torch.tensor([s.amplitude for s in specs], **kw)
-        self.bias = torch.tensor([s.bias for s in specs], **kw)
-        self.offset = torch.tensor([s.offset for s in specs], **kw)
-        self.shift = torch.tensor([s.wind for s in specs], **kw) * times[:, None]  # (B, 3)
-        self.radial = torch.tensor([s.radial for s in specs], **kw)
-        self.center = torch.tensor([s.center for s in specs], **kw)
-        self.feature_size = torch.tensor([noise.finest_period(s.octaves) for s in specs], **kw) / self.frequency
+    octaves: int = Field(5, ge=1, le=12)
+    frequency: float = Field(1.0, gt=0.0, le=1e6)
+    noise: Literal["value", "perlin", "worley"] = "value"
+    seed: Annotated[int, EACH] = 0
+    amplitude: float = 1.0
+    bias: float = 0.0
+    offset: Vec3 = (0.0, 0.0, 0.0)
+    wind: Vec3 = (0.0, 0.0, 0.0)
+    radial: float = Field(0.0, ge=0.0)
+    center: Vec3 = (0.0, 0.0, 0.0)
+
+
+class FbmField:
+    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+        self.p = params
+        basis = NOISES[params.noise]
+        self.basis = noise.compiled(basis) if compiled else basis
+        self.shift = params.wind * times[:, None]  # (B, 3)
+        self.feature_size = noise.finest_period(params.octaves) / params.frequency
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         return self.signed(points, scene_index, lod).clamp_min(0.0)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
-        q = self.frequency[scene_index, None] * (points - self.shift[scene_index]) + self.offset[scene_index]
+        p, s = self.p, scene_index
+        q = take(p.frequency, s)[:, None] * (points - take(self.shift, s)) + take(p.offset, s)
+        octaves = None if lod is None else p.octaves - lod
 
         def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
-            spec = self.specs[b]
-            basis = self.bases[spec.noise]
-            return noise.fbm(q_b, lambda x: basis(x, seed=spec.seed), octaves=spec.octaves, lod=None if lod is None else lod[idx])
+            seed = p.seed[b]
+            return noise.fbm(q_b, lambda x: self.basis(x, seed=seed), octaves=p.octaves,
+                             lod=None if octaves is None else octaves[idx])
 
-        f = per_scene(q, scene_index, len(self.specs), one_scene)
-        falloff = self.radial[scene_index] * (points - self.center[scene_index]).norm(dim=1)
-        return self.bias[scene_index] + self.amplitude[scene_index] * f - falloff
+        f = per_scene(q, s, len(p), one_scene)
+        falloff = take(p.radial, s) * (points - take(p.center, s)).norm(dim=1)
+        return take(p.bias, s) + take(p.amplitude, s) * f - falloff

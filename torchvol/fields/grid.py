@@ -6,15 +6,23 @@ is `grid_sample`'s align_corners=False convention with border padding.
 
 from __future__ import annotations
 
-from typing import Sequence
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..voxel.dda import dilate
-from .base import per_scene
+from ..batch import Stacked, per_scene
+from ..grid_ops import dilate
+from ..schema import GridSource
+
+
+class GridDensity(GridSource):
+    """grid[k, j, i] is the value at the centre of cell (i, j, k) of the volume's box."""
+
+    def _check(self, array: np.ndarray) -> np.ndarray:
+        if not np.issubdtype(array.dtype, np.number) or not np.all(np.isfinite(array)) or array.min() < 0:
+            raise ValueError("grid values must be finite numbers >= 0")
+        return array.astype(np.float64, copy=False)
 
 
 def sample_grid(grid: Tensor, box_min: Tensor, box_max: Tensor, points: Tensor) -> Tensor:
@@ -33,14 +41,14 @@ def grid_occupancy(grid: Tensor) -> Tensor:
 
 
 class Grid:
-    homogeneous = False
+    """The grids of B scenes over their volumes' boxes (`box_min`, `box_max` (B, 3)): the renderer
+    hands them over, since a grid spans its volume's box."""
 
-    def __init__(self, arrays: Sequence[np.ndarray], boxes: Sequence, *, dtype, device):
-        self.grids = [torch.as_tensor(a, dtype=dtype, device=device) for a in arrays]
-        self.box_min = torch.tensor([b.min for b in boxes], dtype=dtype, device=device)  # (B, 3)
-        self.box_max = torch.tensor([b.max for b in boxes], dtype=dtype, device=device)
-        cells = torch.tensor([a.shape[::-1] for a in arrays], dtype=dtype, device=device)  # (B, 3) cells along x, y, z
-        self.feature_size = ((self.box_max - self.box_min) / cells).amin(dim=1)
+    def __init__(self, params: Stacked, times: Tensor, *, box_min: Tensor, box_max: Tensor, compiled: bool = False):
+        self.grids = [torch.as_tensor(a, dtype=times.dtype, device=times.device) for a in params.data]
+        self.box_min, self.box_max = box_min, box_max
+        cells = torch.tensor([a.shape[::-1] for a in params.data], dtype=times.dtype, device=times.device)  # (B, 3) along x, y, z
+        self.feature_size = ((box_max - box_min) / cells).amin(dim=1)
 
     def occupancy(self, b: int) -> Tensor:
         """Scene b's `grid_occupancy`: computed on demand, the skip pass keeps what it builds from it."""

@@ -25,6 +25,7 @@ from typing import Callable, Literal
 import torch
 from torch import Tensor
 
+from ..mathops import pow_
 from .integrate import alpha_linear_step, alpha_step, frostbite_step, riemann_step
 
 Placement = Literal["count", "size", "adaptive"]
@@ -38,6 +39,28 @@ COMPACT_BELOW = 0.75
 # a sample whose source is not used (a finished row; the adaptive march's whole-step sample), so a
 # medium may skip its lighting there
 Medium = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]
+
+
+def gathered(gather: Callable[[Tensor], tuple]) -> Callable[[Tensor], tuple]:
+    """`gather(ids)` memoised on the identity of `ids` [n]: the march hands the medium the same ids
+    tensor until it compacts, so a medium's per-ray gathers (origin, direction, ...) are redone
+    only then."""
+    last: list = [None, None]
+
+    def at(ids: Tensor) -> tuple:
+        if last[0] is not ids:
+            last[0], last[1] = ids, gather(ids)
+        return last[1]
+
+    return at
+
+
+def lod_drop(t: Tensor, scale: float | None) -> Tensor | None:
+    """Octaves a field drops at distance `t` [n] (`march.lod`, the template's LOD): floor(log2(1 +
+    scale·t)), from the field's own octave count; None without LOD."""
+    if scale is None:
+        return None
+    return torch.floor(torch.log2(1.0 + t * scale)).long()
 
 
 @dataclass(frozen=True)
@@ -378,7 +401,7 @@ def march_adaptive(
         light_prev = torch.where(accept[:, None], light[1], light_prev)
         at_prev = torch.where(accept, torch.where(lit[1], where[2 * n:], math.nan), at_prev)
         steps += accept.long()
-        factor = (0.9 * (allowed / local.clamp_min(1e-300)) ** (1.0 / 3.0)).clamp(0.2, 4.0)
+        factor = (0.9 * pow_(allowed / local.clamp_min(1e-300), 1.0 / 3.0)).clamp(0.2, 4.0)
         dt = dt * factor
         keep = (t < t_end) & (trans >= min_transmittance)
         if bool(keep.all()):  # nothing finished: the batch, and the ids the medium has gathered for, stay

@@ -28,14 +28,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional
 
 import torch
 from torch import Tensor
 
 from ..rays import intersect_box
 
-__all__ = ["Hits", "Lookup", "traverse", "hybrid_traverse", "reference_traverse", "start_cells", "chebyshev_distance"]
+__all__ = ["Hits", "Lookup", "traverse", "hybrid_traverse", "reference_traverse", "start_cells"]
 
 # lookup(cells [N, 3] long, ray_ids [N] long) -> material ids [N] (long, 0 = empty)
 Lookup = Callable[[Tensor, Tensor], Tensor]
@@ -232,38 +232,6 @@ def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance
         if tmax_a is not None:
             tmax_a = tmax_a[keep]
     return out
-
-
-def dilate(occupied: Tensor, before: int = 1, after: int = 1, axes: Sequence[int] = (0, 1, 2)) -> Tensor:
-    """(Z, Y, X) bool -> (Z, Y, X) bool: True where a cell from `before` cells back to `after`
-    cells forward on each of `axes` is occupied (a box dilation). Separable boolean ORs of shifted
-    slices: on a 64³ grid about 20× cheaper than max_pool3d, which also computes indices on CPU."""
-    grown = occupied
-    for axis in axes:
-        n = grown.shape[axis]
-        g = grown.clone()
-        for s in range(1, min(before, n - 1) + 1):
-            g.narrow(axis, s, n - s).logical_or_(grown.narrow(axis, 0, n - s))
-        for s in range(1, min(after, n - 1) + 1):
-            g.narrow(axis, 0, n - s).logical_or_(grown.narrow(axis, s, n - s))
-        grown = g
-    return grown
-
-
-def chebyshev_distance(occupied: Tensor, *, max_radius: int = 16) -> Tensor:
-    """occupied (Z, Y, X) bool -> (Z, Y, X) uint8: 0 on occupied cells, else the Chebyshev distance
-    k (in cells) to the nearest occupied cell, capped at `max_radius` (cells beyond the grid count
-    as empty). Computed by repeated separable 3×3×3 dilation (boolean ORs of shifted slices)."""
-    dist = torch.full(occupied.shape, max_radius, dtype=torch.uint8, device=occupied.device)
-    dist[occupied] = 0
-    grown = occupied
-    for k in range(1, max_radius):
-        grown = dilate(grown)
-        newly = grown & (dist == max_radius)
-        if not bool(newly.any()):
-            break
-        dist[newly] = k
-    return dist
 
 
 # -----------------------------------------------------------------------------------------------

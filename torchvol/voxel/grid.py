@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from .. import noise, sdf
-from .dda import chebyshev_distance
+from ..grid_ops import chebyshev_distance
 
 __all__ = ["VoxelGrid", "cell_range", "dense_materials", "terrain_height", "terrain_materials", "cell_centres"]
 

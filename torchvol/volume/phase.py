@@ -1,4 +1,6 @@
-"""Lighting of a medium: phase functions, the volumetric shadow march, the derivative light.
+"""Phase functions: the `PHASES` registry. Each kind is its schema model (the table under
+`phase = { kind = ... }`, or its name alone: `phase = "isotropic"`) and its function
+`fn(params (Stacked), cos_theta [n], scene_index [n]) -> p [n]`.
 
 Physical phase functions are normalised over the sphere (∫ p dω = 1, HG includes 1/4π) and take
 cos θ = dot(ray direction, sun direction) with the sun direction pointing towards the sun, so g > 0
@@ -9,10 +11,14 @@ opposite sign with their sun directions and peaks looking away from the sun.)
 from __future__ import annotations
 
 import math
-from typing import Callable
 
 import torch
+from pydantic import Field, model_validator
 from torch import Tensor
+
+from ..batch import take
+from ..registry import Registry
+from ..schema import One, Strict
 
 INV_4PI = 1.0 / (4.0 * math.pi)
 
@@ -60,52 +66,33 @@ def mie_cornette_shanks(cos_theta: Tensor, g: Tensor | float) -> Tensor:
     return (3.0 / (8.0 * math.pi)) * (1.0 - g) * (1.0 + g) * (1.0 + cos_theta**2) / ((2.0 + g * g) * denom * denom.sqrt())
 
 
-def shadow_distances(
-    exit_distance: Tensor, *, steps: int, growth: float = 1.0, first_step: float | None = None
-) -> tuple[Tensor, Tensor]:
-    """Midpoints and lengths of the shadow ray's segments towards the light.
-
-    `exit_distance`: [N], where the shadow ray leaves the volume's bounds. Segment lengths grow
-    geometrically by `growth`; with `first_step` None they are scaled to end exactly at the exit
-    (exact for homogeneous media), otherwise they start at `first_step` and are cut at the exit.
-    Returns (midpoints [N, K], lengths [N, K]).
-    """
-    k = torch.arange(steps, dtype=exit_distance.dtype, device=exit_distance.device)
-    rel = growth**k  # [K]
-    if first_step is None:
-        lengths = exit_distance[:, None] * (rel / rel.sum())[None, :]
-    else:
-        lengths = first_step * rel[None, :].expand(exit_distance.shape[0], steps)
-    ends = torch.cumsum(lengths, dim=1).minimum(exit_distance[:, None])
-    starts = torch.cat([torch.zeros_like(ends[:, :1]), ends[:, :-1]], dim=1)
-    return 0.5 * (starts + ends), ends - starts
+class HG(Strict):
+    g: float = Field(0.0, gt=-1.0, lt=1.0)
 
 
-def shadow_transmittance(
-    points: Tensor,
-    light_dir: Tensor,
-    exit_distance: Tensor,
-    extinction: Callable[[Tensor, Tensor], Tensor],
-    *,
-    steps: int,
-    growth: float = 1.0,
-    first_step: float | None = None,
-) -> Tensor:
-    """Transmittance from each point towards the light, marched through one volume.
-
-    `points`, `light_dir`: [N, 3]; `exit_distance`: [N]; `extinction(points [M,3], owner [M]) ->
-    σ_t [M]` where `owner` indexes the N shadow rays. Returns [N]."""
-    mid, length = shadow_distances(exit_distance, steps=steps, growth=growth, first_step=first_step)
-    n, k = mid.shape
-    sample_points = points[:, None, :] + mid[..., None] * light_dir[:, None, :]  # [N, K, 3]
-    owner = torch.arange(n, device=points.device).repeat_interleave(k)
-    sigma = extinction(sample_points.reshape(-1, 3), owner).reshape(n, k)
-    return torch.exp(-(sigma * length).sum(dim=1))
+class DualHG(Strict):
+    g_forward: float = Field(0.8, gt=-1.0, lt=1.0)
+    g_backward: float = Field(-0.2, gt=-1.0, lt=1.0)
+    weight: float = Field(0.5, ge=0.0, le=1.0)
 
 
-def derivative_light(density: Tensor, density_towards_light: Tensor, *, scale: Tensor | float) -> Tensor:
-    """The seeds' directional-derivative light: clamp((d − d(p + o·L)) / scale, 0, 1).
+class Empty(Strict):
+    pass
 
-    `density`, `density_towards_light`: [N]; `scale`: [N] or scalar. -> [N]."""
-    return ((density - density_towards_light) / scale).clamp(0.0, 1.0)
 
+class PhaseChoice(One):
+    """A phase table, or a kind's name alone (``phase = "isotropic"``)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _shorthand(cls, data):
+        return {data: {}} if isinstance(data, str) else data
+
+
+PHASES = Registry("phase")
+PHASES.register("isotropic", Empty, lambda p, cos, s: isotropic(cos))
+PHASES.register("hg", HG, lambda p, cos, s: henyey_greenstein(cos, take(p.g, s)))
+PHASES.register("dual_hg", DualHG, lambda p, cos, s: dual_henyey_greenstein(
+    cos, take(p.g_forward, s), take(p.g_backward, s), take(p.weight, s)))
+PHASES.register("rayleigh", Empty, lambda p, cos, s: rayleigh(cos))
+PHASES.register("mie", HG, lambda p, cos, s: mie_cornette_shanks(cos, take(p.g, s)))

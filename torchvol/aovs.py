@@ -1,0 +1,38 @@
+"""Extra outputs (AOVs): the `AOVS` registry, the one list of their names. Each is its function
+`fn(batch (Stacked scene)) -> bool` (whether a scene of this structure computes it: only what was
+computed is output) and its capabilities: ``channels``, ``resolve`` (how a pixel's sub-samples
+combine: ``mean``, ``hit_mean`` (the mean over the sub-samples that hit something: depths) or
+``first`` (ids, which do not average)) and ``doc``."""
+
+from __future__ import annotations
+
+from .registry import Registry
+
+AOVS = Registry("aov")
+
+
+def _aov(name: str, channels: int, resolve: str, produced, doc: str) -> None:
+    AOVS.register(name, None, produced, channels=channels, resolve=resolve, doc=doc)
+
+
+_aov("radiance", 3, "mean", lambda batch: True, "linear radiance before post-processing")
+# with volumes, or for distance fog (surfaces alone have no other depth than `depth`)
+_aov("distance", 1, "hit_mean", lambda batch: bool(batch.volumes) or batch.post.fog is not None,
+     "expected ray distance of what the ray hit (world units; 0: nothing)")
+_aov("depth_median", 1, "hit_mean", lambda batch: bool(batch.volumes), "planar depth where transmittance crosses 0.5 (0: never)")
+_aov("normal", 3, "mean", lambda batch: batch.voxels is not None, "voxel face normal (world, unit; 0: no hit)")
+_aov("uv", 2, "mean", lambda batch: batch.voxels is not None, "voxel face UV in [0, 1]")
+_aov("material", 1, "first", lambda batch: batch.voxels is not None and (
+    batch.voxels.materials.shape[1] > 1 or batch.voxels.texture is not None), "voxel material id (0: no hit)")
+_aov("ao", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.ao is not None,
+     "voxel neighbour ambient occlusion (1: open)")
+_aov("shadow", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.shadow is not None and bool(batch.lights),
+     "visibility of the first light from the voxel surface (1: lit)")
+
+# the render's own outputs resolve like AOVs (image, depth and alpha are not AOVs)
+RESOLVE = {"alpha": "mean", "depth": "hit_mean", **{k.name: k.resolve for k in AOVS}}
+
+
+def produced(batch) -> list[str]:
+    """The AOV names a batch's render computes, in registry order (radiance excluded: an output)."""
+    return [k.name for k in AOVS if k.name != "radiance" and k.fn(batch)]

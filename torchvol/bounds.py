@@ -1,0 +1,75 @@
+"""Where a volume's medium lives: box, sphere or horizontal slab. Each kind gives its entry/exit
+distances along rays (`intersect`), the box around it (`aabb`, finite kinds only: the sun grid
+tabulates over it) and its height range (`height_range`: the shader look's height gradient)."""
+
+from __future__ import annotations
+
+import torch
+from pydantic import Field, model_validator
+from torch import Tensor
+
+from .batch import Stacked, take
+from .rays import intersect_box, intersect_slab, intersect_sphere
+from .registry import Registry
+from .schema import Strict, Vec3
+
+SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
+
+
+class Box(Strict):
+    min: Vec3 = (-0.5, -0.5, -0.5)
+    max: Vec3 = (0.5, 0.5, 0.5)
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if any(hi <= lo for lo, hi in zip(self.min, self.max)):
+            raise ValueError(f"max {self.max} must exceed min {self.min} on every axis")
+        return self
+
+
+class Sphere(Strict):
+    center: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = Field(1.0, gt=0.0)
+
+
+class Slab(Strict):
+    y_min: float = -1.0
+    y_max: float = 1.0
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.y_max <= self.y_min:
+            raise ValueError(f"y_max {self.y_max} must exceed y_min {self.y_min}")
+        return self
+
+
+# Every function takes the bounds of B scenes (`Stacked`): `intersect(b, o [n, 3], d [n, 3], s [n])
+# -> (t_near [n], t_far [n])`; `aabb(b) -> (min (B, 3), max (B, 3))`; `height_range(b) -> (B, 2)`.
+
+def _box_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    return intersect_box(o, d, take(b.min, s), take(b.max, s))
+
+
+def _sphere_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    return intersect_sphere(o, d, take(b.center, s), take(b.radius, s))
+
+
+def _slab_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    return intersect_slab(o, d, take(b.y_min, s), take(b.y_max, s))
+
+
+def _sphere_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
+    return b.center - b.radius[:, None], b.center + b.radius[:, None]
+
+
+def _heights(lo: Tensor, hi: Tensor) -> Tensor:
+    return torch.stack([lo, hi], dim=1)
+
+
+BOUNDS = Registry("bounds")
+BOUNDS.register("box", Box, _box_intersect, finite=True, aabb=lambda b: (b.min, b.max),
+                height_range=lambda b: _heights(b.min[:, 1], b.max[:, 1]))
+BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, aabb=_sphere_aabb,
+                height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius))
+# a slab's exit is at infinity along its planes: rays stop at SLAB_REACH unless march.max_distance says
+BOUNDS.register("slab", Slab, _slab_intersect, finite=False, aabb=None, height_range=lambda b: _heights(b.y_min, b.y_max))

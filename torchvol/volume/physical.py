@@ -1,0 +1,152 @@
+"""The physical medium: single scattering from each light with its shadow transmittance, plus
+emission, L = ∫ T(t) [σs(t) Σ p(θ) E T_light(t) + σe(t)] dt, as plain functions of a render's
+state (`ctx`: the batch's lights, counts and timer) and one volume's state (`vol`: its parameters,
+field, bounds, phase and planned lights)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..batch import per_scene, take
+from ..camera import Rays
+from .integrate import frostbite_step
+from .march import LN2, Medium, expected_depth_fraction, gathered, lod_drop
+from .shadow import shadow_transmittance
+from .sun_volume import SunGrid, sun_transmittance_grid
+
+
+def phase(vol, cos: Tensor, s: Tensor) -> Tensor:
+    """The volume's phase function at `cos` [n] of scenes `s` [n] -> [n]."""
+    return vol.phase.fn(vol.params.phase.value, cos, s)
+
+
+def light_responses(ctx, vol, d: Tensor, s: Tensor) -> list[Tensor | None]:
+    """E · p(θ) [n, 3] of each directional light along directions `d` [n, 3] of scenes `s` [n]; None
+    for a light that is not directional. A sun's θ is the same all along a ray: a march computes
+    this once per ray."""
+    out = []
+    for light in ctx.lights:
+        if light.directional:
+            toward = light.toward(d, s)
+            out.append(toward.irradiance * phase(vol, (d * toward.direction).sum(dim=1), s)[:, None])
+        else:
+            out.append(None)
+    return out
+
+
+def in_scatter(ctx, vol, p: Tensor, d: Tensor, s: Tensor, sigma_t: Tensor, responses: list[Tensor | None]) -> Tensor:
+    """Σ over the volume's lights of σs · p(θ) · E · T_light at points `p` [n, 3] seen along `d`
+    [n, 3], of extinction `sigma_t` [n]; `responses`: `light_responses` at these samples. -> [n, 3]."""
+    out = p.new_zeros(p.shape[0], 3)
+    sigma_s = take(vol.params.albedo, s) * sigma_t
+    for use in vol.plan.lights:
+        light, toward = ctx.lights[use.light], None
+        response = responses[use.light]
+        if response is None:
+            toward = light.toward(p, s)
+            response = toward.irradiance * phase(vol, (d * toward.direction).sum(dim=1), s)[:, None]
+        radiance = response * sigma_s[:, None]
+        if use.shadow is not None:
+            with ctx.timer.section(use.name):
+                radiance = radiance * light_transmittance(ctx, vol, use, p, s, sigma_t, toward)[:, None]
+        out = out + radiance
+    return out
+
+
+def light_transmittance(ctx, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, toward) -> Tensor:
+    """Transmittance [n] from `p` [n, 3] towards light `use.light` through this volume, ending where
+    the ray leaves the bounds or reaches the light; `sigma_t` [n] the extinction at `p`."""
+    shadow = use.shadow
+    if shadow.method == "grid":
+        grids = sun_grids(ctx, vol, use.light)
+        return per_scene(p, s, len(grids), lambda b, i, q: grids[b].lookup(q, sigma_t[i]))
+    light = ctx.lights[use.light]
+    direction = take(light.direction, s) if toward is None else toward.direction
+    exit_t = vol.intersect(p, direction, s)[1].clamp(0.0, vol.reach)
+    if toward is not None:
+        exit_t = torch.minimum(exit_t, toward.distance)
+    return shadow_transmittance(
+        p, direction, exit_t, lambda q, owner: take(vol.params.sigma_t, s[owner]) * vol.field(q, s[owner]),
+        steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step,
+    )
+
+
+def sun_grids(ctx, vol, light: int) -> list[SunGrid]:
+    """Transmittance to sun `light` through the volume, one grid per scene, built on first use and
+    kept for every chunk of the render."""
+    if light not in vol.sun_grids:
+        resolution = ctx.lights[light].params.shadow.resolution
+        direction = ctx.lights[light].direction
+        lo, hi = vol.bounds.aabb(vol.params.bounds.value)
+        grids = []
+        for b in range(len(vol.params)):
+            def owner(q: Tensor, b: int = b) -> Tensor:
+                return torch.full((q.shape[0],), b, dtype=torch.long, device=q.device)
+
+            def extinction(q: Tensor, b: int = b) -> Tensor:  # called on nodes inside the bounds only
+                return vol.params.sigma_t[b] * vol.field(q, owner(q))
+
+            grids.append(sun_transmittance_grid(extinction, lo[b], hi[b], direction[b], resolution=resolution,
+                                                chord=lambda o, d, b=b: vol.intersect(o, d, owner(o, b))))
+        vol.sun_grids[light] = grids
+    return vol.sun_grids[light]
+
+
+def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
+    """The medium of a physically shaded volume: (σ_t [n], in-scattered + emitted source [n, 3]).
+    `signed`: σ_t is the field's signed value times its σ_t, negative where there is no density
+    (what `march_adaptive` interpolates between samples); the source is that of the density."""
+    o, d, s_all = rays.origins, rays.directions, rays.scene_index
+    threshold, lod_scale = ctx.settings.density_threshold, ctx.settings.lod_scale
+    responses = light_responses(ctx, vol, d, s_all) if vol.plan.lights else []
+    at = gathered(lambda ids: (s_all[ids], o[ids], d[ids], [None if r is None else r[ids] for r in responses]))
+    field = vol.field.signed if signed else vol.field
+
+    def medium(ids: Tensor, t: Tensor, dt: Tensor):
+        s, o_ids, d_ids, resp = at(ids)
+        p = torch.addcmul(o_ids, t[:, None], d_ids)
+        raw = field(p, s, lod_drop(t, lod_scale))
+        density = raw.clamp_min(0.0) if signed else raw
+        sigma_raw = take(vol.params.sigma_t, s) * raw
+        sigma_t = sigma_raw.clamp_min(0.0) if signed else sigma_raw
+        source = p.new_zeros(p.shape[0], 3)
+        if vol.plan.lights:
+            lit = ((density > threshold) & (dt > 0)).nonzero().squeeze(1)  # dt = 0: a finished ray not dropped yet
+            if lit.numel():
+                source[lit] = in_scatter(ctx, vol, p[lit], d_ids[lit], s[lit], sigma_t[lit],
+                                         [None if r is None else r[lit] for r in resp])
+        if vol.plan.emissive:
+            source = source + take(vol.params.emission, s) * density[:, None]
+        return sigma_raw, source
+
+    return medium
+
+
+def closed_form(ctx, vol, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> dict[str, Tensor]:
+    """Homogeneous medium, unshadowed directional lights: one exact frostbite segment over the
+    whole chord, evaluated on the rays that hit only."""
+    n = len(rays)
+    out = dict(radiance=t0.new_zeros(n, 3), transmittance=torch.ones_like(t0), weight_sum=torch.zeros_like(t0),
+               weighted_t=torch.zeros_like(t0), median_t=torch.zeros_like(t0), t0=torch.full_like(t0, math.inf))
+    ids = hit.nonzero().squeeze(1)
+    if ids.numel() == 0:
+        return out
+    s, d, a, b = rays.scene_index[ids], rays.directions[ids], t0[ids], t1[ids]
+    length = b - a
+    mid = rays.origins[ids] + (0.5 * (a + b))[:, None] * d
+    density = vol.field(mid, s)
+    sigma_t = take(vol.params.sigma_t, s) * density
+    source = take(vol.params.emission, s) * density[:, None]
+    if vol.plan.lights:
+        source = source + in_scatter(ctx, vol, mid, d, s, sigma_t, light_responses(ctx, vol, d, s))
+    radiance, trans = frostbite_step(source, sigma_t, length)
+    alpha = 1.0 - trans
+    t_mean = a + length * expected_depth_fraction(sigma_t * length)
+    median = torch.where(trans <= 0.5, a + LN2 / sigma_t.clamp_min(torch.finfo(a.dtype).tiny), torch.zeros_like(a))
+    for key, value in dict(radiance=radiance, transmittance=trans, weight_sum=alpha, weighted_t=alpha * t_mean,
+                           median_t=median, t0=a).items():
+        out[key][ids] = value
+    return out

@@ -1,0 +1,107 @@
+"""How one volume's rays are integrated, as the plan decided (`VolumePass.strategy`): in closed
+form, by a fixed march, by a fixed march over the occupied span only (empty space skipped), or by
+the error-controlled march. Each takes the render's state `ctx`, the volume's state `vol`, a
+chunk's rays, the sky behind them and where a surface stops them, and returns the volume's part:
+radiance [n, 3], transmittance, weight sums, median t and entry t [n]."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..batch import take
+from ..camera import Rays
+from ..rays import clip_to_ray
+from .march import COMPACT_BELOW, march, march_adaptive
+from .physical import closed_form
+from .skip import macro_grid, occupied_span
+
+
+def entry_exit(vol, rays: Rays, t_limit: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """(t0, t1, hit) [n] of the rays through the volume, up to `t_limit` [n] where given."""
+    t_near, t_far = vol.intersect(rays.origins, rays.directions, rays.scene_index)
+    if vol.shading.semantics == "shader":  # the seeds: march whenever the exit is ahead, from max(t_near, 0)
+        t0, t1 = t_near.clamp_min(0.0), t_far.clamp_max(vol.reach)
+        hit = (t_far >= 0) & (t_far >= t_near)
+    else:
+        t0, t1, hit = clip_to_ray(t_near, t_far, vol.reach)
+    if t_limit is not None:
+        t1 = torch.minimum(t1, t_limit)
+        hit = hit & (t1 > t0)
+    return t0, t1, hit
+
+
+def _part(ctx, vol, res, t0: Tensor, hit: Tensor) -> dict[str, Tensor]:
+    ctx.counts.march_steps += int(res.steps.sum())
+    ctx.counts.truncated_rays += int(res.truncated.sum())
+    radiance, trans = res.radiance, res.transmittance
+    if vol.shading.semantics == "shader":  # the template's clamp(sum, 0, 1)
+        radiance, trans = radiance.clamp(0.0, 1.0), 1.0 - (1.0 - trans).clamp(0.0, 1.0)
+    return dict(radiance=radiance, transmittance=trans, weight_sum=res.weight_sum, weighted_t=res.weighted_t,
+                median_t=res.median_t, t0=torch.where(hit, t0, torch.full_like(t0, math.inf)))
+
+
+def run_closed_form(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+    t0, t1, hit = entry_exit(vol, rays, t_limit)
+    with ctx.timer.section(vol.plan.step_pass):
+        return closed_form(ctx, vol, rays, t0, t1, hit)
+
+
+def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None, *, skip: bool = False) -> dict[str, Tensor]:
+    st = ctx.settings
+    t0, t1, hit = entry_exit(vol, rays, t_limit)
+    occupied, marched = None, hit
+    if skip:
+        with ctx.timer.section(vol.plan.skip_pass):
+            occupied, marched = skipped_span(vol, rays, t0, t1, hit)
+    with ctx.timer.section(vol.plan.step_pass):
+        medium = vol.shading.fn(ctx, vol, rays, background)
+        res = march(
+            t0, t1, marched, medium, rule=st.rule, integrator=st.integrator, semantics=vol.shading.semantics,
+            dither=ctx.dither(rays), min_transmittance=st.min_transmittance, occupied=occupied,
+            # a grid sample is one trilinear lookup, cheaper than a compaction; fbm octaves are not
+            compact_below=COMPACT_BELOW if skip else 1.0,
+        )
+    return _part(ctx, vol, res, t0, hit)
+
+
+def run_skip(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+    return run_march(ctx, vol, rays, background, t_limit, skip=True)
+
+
+def run_tolerance(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+    st = ctx.settings
+    t0, t1, hit = entry_exit(vol, rays, t_limit)
+    feature = vol.field.feature_size
+    with ctx.timer.section(vol.plan.step_pass):
+        medium = vol.shading.fn(ctx, vol, rays, background, signed=True)
+        res = march_adaptive(
+            t0, t1, hit, medium, tolerance=st.tolerance, integrator=st.integrator,
+            radiance_scale=ctx.radiance_scale(rays.scene_index), min_transmittance=st.min_transmittance,
+            # a field's detail caps the steps; a smooth one's steps are capped by march.steps
+            max_steps_per_span=st.rule.steps if st.rule.placement == "count" and feature is None else None,
+            max_step=None if feature is None else 0.5 * take(feature, rays.scene_index),
+        )
+    ctx.counts.error_estimate = max(ctx.counts.error_estimate, float(res.error.max()) if len(res.error) else 0.0)
+    return _part(ctx, vol, res, t0, hit)
+
+
+def skipped_span(vol, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor):
+    """((t_first, t_last), hit) [n]: the span of each ray through the grid's occupied macro
+    cells; rays that cross none leave `hit`."""
+    first, last = t0.clone(), t1.clone()
+    found = torch.zeros_like(hit)
+    grid = vol.field.inner
+    for b in range(len(vol.params)):
+        idx = (hit & (rays.scene_index == b)).nonzero().squeeze(1)
+        if idx.numel():
+            if b not in vol.macro:
+                vol.macro[b] = macro_grid(grid.occupancy(b), grid.box_min[b], grid.box_max[b])
+            first[idx], last[idx], found[idx] = occupied_span(
+                rays.origins[idx], rays.directions[idx], t0[idx], t1[idx], vol.macro[b], grid.box_min[b])
+    return (first, last), hit & found
+
+
+STRATEGIES = {"closed_form": run_closed_form, "march": run_march, "skip": run_skip, "tolerance": run_tolerance}
