@@ -156,7 +156,10 @@ def structure(model: BaseModel, loc: tuple = ()) -> Iterator[tuple[tuple, Any]]:
         yield loc, model.kind
     for name in type(model).model_fields:
         value, role, here = getattr(model, name), field_role(type(model), name), loc + (name,)
-        if role is SHARED:
+        if role is SHARED and isinstance(value, BaseModel):  # a shared table: each of its keys, by name
+            yield here, type(value).__name__
+            yield from ((loc_, v) for loc_, v in _shared_leaves(value, here))
+        elif role is SHARED:
             yield here, _hashable(value)
         elif role is TENSOR:
             yield here, _shape(value)
@@ -172,6 +175,16 @@ def structure(model: BaseModel, loc: tuple = ()) -> Iterator[tuple[tuple, Any]]:
             for i, item in enumerate(value):
                 yield here + (i,), type(item).__name__
                 yield from structure(item, here + (i,))
+
+
+def _shared_leaves(model: BaseModel, loc: tuple) -> Iterator[tuple[tuple, Any]]:
+    for name in type(model).model_fields:
+        value = getattr(model, name)
+        if isinstance(value, BaseModel):
+            yield loc + (name,), type(value).__name__
+            yield from _shared_leaves(value, loc + (name,))
+        else:
+            yield loc + (name,), _hashable(value)
 
 
 def _hashable(value: Any) -> Any:

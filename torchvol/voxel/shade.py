@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from .. import noise
+from ..mathops import pow_
 from ..sdf import sd_rounded_box
 
 __all__ = ["face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_refine"]
@@ -60,7 +61,7 @@ def voxel_ao(occupied: Callable[[Tensor], Tensor], cell: Tensor, normal: Tensor,
     aw = 1.0 - vertex_ao(sw, sx, cw)
     u, v = uv[:, 0], uv[:, 1]
     ao = torch.lerp(torch.lerp(az, aw, u), torch.lerp(ay, ax, u), v)
-    return torch.pow(ao, gamma)
+    return pow_(ao, gamma)
 
 
 def lambert(normal: Tensor, sun: Tensor) -> Tensor:
