@@ -56,7 +56,7 @@ def quadrature(h: float, light, *, shadow: bool, nodes: int = 400) -> np.ndarray
 
 def inside_fraction(p: np.ndarray, v: np.ndarray) -> np.ndarray:
     """The part of each segment p → p + v inside the box [−1, 1]³ (p is inside)."""
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):
         s = np.where(v != 0, (np.sign(v) - p) / v, np.inf).min(axis=1)
     return np.minimum(s, 1.0)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 
 import pytest
+import torch
 
 import torchvol as tv
 from torchvol.plan import make_plan
@@ -37,7 +38,7 @@ SKY = {"kind": "constant", "radiance": [0.2, 0.3, 0.4]}
 def check_stats(out):
     st = out.stats
     assert list(st["time_s"]) == st["passes"], "time_s keys must equal the passes, in order"
-    assert all(v >= 0 for v in st["time_s"].values())
+    assert all(v > 0 for v in st["time_s"].values()), st["time_s"]
     assert st["passes"][0] == "rays" and "composite" in st["passes"]
     assert len(set(st["passes"])) == len(st["passes"])
     return st
@@ -137,3 +138,59 @@ def test_density_evals_scale_with_steps():
     many = check_stats(tv.render(base(steps=16, dither="none", min_transmittance=0.0)))
     assert 0 < few["density_evals"] < many["density_evals"]
     assert few["density_evals"] == few["march_steps"]
+
+
+def test_stats_record_what_ran_with_one_name_per_volume_and_light():
+    """Two volumes × two shadowed lights: four shadow passes, each with its own time."""
+    s = base()
+    s["volumes"].append({**copy.deepcopy(s["volumes"][0]), "bounds": {"sphere": {"center": [0.3, 0.2, 0.0], "radius": 0.5}}})
+    s["lights"] = [SHADOWED, {**SHADOWED, "direction": [-1.0, 0.5, 0.2]}]
+    st = check_stats(tv.render(s))
+    shadows = [p for p in st["passes"] if ".shadow" in p]
+    assert shadows == ["volume0.shadow0", "volume0.shadow1", "volume1.shadow0", "volume1.shadow1"]
+    assert all(st["time_s"][p] > 0 for p in st["passes"]), st["time_s"]
+    assert st["passes"] == st["plan"]
+
+
+def test_a_planned_pass_that_finds_nothing_to_do_is_not_reported():
+    """A volume behind the camera: planned, never marched, so not in `passes`."""
+    s = base()
+    s["volumes"][0]["bounds"] = {"box": {"min": [-0.5, -0.5, -9.0], "max": [0.5, 0.5, -8.0]}}
+    s["lights"] = [SHADOWED]
+    st = tv.render(s).stats
+    assert "volume0.shadow0" in st["plan"] and "volume0.shadow0" not in st["passes"]
+    assert st["density_evals"] == 0
+
+
+def test_post_fog_fogs_voxel_only_scenes():
+    wall = {
+        "image": {"width": 8, "height": 6},
+        "camera": {"eye": [0.5, 0.5, -6.0], "target": [0.5, 0.5, 0.0], "fov_y": 30.0},
+        "voxels": {"occupancy": {"grid": {"data": [[[1]]]}}, "cells": {"min": [-2, -2, 0], "max": [3, 3, 1]}},
+        "lights": [SUN],
+    }
+    clear = tv.render(wall)
+    foggy = tv.render({**wall, "post": {"fog": {"color": [1.0, 0.0, 0.0], "density": 0.2}}})
+    assert "post.fog" in foggy.stats["passes"] and "distance" in foggy.aovs
+    hit = clear.depth[0, 0] > 0
+    assert hit.any() and (foggy.image[0, 0][hit] > clear.image[0, 0][hit]).all()  # redder where the wall is
+    assert torch.equal(foggy.image[0, :, ~hit], clear.image[0, :, ~hit])  # nothing hit: no fog
+    with pytest.raises(ValueError, match=r"^post\.fog"):
+        tv.load_scene({"post": {"fog": {}}})
+
+
+def test_lod_keeps_the_fields_own_octaves():
+    """LOD drops octaves from the field's own count: at a tiny scale nothing is dropped from an
+    8-octave fbm (the same image as without LOD, to the bit), at a large one octaves go."""
+    s = base(steps=12, dither="none")
+    s["volumes"][0]["density"]["fbm"]["octaves"] = 8
+    full = tv.render(s)
+    near = tv.render({**s, "march": {**s["march"], "lod": {"scale": 1e-4}}})
+    far = tv.render({**s, "march": {**s["march"], "lod": {"scale": 50.0}}})
+    five = copy.deepcopy(s)
+    five["volumes"][0]["density"]["fbm"]["octaves"] = 5
+    assert torch.equal(near.alpha, full.alpha)
+    assert not torch.equal(far.alpha, full.alpha)
+    assert not torch.equal(tv.render(five).alpha, full.alpha)
+    with pytest.raises(ValueError, match=r"^march\.lod"):  # nothing to drop: refused, not ignored
+        tv.load_scene({**s, "volumes": [{"density": {"constant": 1.0}}], "march": {"lod": {"scale": 0.5}}})

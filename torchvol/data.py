@@ -21,7 +21,7 @@ from torch.utils.data import Dataset
 from .batch import structure_key
 from .quality import at_level
 from .recipe import Recipe, mix_seed, render_seed
-from .validate import fail
+from .validate import fail, integer, is_integer
 
 # The conventions a generated dataset states in meta.json (DESIGN.md, Conventions).
 CONVENTIONS = {
@@ -85,11 +85,9 @@ class SceneDataset(Dataset):
 
     def __init__(self, recipe: Recipe | str | Path | Mapping, length: int, seed: int = 0, epoch: int | None = None, *,
                  aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None):
-        if isinstance(length, bool) or not isinstance(length, int) or length < 0:
-            fail("length", length, "expected an integer >= 0")
-        if isinstance(seed, bool) or not isinstance(seed, int):
-            fail("seed", seed, "expected an integer")
-        if epoch is not None and (isinstance(epoch, bool) or not isinstance(epoch, int)):
+        integer("length", length, low=0)
+        integer("seed", seed)
+        if epoch is not None and not is_integer(epoch):
             fail("epoch", epoch, "expected an integer or None")
         self.recipe = Recipe.load(recipe, overrides)
         self.length, self.base_seed, self.epoch = length, seed, epoch
@@ -100,7 +98,7 @@ class SceneDataset(Dataset):
         return self.length
 
     def _check(self, index: int) -> int:
-        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not -self.length <= index < self.length:
+        if not is_integer(index) or not -self.length <= index < self.length:
             raise IndexError(f"index {index!r} out of range for a dataset of {self.length}")
         return int(index) % self.length if self.length else int(index)
 

@@ -31,13 +31,13 @@ Strategy = Literal["closed_form", "march", "skip", "tolerance"]
 
 @dataclass(frozen=True)
 class LightPass:
-    """Light `light` shading a volume or the voxels; `name` is its pass in `stats` (its shadow, or
-    the shader look's derivative light); `shadow` its shadow settings (None: unshadowed)."""
+    """Light `light` shading a volume or the voxels; `name` is its own pass in `stats` (its shadow,
+    or the shader look's derivative light; None: no pass of its own); `shadow` its shadow settings
+    (None: unshadowed)."""
 
     light: int
-    name: str
+    name: str | None
     shadow: object | None
-    directional: bool
 
 
 @dataclass(frozen=True)
@@ -58,8 +58,8 @@ class VolumePass:
         return f"{self.name}.skip"
 
     def names(self) -> list[str]:
-        timed = [li.name for li in self.lights if li.shadow is not None or self.shading != "physical"]
-        return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + timed
+        own = [li.name for li in self.lights if li.name is not None]
+        return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
 
 
 @dataclass(frozen=True)
@@ -111,10 +111,9 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
     shading = SHADINGS[vol.shading]
     lights = list(enumerate(batch.lights))
     if shading.caps["lights"] == "first":  # the shader look's derivative light
-        uses = tuple(LightPass(l, f"{name}.derivative_light", None, LIGHTS[li.kind].caps["directional"])
-                     for l, li in lights[:1] if vol.shader.light == "derivative")
+        uses = tuple(LightPass(l, f"{name}.derivative_light", None) for l, _ in lights[:1] if vol.shader.light == "derivative")
     else:
-        uses = tuple(LightPass(l, f"{name}.shadow{l}", li.shadow, LIGHTS[li.kind].caps["directional"]) for l, li in lights)
+        uses = tuple(LightPass(l, None if li.shadow is None else f"{name}.shadow{l}", li.shadow) for l, li in lights)
     return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
                       emissive=bool((vol.emission > 0).any()))
 
@@ -127,8 +126,7 @@ def make_plan(batch: Stacked | Scene) -> Plan:
     vx = batch.voxels
     voxels = None
     if vx is not None:  # the surface pass runs before the volumes (they march up to its depth)
-        shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow, LIGHTS[li.kind].caps["directional"])
-                        for l, li in enumerate(batch.lights)) if vx.shadow is not None else ()
+        shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
         voxels = VoxelPass(rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows)
     post = tuple((k.name, k.pass_name(batch.post)) for k in POST if k.active(batch.post))
     return Plan(

@@ -38,7 +38,7 @@ import torch
 from .aovs import AOVS
 from .keypath import lookup, path_str, set_path
 from .scene import Scene, read_source, schema_keys, validate_scene
-from .validate import SceneError, did_you_mean, fail, finite
+from .validate import SceneError, did_you_mean, fail, finite, integer, is_integer
 
 DIST_KINDS = ("uniform", "loguniform", "normal", "integer", "choice", "hemisphere", "orbit")
 RECIPE_KEYS = ("aovs",)
@@ -194,7 +194,7 @@ def parse_dist(path: str, table: Mapping) -> Dist:
         return Dist(path, kind, (mean, std, lo, hi))
     if kind == "integer":
         if (not isinstance(spec, (list, tuple)) or len(spec) != 2
-                or any(isinstance(x, bool) or not isinstance(x, int) for x in spec) or spec[1] < spec[0]):
+                or not all(is_integer(x) for x in spec) or spec[1] < spec[0]):
             fail(where, spec, "expected [low, high] integers, low <= high (inclusive)")
         return Dist(path, kind, (int(spec[0]), int(spec[1])))
     if kind == "choice":
@@ -352,7 +352,5 @@ def render_seed(index: int, seed: int) -> int:
 
 
 def _check_index(index: Any, seed: Any) -> None:
-    if isinstance(index, bool) or not isinstance(index, int) or index < 0:
-        fail("index", index, "expected an integer >= 0")
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        fail("seed", seed, "expected an integer")
+    integer("index", index, low=0)
+    integer("seed", seed)

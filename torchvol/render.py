@@ -30,7 +30,7 @@ from .sampling import march_dither, subpixel_jitter
 from .scene import load_scene
 from .sky import SKIES, sun_glow
 from .stats import CountedField, Counts, Timer
-from .validate import fail
+from .validate import fail, integer, is_integer
 from .volume.composite import composite_volumes, finish
 from .volume.phase import PHASES
 from .volume.shading import SHADINGS
@@ -176,8 +176,7 @@ def resolve(values: Tensor, key: str, spp: int) -> Tensor:
 
 
 def _check_arguments(scene, seed, chunk_rays, dtype, device) -> tuple[list, list[int], torch.device]:
-    if isinstance(chunk_rays, bool) or not isinstance(chunk_rays, int) or chunk_rays < 1:
-        fail("chunk_rays", chunk_rays, "expected an integer >= 1")
+    integer("chunk_rays", chunk_rays, low=1)
     if dtype not in (None, torch.float32, torch.float64):
         fail("dtype", dtype, "expected torch.float32, torch.float64 or None (the quality level's)")
     try:
@@ -190,7 +189,7 @@ def _check_arguments(scene, seed, chunk_rays, dtype, device) -> tuple[list, list
         fail("scene", scene, "expected at least one scene")
     check_same_structure(scenes)
     seeds = list(seed) if isinstance(seed, (list, tuple)) else [seed] * len(scenes)
-    if len(seeds) != len(scenes) or any(isinstance(x, bool) or not isinstance(x, int) for x in seeds):
+    if len(seeds) != len(scenes) or not all(is_integer(x) for x in seeds):
         fail("seed", seed, f"expected an integer or one integer per scene ({len(scenes)})")
     return scenes, seeds, device
 

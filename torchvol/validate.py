@@ -6,6 +6,8 @@ import difflib
 import math
 from typing import Any, Iterable, NoReturn
 
+import numpy as np
+
 
 class SceneError(ValueError):
     """Bad user input: `path` is the key path (e.g. ``volumes[0].sigma_t``)."""
@@ -29,3 +31,15 @@ def finite(path: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         fail(path, value, "expected a finite number")
     return float(value)
+
+
+def is_integer(value: Any) -> bool:
+    """An int (or numpy integer) that is not a bool: Python counts True as the int 1."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def integer(path: str, value: Any, *, low: int | None = None) -> int:
+    """The one check of integer input: an integer, bools refused, at least `low` where given."""
+    if not is_integer(value) or (low is not None and value < low):
+        fail(path, value, "expected an integer" + (f" >= {low}" if low is not None else ""))
+    return int(value)

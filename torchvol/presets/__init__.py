@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..validate import did_you_mean, fail
+from ..validate import did_you_mean, fail, integer
 
 HERE = Path(__file__).parent
 
@@ -79,8 +79,7 @@ def _voxel_carved_box(data: dict, *, eye=(0.0, 2.0, -12.0), sun_dir=(-0.5, 0.6, 
 def _voxel_terrain(data: dict, *, size: int | None = None, seed: int | None = None, traversal: str | None = None) -> None:
     vx = data["voxels"]
     if size is not None:
-        if isinstance(size, bool) or not isinstance(size, int) or size < 2:
-            fail("voxel-terrain.size", size, "expected an integer >= 2 (cells per side)")
+        integer("voxel-terrain.size", size, low=2)  # cells per side
         scale = size / 64  # the default 64-cell landscape, scaled
         lo, hi = -(size // 2), size - size // 2
         vx["cells"] = {"min": [lo, -max(1, round(8 * scale)), lo], "max": [hi, max(2, round(24 * scale)), hi]}

@@ -16,12 +16,9 @@ the segment's own transmittance, so the march loop is the same for all of them:
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
 from torch import Tensor
 
-Integrator = Literal["riemann", "frostbite", "alpha"]
 
 def one_minus_exp_over_x(x: Tensor) -> Tensor:
     """(1 − e^{−x}) / x for x ≥ 0, → 1 as x → 0 and → 1/x for huge x. `x`: any shape. expm1 keeps

@@ -12,8 +12,8 @@ Rays finish past t1, under `min_transmittance` or at the step limit. A finished 
 batch, taking zero-length steps (no contribution, transmittance × 1), until fewer than
 `COMPACT_BELOW` of the batch is still going; then the batch is compacted to the active rays. The
 state is one (K, n) tensor, so compaction is one gather, and the ray ids the medium sees stay the
-same object between compactions (a medium may keep its per-ray gathers). Before, with one tensor
-per quantity and compaction after every step, gathers took 21% of the parity scene's render.
+same object between compactions (a medium may keep its per-ray gathers); docs/VOLUMES.md has
+what this saves over one tensor per quantity compacted after every step.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ Placement = Literal["count", "size", "adaptive"]
 _T, _T_END, _T_STOP, _SPAN, _TRANS, _WSUM, _WT, _MEDIAN, _STEPS, _RADIANCE = range(10)
 # Finished rays leave the batch once fewer than this fraction of it is still going; until then
 # they take zero-length steps. For a cheap medium (a trilinear grid) that is cheaper than
-# compacting after every step: 0.26 s against 0.29 s on the parity scene (96 steps, sun grid).
+# compacting after every step (docs/VOLUMES.md).
 COMPACT_BELOW = 0.75
 # medium(ray_ids [n], t [n], dt [n]) -> (sigma_t or alpha [n], source or colour [n, C]); dt = 0 marks
 # a sample whose source is not used (a finished row; the adaptive march's whole-step sample), so a
@@ -308,8 +308,7 @@ def march_adaptive(
     doubling); a third of their difference estimates the error of the halves, which are kept.
     The whole step samples σ_t alone: its source is its σ_t times the halves' source per unit σ_t
     (in-scattered light is σ_t times a light that varies slowly: the shadow's transmittance), so
-    a step traces two shadow rays, not three (on `cloud-puff` at tolerance 1e-3: 976k → 714k
-    density evaluations, 0.82–0.86 → 0.67–0.69 s; 53,346 → 53,328 steps, the same errors).
+    a step traces two shadow rays, not three (docs/QUALITY.md has what that saves).
     A step is accepted when that error, times the transmittance in front of it, is within
     `tolerance`·dt/(t1 − t0) — so the errors of a whole ray add up to at most about `tolerance`.
     The next step grows or shrinks by (allowed/error)^(1/3) (the local error of a midpoint step is

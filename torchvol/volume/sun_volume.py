@@ -11,11 +11,10 @@ only what lies between the point and the next stored plane towards the sun:
 
 with τ_plane and σ_plane (σ_t where the sun ray from p meets that plane) interpolated bicubically
 inside the plane: the planes are laid side by side in one 2-channel 2D atlas, so one `grid_sample`
-call serves every point. Interpolating across L is what costs accuracy: on the Mitsuba parity cloud
-bicubic planes are ~3× closer to the exact transmittance than trilinear interpolation of the same
-table, and the gap term removes the interpolation along L (σ_plane instead of a density lookup at
-the foot changes the mean |ΔT| by 3%). Cost: one density evaluation per table node; a lookup needs
-none.
+call serves every point. Interpolating across L is what costs accuracy: bicubic planes are closer
+to the exact transmittance than trilinear interpolation of the same table, and the gap term removes
+the interpolation along L (docs/VOLUMES.md has the figures). Cost: one density evaluation per table
+node; a lookup needs none.
 """
 
 from __future__ import annotations
@@ -92,7 +91,7 @@ def sun_transmittance_grid(
 
     `chord(origins [M, 3], directions [M, 3]) -> (t_in, t_out) [M]`, where given, is where lines
     meet the medium's bounds: only the nodes inside are evaluated, the others are 0. The box around
-    a tilted box or a sphere is mostly outside it (74% of the nodes for the parity scene's sun)."""
+    a tilted box or a sphere is mostly outside it."""
     frame = sun_frame(sun_dir)
     corners = torch.stack(torch.meshgrid(*[torch.stack([box_min[i], box_max[i]]) for i in range(3)], indexing="ij"), -1)
     local = corners.reshape(-1, 3) @ frame.T  # corners in (u, v, w)
@@ -120,8 +119,8 @@ def sun_transmittance_grid(
     sigma[k, column] = extinction(torch.addcmul(base[column], (k * spacing)[:, None], frame[2]))
     sigma = sigma.reshape(steps + 1, n, n)
     # optical depth from stored plane k to the sun-side face: Simpson's rule on each pair of
-    # sub-planes (k, k + ½, k + 1), summed from the sun side. On the parity cloud this takes the
-    # image error from 0.090% to 0.079% for the same evaluations as the trapezoid rule.
+    # sub-planes (k, k + ½, k + 1), summed from the sun side: more accurate than the trapezoid rule
+    # for the same evaluations
     pairs = (sigma[0:-1:2] + 4.0 * sigma[1::2] + sigma[2::2]) * (spacing / 3.0)
     tau = torch.flip(torch.cumsum(torch.flip(pairs, [0]), 0), [0])
     tau = torch.cat([tau, torch.zeros_like(sigma[:1])], dim=0)  # (planes, n, n)

@@ -16,7 +16,7 @@ up the cells of a flat ray batch, each ray in its own scene.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Sequence
 
 import torch
 from torch import Tensor
@@ -158,5 +158,3 @@ class VoxelGrid:
     def to_world(self, g: Tensor, scene: Tensor) -> Tensor:
         return self.origin[scene] + g * self.voxel_size[scene, None]
 
-
-Occupied = Callable[[Tensor, Tensor], Tensor]
