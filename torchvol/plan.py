@@ -14,16 +14,19 @@ image, to the bit).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
 from .aovs import produced
 from .batch import Stacked, stack
+from .bounds import BOUNDS, SLAB_REACH
 from .fields import DENSITIES
 from .lights import LIGHTS
 from .post import POST
 from .quality import MarchSettings, at_level, march_settings
 from .scene import Scene
+from .volume.march import COMPACT_BELOW
 from .volume.shading import SHADINGS
 
 Strategy = Literal["closed_form", "march", "skip", "tolerance"]
@@ -48,6 +51,8 @@ class VolumePass:
     shading: str
     lights: tuple[LightPass, ...]
     emissive: bool  # some scene of the batch emits
+    reach: float  # how far a ray or shadow ray travels in the volume (`march.max_distance`, or its bounds')
+    compact_below: float  # the march drops finished rays below this active fraction (`volume.march.march`)
 
     @property
     def step_pass(self) -> str:
@@ -64,9 +69,13 @@ class VolumePass:
 
 @dataclass(frozen=True)
 class VoxelPass:
+    traversal: str  # "dda" or "hybrid"
     rounded: bool
     ao: bool
     shadows: tuple[LightPass, ...]  # one per light when `voxels.shadow` is set
+    glow: bool  # glow and fog accumulate per visited cell, inside voxels.dda
+    fog: bool
+    texture: bool
 
     def names(self) -> list[str]:
         return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
@@ -77,6 +86,7 @@ class VoxelPass:
 class Plan:
     settings: MarchSettings
     sky: str | None  # the sky kind
+    halo: bool
     flare: bool
     voxels: VoxelPass | None
     volumes: tuple[VolumePass, ...]
@@ -114,8 +124,15 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
         uses = tuple(LightPass(l, f"{name}.derivative_light", None) for l, _ in lights[:1] if vol.shader.light == "derivative")
     else:
         uses = tuple(LightPass(l, None if li.shadow is None else f"{name}.shadow{l}", li.shadow) for l, li in lights)
+    bounds, density = BOUNDS[vol.bounds.kind], DENSITIES[vol.density.kind]
+    if settings.max_distance is not None:
+        reach = settings.max_distance
+    else:  # a box's or sphere's exit is finite (far volumes stay visible); a slab's is not
+        reach = math.inf if bounds.caps["finite"] else SLAB_REACH
+    # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
+    compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
     return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
-                      emissive=bool((vol.emission > 0).any()))
+                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below)
 
 
 def make_plan(batch: Stacked | Scene) -> Plan:
@@ -127,11 +144,13 @@ def make_plan(batch: Stacked | Scene) -> Plan:
     voxels = None
     if vx is not None:  # the surface pass runs before the volumes (they march up to its depth)
         shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
-        voxels = VoxelPass(rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows)
+        voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
+                           glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None)
     post = tuple((k.name, k.pass_name(batch.post)) for k in POST if k.active(batch.post))
     return Plan(
         settings=settings,
         sky=None if batch.sky is None else batch.sky.kind,
+        halo=batch.sky is not None and batch.sky.halo is not None,
         flare=batch.sky is not None and batch.sky.flare is not None,
         voxels=voxels,
         volumes=tuple(volume_pass(batch, v, settings) for v in range(len(batch.volumes))),

@@ -8,7 +8,6 @@ effects in `POST`. `stats["passes"]` and `stats["time_s"]` record what ran.
 
 from __future__ import annotations
 
-import math
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -18,7 +17,7 @@ import torch
 from torch import Tensor
 
 from .batch import Stacked, check_same_structure, stack, take
-from .bounds import BOUNDS, SLAB_REACH
+from .bounds import BOUNDS
 from .camera import Camera, Rays
 from .fields import DENSITIES
 from .lights import LIGHTS, LightSource
@@ -65,7 +64,6 @@ class VolumeState:
     bounds: object  # Kind
     phase: object  # Kind
     shading: object  # Kind
-    reach: float  # how far a ray or shadow ray may travel in the volume
     sun_grids: dict = field(default_factory=dict)
     macro: dict = field(default_factory=dict)
 
@@ -98,10 +96,8 @@ class RenderContext:
         if density.caps.get("needs_box"):
             extra = dict(zip(("box_min", "box_max"), bounds.aabb(params.bounds.value)))
         inner = density.fn(params.density.value, self.times, compiled=compiled, **extra)
-        cap = self.settings.max_distance
-        reach = cap if cap is not None else (math.inf if bounds.caps["finite"] else SLAB_REACH)
         return VolumeState(params, vp, CountedField(inner, self.counts), bounds, PHASES[params.phase.kind],
-                           SHADINGS[vp.shading], reach)
+                           SHADINGS[vp.shading])
 
     def dither(self, rays: Rays) -> Tensor | None:
         st, image = self.settings, self.batch.image
@@ -123,7 +119,7 @@ def sky_radiance(ctx: RenderContext, rays: Rays) -> Tensor:
     """The sky behind each ray [n, 3], with the sun's halo where the sky has one."""
     sky, s = ctx.batch.sky, rays.scene_index
     base = SKIES[ctx.plan.sky].fn(sky, rays.directions, s, ctx.sun())
-    if sky.halo is not None:
+    if ctx.plan.halo:
         base = base + sun_glow(rays.directions, take(ctx.sun(), s), take(sky.halo.color, s), take(sky.halo.power, s))
     return base
 

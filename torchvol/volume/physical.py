@@ -65,7 +65,7 @@ def light_transmittance(ctx, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, to
         return per_scene(p, s, len(grids), lambda b, i, q: grids[b].lookup(q, sigma_t[i]))
     light = ctx.lights[use.light]
     direction = take(light.direction, s) if toward is None else toward.direction
-    exit_t = vol.intersect(p, direction, s)[1].clamp(0.0, vol.reach)
+    exit_t = vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach)
     if toward is not None:
         exit_t = torch.minimum(exit_t, toward.distance)
     return shadow_transmittance(

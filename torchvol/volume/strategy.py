@@ -14,7 +14,7 @@ from torch import Tensor
 from ..batch import take
 from ..camera import Rays
 from ..rays import clip_to_ray
-from .march import COMPACT_BELOW, march, march_adaptive
+from .march import march, march_adaptive
 from .physical import closed_form
 from .skip import macro_grid, occupied_span
 
@@ -23,10 +23,10 @@ def entry_exit(vol, rays: Rays, t_limit: Tensor | None) -> tuple[Tensor, Tensor,
     """(t0, t1, hit) [n] of the rays through the volume, up to `t_limit` [n] where given."""
     t_near, t_far = vol.intersect(rays.origins, rays.directions, rays.scene_index)
     if vol.shading.semantics == "shader":  # the seeds: march whenever the exit is ahead, from max(t_near, 0)
-        t0, t1 = t_near.clamp_min(0.0), t_far.clamp_max(vol.reach)
+        t0, t1 = t_near.clamp_min(0.0), t_far.clamp_max(vol.plan.reach)
         hit = (t_far >= 0) & (t_far >= t_near)
     else:
-        t0, t1, hit = clip_to_ray(t_near, t_far, vol.reach)
+        t0, t1, hit = clip_to_ray(t_near, t_far, vol.plan.reach)
     if t_limit is not None:
         t1 = torch.minimum(t1, t_limit)
         hit = hit & (t1 > t0)
@@ -61,8 +61,7 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
         res = march(
             t0, t1, marched, medium, rule=st.rule, integrator=st.integrator, semantics=vol.shading.semantics,
             dither=ctx.dither(rays), min_transmittance=st.min_transmittance, occupied=occupied,
-            # a grid sample is one trilinear lookup, cheaper than a compaction; fbm octaves are not
-            compact_below=COMPACT_BELOW if skip else 1.0,
+            compact_below=vol.plan.compact_below,
         )
     return _part(ctx, vol, res, t0, hit)
 

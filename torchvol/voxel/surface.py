@@ -38,10 +38,10 @@ class VoxelSurface:
     def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Sequence[str], *, dtype, device,
                  compiled: bool = False):
         self.p, self.lights, self.plan, self.compiled = voxels, list(lights), plan, compiled
-        self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=voxels.traversal == "hybrid")
+        self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=plan.traversal == "hybrid")
         self.aov_names = [a for a in aovs if a in SURFACE_AOVS]
         self.material = VOXEL_MATERIALS["diffuse"]
-        if voxels.texture is not None:
+        if plan.texture:
             self.atlases = [torch.as_tensor(a, device=device) for a in voxels.texture.atlas]
         self.steps_total = 0
 
@@ -54,7 +54,7 @@ class VoxelSurface:
         og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
         lookup = lambda c, ids: g.lookup(c, s[ids])
         lo, hi = g.lo[s], g.hi[s]
-        if self.p.traversal == "hybrid" and visit is None and not plain:
+        if self.plan.traversal == "hybrid" and visit is None and not plain:
             return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, s[ids]), lo, hi,
                                    max_steps=max_steps, t_min=t_min, compiled=self.compiled)
         return traverse(og, dg, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit,
@@ -77,11 +77,11 @@ class VoxelSurface:
 
         def visit(ids, cells, t_in, t_out, hit):
             sc = s[ids]
-            if p.glow is not None:  # the seed's sdSomeShape(vec3(mapPos)): the cell corner, each scene's own SDF
+            if self.plan.glow:  # the seed's sdSomeShape(vec3(mapPos)): the cell corner, each scene's own SDF
                 corner = g.to_world(cells.to(dt), sc)
                 dist = per_scene(corner, sc, len(p), lambda b, _, q: sdf.evaluate(p.occupancy[b].sdf.shape, q))
                 acc["glow"].index_add_(0, ids, take(p.glow.intensity, sc) / (take(p.glow.epsilon, sc) + dist * dist))
-            if p.fog is not None:
+            if self.plan.fog:
                 e = (~hit).nonzero().squeeze(1)
                 if e.numel():
                     ie, se = ids[e], sc[e]
@@ -105,7 +105,7 @@ class VoxelSurface:
             section: Callable[[str], object] = lambda name: nullcontext()) -> dict[str, Tensor]:
         """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3]."""
         p, n = self.p, o.shape[0]
-        visit, acc = self._glow_and_fog(o, s) if p.glow is not None or p.fog is not None else (None, None)
+        visit, acc = self._glow_and_fog(o, s) if self.plan.glow or self.plan.fog else (None, None)
         with section("voxels.dda"):
             hits = self._traverse(o, d, s, max_steps=p.max_steps, visit=visit)
         steps = hits.steps.clone()
@@ -134,9 +134,9 @@ class VoxelSurface:
             out_color[ids] = self._lit(surface, sh, section)
             for k in self.aov_names:
                 aovs[k][ids] = surface[k]
-        if acc is not None and p.fog is not None:
+        if self.plan.fog:
             out_color = out_color * torch.exp(-acc["fog_tau"])[:, None] + acc["fog_light"]
-        if p.glow is not None:
+        if self.plan.glow:
             out_color = out_color + acc["glow"][:, None] * take(p.glow.color, s)
         t_hit = torch.where(hit, t, torch.full_like(t, torch.inf))
         return dict(hit=hit, t=t_hit, color=out_color, steps=steps, aovs=aovs)
@@ -149,7 +149,7 @@ class VoxelSurface:
         face_n = face_normal(axis, d)
         uv = face_uv(local, axis)
         albedo = p.materials[s, (mat - 1).clamp(0, p.materials.shape[1] - 1)]  # materials (B, M, 3)
-        if p.texture is not None:  # one atlas per scene
+        if self.plan.texture:  # one atlas per scene
             albedo = albedo * per_scene(torch.cat([mat[:, None].to(x.dtype), uv], dim=1), s, len(p),
                                         lambda b, i, q: atlas_sample(self.atlases[b], p.texture.tiles[b], q[:, 0].long(), q[:, 1:]))
         albedo = albedo * face_tone(axis, take(p.face_tones, s))[:, None]
