@@ -16,6 +16,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from .aovs import RESOLVE
 from .batch import Stacked, check_same_structure, stack, take
 from .bounds import BOUNDS
 from .camera import Camera, Rays
@@ -24,7 +25,6 @@ from .lights import LIGHTS, LightSource
 from .plan import Plan, VolumePass, make_plan
 from .post import POST
 from .quality import at_level
-from .aovs import RESOLVE
 from .sampling import march_dither, subpixel_jitter
 from .scene import load_scene
 from .sky import SKIES, sun_glow
