@@ -86,7 +86,7 @@ def test_lost_sample_is_redone_identically(reference, tmp_path):
 
 
 def test_other_settings_in_an_existing_folder_are_refused(reference):
-    with pytest.raises(ValueError, match="--out"):
+    with pytest.raises(ValueError, match="^out: "):
         generate(RECIPE, count=5, out=reference["folder"], seed=4, overrides=TINY, batch=2)
 
 
@@ -131,3 +131,19 @@ def test_cli_generate_and_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "volumes[0].sigma_t" in err and err.count("\n") == 1
     assert main(["generate", str(RECIPE), "--count", "0", "--out", str(tmp_path / "f")]) == 2
+    assert "--count: got 0" in capsys.readouterr().err  # the command line names its flag
+
+
+def test_api_names_bad_arguments_by_parameter(tmp_path):
+    for kw, name in (({"count": 0}, "count"), ({"count": 1, "shard_size": 0}, "shard_size"), ({"count": 1, "layout": "zip"}, "layout")):
+        with pytest.raises(ValueError, match=f"^{name}: got "):
+            generate(RECIPE, out=tmp_path / "g", **kw)
+
+
+def test_progress_is_shown_as_lines_when_stderr_is_not_a_terminal(tmp_path, capsys):
+    sets = [a for k, v in TINY.items() for a in ("--set", f"{k}={v}")]
+    assert main(["generate", str(RECIPE), "--count", "2", "--out", str(tmp_path / "d"), *sets]) == 0
+    err = capsys.readouterr().err
+    assert "generate d" in err and "2/2" in err and "\r" not in err
+    assert main(["generate", str(RECIPE), "--count", "2", "--out", str(tmp_path / "e"), *sets, "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""

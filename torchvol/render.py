@@ -630,13 +630,15 @@ def render(
     dtype: torch.dtype | None = None,
     chunk_rays: int = DEFAULT_CHUNK_RAYS,
     compile: bool = False,
+    progress: Callable[[int], None] | None = None,
 ) -> RenderOutput:
     """Render a scene (or a list of scenes of one structure, as one batch).
 
     `scene`: a Scene, a dict, a .toml path or a preset name (or a list of those). `seed` (one int, or
     one per scene) drives the dither and sub-pixel jitter, hashed per (seed, pixel, sample): a scene
     renders the same alone or anywhere in a batch, for any chunking. `dtype` defaults to the quality level's (float64 for reference).
-    `chunk_rays` bounds peak memory. `compile` runs the noise kernels under torch.compile."""
+    `chunk_rays` bounds peak memory. `compile` runs the noise kernels under torch.compile.
+    `progress(pixels)`, where given, is called after each chunk with the pixels it finished."""
     seeds = list(seed) if isinstance(seed, (list, tuple)) else None
     if isinstance(chunk_rays, bool) or not isinstance(chunk_rays, int) or chunk_rays < 1:
         fail("chunk_rays", chunk_rays, "expected an integer >= 1")
@@ -685,6 +687,8 @@ def render(
                 if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
                     buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
                 buffers[key][:, first:last] = value.T
+        if progress is not None:
+            progress(last - first)
     images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
     radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
     aovs = images
