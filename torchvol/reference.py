@@ -16,9 +16,12 @@ quality levels decide removed (`at_quality`). Rung k:
 Samples per pixel and the render seed are the caller's: renders measured against a reference use
 the same seeded sub-samples, so what is left of their error is that of their approximations.
 
-The bound of rung k is the RMSE between rungs k − 1 and k. Where a rung at least halves the error of
-the one before (the tolerance falls 4×, the shadows refine 2×), the error of rung k is at most
-that difference. A `Ladder` starts at rung 1 and climbs (`settle`) until its bound is `factor` times
+The bound of rung k comes from the differences between successive rungs, d_j = RMSE(rung j − 1,
+rung j): where each rung cuts the error by a ratio q (the tolerance falls 4×, the shadows refine 2×,
+so q ≈ 1/4), the error left in rung k is the rest of the geometric series, d_k·q/(1 − q). q is the
+measured ratio d_k / d_(k−1), taken no lower than 1/4 (the rate the ladder is built for) and no
+higher than 0.9; at rung 1, with one difference known, q = 1/2 (the bound is d_1 itself). A
+`Ladder` starts at rung 1 and climbs (`settle`) until its bound is `factor` times
 under the smallest error it is asked to measure (or under BOUND_FLOOR, or at MAX_RUNG). Rungs are
 cached on disk, keyed by a hash of the rung's scene, dtype and seed; the figures behind these
 constants are in docs/QUALITY.md.
@@ -48,6 +51,7 @@ APPROXIMATION_KEYS = ("quality", "placement", "steps", "step_size", "step_growth
                       "min_transmittance", "density_threshold", "lod", "tolerance")
 BOUND_FLOOR = 1e-5  # RMSE of the display-referred image: under 1% of 8-bit quantisation's 1.1e-3
 MAX_RUNG = 4
+MIN_RATIO, MAX_RATIO = 0.25, 0.9  # the error ratio between rungs the bound assumes, from the measured one
 FLOAT32_MIN_TOLERANCE = 1e-4
 # shadow rays a pixel casts in the error-controlled march (two per lit step), measured on cloud-puff
 SHADOW_RAYS_PER_PIXEL = 40
@@ -210,11 +214,17 @@ class Ladder:
         return self._rungs[k]
 
     def reference(self) -> Reference:
-        """The current rung, with its bound (rendering it and the rung before as needed)."""
-        coarse, fine = self.rung(self.k - 1), self.rung(self.k)
+        """The current rung, with its bound (rendering it and the rungs under it as needed)."""
+        steps = [image_error(self.rung(j - 1)["image"], self.rung(j)["image"])["rmse"] for j in range(1, self.k + 1)]
+        if self.k == 1:
+            ratio = 0.5
+        else:
+            ratio = steps[-1] / steps[-2] if steps[-2] > 0 else math.inf
+            ratio = min(max(ratio, MIN_RATIO), MAX_RATIO)
+        fine = self.rung(self.k)
         return Reference(image=fine["image"], radiance=fine["radiance"], alpha=fine["alpha"],
-                         bound=image_error(coarse["image"], fine["image"])["rmse"], rung=self.k,
-                         tolerance=rung_tolerance(self.k), dtype=fine["dtype"], time_s=fine["time_s"])
+                         bound=steps[-1] * ratio / (1.0 - ratio), rung=self.k, tolerance=rung_tolerance(self.k),
+                         dtype=fine["dtype"], time_s=fine["time_s"])
 
     def settle(self, images: Sequence[Tensor], *, factor: float) -> Reference:
         """The first reference, from the current rung up, whose bound is `factor` times under the
