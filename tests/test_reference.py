@@ -61,7 +61,9 @@ def test_rung_scenes():
     last = max(k for k in range(8) if rung_tolerance(k) >= FLOAT32_MIN_TOLERANCE)
     assert rung_scene(PUFF, last + 1, spp=1)[1] == torch.float64 and rung_scene(PUFF, last, spp=1)[1] == torch.float32
     template, _ = rung_scene(preset_dict("template-clouds", width=16, height=12), 2, spp=1)
-    assert "tolerance" not in template["march"] and template["march"]["steps"] == 1024  # the alpha look: count steps
+    assert "tolerance" not in template["march"] and template["march"]["steps"] == 80  # the alpha look's own sampling
+    assert template["march"]["placement"] == "adaptive" and template["march"]["dither"] == "sin"
+    assert "lod" not in template["march"] and "density_threshold" not in template["march"]
     terrain, _ = rung_scene(preset_dict("voxel-terrain", width=16, height=12), 2, spp=1)
     assert terrain["voxels"]["max_steps"] == 4 * QUALITY["reference"].voxel_max_steps
     assert terrain["voxels"]["shadow"]["steps"] == 4 * QUALITY["reference"].voxel_shadow_steps
