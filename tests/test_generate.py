@@ -3,6 +3,7 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -147,3 +148,21 @@ def test_progress_is_shown_as_lines_when_stderr_is_not_a_terminal(tmp_path, caps
     assert "generate d" in err and "2/2" in err and "\r" not in err
     assert main(["generate", str(RECIPE), "--count", "2", "--out", str(tmp_path / "e"), *sets, "--no-progress"]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_voxel_labels_are_stored_compactly_and_read_back(tmp_path):
+    recipe = ROOT / "datasets" / "voxel-terrain.toml"
+    tiny = {"image.width": 16, "image.height": 12, "voxels.cells": {"min": [-8, -4, -8], "max": [8, 8, 8]},
+            "voxels.fog.shadow_steps": 2, "voxels.shadow.steps": 8, "march.steps": 4}
+    generate(recipe, count=2, out=tmp_path / "ds", overrides=tiny, batch=2)
+    folder, live = tv.FolderDataset(tmp_path / "ds"), tv.SceneDataset(recipe, 2, overrides=tiny)
+    record = json.loads((tmp_path / "ds" / "manifest.jsonl").read_text().splitlines()[1])
+    assert {k: Path(v).name.split(".", 1)[1] for k, v in record["files"].items() if k not in ("image", "depth", "alpha")} == {
+        "normal": "normal.npz", "material": "material.npz", "ao": "ao.npz", "shadow": "shadow.npz", "uv": "uv.npz"}
+    for i in range(2):
+        a, b = folder[i], live[i]
+        for key in ("depth", "normal", "material", "ao", "shadow"):  # lossless
+            assert a[key].dtype == torch.float32 and torch.equal(a[key], b[key]), key
+        assert (a["uv"] - b["uv"]).abs().max() <= 2.0**-12  # float16: within 2.4e-4 of a face
+    with np.load(tmp_path / "ds" / record["files"]["material"]) as stored:
+        assert stored["material"].dtype.name == "uint8"

@@ -3,8 +3,8 @@
 Layout (DIR):
   meta.json                 conventions, recipe, seed, count, layout (written first, atomically)
   manifest.jsonl            one record per sample, by index (written last, atomically)
-  folder:      samples/{index:06d}.{image.png, depth.npy, alpha.png, <aov>.npy, json}
-  webdataset:  shards/shard-{k:06d}.tar holding {index:06d}.{json, image.png, depth.npy, alpha.png, <aov>.npy}
+  folder:      samples/{index:06d}.{image.png, depth.npy, alpha.png, <aov>.npz, json}
+  webdataset:  shards/shard-{k:06d}.tar holding {index:06d}.{json, image.png, depth.npy, alpha.png, <aov>.npz}
 
 Every file is written to a hidden temporary name and renamed into place, so a reader never sees a
 partial file. A folder sample is finished when its .json record exists (written after its other
@@ -177,7 +177,7 @@ def generate(
     out = Path(out)
     meta = {
         "format": "torchvol-dataset",
-        "version": 1,
+        "version": 2,  # 2: AOVs in compressed .npz (1: float32 .npy)
         "layout": layout,
         "count": count,
         "seed": seed,
