@@ -57,7 +57,8 @@ def test_rung_scenes():
     assert scene["image"]["spp"] == 2 and dtype == torch.float32
     assert scene["lights"][0]["shadow"] == {"method": "march", "steps": 32}  # 384 rays: marching is cheaper
     big, _ = rung_scene(preset_dict("cloud-puff"), 1, spp=1)
-    assert big["lights"][0]["shadow"] == {"method": "grid", "resolution": 128}  # 256²: the grid is
+    assert big["lights"][0]["shadow"] == {"method": "grid", "resolution": 192}  # 256²: the grid is
+    assert rung_scene(preset_dict("cloud-puff"), 3, spp=1)[0]["lights"][0]["shadow"]["method"] == "march"  # 768: over the cap
     last = max(k for k in range(8) if rung_tolerance(k) >= FLOAT32_MIN_TOLERANCE)
     assert rung_scene(PUFF, last + 1, spp=1)[1] == torch.float64 and rung_scene(PUFF, last, spp=1)[1] == torch.float32
     template, _ = rung_scene(preset_dict("template-clouds", width=16, height=12), 2, spp=1)

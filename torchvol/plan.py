@@ -53,9 +53,8 @@ class Level:
 # Count placement, frostbite, hashed dither (none at reference) at every level. `default` equals
 # the schema's former fixed defaults (shadow 16, voxel shadow 32, spp 1): scenes that relied on them
 # render unchanged. `high` takes the reference's spp: the same seeded sub-samples, so what is left
-# of its error is the march's. The primary steps of `high` and `reference` (192, 512) are what
-# their shadow steps let count: 384 and 2048 cost 2.8x and 4.3x as much for no smaller error on
-# cloud-puff (docs/QUALITY.md).
+# of its error is the march's. The primary steps of `high` and `reference` are what their shadow
+# steps let count: twice and four times as many bought no smaller error (docs/QUALITY.md).
 QUALITY: dict[str, Level] = {
     "draft": Level(32, 1e-2, torch.float32, shadow_steps=8, voxel_shadow_steps=16, spp=1,
                    voxel_max_steps=256, fog_shadow_steps=8, atmosphere_steps=(8, 4)),

@@ -7,12 +7,13 @@ quality levels decide removed (`at_quality`). Rung k:
   `rung_tolerance(k)` = 1e-2 / 4^k (rays stop under a tenth of it). Volumes in the seeds' alpha
   look (`shading = "shader"`) keep the scene's own march: each of their samples adds an opacity
   that does not scale with its length, so their steps are the look, not an approximation of an
-  integral (1024 and 2048 count steps differ by an RMSE of 0.02 on `template-clouds`); only their
-  early exit, LOD and density threshold go;
+  integral that more steps would converge to (docs/QUALITY.md); only their early exit, LOD and
+  density threshold go;
 - finds the suns' transmittance through volumes with a uniform shadow march of 16·2^k steps or on
-  a sun grid of 64·2^k nodes across (box and sphere bounds only), whichever evaluates the density
-  fewer times: the march costs about SHADOW_RAYS_PER_PIXEL·steps evaluations a pixel, the grid
-  about resolution³ in all (so small images march, large ones use the grid);
+  a sun grid of 96·2^k nodes across (box and sphere bounds only, up to MAX_GRID_RESOLUTION),
+  whichever evaluates the density fewer times: the march costs about SHADOW_RAYS_PER_PIXEL·steps
+  evaluations a pixel, the grid about resolution³ in all (so small images march, large ones use
+  the grid, until its resolution would pass the cap);
 - doubles every step limit with k: voxel DDA, voxel and fog shadow rays, atmosphere samples;
 - renders in float32 while the tolerance is at least FLOAT32_MIN_TOLERANCE, in float64 below it.
 
@@ -20,11 +21,12 @@ Samples per pixel and the render seed are the caller's: renders measured against
 the same seeded sub-samples, so what is left of their error is that of their approximations.
 
 The bound of rung k comes from the differences between successive rungs, d_j = RMSE(rung j − 1,
-rung j): where each rung cuts the error by a ratio q (the tolerance falls 4×, the shadows refine 2×,
-so q ≈ 1/4), the error left in rung k is the rest of the geometric series, d_k·q/(1 − q). q is the
-measured ratio d_k / d_(k−1), taken no lower than 1/4 (the rate the ladder is built for) and no
-higher than 0.9; at rung 1, with one difference known, q = 1/2 (the bound is d_1 itself). A
-`Ladder` starts at rung 1 and climbs (`settle`) until its bound is `factor` times
+rung j): where each rung cuts the error by a ratio q, the error left in rung k is the rest of the
+geometric series, d_k·q/(1 − q). q is the measured ratio d_k / d_(k−1), taken no lower than 1/2
+(the bound is then d_k itself: the ladder is built to cut the error 2-4× a rung, but convergence
+slows on sharp-edged clouds, where a tighter q underestimated the error) and no higher than 0.9;
+at rung 1, with one difference known, q = 1/2. A `Ladder` starts at rung 1 and climbs (`settle`)
+until its bound is `factor` times
 under the smallest error it is asked to measure (or under BOUND_FLOOR, or at MAX_RUNG). Rungs are
 cached on disk, keyed by a hash of the rung's scene, dtype and seed; the figures behind these
 constants are in docs/QUALITY.md.
@@ -54,11 +56,12 @@ APPROXIMATION_KEYS = ("quality", "placement", "steps", "step_size", "step_growth
                       "min_transmittance", "density_threshold", "lod", "tolerance")
 BOUND_FLOOR = 1e-5  # RMSE of the display-referred image: under 1% of 8-bit quantisation's 1.1e-3
 MAX_RUNG = 4
-MIN_RATIO, MAX_RATIO = 0.25, 0.9  # the error ratio between rungs the bound assumes, from the measured one
+MIN_RATIO, MAX_RATIO = 0.5, 0.9  # the error ratio between rungs the bound assumes, from the measured one
 FLOAT32_MIN_TOLERANCE = 1e-4
-# shadow rays a pixel casts in the error-controlled march (two per lit step), measured on cloud-puff
+# shadow rays a pixel casts in the error-controlled march (two per lit step) on cloud-puff: what the
+# choice between shadow march and sun grid assumes
 SHADOW_RAYS_PER_PIXEL = 40
-MAX_GRID_RESOLUTION = 384  # a 512 grid holds 0.5 GB of float32 nodes
+MAX_GRID_RESOLUTION = 384  # a 768 grid would hold 1.8 GB of float32 nodes; finer rungs march
 MAX_SHADOW_STEPS = 4096  # the schema's limits
 MAX_ATMOSPHERE_STEPS = 1024
 MAX_FOG_SHADOW_STEPS = 10_000
@@ -125,8 +128,8 @@ def rung_scene(data: Mapping, k: int, *, spp: int) -> tuple[dict, torch.dtype]:
                      step_growth=look.rule.step_growth, dither=look.dither, dither_scale=look.dither_scale)
     if any(v.shading == "physical" for v in scene.volumes) and march.get("integrator") != "alpha":
         march["tolerance"] = tolerance
-    steps, resolution = min(16 * scale, MAX_SHADOW_STEPS), min(64 * scale, MAX_GRID_RESOLUTION)
-    grid = (all(v.bounds.kind in ("box", "sphere") for v in scene.volumes)
+    steps, resolution = min(16 * scale, MAX_SHADOW_STEPS), 96 * scale
+    grid = (all(v.bounds.kind in ("box", "sphere") for v in scene.volumes) and resolution <= MAX_GRID_RESOLUTION
             and resolution**3 < scene.image.width * scene.image.height * spp * SHADOW_RAYS_PER_PIXEL * steps)
     for light in out.get("lights") or []:
         if light.get("shadow") is not None:
