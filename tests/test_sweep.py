@@ -10,7 +10,7 @@ from PIL import Image
 
 from torchvol.cli import main
 from torchvol.reference import BOUND_FLOOR, reference_overrides
-from torchvol.sweep import MEASURED, is_approximation, split_values, sweep
+from torchvol.sweep import MEASURED, is_approximation, split_values, sweep, verdict
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--set", "image.width=16", "--set", "image.height=12"]
@@ -130,3 +130,16 @@ def test_value_splitting_key_kinds_and_reference():
                       "voxels.max_steps", "voxels.fog.shadow_steps", "sky.atmosphere.light_steps")
     scene = ("march.max_distance", "volumes[0].sigma_t", "image.width", "lights[0].intensity", "voxels.ao.gamma")
     assert all(is_approximation(k) for k in approximations) and not any(is_approximation(k) for k in scene)
+
+
+def test_verdict_is_the_cheapest_setting_within_the_error_over_every_scene_value():
+    def entry(steps, sigma, time_s, rmse):
+        return {"march.steps": steps, "volumes[0].sigma_t": sigma, "samples": 1, "time_s_mean": time_s, "rmse_max": rmse,
+                "reference_bound_max": rmse / 20}
+
+    keys = ["march.steps", "volumes[0].sigma_t"]
+    summary = [entry(16, 4, 1.0, 5e-4), entry(16, 12, 1.0, 3e-3), entry(32, 4, 2.0, 4e-4), entry(32, 12, 2.0, 9e-4),
+               entry(64, 4, 4.0, 3e-4), entry(64, 12, 4.0, 5e-4)]
+    text = verdict(summary, keys, max_error=1e-3)  # 16 steps fails on σ_t 12: 32 is the cheapest within
+    assert text.startswith("cheapest within RMSE 0.001: march.steps=32, 2 s per render, RMSE 0.0009 (worst over every volumes[0].sigma_t)")
+    assert verdict(summary, keys, max_error=1e-4).startswith("no setting is within RMSE 0.0001: the most accurate, march.steps=64")

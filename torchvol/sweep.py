@@ -41,7 +41,7 @@ from . import __version__, figures
 from .plan import QUALITY, at_level
 from .progress import progress as bar
 from .recipe import Recipe, render_seed
-from .reference import Ladder, image_error
+from .reference import Ladder, at_quality, image_error
 from .scene import _path_str, _set_path, load_scene
 from .validate import fail
 
@@ -107,8 +107,6 @@ def setting_data(sample: Mapping, values: Mapping[str, Any]) -> dict:
     (`march.quality`: the level then decides every approximation key not swept), then its values."""
     data = copy.deepcopy(dict(sample))
     if "march.quality" in values:
-        from .reference import at_quality
-
         data = at_quality(data, values["march.quality"])
     for key, value in values.items():
         if key != "march.quality":
@@ -236,22 +234,22 @@ def sweep(source: Any, params: Mapping[str, Sequence[Any]], *, out: str | Path, 
         warmed = False
         for index in range(count):
             data = sample_data(recipe, index, seed) if index else first
-            render_seed_ = seed if samples is None else render_seed(index, seed)
+            seed_of_sample = seed if samples is None else render_seed(index, seed)
             for group in groups.values():
                 todo = [v for v in group if row_key(index, v) not in done]
                 if not todo:
                     continue
                 scene_values = {k: v for k, v in group[0].items() if not is_approximation(k)}
                 spp = max(at_level(load_scene(setting_data(data, v))).image.spp for v in group)
-                ladder = Ladder(setting_data(data, scene_values), seed=render_seed_, spp=spp, cache=cache,
+                ladder = Ladder(setting_data(data, scene_values), seed=seed_of_sample, spp=spp, cache=cache,
                                 on_render=lambda k, tol: shown.set_postfix_str(f"sample {index}: reference rung {k}, tolerance {tol:.1e}"))
                 for values in todo:
                     scene = load_scene(setting_data(data, values))
                     if not warmed:  # a first render pays one-off costs (allocator, threads): not the setting's
-                        render(load_scene(scene.model_dump(), {"image.width": 8, "image.height": 8}), seed=render_seed_)
+                        render(load_scene(scene.model_dump(), {"image.width": 8, "image.height": 8}), seed=seed_of_sample)
                         warmed = True
                     shown.set_postfix_str(f"sample {index}: {label(values)}")
-                    result = render(scene, seed=render_seed_)
+                    result = render(scene, seed=seed_of_sample)
                     ref = ladder.settle([result.image], factor=factor)
                     error = image_error(result.image, ref.image)
                     row = {"sample": index, **{k: _cell(values[k]) if k in values else "" for k in keys},
@@ -317,17 +315,19 @@ def verdict(summary: Sequence[dict], keys: Sequence[str], *, max_error: float) -
                 max(e["reference_bound_max"] for e in entries))
 
     measured = {c: figures_of(e) for c, e in choices.items()}
-    over = " over every sample" + (" and " + ", ".join(k for k in keys if k not in approx) if len(approx) < len(keys) else "")
+    samples = max(s["samples"] for s in summary)
+    across = ([f"{samples} samples"] if samples > 1 else []) + [f"every {k}" for k in keys if k not in approx]
+    over = f" (worst over {' and '.join(across)})" if across else ""
     within = {c: m for c, m in measured.items() if m[1] <= max_error}
     if not within:
         best = min(measured, key=lambda c: measured[c][1])
         time_s, worst, bound = measured[best]
-        return (f"no setting is within RMSE {max_error:.2g}: the most accurate, {name(best)}, has worst RMSE "
-                f"{worst:.2g} (reference bound {bound:.1g}){over}, {time_s:.3g} s per render")
+        return (f"no setting is within RMSE {max_error:.2g}: the most accurate, {name(best)}, has RMSE "
+                f"{worst:.2g}{over} (reference bound {bound:.1g}), {time_s:.3g} s per render")
     best = min(within, key=lambda c: within[c][0])
     time_s, worst, bound = within[best]
     return (f"cheapest within RMSE {max_error:.2g}{' (8-bit quantisation)' if max_error == QUANTISATION_RMSE else ''}: "
-            f"{name(best)}, {time_s:.3g} s per render, worst RMSE {worst:.2g} (reference bound {bound:.1g}){over}")
+            f"{name(best)}, {time_s:.3g} s per render, RMSE {worst:.2g}{over} (reference bound {bound:.1g})")
 
 
 def _figures(out: Path, settings: list[dict], keys: list[str], summary: list[dict], rows: list[dict],
