@@ -114,6 +114,7 @@ def test_reference_renders_in_float64():
     assert out.stats["dtype"] == "float64" and out.image.dtype == torch.float32
 
 
+@pytest.mark.slow
 def test_bench_tolerance_table_in_the_tolerance_units(tmp_path, one_thread):
     out = tmp_path / "bench"
     assert main(["bench", "accuracy", "--out", str(out), "--width", "8", "--height", "6", "--repeat", "1",

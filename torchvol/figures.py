@@ -134,7 +134,8 @@ def pareto(summary: Sequence[dict], keys: Sequence[str], path: Path, *, scene_ke
                 xytext=(0, 3), textcoords="offset points", color="0.3")
     ax.set(xscale="log", yscale="log", xlabel="time per render (s)", ylabel="RMSE against the reference")
     ratio = max((s["reference_bound_max"] / s["rmse_max"] for s in summary if s["rmse_max"] > 0), default=0.0)
-    ax.set_title(f"error against time; each reference's bound is at most {ratio:.0%} of the error it measures"
+    share = "under 1%" if ratio < 0.01 else f"at most {ratio:.0%}"
+    ax.set_title(f"error against time; each reference's bound is {share} of the error it measures"
                  + ("; bars: spread over samples" if any(s["samples"] > 1 for s in summary) else ""), fontsize=9)
     handles = []  # one legend: a heading per swept key, then its values in the key's encoding
     for n, k in enumerate(styled[:3]):
