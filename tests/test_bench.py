@@ -1,13 +1,16 @@
 """`torchvol bench accuracy` end to end on tiny images, and the quality levels it reports."""
 
+import re
+
+import pytest
 import torch
 from PIL import Image
 
 import torchvol as tv
-from torchvol.bench import FIXED_STEPS
+from torchvol.bench import FIXED_STEPS, accuracy
 from torchvol.cli import main
 from torchvol.quality import QUALITY, at_level, march_settings
-from torchvol.sweep import at_quality, image_error
+from torchvol.reference import BOUND_FLOOR, at_quality, image_error
 
 PHYSICAL = {  # a shadowed fbm cloud filling the frame (no silhouette: level errors are march errors)
     "image": {"width": 6, "height": 4},
@@ -19,29 +22,35 @@ PHYSICAL = {  # a shadowed fbm cloud filling the frame (no silhouette: level err
 }
 
 
+def _table(path):
+    return [[c.strip() for c in line.strip("|").split("|")] for line in path.read_text().splitlines() if line.startswith("| ")]
+
+
 def test_bench_accuracy_writes_table_and_plot(tmp_path, capsys, one_thread):
     out = tmp_path / "bench"
     assert main(["bench", "accuracy", "--out", str(out), "--width", "16", "--height", "12", "--repeat", "1",
                  "--scenes", "voxel-terrain", "--knobs", "spp,shadow_steps"]) == 0
-    lines = (out / "accuracy.md").read_text().splitlines()
-    assert [c.strip() for c in lines[0].strip("|").split("|")] == [
-        "scene", "knob", "setting", "time (s)", "rel. RMSE", "PSNR (dB)"]
-    rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[2:]]
+    header, _, *rows = _table(out / "accuracy.md")
+    assert header == ["scene", "knob", "setting", "time (s)", "rel. RMSE", "± reference bound", "PSNR (dB)"]
     assert {r[0] for r in rows} == {"voxel terrain"}
     got = [(r[1], r[2]) for r in rows]
     assert got == ([("shadow_steps", v) for v in ("8", "16", "32", "64", "128")] + [("spp", v) for v in ("1", "2", "4")]
                    + [("level", q) for q in QUALITY])
     assert all(float(r[3]) > 0 for r in rows)
-    assert rows[-1][4:] == ["0.00e+00", "∞"]  # the reference against itself
+    # every error has its reference's bound beside it, 10x under the smallest error or at the floor
+    line = next(line for line in (out / "accuracy.md").read_text().splitlines() if line.startswith("- voxel terrain: reference rung"))
+    bound, under = re.search(r"its bound \(RMSE (\S+)\) is (\S+)× under the smallest error of its rows", line).groups()
+    assert float(under) >= 10 or float(bound) <= BOUND_FLOOR
+    assert len({r[5] for r in rows}) == 1  # one reference for the scene's rows
     assert Image.open(out / "accuracy.png").format == "PNG"
-    # a second run into the same folder reuses the stored reference instead of rendering it again
-    (stored,) = (out / "references").glob("reference-*.pt")
-    before = stored.stat().st_mtime_ns
+    # a second run into the same folder reuses the stored references instead of rendering them again
+    stored = {p: p.stat().st_mtime_ns for p in (out / "references").glob("render-*.pt")}
+    assert len(stored) >= 2  # a rung and the one under it, which bounds its error
     assert main(["bench", "accuracy", "--out", str(out), "--width", "16", "--height", "12", "--repeat", "1",
                  "--scenes", "voxel-terrain", "--knobs", "spp"]) == 0
-    assert stored.stat().st_mtime_ns == before
-    again = [[c.strip() for c in line.strip("|").split("|")] for line in (out / "accuracy.md").read_text().splitlines()[2:]]
-    assert again[-1] == rows[-1]  # the same reference row, time included
+    assert {p: p.stat().st_mtime_ns for p in (out / "references").glob("render-*.pt")} == stored
+    again = _table(out / "accuracy.md")[2:]
+    assert [r[4:] for r in again if r[1] == "level"] == [r[4:] for r in rows if r[1] == "level"]  # the same errors
 
 
 def test_bench_bad_input(tmp_path, capsys):
@@ -49,6 +58,9 @@ def test_bench_bad_input(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--knobs: got 'stepz'" in err and "did you mean 'steps'" in err
     assert main(["bench", "accuracy", "--out", str(tmp_path), "--scenes", "cloud-puf"]) == 2
+    assert "--scenes: got 'cloud-puf'" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="^width: got 0"):  # the library names its parameters
+        accuracy(tmp_path, width=0)
 
 
 def test_levels_are_ordered_on_a_physical_scene(one_thread):
@@ -102,6 +114,7 @@ def test_reference_renders_in_float64():
     assert out.stats["dtype"] == "float64" and out.image.dtype == torch.float32
 
 
+@pytest.mark.slow
 def test_bench_tolerance_table_in_the_tolerance_units(tmp_path, one_thread):
     out = tmp_path / "bench"
     assert main(["bench", "accuracy", "--out", str(out), "--width", "8", "--height", "6", "--repeat", "1",
@@ -112,6 +125,12 @@ def test_bench_tolerance_table_in_the_tolerance_units(tmp_path, one_thread):
     assert [r[1] for r in rows] == [f"{n} steps" for n in FIXED_STEPS] + ["tolerance 0.01", "tolerance 0.001", "tolerance 0.0001"]
     fixed, adaptive = rows[:len(FIXED_STEPS)], rows[len(FIXED_STEPS):]
     assert all(r[5] == "" for r in fixed) and all(float(r[5]) > 0 for r in adaptive)  # only the tolerance march estimates
-    assert float(fixed[-1][3]) < float(fixed[0][3]) and float(fixed[-1][4]) < float(fixed[0][4])  # more steps, less error
+
+    def error(cell: str) -> tuple[float, float]:  # "1.8e-04 ± 3e-07": the error and its reference's bound
+        value, bound = cell.split(" ± ")
+        return float(value), float(bound)
+
+    assert error(fixed[-1][3])[0] < error(fixed[0][3])[0] and error(fixed[-1][4])[0] < error(fixed[0][4])[0]  # more steps, less error
+    assert all(error(r[c])[1] < error(fixed[0][c])[0] / 10 for r in rows for c in (3, 4))
     verdicts = [line for line in section if line.startswith("- physical clouds, tolerance")]
     assert len(verdicts) == 3 and all(("tolerance holds" in v or "tolerance does NOT hold" in v) and " s, where " in v for v in verdicts)

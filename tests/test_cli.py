@@ -1,5 +1,6 @@
 """`torchvol render` end to end: files written, exact float arrays, errors as one line."""
 
+import argparse
 import json
 import subprocess
 import sys
@@ -9,7 +10,7 @@ import pytest
 from PIL import Image
 
 import torchvol as tv
-from torchvol.cli import main
+from torchvol.cli import build_parser, main
 
 
 def test_render_preset_writes_png_depth_and_arrays(tmp_path, capsys):
@@ -55,3 +56,28 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys, args, needle):
 def test_console_script_runs():
     done = subprocess.run([sys.executable, "-m", "torchvol.cli", "render", "--help"], capture_output=True, text=True)
     assert done.returncode == 0 and "--preset" in done.stdout
+
+
+def _commands(parser, path=()):
+    """(command path, its parser) for every command of the CLI."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _commands(sub, path + (name,))
+    if path and not any(isinstance(a, argparse._SubParsersAction) for a in parser._actions):
+        yield path, parser
+
+
+def test_help_describes_every_option_and_lists_the_presets(capsys):
+    commands = dict(_commands(build_parser()))
+    assert set(commands) == {("render",), ("generate",), ("sweep",), ("bench", "accuracy")}
+    for path, parser in commands.items():
+        for action in parser._actions:
+            assert action.help, f"torchvol {' '.join(path)} {action.option_strings or action.dest}: no help"
+    for command in (["render"], ["sweep"]):
+        with pytest.raises(SystemExit):
+            main([*command, "--help"])
+        text = capsys.readouterr().out
+        for name in tv.preset_names():
+            assert f"  {name} " in text, name
+        assert "sigma_t" in text and "noise_texture" in text and "traversal" in text

@@ -1,6 +1,6 @@
-"""SceneDataset: the same samples in any process, worker, order or batch; epochs; the docs example."""
+"""SceneDataset: the same samples in any process, worker, order or batch; epochs (the README's training
+example runs in tests/test_docs.py)."""
 
-import re
 from pathlib import Path
 
 import torch
@@ -63,15 +63,6 @@ def test_bad_arguments():
         tv.SceneDataset(ROOT / "datasets" / "clouds.toml", -1)
     with pytest.raises(IndexError):
         dataset()[4]
-
-
-def test_readme_training_example_runs(monkeypatch):
-    text = (ROOT / "README.md").read_text()
-    section = text.split("## Training use", 1)[1]
-    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
-    assert "depth_to_3d_v2" in code and "DataLoader" in code
-    monkeypatch.chdir(ROOT)
-    exec(compile(code, "README.md", "exec"), {})
 
 
 def test_voxel_terrain_recipe_gives_surface_labels():

@@ -3,6 +3,7 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -86,7 +87,7 @@ def test_lost_sample_is_redone_identically(reference, tmp_path):
 
 
 def test_other_settings_in_an_existing_folder_are_refused(reference):
-    with pytest.raises(ValueError, match="--out"):
+    with pytest.raises(ValueError, match="^out: "):
         generate(RECIPE, count=5, out=reference["folder"], seed=4, overrides=TINY, batch=2)
 
 
@@ -131,3 +132,37 @@ def test_cli_generate_and_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "volumes[0].sigma_t" in err and err.count("\n") == 1
     assert main(["generate", str(RECIPE), "--count", "0", "--out", str(tmp_path / "f")]) == 2
+    assert "--count: got 0" in capsys.readouterr().err  # the command line names its flag
+
+
+def test_api_names_bad_arguments_by_parameter(tmp_path):
+    for kw, name in (({"count": 0}, "count"), ({"count": 1, "shard_size": 0}, "shard_size"), ({"count": 1, "layout": "zip"}, "layout")):
+        with pytest.raises(ValueError, match=f"^{name}: got "):
+            generate(RECIPE, out=tmp_path / "g", **kw)
+
+
+def test_progress_is_shown_as_lines_when_stderr_is_not_a_terminal(tmp_path, capsys):
+    sets = [a for k, v in TINY.items() for a in ("--set", f"{k}={v}")]
+    assert main(["generate", str(RECIPE), "--count", "2", "--out", str(tmp_path / "d"), *sets]) == 0
+    err = capsys.readouterr().err
+    assert "generate d" in err and "2/2" in err and "\r" not in err
+    assert main(["generate", str(RECIPE), "--count", "2", "--out", str(tmp_path / "e"), *sets, "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_voxel_labels_are_stored_compactly_and_read_back(tmp_path):
+    recipe = ROOT / "datasets" / "voxel-terrain.toml"
+    tiny = {"image.width": 16, "image.height": 12, "voxels.cells": {"min": [-8, -4, -8], "max": [8, 8, 8]},
+            "voxels.fog.shadow_steps": 2, "voxels.shadow.steps": 8, "march.steps": 4}
+    generate(recipe, count=2, out=tmp_path / "ds", overrides=tiny, batch=2)
+    folder, live = tv.FolderDataset(tmp_path / "ds"), tv.SceneDataset(recipe, 2, overrides=tiny)
+    record = json.loads((tmp_path / "ds" / "manifest.jsonl").read_text().splitlines()[1])
+    assert {k: Path(v).name.split(".", 1)[1] for k, v in record["files"].items() if k not in ("image", "depth", "alpha")} == {
+        "normal": "normal.npz", "material": "material.npz", "ao": "ao.npz", "shadow": "shadow.npz", "uv": "uv.npz"}
+    for i in range(2):
+        a, b = folder[i], live[i]
+        for key in ("depth", "normal", "material", "ao", "shadow"):  # lossless
+            assert a[key].dtype == torch.float32 and torch.equal(a[key], b[key]), key
+        assert (a["uv"] - b["uv"]).abs().max() <= 2.0**-12  # float16: within 2.4e-4 of a face
+    with np.load(tmp_path / "ds" / record["files"]["material"]) as stored:
+        assert stored["material"].dtype.name == "uint8"

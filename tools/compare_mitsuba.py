@@ -47,7 +47,7 @@ from torchvol.render import camera_for
 from torchvol.testing.mitsuba import (IRRADIANCE, SUN, debiased_relative_rmse, puff_grid, relative_rmse, render_mitsuba,
                                      sigma_for, torchvol_scene)
 from torchvol.volume.exact import grid_single_scatter
-from torchvol.volume.light import henyey_greenstein
+from torchvol.volume.phase import henyey_greenstein
 
 F64 = torch.float64
 

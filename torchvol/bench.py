@@ -2,23 +2,25 @@
 
 Each knob is a curve: the scene as bundled with one setting changed (primary steps, integrator,
 shadow steps, LOD, spp, torch.compile). Each quality level is one row: the scene with every key the
-level decides removed (`sweep.at_quality`). Error is against the `reference` level render of the same
-scene (relative RMSE and PSNR, `sweep.image_error`); time is the median wall time of `repeat` renders
-(a compiled render's first call, which compiles, is not counted; the reference is timed once). Writes DIR/accuracy.md (a
-Markdown table) and DIR/accuracy.png (error against time, one panel per scene). For physical scenes
-the `tolerance` knob adds a second table to accuracy.md: `march.tolerance` against fixed step counts
-in the tolerance's own units (radiance over the light, alpha), against the reference march of the
-same rays, with whether each tolerance held and what the cheapest as-accurate fixed count took. References are kept
-in DIR/references/, keyed by a hash of the reference scene and seed: a re-run into the same DIR
-(another knob, more repeats) reuses them instead of re-rendering the slowest part of the report.
+level decides removed (`reference.at_quality`). Every row of a scene is measured against one
+reference, the same as `torchvol sweep`'s (`reference.Ladder`, at the rows' largest spp with the
+same seeded sub-samples), climbed until its own bound is `factor` times under the smallest error of
+the scene's rows (or under its floor): relative RMSE and PSNR, with the reference's bound beside
+them. Time is the median wall time of `repeat` renders (a compiled render's first call, which
+compiles, is not counted). Writes DIR/accuracy.md (Markdown tables) and DIR/accuracy.png (error
+against time, one panel per scene). For physical scenes the `tolerance` knob adds a table of
+`march.tolerance` against fixed step counts in the tolerance's own units (radiance over the light,
+alpha), against the same scene and rays with only the march made exact, with whether each tolerance
+held and what the cheapest as-accurate fixed count took. References are cached in DIR/references/
+(or `cache`), keyed by a hash of the reference scene: a re-run (another knob, more repeats) reuses
+them instead of rendering the slowest part of the report again.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import statistics
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,10 +30,11 @@ import torch
 
 from .quality import QUALITY, Quality, at_level
 from .presets import preset_dict
+from .progress import progress as bar
+from .reference import Ladder, at_quality, cached_render, image_error
 from .render import render
 from .scene import load_scene
-from .sweep import at_quality, image_error
-from .validate import did_you_mean, fail
+from .validate import did_you_mean, fail, finite, integer
 
 # report name -> bundled preset
 SCENES = {"template clouds": "template-clouds", "physical clouds": "cloud-puff", "voxel terrain": "voxel-terrain"}
@@ -39,6 +42,8 @@ SCENES = {"template clouds": "template-clouds", "physical clouds": "cloud-puff",
 TOLERANCES = (1e-2, 1e-3, 1e-4)
 FIXED_STEPS = (32, 48, 64, 96, 128, 160, 192, 256, 384, 512, 768)  # fine enough that "as accurate" is a fair match
 NO_EARLY_EXIT = {"march.min_transmittance": 1e-12}  # early termination leaves an error floor of its own
+EXACT_MARCH_STEPS = 2048  # the tolerance table's reference march (float64); its bound: against half as many
+LONG_RENDER_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -88,106 +93,107 @@ def scene_data(preset: str, *, width: int, height: int, quality: Quality | None 
     return data if quality is None else at_quality(data, quality)
 
 
-def measure(data: dict, reference: torch.Tensor, setting: Setting, *, repeat: int, seed: int = 0) -> dict[str, float]:
-    """Median render time of `repeat` renders of `data` with `setting`, and the image's error
-    against `reference` (B, 3, H, W)."""
+def measure(data: dict, setting: Setting, *, repeat: int, seed: int = 0):
+    """(median wall time, the last RenderOutput) of `repeat` renders of `data` with `setting`; a
+    render that takes over LONG_RENDER_S is timed once (its timing noise is small against it)."""
     scene = load_scene(data, setting.overrides)
     if setting.compile:
         render(scene, seed=seed, compile=True)  # compilation is not what is measured
     times = []
-    for _ in range(repeat):
+    while len(times) < repeat and sum(times) < LONG_RENDER_S:
         start = time.perf_counter()
         out = render(scene, seed=seed, compile=setting.compile)
         times.append(time.perf_counter() - start)
-    return {"time_s": statistics.median(times), **image_error(out.image, reference)}
-
-
-def reference_render(data: dict, *, seed: int, cache: Path | None, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The reference render of scene dict `data` (with key `overrides`): {"image", "radiance",
-    "alpha", "time_s"}, from `cache` (a folder) when it holds one for exactly this scene, overrides
-    and seed, else rendered (and stored there)."""
-    overrides = overrides or {}
-    key = hashlib.sha256(json.dumps([data, overrides, seed], sort_keys=True, default=repr).encode()).hexdigest()[:16]
-    path = None if cache is None else cache / f"reference-{key}.pt"
-    if path is not None and path.is_file():
-        return torch.load(path)
-    start = time.perf_counter()
-    out = render(load_scene(data, overrides), seed=seed)
-    stored = {"image": out.image, "radiance": out.radiance, "alpha": out.alpha, "time_s": time.perf_counter() - start}
-    if path is not None:
-        cache.mkdir(parents=True, exist_ok=True)
-        partial = path.with_suffix(".partial")
-        torch.save(stored, partial)
-        partial.replace(path)  # a killed run leaves no half-written reference behind
-    return stored
+    return statistics.median(times), out
 
 
 def scene_rows(name: str, *, width: int, height: int, repeat: int, knob_names: Sequence[str], seed: int = 0,
-               cache: Path | None = None) -> list[dict]:
-    """Rows (scene, knob, setting, time_s, rmse, rel_rmse, psnr) of one report scene: every
-    applicable knob in `knob_names`, then one row per quality level. The `reference` row is the
-    reference render itself, timed once (the slowest render of the report; its error is 0), kept in
-    `cache` when given."""
+               cache: Path | None = None, factor: float = 10.0, shown=None) -> tuple[list[dict], dict]:
+    """Rows (scene, knob, setting, time_s, rmse, rel_rmse, psnr, bound, rel_bound) of one report
+    scene, every applicable knob in `knob_names` then one row per quality level, and the reference
+    they are measured against ({"rung", "tolerance", "dtype", "time_s", "bound"}). `shown`: a
+    progress bar, advanced by one per row."""
     preset = SCENES[name]
-    stored = reference_render(scene_data(preset, width=width, height=height, quality="reference"), seed=seed, cache=cache)
-    reference = stored["image"]
-    reference_row = {"scene": name, "knob": "level", "setting": "reference", "time_s": stored["time_s"],
-                     **image_error(reference, reference)}
-    rows = []
     bundled = scene_data(preset, width=width, height=height)
-    for knob, settings in knobs(preset).items():
-        if knob in knob_names:
-            for setting in settings:
-                rows.append({"scene": name, "knob": knob, "setting": setting.label,
-                             **measure(bundled, reference, setting, repeat=repeat, seed=seed)})
-    for level in (q for q in QUALITY if q != "reference"):
-        data = scene_data(preset, width=width, height=height, quality=level)
-        rows.append({"scene": name, "knob": "level", "setting": level,
-                     **measure(data, reference, Setting(level), repeat=repeat, seed=seed)})
-    return rows + [reference_row]
+    cases = [(knob, s.label, bundled, s) for knob, settings in knobs(preset).items() if knob in knob_names for s in settings]
+    cases += [("level", level, scene_data(preset, width=width, height=height, quality=level), Setting(level)) for level in QUALITY]
+    measured = []
+    for knob, label, data, setting in cases:
+        if shown is not None:
+            shown.set_postfix_str(f"{name}: {knob} {label}")
+        time_s, out = measure(data, setting, repeat=repeat, seed=seed)
+        measured.append((time_s, out.image))
+        if shown is not None:
+            shown.update(1)
+    spp = max(at_level(load_scene(data, s.overrides)).image.spp for _, _, data, s in cases)
+    on_render = None if shown is None else (lambda k, tol: shown.set_postfix_str(f"{name}: reference rung {k}, tolerance {tol:.1e}"))
+    ladder = Ladder(bundled, seed=seed, spp=spp, cache=cache, on_render=on_render)
+    ref = ladder.settle([image for _, image in measured], factor=factor)
+    rms = image_error(torch.zeros_like(ref.image), ref.image)["rmse"]
+    rows = [{"scene": name, "knob": knob, "setting": label, "time_s": time_s, **image_error(image, ref.image),
+             "bound": ref.bound, "rel_bound": ref.bound / rms if rms > 0 else math.inf}
+            for (knob, label, _, _), (time_s, image) in zip(cases, measured)]
+    return rows, {"scene": name, "rung": ref.rung, "tolerance": ref.tolerance, "dtype": ref.dtype, "time_s": ref.time_s,
+                  "bound": ref.bound, "spp": spp}
 
 
-def tolerance_rows(name: str, *, width: int, height: int, repeat: int, seed: int = 0, cache: Path | None = None) -> list[dict]:
+def tolerance_rows(name: str, *, width: int, height: int, repeat: int, seed: int = 0, cache: Path | None = None,
+                   shown=None) -> list[dict]:
     """`march.tolerance` against fixed step counts on a physical report scene, in the tolerance's
     units: the largest radiance error over the brightest light channel and the largest alpha
     (1 − transmittance) error, against the same scene and rays (its spp, shadow steps, ...) with
-    only the march made exact (float64, the `reference` level's 2048 steps). Early termination is
-    off in every render here: at the levels' 1e-4 it leaves a floor of ~1e-5 of the light that is
-    not the march's. Rows (scene, march, tolerance (None for a fixed count), time_s,
-    radiance_error, alpha_error, estimate)."""
+    only the march made exact (float64, EXACT_MARCH_STEPS steps; its bound, in the same units, is
+    how far it moves from half as many steps). Early termination is off in every render here: at
+    the levels' 1e-4 it leaves a floor of ~1e-5 of the light that is not the march's. Rows (scene,
+    march, tolerance (None for a fixed count), time_s, radiance_error, alpha_error, estimate,
+    radiance_bound, alpha_bound)."""
     preset = SCENES[name]
     bundled = scene_data(preset, width=width, height=height)
     scene = at_level(load_scene(bundled))  # the spp its level gives it
     light = max([c * li.intensity for li in scene.lights for c in li.color] or [1.0])
-    # the same scene (its shadow steps, spp, ...) with only the march made exact: float64, the reference's steps
-    reference = reference_render(bundled, seed=seed, cache=cache, overrides={
-        **NO_EARLY_EXIT, "march.quality": "reference", "march.steps": QUALITY["reference"].steps, "image.spp": scene.image.spp})
+
+    def exact(steps: int) -> dict:  # the same scene, rays and shadows with only the march made exact
+        if shown is not None:
+            shown.set_postfix_str(f"{name}: exact march, {steps} steps")
+        return cached_render(load_scene(bundled, {**NO_EARLY_EXIT, "march.quality": "reference", "march.steps": steps,
+                                                  "image.spp": scene.image.spp}).model_dump(), seed=seed, dtype=None, cache=cache)
+
+    reference, coarse = exact(EXACT_MARCH_STEPS), exact(EXACT_MARCH_STEPS // 2)
+
+    def errors(radiance: torch.Tensor, alpha: torch.Tensor) -> tuple[float, float]:
+        return (float((radiance.double() - reference["radiance"].double()).abs().max()) / light,
+                float((alpha.double() - reference["alpha"].double()).abs().max()))
+
+    radiance_bound, alpha_bound = errors(coarse["radiance"], coarse["alpha"])
     settings = [(f"{n} steps", {"march.steps": n}, None) for n in FIXED_STEPS]
     settings += [(f"tolerance {tol:g}", {"march.tolerance": tol}, tol) for tol in TOLERANCES]
     rows = []
     for label, overrides, tolerance in settings:
-        case = load_scene(bundled, {**NO_EARLY_EXIT, **overrides})
-        times = []
-        for _ in range(repeat):
-            start = time.perf_counter()
-            out = render(case, seed=seed)
-            times.append(time.perf_counter() - start)
-        rows.append({"scene": name, "march": label, "tolerance": tolerance, "time_s": statistics.median(times),
-                     "radiance_error": float((out.radiance.double() - reference["radiance"].double()).abs().max()) / light,
-                     "alpha_error": float((out.alpha.double() - reference["alpha"].double()).abs().max()),
-                     "estimate": out.stats.get("error_estimate")})
+        if shown is not None:
+            shown.set_postfix_str(f"{name}: {label}")
+        time_s, out = measure(bundled, Setting(label, {**NO_EARLY_EXIT, **overrides}), repeat=repeat, seed=seed)
+        radiance_error, alpha_error = errors(out.radiance, out.alpha)
+        rows.append({"scene": name, "march": label, "tolerance": tolerance, "time_s": time_s,
+                     "radiance_error": radiance_error, "alpha_error": alpha_error, "estimate": out.stats.get("error_estimate"),
+                     "radiance_bound": radiance_bound, "alpha_bound": alpha_bound})
+        if shown is not None:
+            shown.update(1)
     return rows
 
 
 def tolerance_table(rows: Sequence[dict]) -> str:
     """The tolerance rows as a Markdown table, then per tolerance whether it held and what the
     cheapest fixed step count with errors as small took."""
-    lines = ["| scene | march | time (s) | max radiance error / light | max alpha error | estimate in `stats` |",
-             "| --- | --- | ---: | ---: | ---: | ---: |"]
+    lines = ["| scene | march | time (s) | max radiance error / light ± reference bound | max alpha error ± reference bound "
+             "| estimate in `stats` |", "| --- | --- | ---: | ---: | ---: | ---: |"]
     for r in rows:
         estimate = "" if r["estimate"] is None else f"{r['estimate']:.1e}"
-        lines.append(f"| {r['scene']} | {r['march']} | {r['time_s']:.3f} | {r['radiance_error']:.1e} | {r['alpha_error']:.1e} | {estimate} |")
+        lines.append(f"| {r['scene']} | {r['march']} | {r['time_s']:.3f} | {r['radiance_error']:.1e} ± {r['radiance_bound']:.0e} "
+                     f"| {r['alpha_error']:.1e} ± {r['alpha_bound']:.0e} | {estimate} |")
     lines.append("")
+    for r in {r["scene"]: r for r in rows}.values():
+        lines.append(f"- {r['scene']}: the reference is a float64 march of {EXACT_MARCH_STEPS} steps; its bound is how far it "
+                     f"moves from {EXACT_MARCH_STEPS // 2} steps ({r['radiance_bound']:.1e} of the light, {r['alpha_bound']:.1e} in alpha).")
     for r in (r for r in rows if r["tolerance"] is not None):
         held = "holds" if max(r["radiance_error"], r["alpha_error"]) <= r["tolerance"] else "does NOT hold"
         fixed = [f for f in rows if f["scene"] == r["scene"] and f["tolerance"] is None
@@ -202,17 +208,27 @@ def tolerance_table(rows: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def table(rows: Sequence[dict]) -> str:
-    """The rows as a Markdown table."""
-    lines = ["| scene | knob | setting | time (s) | rel. RMSE | PSNR (dB) |", "| --- | --- | --- | ---: | ---: | ---: |"]
+def table(rows: Sequence[dict], references: Sequence[dict]) -> str:
+    """The rows as a Markdown table, then a line per scene on the reference they were measured against."""
+    lines = ["| scene | knob | setting | time (s) | rel. RMSE | ± reference bound | PSNR (dB) |",
+             "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
     for r in rows:
         psnr = "∞" if math.isinf(r["psnr"]) else f"{r['psnr']:.1f}"
-        lines.append(f"| {r['scene']} | {r['knob']} | {r['setting']} | {r['time_s']:.3f} | {r['rel_rmse']:.2e} | {psnr} |")
+        lines.append(f"| {r['scene']} | {r['knob']} | {r['setting']} | {r['time_s']:.3f} | {r['rel_rmse']:.2e} | "
+                     f"{r['rel_bound']:.0e} | {psnr} |")
+    lines.append("")
+    for ref in references:
+        smallest = min(r["rmse"] for r in rows if r["scene"] == ref["scene"])
+        under = smallest / ref["bound"] if ref["bound"] > 0 else math.inf
+        lines.append(f"- {ref['scene']}: reference rung {ref['rung']} (tolerance {ref['tolerance']:.2g}, {ref['dtype']}, "
+                     f"{ref['spp']} spp), {ref['time_s']:.1f} s to render; its bound (RMSE {ref['bound']:.1e}) is "
+                     f"{under:.3g}× under the smallest error of its rows.")
     return "\n".join(lines) + "\n"
 
 
 def plot(rows: Sequence[dict], path: Path) -> None:
-    """Relative RMSE against time (log-log), one panel per scene, one curve per knob, levels labelled."""
+    """Relative RMSE against time (log-log), one panel per scene, one curve per knob, levels
+    labelled; each error's bar is the reference's bound."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -225,12 +241,13 @@ def plot(rows: Sequence[dict], path: Path) -> None:
         for knob in dict.fromkeys(r["knob"] for r in rows if r["scene"] == name):
             pts = [r for r in rows if r["scene"] == name and r["knob"] == knob]
             xs, ys = [r["time_s"] for r in pts], [max(r["rel_rmse"], floor) for r in pts]
+            bounds = [min(r["rel_bound"], y - floor / 2) for r, y in zip(pts, ys)]  # bars stay above 0 on log axes
             if knob == "level":
-                ax.plot(xs, ys, "k*--", label="quality level", markersize=9)
+                ax.errorbar(xs, ys, yerr=bounds, fmt="k*--", label="quality level", markersize=9)
                 for r, x, y in zip(pts, xs, ys):
                     ax.annotate(r["setting"], (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
             else:
-                ax.plot(xs, ys, "o-", label=knob, markersize=3)
+                ax.errorbar(xs, ys, yerr=bounds, fmt="o-", label=knob, markersize=3)
         ax.set(xscale="log", yscale="log", title=name, xlabel="time (s)", ylabel="relative RMSE vs reference")
         ax.legend(fontsize=7)
     fig.tight_layout()
@@ -239,31 +256,43 @@ def plot(rows: Sequence[dict], path: Path) -> None:
 
 
 def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int = 3, scenes: Sequence[str] | None = None,
-             knob_names: Sequence[str] | None = None, seed: int = 0) -> list[dict]:
+             knob_names: Sequence[str] | None = None, seed: int = 0, factor: float = 10.0, cache: str | Path | None = None,
+             progress: bool | None = None) -> list[dict]:
     """The accuracy report: writes `out`/accuracy.md and `out`/accuracy.png; returns the rows.
-    `scenes`: report scene names or presets (default all of SCENES); `knob_names`: subset of KNOBS."""
+    `scenes`: report scene names or presets (default all of SCENES); `knob_names`: subset of KNOBS;
+    `factor`: how far under the smallest error of a scene's rows its reference's bound must be;
+    `cache`: the references' folder (default `out`/references); `progress`: a bar on stderr (None:
+    on a terminal only)."""
     by_preset = {v: k for k, v in SCENES.items()}
     names = []
     for s in scenes if scenes is not None else list(SCENES):
         if s not in SCENES and s not in by_preset:
-            fail("--scenes", s, "expected one of " + ", ".join(SCENES.values()) + did_you_mean(s, by_preset))
+            fail("scenes", s, "expected one of " + ", ".join(SCENES.values()) + did_you_mean(s, by_preset))
         names.append(by_preset.get(s, s))
     for k in knob_names if knob_names is not None else ():
         if k not in KNOBS:
-            fail("--knobs", k, "expected some of " + ", ".join(KNOBS) + did_you_mean(k, KNOBS))
-    for key, value in (("--width", width), ("--height", height), ("--repeat", repeat)):
-        if value < 1:
-            fail(key, value, "expected an integer >= 1")
+            fail("knob_names", k, "expected some of " + ", ".join(KNOBS) + did_you_mean(k, KNOBS))
+    for key, value in (("width", width), ("height", height), ("repeat", repeat)):
+        integer(key, value, low=1)
+    finite("factor", factor, low=1)
     out = Path(out)
+    cache = out / "references" if cache is None else Path(cache)
     knob_names = KNOBS if knob_names is None else knob_names
-    rows = [row for name in names for row in scene_rows(name, width=width, height=height, repeat=repeat, seed=seed,
-                                                          knob_names=knob_names, cache=out / "references")]
-    text = table(rows)
-    if "tolerance" in knob_names:
-        tolerance = [row for name in names if is_physical(SCENES[name])
-                     for row in tolerance_rows(name, width=width, height=height, repeat=repeat, seed=seed, cache=out / "references")]
-        if tolerance:
-            text += "\n## Error-controlled marching (`march.tolerance`) against fixed step counts\n\n" + tolerance_table(tolerance)
+    physical = [n for n in names if is_physical(SCENES[n])] if "tolerance" in knob_names else []
+    total = sum(len([s for k, v in knobs(SCENES[n]).items() if k in knob_names for s in v]) + len(QUALITY) for n in names)
+    total += len(physical) * (len(FIXED_STEPS) + len(TOLERANCES))
+    rows, references, tolerance = [], [], []
+    with bar(total, desc="bench accuracy", unit="render", enabled=sys.stderr.isatty() if progress is None else progress) as shown:
+        for name in names:
+            scene, reference = scene_rows(name, width=width, height=height, repeat=repeat, seed=seed, knob_names=knob_names,
+                                          cache=cache, factor=factor, shown=shown)
+            rows += scene
+            references.append(reference)
+        for name in physical:
+            tolerance += tolerance_rows(name, width=width, height=height, repeat=repeat, seed=seed, cache=cache, shown=shown)
+    text = table(rows, references)
+    if tolerance:
+        text += "\n## Error-controlled marching (`march.tolerance`) against fixed step counts\n\n" + tolerance_table(tolerance)
     out.mkdir(parents=True, exist_ok=True)
     (out / "accuracy.md").write_text(text)
     plot(rows, out / "accuracy.png")

@@ -1,18 +1,23 @@
-"""`torchvol render | generate | sweep | bench`: thin shell over the library; errors print as one line, exit code 2."""
+"""`torchvol render | generate | sweep | bench`: thin shell over the library; errors print as one
+line (exit code 2), progress goes to stderr."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+import textwrap
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from .keypath import parse_value
-from .scene import load_scene, preset
+from .scene import load_scene, preset, preset_names
 from .validate import SceneError, fail
+
+# library parameters that a command line spells differently
+FLAGS = {"layout": "--format", "overrides": "--set", "params": "--param", "knob_names": "--knobs", "source": "SOURCE"}
 
 
 def _pairs(items: Sequence[str], flag: str) -> dict:
@@ -25,6 +30,23 @@ def _pairs(items: Sequence[str], flag: str) -> dict:
     return out
 
 
+def presets_help() -> str:
+    """Each bundled preset: what it is (its file's first comment line), its size and its parameters."""
+    import tomllib
+
+    from .presets import HERE, PARAMS
+
+    lines = ["presets (--preset NAME, --param KEY=VALUE; every preset takes width and height):"]
+    for name in preset_names():
+        text = (HERE / f"{name}.toml").read_text()
+        first = next((line[1:].strip() for line in text.splitlines() if line.startswith("#")), "")
+        what = first.split(":")[0].split(" — ")[0].rstrip(".")
+        image = tomllib.loads(text).get("image", {})
+        params = ["width", "height"] + list((PARAMS[name].__kwdefaults__ or {}) if name in PARAMS else [])
+        lines.append(f"  {name:<17} {what}; {image.get('width')}x{image.get('height')}; parameters: {', '.join(params)}")
+    return "\n".join(lines)
+
+
 def write_png(path: Path, image: np.ndarray) -> None:
     """`image`: (H, W, 3) or (H, W) float in [0, 1] -> 8-bit PNG."""
     from PIL import Image
@@ -33,18 +55,21 @@ def write_png(path: Path, image: np.ndarray) -> None:
 
 
 def write_depth_png(path: Path, depth: np.ndarray) -> None:
-    """16-bit PNG for viewing: value = depth / depth_scale · 65535, depth_scale stored as PNG text.
-    Exact float32 depth is written with --npy."""
+    """16-bit PNG: value = round(depth / depth_scale · 65535), depth_scale (the largest depth) in
+    the PNG's `depth_scale` text chunk; depth = value / 65535 · depth_scale, to within
+    depth_scale / 131070 (README: reading it back). Exact float32 depth is written with --npy."""
     from PIL import Image, PngImagePlugin
 
     scale = float(depth.max()) if depth.max() > 0 else 1.0
     info = PngImagePlugin.PngInfo()
     info.add_text("depth_scale", repr(scale))
-    info.add_text("depth", "planar z along the camera's forward axis, world units; 0 = nothing hit")
+    info.add_text("depth", "planar z along the camera's forward axis, world units; 0 = nothing hit; "
+                           "depth = value / 65535 * depth_scale")
     Image.fromarray(np.round(depth / scale * 65535).astype(np.uint16)).save(path, pnginfo=info)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    from .progress import progress
     from .render import render
 
     overrides = _pairs(args.set, "--set")
@@ -58,7 +83,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         scene = load_scene(args.scene, overrides)
     else:
         fail("SCENE", None, "give a scene (.toml path or preset name) or --preset NAME")
-    out = render(scene, seed=args.seed, chunk_rays=args.chunk_rays, compile=args.compile, device=args.device)
+    with progress(scene.image.width * scene.image.height, desc="render", unit="px", enabled=args.progress) as bar:
+        out = render(scene, seed=args.seed, chunk_rays=args.chunk_rays, compile=args.compile, device=args.device,
+                     progress=bar.update)
     path = Path(args.out)
     path.parent.mkdir(parents=True, exist_ok=True)
     stem = path.with_suffix("")
@@ -83,7 +110,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
     report = generate(args.recipe, count=args.count, out=args.out, seed=args.seed, workers=args.workers,
                       layout=args.format, overrides=_pairs(args.set, "--set"), batch=args.batch,
-                      shard_size=args.shard_size, threads=args.threads, scheduler=args.scheduler)
+                      shard_size=args.shard_size, threads=args.threads, scheduler=args.scheduler, progress=args.progress)
     print(json.dumps(report))
     return 0
 
@@ -97,10 +124,12 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         if not sep or not key.strip() or not values.strip():
             fail("--param", item, "expected KEY=V1,V2,...")
         params[key.strip()] = [parse_value(v) for v in split_values(values)]
-    if not params:
-        fail("--param", None, "give at least one --param KEY=V1,V2,...")
-    rows = sweep(args.scene, params, out=args.out, seed=args.seed, overrides=_pairs(args.set, "--set"))
-    print(json.dumps({"out": args.out, "combinations": len(rows)}))
+    levels = [] if args.levels is None else [v.strip() for v in args.levels.split(",") if v.strip()]
+    kw = {} if args.max_error is None else {"max_error": args.max_error}
+    report = sweep(args.source, params, out=args.out, seed=args.seed, overrides=_pairs(args.set, "--set"),
+                   samples=args.samples, levels=levels, factor=args.factor, cache=args.cache, progress=args.progress, **kw)
+    print("wrote " + ", ".join(report["written"]))
+    print("verdict: " + report["verdict"])
     return 0
 
 
@@ -110,62 +139,115 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
     def names(text: str | None) -> list[str] | None:
         return None if text is None else [v.strip() for v in text.split(",") if v.strip()]
 
-    rows = accuracy(args.out, width=args.width, height=args.height, repeat=args.repeat,
-                    scenes=names(args.scenes), knob_names=names(args.knobs), seed=args.seed)
+    rows = accuracy(args.out, width=args.width, height=args.height, repeat=args.repeat, scenes=names(args.scenes),
+                    knob_names=names(args.knobs), seed=args.seed, factor=args.factor, cache=args.cache,
+                    progress=args.progress)
     print(json.dumps({"written": [str(Path(args.out) / "accuracy.md"), str(Path(args.out) / "accuracy.png")],
                       "rows": len(rows)}))
     return 0
 
 
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-progress", dest="progress", action="store_false",
+                        help="no progress bar on stderr (by default a live bar on a terminal, a line every few seconds otherwise)")
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from .bench import KNOBS, SCENES
+    from .quality import QUALITY
+    from .render import DEFAULT_CHUNK_RAYS
+    from .sweep import QUANTISATION_RMSE
+
+    raw = argparse.RawDescriptionHelpFormatter  # keeps the preset list's lines; descriptions are wrapped here
+
+    def wrap(text: str) -> str:
+        return textwrap.fill(text, 100)
+
     parser = argparse.ArgumentParser(prog="torchvol", description="Batched PyTorch renderer of volumes and voxels.")
     sub = parser.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("render", help="render one scene to PNG (+ depth, + float arrays with --npy)")
+    r = sub.add_parser("render", help="render one scene to PNG (+ 16-bit depth PNG, + float arrays with --npy)",
+                       description=wrap("Render one scene: FILE.png (8-bit image), FILE_depth.png (16-bit: depth = "
+                                        "value / 65535 * depth_scale, from the PNG's depth_scale text), and with --npy the "
+                                        "exact float32 arrays and the camera."), epilog=presets_help(), formatter_class=raw)
     r.add_argument("scene", nargs="?", help="scene .toml path or preset name")
-    r.add_argument("--preset", help="bundled preset name (its parameters via --param)")
-    r.add_argument("--param", action="append", default=[], metavar="K=V", help="preset parameter")
-    r.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a scene key")
-    r.add_argument("--out", required=True, help="output PNG path")
-    r.add_argument("--npy", action="store_true", help="also write float32 .npy arrays and the camera")
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--device", default="cpu")
-    r.add_argument("--chunk-rays", type=int, default=1 << 16)
+    r.add_argument("--preset", help="bundled preset name (listed below; its parameters via --param)")
+    r.add_argument("--param", action="append", default=[], metavar="K=V", help="a preset parameter (listed below), e.g. width=640")
+    r.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a scene key (docs/SCENES.md), e.g. march.quality=high")
+    r.add_argument("--out", required=True, help="output PNG path; FILE_depth.png and FILE_*.npy are written beside it")
+    r.add_argument("--npy", action="store_true", help="also write float32 .npy arrays (radiance, depth, alpha, AOVs) and the camera (K, world_to_camera)")
+    r.add_argument("--seed", type=int, default=0, help="render seed: march dither and sub-pixel jitter (default 0)")
+    r.add_argument("--device", default="cpu", help="torch device to render on (default cpu)")
+    r.add_argument("--chunk-rays", type=int, default=DEFAULT_CHUNK_RAYS,
+                   help=f"rays per chunk: bounds peak memory, not the result (default {DEFAULT_CHUNK_RAYS})")
     r.add_argument("--compile", action="store_true", help="torch.compile the density fields")
+    _common(r)
     r.set_defaults(func=cmd_render)
 
-    g = sub.add_parser("generate", help="render recipe samples into a dataset folder or webdataset shards (resumable)")
-    g.add_argument("recipe", help="recipe .toml path (see datasets/)")
+    g = sub.add_parser("generate", help="render recipe samples into a dataset folder or webdataset shards (resumable)",
+                       description="Render COUNT samples of a recipe (datasets/*.toml) into OUT: atomic and resumable "
+                                   "(a re-run finishes an interrupted dataset byte-identically). docs/DATASETS.md.")
+    g.add_argument("recipe", help="recipe .toml path (see datasets/), or a scene or preset name")
     g.add_argument("--count", type=int, required=True, help="number of samples")
     g.add_argument("--out", required=True, help="output folder (a re-run finishes an interrupted one)")
-    g.add_argument("--seed", type=int, default=0)
-    g.add_argument("--workers", type=int, default=1, help="local worker processes")
+    g.add_argument("--seed", type=int, default=0, help="dataset seed: sample i depends only on (seed, i) (default 0)")
+    g.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     g.add_argument("--threads", type=int, default=None, help="torch threads per worker (default: cores / workers)")
-    g.add_argument("--format", choices=["folder", "webdataset"], default="folder")
-    g.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key")
-    g.add_argument("--batch", type=int, default=4, help="samples rendered as one batch")
-    g.add_argument("--shard-size", type=int, default=64, help="samples per webdataset shard")
+    g.add_argument("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)")
+    g.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)")
+    g.add_argument("--batch", type=int, default=4, help="samples rendered as one batch (default 4)")
+    g.add_argument("--shard-size", type=int, default=64, help="samples per webdataset shard (default 64)")
     g.add_argument("--scheduler", default=None, metavar="ADDRESS", help="run the tasks on this Dask cluster")
+    _common(g)
     g.set_defaults(func=cmd_generate)
 
-    w = sub.add_parser("sweep", help="render every combination of swept values; results.csv, contact sheet, plots")
-    w.add_argument("scene", help="scene .toml path or preset name")
-    w.add_argument("--param", action="append", default=[], metavar="A.B=V1,V2,...", help="a swept key and its values")
-    w.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a scene key")
-    w.add_argument("--out", required=True, help="output folder")
-    w.add_argument("--seed", type=int, default=0)
+    w = sub.add_parser("sweep", help="time and error of every combination of swept values; results.csv, verdict, plots",
+                       description=wrap("Render every combination of the swept values and measure each against a "
+                                        "reference whose own error bound is --factor times under it. SOURCE is a scene, a "
+                                        "preset or a recipe (with --samples: the same N draws for every setting). Writes "
+                                        "OUT/results.csv (row by row: a re-run resumes), summary.csv, pareto.png, "
+                                        "contact_sheet.png, difference.png, plot_<key>.png, and prints a verdict."),
+                       epilog=presets_help(), formatter_class=raw)
+    w.add_argument("source", metavar="SOURCE", help="scene .toml path, preset name or recipe .toml path")
+    w.add_argument("--param", action="append", default=[], metavar="A.B=V1,V2,...", help="a swept key and its values (repeatable)")
+    w.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a scene (or recipe) key for every setting")
+    w.add_argument("--out", required=True, help="output folder (a re-run of the same sweep resumes there)")
+    w.add_argument("--samples", type=int, default=None, help="recipe samples per setting (required for a recipe)")
+    w.add_argument("--levels", default=None, metavar="L1,L2",
+                   help=f"also measure these quality levels, each deciding every approximation ({', '.join(QUALITY)})")
+    w.add_argument("--max-error", type=float, default=None,
+                   help=f"the RMSE the verdict's setting must stay within (default {QUANTISATION_RMSE:.2g}: 8-bit quantisation)")
+    w.add_argument("--factor", type=float, default=10.0, help="how far under each error the reference's bound must be (default 10)")
+    w.add_argument("--cache", default=None, help="folder of cached references (default OUT/references)")
+    w.add_argument("--seed", type=int, default=0, help="render seed (a recipe: the dataset seed of its samples) (default 0)")
+    _common(w)
     w.set_defaults(func=cmd_sweep)
 
     b = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="bench", required=True)
-    a = b.add_parser("accuracy", help="error against time per knob and quality level: DIR/accuracy.md, DIR/accuracy.png")
-    a.add_argument("--out", required=True, help="output folder")
-    a.add_argument("--width", type=int, default=64)
-    a.add_argument("--height", type=int, default=36)
-    a.add_argument("--repeat", type=int, default=3, help="renders per point; time is their median")
-    a.add_argument("--scenes", default=None, help="comma-separated presets (default: template-clouds, cloud-puff, voxel-terrain)")
-    a.add_argument("--knobs", default=None, help="comma-separated subset of steps, integrator, shadow_steps, lod, spp, compile, tolerance")
-    a.add_argument("--seed", type=int, default=0)
+    a = b.add_parser("accuracy", help="error against time per knob and quality level: DIR/accuracy.md, DIR/accuracy.png",
+                     description="Error against time on the bundled scenes, per knob and per quality level, against the "
+                                 "same references as `torchvol sweep` (each with its own error bound). docs/QUALITY.md.")
+    a.add_argument("--out", required=True, help="output folder (its references/ are reused by a re-run)")
+    a.add_argument("--width", type=int, default=64, help="image width (default 64)")
+    a.add_argument("--height", type=int, default=36, help="image height (default 36)")
+    a.add_argument("--repeat", type=int, default=3, help="renders per point; time is their median (default 3)")
+    a.add_argument("--scenes", default=None, help="comma-separated presets (default: " + ", ".join(SCENES.values()) + ")")
+    a.add_argument("--knobs", default=None, help="comma-separated subset of " + ", ".join(KNOBS) + " (default all)")
+    a.add_argument("--factor", type=float, default=10.0, help="how far under each error the reference's bound must be (default 10)")
+    a.add_argument("--cache", default=None, help="folder of cached references (default OUT/references)")
+    a.add_argument("--seed", type=int, default=0, help="render seed (default 0)")
+    _common(a)
     a.set_defaults(func=cmd_bench_accuracy)
     return parser
+
+
+def _flag(path: str, args: argparse.Namespace) -> str:
+    """A library parameter named in an error as the command line spells it (`count` -> `--count`)."""
+    head, dot, rest = path.partition(".")
+    if head in FLAGS:
+        return FLAGS[head] + (" " + rest if rest else "")
+    if head in vars(args) and not rest:
+        return "--" + head.replace("_", "-")
+    return path
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -173,7 +255,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return args.func(args)
     except SceneError as err:
-        print(f"torchvol: error: {err}", file=sys.stderr)
+        print(f"torchvol: error: {_flag(err.path, args)}: got {err.value!r}; {err.allowed}", file=sys.stderr)
         return 2
 
 

@@ -2,9 +2,9 @@
 
 One sample is a dict: image (3,H,W) float32 in [0,1], depth (1,H,W) float32 (planar z, 0 = no hit),
 alpha (1,H,W), K (3,3), world_to_camera (4,4), index, seed, params (the drawn values by key path)
-and the recipe's AOVs (C,H,W). `encode_sample` / `decode_sample` turn one into named files (PNG for
-image and alpha, exact float32 .npy for depth and AOVs, a JSON record) and back; the generator and
-FolderDataset share them so the two stay in step.
+and the recipe's AOVs (C,H,W). `encode_sample` / `decode_file` turn one into named files (PNG for
+image and alpha, exact float32 .npy for depth, compressed .npz for AOVs (`AOV_STORAGE`), a JSON
+record) and back; the generator and FolderDataset share them so the two stay in step.
 """
 
 from __future__ import annotations
@@ -29,7 +29,9 @@ CONVENTIONS = {
     "depth": "planar z along the camera's forward axis (not ray distance), float32 .npy of shape (H, W), "
              "world units; 0 where nothing was hit (invalid)",
     "alpha": "8-bit PNG of 1 - transmittance of the whole ray",
-    "aovs": "float32 .npy of shape (C, H, W)",
+    "aovs": "compressed .npz holding one array named after the AOV, shape (C, H, W): float32 (lossless) for "
+            "normal, ao, shadow, distance, depth_median and radiance; uint8 for material ids; float16 for uv "
+            "(face coordinates in [0, 1], within 2.5e-4)",
     "units": "world units; angles in degrees; right-handed world, y up",
     "camera": "OpenCV/kornia: camera axes x right, y down, z forward; K in pixels with pixel centres at "
               "integer coordinates (centred principal point cx = W/2 - 0.5); world_to_camera maps world "
@@ -155,19 +157,39 @@ def _npy(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+# How each AOV is stored, in a compressed .npz: lossless float32 (face normals, AO levels and hard
+# shadows take few distinct values: they compress well, docs/DATASETS.md), material ids as bytes
+# (at most 255 materials), and uv in float16: face coordinates in [0, 1] to within 2^-12 of a face.
+AOV_STORAGE = {"material": np.uint8, "uv": np.float16}
+
+
+def _npz(name: str, array: np.ndarray) -> bytes:
+    """np.savez_compressed's format with a fixed timestamp: the same array gives the same bytes."""
+    import zipfile
+
+    member = io.BytesIO()
+    np.save(member, np.ascontiguousarray(array, dtype=AOV_STORAGE.get(name, np.float32)), allow_pickle=False)
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as archive:
+        info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+        info.compress_type = zipfile.ZIP_DEFLATED
+        archive.writestr(info, member.getvalue())
+    return buf.getvalue()
+
+
 def to_uint8(x: torch.Tensor) -> np.ndarray:
     return np.round(np.clip(x.numpy(), 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
-    """{suffix: bytes}: image.png, depth.npy (H, W), alpha.png, one <aov>.npy each (C, H, W)."""
+    """{suffix: bytes}: image.png, depth.npy (H, W), alpha.png, one <aov>.npz each (C, H, W)."""
     files = {
         "image.png": _png(to_uint8(item["image"].permute(1, 2, 0))),
         "depth.npy": _npy(item["depth"][0].numpy()),
         "alpha.png": _png(to_uint8(item["alpha"][0])),
     }
     for name in aovs:
-        files[f"{name}.npy"] = _npy(item[name].numpy())
+        files[f"{name}.npz"] = _npz(name, item[name].numpy())
     return files
 
 
@@ -179,13 +201,17 @@ def decode_file(suffix: str, data: bytes) -> torch.Tensor:
         array = np.asarray(Image.open(io.BytesIO(data)))
         x = torch.from_numpy(array.astype(np.float32) / 255.0)
         return x.permute(2, 0, 1).contiguous() if x.ndim == 3 else x[None]
+    if suffix.endswith(".npz"):
+        with np.load(io.BytesIO(data), allow_pickle=False) as stored:
+            return torch.from_numpy(stored[suffix.split(".")[0]].astype(np.float32))
     array = torch.from_numpy(np.load(io.BytesIO(data), allow_pickle=False))
     return array[None] if suffix == "depth.npy" else array
 
 
 class FolderDataset(Dataset):
-    """A folder written by `torchvol generate --format folder`, read back with SceneDataset's keys.
-    image and alpha are 8-bit (quantised); depth and AOVs are exact float32."""
+    """A folder written by `torchvol generate --format folder`, read back with SceneDataset's keys
+    and dtypes (float32). image and alpha are 8-bit (quantised); depth and AOVs are exact, but uv
+    (float16: within 2.4e-4)."""
 
     def __init__(self, path: str | Path):
         self.root = Path(path)

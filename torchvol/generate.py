@@ -3,8 +3,8 @@
 Layout (DIR):
   meta.json                 conventions, recipe, seed, count, layout (written first, atomically)
   manifest.jsonl            one record per sample, by index (written last, atomically)
-  folder:      samples/{index:06d}.{image.png, depth.npy, alpha.png, <aov>.npy, json}
-  webdataset:  shards/shard-{k:06d}.tar holding {index:06d}.{json, image.png, depth.npy, alpha.png, <aov>.npy}
+  folder:      samples/{index:06d}.{image.png, depth.npy, alpha.png, <aov>.npz, json}
+  webdataset:  shards/shard-{k:06d}.tar holding {index:06d}.{json, image.png, depth.npy, alpha.png, <aov>.npz}
 
 Every file is written to a hidden temporary name and renamed into place, so a reader never sees a
 partial file. A folder sample is finished when its .json record exists (written after its other
@@ -25,11 +25,11 @@ from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
 
 from .data import CONVENTIONS, encode_sample, render_samples, sample_record
+from .progress import progress as bar
 from .recipe import Recipe
-from .validate import fail
+from .validate import fail, integer
 
 Layout = Literal["folder", "webdataset"]
-MEMBER_ORDER = ("json", "image.png", "depth.npy", "alpha.png")
 
 
 def atomic_write(path: Path, data: bytes) -> None:
@@ -135,12 +135,6 @@ def _manifest(out: Path, layout: Layout, count: int) -> bytes:
     return b"".join(records)
 
 
-def _check_settings(path: str, value: Any, *, low: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        fail(path, value, f"expected an integer >= {low}")
-    return value
-
-
 def generate(
     recipe: Recipe | str | Path | Mapping,
     *,
@@ -158,22 +152,22 @@ def generate(
     stop_after: int | None = None,
 ) -> dict:
     """Generate (or finish) the dataset in `out`. `workers` local processes (spawned, each with
-    `threads` torch threads), or the Dask cluster at `scheduler`. `stop_after` (testing: simulates
-    a kill) stops once that many samples were written, leaving the dataset unfinished.
+    `threads` torch threads), or the Dask cluster at `scheduler`. `progress`: a bar of samples
+    done on stderr (None: only when stderr is a terminal). `stop_after` (testing: simulates a kill)
+    stops once that many samples were written, leaving the dataset unfinished.
     Returns {"written": samples rendered now, "count", "out"}."""
-    _check_settings("--count", count, low=1)
-    _check_settings("--workers", workers, low=1)
-    _check_settings("--batch", batch, low=1)
-    _check_settings("--shard-size", shard_size, low=1)
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        fail("--seed", seed, "expected an integer")
+    for name, value in (("count", count), ("workers", workers), ("batch", batch), ("shard_size", shard_size)):
+        integer(name, value, low=1)
+    if threads is not None:
+        integer("threads", threads, low=1)
+    integer("seed", seed)
     if layout not in ("folder", "webdataset"):
-        fail("--format", layout, "expected folder or webdataset")
+        fail("layout", layout, "expected folder or webdataset")
     recipe = Recipe.load(recipe, overrides)
     out = Path(out)
     meta = {
         "format": "torchvol-dataset",
-        "version": 1,
+        "version": 2,  # 2: AOVs in compressed .npz (1: float32 .npy)
         "layout": layout,
         "count": count,
         "seed": seed,
@@ -185,10 +179,10 @@ def generate(
     meta_bytes = json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
     if (out / "meta.json").is_file():
         if (out / "meta.json").read_bytes() != meta_bytes:
-            fail("--out", str(out), "holds a dataset made with other settings (recipe, seed, count, format or "
+            fail("out", str(out), "holds a dataset made with other settings (recipe, seed, count, layout or "
                  "shard size); use a new folder")
     elif out.exists() and any(out.iterdir()):
-        fail("--out", str(out), "exists and is not a torchvol dataset; use a new or empty folder")
+        fail("out", str(out), "exists and is not a torchvol dataset; use a new or empty folder")
     sub = out / ("samples" if layout == "folder" else "shards")
     sub.mkdir(parents=True, exist_ok=True)
     for stale in list(sub.glob(".*.tmp")) + list(out.glob(".*.tmp")):
@@ -198,19 +192,14 @@ def generate(
     tasks = plan_tasks(recipe, count=count, seed=seed, out=out, layout=layout, batch=batch, shard_size=shard_size)
     done = sum(_finished(t) for t in tasks)
     pending = [t for t in tasks if _finished(t) < len(t.indices)]
-    from tqdm import tqdm
-
-    bar = tqdm(total=count, initial=done, unit="sample", desc=out.name,
-               disable=not sys.stderr.isatty() if progress is None else not progress)
     written = 0
-    try:
+    with bar(count, initial=done, unit="sample", desc=f"generate {out.name}",
+             enabled=sys.stderr.isatty() if progress is None else progress) as shown:
         for n in _execute(pending, workers=workers, threads=threads, scheduler=scheduler):
             written += n
-            bar.update(n)
+            shown.update(n)
             if stop_after is not None and written >= stop_after:
                 return {"written": written, "count": count, "out": str(out), "finished": False}
-    finally:
-        bar.close()
     atomic_write(out / "manifest.jsonl", _manifest(out, layout, count))
     return {"written": written, "count": count, "out": str(out), "finished": True}
 
@@ -223,7 +212,7 @@ def _execute(tasks: list[Task], *, workers: int, threads: int | None, scheduler:
         try:
             from distributed import Client, as_completed
         except ImportError:
-            fail("--scheduler", scheduler, "needs the dask distributed package (pip install distributed)")
+            fail("scheduler", scheduler, "needs the dask distributed package (pip install distributed)")
         with Client(scheduler) as client:
             futures = client.map(run_task, tasks, pure=False)
             for future in as_completed(futures):

@@ -48,15 +48,16 @@ class Level:
 # Count placement, frostbite, hashed dither (none at reference) at every level. `default` equals
 # the schema's former fixed defaults (shadow 16, voxel shadow 32, spp 1): scenes that relied on them
 # render unchanged. `high` takes the reference's spp: the same seeded sub-samples, so what is left
-# of its error is the march's.
+# of its error is the march's. The primary steps of `high` and `reference` are what their shadow
+# steps let count: twice and four times as many bought no smaller error (docs/QUALITY.md).
 QUALITY: dict[str, Level] = {
     "draft": Level(32, 1e-2, torch.float32, shadow_steps=8, voxel_shadow_steps=16, spp=1,
                    voxel_max_steps=256, fog_shadow_steps=8, atmosphere_steps=(8, 4)),
     "default": Level(128, 1e-4, torch.float32, shadow_steps=16, voxel_shadow_steps=32, spp=1,
                      voxel_max_steps=256, fog_shadow_steps=16, atmosphere_steps=(16, 8)),
-    "high": Level(384, 1e-5, torch.float32, shadow_steps=32, voxel_shadow_steps=128, spp=4,
+    "high": Level(192, 1e-5, torch.float32, shadow_steps=32, voxel_shadow_steps=128, spp=4,
                   voxel_max_steps=1024, fog_shadow_steps=32, atmosphere_steps=(32, 16)),
-    "reference": Level(2048, 1e-12, torch.float64, shadow_steps=64, voxel_shadow_steps=1024, spp=4,
+    "reference": Level(512, 1e-12, torch.float64, shadow_steps=64, voxel_shadow_steps=1024, spp=4,
                        voxel_max_steps=4096, fog_shadow_steps=64, atmosphere_steps=(64, 32)),
 }
 

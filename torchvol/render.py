@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -198,6 +198,7 @@ def render(
     dtype: torch.dtype | None = None,
     chunk_rays: int = DEFAULT_CHUNK_RAYS,
     compile: bool = False,
+    progress: Callable[[int], None] | None = None,
 ) -> RenderOutput:
     """Render a scene (or a list of scenes of one structure, as one batch).
 
@@ -205,7 +206,8 @@ def render(
     one per scene) drives the dither and sub-pixel jitter, hashed per (seed, pixel, sample): a scene
     renders the same, to the bit, alone or anywhere in a batch and for any chunking. `dtype`
     defaults to the quality level's (float64 for reference). `chunk_rays` bounds peak memory.
-    `compile` runs the noise kernels under torch.compile."""
+    `compile` runs the noise kernels under torch.compile. `progress(pixels)`, where given, is called
+    after each chunk with the pixels it finished."""
     scenes, seeds, device = _check_arguments(scene, seed, chunk_rays, dtype, device)
     start = time.perf_counter()
     batch = stack(scenes, dtype=torch.float64, device=device)  # the plan reads shared values only
@@ -232,6 +234,8 @@ def render(
                 if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
                     buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
                 buffers[key][:, first:last] = value.T
+        if progress is not None:
+            progress(last - first)
     images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
     radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
     image = post_process(ctx, radiance, images)

@@ -26,10 +26,13 @@ def did_you_mean(word: str, choices: Iterable[str]) -> str:
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
-def finite(path: str, value: Any) -> float:
-    """A finite real number (bools refused)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        fail(path, value, "expected a finite number")
+def finite(path: str, value: Any, *, low: float | None = None, above: float | None = None, why: str = "") -> float:
+    """The one check of a real number: finite (bools refused), at least `low` / more than `above`
+    where given; `why` is said in the message."""
+    ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+    if not ok or (low is not None and value < low) or (above is not None and not value > above):
+        rule = f" >= {low}" if low is not None else f" > {above}" if above is not None else ""
+        fail(path, value, f"expected a finite number{rule}" + (f" ({why})" if why else ""))
     return float(value)
 
 

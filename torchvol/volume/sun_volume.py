@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 PAD = 2  # replicated border around each plane in the atlas: bicubic taps reach 2 texels out
+NODE_CHUNK = 1 << 21  # density evaluations per call while building a grid
 
 
 @dataclass(frozen=True)
@@ -116,7 +117,9 @@ def sun_transmittance_grid(
     k = torch.arange(column.shape[0], device=base.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count) + first[column]
     # every node in the chords is evaluated: testing occupancy first costs as much as the grid lookup it saves
     sigma = base.new_zeros(steps + 1, n * n)
-    sigma[k, column] = extinction(torch.addcmul(base[column], (k * spacing)[:, None], frame[2]))
+    nodes = torch.addcmul(base[column], (k * spacing)[:, None], frame[2])
+    # in chunks: a 384 grid has ~28 M nodes in a sphere, whose density intermediates took 5 GB at once
+    sigma[k, column] = torch.cat([extinction(nodes[i:i + NODE_CHUNK]) for i in range(0, nodes.shape[0], NODE_CHUNK)])
     sigma = sigma.reshape(steps + 1, n, n)
     # optical depth from stored plane k to the sun-side face: Simpson's rule on each pair of
     # sub-planes (k, k + ½, k + 1), summed from the sun side: more accurate than the trapezoid rule
