@@ -37,9 +37,10 @@ def light_responses(ctx, vol, d: Tensor, s: Tensor) -> list[Tensor | None]:
     return out
 
 
-def in_scatter(ctx, vol, p: Tensor, d: Tensor, s: Tensor, sigma_t: Tensor, responses: list[Tensor | None]) -> Tensor:
+def in_scatter(ctx, vol, p: Tensor, d: Tensor | None, s: Tensor, sigma_t: Tensor, responses: list[Tensor | None]) -> Tensor:
     """Σ over the volume's lights of σs · p(θ) · E · T_light at points `p` [n, 3] seen along `d`
-    [n, 3], of extinction `sigma_t` [n]; `responses`: `light_responses` at these samples. -> [n, 3]."""
+    [n, 3], of extinction `sigma_t` [n]; `responses`: `light_responses` at these samples (`d` is
+    needed only where one is None: a light that is not directional). -> [n, 3]."""
     out = p.new_zeros(p.shape[0], 3)
     sigma_s = take(vol.params.albedo, s) * sigma_t
     for use in vol.plan.lights:
@@ -116,7 +117,8 @@ def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: 
         if vol.plan.lights:
             lit = ((density > threshold) & (dt > 0)).nonzero().squeeze(1)  # dt = 0: a finished ray not dropped yet
             if lit.numel():
-                source[lit] = in_scatter(ctx, vol, p[lit], d_ids[lit], s[lit], sigma_t[lit],
+                d_lit = d_ids[lit] if any(r is None for r in resp) else None  # only point lights need it per sample
+                source[lit] = in_scatter(ctx, vol, p[lit], d_lit, s[lit], sigma_t[lit],
                                          [None if r is None else r[lit] for r in resp])
         if vol.plan.emissive:
             source = source + take(vol.params.emission, s) * density[:, None]
