@@ -86,6 +86,9 @@ def scenes(draw, *, sky=None, lights=None):
             [{"direction": [0.0, 0.0, -1.0], "intensity": 2.0}],  # towards the camera: the HG peak
             [{"direction": [1.0, 1.0, -0.5], "shadow": {"steps": 4}}],
             [{"direction": [0.0, 1.0, 0.0], "shadow": {"steps": 3, "growth": 2.0}}, {"direction": [0.0, 0.0, 1.0]}],
+            # point lights: on the bounds' centre (rays pass through the light), outside, shadowed
+            [{"kind": "point", "position": [0.0, 0.0, 0.0], "intensity": 5.0, "shadow": {"steps": 3}}],
+            [{"kind": "point", "position": [0.0, 3.0, 0.0], "intensity": 20.0}, {"direction": [1.0, 1.0, -0.5]}],
         ]))
     s = {
         "image": {"width": draw(st.sampled_from([7, 8])), "height": draw(st.sampled_from([5, 8]))},
