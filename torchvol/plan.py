@@ -51,6 +51,8 @@ class VolumePass:
     shading: str
     lights: tuple[LightPass, ...]
     emissive: bool  # some scene of the batch emits
+    emission_map: str | None  # the emission colour map's kind (volume.emission), None: none
+    bloom: int | None  # the point light the seeds' glow surrounds, None: no glow
     reach: float  # how far a ray or shadow ray travels in the volume (`march.max_distance`, or its bounds')
     compact_below: float  # the march drops finished rays below this active fraction (`volume.march.march`)
 
@@ -62,8 +64,17 @@ class VolumePass:
     def skip_pass(self) -> str:
         return f"{self.name}.skip"
 
+    @property
+    def emission_pass(self) -> str:
+        return f"{self.name}.emission_map"
+
+    @property
+    def bloom_pass(self) -> str:
+        return f"{self.name}.bloom"
+
     def names(self) -> list[str]:
-        own = [li.name for li in self.lights if li.name is not None]
+        own = ([self.emission_pass] if self.emission_map else []) + ([self.bloom_pass] if self.bloom is not None else [])
+        own += [li.name for li in self.lights if li.name is not None]
         return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
 
 
@@ -107,7 +118,8 @@ def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
         return "march"
     lights = [LIGHTS[li.kind] for li in batch.lights]
     if (settings.closed_form and DENSITIES[vol.density.kind].caps.get("homogeneous") and settings.integrator != "alpha"
-            and all(k.caps["directional"] for k in lights) and not any(li.shadow is not None for li in batch.lights)):
+            and all(k.caps["directional"] for k in lights) and not any(li.shadow is not None for li in batch.lights)
+            and vol.emission_map is None and vol.bloom is None):  # both vary along the ray
         return "closed_form"  # the source is constant along a ray: one exact segment
     if settings.tolerance is not None:
         return "tolerance"
@@ -132,7 +144,9 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
     return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
-                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below)
+                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
+                      emission_map=None if vol.emission_map is None else vol.emission_map.kind,
+                      bloom=None if vol.bloom is None else vol.bloom.light)
 
 
 def make_plan(batch: Stacked | Scene) -> Plan:

@@ -27,6 +27,7 @@ from .post import Post
 from .schema import EACH, SHARED, GridSource, One, Strict, Vec3, nonneg, reachable_models, refuse
 from .sky import SKIES
 from .validate import SceneError, did_you_mean, fail
+from .volume.emission import Bloom, EmissionMap
 from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
@@ -105,6 +106,8 @@ class Volume(Strict):
     sigma_t: float = Field(1.0, ge=0.0, le=1e12)
     albedo: float = Field(1.0, ge=0.0, le=1.0)
     emission: Vec3 = (0.0, 0.0, 0.0)
+    emission_map: EmissionMap | None = None  # emitted radiance from a colour map (volume.emission)
+    bloom: Bloom | None = None  # the seeds' artistic glow around a point light (volume.emission)
     phase: Phase = Field(default_factory=lambda: Phase(isotropic=Empty()))
     shading: Shading = "physical"
     shader: ShaderLook = Field(default_factory=ShaderLook)
@@ -114,6 +117,13 @@ class Volume(Strict):
     def _density_fits_bounds(self):
         if DENSITIES[self.density.kind].caps.get("needs_box") and self.bounds.kind != "box":
             raise ValueError(f"a {self.density.kind} density needs box bounds (it spans the box)")
+        return self
+
+    @model_validator(mode="after")
+    def _emission_terms_are_physical(self):
+        for key in ("emission_map", "bloom"):
+            if getattr(self, key) is not None and not SHADINGS[self.shading].caps["physical"]:
+                raise ValueError(f"{key} is a source of radiance in the physical medium: it needs shading = 'physical'")
         return self
 
 
@@ -390,11 +400,22 @@ class Scene(Strict):
         return self
 
     @model_validator(mode="after")
+    def _bloom_around_a_point_light(self):
+        for v, vol in enumerate(self.volumes):
+            if vol.bloom is None:
+                continue
+            l = vol.bloom.light
+            if l >= len(self.lights) or LIGHTS[self.lights[l].kind].caps["directional"]:
+                refuse(f"volumes[{v}].bloom.light", l, f"the glow surrounds a point light: the index of one in lights "
+                       f"(there are {len(self.lights)} lights)")
+        return self
+
+    @model_validator(mode="after")
     def _keys_that_need_something_to_act_on(self):
         if self.post.fog is not None and not self.volumes and self.voxels is None:
             refuse("post.fog", "<fog>", "distance fog needs something to fog: add volumes or voxels")
         if self.march.lod is not None and not any(DENSITIES[v.density.kind].caps.get("octaves") for v in self.volumes):
-            refuse("march.lod", "<lod>", "no volume has a density with octaves to drop (fbm, clouds)")
+            refuse("march.lod", "<lod>", "no volume has a density with octaves to drop (fbm, clouds, explosion)")
         return self
 
 

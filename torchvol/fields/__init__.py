@@ -21,6 +21,7 @@ from .base import Field
 from .clouds import CloudLayer, CloudsDensity
 from .constant import Constant, ConstantDensity
 from .exponential import Exponential, ExponentialDensity
+from .explosion import ExplosionDensity, ExplosionField
 from .fbm import FbmDensity, FbmField
 from .grid import Grid, GridDensity
 
@@ -30,5 +31,6 @@ DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, ch
 DENSITIES.register("exponential", ExponentialDensity, Exponential)
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True)
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True)
+DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True)
 
 __all__ = ["DENSITIES", "Field"]

@@ -110,7 +110,21 @@ def _voxel_fog(data: dict, *, density: float | None = None) -> None:
         data["voxels"]["fog"]["density"] = density
 
 
+def _emissive(data: dict, *, time: float = 0.0, seed: int | None = None) -> None:
+    """explosion, fire: `time` animates the explosion densities (growth, drift); `seed` picks their
+    noise (volume i gets seed + i)."""
+    if not (isinstance(time, (int, float)) and math.isfinite(time)):
+        fail("time", time, "expected a finite number of seconds")
+    data["time"] = float(time)
+    if seed is not None:
+        integer("seed", seed, low=0)
+        for i, vol in enumerate(data["volumes"]):
+            vol["density"]["explosion"]["seed"] = seed + i
+
+
 PARAMS: dict[str, Callable[..., None]] = {
+    "explosion": _emissive,
+    "fire": _emissive,
     "voxel-terrain": _voxel_terrain,
     "voxel-glow": _voxel_glow,
     "voxel-rounded": _voxel_rounded,
