@@ -408,6 +408,9 @@ class Scene(Strict):
             if l >= len(self.lights) or LIGHTS[self.lights[l].kind].caps["directional"]:
                 refuse(f"volumes[{v}].bloom.light", l, f"the glow surrounds a point light: the index of one in lights "
                        f"(there are {len(self.lights)} lights)")
+            if self.march.tolerance is not None:
+                refuse("march.tolerance", self.march.tolerance, f"the error-controlled march steps over empty space, where "
+                       f"volumes[{v}].bloom glows too: use a fixed march (steps) with bloom")
         return self
 
     @model_validator(mode="after")

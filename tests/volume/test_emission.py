@@ -173,6 +173,10 @@ def test_bloom_needs_a_point_light():
     scene["lights"] = [{"kind": "sun"}]
     with pytest.raises(SceneError, match=r"volumes\[0\]\.bloom\.light"):
         tv.load_scene(scene)
+    scene["lights"] = [{"kind": "point"}]
+    scene["march"] = {"tolerance": 1e-3}
+    with pytest.raises(SceneError, match=r"march\.tolerance"):
+        tv.load_scene(scene)
     with pytest.raises(SceneError, match="physical"):
         tv.load_scene(emissive_sphere(emission_map={"explosion": {}}, shading="shader"))
 
@@ -188,6 +192,14 @@ def test_a_volume_without_the_keys_plans_no_extra_work():
     assert not any("emission" in n or "bloom" in n for n in plan.names())
     mapped = make_plan(tv.load_scene(emissive_sphere(emission_map={"explosion": {}}))).volumes[0]
     assert mapped.strategy == "march" and mapped.names() == ["volume0.march", "volume0.emission_map"]
+
+
+def test_the_error_controlled_march_integrates_the_colour_map(one_thread):
+    scene = tv.load_scene(tv.preset("explosion", width=8, height=6), {"volumes[0].bloom": None, "march.steps": 256})
+    fixed = tv.render(scene, dtype=F64)
+    adaptive = tv.render(tv.load_scene(scene, {"march.tolerance": 1e-3}), dtype=F64)
+    assert "volume0.emission_map" in adaptive.stats["passes"]
+    assert_close(adaptive.radiance, fixed.radiance, atol=3e-3 * float(fixed.radiance.max()), what="tolerance vs 256 steps")
 
 
 def test_camera_inside_the_explosion_renders_finite(one_thread):
