@@ -1,6 +1,6 @@
 """An explosion: an fbm-displaced sphere, animated by `time` (the seeds' variant 1 fireball).
 
-    R(t) = radius · (1 + growth · time)                       the ball expands
+    R(t) = radius · (1 + growth · max(time, 0))               the ball expands from time 0
     q    = (p − center) / R(t)                               the noise expands with it
     n    = fbm(frequency · q + offset − drift · time)        value noise in [0, 1], seeded
     density = clamp(sharpness · (1 − |q| + displacement · (n − 0.5)), 0, 1)
@@ -25,11 +25,11 @@ from ..schema import EACH, Strict, Vec3
 
 class ExplosionDensity(Strict):
     """An fbm-displaced sphere: clamp(sharpness · (1 − |q| + displacement · (fbm(frequency · q +
-    offset − drift · time) − 0.5)), 0, 1), q = (p − center) / (radius · (1 + growth · time))."""
+    offset − drift · time) − 0.5)), 0, 1), q = (p − center) / (radius · (1 + growth · max(time, 0)))."""
 
     center: Vec3 = (0.0, 0.0, 0.0)
     radius: float = Field(1.0, gt=0.0, le=1e6)
-    growth: float = Field(0.0, ge=0.0)  # the radius grows by this fraction of itself per second
+    growth: float = Field(0.0, ge=0.0)  # the radius grows by this fraction of itself per second from time 0
     displacement: float = Field(0.6, ge=0.0)  # how far the noise moves the surface, in radii
     sharpness: float = Field(2.5, gt=0.0)  # density gradient across the surface (1: a linear ramp to the centre)
     octaves: int = Field(5, ge=1, le=12)
@@ -43,7 +43,7 @@ class ExplosionField:
     def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
         self.p = params
         self.basis = noise.compiled(noise.value_noise) if compiled else noise.value_noise
-        self.size = params.radius * (1.0 + params.growth * times)  # (B,) R(t)
+        self.size = params.radius * (1.0 + params.growth * times.clamp_min(0.0))  # (B,) R(t)
         self.shift = params.offset - params.drift * times[:, None]  # (B, 3)
         # the finest octave's lattice period, in world units (R(t) / frequency per noise cell)
         self.feature_size = noise.finest_period(params.octaves) * self.size / params.frequency

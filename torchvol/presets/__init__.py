@@ -111,11 +111,15 @@ def _voxel_fog(data: dict, *, density: float | None = None) -> None:
 
 
 def _emissive(data: dict, *, time: float = 0.0, seed: int | None = None) -> None:
-    """explosion, fire: `time` animates the explosion densities (growth, drift); `seed` picks their
-    noise (volume i gets seed + i)."""
+    """explosion, fire: `time` animates the explosion densities (growth, drift; a sphere bound
+    grows with its ball); `seed` picks their noise (volume i gets seed + i)."""
     if not (isinstance(time, (int, float)) and math.isfinite(time)):
         fail("time", time, "expected a finite number of seconds")
     data["time"] = float(time)
+    for vol in data["volumes"]:  # a sphere around a growing ball grows with it
+        growth, sphere = vol["density"]["explosion"].get("growth", 0.0), vol["bounds"].get("sphere")
+        if sphere is not None:
+            sphere["radius"] *= 1.0 + growth * max(float(time), 0.0)
     if seed is not None:
         integer("seed", seed, low=0)
         for i, vol in enumerate(data["volumes"]):
