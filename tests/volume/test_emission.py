@@ -9,7 +9,7 @@ the colour map is the seeds' computeColor run on Mesa llvmpipe.
 
 from __future__ import annotations
 
-import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -231,3 +231,12 @@ def test_preset_parameters_are_checked():
         tv.preset("fire", seed=-1)
     with pytest.raises(ValueError, match="time"):
         tv.preset("explosion", time=float("nan"))
+
+
+def test_fire_recipe_draws_renderable_scenes(one_thread):
+    recipe = tv.Recipe.load(Path(__file__).resolve().parents[2] / "datasets" / "fire.toml",
+                            {"image.width": 10, "image.height": 8, "march.steps": 8})
+    scenes = [recipe.sample(i, seed=1) for i in range(3)]
+    assert len({s.volumes[0].density.explosion.seed for s in scenes}) == 3
+    out = tv.render(scenes, seed=[0, 1, 2])
+    assert torch.isfinite(out.radiance).all() and out.radiance.amax() > 1.0
