@@ -73,7 +73,7 @@ class VolumePass:
         return f"{self.name}.bloom"
 
     def names(self) -> list[str]:
-        own = ([self.emission_pass] if self.emission_map else []) + ([self.bloom_pass] if self.bloom is not None else [])
+        own = ([self.emission_pass] if self.emission_map is not None else []) + ([self.bloom_pass] if self.bloom is not None else [])
         own += [li.name for li in self.lights if li.name is not None]
         return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
 
