@@ -126,6 +126,18 @@ def single_scatter(origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, 
     return inscatter, torch.exp(-extinction(optical, air))
 
 
+def _segments(mask: Tensor, origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, sun_dir: Tensor, air: Air,
+              steps: int, light_steps: int) -> tuple[Tensor, Tensor]:
+    """`single_scatter` of the rays where `mask` [n]; the others get an empty segment's (0, 1)."""
+    inscatter, trans = torch.zeros_like(origins), torch.ones_like(origins)
+    rays = mask.nonzero().squeeze(1)
+    if rays.numel():
+        part = Air(**{k: getattr(air, k)[rays] for k in air.__dataclass_fields__})
+        inscatter[rays], trans[rays] = single_scatter(origins[rays], directions[rays], t0[rays], t1[rays], sun_dir[rays],
+                                                      part, steps=steps, light_steps=light_steps)
+    return inscatter, trans
+
+
 def planet_frame(origins: Tensor, air: Air) -> Tensor:
     """World points [n, 3] (ground y = 0) -> relative to the planet's centre (0, −R, 0)."""
     return origins + torch.stack([torch.zeros_like(air.planet_radius), air.planet_radius,
@@ -153,9 +165,11 @@ def aerial_perspective(radiance: Tensor, alpha: Tensor, distance: Tensor, origin
     hits_ground = inside & (g_near > 0) & (g_near <= g_far)
     leave = torch.where(hits_ground, torch.minimum(g_near, leave), leave)
     depth = torch.minimum(torch.maximum(distance, enter), leave)  # the scene's depth, inside the air
-    kw = dict(steps=steps, light_steps=light_steps)
-    front, t_front = single_scatter(o, directions, enter, depth, sun_dir, air, **kw)
-    back, t_back = single_scatter(o, directions, depth, leave, sun_dir, air, **kw)
+    # an empty segment scatters nothing and transmits all: march only the rays with air in front of
+    # the scene's depth, and behind it only where the scene is not opaque
+    front, t_front = _segments(depth > enter, o, directions, enter, depth, sun_dir, air, steps, light_steps)
+    back, t_back = _segments((leave > depth) & (alpha < 1.0), o, directions, depth, leave, sun_dir, air, steps,
+                             light_steps)
     # the ground: Lambertian, lit by the sun through the air above it
     p = o + leave[:, None] * directions
     normal = p / p.norm(dim=1, keepdim=True)
