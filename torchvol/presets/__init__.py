@@ -113,7 +113,7 @@ def _voxel_fog(data: dict, *, density: float | None = None) -> None:
 # the atmosphere preset's views: the TOML's (space), a sunset from the ground, the sky from 10 km up
 ATMOSPHERE_VIEWS = {
     "space": {},
-    "ground": {"camera": {"eye": [0.0, 2.0, 0.0], "target": [0.0, 4.5, 10.0], "fov_y": 70.0}, "sun": [0.3, 0.04, 1.0]},
+    "ground": {"camera": {"eye": [0.0, 2.0, 0.0], "target": [0.0, 3.5, 10.0], "fov_y": 70.0}, "sun": [0.3, 0.08, 1.0]},
     "air": {"camera": {"eye": [0.0, 1.0e4, 0.0], "target": [0.0, 9.0e3, 1.0e4], "fov_y": 60.0}, "sun": [0.5, 0.15, 1.0]},
 }
 
