@@ -5,7 +5,6 @@ rays grazing the planet, a camera in space)."""
 
 import math
 
-import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
@@ -33,6 +32,11 @@ def ground_point(n: int, height: float = 0.0, dtype=F64) -> torch.Tensor:
     return torch.tensor([[0.0, EARTH.planet_radius + height, 0.0]] * n, dtype=dtype)
 
 
+def column(scale_height: float, top: float) -> float:
+    """∫₀^top e^{−h/H} dh."""
+    return scale_height * (1.0 - math.exp(-top / scale_height))
+
+
 def test_transmittance_along_a_radial_ray_is_the_closed_form():
     # from the ground straight up to space: τ = Σ β_k H_k (1 − e^{−A/H_k}), β_mie ×1.1 (extinction)
     steps, top = 1024, EARTH.atmosphere_height
@@ -40,15 +44,14 @@ def test_transmittance_along_a_radial_ray_is_the_closed_form():
     up = torch.tensor([[0.0, 1.0, 0.0]], dtype=F64)
     _, trans = single_scatter(ground_point(1), up, torch.zeros(1, dtype=F64), torch.full((1,), top, dtype=F64), up, air,
                               steps=steps, light_steps=1)
-    column = lambda h: h * (1.0 - math.exp(-top / h))  # noqa: E731
-    tau = (torch.tensor(EARTH.rayleigh, dtype=F64) * column(EARTH.rayleigh_height)
-           + 1.1 * EARTH.mie * column(EARTH.mie_height))
+    tau = (torch.tensor(EARTH.rayleigh, dtype=F64) * column(EARTH.rayleigh_height, top)
+           + 1.1 * EARTH.mie * column(EARTH.mie_height, top))
     # the midpoint rule's relative error on ∫ e^{−h/H}: (top/steps)² / (24 H²), Mie's the largest
     rule = (top / steps) ** 2 / (24 * EARTH.mie_height**2)
     assert_close(-trans.log()[0] / tau, torch.ones(3, dtype=F64), atol=1.5 * rule, what="τ / closed form")
     # and the nested march towards the sun is the same integral
     depth = optic_depth(ground_point(1), up, torch.full((1,), top, dtype=F64), air, steps)[0]
-    assert_close(depth / torch.tensor([column(EARTH.rayleigh_height), column(EARTH.mie_height)], dtype=F64),
+    assert_close(depth / torch.tensor([column(EARTH.rayleigh_height, top), column(EARTH.mie_height, top)], dtype=F64),
                  torch.ones(2, dtype=F64), atol=1.5 * rule, what="optic depth / closed form")
 
 

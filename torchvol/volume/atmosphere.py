@@ -17,7 +17,7 @@ the ground. Mie extinction is 1.1 × its scattering (the seeds' aerosol absorpti
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from pydantic import Field, field_validator
@@ -132,7 +132,7 @@ def _segments(mask: Tensor, origins: Tensor, directions: Tensor, t0: Tensor, t1:
     inscatter, trans = torch.zeros_like(origins), torch.ones_like(origins)
     rays = mask.nonzero().squeeze(1)
     if rays.numel():
-        part = Air(**{k: getattr(air, k)[rays] for k in air.__dataclass_fields__})
+        part = Air(**{f.name: getattr(air, f.name)[rays] for f in fields(air)})
         inscatter[rays], trans[rays] = single_scatter(origins[rays], directions[rays], t0[rays], t1[rays], sun_dir[rays],
                                                       part, steps=steps, light_steps=light_steps)
     return inscatter, trans
