@@ -237,3 +237,15 @@ def test_preset_views_and_quality_steps():
     assert (filled.atmosphere.steps, filled.atmosphere.light_steps) == QUALITY["default"].atmosphere_steps
     with pytest.raises(ValueError, match="view"):
         tv.preset("atmosphere", view="moon")
+
+
+def test_the_recipe_samples_and_renders_as_one_batch():
+    from pathlib import Path
+
+    recipe = tv.Recipe.load(Path(__file__).resolve().parents[2] / "datasets" / "atmosphere.toml",
+                            {"image.width": 8, "image.height": 6})
+    scenes = [recipe.sample(i, seed=0) for i in range(3)]
+    assert len({s.model_dump_json() for s in scenes}) == 3
+    out = tv.render(scenes, seed=[1, 2, 3])
+    assert torch.isfinite(out.radiance).all() and (out.radiance >= 0).all() and out.radiance.amax(dim=(1, 2, 3)).min() > 0
+    assert out.stats["passes"] == ["rays", "composite", "atmosphere", "post.tonemap.aces"]
