@@ -168,6 +168,11 @@ def test_without_air_the_ground_from_space_is_lambertian_at_its_depth():
     assert_close(centre, 20.0 * torch.tensor(albedo, dtype=F64) / math.pi, atol=1e-5, what="sunlit ground")
     assert_close(out.depth[0, 0, 4, 4].double() / h, torch.tensor(1.0, dtype=F64), atol=1e-6, what="depth / altitude")
     assert out.alpha.min() == 1.0
+    # from 2 m up, 5° down: the ground at 2 / sin 5° (measured 2e-5 in float32, the camera ray's
+    # rounding; the sphere test in the planet's frame was off by 1.1e-2)
+    low = tv.render(scene((0.0, 2.0, 0.0), (0.0, 2.0 - math.tan(math.radians(5.0)), 1.0), (0.0, 1.0, 0.0)))
+    expected = 2.0 / math.sin(math.radians(5.0))
+    assert_close(low.depth[0, 0, 4, 4].double() / expected, torch.tensor(1.0, dtype=F64), atol=1e-4, what="depth / 2 m")
 
 
 def test_the_air_leaves_a_scene_without_air_unchanged_and_costs_nothing_when_absent():
