@@ -128,6 +128,16 @@ BASES: dict[str, dict] = {
         "march": {"quality": "draft", "steps": 6},
         "post": {"tonemap": "aces"},
     },
+    "atmosphere medium": {
+        "image": SMALL,
+        "camera": {**CAMERA, "target": [0.0, 0.3, 0.0]},
+        "lights": [{**SUN, "direction": [-0.6, 0.3, 0.8]}],
+        "volumes": [{"bounds": {"sphere": {"center": [0.0, 0.4, 0.0], "radius": 0.4}}, "sigma_t": 2.0, "albedo": 0.8}],
+        "atmosphere": {"planet_radius": 50.0, "atmosphere_height": 6.0, "rayleigh": [0.02, 0.05, 0.1], "mie": 0.04,
+                       "rayleigh_height": 1.5, "mie_height": 0.4, "mie_g": 0.6, "ground": [0.3, 0.35, 0.2], "steps": 3,
+                       "light_steps": 2},
+        "march": {"quality": "draft", "steps": 4},
+    },
     "voxels: sdf, glow, rounded, texture": {
         "image": SMALL,
         "camera": {"eye": [5.0, 9.0, -12.0], "target": [0.0, 0.0, 0.0], "fov_y": 50.0},

@@ -5,7 +5,8 @@ fixed march over the occupied span, error-controlled march), which lights shade 
 shadows are found, which voxel passes run, which post effects apply. `render` executes the plan by
 looking each pass up, and decides nothing again. A term the batch does not ask for is not in the
 plan and costs nothing: no shadow pass without a light with `shadow`, no sky pass without `[sky]`,
-no march without volumes, no post pass at its identity setting.
+no aerial perspective without `[atmosphere]`, no march without volumes, no post pass at its
+identity setting.
 
 Decisions read only values a batch shares (its structure), or ask whether *any* scene of the batch
 needs a term (an effect at its identity setting gives the scene that does not need it the same
@@ -101,6 +102,7 @@ class Plan:
     flare: bool
     voxels: VoxelPass | None
     volumes: tuple[VolumePass, ...]
+    atmosphere: bool  # the [atmosphere] medium over the composited scene (aerial perspective)
     spp: int
     post: tuple[tuple[str, str], ...]  # (POST kind, pass name), in order
     aovs: tuple[str, ...]  # the AOVs the render outputs
@@ -108,7 +110,8 @@ class Plan:
     def names(self) -> list[str]:
         """Every planned pass, in the order the render runs them."""
         return (["rays"] + (["sky"] if self.sky else []) + (self.voxels.names() if self.voxels else [])
-                + [n for v in self.volumes for n in v.names()] + ["composite"] + (["post.flare"] if self.flare else [])
+                + [n for v in self.volumes for n in v.names()] + ["composite"] + (["atmosphere"] if self.atmosphere else [])
+                + (["post.flare"] if self.flare else [])
                 + (["resolve"] if self.spp > 1 else []) + [name for _, name in self.post])
 
 
@@ -168,6 +171,7 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         flare=batch.sky is not None and batch.sky.flare is not None,
         voxels=voxels,
         volumes=tuple(volume_pass(batch, v, settings) for v in range(len(batch.volumes))),
+        atmosphere=batch.atmosphere is not None,
         spp=batch.image.spp,
         post=post,
         aovs=tuple(produced(batch)),

@@ -28,6 +28,7 @@ from .schema import EACH, SHARED, GridSource, One, Strict, Vec3, nonneg, reachab
 from .sky import SKIES
 from .validate import SceneError, did_you_mean, fail
 from .volume.emission import Bloom, EmissionMap
+from .volume.atmosphere import AtmosphereMedium
 from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
@@ -371,6 +372,7 @@ class Scene(Strict):
     lights: list[Light] = Field(default_factory=list)
     volumes: list[Volume] = Field(default_factory=list)
     voxels: Voxels | None = None
+    atmosphere: AtmosphereMedium | None = None  # the scene inside a planet's air (aerial perspective)
     march: Annotated[March, SHARED] = Field(default_factory=March)
     post: Post = Field(default_factory=Post)
 
@@ -394,6 +396,8 @@ class Scene(Strict):
         sun = bool(self.lights) and LIGHTS[self.lights[0].kind].caps["directional"]
         if SKIES[self.sky.kind].caps.get("needs_sun") and not sun:
             refuse("sky.kind", self.sky.kind, "the atmosphere is lit by the first light: make lights[0] a sun")
+        if self.atmosphere is not None:
+            refuse("sky", "<sky>", "the [atmosphere] medium draws its own sky: remove [sky]")
         for glow in ("halo", "flare"):
             if getattr(self.sky, glow) is not None and not sun:
                 refuse(f"sky.{glow}", "<glow>", f"the {glow} is a lobe around the sun: make lights[0] a sun")
@@ -411,6 +415,12 @@ class Scene(Strict):
             if self.march.tolerance is not None:
                 refuse("march.tolerance", self.march.tolerance, f"the error-controlled march steps over empty space, where "
                        f"volumes[{v}].bloom glows too: use a fixed march (steps) with bloom")
+        return self
+
+    @model_validator(mode="after")
+    def _atmosphere_lit_by_a_sun(self):
+        if self.atmosphere is not None and not (self.lights and LIGHTS[self.lights[0].kind].caps["directional"]):
+            refuse("atmosphere", "<atmosphere>", "the atmosphere is lit by the first light: make lights[0] a sun")
         return self
 
     @model_validator(mode="after")

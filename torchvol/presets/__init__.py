@@ -126,7 +126,25 @@ def _emissive(data: dict, *, time: float = 0.0, seed: int | None = None) -> None
             vol["density"]["explosion"]["seed"] = seed + i
 
 
+# the atmosphere preset's views: the TOML's (space), a sunset from the ground, the sky from 10 km up
+ATMOSPHERE_VIEWS = {
+    "space": {},
+    "ground": {"camera": {"eye": [0.0, 2.0, 0.0], "target": [0.0, 3.5, 10.0], "fov_y": 70.0}, "sun": [0.3, 0.08, 1.0]},
+    "air": {"camera": {"eye": [0.0, 1.0e4, 0.0], "target": [0.0, 9.0e3, 1.0e4], "fov_y": 60.0}, "sun": [0.5, 0.15, 1.0]},
+}
+
+
+def _atmosphere(data: dict, *, view: str = "space") -> None:
+    if view not in ATMOSPHERE_VIEWS:
+        fail("atmosphere.view", view, f"expected one of {', '.join(ATMOSPHERE_VIEWS)}")
+    setting = ATMOSPHERE_VIEWS[view]
+    if setting:
+        data["camera"] = dict(setting["camera"])
+        data["lights"][0]["direction"] = list(setting["sun"])
+
+
 PARAMS: dict[str, Callable[..., None]] = {
+    "atmosphere": _atmosphere,
     "explosion": _emissive,
     "fire": _emissive,
     "voxel-terrain": _voxel_terrain,
