@@ -53,6 +53,8 @@ class VolumePass:
     emissive: bool  # some scene of the batch emits
     reach: float  # how far a ray or shadow ray travels in the volume (`march.max_distance`, or its bounds')
     compact_below: float  # the march drops finished rays below this active fraction (`volume.march.march`)
+    ambient: bool = False  # the density's ambient light is set (a physical source σs · ambient)
+    sky_blend: bool = False  # sources blend into the sky with distance (`volumes[i].sky_blend`)
 
     @property
     def step_pass(self) -> str:
@@ -107,7 +109,7 @@ def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
         return "march"
     lights = [LIGHTS[li.kind] for li in batch.lights]
     if (settings.closed_form and DENSITIES[vol.density.kind].caps.get("homogeneous") and settings.integrator != "alpha"
-            and all(k.caps["directional"] for k in lights) and not any(li.shadow is not None for li in batch.lights)):
+            and vol.sky_blend is None and all(k.caps["directional"] for k in lights) and not any(li.shadow is not None for li in batch.lights)):
         return "closed_form"  # the source is constant along a ray: one exact segment
     if settings.tolerance is not None:
         return "tolerance"
@@ -131,8 +133,11 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
         reach = math.inf if bounds.caps["finite"] else SLAB_REACH
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
+    physical = shading.caps["physical"]
     return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
-                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below)
+                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
+                      ambient=physical and bool(density.caps.get("ambient")) and vol.density.value.ambient is not None,
+                      sky_blend=physical and vol.sky_blend is not None)
 
 
 def make_plan(batch: Stacked | Scene) -> Plan:

@@ -122,6 +122,12 @@ def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: 
                                          [None if r is None else r[lit] for r in resp])
         if vol.plan.emissive:
             source = source + take(vol.params.emission, s) * density[:, None]
+        if vol.plan.ambient:  # isotropic ambient light: the phase function integrates to 1
+            source = source + (take(vol.params.albedo, s) * sigma_t)[:, None] * vol.field.inner.ambient(p, s)
+        if vol.plan.sky_blend:  # σt·sky integrates to the sky seen through the sample's opacity
+            k = take(vol.params.sky_blend, s)
+            sky = sigma_t[:, None] * (background[ids] if background is not None else 0.0)
+            source = torch.lerp(source, sky, (-torch.expm1(-k * t * t))[:, None])
         return sigma_raw, source
 
     return medium
