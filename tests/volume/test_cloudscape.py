@@ -263,3 +263,41 @@ def test_dual_hg_matches_the_seeds_glsl(lobes):
     c = cos.numpy()
     cancel = np.maximum(*[(1 + g * g + 2 * abs(g)) / (1 + g * g - 2 * g * c) for g in lobes[:2]])
     assert np.all(np.abs(ours - seeds) <= 4 * 2.0**-24 * 1.5 * cancel * np.abs(ours))
+
+
+# ---------------------------------------------------------------------------------------------
+# the planet's shell
+
+
+def test_shell_bounds_first_stretch_and_the_ground():
+    from torchvol.rays import intersect_shell
+
+    R, lo, hi = 100.0, 2.0, 5.0
+    c = torch.tensor([0.0, -R, 0.0], dtype=F64)
+    o = torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 3.0, 0.0], [0.0, 3.0, 0.0], [0.0, 8.0, 0.0],
+                      [0.0, 8.0, 0.0], [0.0, 1.0, 0.0]], dtype=F64)
+    d = torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, -1.0, 0.0],
+                      [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], dtype=F64)
+    t0, t1 = intersect_shell(o, d, c, R, R + lo, R + hi)
+    # straight up from below: floor to ceiling; down from below: the ground hides the far side
+    assert_close(torch.stack([t0[0], t1[0]]), torch.tensor([1.0, 4.0], dtype=F64), atol=1e-9, what="up from below")
+    assert float(t0[1]) > float(t1[1])
+    # inside the layer: up to the ceiling, or down to the floor
+    assert_close(torch.stack([t0[2], t1[2], t0[3], t1[3]]), torch.tensor([0.0, 2.0, 0.0, 1.0], dtype=F64), atol=1e-9, what="inside")
+    # from above: down from the ceiling to the floor; up: nothing
+    assert_close(torch.stack([t0[4], t1[4]]), torch.tensor([3.0, 6.0], dtype=F64), atol=1e-9, what="down from above")
+    assert float(t0[5]) > float(t1[5])
+    # horizontal from below: the layer's floor curves down to meet the ray
+    r1 = R + 1.0
+    assert_close(torch.stack([t0[6], t1[6]]), torch.tensor([math.sqrt((R + lo) ** 2 - r1**2), math.sqrt((R + hi) ** 2 - r1**2)], dtype=F64),
+                 atol=1e-9, what="horizontal")
+
+
+def test_shell_layer_renders_over_the_curved_ground():
+    scene = _scene(bounds={"shell": {"planet_radius": 200.0, "bottom": 1.0, "top": 3.0}},
+                   density={"cloudscape": {"bottom": 1.0, "top": 3.0, "planet_radius": 200.0, "coverage": 0.8}})
+    scene["camera"] = {"eye": [0.0, 0.5, 0.0], "target": [0.0, 0.0, 6.0], "fov_y": 80.0}  # half the view below the horizon
+    out = tv.render(tv.load_scene(scene))
+    assert torch.all(torch.isfinite(out.image))
+    alpha = out.alpha[0, 0]
+    assert float(alpha[:3].mean()) > 0.2 and torch.all(alpha[-3:] == 0)  # clouds above, none through the ground
