@@ -62,7 +62,7 @@ DENSITIES = [
     {"exponential": {"value": 2.0, "base": -0.5, "scale_height": 0.05}},
     {"fbm": {"octaves": 2, "frequency": 3.0, "bias": 0.2}},
     {"grid": {"data": [[[0.0, 3.0], [1.0, 0.0]], [[0.5, 2.0], [0.0, 4.0]]]}},
-    {"cloudscape": {"bottom": -0.5, "top": 0.5, "coverage": 0.9, "scale": 1.0, "detail_scale": 0.3, "ambient": {}}},
+    {"cloudscape": {"bottom": -0.5, "top": 0.5, "coverage": 0.9, "scale": 1.0, "detail_scale": 0.3}},
 ]
 
 

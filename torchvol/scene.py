@@ -119,6 +119,18 @@ class Volume(Strict):
             raise ValueError(f"a {self.density.kind} density needs box bounds (it spans the box)")
         return self
 
+    @model_validator(mode="after")
+    def _physical_terms(self):
+        """The sky blend and a density's ambient are sources of physical shading: refused, not
+        ignored, under the shader look (which has shader.fog and shader.ambient)."""
+        if not SHADINGS[self.shading].caps["physical"]:
+            if self.sky_blend is not None:
+                raise ValueError(f"sky_blend applies to physical shading, not {self.shading!r} (use shader.fog)")
+            if DENSITIES[self.density.kind].caps.get("ambient") and self.density.value.ambient is not None:
+                raise ValueError(f"density.{self.density.kind}.ambient lights physical shading, not {self.shading!r} "
+                                 "(use shader.ambient)")
+        return self
+
 
 class Lod(Strict):
     """Octaves at distance t: octaves − floor(log2(1 + scale·t)) (the template's LOD)."""

@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol import noise, noise_tiles
@@ -215,6 +217,24 @@ def test_finite_renders_at_odd_sizes(size):
     assert out.stats["passes"] == ["rays", "sky", "volume0.march", "volume0.shadow0", "composite"]
 
 
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
+@given(k=st.sampled_from([1e-12, 1e-3, 1e6, 1e30]), sigma=st.sampled_from([0.0, 1e-12, 1e3, 1e7]),
+       coverage=st.sampled_from([0.0, 0.5, 1.0]), erosion=st.sampled_from([0.0, 5.0]),
+       cloud_type=st.sampled_from([0.0, 1.0]), curved=st.booleans())
+def test_hard_cases_stay_finite(k, sigma, coverage, erosion, cloud_type, curved):
+    density = {"bottom": 1.0, "top": 3.0, "coverage": coverage, "erosion": erosion, "type": cloud_type, "ambient": {}}
+    bounds = {"slab": {"y_min": 1.0, "y_max": 3.0}}
+    if curved:
+        density["planet_radius"] = 50.0
+        bounds = {"shell": {"planet_radius": 50.0, "bottom": 1.0, "top": 3.0}}
+    scene = _scene(bounds=bounds, density={"cloudscape": density}, sigma_t=sigma, sky_blend=k)
+    scene["image"] = {"width": 7, "height": 5}
+    out = tv.render(tv.load_scene(scene))
+    for t in (out.image, out.radiance, out.depth, out.alpha):
+        assert torch.all(torch.isfinite(t))
+    assert float(out.alpha.min()) >= 0.0 and float(out.alpha.max()) <= 1.0
+
+
 def test_refusals_name_the_key():
     with pytest.raises(ValueError, match=r"volumes\[0\].density.cloudscape"):
         tv.load_scene(_scene(density={"cloudscape": {"bottom": 3.0, "top": 1.0}}))
@@ -222,6 +242,10 @@ def test_refusals_name_the_key():
         tv.load_scene(_scene(density={"cloudscape": {"coverage": 1.5}}))
     with pytest.raises(ValueError, match=r"sky_blend"):
         tv.load_scene(_scene(sky_blend=-1.0))
+    with pytest.raises(ValueError, match=r"volumes\[0\].*sky_blend applies to physical shading"):
+        tv.load_scene(_scene(sky_blend=0.1, shading="shader"))
+    with pytest.raises(ValueError, match=r"volumes\[0\].*ambient lights physical shading"):
+        tv.load_scene(_scene(density={"cloudscape": {"ambient": {}}}, shading="shader"))
 
 
 def test_preset_renders_a_sky_of_clouds():
