@@ -254,6 +254,12 @@ def test_preset_renders_a_sky_of_clouds():
     assert torch.all(torch.isfinite(out.image))
     top = out.alpha[0, 0, :12]
     assert 0.1 < float(top.mean()) < 0.95  # scattered clouds: some sky shows through
+    scene = tv.preset("cloudscape", width=8, height=8, coverage=0.9, cloud_type=0.1, sun_elevation=30.0, time=2.0)
+    vol, sun = scene.volumes[0].density.cloudscape, scene.lights[0].direction
+    assert (vol.coverage, vol.type, scene.time) == (0.9, 0.1, 2.0)
+    assert math.isclose(math.degrees(math.asin(sun[1] / math.hypot(*sun))), 30.0, abs_tol=1e-9)
+    with pytest.raises(ValueError, match="cloudscape.sun_elevation"):
+        tv.preset("cloudscape", sun_elevation=95.0)
 
 
 # ---------------------------------------------------------------------------------------------
