@@ -108,9 +108,9 @@ class Volume(Strict):
     phase: Phase = Field(default_factory=lambda: Phase(isotropic=Empty()))
     shading: Shading = "physical"
     shader: ShaderLook = Field(default_factory=ShaderLook)
-    # physical shading: each sample's source blends into the sky behind its ray by 1 − exp(−k·t²)
-    # (the seeds' distance fog, `mix(col, bg, 1 − exp(−k t²))`); None: no blend
-    sky_blend: float | None = Field(None, gt=0.0)
+    # the seeds' distance fog `mix(col, bg, 1 − exp(−k t²))` as a physical source term
+    sky_blend: float | None = Field(None, gt=0.0, description="physical shading: each sample's source blends into the sky "
+                                    "behind its ray by 1 − exp(−k·t²); None: no blend")
     _e = field_validator("emission")(lambda v: nonneg(v))
 
     @model_validator(mode="after")
