@@ -112,6 +112,9 @@ class Volume(Strict):
     phase: Phase = Field(default_factory=lambda: Phase(isotropic=Empty()))
     shading: Shading = "physical"
     shader: ShaderLook = Field(default_factory=ShaderLook)
+    # the seeds' distance fog `mix(col, bg, 1 − exp(−k t²))` as a physical source term
+    sky_blend: float | None = Field(None, gt=0.0, description="physical shading: each sample's source blends into the sky "
+                                    "behind its ray by 1 − exp(−k·t²); None: no blend")
     _e = field_validator("emission")(lambda v: nonneg(v))
 
     @model_validator(mode="after")
@@ -121,10 +124,17 @@ class Volume(Strict):
         return self
 
     @model_validator(mode="after")
-    def _emission_terms_are_physical(self):
-        for key in ("emission_map", "bloom"):
-            if getattr(self, key) is not None and not SHADINGS[self.shading].caps["physical"]:
-                raise ValueError(f"{key} is a source of radiance in the physical medium: it needs shading = 'physical'")
+    def _physical_terms(self):
+        """Sources of the physical medium: refused, not ignored, under the shader look (which has
+        shader.fog and shader.ambient)."""
+        if not SHADINGS[self.shading].caps["physical"]:
+            for key in ("emission_map", "bloom", "sky_blend"):
+                if getattr(self, key) is not None:
+                    raise ValueError(f"{key} is a source of the physical medium: it needs shading = 'physical', "
+                                     f"not {self.shading!r}")
+            if DENSITIES[self.density.kind].caps.get("ambient") and self.density.value.ambient is not None:
+                raise ValueError(f"density.{self.density.kind}.ambient lights physical shading, not {self.shading!r} "
+                                 "(use shader.ambient)")
         return self
 
 

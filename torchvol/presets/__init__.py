@@ -141,6 +141,25 @@ def _atmosphere(data: dict, *, view: str = "space") -> None:
     if setting:
         data["camera"] = dict(setting["camera"])
         data["lights"][0]["direction"] = list(setting["sun"])
+def _cloudscape(data: dict, *, coverage: float | None = None, cloud_type: float | None = None,
+                sun_elevation: float | None = None, time: float | None = None) -> None:
+    """coverage and cloud_type (0 stratus … 1 cumulonimbus) of the layer; the sun's elevation in
+    degrees, keeping its azimuth; time moves the clouds with a wind of 0.5 along +x."""
+    clouds = data["volumes"][0]["density"]["cloudscape"]
+    if coverage is not None:
+        clouds["coverage"] = coverage
+    if cloud_type is not None:
+        clouds["type"] = cloud_type
+    if sun_elevation is not None:
+        if not isinstance(sun_elevation, (int, float)) or not -90.0 < sun_elevation < 90.0:
+            fail("cloudscape.sun_elevation", sun_elevation, "expected degrees in (-90, 90)")
+        x, _, z = data["lights"][0]["direction"]
+        flat = math.hypot(x, z)
+        e = math.radians(sun_elevation)
+        data["lights"][0]["direction"] = [x / flat * math.cos(e), math.sin(e), z / flat * math.cos(e)]
+    if time is not None:
+        data["time"] = time
+        clouds["wind"] = [0.5, 0.0, 0.0]
 
 
 PARAMS: dict[str, Callable[..., None]] = {
@@ -154,6 +173,7 @@ PARAMS: dict[str, Callable[..., None]] = {
     "voxel-carved-box": _voxel_carved_box,
     "template-clouds": _template_clouds,
     "cloud-puff": _cloud_puff,
+    "cloudscape": _cloudscape,
 }
 
 

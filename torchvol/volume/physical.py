@@ -129,6 +129,12 @@ def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: 
         if vol.plan.bloom is not None:
             with ctx.timer.section(vol.plan.bloom_pass):
                 source = source + bloom_glow(vol.params.bloom, ctx.lights[vol.plan.bloom].params, p, s)
+        if vol.plan.ambient:  # isotropic ambient light: the phase function integrates to 1
+            source = source + (take(vol.params.albedo, s) * sigma_t)[:, None] * vol.field.inner.ambient(p, s)
+        if vol.plan.sky_blend:  # σt·sky integrates to the sky seen through the sample's opacity
+            k = take(vol.params.sky_blend, s)
+            sky = sigma_t[:, None] * (background[ids] if background is not None else 0.0)
+            source = torch.lerp(source, sky, (-torch.expm1(-k * t * t))[:, None])
         return sigma_raw, source
 
     return medium
