@@ -53,6 +53,9 @@ class VolumePass:
     emissive: bool  # some scene of the batch emits
     reach: float  # how far a ray or shadow ray travels in the volume (`march.max_distance`, or its bounds')
     compact_below: float  # the march drops finished rays below this active fraction (`volume.march.march`)
+    ambient: bool = False  # sky light in-scattered (`volumes[i].ambient`)
+    ambient_pass: str | None = None  # its visibility march, a pass of its own ("volume0.ambient")
+    multiple: bool = False  # Wrenninge's octaves on the lights' in-scatter (`volumes[i].multiple_scattering`)
 
     @property
     def step_pass(self) -> str:
@@ -63,7 +66,7 @@ class VolumePass:
         return f"{self.name}.skip"
 
     def names(self) -> list[str]:
-        own = [li.name for li in self.lights if li.name is not None]
+        own = [li.name for li in self.lights if li.name is not None] + ([self.ambient_pass] if self.ambient_pass else [])
         return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
 
 
@@ -107,6 +110,7 @@ def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
         return "march"
     lights = [LIGHTS[li.kind] for li in batch.lights]
     if (settings.closed_form and DENSITIES[vol.density.kind].caps.get("homogeneous") and settings.integrator != "alpha"
+            and vol.edge is None and vol.ambient is None  # both vary along a ray
             and all(k.caps["directional"] for k in lights) and not any(li.shadow is not None for li in batch.lights)):
         return "closed_form"  # the source is constant along a ray: one exact segment
     if settings.tolerance is not None:
@@ -131,8 +135,11 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
         reach = math.inf if bounds.caps["finite"] else SLAB_REACH
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
+    ambient = vol.ambient is not None
     return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
-                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below)
+                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below, ambient=ambient,
+                      ambient_pass=f"{name}.ambient" if ambient and vol.ambient.visibility == "march" else None,
+                      multiple=vol.multiple_scattering is not None)
 
 
 def make_plan(batch: Stacked | Scene) -> Plan:

@@ -27,6 +27,9 @@ from .post import Post
 from .schema import EACH, SHARED, GridSource, One, Strict, Vec3, nonneg, reachable_models, refuse
 from .sky import SKIES
 from .validate import SceneError, did_you_mean, fail
+from .fields.edge import Edge
+from .volume.ambient import Ambient
+from .volume.multiple import MultipleScattering
 from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
@@ -108,6 +111,10 @@ class Volume(Strict):
     phase: Phase = Field(default_factory=lambda: Phase(isotropic=Empty()))
     shading: Shading = "physical"
     shader: ShaderLook = Field(default_factory=ShaderLook)
+    # the realism terms (docs/VOLUMES.md): absent, physical shading is exactly single scattering
+    edge: Edge | None = None
+    ambient: Ambient | None = None
+    multiple_scattering: MultipleScattering | None = None
     _e = field_validator("emission")(lambda v: nonneg(v))
 
     @model_validator(mode="after")
@@ -387,6 +394,17 @@ class Scene(Strict):
         for glow in ("halo", "flare"):
             if getattr(self.sky, glow) is not None and not sun:
                 refuse(f"sky.{glow}", "<glow>", f"the {glow} is a lobe around the sun: make lights[0] a sun")
+        return self
+
+    @model_validator(mode="after")
+    def _realism_terms_need_physical_shading_and_a_sky(self):
+        for v, vol in enumerate(self.volumes):
+            for key in ("ambient", "multiple_scattering"):
+                if getattr(vol, key) is not None and not SHADINGS[vol.shading].caps["physical"]:
+                    refuse(f"volumes[{v}].{key}", "<table>", f"needs shading = 'physical' (volumes[{v}] is {vol.shading!r})")
+            if vol.ambient is not None and vol.ambient.radiance is None and self.sky is None:
+                refuse(f"volumes[{v}].ambient.radiance", None, "no [sky] to take the ambient from: give radiance = [r, g, b] "
+                       "or add a [sky]")
         return self
 
     @model_validator(mode="after")
