@@ -45,7 +45,7 @@ BASES: dict[str, dict] = {
              "density": {"fbm": {"octaves": 3, "frequency": 1.7, "seed": 2, "amplitude": 1.2, "bias": 0.4,
                                  "offset": [0.1, 0.2, 0.3], "wind": [0.3, 0.1, 0.2], "radial": 0.4, "center": [0.1, 0.0, 0.0]}},
              "sigma_t": 4.0, "albedo": 0.8, "emission": [0.1, 0.05, 0.0], "phase": {"dual_hg": {"g_forward": 0.6, "g_backward": -0.3, "weight": 0.4}},
-             "edge": {"width": 0.2}, "multiple_scattering": {"octaves": 2, "a": 0.4, "b": 0.6, "c": 0.7},
+             "edge": {"width": 0.2, "base": -0.5}, "multiple_scattering": {"octaves": 2, "a": 0.4, "b": 0.6, "c": 0.7},
              "ambient": {"radiance": [0.3, 0.35, 0.4], "top": [0.5, 0.6, 0.7], "direction": [0.1, 1.0, 0.2], "steps": 2,
                          "sigma_scale": 0.7}},
             {"bounds": {"sphere": {"center": [0.6, -0.2, 0.4], "radius": 0.5}},

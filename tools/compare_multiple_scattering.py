@@ -3,14 +3,14 @@ scattering, on a homogeneous sphere lit by one sun.
 
     pip install mitsuba
     python tools/compare_multiple_scattering.py [--size 32] [--spp 1024] [--max-depth 64]
-        [--abc 0.5,0.5,0.5 --abc 0.6,0.7,0.5] [--octaves 4] [--cache DIR]
+        [--abc 0.5,0.5,0.5 --abc 0.6,0.6,0.7,8] [--octaves 4] [--cache DIR]
 
 The scene: a sphere of radius 1 (so σ_t·d = 2σ_t through its centre) with a homogeneous medium,
 HG g = 0.8, one sun of irradiance 3 from the upper side (`testing/mitsuba.py`'s), no sky, the same
 camera; Mitsuba's `volpath` with `max_depth` = `--max-depth` is the multiple-scattering reference
 (max_depth = 2 is single scattering, which torchvol's plain physical shading must match). For each
 (σ_t·d, albedo) it prints, against that reference: torchvol's single scattering, and single +
-octaves for each `--abc` (a, b, c), as the mean ratio (torchvol mean / Mitsuba mean over the
+octaves for each `--abc` (a, b, c[, octaves], octaves defaulting to `--octaves`), as the mean ratio (torchvol mean / Mitsuba mean over the
 image) and the relative RMSE; and Mitsuba's own single scattering against torchvol's (parity).
 torchvol renders 16 stratified samples per pixel, as Mitsuba's box-filtered film averages pixels.
 """
@@ -76,10 +76,13 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=1024)
     parser.add_argument("--max-depth", type=int, default=64)
     parser.add_argument("--octaves", type=int, default=4)
-    parser.add_argument("--abc", action="append", default=None, help="a,b,c (repeatable); default 0.5,0.5,0.5")
+    parser.add_argument("--abc", action="append", default=None, help="a,b,c[,octaves] (repeatable); default 0.5,0.5,0.5")
     parser.add_argument("--cache", type=Path, default=None, help="folder that keeps Mitsuba's renders between runs")
     args = parser.parse_args()
-    settings = [tuple(float(x) for x in s.split(",")) for s in (args.abc or ["0.5,0.5,0.5"])]
+    settings = []
+    for text in args.abc or ["0.5,0.5,0.5"]:
+        values = [float(x) for x in text.split(",")]
+        settings.append((tuple(values[:3]), int(values[3]) if len(values) > 3 else args.octaves))
     for depth_d, albedo in CASES:
         sigma_t = depth_d / 2.0
         start = time.perf_counter()
@@ -91,9 +94,9 @@ def main() -> None:
         print("| --- | ---: | ---: |")
         single = tv.render(torchvol_scene(sigma_t, albedo, size=args.size)).radiance[0].permute(1, 2, 0).numpy()
         print(row("single scattering", single, multiple))
-        for abc in settings:
-            img = tv.render(torchvol_scene(sigma_t, albedo, size=args.size, abc=abc, octaves=args.octaves))
-            print(row(f"single + {args.octaves} octaves, a, b, c = {', '.join(f'{x:g}' for x in abc)}",
+        for abc, octaves in settings:
+            img = tv.render(torchvol_scene(sigma_t, albedo, size=args.size, abc=abc, octaves=octaves))
+            print(row(f"single + {octaves} octaves, a, b, c = {', '.join(f'{x:g}' for x in abc)}",
                       img.radiance[0].permute(1, 2, 0).numpy(), multiple))
         print(row("(parity) Mitsuba max_depth 2 vs torchvol single", single_ref, single), flush=True)
 

@@ -100,7 +100,7 @@ class RenderContext:
             extra = dict(zip(("box_min", "box_max"), bounds.aabb(params.bounds.value)))
         inner = density.fn(params.density.value, self.times, compiled=compiled, **extra)
         if params.edge is not None:
-            inner = EdgeField(inner, bounds.caps["depth"], params.bounds.value, params.edge.width)
+            inner = EdgeField(inner, bounds.caps["depth"], params.bounds.value, params.edge)
         state = VolumeState(params, vp, CountedField(inner, self.counts), bounds, PHASES[params.phase.kind],
                             SHADINGS[vp.shading])
         if vp.ambient:

@@ -205,6 +205,18 @@ def test_edge_fades_to_zero_at_the_bounds(bounds):
     assert make_plan(scene).volumes[0].strategy == "march"  # no longer homogeneous: no closed form
 
 
+def test_edge_base_is_a_flat_floor():
+    from torchvol.batch import stack
+    from torchvol.render import RenderContext
+
+    scene = tv.load_scene({"volumes": [{"bounds": {"sphere": {"radius": 1.0}}, "density": {"constant": 1.0},
+                                        "edge": {"width": 0.2, "base": -0.3}}]})
+    ctx = RenderContext(stack([scene]), make_plan(scene), seeds=[0], dtype=torch.float32, device="cpu", compiled=False)
+    p = torch.tensor([[0.5, -0.35, 0.0], [0.5, -0.3, 0.0], [0.5, -0.2, 0.0], [0.5, -0.1, 0.0], [0.0, 0.5, 0.0]])
+    got = ctx.volumes[0].field(p, torch.zeros(5, dtype=torch.long))
+    assert_close(got, torch.tensor([0.0, 0.0, 0.5, 1.0, 1.0]), atol=1e-5, what="density over the base")
+
+
 def test_edge_leaves_no_silhouette(one_thread):
     """A constant sphere shows a hard disc; with the edge, alpha rises smoothly from 0 at the rim."""
     scene = {"image": {"width": 32, "height": 32}, "camera": {"eye": [0, 0, -3.0], "target": [0, 0, 0], "fov_y": 45.0},
