@@ -262,3 +262,15 @@ def test_hard_cases_stay_finite(overrides, one_thread):
     for name, t in (("radiance", out.radiance), ("depth", out.depth), ("alpha", out.alpha)):
         assert torch.isfinite(t).all(), name
     assert (out.radiance >= 0).all()
+
+
+def test_cloud_puff_parameters():
+    """cloud-puff turns the terms on; `realism=False` is plain single scattering; `sun` picks a look."""
+    on, off = tv.preset("cloud-puff", width=8, height=8), tv.preset("cloud-puff", width=8, height=8, realism=False)
+    assert all(getattr(on.volumes[0], k) is not None for k in ("ambient", "multiple_scattering", "edge"))
+    assert all(getattr(off.volumes[0], k) is None for k in ("ambient", "multiple_scattering", "edge"))
+    assert "volume0.ambient" in make_plan(on).names() and "volume0.ambient" not in make_plan(off).names()
+    sunset = tv.preset("cloud-puff", width=8, height=8, sun="sunset")
+    assert sunset.lights[0].color[2] < 0.5 and sunset.lights[0].direction[1] < 0.2
+    with pytest.raises(ValueError, match="cloud-puff.sun"):
+        tv.preset("cloud-puff", sun="noon")

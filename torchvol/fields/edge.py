@@ -50,4 +50,6 @@ class EdgeField:
         return raw.where(raw <= 0.0, raw * self.fade(points, scene_index))  # empty stays as far from density
 
     def __getattr__(self, name: str):
+        if name == "inner":  # not set yet (a copy under construction): no recursion
+            raise AttributeError(name)
         return getattr(self.inner, name)
