@@ -255,6 +255,8 @@ def test_bad_values_are_refused_naming_the_key(overrides, key):
     {"volumes[0].edge.width": 1e-6, "volumes[0].ambient.sigma_scale": 0.0},
     {"volumes[0].edge.width": 100.0, "sky": {"kind": "gradient", "horizon": [0.5, 0.6, 0.7], "slope": [0.1, 0.1, 0.1]}},
     {"march.tolerance": 0.01},
+    {"sky": {"kind": "atmosphere"}, "lights[0].direction": [0.0, 0.02, 1.0]},  # sky mean of an atmosphere at sunset
+    {"lights[0].shadow.method": "grid", "lights[0].shadow.resolution": 8, "volumes[0].bounds": {"box": {}}},
 ])
 def test_hard_cases_stay_finite(overrides, one_thread):
     base = puff(ambient={"top": [1.0, 1.0, 1.0]}, multiple_scattering={"octaves": 3}, edge={"width": 0.2})
