@@ -21,6 +21,7 @@ from .batch import Stacked, check_same_structure, stack, take
 from .bounds import BOUNDS
 from .camera import Camera, Rays
 from .fields import DENSITIES
+from .fields.edge import EdgeField
 from .lights import LIGHTS, LightSource
 from .plan import Plan, VolumePass, make_plan
 from .post import POST
@@ -31,6 +32,7 @@ from .sky import SKIES, sun_glow
 from .stats import CountedField, Counts, Timer
 from .validate import fail, integer, is_integer
 from .volume.atmosphere import aerial_perspective, gather_air
+from .volume.ambient import sky_mean
 from .volume.composite import composite_volumes, finish
 from .volume.phase import PHASES
 from .volume.shading import SHADINGS
@@ -67,6 +69,7 @@ class VolumeState:
     shading: object  # Kind
     sun_grids: dict = field(default_factory=dict)
     macro: dict = field(default_factory=dict)
+    ambient_bottom: Tensor | None = None  # (B, 3) the ambient radiance (at the bottom of the bounds)
 
     def intersect(self, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
         """Entry/exit distances [n] of rays `o`, `d` [n, 3] of scenes `s` [n]."""
@@ -97,8 +100,15 @@ class RenderContext:
         if density.caps.get("needs_box"):
             extra = dict(zip(("box_min", "box_max"), bounds.aabb(params.bounds.value)))
         inner = density.fn(params.density.value, self.times, compiled=compiled, **extra)
-        return VolumeState(params, vp, CountedField(inner, self.counts), bounds, PHASES[params.phase.kind],
-                           SHADINGS[vp.shading])
+        if params.edge is not None:
+            inner = EdgeField(inner, bounds.caps["depth"], params.bounds.value, params.edge)
+        state = VolumeState(params, vp, CountedField(inner, self.counts), bounds, PHASES[params.phase.kind],
+                            SHADINGS[vp.shading])
+        if vp.ambient:
+            amb = params.ambient
+            state.ambient_bottom = amb.radiance if amb.radiance is not None else sky_mean(
+                SKIES[self.batch.sky.kind].fn, self.batch.sky, self.sun(), len(params), dtype=self.dtype, device=self.device)
+        return state
 
     def dither(self, rays: Rays) -> Tensor | None:
         st, image = self.settings, self.batch.image

@@ -36,7 +36,19 @@ def _template_clouds(data: dict, *, time: float = 0.0, mouse=(0.0, 0.0), noise_t
         clouds["texture"] = str(noise_texture) if isinstance(noise_texture, (str, Path)) else noise_texture
 
 
-def _cloud_puff(data: dict, *, sigma_t: float | None = None, g: float | None = None, steps: int | None = None) -> None:
+# cloud-puff's suns: (direction towards the sun, colour, intensity, sky radiance)
+CLOUD_PUFF_SUNS = {
+    "day": ([0.5, 0.8, -0.6], [1.0, 0.95, 0.88], 10.0, [0.3, 0.45, 0.8]),
+    "sunset": ([-0.9, 0.12, -0.3], [1.0, 0.55, 0.25], 10.0, [0.3, 0.26, 0.36]),
+    "backlit": ([-0.15, 0.35, 1.0], [1.0, 0.95, 0.88], 10.0, [0.3, 0.45, 0.8]),
+}
+
+
+def _cloud_puff(data: dict, *, sigma_t: float | None = None, g: float | None = None, steps: int | None = None,
+                sun: str = "day", realism: bool = True) -> None:
+    """`sun`: "day" (over the camera's shoulder), "sunset" (low, warm, from the side) or "backlit"
+    (behind the cloud: a silver lining); `realism` False: plain single scattering (no ambient, no
+    multiple-scattering octaves, no edge fade), what accuracy checks of the march measure."""
     vol = data["volumes"][0]
     if sigma_t is not None:
         vol["sigma_t"] = sigma_t
@@ -44,6 +56,17 @@ def _cloud_puff(data: dict, *, sigma_t: float | None = None, g: float | None = N
         vol["phase"] = {"hg": {"g": g}}
     if steps is not None:
         data["lights"][0]["shadow"]["steps"] = steps
+    if sun not in CLOUD_PUFF_SUNS:
+        fail("cloud-puff.sun", sun, "expected one of " + ", ".join(CLOUD_PUFF_SUNS))
+    if sun != "day":
+        direction, color, intensity, sky = CLOUD_PUFF_SUNS[sun]
+        data["lights"][0].update(direction=direction, color=color, intensity=intensity)
+        data["sky"]["radiance"] = sky
+    if not isinstance(realism, bool):
+        fail("cloud-puff.realism", realism, "expected true or false")
+    if not realism:
+        for key in ("ambient", "multiple_scattering", "edge"):
+            vol.pop(key, None)
 
 
 def shader_camera_matrix(width: int, height: int, eye, focal: float = 0.8) -> dict:
