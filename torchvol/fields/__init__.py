@@ -23,6 +23,7 @@ from .constant import Constant, ConstantDensity
 from .exponential import Exponential, ExponentialDensity
 from .fbm import FbmDensity, FbmField
 from .grid import Grid, GridDensity
+from .particles import ParticleField, ParticlesDensity
 
 DENSITIES = Registry("density")
 DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True)
@@ -30,5 +31,6 @@ DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, ch
 DENSITIES.register("exponential", ExponentialDensity, Exponential)
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True)
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True)
+DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True)
 
 __all__ = ["DENSITIES", "Field"]
