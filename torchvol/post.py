@@ -116,16 +116,23 @@ class View:
     alpha: Tensor
 
 
+def _mat_vec(m: Tensor, v: Tensor) -> Tensor:
+    """m (B, 3, 3) times v (B, ..., 3) -> (B, ..., 3), written out term by term: a batched matmul's
+    rounding may depend on the batch's shape, and a scene must render the same alone or batched."""
+    m = m.reshape(m.shape[0], *([1] * (v.dim() - 2)), 3, 3)
+    return m[..., 0] * v[..., :1] + m[..., 1] * v[..., 1:2] + m[..., 2] * v[..., 2:]
+
+
 def sun_on_screen(camera: Camera, sun: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
     """The sun `sun` (B, 3, towards it, any length) seen by `camera` -> (its pixel position (B, 2),
     column then row, where it projects (finite, arbitrary where it is behind the camera); its unit
     direction in camera axes (B, 3); the cosine between it and the view direction (B,), ≤ 0 where
     the sun is behind the camera)."""
-    d = torch.einsum("bij,bj->bi", camera.rotation.to(dtype), sun.to(dtype))
+    d = _mat_vec(camera.rotation.to(dtype), sun.to(dtype))
     d = d / d.norm(dim=1, keepdim=True)
     facing = d[:, 2]
     z = torch.where(facing > 1e-6, facing, torch.ones_like(facing))  # no division by ~0 behind the camera
-    xy = torch.einsum("bij,bj->bi", camera.K.to(dtype), d)[:, :2] / z[:, None]
+    xy = _mat_vec(camera.K.to(dtype), d)[:, :2] / z[:, None]
     return xy.clamp(-1e6, 1e6), d, facing
 
 
@@ -141,8 +148,10 @@ def god_rays(image: Tensor, params, view: View) -> Tensor:
     pix = torch.stack(torch.broadcast_tensors(col[None, :], row[:, None]), dim=-1)  # (H, W, 2)
     # light sources: the unoccluded sky near the sun; cos from each pixel's ray in camera axes
     rays = torch.cat([pix, torch.ones(h, w, 1, dtype=dtype, device=dev)], dim=-1)  # (H, W, 3)
-    rays = torch.einsum("bij,hwj->bhwi", torch.linalg.inv(view.camera.K.to(dtype)), rays)
-    cos = torch.einsum("bhwi,bi->bhw", rays / rays.norm(dim=-1, keepdim=True), sun_cam).clamp_min(0.0)
+    rays = _mat_vec(torch.linalg.inv(view.camera.K.to(dtype)), rays.expand(b, h, w, 3))
+    rays = rays / rays.norm(dim=-1, keepdim=True)
+    cos = (rays[..., 0] * sun_cam[:, None, None, 0] + rays[..., 1] * sun_cam[:, None, None, 1]
+           + rays[..., 2] * sun_cam[:, None, None, 2]).clamp_min(0.0)
     source = image * (1.0 - view.alpha) * pow_(cos, _per_image(params.power)[:, 0])[:, None]
     # tap i at pix − i·step, step = (pix − sun) · density / samples, in grid_sample's [−1, 1] units
     step = (pix[None] - sun_xy[:, None, None]) * (params.density / params.samples)[:, None, None, None]  # (B, H, W, 2)
