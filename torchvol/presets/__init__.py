@@ -110,6 +110,16 @@ def _voxel_fog(data: dict, *, density: float | None = None) -> None:
         data["voxels"]["fog"]["density"] = density
 
 
+def _particles(data: dict, *, time: float | None = None, seed: int | None = None, count: int | None = None) -> None:
+    particles = data["volumes"][0]["density"]["particles"]
+    if time is not None:
+        data["time"] = time
+    if seed is not None:
+        particles["seed"] = seed
+    if count is not None:
+        particles["count"] = count
+
+
 def god_rays_grid(seed: int, *, haze: float = 0.06, cells: tuple[int, int, int] = (72, 30, 48), holes: int = 24) -> np.ndarray:
     """The god-rays preset's medium over its box [-6, 6] × [0, 3] × [-3, 5], as grid[k, j, i]: a
     canopy (density 40) from y = 2.4 to 2.6 pierced by a hole of radius 0.5 where the camera sees
@@ -142,6 +152,7 @@ def _god_rays(data: dict, *, method: str = "both", seed: int = 3) -> None:
 
 PARAMS: dict[str, Callable[..., None]] = {
     "god-rays": _god_rays,
+    "particles": _particles,
     "voxel-terrain": _voxel_terrain,
     "voxel-glow": _voxel_glow,
     "voxel-rounded": _voxel_rounded,
