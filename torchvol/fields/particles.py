@@ -7,7 +7,7 @@ a radius r_k uniform in `radius`, a unit direction v_k and a noise offset o_k; a
 
 and the medium is Σ_k d_k (or max_k with `combine = "max"`). The falloff reaches 0 at the sphere
 with zero slope, so no sphere's edge shows. Points are tested against all K centres at once ([N, K]
-distances); noise is evaluated only on the (point, particle) pairs inside a sphere.
+distances, `torch.cdist`); noise is evaluated only on the (point, particle) pairs inside a sphere.
 """
 
 from __future__ import annotations
@@ -118,12 +118,16 @@ class ParticleField:
         """`points` [N, 3], `scene_index` [N] -> (density [N], signed value of the nearest particle
         [N] or None)."""
         p, s = self.p, scene_index
-        local = (points[:, None, :] - take(self.centers, s)) / take(self.radii, s)[..., None]  # [N, K, 3]
-        r = local.norm(dim=2)  # [N, K]
+        # distances to every centre without an [N, K, 3] temporary (cdist's direct kernel, not the
+        # matmul form that cancels), then local coordinates only for the pairs inside a sphere
+        dist = per_scene(points, s, len(p), lambda b, idx, x: torch.cdist(
+            x, self.centers[b], compute_mode="donot_use_mm_for_euclid_dist"))  # [N, K]
+        r = dist / take(self.radii, s)
         pairs = (r < 1.0).nonzero()  # the (point, particle) pairs inside a sphere, point-major
         i, k = pairs[:, 0], pairs[:, 1]
         si = s[i]
-        q = take(p.frequency, si)[:, None] * local[i, k] + self.offsets[si, k]
+        local = (points[i] - self.centers[si, k]) / self.radii[si, k][:, None]
+        q = take(p.frequency, si)[:, None] * local + self.offsets[si, k]
         octaves = None if lod is None else p.octaves - lod[i]
 
         def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
