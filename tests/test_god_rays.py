@@ -4,6 +4,7 @@ nothing, to the bit."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -109,3 +110,59 @@ def test_the_preset_shows_both_kinds_of_shaft(one_thread):
     assert "post.god_rays" not in physical.stats["passes"]
     with pytest.raises(ValueError, match="god-rays.method"):
         tv.preset("god-rays", method="both ways")
+
+
+RADIAL_GLSL = """
+uniform vec2 center;  // the sun in pixels: column, row from the top (pixel centres at integers)
+uniform float density;
+uniform float decay;
+uniform float weight;
+uniform int samples;
+
+float fetch(ivec2 p) {  // texel [row, column] of the uploaded array; black outside the image
+    ivec2 size = ivec2(iResolution.xy);
+    if (any(lessThan(p, ivec2(0))) || p.x >= size.x || p.y >= size.y) return 0.0;
+    return texelFetch(iChannel0, p, 0).r;
+}
+
+float bilinear(vec2 p) {
+    vec2 f = floor(p);
+    vec2 t = p - f;
+    ivec2 i = ivec2(f);
+    return mix(mix(fetch(i), fetch(i + ivec2(1, 0)), t.x), mix(fetch(i + ivec2(0, 1)), fetch(i + ivec2(1, 1)), t.x), t.y);
+}
+
+// GPU Gems 3, ch. 13, listing 13-7, in pixels
+void mainImage(out vec4 fragColor, in vec2 fragCoord) {
+    vec2 pix = vec2(fragCoord.x - 0.5, iResolution.y - 0.5 - fragCoord.y);
+    vec2 delta = (pix - center) * density / float(samples);
+    float color = fetch(ivec2(pix + 0.5));
+    float illumination = 1.0;
+    vec2 p = pix;
+    for (int i = 0; i < samples; i++) {
+        p -= delta;
+        color += bilinear(p) * illumination * weight;
+        illumination *= decay;
+    }
+    fragColor = vec4(color, 0.0, 0.0, 1.0);
+}
+"""
+
+
+@pytest.mark.parametrize("center", [(9.3, 6.7), (-20.0, 30.5)])
+def test_radial_blur_matches_gpu_gems_glsl_on_llvmpipe(center):
+    from torchvol.post import radial_blur
+    from torchvol.testing.glsl import gl_context, run_fragment, shadertoy_source
+
+    if gl_context() is None:
+        pytest.skip("no OpenGL (moderngl/EGL) context")
+    w, h = 23, 17
+    texels = np.random.default_rng(0).integers(0, 256, (h, w), dtype=np.uint8)
+    tex = np.stack([texels] * 3 + [np.full_like(texels, 255)], axis=-1)
+    uniforms = {"center": center, "density": 0.9, "decay": 0.93, "weight": 0.2, "samples": 24}
+    glsl = run_fragment(shadertoy_source(RADIAL_GLSL), w, h, uniforms=uniforms, textures={"iChannel0": tex})[..., 0]
+    source = torch.as_tensor(texels, dtype=torch.float64)[None, None] / 255.0
+    one = lambda v: torch.tensor([v], dtype=torch.float64)  # noqa: E731
+    ours = radial_blur(source, torch.tensor([center], dtype=torch.float64), samples=24, density=one(0.9),
+                       decay=one(0.93), weight=one(0.2))[0, 0]
+    assert_close(torch.as_tensor(glsl, dtype=torch.float64), ours, atol=2e-5, what="radial blur vs GLSL")

@@ -136,6 +136,32 @@ def sun_on_screen(camera: Camera, sun: Tensor, dtype: torch.dtype) -> tuple[Tens
     return xy.clamp(-1e6, 1e6), d, facing
 
 
+def _pixels(h: int, w: int, dtype, device) -> Tensor:
+    """(H, W, 2) pixel centres (column, row), as K sees them."""
+    col = torch.arange(w, dtype=dtype, device=device)
+    row = torch.arange(h, dtype=dtype, device=device)
+    return torch.stack(torch.broadcast_tensors(col[None, :], row[:, None]), dim=-1)
+
+
+def radial_blur(source: Tensor, center: Tensor, *, samples: int, density: Tensor, decay: Tensor, weight: Tensor) -> Tensor:
+    """GPU Gems 3 ch. 13's light-shaft sum: for each pixel, its own `source` (B, C, H, W) value plus
+    `samples` bilinear taps at pix − i · (pix − center) · density / samples (i = 1..samples), tap i
+    weighted by weight · decay^(i−1); taps past the image edge read 0. `center` (B, 2) pixels
+    (column, row; pixel centres at integers); `density`, `decay`, `weight` (B,)."""
+    b, _, h, w = source.shape
+    dtype, dev = source.dtype, source.device
+    pix = _pixels(h, w, dtype, dev)
+    step = (pix[None] - center[:, None, None]) * (density / samples)[:, None, None, None]  # (B, H, W, 2)
+    size = torch.tensor([w, h], dtype=dtype, device=dev)  # grid_sample's [−1, 1] spans the image's outer edges
+    start, step = (2.0 * pix + 1.0) / size - 1.0, 2.0 * step / size
+    total, fade = source, torch.ones_like(decay)
+    for i in range(1, samples + 1):
+        tap = F.grid_sample(source, start - i * step, mode="bilinear", padding_mode="zeros", align_corners=False)
+        total = total + tap * _per_image(fade * weight)
+        fade = fade * decay
+    return total
+
+
 def god_rays(image: Tensor, params, view: View) -> Tensor:
     """Screen-space god rays (see `GodRays`) added to linear radiance `image` (B, 3, H, W); `params`
     the stacked `god_rays` table ((B,) tensors, `samples` shared). Scenes whose sun is behind the
@@ -143,9 +169,7 @@ def god_rays(image: Tensor, params, view: View) -> Tensor:
     b, _, h, w = image.shape
     dtype, dev = image.dtype, image.device
     sun_xy, sun_cam, facing = sun_on_screen(view.camera, view.sun, dtype)
-    col = torch.arange(w, dtype=dtype, device=dev)
-    row = torch.arange(h, dtype=dtype, device=dev)
-    pix = torch.stack(torch.broadcast_tensors(col[None, :], row[:, None]), dim=-1)  # (H, W, 2)
+    pix = _pixels(h, w, dtype, dev)
     # light sources: the unoccluded sky near the sun; cos from each pixel's ray in camera axes
     rays = torch.cat([pix, torch.ones(h, w, 1, dtype=dtype, device=dev)], dim=-1)  # (H, W, 3)
     rays = _mat_vec(torch.linalg.inv(view.camera.K.to(dtype)), rays.expand(b, h, w, 3))
@@ -153,16 +177,8 @@ def god_rays(image: Tensor, params, view: View) -> Tensor:
     cos = (rays[..., 0] * sun_cam[:, None, None, 0] + rays[..., 1] * sun_cam[:, None, None, 1]
            + rays[..., 2] * sun_cam[:, None, None, 2]).clamp_min(0.0)
     source = image * (1.0 - view.alpha) * pow_(cos, _per_image(params.power)[:, 0])[:, None]
-    # tap i at pix − i·step, step = (pix − sun) · density / samples, in grid_sample's [−1, 1] units
-    step = (pix[None] - sun_xy[:, None, None]) * (params.density / params.samples)[:, None, None, None]  # (B, H, W, 2)
-    size = torch.tensor([w, h], dtype=dtype, device=dev)
-    start = (2.0 * pix + 1.0) / size - 1.0
-    step = 2.0 * step / size
-    total, fade = source, torch.ones_like(params.decay)
-    for i in range(1, params.samples + 1):
-        tap = F.grid_sample(source, start - i * step, mode="bilinear", padding_mode="zeros", align_corners=False)
-        total = total + tap * _per_image(fade * params.weight)
-        fade = fade * params.decay
+    total = radial_blur(source, sun_xy, samples=params.samples, density=params.density, decay=params.decay,
+                        weight=params.weight)
     shafts = total * _per_image(params.exposure * facing.clamp_min(0.0))
     return torch.where(_per_image(facing > 1e-6), image + shafts, image)
 
