@@ -126,3 +126,17 @@ def test_falloff_is_smooth_and_bounded():
 def test_bad_values_are_refused_naming_the_key(key, value):
     with pytest.raises(ValueError, match=key):
         field(**{key: value})
+
+
+@pytest.mark.slow  # ~6 s of CPU (a 512-step reference)
+def test_error_controlled_marching_converges_on_particles(one_thread):
+    # the tolerance march reads signed() between samples; it must agree with a fine fixed march
+    scene = {"image": {"width": 8, "height": 8}, "camera": {"eye": [0, 0.3, -3.5], "target": [0, 0, 0], "fov_y": 45.0},
+             "lights": [{"kind": "sun", "direction": [0.5, 0.8, -0.4], "intensity": 3.0, "shadow": {"steps": 8}}],
+             "volumes": [{"bounds": {"box": {"min": [-1.8, -1.5, -1.5], "max": [1.8, 1.5, 1.5]}},
+                          "density": {"particles": {"count": 10, "seed": 2, "core": -0.3, "amplitude": 2.5, "frequency": 3.0}},
+                          "sigma_t": 6.0, "albedo": 0.9}]}
+    fine = tv.render({**scene, "march": {"steps": 512, "dither": "none"}})
+    tol = tv.render({**scene, "march": {"tolerance": 0.01}})
+    assert "volume0.march" in tol.stats["passes"]
+    assert_close(tol.radiance, fine.radiance, atol=0.01, what="tolerance march vs 512 steps")
