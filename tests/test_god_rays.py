@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import assert_close
 
 import torchvol as tv
-from conftest import assert_close
 from torchvol.batch import stack
 from torchvol.camera import Camera
 from torchvol.post import View, god_rays, sun_on_screen
@@ -60,7 +60,7 @@ def params(**changes):
 
 def test_the_sun_projects_where_the_camera_sees_it():
     cam = camera(32, 20)
-    xy, d, facing = sun_on_screen(cam, torch.tensor([[0.0, 0.0, 2.0]]), torch.float64)
+    xy, _, facing = sun_on_screen(cam, torch.tensor([[0.0, 0.0, 2.0]]), torch.float64)
     assert_close(xy[0], torch.tensor([15.5, 9.5], dtype=torch.float64), what="principal point")
     assert_close(facing, torch.tensor([1.0], dtype=torch.float64))
     fy = 10.0 / math.tan(math.radians(30.0))
@@ -162,7 +162,7 @@ def test_radial_blur_matches_gpu_gems_glsl_on_llvmpipe(center):
     uniforms = {"center": center, "density": 0.9, "decay": 0.93, "weight": 0.2, "samples": 24}
     glsl = run_fragment(shadertoy_source(RADIAL_GLSL), w, h, uniforms=uniforms, textures={"iChannel0": tex})[..., 0]
     source = torch.as_tensor(texels, dtype=torch.float64)[None, None] / 255.0
-    one = lambda v: torch.tensor([v], dtype=torch.float64)  # noqa: E731
+    one = lambda v: torch.tensor([v], dtype=torch.float64)
     ours = radial_blur(source, torch.tensor([center], dtype=torch.float64), samples=24, density=one(0.9),
                        decay=one(0.93), weight=one(0.2))[0, 0]
     assert_close(torch.as_tensor(glsl, dtype=torch.float64), ours, atol=2e-5, what="radial blur vs GLSL")

@@ -148,7 +148,7 @@ def radial_blur(source: Tensor, center: Tensor, *, samples: int, density: Tensor
     `samples` bilinear taps at pix − i · (pix − center) · density / samples (i = 1..samples), tap i
     weighted by weight · decay^(i−1); taps past the image edge read 0. `center` (B, 2) pixels
     (column, row; pixel centres at integers); `density`, `decay`, `weight` (B,)."""
-    b, _, h, w = source.shape
+    _, _, h, w = source.shape
     dtype, dev = source.dtype, source.device
     pix = _pixels(h, w, dtype, dev)
     step = (pix[None] - center[:, None, None]) * (density / samples)[:, None, None, None]  # (B, H, W, 2)

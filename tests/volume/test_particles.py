@@ -6,11 +6,11 @@ import math
 
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from conftest import assert_close
 from torchvol.batch import stack
 from torchvol.fields.particles import ParticleField, falloff, particle_draws
 
@@ -25,7 +25,8 @@ def field(time: float = 0.0, **density) -> ParticleField:
 
 
 def sphere(core=0.7, r=0.5, edge=0.4, center=(0.1, -0.2, 0.3)) -> dict:
-    return dict(count=1, region_min=center, region_max=center, radius=(r, r), amplitude=0.0, core=core, edge=edge)
+    return {"count": 1, "region_min": center, "region_max": center, "radius": (r, r), "amplitude": 0.0, "core": core,
+            "edge": edge}
 
 
 def test_a_particle_without_noise_is_a_sphere_of_known_density(one_thread):
@@ -54,7 +55,7 @@ def test_the_optical_depth_through_a_sphere_is_analytic(one_thread):
 
 
 def test_motion_moves_each_particle_by_velocity_times_time(one_thread):
-    params = dict(count=5, seed=4, speed=0.7, wind=(0.2, -0.1, 0.05), radius=(0.2, 0.3))
+    params = {"count": 5, "seed": 4, "speed": 0.7, "wind": (0.2, -0.1, 0.05), "radius": (0.2, 0.3)}
     f0, f1 = field(0.0, **params), field(1.5, **params)
     v = torch.tensor([0.2, -0.1, 0.05], dtype=F64) + 0.7 * particle_draws(4, 5)["direction"]
     assert_close(f1.centers[0] - f0.centers[0], 1.5 * v, atol=1e-12, what="displacement")

@@ -71,8 +71,8 @@ def particle_draws(seed: int, count: int, dtype: torch.dtype = torch.float64) ->
     direction = torch.randn(count, 3, generator=g, dtype=torch.float64)
     direction = direction / direction.norm(dim=1, keepdim=True).clamp_min(1e-12)
     offset = 100.0 * torch.rand(count, 3, generator=g, dtype=torch.float64)
-    return {k: v.to(dtype) for k, v in
-            dict(position=position, size=size, direction=direction, offset=offset).items()}
+    draws = {"position": position, "size": size, "direction": direction, "offset": offset}
+    return {k: v.to(dtype) for k, v in draws.items()}
 
 
 def falloff(r: Tensor, edge: Tensor) -> Tensor:
