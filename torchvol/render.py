@@ -24,7 +24,7 @@ from .fields import DENSITIES
 from .fields.edge import EdgeField
 from .lights import LIGHTS, LightSource
 from .plan import Plan, VolumePass, make_plan
-from .post import POST
+from .post import POST, View
 from .quality import at_level
 from .sampling import march_dither, subpixel_jitter
 from .scene import load_scene
@@ -267,7 +267,7 @@ def render(
             progress(last - first)
     images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
     radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
-    image = post_process(ctx, radiance, images)
+    image = post_process(ctx, radiance, images, View(camera=camera, sun=ctx.sun(), alpha=alpha))
     stats = {
         "passes": list(ctx.timer.seconds),
         "plan": plan.names(),
@@ -284,11 +284,13 @@ def render(
     return RenderOutput(image=image, radiance=radiance, depth=depth, alpha=alpha, aovs=images, camera=camera, stats=stats)
 
 
-def post_process(ctx: RenderContext, radiance: Tensor, aovs: dict[str, Tensor]) -> Tensor:
-    """The plan's post effects on linear radiance (B, 3, H, W), in order -> the image in [0, 1]."""
+def post_process(ctx: RenderContext, radiance: Tensor, aovs: dict[str, Tensor], view: View) -> Tensor:
+    """The plan's post effects on linear radiance (B, 3, H, W), in order -> the image in [0, 1];
+    `view` goes to the effects that need the camera, sun and alpha."""
     x = radiance
     post = stack(ctx.batch.post.models, dtype=x.dtype, device=x.device)  # float32 images
     for kind, name in ctx.plan.post:
+        effect = POST[kind]
         with ctx.timer.section(name):
-            x = POST[kind].fn(x, post, aovs)
+            x = effect.fn(x, post, aovs, view) if effect.caps.get("view") else effect.fn(x, post, aovs)
     return x.clamp(0.0, 1.0)

@@ -448,6 +448,14 @@ class Scene(Strict):
         return self
 
     @model_validator(mode="after")
+    def _god_rays_need_a_sun(self):
+        if self.post.god_rays is not None and not (self.lights and LIGHTS[self.lights[0].kind].caps["directional"]):
+            kind = self.lights[0].kind if self.lights else None
+            refuse("post.god_rays", "<god_rays>", f"screen-space god rays radiate from the sun: make lights[0] a sun "
+                   f"(lights[0] is {kind or 'absent'})")
+        return self
+
+    @model_validator(mode="after")
     def _keys_that_need_something_to_act_on(self):
         if self.post.fog is not None and not self.volumes and self.voxels is None:
             refuse("post.fog", "<fog>", "distance fog needs something to fog: add volumes or voxels")

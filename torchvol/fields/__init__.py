@@ -25,6 +25,7 @@ from .exponential import Exponential, ExponentialDensity
 from .explosion import ExplosionDensity, ExplosionField
 from .fbm import FbmDensity, FbmField
 from .grid import Grid, GridDensity
+from .particles import ParticleField, ParticlesDensity
 
 DENSITIES = Registry("density")
 DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True)
@@ -34,5 +35,6 @@ DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True)
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True)
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True)
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
+DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True)
 
 __all__ = ["DENSITIES", "Field"]
