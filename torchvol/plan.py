@@ -122,6 +122,8 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
     lights = list(enumerate(batch.lights))
     if shading.caps["lights"] == "first":  # the shader look's derivative light
         uses = tuple(LightPass(l, f"{name}.derivative_light", None) for l, _ in lights[:1] if vol.shader.light == "derivative")
+    elif shading.caps["lights"] == "unshadowed":  # lit inside the march pass, no shadow pass
+        uses = tuple(LightPass(l, None, None) for l, _ in lights)
     else:
         uses = tuple(LightPass(l, None if li.shadow is None else f"{name}.shadow{l}", li.shadow) for l, li in lights)
     bounds, density = BOUNDS[vol.bounds.kind], DENSITIES[vol.density.kind]

@@ -30,6 +30,7 @@ from .validate import SceneError, did_you_mean, fail
 from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
+from .volume.surface_look import SurfaceLook
 
 PRESET_DIR = Path(__file__).parent / "presets"
 
@@ -108,6 +109,7 @@ class Volume(Strict):
     phase: Phase = Field(default_factory=lambda: Phase(isotropic=Empty()))
     shading: Shading = "physical"
     shader: ShaderLook = Field(default_factory=ShaderLook)
+    surface: SurfaceLook = Field(default_factory=SurfaceLook)  # shading = "surface" (the fur ball)
     _e = field_validator("emission")(lambda v: nonneg(v))
 
     @model_validator(mode="after")

@@ -22,6 +22,7 @@ from .clouds import CloudLayer, CloudsDensity
 from .constant import Constant, ConstantDensity
 from .exponential import Exponential, ExponentialDensity
 from .fbm import FbmDensity, FbmField
+from .fur import FurDensity, FurField
 from .grid import Grid, GridDensity
 
 DENSITIES = Registry("density")
@@ -30,5 +31,6 @@ DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, ch
 DENSITIES.register("exponential", ExponentialDensity, Exponential)
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True)
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True)
+DENSITIES.register("fur", FurDensity, FurField)
 
 __all__ = ["DENSITIES", "Field"]
