@@ -93,12 +93,15 @@ class Plan:
     spp: int
     post: tuple[tuple[str, str], ...]  # (POST kind, pass name), in order
     aovs: tuple[str, ...]  # the AOVs the render outputs
+    passes: int = 1  # `image.passes`: > 1 accumulates (torchvol.accumulate)
+    blend: str = "mean"
 
     def names(self) -> list[str]:
         """Every planned pass, in the order the render runs them."""
         return (["rays"] + (["sky"] if self.sky else []) + (self.voxels.names() if self.voxels else [])
                 + [n for v in self.volumes for n in v.names()] + ["composite"] + (["post.flare"] if self.flare else [])
-                + (["resolve"] if self.spp > 1 else []) + [name for _, name in self.post])
+                + (["resolve"] if self.spp > 1 else []) + (["accumulate"] if self.passes > 1 else [])
+                + [name for _, name in self.post])
 
 
 def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
@@ -159,6 +162,8 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         spp=batch.image.spp,
         post=post,
         aovs=tuple(produced(batch)),
+        passes=batch.image.passes,
+        blend=batch.image.blend,
     )
 
 

@@ -39,6 +39,10 @@ class Image(Strict):
     width: int = Field(256, ge=1, le=16384)
     height: int = Field(256, ge=1, le=16384)
     spp: int | None = Field(None, ge=1, le=1024, description="samples per pixel; None: the quality level's")
+    # progressive accumulation (torchvol.accumulate): passes with their own dither and jitter, blended
+    passes: int = Field(1, ge=1, le=4096, description="passes blended into the image (1: a single render)")
+    blend: Literal["mean", "exponential"] = "mean"  # running mean, or the seeds' mix(old, new, blend_weight)
+    blend_weight: float = Field(0.05, gt=0.0, le=1.0)
 
 
 class CameraMatrix(Strict):
