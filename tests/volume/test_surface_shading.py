@@ -141,7 +141,7 @@ def test_fur_density_core_strands_and_tips():
     assert (field(dirs * 0.05, s) == 1.0).all()  # deep in the core (core = (radius − r) / length ≥ 1)
     assert (field(dirs * 0.91, s) < 0.05).all()  # the tips taper out
     shell = field(dirs * 0.6, s)  # between the strands: empty; on them: dense
-    assert 0.01 < (shell > 0).float().mean() < 0.5 and shell.max() > 0.5
+    assert 0.01 < (shell > 0).float().mean() < 0.5 and shell.max() > 0.3
     # radial strands: the density along a ray from the centre falls monotonically
     radii = torch.linspace(0.5, 0.95, 10)
     along = torch.stack([field(dirs * r, s) for r in radii])
