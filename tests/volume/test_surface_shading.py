@@ -185,3 +185,17 @@ def test_bad_surface_values_are_refused():
         tv.load_scene(tv.preset("fur-ball"), {"volumes[0].density.fur.thickness": -1.0})
     assert math.isfinite(tv.load_scene(tv.preset("fur-ball")).volumes[0].surface.epsilon)
     assert np.isfinite(tv.load_scene(tv.preset("fur-ball")).volumes[0].density.value.radius)
+
+
+def test_rows_shade_alike_in_any_batch():
+    """Normals and lighting round the same for a point alone or in a batch (bitwise batches)."""
+    g = torch.Generator().manual_seed(3)
+    p, light, eye = (torch.nn.functional.normalize(torch.randn(200, 3, generator=g), dim=1) * 0.6 for _ in range(3))
+    s, eps, shine = torch.zeros(200, dtype=torch.long), torch.full((200,), 0.01), torch.full((200,), 37.0)
+
+    def shade(i):
+        n = density_normal(density, p[i], s[i], density(p[i]), eps[i], gradient="central")
+        return torch.cat([n, torch.stack(surface_light(n, light[i] / 0.6, eye[i] / 0.6, shine[i]), dim=1)], dim=1)
+
+    whole = shade(slice(None))
+    assert torch.equal(whole, torch.cat([shade(slice(i, i + 1)) for i in range(200)]))

@@ -8,7 +8,6 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
-import torch.nn.functional as F
 from pydantic import Field
 from torch import Tensor
 
@@ -47,18 +46,25 @@ def density_normal(field, p: Tensor, s: Tensor, density: Tensor, epsilon: Tensor
     points = torch.cat([(p + sign * steps).reshape(3 * n, 3) for sign in signs])
     reps = 3 * len(signs)
     values = field(points, s.repeat(reps), None if lod is None else lod.repeat(reps)).view(len(signs), 3, n)
-    grad = values[0] - values[1] if gradient == "central" else values[0] - density
-    return -F.normalize(grad.T, dim=1, eps=1e-30)
+    grad = (values[0] - values[1] if gradient == "central" else values[0] - density).T
+    return -grad / torch.sqrt(_dot(grad, grad)).clamp_min(1e-30)[:, None]
 
 
 def surface_light(normal: Tensor, to_light: Tensor, to_eye: Tensor, shininess: Tensor) -> tuple[Tensor, Tensor]:
     """Half-Lambert diffuse max(0, N·L·0.5 + 0.5) and Blinn-Phong specular max(0, N·H)^shininess,
     H = normalize(L + V). `normal`, `to_light`, `to_eye`: [n, 3] (unit); `shininess`: [n] (> 0).
     -> (diffuse [n], specular [n])."""
-    half = F.normalize(to_light + to_eye, dim=1, eps=1e-30)
-    diffuse = ((normal * to_light).sum(1) * 0.5 + 0.5).clamp_min(0.0)
-    specular = pow_((normal * half).sum(1).clamp_min(0.0), shininess)
+    half = to_light + to_eye
+    n_dot_h = _dot(normal, half) / torch.sqrt(_dot(half, half)).clamp_min(1e-30)
+    diffuse = (_dot(normal, to_light) * 0.5 + 0.5).clamp_min(0.0)
+    specular = pow_(n_dot_h.clamp_min(0.0), shininess)
     return diffuse, specular
+
+
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    """Row dot products of `a`, `b` [n, 3] -> [n], elementwise (a reduction's rounding could
+    depend on n or strides; batches must match single renders to the bit)."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
 def surface_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
