@@ -199,3 +199,15 @@ def test_rows_shade_alike_in_any_batch():
 
     whole = shade(slice(None))
     assert torch.equal(whole, torch.cat([shade(slice(i, i + 1)) for i in range(200)]))
+
+
+def test_fur_ball_recipe_samples_render_as_one_batch(one_thread):
+    from pathlib import Path
+
+    recipe = tv.Recipe.load(Path(__file__).resolve().parents[2] / "datasets" / "fur-ball.toml",
+                            {"image.width": 10, "image.height": 8, "march.step_size": 0.05, "march.dither_scale": 0.05})
+    scenes = [recipe.sample(i, seed=0) for i in range(3)]
+    assert len({s.volumes[0].surface.shininess for s in scenes}) == 3
+    out = tv.render(scenes, seed=[1, 2, 3])
+    assert out.image.isfinite().all() and (out.alpha.amax(dim=(1, 2, 3)) > 0.5).all()
+    assert torch.equal(out.radiance[1:2], tv.render(scenes[1], seed=2).radiance)
