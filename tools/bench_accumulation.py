@@ -71,7 +71,9 @@ def main() -> None:
           "| 1×(N·k): RMSE | time s | density evals | last mean abs change |")
     print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
-        err = lambda key: image_error(r[key], ref.image)["rmse"]  # noqa: E731
+        def err(key: str, r: dict = r) -> float:
+            return image_error(r[key], ref.image)["rmse"]
+
         exp = f"{err('exp_image'):.2e} | {r['exp_s']:.2f}" if "exp_image" in r else "– | –"
         one = f"{err('one_image'):.2e} | {r['one_s']:.2f} | {r['one_evals']:.3g}" if "one_image" in r else "(same) | – | –"
         last = f"{r['changes'][-1]:.1e}" if r["changes"] else "–"

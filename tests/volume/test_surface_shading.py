@@ -36,7 +36,7 @@ BODY = GLSL_DENSITY + """
 uniform int uMode;
 uniform vec3 uLight;
 vec3 furNormal(vec3 pos, float density) {
-    float eps = %(EPS)s;
+    float eps = EPS_VALUE;
     vec3 n;
     n.x = sampleDensity(pos + vec3(eps, 0, 0)) - density;
     n.y = sampleDensity(pos + vec3(0, eps, 0)) - density;
@@ -44,7 +44,7 @@ vec3 furNormal(vec3 pos, float density) {
     return normalize(n);
 }
 vec3 furNormalCentral(vec3 pos) {
-    float eps = %(EPS)s;
+    float eps = EPS_VALUE;
     return normalize(vec3(sampleDensity(pos + vec3(eps, 0, 0)) - sampleDensity(pos - vec3(eps, 0, 0)),
                           sampleDensity(pos + vec3(0, eps, 0)) - sampleDensity(pos - vec3(0, eps, 0)),
                           sampleDensity(pos + vec3(0, 0, eps)) - sampleDensity(pos - vec3(0, 0, eps))));
@@ -57,10 +57,10 @@ void mainImage(out vec4 o, in vec2 fc) {
     vec3 L = normalize(uLight);
     vec3 H = normalize(L - rd);
     float diff = max(0.0, dot(N, L) * 0.5 + 0.5);
-    float spec = pow(max(0.0, dot(N, H)), %(SHININESS)s);
+    float spec = pow(max(0.0, dot(N, H)), SHININESS_VALUE);
     o = uMode == 2 ? vec4(diff, spec, density, 0.0) : vec4(N, 0.0);
 }
-""" % {"EPS": repr(EPS), "SHININESS": repr(SHININESS)}
+""".replace("EPS_VALUE", repr(EPS)).replace("SHININESS_VALUE", repr(SHININESS))
 
 
 def torch_inputs():
@@ -98,7 +98,7 @@ def test_fur_normal_and_lighting_match_the_seed_glsl(mode, gradient):
 
 def test_normal_of_a_radial_density_points_outwards():
     p = torch.nn.functional.normalize(torch.randn(64, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1)), dim=1) * 0.7
-    radial = lambda q, s=None, lod=None: 1.0 - q.norm(dim=1)  # noqa: E731
+    radial = lambda q, s=None, lod=None: 1.0 - q.norm(dim=1)
     s, eps = torch.zeros(64, dtype=torch.long), torch.full((64,), 1e-4, dtype=torch.float64)
     for gradient in ("central", "forward"):
         n = density_normal(radial, p, s, radial(p), eps, gradient=gradient)
@@ -120,7 +120,7 @@ def test_lighting_closed_forms():
 def test_flat_or_extreme_inputs_stay_finite(point, eps, shininess):
     p = torch.tensor([point, point], dtype=torch.float32)
     s = torch.zeros(2, dtype=torch.long)
-    flat = lambda q, s=None, lod=None: torch.full_like(q[:, 0], 0.5)  # noqa: E731
+    flat = lambda q, s=None, lod=None: torch.full_like(q[:, 0], 0.5)
     for field in (flat, density):
         normal = density_normal(field, p, s, field(p), torch.full((2,), eps), gradient="central")
         assert normal.isfinite().all()
