@@ -1,7 +1,7 @@
 """`torchvol bench accuracy`: error against time on the bundled scenes, per knob and per quality level.
 
 Each knob is a curve: the scene as bundled with one setting changed (primary steps, integrator,
-shadow steps, LOD, spp, torch.compile). Each quality level is one row: the scene with every key the
+shadow steps, N accumulated passes of k steps, the air's steps, LOD, spp, torch.compile). Each quality level is one row: the scene with every key the
 level decides removed (`reference.at_quality`). Every row of a scene is measured against one
 reference, the same as `torchvol sweep`'s (`reference.Ladder`, at the rows' largest spp with the
 same seeded sub-samples), climbed until its own bound is `factor` times under the smallest error of
@@ -13,7 +13,9 @@ against time, one panel per scene). For physical scenes the `tolerance` knob add
 alpha), against the same scene and rays with only the march made exact, with whether each tolerance
 held and what the cheapest as-accurate fixed count took. References are cached in DIR/references/
 (or `cache`), keyed by a hash of the reference scene: a re-run (another knob, more repeats) reuses
-them instead of rendering the slowest part of the report again.
+them instead of rendering the slowest part of the report again. Every report ends with what each
+technique preset (`TECHNIQUES`) costs as bundled, per pass; `--scenes` takes those presets too, for
+their error curves.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from typing import Any, Sequence
 
 import torch
 
+from .fields import DENSITIES
 from .quality import QUALITY, Quality, at_level
 from .presets import preset_dict
 from .progress import progress as bar
@@ -35,15 +38,22 @@ from .reference import Ladder, at_quality, cached_render, image_error
 from .render import render
 from .scene import load_scene
 from .validate import did_you_mean, fail, finite, integer
+from .volume.shading import SHADINGS
 
-# report name -> bundled preset
+# report name -> bundled preset: the scenes of a default report
 SCENES = {"template clouds": "template-clouds", "physical clouds": "cloud-puff", "voxel terrain": "voxel-terrain"}
+# the variants' techniques (docs/VOLUMES.md): every report states their cost (`cost_rows`); `--scenes NAME`
+# measures any of them like the scenes above, against its own reference
+TECHNIQUES = ("explosion", "fire", "atmosphere", "cloudscape", "fur-ball", "terrain-clouds", "multi-layer", "particles",
+              "god-rays")
 # the tolerance table: error-controlled marching against fixed step counts
 TOLERANCES = (1e-2, 1e-3, 1e-4)
 FIXED_STEPS = (32, 48, 64, 96, 128, 160, 192, 256, 384, 512, 768)  # fine enough that "as accurate" is a fair match
 NO_EARLY_EXIT = {"march.min_transmittance": 1e-12}  # early termination leaves an error floor of its own
 EXACT_MARCH_STEPS = 2048  # the tolerance table's reference march (float64); its bound: against half as many
 LONG_RENDER_S = 10.0
+# accumulation against one march at equal time: N passes of k steps beside the `steps` knob's N·k
+ACCUMULATE = ((4, 16), (4, 32), (16, 16))
 
 
 @dataclass(frozen=True)
@@ -60,23 +70,29 @@ def _values(key: str, values: Sequence[Any]) -> list[Setting]:
 
 
 def is_physical(preset: str) -> bool:
-    """Whether a report scene is physically shaded: integrator and `march.tolerance` apply to it."""
+    """Whether the tolerance table applies: the physically shaded report scene."""
     return preset == "cloud-puff"
 
 
 def knobs(preset: str) -> dict[str, list[Setting]]:
-    """The knobs that apply to `preset`, each a list of settings over the scene as bundled."""
-    volumes, voxels = preset != "voxel-terrain", preset == "voxel-terrain"
-    physical = is_physical(preset)
+    """The knobs that apply to `preset`, each a list of settings over the scene as bundled, read
+    from what the scene holds (volumes, their shading and densities, shadows, voxels, air)."""
+    scene = load_scene(preset_dict(preset))
+    physical = [v for v in scene.volumes if SHADINGS[v.shading].caps["physical"]]
     out: dict[str, list[Setting]] = {}
-    if volumes:
+    if scene.volumes:
         out["steps"] = _values("march.steps", [16, 32, 64, 128, 256])
-    if physical:  # the template's alpha integrator is its look, not an approximation
+    if physical:  # the alpha looks' integrator is their look, not an approximation
         out["integrator"] = _values("march.integrator", ["alpha", "riemann", "frostbite"])
-        out["shadow_steps"] = _values("lights[0].shadow.steps", [2, 4, 8, 16, 32])
-    if voxels:
+        if scene.lights and scene.lights[0].shadow is not None:
+            out["shadow_steps"] = _values("lights[0].shadow.steps", [2, 4, 8, 16, 32])
+        if is_physical(preset):
+            out["passes"] = [Setting(f"{n} × {k} steps", {"image.passes": n, "march.steps": k}) for n, k in ACCUMULATE]
+    if scene.voxels is not None and scene.voxels.shadow is not None:
         out["shadow_steps"] = _values("voxels.shadow.steps", [8, 16, 32, 64, 128])
-    if volumes:
+    if scene.atmosphere is not None:
+        out["air_steps"] = [Setting(f"{n}/{n // 2}", {"atmosphere.steps": n, "atmosphere.light_steps": n // 2}) for n in (4, 8, 16, 32)]
+    if any(DENSITIES[v.density.kind].caps.get("octaves") for v in scene.volumes):
         out["lod"] = [Setting("off", {"march.lod": None}), Setting("on", {"march.lod": {"scale": 0.5}})]
     out["spp"] = _values("image.spp", [1, 2, 4])
     out["compile"] = [Setting("off"), Setting("on", compile=True)]
@@ -84,7 +100,7 @@ def knobs(preset: str) -> dict[str, list[Setting]]:
 
 
 # the curves of the main table, and `tolerance`: a table of its own, in the tolerance's units (`tolerance_rows`)
-KNOBS = ("steps", "integrator", "shadow_steps", "lod", "spp", "compile", "tolerance")
+KNOBS = ("steps", "integrator", "shadow_steps", "passes", "air_steps", "lod", "spp", "compile", "tolerance")
 
 
 def scene_data(preset: str, *, width: int, height: int, quality: Quality | None = None) -> dict:
@@ -113,7 +129,7 @@ def scene_rows(name: str, *, width: int, height: int, repeat: int, knob_names: S
     scene, every applicable knob in `knob_names` then one row per quality level, and the reference
     they are measured against ({"rung", "tolerance", "dtype", "time_s", "bound"}). `shown`: a
     progress bar, advanced by one per row."""
-    preset = SCENES[name]
+    preset = SCENES.get(name, name)
     bundled = scene_data(preset, width=width, height=height)
     cases = [(knob, s.label, bundled, s) for knob, settings in knobs(preset).items() if knob in knob_names for s in settings]
     cases += [("level", level, scene_data(preset, width=width, height=height, quality=level), Setting(level)) for level in QUALITY]
@@ -147,7 +163,7 @@ def tolerance_rows(name: str, *, width: int, height: int, repeat: int, seed: int
     the levels' 1e-4 it leaves a floor of ~1e-5 of the light that is not the march's. Rows (scene,
     march, tolerance (None for a fixed count), time_s, radiance_error, alpha_error, estimate,
     radiance_bound, alpha_bound)."""
-    preset = SCENES[name]
+    preset = SCENES.get(name, name)
     bundled = scene_data(preset, width=width, height=height)
     scene = at_level(load_scene(bundled))  # the spp its level gives it
     light = max([c * li.intensity for li in scene.lights for c in li.color] or [1.0])
@@ -226,6 +242,29 @@ def table(rows: Sequence[dict], references: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def cost_rows(presets: Sequence[str], *, width: int, height: int, repeat: int, seed: int = 0, shown=None) -> list[dict]:
+    """What each technique costs as bundled: rows (preset, time_s (median of `repeat`), passes {pass:
+    seconds} of the last render, density_evals)."""
+    rows = []
+    for preset in presets:
+        if shown is not None:
+            shown.set_postfix_str(f"cost: {preset}")
+        time_s, out = measure(scene_data(preset, width=width, height=height), Setting("bundled"), repeat=repeat, seed=seed)
+        rows.append({"preset": preset, "time_s": time_s, "passes": out.stats["time_s"], "density_evals": out.stats["density_evals"]})
+        if shown is not None:
+            shown.update(1)
+    return rows
+
+
+def cost_table(rows: Sequence[dict], *, width: int, height: int) -> str:
+    """The cost rows as a Markdown table: total time and the passes that took over 1% of it."""
+    lines = [f"| preset | time (s) at {width}×{height} | density samples | passes (s) |", "| --- | ---: | ---: | --- |"]
+    for r in rows:
+        passes = ", ".join(f"{name} {s:.3f}" for name, s in r["passes"].items() if s >= 0.01 * r["time_s"])
+        lines.append(f"| {r['preset']} | {r['time_s']:.3f} | {r['density_evals']:,} | {passes} |")
+    return "\n".join(lines) + "\n"
+
+
 def plot(rows: Sequence[dict], path: Path) -> None:
     """Relative RMSE against time (log-log), one panel per scene, one curve per knob, levels
     labelled; each error's bar is the reference's bound."""
@@ -266,8 +305,9 @@ def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int 
     by_preset = {v: k for k, v in SCENES.items()}
     names = []
     for s in scenes if scenes is not None else list(SCENES):
-        if s not in SCENES and s not in by_preset:
-            fail("scenes", s, "expected one of " + ", ".join(SCENES.values()) + did_you_mean(s, by_preset))
+        if s not in SCENES and s not in by_preset and s not in TECHNIQUES:
+            allowed = [*SCENES.values(), *TECHNIQUES]
+            fail("scenes", s, "expected some of " + ", ".join(allowed) + did_you_mean(s, allowed))
         names.append(by_preset.get(s, s))
     for k in knob_names if knob_names is not None else ():
         if k not in KNOBS:
@@ -278,9 +318,9 @@ def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int 
     out = Path(out)
     cache = out / "references" if cache is None else Path(cache)
     knob_names = KNOBS if knob_names is None else knob_names
-    physical = [n for n in names if is_physical(SCENES[n])] if "tolerance" in knob_names else []
-    total = sum(len([s for k, v in knobs(SCENES[n]).items() if k in knob_names for s in v]) + len(QUALITY) for n in names)
-    total += len(physical) * (len(FIXED_STEPS) + len(TOLERANCES))
+    physical = [n for n in names if is_physical(SCENES.get(n, n))] if "tolerance" in knob_names else []
+    total = sum(len([s for k, v in knobs(SCENES.get(n, n)).items() if k in knob_names for s in v]) + len(QUALITY) for n in names)
+    total += len(physical) * (len(FIXED_STEPS) + len(TOLERANCES)) + len(TECHNIQUES)
     rows, references, tolerance = [], [], []
     with bar(total, desc="bench accuracy", unit="render", enabled=sys.stderr.isatty() if progress is None else progress) as shown:
         for name in names:
@@ -290,7 +330,9 @@ def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int 
             references.append(reference)
         for name in physical:
             tolerance += tolerance_rows(name, width=width, height=height, repeat=repeat, seed=seed, cache=cache, shown=shown)
+        costs = cost_rows(TECHNIQUES, width=width, height=height, repeat=repeat, seed=seed, shown=shown)
     text = table(rows, references)
+    text += "\n## What each technique costs, as bundled\n\n" + cost_table(costs, width=width, height=height)
     if tolerance:
         text += "\n## Error-controlled marching (`march.tolerance`) against fixed step counts\n\n" + tolerance_table(tolerance)
     out.mkdir(parents=True, exist_ok=True)

@@ -153,7 +153,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .bench import KNOBS, SCENES
+    from .bench import KNOBS, SCENES, TECHNIQUES
     from .quality import QUALITY
     from .render import DEFAULT_CHUNK_RAYS
     from .sweep import QUANTISATION_RMSE
@@ -230,7 +230,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--width", type=int, default=64, help="image width (default 64)")
     a.add_argument("--height", type=int, default=36, help="image height (default 36)")
     a.add_argument("--repeat", type=int, default=3, help="renders per point; time is their median (default 3)")
-    a.add_argument("--scenes", default=None, help="comma-separated presets (default: " + ", ".join(SCENES.values()) + ")")
+    a.add_argument("--scenes", default=None, help="comma-separated presets (default: " + ", ".join(SCENES.values())
+                   + "; also " + ", ".join(TECHNIQUES) + ", whose cost every report states)")
     a.add_argument("--knobs", default=None, help="comma-separated subset of " + ", ".join(KNOBS) + " (default all)")
     a.add_argument("--factor", type=float, default=10.0, help="how far under each error the reference's bound must be (default 10)")
     a.add_argument("--cache", default=None, help="folder of cached references (default OUT/references)")
