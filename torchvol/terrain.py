@@ -49,7 +49,7 @@ class Terrain(Strict):
     ambient: Vec3 = (0.1, 0.12, 0.15)
     steps: int = Field(128, ge=1, le=100_000)
     safety: float = Field(0.5, gt=0.0, le=1.0)
-    epsilon: float = Field(1e-4, gt=0.0, le=0.1)
+    epsilon: float = Field(1e-3, gt=0.0, le=0.1)
     max_distance: float = Field(200.0, gt=0.0)
     shadow_offset: float = Field(0.01, ge=0.0)
 
@@ -161,7 +161,7 @@ class TerrainSurface:
                 rock = ((1.0 - nrm[:, 1] - take(p.rock_slope, sh)) * 10.0).clamp(0.0, 1.0)[:, None]
                 albedo = torch.lerp(take(p.color, sh), take(p.rock_color, sh), rock)
                 light = take(p.ambient, sh)
-                start = x + (take(p.shadow_offset, sh) + 4.0 * take(p.epsilon, sh) * (1.0 + th))[:, None] * nrm
+                start = x + (take(p.shadow_offset, sh) + 2.0 * take(p.epsilon, sh))[:, None] * nrm  # clear of its own hit rule
             shadows = {use.light: use for use in self.plan.shadows}
             for l, source in enumerate(self.lights):
                 toward = source.toward(x, sh)
