@@ -114,8 +114,8 @@ def trace(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, *, steps: 
 
 def normal(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
     """Unit surface normal [n, 3] at points `p` [n, 3] on the terrain (central differences of the
-    height, a twentieth of the finest octave's period apart)."""
-    e = (0.05 * noise.finest_period(t.octaves)) / take(t.frequency, s)
+    height, a hundredth of the finest octave's period apart)."""
+    e = (0.01 * noise.finest_period(t.octaves)) / take(t.frequency, s)
     xz = p[:, [0, 2]]
     dx, dz = torch.stack([e, torch.zeros_like(e)], dim=1), torch.stack([torch.zeros_like(e), e], dim=1)
     hs = height(t, torch.cat([xz + dx, xz - dx, xz + dz, xz - dz]), s.repeat(4)).view(4, -1)
