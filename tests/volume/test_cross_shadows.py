@@ -96,3 +96,25 @@ def test_unshadowed_lights_see_no_occluders():
                          {"bounds": {"slab": {"y_min": 2.0, "y_max": 2.5}}}]}
     names = make_plan(tv.load_scene(scene)).names()
     assert not any("shadow" in n for n in names), names
+
+
+def test_grid_shadows_see_the_other_volumes_grid(one_thread):
+    """`shadow.method = "grid"`: the plane under two homogeneous boxes, each looked up in its own sun
+    grid where the shadow ray enters it, against the analytic product. The grid integrates each
+    box's chord on its planes (Simpson on nodes inside the chord), so a thin layer's hard faces
+    cost it accuracy: measured 4.1e-2 relative at resolution 128 (the march: exact)."""
+    theta = math.radians(30.0)
+    sun = {**_sun((math.sin(theta), math.cos(theta), 0.0)), "shadow": {"method": "grid", "resolution": 128}}
+    box = lambda y0, y1: {"box": {"min": [-3.0, y0, -3.0], "max": [3.0, y1, 3.0]}}  # noqa: E731
+    scene = {
+        "image": {"width": 5, "height": 5},
+        "camera": {"eye": [0.0, 0.9, -1.0], "target": [0.0, 0.0, 0.0], "fov_y": 30.0},
+        "lights": [sun],
+        "terrain": {"amplitude": 0.0, "color": [1.0, 1.0, 1.0], "ambient": [0.0] * 3},
+        "volumes": [{"bounds": box(1.0, 1.5), "density": {"constant": 1.0}, "sigma_t": 0.8},
+                    {"bounds": box(2.0, 2.25), "density": {"constant": 2.0}, "sigma_t": 1.5}],
+    }
+    out = tv.render(scene, dtype=torch.float64)
+    expected = 2.0 * math.cos(theta) * math.exp(-(0.8 * 0.5 + 3.0 * 0.25) / math.cos(theta))
+    assert_close(out.radiance / expected, 1.0, atol=6e-2, what="plane under two boxes, grid shadows (relative)")
+    assert {"terrain.shadow0.volume0", "terrain.shadow0.volume1"} <= set(out.stats["passes"])

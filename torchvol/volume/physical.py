@@ -83,8 +83,9 @@ def light_transmittance(ctx, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, to
 def occluder_transmittance(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
     """What a shadow ray of LightPass `use` from `p` [n, 3] along `direction` [n, 3], up to
     `distance` [n] (inf: a sun), lets through besides its own volume: each volume `use.occluders`
-    names, marched over its chord in `use.shadow.steps` equal steps (exact for homogeneous media),
-    times 0 where the terrain blocks it (`use.terrain`) -> [n]. Each is its own pass, reported
+    names, marched over its chord in `use.shadow.steps` equal steps (exact for homogeneous media)
+    or, with `shadow.method = "grid"`, looked up in that volume's sun grid where the ray enters
+    it, times 0 where the terrain blocks it (`use.terrain`) -> [n]. Each is its own pass, reported
     only where some shadow ray crosses it."""
     out = p.new_ones(p.shape[0])
     for j in use.occluders:
@@ -94,11 +95,15 @@ def occluder_transmittance(ctx, use, p: Tensor, s: Tensor, direction: Tensor, di
         if ids.numel() == 0:
             continue
         with ctx.timer.section(f"{use.name}.volume{j}"):
-            sj = s[ids]
-            out[ids] = out[ids] * shadow_transmittance(
-                torch.addcmul(p[ids], t0[ids, None], direction[ids]), direction[ids], t1[ids] - t0[ids],
-                lambda q, owner: take(other.params.sigma_t, sj[owner]) * other.field(q, sj[owner]), steps=use.shadow.steps,
-            )
+            sj, entry = s[ids], torch.addcmul(p[ids], t0[ids, None], direction[ids])
+            if use.shadow.method == "grid":  # the other volume's sun grid, looked up where the ray enters it
+                grids, sigma = sun_grids(ctx, other, use.light), take(other.params.sigma_t, sj) * other.field(entry, sj)
+                through = per_scene(entry, sj, len(grids), lambda b, i, q: grids[b].lookup(q, sigma[i]))
+            else:
+                through = shadow_transmittance(
+                    entry, direction[ids], t1[ids] - t0[ids],
+                    lambda q, owner: take(other.params.sigma_t, sj[owner]) * other.field(q, sj[owner]), steps=use.shadow.steps)
+            out[ids] = out[ids] * through
     if use.terrain:
         with ctx.timer.section(f"{use.name}.terrain"):
             out = out * ctx.terrain.visibility(p, direction, s, distance)
