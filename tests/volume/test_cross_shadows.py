@@ -118,3 +118,18 @@ def test_grid_shadows_see_the_other_volumes_grid(one_thread):
     expected = 2.0 * math.cos(theta) * math.exp(-(0.8 * 0.5 + 3.0 * 0.25) / math.cos(theta))
     assert_close(out.radiance / expected, 1.0, atol=6e-2, what="plane under two boxes, grid shadows (relative)")
     assert {"terrain.shadow0.volume0", "terrain.shadow0.volume1"} <= set(out.stats["passes"])
+
+
+def test_multi_layer_cumulus_shadows_the_fog(one_thread):
+    """`multi-layer` seen from between its layers, looking down (no camera ray reaches the cumulus):
+    the fog with the cumulus above is never brighter than without it, and the cumulus prints both
+    dark patches and lit gaps onto it."""
+    overrides = {"image.width": 16, "image.height": 12, "camera.eye": [0.0, 2.5, -3.0], "camera.target": [0.0, 0.0, 2.0],
+                 "camera.fov_y": 30.0}
+    scene = tv.load_scene("multi-layer", overrides).model_dump()
+    with_cumulus = tv.render(scene)
+    fog_only = tv.render({**scene, "volumes": scene["volumes"][1:]})
+    assert "volume1.shadow0.volume0" in with_cumulus.stats["passes"]
+    ratio = with_cumulus.radiance[0, 1] / fog_only.radiance[0, 1]
+    assert bool(torch.isfinite(ratio).all()) and float(ratio.max()) <= 1.0 + 1e-5
+    assert float(ratio.min()) < 0.7 and float(ratio.max()) > 0.95, (float(ratio.min()), float(ratio.max()))
