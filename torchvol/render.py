@@ -29,13 +29,13 @@ from .sampling import march_dither, subpixel_jitter
 from .scene import load_scene
 from .sky import SKIES, sun_glow
 from .stats import CountedField, Counts, Timer
+from .terrain import TerrainSurface
 from .validate import fail, integer, is_integer
 from .volume.composite import composite_volumes, finish
 from .volume.phase import PHASES
+from .volume.physical import occluder_transmittance
 from .volume.shading import SHADINGS
 from .volume.strategy import STRATEGIES
-from .terrain import TerrainSurface
-from .volume.physical import occluder_transmittance
 from .voxel.surface import VoxelSurface
 
 DEFAULT_CHUNK_RAYS = 1 << 16

@@ -4,8 +4,8 @@
 
 Its signed vertical gap g(p) = p.y − h(p.x, p.z) bounds the distance to the surface from above by
 a factor of the slope; a sphere-tracing step of `safety · g` (the Lipschitz safety factor) never
-crosses it where the slope is below 1/safety − 1, and a step that does overshoot is refined by a
-secant between the last two points. Rays are traced only through the slab the heights can reach
+crosses it where the slope is below √(1/safety² − 1) (1.73 at 0.5), and a step that does
+overshoot a steeper slope is pulled back to the secant root between its last two points. Rays are traced only through the slab the heights can reach
 (|fbm| < 1), so a shadow ray that leaves it upwards is done at once.
 
 The surface is Lambert-shaded by the lights: grass `color` blended to `rock_color` on steep slopes,
