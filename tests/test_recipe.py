@@ -101,7 +101,7 @@ def test_bad_sample_arguments():
         recipe().sample(0, seed="x")
 
 
-@pytest.mark.parametrize("name", ["clouds", "template-clouds"])
+@pytest.mark.parametrize("name", ["clouds", "template-clouds", "cloudscape"])
 def test_bundled_recipes_sample_and_render_as_one_batch(name):
     r = Recipe.load(ROOT / "datasets" / f"{name}.toml", TINY)
     assert r.dists and r.aovs == ("depth_median",)

@@ -24,6 +24,7 @@ BOUNDS = {
     "box": {"box": {"min": [-0.5, -0.5, -0.5], "max": [0.5, 0.5, 0.5]}},
     "sphere": {"sphere": {"center": [0.0, 0.0, 0.0], "radius": 0.5}},
     "slab": {"slab": {"y_min": -0.5, "y_max": 0.5}},
+    "shell": {"shell": {"planet_radius": 1.0, "bottom": 0.0, "top": 0.5}},  # its ground through the origin
 }
 
 # (eye, target, up): outside, on axes looking along them (odd image sizes put the centre ray
@@ -61,6 +62,7 @@ DENSITIES = [
     {"exponential": {"value": 2.0, "base": -0.5, "scale_height": 0.05}},
     {"fbm": {"octaves": 2, "frequency": 3.0, "bias": 0.2}},
     {"grid": {"data": [[[0.0, 3.0], [1.0, 0.0]], [[0.5, 2.0], [0.0, 4.0]]]}},
+    {"cloudscape": {"bottom": -0.5, "top": 0.5, "coverage": 0.9, "scale": 1.0, "detail_scale": 0.3}},
 ]
 
 

@@ -1,4 +1,4 @@
-"""Where a volume's medium lives: box, sphere or horizontal slab. Each kind gives its entry/exit
+"""Where a volume's medium lives: box, sphere, horizontal slab or a planet's shell. Each kind gives its entry/exit
 distances along rays (`intersect`), the box around it (`aabb`, finite kinds only: the sun grid
 tabulates over it) and its height range (`height_range`: the shader look's height gradient)."""
 
@@ -9,7 +9,7 @@ from pydantic import Field, model_validator
 from torch import Tensor
 
 from .batch import Stacked, take
-from .rays import intersect_box, intersect_slab, intersect_sphere
+from .rays import intersect_box, intersect_shell, intersect_slab, intersect_sphere
 from .registry import Registry
 from .schema import Strict, Vec3
 
@@ -43,6 +43,21 @@ class Slab(Strict):
         return self
 
 
+class Shell(Strict):
+    """A layer between altitudes `bottom` and `top` over an opaque planet of `planet_radius`
+    centred at (0, −planet_radius, 0), so that its ground passes through the origin."""
+
+    planet_radius: float = Field(6000.0, gt=0.0)
+    bottom: float = Field(1.5, ge=0.0)
+    top: float = 4.0
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.top <= self.bottom:
+            raise ValueError(f"top {self.top} must exceed bottom {self.bottom}")
+        return self
+
+
 # Every function takes the bounds of B scenes (`Stacked`): `intersect(b, o [n, 3], d [n, 3], s [n])
 # -> (t_near [n], t_far [n])`; `aabb(b) -> (min (B, 3), max (B, 3))`; `height_range(b) -> (B, 2)`.
 
@@ -56,6 +71,22 @@ def _sphere_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tens
 
 def _slab_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
     return intersect_slab(o, d, take(b.y_min, s), take(b.y_max, s))
+
+
+def _shell_center(b: Stacked) -> Tensor:
+    """(B, 3): the planet's centre, below the origin."""
+    zero = torch.zeros_like(b.planet_radius)
+    return torch.stack([zero, -b.planet_radius, zero], dim=1)
+
+
+def _shell_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    r = take(b.planet_radius, s)
+    return intersect_shell(o, d, take(_shell_center(b), s), r, r + take(b.bottom, s), r + take(b.top, s))
+
+
+def _shell_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
+    reach = (b.planet_radius + b.top)[:, None]
+    return _shell_center(b) - reach, _shell_center(b) + reach
 
 
 def _sphere_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
@@ -73,3 +104,5 @@ BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, aabb=_sphere_a
                 height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius))
 # a slab's exit is at infinity along its planes: rays stop at SLAB_REACH unless march.max_distance says
 BOUNDS.register("slab", Slab, _slab_intersect, finite=False, aabb=None, height_range=lambda b: _heights(b.y_min, b.y_max))
+BOUNDS.register("shell", Shell, _shell_intersect, finite=True, aabb=_shell_aabb,
+                height_range=lambda b: _heights(b.bottom, b.top))

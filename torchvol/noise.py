@@ -164,17 +164,24 @@ _GRADS = [
 ]  # fmt: skip
 
 
-def perlin_noise(p: Tensor, *, seed: int = 0) -> Tensor:
+def _wrap(cells: Tensor, period: int | None) -> Tensor:
+    """Integer cells taken mod `period` (None: unchanged): a noise hashed on wrapped cells repeats
+    every `period` units along each axis."""
+    return cells if period is None else torch.remainder(cells, int(period))
+
+
+def perlin_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tensor:
     """Gradient (Perlin) noise: hashed edge gradients, quintic fade 6t^5 - 15t^4 + 10t^3.
 
     p: ``[N, 3]`` points. Returns ``[N]``, 0 at integer points, within about [-1, 1] (the 12-edge
     gradient set bounds |value| by ~1.04 in theory; in practice it stays well inside [-1, 1]).
+    period: the lattice repeats every `period` cells along each axis (tileable noise); None: 256.
     """
     _check_points(p)
     cell, f = _cell_frac(p)
     corners = torch.tensor(_CORNERS, dtype=torch.int64, device=p.device)  # [8, 3]
     grads = torch.tensor(_GRADS, dtype=p.dtype, device=p.device)  # [12, 3]
-    h = lattice_hash(cell[:, None, :] + corners, seed)  # [N, 8]
+    h = lattice_hash(_wrap(cell[:, None, :] + corners, period), seed)  # [N, 8]
     g = grads[h % 12]  # [N, 8, 3]
     d = f[:, None, :] - corners.to(p.dtype)  # [N, 8, 3]
     dots = (g * d).sum(-1)  # [N, 8]
@@ -182,12 +189,13 @@ def perlin_noise(p: Tensor, *, seed: int = 0) -> Tensor:
     return _trilinear(list(dots.unbind(-1)), u)
 
 
-def worley_noise(p: Tensor, *, seed: int = 0) -> Tensor:
+def worley_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tensor:
     """Worley (cellular) noise F1: distance to the nearest feature point, clamped to [0, 1].
 
     One feature point per unit cell at ``cell + lattice_values(cell, seed)``; the 27 cells around
     the point's cell are searched.
     p: ``[N, 3]`` points. Returns ``[N]`` in [0, 1].
+    period: feature points repeat every `period` cells along each axis (tileable noise).
     """
     _check_points(p)
     cell, f = _cell_frac(p)
@@ -197,7 +205,7 @@ def worley_noise(p: Tensor, *, seed: int = 0) -> Tensor:
             for dx in (-1, 0, 1):
                 off = torch.tensor([dx, dy, dz], dtype=torch.int64, device=p.device)
                 c = cell + off
-                feat = lattice_values(c, seed, p.dtype)
+                feat = lattice_values(_wrap(c, period), seed, p.dtype)
                 d = off.to(p.dtype) + feat - f  # [N, 3]
                 best = torch.minimum(best, (d * d).sum(-1))
     return best.sqrt().clamp(0.0, 1.0)

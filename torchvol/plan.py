@@ -5,7 +5,8 @@ fixed march over the occupied span, error-controlled march), which lights shade 
 shadows are found, which voxel passes run, which post effects apply. `render` executes the plan by
 looking each pass up, and decides nothing again. A term the batch does not ask for is not in the
 plan and costs nothing: no shadow pass without a light with `shadow`, no sky pass without `[sky]`,
-no march without volumes, no post pass at its identity setting.
+no aerial perspective without `[atmosphere]`, no march without volumes, no post pass at its
+identity setting.
 
 Decisions read only values a batch shares (its structure), or ask whether *any* scene of the batch
 needs a term (an effect at its identity setting gives the scene that does not need it the same
@@ -59,8 +60,12 @@ class VolumePass:
     shading: str
     lights: tuple[LightPass, ...]
     emissive: bool  # some scene of the batch emits
+    emission_map: str | None  # the emission colour map's kind (volume.emission), None: none
+    bloom: int | None  # the point light the seeds' glow surrounds, None: no glow
     reach: float  # how far a ray or shadow ray travels in the volume (`march.max_distance`, or its bounds')
     compact_below: float  # the march drops finished rays below this active fraction (`volume.march.march`)
+    ambient: bool = False  # the density's ambient light is set (a physical source σs · ambient)
+    sky_blend: bool = False  # sources blend into the sky with distance (`volumes[i].sky_blend`)
 
     @property
     def step_pass(self) -> str:
@@ -70,8 +75,17 @@ class VolumePass:
     def skip_pass(self) -> str:
         return f"{self.name}.skip"
 
+    @property
+    def emission_pass(self) -> str:
+        return f"{self.name}.emission_map"
+
+    @property
+    def bloom_pass(self) -> str:
+        return f"{self.name}.bloom"
+
     def names(self) -> list[str]:
-        own = [n for li in self.lights for n in li.names()]
+        own = ([self.emission_pass] if self.emission_map is not None else []) + ([self.bloom_pass] if self.bloom is not None else [])
+        own += [n for li in self.lights for n in li.names()]
         return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
 
 
@@ -107,6 +121,7 @@ class Plan:
     voxels: VoxelPass | None
     terrain: TerrainPass | None
     volumes: tuple[VolumePass, ...]
+    atmosphere: bool  # the [atmosphere] medium over the composited scene (aerial perspective)
     spp: int
     post: tuple[tuple[str, str], ...]  # (POST kind, pass name), in order
     aovs: tuple[str, ...]  # the AOVs the render outputs
@@ -115,7 +130,8 @@ class Plan:
         """Every planned pass, in the order the render runs them."""
         return (["rays"] + (["sky"] if self.sky else []) + (self.voxels.names() if self.voxels else [])
                 + (self.terrain.names() if self.terrain else [])
-                + [n for v in self.volumes for n in v.names()] + ["composite"] + (["post.flare"] if self.flare else [])
+                + [n for v in self.volumes for n in v.names()] + ["composite"] + (["atmosphere"] if self.atmosphere else [])
+                + (["post.flare"] if self.flare else [])
                 + (["resolve"] if self.spp > 1 else []) + [name for _, name in self.post])
 
 
@@ -125,7 +141,9 @@ def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
         return "march"
     lights = [LIGHTS[li.kind] for li in batch.lights]
     if (settings.closed_form and DENSITIES[vol.density.kind].caps.get("homogeneous") and settings.integrator != "alpha"
-            and all(k.caps["directional"] for k in lights) and not any(li.shadow is not None for li in batch.lights)):
+            and vol.sky_blend is None and all(k.caps["directional"] for k in lights)
+            and not any(li.shadow is not None for li in batch.lights)
+            and vol.emission_map is None and vol.bloom is None):  # these vary along the ray
         return "closed_form"  # the source is constant along a ray: one exact segment
     if settings.tolerance is not None:
         return "tolerance"
@@ -158,8 +176,13 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
         reach = math.inf if bounds.caps["finite"] else SLAB_REACH
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
+    physical = shading.caps["physical"]
     return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
-                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below)
+                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
+                      emission_map=None if vol.emission_map is None else vol.emission_map.kind,
+                      bloom=None if vol.bloom is None else vol.bloom.light,
+                      ambient=physical and bool(density.caps.get("ambient")) and vol.density.value.ambient is not None,
+                      sky_blend=physical and vol.sky_blend is not None)
 
 
 def make_plan(batch: Stacked | Scene) -> Plan:
@@ -186,6 +209,7 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         voxels=voxels,
         terrain=terrain,
         volumes=tuple(volume_pass(batch, v, settings) for v in range(len(batch.volumes))),
+        atmosphere=batch.atmosphere is not None,
         spp=batch.image.spp,
         post=post,
         aovs=tuple(produced(batch)),

@@ -42,7 +42,7 @@ class Level:
     spp: int  # `image.spp`: the reference integrates each pixel, so aliasing counts as error
     voxel_max_steps: int  # `voxels.max_steps`: a primary DDA ray stopped by it is a hole in the image
     fog_shadow_steps: int  # `voxels.fog.shadow_steps`
-    atmosphere_steps: tuple[int, int]  # `sky.atmosphere.steps`, `.light_steps`
+    atmosphere_steps: tuple[int, int]  # `sky.atmosphere.steps`, `.light_steps` (and `atmosphere.`'s)
 
 
 # Count placement, frostbite, hashed dither (none at reference) at every level. `default` equals
@@ -65,7 +65,7 @@ QUALITY: dict[str, Level] = {
 def at_level(scene: Scene) -> Scene:
     """The scene with every key its quality level decides filled in (`image.spp`, lights'
     `shadow.steps`, `voxels.shadow.steps`, `voxels.max_steps`, `voxels.fog.shadow_steps`,
-    `sky.atmosphere.steps` and `.light_steps`); idempotent. Everything after this sees plain ints."""
+    `sky.atmosphere.steps` and `.light_steps`, `atmosphere.steps` and `.light_steps`); idempotent. Everything after this sees plain ints."""
     level = QUALITY[scene.march.quality]
     update: dict = {}
     if scene.image.spp is None:
@@ -89,11 +89,17 @@ def at_level(scene: Scene) -> Scene:
             update["voxels"] = vx.model_copy(update=fill)
     atm = getattr(scene.sky, "atmosphere", None)
     if atm is not None and (atm.steps is None or atm.light_steps is None):
-        steps, light_steps = level.atmosphere_steps
-        atm = atm.model_copy(update={"steps": steps if atm.steps is None else atm.steps,
-                                     "light_steps": light_steps if atm.light_steps is None else atm.light_steps})
-        update["sky"] = scene.sky.model_copy(update={"atmosphere": atm})
+        update["sky"] = scene.sky.model_copy(update={"atmosphere": _atmosphere_steps(atm, level)})
+    if scene.atmosphere is not None and (scene.atmosphere.steps is None or scene.atmosphere.light_steps is None):
+        update["atmosphere"] = _atmosphere_steps(scene.atmosphere, level)
     return scene.model_copy(update=update) if update else scene
+
+
+def _atmosphere_steps(layer, level: Level):
+    """An air layer (the sky's or the medium's) with the level's steps where it gives none."""
+    steps, light_steps = level.atmosphere_steps
+    return layer.model_copy(update={"steps": steps if layer.steps is None else layer.steps,
+                                    "light_steps": light_steps if layer.light_steps is None else layer.light_steps})
 
 
 def march_settings(march: March) -> MarchSettings:

@@ -103,6 +103,25 @@ def intersect_sphere(origins: Tensor, directions: Tensor, center, radius) -> tup
     return _canonical(t_near, t_far, miss)
 
 
+def intersect_shell(origins: Tensor, directions: Tensor, center, ground, inner, outer) -> tuple[Tensor, Tensor]:
+    """The first stretch ahead of each ray inside the shell ``inner <= |p - center| <= outer``
+    over an opaque ground sphere of radius ``ground`` (<= inner): a planet's cloud layer.
+
+    center [3] or [R, 3]; ground, inner, outer scalar or [R]; directions unit -> (t_near [R],
+    t_far [R]) with t_near >= 0. From below the layer: from leaving the inner sphere to leaving the
+    outer one; from inside it: from 0 to the inner sphere or the outer one, whichever comes first;
+    from above: from entering the outer sphere to the inner one or leaving the outer. A ray that
+    meets the ground first misses (the layer beyond the horizon is hidden)."""
+    n_out, f_out = intersect_sphere(origins, directions, center, outer)
+    n_in, f_in = intersect_sphere(origins, directions, center, inner)
+    n_gr, _ = intersect_sphere(origins, directions, center, ground)
+    start = n_out.clamp_min(0.0)
+    start = torch.where((n_in <= start) & (start < f_in), f_in, start)  # starts below the layer
+    end = torch.where(n_in > start, torch.minimum(f_out, n_in), f_out)  # comes down onto the layer's floor
+    end = torch.where(n_gr >= 0, torch.minimum(end, n_gr), end)  # the ground hides what lies beyond
+    return _canonical(start, end, n_out > f_out)
+
+
 def intersect_slab(origins: Tensor, directions: Tensor, y_min, y_max) -> tuple[Tensor, Tensor]:
     """Horizontal layer ``y_min <= y <= y_max``.
 

@@ -82,7 +82,7 @@ def at_quality(data: Mapping, quality: Quality) -> dict:
     it: the march's approximation keys, `image.spp`, lights' and voxels' `shadow.steps` (and the
     lights' shadow `growth` and `first_step`: the level's shadow steps are uniform, since steps
     grown geometrically for a few steps leave most of a long march in a sliver next to the
-    sample), `voxels.max_steps`, `voxels.fog.shadow_steps`, `sky.atmosphere.steps` and `.light_steps`."""
+    sample), `voxels.max_steps`, `voxels.fog.shadow_steps`, `sky.atmosphere.steps` and `.light_steps` (and the `[atmosphere]` medium's)."""
     data = copy.deepcopy(dict(data))
     data["march"] = reference_overrides(data, quality)
     (data.get("image") or {}).pop("spp", None)
@@ -93,9 +93,9 @@ def at_quality(data: Mapping, quality: Quality) -> dict:
     (voxels.get("shadow") or {}).pop("steps", None)
     voxels.pop("max_steps", None)
     (voxels.get("fog") or {}).pop("shadow_steps", None)
-    atmosphere = (data.get("sky") or {}).get("atmosphere") or {}
-    for key in ("steps", "light_steps"):
-        atmosphere.pop(key, None)
+    for atmosphere in ((data.get("sky") or {}).get("atmosphere") or {}, data.get("atmosphere") or {}):
+        for key in ("steps", "light_steps"):
+            atmosphere.pop(key, None)
     return data
 
 
@@ -142,11 +142,12 @@ def rung_scene(data: Mapping, k: int, *, spp: int) -> tuple[dict, torch.dtype]:
             voxels["shadow"]["steps"] = level.voxel_shadow_steps * scale
         if voxels.get("fog") is not None:
             voxels["fog"]["shadow_steps"] = min(level.fog_shadow_steps * scale, MAX_FOG_SHADOW_STEPS)
+    steps, light_steps = level.atmosphere_steps
+    finer = {"steps": min(steps * scale, MAX_ATMOSPHERE_STEPS), "light_steps": min(light_steps * scale, MAX_ATMOSPHERE_STEPS)}
     if scene.sky is not None and scene.sky.kind == "atmosphere":
-        steps, light_steps = level.atmosphere_steps
-        out["sky"]["atmosphere"] = {**(out["sky"].get("atmosphere") or {}),
-                                    "steps": min(steps * scale, MAX_ATMOSPHERE_STEPS),
-                                    "light_steps": min(light_steps * scale, MAX_ATMOSPHERE_STEPS)}
+        out["sky"]["atmosphere"] = {**(out["sky"].get("atmosphere") or {}), **finer}
+    if scene.atmosphere is not None:
+        out["atmosphere"] = {**out["atmosphere"], **finer}
     return out, torch.float64 if tolerance < FLOAT32_MIN_TOLERANCE else torch.float32
 
 

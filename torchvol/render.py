@@ -31,6 +31,7 @@ from .sky import SKIES, sun_glow
 from .stats import CountedField, Counts, Timer
 from .terrain import TerrainSurface
 from .validate import fail, integer, is_integer
+from .volume.atmosphere import aerial_perspective, gather_air
 from .volume.composite import composite_volumes, finish
 from .volume.phase import PHASES
 from .volume.physical import occluder_transmittance
@@ -147,11 +148,29 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
         behind = background if surf is None else surf["color"]  # the shaded surface where hit
         out = finish(composite_volumes(parts, rays.origins[:, 0]), behind, surf, rays.forward_cos,
                      ctx.settings.depth_threshold)
+    if plan.atmosphere:
+        with ctx.timer.section("atmosphere"):
+            out = through_the_air(ctx, rays, out)
     if plan.flare:
         with ctx.timer.section("post.flare"):
             s, flare = rays.scene_index, ctx.batch.sky.flare
             out["radiance"] = out["radiance"] + sun_glow(rays.directions, take(ctx.sun(), s), take(flare.color, s),
                                                          take(flare.power, s))
+    return out
+
+
+def through_the_air(ctx: RenderContext, rays: Rays, out: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The composited scene seen through the `[atmosphere]` medium (aerial perspective, its ground
+    behind); the planet's ground is an opaque surface: alpha 1, and its depth where nothing nearer."""
+    atm, s, sun = ctx.batch.atmosphere, rays.scene_index, ctx.lights[0]
+    radiance, ground_t = aerial_perspective(
+        out["radiance"], out["alpha"], out["distance"], rays.origins, rays.directions, take(sun.direction, s),
+        take(sun.radiant, s), take(atm.ground, s), gather_air(atm, s), steps=atm.steps, light_steps=atm.light_steps)
+    ground = ground_t > 0
+    out = {**out, "radiance": radiance, "alpha": torch.where(ground, torch.ones_like(out["alpha"]), out["alpha"])}
+    for key, t in (("distance", ground_t), ("depth", ground_t * rays.forward_cos),
+                   ("depth_median", ground_t * rays.forward_cos)):
+        out[key] = torch.where(ground & (out[key] == 0), t, out[key])  # the ground where nothing nearer
     return out
 
 

@@ -28,6 +28,8 @@ from .schema import EACH, SHARED, GridSource, One, Strict, Vec3, nonneg, reachab
 from .sky import SKIES
 from .terrain import Terrain
 from .validate import SceneError, did_you_mean, fail
+from .volume.emission import Bloom, EmissionMap
+from .volume.atmosphere import AtmosphereMedium
 from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
@@ -106,15 +108,34 @@ class Volume(Strict):
     sigma_t: float = Field(1.0, ge=0.0, le=1e12)
     albedo: float = Field(1.0, ge=0.0, le=1.0)
     emission: Vec3 = (0.0, 0.0, 0.0)
+    emission_map: EmissionMap | None = None  # emitted radiance from a colour map (volume.emission)
+    bloom: Bloom | None = None  # the seeds' artistic glow around a point light (volume.emission)
     phase: Phase = Field(default_factory=lambda: Phase(isotropic=Empty()))
     shading: Shading = "physical"
     shader: ShaderLook = Field(default_factory=ShaderLook)
+    # the seeds' distance fog `mix(col, bg, 1 − exp(−k t²))` as a physical source term
+    sky_blend: float | None = Field(None, gt=0.0, description="physical shading: each sample's source blends into the sky "
+                                    "behind its ray by 1 − exp(−k·t²); None: no blend")
     _e = field_validator("emission")(lambda v: nonneg(v))
 
     @model_validator(mode="after")
     def _density_fits_bounds(self):
         if DENSITIES[self.density.kind].caps.get("needs_box") and self.bounds.kind != "box":
             raise ValueError(f"a {self.density.kind} density needs box bounds (it spans the box)")
+        return self
+
+    @model_validator(mode="after")
+    def _physical_terms(self):
+        """Sources of the physical medium: refused, not ignored, under the shader look (which has
+        shader.fog and shader.ambient)."""
+        if not SHADINGS[self.shading].caps["physical"]:
+            for key in ("emission_map", "bloom", "sky_blend"):
+                if getattr(self, key) is not None:
+                    raise ValueError(f"{key} is a source of the physical medium: it needs shading = 'physical', "
+                                     f"not {self.shading!r}")
+            if DENSITIES[self.density.kind].caps.get("ambient") and self.density.value.ambient is not None:
+                raise ValueError(f"density.{self.density.kind}.ambient lights physical shading, not {self.shading!r} "
+                                 "(use shader.ambient)")
         return self
 
 
@@ -363,6 +384,7 @@ class Scene(Strict):
     volumes: list[Volume] = Field(default_factory=list)
     voxels: Voxels | None = None
     terrain: Terrain | None = None
+    atmosphere: AtmosphereMedium | None = None  # the scene inside a planet's air (aerial perspective)
     march: Annotated[March, SHARED] = Field(default_factory=March)
     post: Post = Field(default_factory=Post)
 
@@ -386,9 +408,31 @@ class Scene(Strict):
         sun = bool(self.lights) and LIGHTS[self.lights[0].kind].caps["directional"]
         if SKIES[self.sky.kind].caps.get("needs_sun") and not sun:
             refuse("sky.kind", self.sky.kind, "the atmosphere is lit by the first light: make lights[0] a sun")
+        if self.atmosphere is not None:
+            refuse("sky", "<sky>", "the [atmosphere] medium draws its own sky: remove [sky]")
         for glow in ("halo", "flare"):
             if getattr(self.sky, glow) is not None and not sun:
                 refuse(f"sky.{glow}", "<glow>", f"the {glow} is a lobe around the sun: make lights[0] a sun")
+        return self
+
+    @model_validator(mode="after")
+    def _bloom_around_a_point_light(self):
+        for v, vol in enumerate(self.volumes):
+            if vol.bloom is None:
+                continue
+            l = vol.bloom.light
+            if l >= len(self.lights) or LIGHTS[self.lights[l].kind].caps["directional"]:
+                refuse(f"volumes[{v}].bloom.light", l, f"the glow surrounds a point light: the index of one in lights "
+                       f"(there are {len(self.lights)} lights)")
+            if self.march.tolerance is not None:
+                refuse("march.tolerance", self.march.tolerance, f"the error-controlled march steps over empty space, where "
+                       f"volumes[{v}].bloom glows too: use a fixed march (steps) with bloom")
+        return self
+
+    @model_validator(mode="after")
+    def _atmosphere_lit_by_a_sun(self):
+        if self.atmosphere is not None and not (self.lights and LIGHTS[self.lights[0].kind].caps["directional"]):
+            refuse("atmosphere", "<atmosphere>", "the atmosphere is lit by the first light: make lights[0] a sun")
         return self
 
     @model_validator(mode="after")
@@ -398,7 +442,7 @@ class Scene(Strict):
         if self.terrain is not None and self.voxels is not None:
             refuse("terrain", "<terrain>", "a scene has one surface: voxels or a terrain, not both")
         if self.march.lod is not None and not any(DENSITIES[v.density.kind].caps.get("octaves") for v in self.volumes):
-            refuse("march.lod", "<lod>", "no volume has a density with octaves to drop (fbm, clouds)")
+            refuse("march.lod", "<lod>", "no volume has a density with octaves to drop (fbm, clouds, explosion)")
         return self
 
 

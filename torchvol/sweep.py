@@ -51,7 +51,7 @@ MEASURED = ("time_s", "density_evals", "rmse", "rel_rmse", "psnr", "reference_bo
             "reference_tolerance", "reference_dtype")
 _APPROXIMATION = re.compile(
     r"march\.(?!max_distance$).+|image\.spp|lights\[\d+\]\.shadow\.(steps|growth|first_step|method|resolution)"
-    r"|voxels\.(max_steps|traversal|shadow\.steps|fog\.shadow_steps)|sky\.atmosphere\.(steps|light_steps)")
+    r"|voxels\.(max_steps|traversal|shadow\.steps|fog\.shadow_steps)|(sky\.)?atmosphere\.(steps|light_steps)")
 
 
 def split_values(text: str) -> list[str]:

@@ -8,7 +8,9 @@ capabilities:
 - ``needs_box``: spans its volume's box (the box is handed to `fn` as ``box_min``, ``box_max``);
 - ``cheap``: a sample costs less than compacting the march's batch (the march keeps finished rays
   in the batch longer);
-- ``octaves``: a sum of octaves that `march.lod` may cut short with distance.
+- ``octaves``: a sum of octaves that `march.lod` may cut short with distance;
+- ``ambient``: the field's table may set `ambient`, an ambient light the physical medium adds as
+  the source σs · `field.ambient(points, scene_index)` [N, 3] (where it is set).
 
 Each field holds per-scene parameter tensors of shape (B, ...) and calls plain noise / sampling
 functions, so B scenes of one structure evaluate in one call.
@@ -19,8 +21,10 @@ from __future__ import annotations
 from ..registry import Registry
 from .base import Field
 from .clouds import CloudLayer, CloudsDensity
+from .cloudscape import Cloudscape, CloudscapeDensity
 from .constant import Constant, ConstantDensity
 from .exponential import Exponential, ExponentialDensity
+from .explosion import ExplosionDensity, ExplosionField
 from .fbm import FbmDensity, FbmField
 from .grid import Grid, GridDensity
 
@@ -30,5 +34,7 @@ DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, ch
 DENSITIES.register("exponential", ExponentialDensity, Exponential)
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True)
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True)
+DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True)
+DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape, ambient=True)
 
 __all__ = ["DENSITIES", "Field"]

@@ -110,7 +110,62 @@ def _voxel_fog(data: dict, *, density: float | None = None) -> None:
         data["voxels"]["fog"]["density"] = density
 
 
+def _emissive(data: dict, *, time: float = 0.0, seed: int | None = None) -> None:
+    """explosion, fire: `time` animates the explosion densities (growth, drift; a sphere bound
+    grows with its ball); `seed` picks their noise (volume i gets seed + i)."""
+    if not (isinstance(time, (int, float)) and math.isfinite(time)):
+        fail("time", time, "expected a finite number of seconds")
+    data["time"] = float(time)
+    for vol in data["volumes"]:  # a sphere around a growing ball grows with it
+        growth, sphere = vol["density"]["explosion"].get("growth", 0.0), vol["bounds"].get("sphere")
+        if sphere is not None:
+            sphere["radius"] *= 1.0 + growth * max(float(time), 0.0)
+    if seed is not None:
+        integer("seed", seed, low=0)
+        for i, vol in enumerate(data["volumes"]):
+            vol["density"]["explosion"]["seed"] = seed + i
+
+
+# the atmosphere preset's views: the TOML's (space), a sunset from the ground, the sky from 10 km up
+ATMOSPHERE_VIEWS = {
+    "space": {},
+    "ground": {"camera": {"eye": [0.0, 2.0, 0.0], "target": [0.0, 3.5, 10.0], "fov_y": 70.0}, "sun": [0.3, 0.08, 1.0]},
+    "air": {"camera": {"eye": [0.0, 1.0e4, 0.0], "target": [0.0, 9.0e3, 1.0e4], "fov_y": 60.0}, "sun": [0.5, 0.15, 1.0]},
+}
+
+
+def _atmosphere(data: dict, *, view: str = "space") -> None:
+    if view not in ATMOSPHERE_VIEWS:
+        fail("atmosphere.view", view, f"expected one of {', '.join(ATMOSPHERE_VIEWS)}")
+    setting = ATMOSPHERE_VIEWS[view]
+    if setting:
+        data["camera"] = dict(setting["camera"])
+        data["lights"][0]["direction"] = list(setting["sun"])
+def _cloudscape(data: dict, *, coverage: float | None = None, cloud_type: float | None = None,
+                sun_elevation: float | None = None, time: float | None = None) -> None:
+    """coverage and cloud_type (0 stratus … 1 cumulonimbus) of the layer; the sun's elevation in
+    degrees, keeping its azimuth; time moves the clouds with a wind of 0.5 along +x."""
+    clouds = data["volumes"][0]["density"]["cloudscape"]
+    if coverage is not None:
+        clouds["coverage"] = coverage
+    if cloud_type is not None:
+        clouds["type"] = cloud_type
+    if sun_elevation is not None:
+        if not isinstance(sun_elevation, (int, float)) or not -90.0 < sun_elevation < 90.0:
+            fail("cloudscape.sun_elevation", sun_elevation, "expected degrees in (-90, 90)")
+        x, _, z = data["lights"][0]["direction"]
+        flat = math.hypot(x, z)
+        e = math.radians(sun_elevation)
+        data["lights"][0]["direction"] = [x / flat * math.cos(e), math.sin(e), z / flat * math.cos(e)]
+    if time is not None:
+        data["time"] = time
+        clouds["wind"] = [0.5, 0.0, 0.0]
+
+
 PARAMS: dict[str, Callable[..., None]] = {
+    "atmosphere": _atmosphere,
+    "explosion": _emissive,
+    "fire": _emissive,
     "voxel-terrain": _voxel_terrain,
     "voxel-glow": _voxel_glow,
     "voxel-rounded": _voxel_rounded,
@@ -118,6 +173,7 @@ PARAMS: dict[str, Callable[..., None]] = {
     "voxel-carved-box": _voxel_carved_box,
     "template-clouds": _template_clouds,
     "cloud-puff": _cloud_puff,
+    "cloudscape": _cloudscape,
 }
 
 

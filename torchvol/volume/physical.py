@@ -13,6 +13,7 @@ from torch import Tensor
 from ..batch import per_scene, take
 from ..camera import Rays
 from ..rays import clip_to_ray
+from .emission import EMISSION_MAPS, bloom_glow
 from .integrate import frostbite_step
 from .march import LN2, Medium, expected_depth_fraction, gathered, lod_drop
 from .shadow import shadow_transmittance
@@ -157,6 +158,18 @@ def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: 
                                          [None if r is None else r[lit] for r in resp])
         if vol.plan.emissive:
             source = source + take(vol.params.emission, s) * density[:, None]
+        if vol.plan.emission_map is not None:
+            with ctx.timer.section(vol.plan.emission_pass):
+                source = source + EMISSION_MAPS[vol.plan.emission_map].fn(vol.params.emission_map.value, p, density, s)
+        if vol.plan.bloom is not None:
+            with ctx.timer.section(vol.plan.bloom_pass):
+                source = source + bloom_glow(vol.params.bloom, ctx.lights[vol.plan.bloom].params, p, s)
+        if vol.plan.ambient:  # isotropic ambient light: the phase function integrates to 1
+            source = source + (take(vol.params.albedo, s) * sigma_t)[:, None] * vol.field.inner.ambient(p, s)
+        if vol.plan.sky_blend:  # σt·sky integrates to the sky seen through the sample's opacity
+            k = take(vol.params.sky_blend, s)
+            sky = sigma_t[:, None] * (background[ids] if background is not None else 0.0)
+            source = torch.lerp(source, sky, (-torch.expm1(-k * t * t))[:, None])
         return sigma_raw, source
 
     return medium

@@ -1,0 +1,333 @@
+"""Production cloudscapes: tileable noise textures, the cloud type's height profile, coverage, the
+ambient gradient and the sky blend, dual-lobe HG against the seeds' GLSL, the preset."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import torchvol as tv
+from torchvol import noise, noise_tiles
+from torchvol.batch import stack
+from torchvol.fields.cloudscape import AMBIENT_BOTTOM, AMBIENT_TOP, CLOUD_TYPES, Cloudscape, CloudscapeDensity, height_gradient
+from torchvol.plan import make_plan
+from torchvol.volume.phase import dual_henyey_greenstein
+
+from conftest import assert_close
+
+F64 = torch.float64
+
+
+def _points(n: int, seed: int, scale: float = 5.0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(n, 3, generator=g, dtype=F64) * 2.0 - 1.0) * scale
+
+
+# ---------------------------------------------------------------------------------------------
+# tileable textures
+
+
+@pytest.mark.parametrize("fn", [noise.perlin_noise, noise.worley_noise])
+def test_periodic_lattice_noise_tiles(fn):
+    p = _points(200, 1)
+    for period in (3, 8):
+        for axis in range(3):
+            shift = torch.zeros(3, dtype=F64)
+            shift[axis] = period
+            assert_close(fn(p + shift, seed=4, period=period), fn(p, seed=4, period=period), atol=1e-9, what=f"period {period}")
+
+
+def test_generating_noises_tile_with_period_one():
+    uvw = _points(100, 2, 1.0)
+    for fn in (noise_tiles.perlin_worley, lambda x, seed: noise_tiles.worley_fbm(x, seed=seed, frequencies=(2, 4))):
+        for shift in ([1.0, 0.0, 0.0], [0.0, -2.0, 0.0], [0.0, 0.0, 3.0]):
+            assert_close(fn(uvw + torch.tensor(shift, dtype=F64), seed=3), fn(uvw, seed=3), atol=1e-9, what=str(shift))
+
+
+@pytest.mark.parametrize("texture", [noise_tiles.base_texture(0, 16), noise_tiles.detail_texture(0, 8)])
+def test_textures_tile_and_trilinear_matches_nodes(texture):
+    n = texture.shape[0]
+    assert texture.dtype == torch.float32 and float(texture.min()) == 0.0 and float(texture.max()) == 1.0
+    nodes = noise_tiles.texture_nodes(n).to(F64)
+    tex = texture.to(F64)
+    # at a node, the lookup is the node's value, exactly
+    assert torch.equal(noise_tiles.sample_tiled(tex, nodes), tex.reshape(-1))
+    # wraps: p and p + k (any integer k per axis) read the same value
+    uvw = _points(300, 5, 2.0)
+    for shift in ([1.0, 0.0, 0.0], [0.0, 1.0, -1.0], [-2.0, 3.0, 1.0]):
+        assert_close(noise_tiles.sample_tiled(tex, uvw + torch.tensor(shift, dtype=F64)), noise_tiles.sample_tiled(tex, uvw),
+                     atol=1e-9, what=f"wrap {shift}")
+    # halfway between the last node and the first (across the seam): the mean of the two
+    i = torch.arange(n)
+    edge = torch.stack([torch.full_like(i, n - 1), i, i], 1).to(F64) / n + torch.tensor([0.5 / n, 0.0, 0.0], dtype=F64)
+    want = 0.5 * (tex[i, i, n - 1] + tex[i, i, 0])
+    assert_close(noise_tiles.sample_tiled(tex, edge), want, atol=1e-12, what="seam midpoint")
+
+
+def test_texture_nodes_hold_the_generating_noise():
+    size = 8
+    raw = noise_tiles.perlin_worley(noise_tiles.texture_nodes(size), seed=2)
+    want = ((raw - raw.min()) / (raw.max() - raw.min())).reshape(size, size, size)
+    assert_close(noise_tiles.base_texture(2, size), want, atol=1e-6, what="base texture nodes")
+    assert noise_tiles.base_texture(2, size) is noise_tiles.base_texture(2, size)  # built once
+
+
+# ---------------------------------------------------------------------------------------------
+# the density
+
+
+@pytest.mark.parametrize("cloud_type", [0.0, 1 / 3, 0.5, 2 / 3, 0.9, 1.0])
+def test_height_gradient_ends_at_zero_and_vanishes_outside(cloud_type):
+    h = torch.linspace(-0.5, 1.5, 2001, dtype=F64)
+    g = height_gradient(h, torch.full_like(h, cloud_type))
+    assert float(g.min()) >= 0.0 and float(g.max()) <= 1.0
+    assert torch.all(g[(h <= 0.0) | (h >= 1.0)] == 0.0)
+    assert float(g.max()) > 0.5  # every type has clouds somewhere in the layer
+
+
+def test_height_gradient_types_are_the_table_and_blend():
+    h = torch.linspace(0, 1, 101, dtype=F64)
+    for k, (a, b, c, d) in enumerate(CLOUD_TYPES):
+        g = height_gradient(h, torch.full_like(h, k / 3))
+        t0 = ((h - a) / (b - a)).clamp(0, 1)
+        t1 = ((h - c) / (d - c)).clamp(0, 1)
+        assert_close(g, t0 * t0 * (3 - 2 * t0) * (1 - t1 * t1 * (3 - 2 * t1)), atol=1e-12, what=f"type {k}")
+    # stratus stays low, cumulonimbus reaches the top
+    assert float(height_gradient(torch.tensor([0.5], dtype=F64), torch.tensor([0.0], dtype=F64))) == 0.0
+    assert float(height_gradient(torch.tensor([0.9], dtype=F64), torch.tensor([1.0], dtype=F64))) > 0.5
+
+
+def _field(**keys) -> Cloudscape:
+    params = stack([CloudscapeDensity(**keys)], dtype=F64)
+    return Cloudscape(params, torch.zeros(1, dtype=F64))
+
+
+@pytest.mark.parametrize("planet_radius", [None, 50.0])
+def test_density_is_zero_outside_the_layer(planet_radius):
+    field = _field(bottom=1.0, top=3.0, coverage=1.0, erosion=0.0, type=1.0, scale=4.0, planet_radius=planet_radius)
+    p = _points(4000, 7, 6.0)
+    s = torch.zeros(len(p), dtype=torch.long)
+    h = field.height(p, s)
+    d = field(p, s)
+    assert torch.all(d[(h <= 0) | (h >= 1)] == 0.0) and torch.all(torch.isfinite(d))
+    assert float(d.max()) > 0.5 and float(d.max()) <= 1.0
+    signed = field.signed(p, s)
+    assert torch.equal(signed.clamp_min(0.0), d)  # signed: the density where there is some, < 0 elsewhere
+
+
+def test_coverage_grows_the_clouds_and_zero_is_empty():
+    p = _points(4000, 8, 6.0)
+    p[:, 1] = p[:, 1].abs() * 0.5 + 1.0  # inside the layer [1, 4]
+    s = torch.zeros(len(p), dtype=torch.long)
+    filled = [float((_field(bottom=1.0, top=4.0, coverage=c)(p, s) > 0).double().mean()) for c in (0.0, 0.3, 0.6, 0.9, 1.0)]
+    assert filled[0] == 0.0 and all(a <= b for a, b in zip(filled, filled[1:])) and filled[-1] > 0.5
+
+
+def test_ambient_gradient_is_the_seeds_colours():
+    field = _field(bottom=2.0, top=5.0, ambient={})
+    p = torch.tensor([[0.0, 2.0, 0.0], [0.0, 5.0, 0.0], [1.0, 3.5, -1.0], [0.0, 9.0, 0.0]], dtype=F64)
+    a = field.ambient(p, torch.zeros(4, dtype=torch.long))
+    bottom = torch.tensor([39.0, 67.0, 87.0], dtype=F64) * 1.5 / 255
+    top = torch.tensor([149.0, 167.0, 200.0], dtype=F64) * 1.5 / 255
+    assert_close(a[0], bottom, atol=1e-6, what="bottom")
+    assert_close(a[1], top, atol=1e-6, what="top")
+    assert_close(a[2], 0.5 * (bottom + top), atol=1e-6, what="middle")
+    assert_close(a[3], top, atol=1e-6, what="above: clamped")
+    assert AMBIENT_BOTTOM == tuple(round(float(x), 6) for x in bottom) and AMBIENT_TOP == tuple(round(float(x), 6) for x in top)
+
+
+# ---------------------------------------------------------------------------------------------
+# renders
+
+
+def _scene(**volume) -> dict:
+    vol = {"bounds": {"slab": {"y_min": 1.0, "y_max": 3.0}},
+           "density": {"cloudscape": {"bottom": 1.0, "top": 3.0, "coverage": 0.6, "scale": 6.0, "detail_scale": 1.5}},
+           "sigma_t": 4.0, "albedo": 0.9, "phase": {"dual_hg": {}}}
+    vol.update(volume)
+    return {"image": {"width": 12, "height": 10},
+            "camera": {"eye": [0.0, 0.2, 0.0], "target": [0.0, 2.0, 6.0], "fov_y": 70.0},
+            "sky": {"kind": "gradient", "horizon": [0.6, 0.7, 0.8], "slope": [0.4, 0.3, 0.0]},
+            "lights": [{"kind": "sun", "direction": [0.2, 0.5, 1.0], "intensity": 3.0, "shadow": {"steps": 3}}],
+            "volumes": [vol],
+            "march": {"quality": "draft", "steps": 12, "max_distance": 30.0}}
+
+
+def test_coverage_zero_renders_the_sky():
+    scene = _scene(density={"cloudscape": {"bottom": 1.0, "top": 3.0, "coverage": 0.0, "ambient": {}}}, sky_blend=0.01)
+    out = tv.render(tv.load_scene(scene))
+    sky = tv.render(tv.load_scene({**scene, "volumes": []}))
+    assert torch.equal(out.radiance, sky.radiance) and torch.all(out.alpha == 0)
+
+
+def test_sky_blend_fades_the_clouds_into_the_sky():
+    near = tv.render(tv.load_scene(_scene()), dtype=F64)
+    sky = tv.render(tv.load_scene({**_scene(), "volumes": []}), dtype=F64)
+    assert float(near.alpha.max()) > 0.5
+    # a blend that is complete at any distance: the medium shows the sky it hides, the image is the sky
+    gone = tv.render(tv.load_scene(_scene(sky_blend=1e6)), dtype=F64)
+    assert_close(gone.radiance, sky.radiance, atol=1e-9, what="fully blended")
+    assert torch.equal(gone.alpha, near.alpha)  # opacity and depth do not change
+    partial = tv.render(tv.load_scene(_scene(sky_blend=0.01)), dtype=F64)
+    assert float((partial.radiance - near.radiance).abs().max()) > 1e-3
+
+
+def test_ambient_alone_lies_between_its_colours():
+    """No light, no sky: each sample's source is σs · ambient(h), so the pixel is albedo ·
+    ∫ T σt ambient dt, between albedo · alpha · bottom and albedo · alpha · top per channel."""
+    scene = _scene(density={"cloudscape": {"bottom": 1.0, "top": 3.0, "coverage": 0.7, "ambient": {}}})
+    scene.update(lights=[])
+    del scene["sky"]
+    out = tv.render(tv.load_scene(scene), dtype=F64)
+    alpha = out.alpha[0, 0]
+    assert float(alpha.max()) > 0.5
+    lo = torch.tensor(AMBIENT_BOTTOM, dtype=F64)[:, None, None] * 0.9 * alpha
+    hi = torch.tensor(AMBIENT_TOP, dtype=F64)[:, None, None] * 0.9 * alpha
+    assert torch.all(out.radiance[0] >= lo - 1e-9) and torch.all(out.radiance[0] <= hi + 1e-9)
+    assert float((out.radiance[0] - lo).max()) > 1e-3
+
+
+def test_plan_turns_the_new_terms_on_only_when_asked():
+    plain = make_plan(tv.load_scene(_scene())).volumes[0]
+    assert not plain.ambient and not plain.sky_blend
+    asked = make_plan(tv.load_scene(_scene(density={"cloudscape": {"ambient": {}}}, sky_blend=0.01))).volumes[0]
+    assert asked.ambient and asked.sky_blend
+    # a blend makes the source vary along the ray: a homogeneous medium is marched, not closed
+    box = {"bounds": {"box": {}}, "density": {"constant": 1.0}, "phase": "isotropic"}
+    scene = {**_scene(**box), "lights": [{"kind": "sun", "direction": [0.0, 1.0, 0.0]}]}
+    assert make_plan(tv.load_scene(scene)).volumes[0].strategy == "closed_form"
+    assert make_plan(tv.load_scene({**scene, "volumes": [{**scene["volumes"][0], "sky_blend": 0.1}]})).volumes[0].strategy == "march"
+
+
+@pytest.mark.parametrize("size", [(7, 5), (1, 1), (13, 3)])
+def test_finite_renders_at_odd_sizes(size):
+    scene = _scene(density={"cloudscape": {"bottom": 1.0, "top": 3.0, "coverage": 0.8, "planet_radius": 200.0, "ambient": {},
+                                           "wind": [0.5, 0.0, 0.2]}}, sky_blend=0.002)
+    scene["image"] = {"width": size[0], "height": size[1]}
+    scene["time"] = 2.0
+    out = tv.render(tv.load_scene(scene))
+    assert out.image.shape == (1, 3, size[1], size[0])
+    for t in (out.image, out.radiance, out.depth, out.alpha):
+        assert torch.all(torch.isfinite(t))
+    assert out.stats["passes"] == ["rays", "sky", "volume0.march", "volume0.shadow0", "composite"]
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
+@given(k=st.sampled_from([1e-12, 1e-3, 1e6, 1e30]), sigma=st.sampled_from([0.0, 1e-12, 1e3, 1e7]),
+       coverage=st.sampled_from([0.0, 0.5, 1.0]), erosion=st.sampled_from([0.0, 5.0]),
+       cloud_type=st.sampled_from([0.0, 1.0]), curved=st.booleans())
+def test_hard_cases_stay_finite(k, sigma, coverage, erosion, cloud_type, curved):
+    density = {"bottom": 1.0, "top": 3.0, "coverage": coverage, "erosion": erosion, "type": cloud_type, "ambient": {}}
+    bounds = {"slab": {"y_min": 1.0, "y_max": 3.0}}
+    if curved:
+        density["planet_radius"] = 50.0
+        bounds = {"shell": {"planet_radius": 50.0, "bottom": 1.0, "top": 3.0}}
+    scene = _scene(bounds=bounds, density={"cloudscape": density}, sigma_t=sigma, sky_blend=k)
+    scene["image"] = {"width": 7, "height": 5}
+    out = tv.render(tv.load_scene(scene))
+    for t in (out.image, out.radiance, out.depth, out.alpha):
+        assert torch.all(torch.isfinite(t))
+    assert float(out.alpha.min()) >= 0.0 and float(out.alpha.max()) <= 1.0
+
+
+def test_refusals_name_the_key():
+    with pytest.raises(ValueError, match=r"volumes\[0\].density.cloudscape"):
+        tv.load_scene(_scene(density={"cloudscape": {"bottom": 3.0, "top": 1.0}}))
+    with pytest.raises(ValueError, match=r"coverage"):
+        tv.load_scene(_scene(density={"cloudscape": {"coverage": 1.5}}))
+    with pytest.raises(ValueError, match=r"sky_blend"):
+        tv.load_scene(_scene(sky_blend=-1.0))
+    with pytest.raises(ValueError, match=r"volumes\[0\].*sky_blend is a source of the physical medium"):
+        tv.load_scene(_scene(sky_blend=0.1, shading="shader"))
+    with pytest.raises(ValueError, match=r"volumes\[0\].*ambient lights physical shading"):
+        tv.load_scene(_scene(density={"cloudscape": {"ambient": {}}}, shading="shader"))
+
+
+def test_preset_renders_a_sky_of_clouds():
+    out = tv.render(tv.preset("cloudscape", width=24, height=24))
+    assert out.stats["passes"] == ["rays", "sky", "volume0.march", "volume0.shadow0", "composite", "post.tonemap.aces"]
+    assert torch.all(torch.isfinite(out.image))
+    top = out.alpha[0, 0, :12]
+    assert 0.1 < float(top.mean()) < 0.95  # scattered clouds: some sky shows through
+    scene = tv.preset("cloudscape", width=8, height=8, coverage=0.9, cloud_type=0.1, sun_elevation=30.0, time=2.0)
+    vol, sun = scene.volumes[0].density.cloudscape, scene.lights[0].direction
+    assert (vol.coverage, vol.type, scene.time) == (0.9, 0.1, 2.0)
+    assert math.isclose(math.degrees(math.asin(sun[1] / math.hypot(*sun))), 30.0, abs_tol=1e-9)
+    with pytest.raises(ValueError, match="cloudscape.sun_elevation"):
+        tv.preset("cloudscape", sun_elevation=95.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# dual-lobe HG against the seeds' GLSL (Mesa llvmpipe)
+
+_HG_GLSL = """
+float HenyeyGreenstein(float cosTheta, float g) {
+    float gg = g * g;
+    return (1.0 - gg) / pow(1.0 + gg - 2.0 * g * cosTheta, 1.5);
+}
+uniform vec3 lobes;
+void mainImage(out vec4 fragColor, in vec2 fragCoord) {
+    float sundotrd = -1.0 + 2.0 * fragCoord.x / iResolution.x;
+    float scattering = mix(HenyeyGreenstein(sundotrd, lobes.x), HenyeyGreenstein(sundotrd, lobes.y), lobes.z);
+    fragColor = vec4(scattering, sundotrd, 0.0, 1.0);
+}
+"""
+
+
+@pytest.mark.parametrize("lobes", [(0.8, -0.2, 0.5), (0.6, -0.3, 0.4), (0.95, 0.1, 0.8)])
+def test_dual_hg_matches_the_seeds_glsl(lobes):
+    glsl = pytest.importorskip("torchvol.testing.glsl")
+    if glsl.gl_context() is None:
+        pytest.skip("no OpenGL (moderngl/EGL) context")
+    out = glsl.run_fragment(glsl.shadertoy_source(_HG_GLSL), 256, 1, uniforms={"lobes": lobes})
+    seeds, cos = out[0, :, 0].astype(np.float64), torch.from_numpy(out[0, :, 1].astype(np.float64))
+    # the seeds' HG omits 1/4π; it takes the same cosine once its sun direction points towards the sun
+    ours = dual_henyey_greenstein(cos, *lobes).numpy() * 4.0 * math.pi
+    # the seeds' float32 1 + g² − 2g·cos cancels near a lobe's peak: its rounding (a few ulp of the
+    # terms) grows by the cancellation (terms / result) and the power 1.5
+    c = cos.numpy()
+    cancel = np.maximum(*[(1 + g * g + 2 * abs(g)) / (1 + g * g - 2 * g * c) for g in lobes[:2]])
+    assert np.all(np.abs(ours - seeds) <= 4 * 2.0**-24 * 1.5 * cancel * np.abs(ours))
+
+
+# ---------------------------------------------------------------------------------------------
+# the planet's shell
+
+
+def test_shell_bounds_first_stretch_and_the_ground():
+    from torchvol.rays import intersect_shell
+
+    R, lo, hi = 100.0, 2.0, 5.0
+    c = torch.tensor([0.0, -R, 0.0], dtype=F64)
+    o = torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 3.0, 0.0], [0.0, 3.0, 0.0], [0.0, 8.0, 0.0],
+                      [0.0, 8.0, 0.0], [0.0, 1.0, 0.0]], dtype=F64)
+    d = torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, -1.0, 0.0],
+                      [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], dtype=F64)
+    t0, t1 = intersect_shell(o, d, c, R, R + lo, R + hi)
+    # straight up from below: floor to ceiling; down from below: the ground hides the far side
+    assert_close(torch.stack([t0[0], t1[0]]), torch.tensor([1.0, 4.0], dtype=F64), atol=1e-9, what="up from below")
+    assert float(t0[1]) > float(t1[1])
+    # inside the layer: up to the ceiling, or down to the floor
+    assert_close(torch.stack([t0[2], t1[2], t0[3], t1[3]]), torch.tensor([0.0, 2.0, 0.0, 1.0], dtype=F64), atol=1e-9, what="inside")
+    # from above: down from the ceiling to the floor; up: nothing
+    assert_close(torch.stack([t0[4], t1[4]]), torch.tensor([3.0, 6.0], dtype=F64), atol=1e-9, what="down from above")
+    assert float(t0[5]) > float(t1[5])
+    # horizontal from below: the layer's floor curves down to meet the ray
+    r1 = R + 1.0
+    assert_close(torch.stack([t0[6], t1[6]]), torch.tensor([math.sqrt((R + lo) ** 2 - r1**2), math.sqrt((R + hi) ** 2 - r1**2)], dtype=F64),
+                 atol=1e-9, what="horizontal")
+
+
+def test_shell_layer_renders_over_the_curved_ground():
+    scene = _scene(bounds={"shell": {"planet_radius": 200.0, "bottom": 1.0, "top": 3.0}},
+                   density={"cloudscape": {"bottom": 1.0, "top": 3.0, "planet_radius": 200.0, "coverage": 0.8}})
+    scene["camera"] = {"eye": [0.0, 0.5, 0.0], "target": [0.0, 0.0, 6.0], "fov_y": 80.0}  # half the view below the horizon
+    out = tv.render(tv.load_scene(scene))
+    assert torch.all(torch.isfinite(out.image))
+    alpha = out.alpha[0, 0]
+    assert float(alpha[:3].mean()) > 0.2 and torch.all(alpha[-3:] == 0)  # clouds above, none through the ground

@@ -1,0 +1,68 @@
+"""An explosion: an fbm-displaced sphere, animated by `time` (the seeds' variant 1 fireball).
+
+    R(t) = radius · (1 + growth · max(time, 0))               the ball expands from time 0
+    q    = (p − center) / R(t)                               the noise expands with it
+    n    = fbm(frequency · q + offset − drift · time)        value noise in [0, 1], seeded
+    density = clamp(sharpness · (1 − |q| + displacement · (n − 0.5)), 0, 1)
+
+The density is 1 in the core, falls off towards the displaced surface |q| ≈ 1 + displacement ·
+(n − 0.5), and is 0 beyond it; `drift` scrolls the noise through the ball, so flames churn over
+time. Density never exceeds 1, so `sigma_t` is the core's extinction (and the seeds' colour map
+reads the density as a fraction, `volume.emission`).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import Field
+from torch import Tensor
+
+from .. import noise
+from ..batch import Stacked, per_scene, take
+from ..schema import EACH, Strict, Vec3
+
+
+class ExplosionDensity(Strict):
+    """An fbm-displaced sphere: clamp(sharpness · (1 − |q| + displacement · (fbm(frequency · q +
+    offset − drift · time) − 0.5)), 0, 1), q = (p − center) / (radius · (1 + growth · max(time, 0)))."""
+
+    center: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = Field(1.0, gt=0.0, le=1e6)
+    growth: float = Field(0.0, ge=0.0)  # the radius grows by this fraction of itself per second from time 0
+    displacement: float = Field(0.6, ge=0.0)  # how far the noise moves the surface, in radii
+    sharpness: float = Field(2.5, gt=0.0)  # density gradient across the surface (1: a linear ramp to the centre)
+    octaves: int = Field(5, ge=1, le=12)
+    frequency: float = Field(2.5, gt=0.0, le=1e6)  # noise cells per radius
+    seed: Annotated[int, EACH] = 0
+    offset: Vec3 = (0.0, 0.0, 0.0)
+    drift: Vec3 = (0.0, 0.6, 0.0)  # noise units per second; +y: flames rise through the ball
+
+
+class ExplosionField:
+    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+        self.p = params
+        self.basis = noise.compiled(noise.value_noise) if compiled else noise.value_noise
+        self.size = params.radius * (1.0 + params.growth * times.clamp_min(0.0))  # (B,) R(t)
+        self.shift = params.offset - params.drift * times[:, None]  # (B, 3)
+        # the finest octave's lattice period, in world units (R(t) / frequency per noise cell)
+        self.feature_size = noise.finest_period(params.octaves) * self.size / params.frequency
+
+    def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        return self.signed(points, scene_index, lod).clamp_min(0.0)
+
+    def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        """`points` [N, 3], `scene_index` [N], `lod` [N] octaves to drop -> [N], at most 1."""
+        p, s = self.p, scene_index
+        q = (points - take(p.center, s)) / take(self.size, s)[:, None]
+        x = take(p.frequency, s)[:, None] * q + take(self.shift, s)
+        octaves = None if lod is None else p.octaves - lod
+
+        def one_scene(b: int, idx: Tensor | slice, x_b: Tensor) -> Tensor:
+            seed = p.seed[b]
+            return noise.fbm(x_b, lambda y: self.basis(y, seed=seed), octaves=p.octaves,
+                             lod=None if octaves is None else octaves[idx])
+
+        n = per_scene(x, s, len(p), one_scene)
+        shape = 1.0 - q.norm(dim=1) + take(p.displacement, s) * (n - 0.5)
+        return (take(p.sharpness, s) * shape).clamp_max(1.0)
