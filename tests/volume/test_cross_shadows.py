@@ -133,3 +133,16 @@ def test_multi_layer_cumulus_shadows_the_fog(one_thread):
     ratio = with_cumulus.radiance[0, 1] / fog_only.radiance[0, 1]
     assert bool(torch.isfinite(ratio).all()) and float(ratio.max()) <= 1.0 + 1e-5
     assert float(ratio.min()) < 0.7 and float(ratio.max()) > 0.95, (float(ratio.min()), float(ratio.max()))
+
+
+@pytest.mark.parametrize("direction", [(1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.3, 1e-7, -0.2)])
+def test_grazing_and_upward_shadow_rays_stay_finite(direction, one_thread):
+    """A sun on the horizon (shadow rays along the slabs' planes, to their reach) or below the ground."""
+    scene = {"image": {"width": 7, "height": 5}, "camera": {"eye": [0.0, 1.0, -3.0], "target": [0.0, 0.0, 0.0]},
+             "lights": [_sun(direction, steps=3)], "terrain": {"amplitude": 0.4, "steps": 32},
+             "volumes": [{"bounds": {"slab": {"y_min": 0.5, "y_max": 1.5}}, "sigma_t": 0.3},
+                         {"bounds": {"sphere": {"center": [0.0, 0.8, 0.0], "radius": 0.4}}, "sigma_t": 2.0,
+                          "density": {"fbm": {"octaves": 2}}}]}
+    out = tv.render(scene)
+    for x in (out.radiance, out.depth, out.alpha, *out.aovs.values()):
+        assert bool(torch.isfinite(x).all())
