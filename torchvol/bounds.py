@@ -1,6 +1,7 @@
 """Where a volume's medium lives: box, sphere, horizontal slab or a planet's shell. Each kind gives its entry/exit
 distances along rays (`intersect`), the box around it (`aabb`, finite kinds only: the sun grid
-tabulates over it) and its height range (`height_range`: the shader look's height gradient)."""
+tabulates over it), its height range (`height_range`: the shader look's height gradient, the ambient
+gradient) and the distance in to its surface (`depth`: the edge fade)."""
 
 from __future__ import annotations
 
@@ -59,7 +60,8 @@ class Shell(Strict):
 
 
 # Every function takes the bounds of B scenes (`Stacked`): `intersect(b, o [n, 3], d [n, 3], s [n])
-# -> (t_near [n], t_far [n])`; `aabb(b) -> (min (B, 3), max (B, 3))`; `height_range(b) -> (B, 2)`.
+# -> (t_near [n], t_far [n])`; `aabb(b) -> (min (B, 3), max (B, 3))`; `height_range(b) -> (B, 2)`;
+# `depth(b, p [n, 3], s [n]) -> [n]`: distance from p in to the surface (negative outside; `edge`).
 
 def _box_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
     return intersect_box(o, d, take(b.min, s), take(b.max, s))
@@ -87,6 +89,25 @@ def _shell_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tenso
 def _shell_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
     reach = (b.planet_radius + b.top)[:, None]
     return _shell_center(b) - reach, _shell_center(b) + reach
+def _box_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    return torch.minimum(p - take(b.min, s), take(b.max, s) - p).amin(dim=1)
+
+
+def _sphere_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    return take(b.radius, s) - (p - take(b.center, s)).norm(dim=1)
+
+
+def _slab_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    return torch.minimum(p[:, 1] - take(b.y_min, s), take(b.y_max, s) - p[:, 1])
+
+
+def _shell_altitude(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    return (p - take(_shell_center(b), s)).norm(dim=1) - take(b.planet_radius, s)
+
+
+def _shell_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    altitude = _shell_altitude(b, p, s)
+    return torch.minimum(altitude - take(b.bottom, s), take(b.top, s) - altitude)
 
 
 def _sphere_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
@@ -99,10 +120,11 @@ def _heights(lo: Tensor, hi: Tensor) -> Tensor:
 
 BOUNDS = Registry("bounds")
 BOUNDS.register("box", Box, _box_intersect, finite=True, aabb=lambda b: (b.min, b.max),
-                height_range=lambda b: _heights(b.min[:, 1], b.max[:, 1]))
+                height_range=lambda b: _heights(b.min[:, 1], b.max[:, 1]), depth=_box_depth)
 BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, aabb=_sphere_aabb,
-                height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius))
+                height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius), depth=_sphere_depth)
 # a slab's exit is at infinity along its planes: rays stop at SLAB_REACH unless march.max_distance says
-BOUNDS.register("slab", Slab, _slab_intersect, finite=False, aabb=None, height_range=lambda b: _heights(b.y_min, b.y_max))
+BOUNDS.register("slab", Slab, _slab_intersect, finite=False, aabb=None, height_range=lambda b: _heights(b.y_min, b.y_max),
+                depth=_slab_depth)
 BOUNDS.register("shell", Shell, _shell_intersect, finite=True, aabb=_shell_aabb,
-                height_range=lambda b: _heights(b.bottom, b.top))
+                height_range=lambda b: _heights(b.bottom, b.top), depth=_shell_depth, altitude=_shell_altitude)

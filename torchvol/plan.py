@@ -64,8 +64,10 @@ class VolumePass:
     bloom: int | None  # the point light the seeds' glow surrounds, None: no glow
     reach: float  # how far a ray or shadow ray travels in the volume (`march.max_distance`, or its bounds')
     compact_below: float  # the march drops finished rays below this active fraction (`volume.march.march`)
-    ambient: bool = False  # the density's ambient light is set (a physical source σs · ambient)
     sky_blend: bool = False  # sources blend into the sky with distance (`volumes[i].sky_blend`)
+    ambient: bool = False  # sky light in-scattered (`volumes[i].ambient`)
+    ambient_pass: str | None = None  # its visibility march, a pass of its own ("volume0.ambient")
+    multiple: bool = False  # Wrenninge's octaves on the lights' in-scatter (`volumes[i].multiple_scattering`)
 
     @property
     def step_pass(self) -> str:
@@ -85,7 +87,7 @@ class VolumePass:
 
     def names(self) -> list[str]:
         own = ([self.emission_pass] if self.emission_map is not None else []) + ([self.bloom_pass] if self.bloom is not None else [])
-        own += [n for li in self.lights for n in li.names()]
+        own += [n for li in self.lights for n in li.names()] + ([self.ambient_pass] if self.ambient_pass else [])
         return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
 
 
@@ -141,9 +143,9 @@ def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
         return "march"
     lights = [LIGHTS[li.kind] for li in batch.lights]
     if (settings.closed_form and DENSITIES[vol.density.kind].caps.get("homogeneous") and settings.integrator != "alpha"
-            and vol.sky_blend is None and all(k.caps["directional"] for k in lights)
-            and not any(li.shadow is not None for li in batch.lights)
-            and vol.emission_map is None and vol.bloom is None):  # these vary along the ray
+            and all(k.caps["directional"] for k in lights) and not any(li.shadow is not None for li in batch.lights)
+            and all(term is None for term in (vol.sky_blend, vol.emission_map, vol.bloom, vol.edge, vol.ambient))):
+        # (each of those terms varies along a ray)
         return "closed_form"  # the source is constant along a ray: one exact segment
     if settings.tolerance is not None:
         return "tolerance"
@@ -176,13 +178,14 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
         reach = math.inf if bounds.caps["finite"] else SLAB_REACH
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
-    physical = shading.caps["physical"]
+    ambient = vol.ambient is not None
     return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
                       emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
                       emission_map=None if vol.emission_map is None else vol.emission_map.kind,
                       bloom=None if vol.bloom is None else vol.bloom.light,
-                      ambient=physical and bool(density.caps.get("ambient")) and vol.density.value.ambient is not None,
-                      sky_blend=physical and vol.sky_blend is not None)
+                      sky_blend=vol.sky_blend is not None, ambient=ambient,
+                      ambient_pass=f"{name}.ambient" if ambient and vol.ambient.visibility == "march" else None,
+                      multiple=vol.multiple_scattering is not None)
 
 
 def make_plan(batch: Stacked | Scene) -> Plan:

@@ -21,9 +21,10 @@ from .batch import Stacked, check_same_structure, stack, take
 from .bounds import BOUNDS
 from .camera import Camera, Rays
 from .fields import DENSITIES
+from .fields.edge import EdgeField
 from .lights import LIGHTS, LightSource
 from .plan import Plan, VolumePass, make_plan
-from .post import POST
+from .post import POST, View
 from .quality import at_level
 from .sampling import march_dither, subpixel_jitter
 from .scene import load_scene
@@ -32,6 +33,7 @@ from .stats import CountedField, Counts, Timer
 from .terrain import TerrainSurface
 from .validate import fail, integer, is_integer
 from .volume.atmosphere import aerial_perspective, gather_air
+from .volume.ambient import sky_mean
 from .volume.composite import composite_volumes, finish
 from .volume.phase import PHASES
 from .volume.physical import occluder_transmittance
@@ -69,6 +71,7 @@ class VolumeState:
     shading: object  # Kind
     sun_grids: dict = field(default_factory=dict)
     macro: dict = field(default_factory=dict)
+    ambient_bottom: Tensor | None = None  # (B, 3) the ambient radiance (at the bottom of the bounds)
 
     def intersect(self, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
         """Entry/exit distances [n] of rays `o`, `d` [n, 3] of scenes `s` [n]."""
@@ -103,8 +106,15 @@ class RenderContext:
         if density.caps.get("needs_box"):
             extra = dict(zip(("box_min", "box_max"), bounds.aabb(params.bounds.value)))
         inner = density.fn(params.density.value, self.times, compiled=compiled, **extra)
-        return VolumeState(params, vp, CountedField(inner, self.counts), bounds, PHASES[params.phase.kind],
-                           SHADINGS[vp.shading])
+        if params.edge is not None:
+            inner = EdgeField(inner, bounds.caps["depth"], params.bounds.value, params.edge)
+        state = VolumeState(params, vp, CountedField(inner, self.counts), bounds, PHASES[params.phase.kind],
+                            SHADINGS[vp.shading])
+        if vp.ambient:
+            amb = params.ambient
+            state.ambient_bottom = amb.radiance if amb.radiance is not None else sky_mean(
+                SKIES[self.batch.sky.kind].fn, self.batch.sky, self.sun(), len(params), dtype=self.dtype, device=self.device)
+        return state
 
     def dither(self, rays: Rays) -> Tensor | None:
         st, image = self.settings, self.batch.image
@@ -263,7 +273,7 @@ def render(
             progress(last - first)
     images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
     radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
-    image = post_process(ctx, radiance, images)
+    image = post_process(ctx, radiance, images, View(camera=camera, sun=ctx.sun(), alpha=alpha))
     stats = {
         "passes": list(ctx.timer.seconds),
         "plan": plan.names(),
@@ -280,11 +290,13 @@ def render(
     return RenderOutput(image=image, radiance=radiance, depth=depth, alpha=alpha, aovs=images, camera=camera, stats=stats)
 
 
-def post_process(ctx: RenderContext, radiance: Tensor, aovs: dict[str, Tensor]) -> Tensor:
-    """The plan's post effects on linear radiance (B, 3, H, W), in order -> the image in [0, 1]."""
+def post_process(ctx: RenderContext, radiance: Tensor, aovs: dict[str, Tensor], view: View) -> Tensor:
+    """The plan's post effects on linear radiance (B, 3, H, W), in order -> the image in [0, 1];
+    `view` goes to the effects that need the camera, sun and alpha."""
     x = radiance
     post = stack(ctx.batch.post.models, dtype=x.dtype, device=x.device)  # float32 images
     for kind, name in ctx.plan.post:
+        effect = POST[kind]
         with ctx.timer.section(name):
-            x = POST[kind].fn(x, post, aovs)
+            x = effect.fn(x, post, aovs, view) if effect.caps.get("view") else effect.fn(x, post, aovs)
     return x.clamp(0.0, 1.0)

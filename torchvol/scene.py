@@ -30,6 +30,9 @@ from .terrain import Terrain
 from .validate import SceneError, did_you_mean, fail
 from .volume.emission import Bloom, EmissionMap
 from .volume.atmosphere import AtmosphereMedium
+from .fields.edge import Edge
+from .volume.ambient import Ambient
+from .volume.multiple import MultipleScattering
 from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
@@ -116,26 +119,16 @@ class Volume(Strict):
     # the seeds' distance fog `mix(col, bg, 1 − exp(−k t²))` as a physical source term
     sky_blend: float | None = Field(None, gt=0.0, description="physical shading: each sample's source blends into the sky "
                                     "behind its ray by 1 − exp(−k·t²); None: no blend")
+    # the realism terms (docs/VOLUMES.md): absent, physical shading is exactly single scattering
+    edge: Edge | None = None
+    ambient: Ambient | None = None
+    multiple_scattering: MultipleScattering | None = None
     _e = field_validator("emission")(lambda v: nonneg(v))
 
     @model_validator(mode="after")
     def _density_fits_bounds(self):
         if DENSITIES[self.density.kind].caps.get("needs_box") and self.bounds.kind != "box":
             raise ValueError(f"a {self.density.kind} density needs box bounds (it spans the box)")
-        return self
-
-    @model_validator(mode="after")
-    def _physical_terms(self):
-        """Sources of the physical medium: refused, not ignored, under the shader look (which has
-        shader.fog and shader.ambient)."""
-        if not SHADINGS[self.shading].caps["physical"]:
-            for key in ("emission_map", "bloom", "sky_blend"):
-                if getattr(self, key) is not None:
-                    raise ValueError(f"{key} is a source of the physical medium: it needs shading = 'physical', "
-                                     f"not {self.shading!r}")
-            if DENSITIES[self.density.kind].caps.get("ambient") and self.density.value.ambient is not None:
-                raise ValueError(f"density.{self.density.kind}.ambient lights physical shading, not {self.shading!r} "
-                                 "(use shader.ambient)")
         return self
 
 
@@ -433,6 +426,35 @@ class Scene(Strict):
     def _atmosphere_lit_by_a_sun(self):
         if self.atmosphere is not None and not (self.lights and LIGHTS[self.lights[0].kind].caps["directional"]):
             refuse("atmosphere", "<atmosphere>", "the atmosphere is lit by the first light: make lights[0] a sun")
+        return self
+
+    @model_validator(mode="after")
+    def _physical_terms(self):
+        """Terms of the physical medium are refused, not ignored, under the shader look (which has
+        shader.fog and shader.ambient)."""
+        for v, vol in enumerate(self.volumes):
+            if SHADINGS[vol.shading].caps["physical"]:
+                continue
+            for key in ("emission_map", "bloom", "sky_blend", "ambient", "multiple_scattering"):
+                if getattr(vol, key) is not None:
+                    refuse(f"volumes[{v}].{key}", "<set>", f"a term of the physical medium: it needs "
+                           f"shading = 'physical' (volumes[{v}].shading is {vol.shading!r})")
+        return self
+
+    @model_validator(mode="after")
+    def _ambient_from_a_sky(self):
+        for v, vol in enumerate(self.volumes):
+            if vol.ambient is not None and vol.ambient.radiance is None and self.sky is None:
+                refuse(f"volumes[{v}].ambient.radiance", None, "no [sky] to take the ambient from: give radiance = [r, g, b] "
+                       "or add a [sky]")
+        return self
+
+    @model_validator(mode="after")
+    def _god_rays_need_a_sun(self):
+        if self.post.god_rays is not None and not (self.lights and LIGHTS[self.lights[0].kind].caps["directional"]):
+            kind = self.lights[0].kind if self.lights else None
+            refuse("post.god_rays", "<god_rays>", f"screen-space god rays radiate from the sun: make lights[0] a sun "
+                   f"(lights[0] is {kind or 'absent'})")
         return self
 
     @model_validator(mode="after")

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 import torchvol as tv
 from torchvol import noise, noise_tiles
 from torchvol.batch import stack
-from torchvol.fields.cloudscape import AMBIENT_BOTTOM, AMBIENT_TOP, CLOUD_TYPES, Cloudscape, CloudscapeDensity, height_gradient
+from torchvol.fields.cloudscape import CLOUD_TYPES, Cloudscape, CloudscapeDensity, height_gradient
 from torchvol.plan import make_plan
 from torchvol.volume.phase import dual_henyey_greenstein
 
@@ -128,21 +128,13 @@ def test_coverage_grows_the_clouds_and_zero_is_empty():
     assert filled[0] == 0.0 and all(a <= b for a, b in zip(filled, filled[1:])) and filled[-1] > 0.5
 
 
-def test_ambient_gradient_is_the_seeds_colours():
-    field = _field(bottom=2.0, top=5.0, ambient={})
-    p = torch.tensor([[0.0, 2.0, 0.0], [0.0, 5.0, 0.0], [1.0, 3.5, -1.0], [0.0, 9.0, 0.0]], dtype=F64)
-    a = field.ambient(p, torch.zeros(4, dtype=torch.long))
-    bottom = torch.tensor([39.0, 67.0, 87.0], dtype=F64) * 1.5 / 255
-    top = torch.tensor([149.0, 167.0, 200.0], dtype=F64) * 1.5 / 255
-    assert_close(a[0], bottom, atol=1e-6, what="bottom")
-    assert_close(a[1], top, atol=1e-6, what="top")
-    assert_close(a[2], 0.5 * (bottom + top), atol=1e-6, what="middle")
-    assert_close(a[3], top, atol=1e-6, what="above: clamped")
-    assert AMBIENT_BOTTOM == tuple(round(float(x), 6) for x in bottom) and AMBIENT_TOP == tuple(round(float(x), 6) for x in top)
-
-
 # ---------------------------------------------------------------------------------------------
 # renders
+
+
+# the seeds' production-cloud ambient, (39, 67, 87) · 1.5/255 below and (149, 167, 200) · 1.5/255 above
+SEEDS_AMBIENT = {"radiance": [c * 1.5 / 255.0 for c in (39.0, 67.0, 87.0)],
+                 "top": [c * 1.5 / 255.0 for c in (149.0, 167.0, 200.0)], "visibility": "none"}
 
 
 def _scene(**volume) -> dict:
@@ -159,7 +151,7 @@ def _scene(**volume) -> dict:
 
 
 def test_coverage_zero_renders_the_sky():
-    scene = _scene(density={"cloudscape": {"bottom": 1.0, "top": 3.0, "coverage": 0.0, "ambient": {}}}, sky_blend=0.01)
+    scene = _scene(density={"cloudscape": {"bottom": 1.0, "top": 3.0, "coverage": 0.0}}, sky_blend=0.01, ambient=SEEDS_AMBIENT)
     out = tv.render(tv.load_scene(scene))
     sky = tv.render(tv.load_scene({**scene, "volumes": []}))
     assert torch.equal(out.radiance, sky.radiance) and torch.all(out.alpha == 0)
@@ -177,17 +169,21 @@ def test_sky_blend_fades_the_clouds_into_the_sky():
     assert float((partial.radiance - near.radiance).abs().max()) > 1e-3
 
 
-def test_ambient_alone_lies_between_its_colours():
-    """No light, no sky: each sample's source is σs · ambient(h), so the pixel is albedo ·
-    ∫ T σt ambient dt, between albedo · alpha · bottom and albedo · alpha · top per channel."""
-    scene = _scene(density={"cloudscape": {"bottom": 1.0, "top": 3.0, "coverage": 0.7, "ambient": {}}})
+def test_ambient_alone_lies_between_its_colours_graded_by_altitude():
+    """No light, no sky: each sample's source is σs · mix(bottom, top, h) with h the altitude in the
+    shell (not y: over a small planet the two differ), so the pixel is albedo · ∫ T σt ambient dt,
+    between albedo · alpha · bottom and albedo · alpha · top per channel, and nearer the bottom for a
+    layer seen from below."""
+    density = {"bottom": 1.0, "top": 3.0, "coverage": 0.7, "planet_radius": 20.0}
+    scene = _scene(bounds={"shell": {"planet_radius": 20.0, "bottom": 1.0, "top": 3.0}}, density={"cloudscape": density},
+                   ambient=SEEDS_AMBIENT)
     scene.update(lights=[])
     del scene["sky"]
     out = tv.render(tv.load_scene(scene), dtype=F64)
     alpha = out.alpha[0, 0]
     assert float(alpha.max()) > 0.5
-    lo = torch.tensor(AMBIENT_BOTTOM, dtype=F64)[:, None, None] * 0.9 * alpha
-    hi = torch.tensor(AMBIENT_TOP, dtype=F64)[:, None, None] * 0.9 * alpha
+    lo = torch.tensor(SEEDS_AMBIENT["radiance"], dtype=F64)[:, None, None] * 0.9 * alpha
+    hi = torch.tensor(SEEDS_AMBIENT["top"], dtype=F64)[:, None, None] * 0.9 * alpha
     assert torch.all(out.radiance[0] >= lo - 1e-9) and torch.all(out.radiance[0] <= hi + 1e-9)
     assert float((out.radiance[0] - lo).max()) > 1e-3
 
@@ -195,7 +191,7 @@ def test_ambient_alone_lies_between_its_colours():
 def test_plan_turns_the_new_terms_on_only_when_asked():
     plain = make_plan(tv.load_scene(_scene())).volumes[0]
     assert not plain.ambient and not plain.sky_blend
-    asked = make_plan(tv.load_scene(_scene(density={"cloudscape": {"ambient": {}}}, sky_blend=0.01))).volumes[0]
+    asked = make_plan(tv.load_scene(_scene(ambient=SEEDS_AMBIENT, sky_blend=0.01))).volumes[0]
     assert asked.ambient and asked.sky_blend
     # a blend makes the source vary along the ray: a homogeneous medium is marched, not closed
     box = {"bounds": {"box": {}}, "density": {"constant": 1.0}, "phase": "isotropic"}
@@ -206,8 +202,8 @@ def test_plan_turns_the_new_terms_on_only_when_asked():
 
 @pytest.mark.parametrize("size", [(7, 5), (1, 1), (13, 3)])
 def test_finite_renders_at_odd_sizes(size):
-    scene = _scene(density={"cloudscape": {"bottom": 1.0, "top": 3.0, "coverage": 0.8, "planet_radius": 200.0, "ambient": {},
-                                           "wind": [0.5, 0.0, 0.2]}}, sky_blend=0.002)
+    scene = _scene(density={"cloudscape": {"bottom": 1.0, "top": 3.0, "coverage": 0.8, "planet_radius": 200.0,
+                                           "wind": [0.5, 0.0, 0.2]}}, sky_blend=0.002, ambient=SEEDS_AMBIENT)
     scene["image"] = {"width": size[0], "height": size[1]}
     scene["time"] = 2.0
     out = tv.render(tv.load_scene(scene))
@@ -222,12 +218,12 @@ def test_finite_renders_at_odd_sizes(size):
        coverage=st.sampled_from([0.0, 0.5, 1.0]), erosion=st.sampled_from([0.0, 5.0]),
        cloud_type=st.sampled_from([0.0, 1.0]), curved=st.booleans())
 def test_hard_cases_stay_finite(k, sigma, coverage, erosion, cloud_type, curved):
-    density = {"bottom": 1.0, "top": 3.0, "coverage": coverage, "erosion": erosion, "type": cloud_type, "ambient": {}}
+    density = {"bottom": 1.0, "top": 3.0, "coverage": coverage, "erosion": erosion, "type": cloud_type}
     bounds = {"slab": {"y_min": 1.0, "y_max": 3.0}}
     if curved:
         density["planet_radius"] = 50.0
         bounds = {"shell": {"planet_radius": 50.0, "bottom": 1.0, "top": 3.0}}
-    scene = _scene(bounds=bounds, density={"cloudscape": density}, sigma_t=sigma, sky_blend=k)
+    scene = _scene(bounds=bounds, density={"cloudscape": density}, sigma_t=sigma, sky_blend=k, ambient=SEEDS_AMBIENT)
     scene["image"] = {"width": 7, "height": 5}
     out = tv.render(tv.load_scene(scene))
     for t in (out.image, out.radiance, out.depth, out.alpha):
@@ -242,10 +238,10 @@ def test_refusals_name_the_key():
         tv.load_scene(_scene(density={"cloudscape": {"coverage": 1.5}}))
     with pytest.raises(ValueError, match=r"sky_blend"):
         tv.load_scene(_scene(sky_blend=-1.0))
-    with pytest.raises(ValueError, match=r"volumes\[0\].*sky_blend is a source of the physical medium"):
+    with pytest.raises(ValueError, match=r"volumes\[0\]\.sky_blend.*a term of the physical medium"):
         tv.load_scene(_scene(sky_blend=0.1, shading="shader"))
-    with pytest.raises(ValueError, match=r"volumes\[0\].*ambient lights physical shading"):
-        tv.load_scene(_scene(density={"cloudscape": {"ambient": {}}}, shading="shader"))
+    with pytest.raises(ValueError, match=r"volumes\[0\]\.ambient.*a term of the physical medium"):
+        tv.load_scene(_scene(ambient=SEEDS_AMBIENT, shading="shader"))
 
 
 def test_preset_renders_a_sky_of_clouds():

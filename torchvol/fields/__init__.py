@@ -9,8 +9,6 @@ capabilities:
 - ``cheap``: a sample costs less than compacting the march's batch (the march keeps finished rays
   in the batch longer);
 - ``octaves``: a sum of octaves that `march.lod` may cut short with distance;
-- ``ambient``: the field's table may set `ambient`, an ambient light the physical medium adds as
-  the source σs · `field.ambient(points, scene_index)` [N, 3] (where it is set).
 
 Each field holds per-scene parameter tensors of shape (B, ...) and calls plain noise / sampling
 functions, so B scenes of one structure evaluate in one call.
@@ -27,6 +25,7 @@ from .exponential import Exponential, ExponentialDensity
 from .explosion import ExplosionDensity, ExplosionField
 from .fbm import FbmDensity, FbmField
 from .grid import Grid, GridDensity
+from .particles import ParticleField, ParticlesDensity
 
 DENSITIES = Registry("density")
 DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True)
@@ -35,6 +34,7 @@ DENSITIES.register("exponential", ExponentialDensity, Exponential)
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True)
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True)
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True)
-DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape, ambient=True)
+DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
+DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True)
 
 __all__ = ["DENSITIES", "Field"]

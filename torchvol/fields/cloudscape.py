@@ -11,9 +11,8 @@ flat ground, or the distance from the planet's centre (0, −planet_radius, 0) m
 ground passes through the origin either way. The layer's bounds are the volume's: a slab from
 `bottom` to `top` for flat ground, a `shell` for a planet.
 
-`ambient` (optional) is the height-based ambient gradient of seed 000 (Step 6, Method C): the
-physical medium adds the source σs · mix(bottom, top, h), sky and ground light reaching the cloud
-from all around (isotropic, so the phase function integrates out).
+The seeds' height-based ambient gradient (Step 6, Method C) is the volume's `ambient` with `top`
+(`volume/ambient.py`), graded by altitude over a `shell`.
 """
 
 from __future__ import annotations
@@ -36,18 +35,6 @@ CLOUD_TYPES = ((0.0, 0.1, 0.2, 0.3), (0.02, 0.2, 0.48, 0.625), (0.0, 0.15, 0.6, 
 EROSION_SCALE = 0.225  # the seeds' `dstrength * 0.225`
 COVERAGE_EDGE = 0.1  # the seeds' smoothstep(0.0, 0.1, ...)
 
-# the seeds' ambient colours, (39, 67, 87) · 1.5/255 below and (149, 167, 200) · 1.5/255 above
-AMBIENT_BOTTOM = tuple(round(c * 1.5 / 255.0, 6) for c in (39.0, 67.0, 87.0))
-AMBIENT_TOP = tuple(round(c * 1.5 / 255.0, 6) for c in (149.0, 167.0, 200.0))
-
-
-class Ambient(Strict):
-    """Ambient radiance by normalised height in the layer: mix(bottom, top, h)."""
-
-    bottom: Vec3 = AMBIENT_BOTTOM
-    top: Vec3 = AMBIENT_TOP
-
-
 class CloudscapeDensity(Strict):
     """A layer of production clouds between altitudes `bottom` and `top` (above the ground at y = 0;
     over a planet of `planet_radius` if given): Perlin-Worley shapes (period `scale`) under the
@@ -65,7 +52,6 @@ class CloudscapeDensity(Strict):
     detail_scale: float = Field(2.0, gt=0.0)
     offset: Vec3 = (0.0, 0.0, 0.0)  # in texture periods: another sky from the same textures
     wind: Vec3 = (0.0, 0.0, 0.0)
-    ambient: Ambient | None = None
 
     @model_validator(mode="after")
     def _layer(self):
@@ -128,8 +114,3 @@ class Cloudscape:
         x = (m + take(p.coverage, s) - 1.0) / COVERAGE_EDGE
         return torch.where(x > 0, smoothstep(0.0, 1.0, x), x)
 
-    def ambient(self, points: Tensor, scene_index: Tensor) -> Tensor:
-        """The height-based ambient radiance [n, 3] at `points` [n, 3] (needs `ambient` set)."""
-        amb, s = self.p.ambient, scene_index
-        h = self.height(points, s).clamp(0.0, 1.0)
-        return torch.lerp(take(amb.bottom, s), take(amb.top, s), h[:, None])

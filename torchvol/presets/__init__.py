@@ -36,7 +36,19 @@ def _template_clouds(data: dict, *, time: float = 0.0, mouse=(0.0, 0.0), noise_t
         clouds["texture"] = str(noise_texture) if isinstance(noise_texture, (str, Path)) else noise_texture
 
 
-def _cloud_puff(data: dict, *, sigma_t: float | None = None, g: float | None = None, steps: int | None = None) -> None:
+# cloud-puff's suns: (direction towards the sun, colour, intensity, sky radiance)
+CLOUD_PUFF_SUNS = {
+    "day": ([0.5, 0.8, -0.6], [1.0, 0.95, 0.88], 10.0, [0.3, 0.45, 0.8]),
+    "sunset": ([-0.9, 0.12, -0.3], [1.0, 0.55, 0.25], 10.0, [0.3, 0.26, 0.36]),
+    "backlit": ([-0.15, 0.35, 1.0], [1.0, 0.95, 0.88], 10.0, [0.3, 0.45, 0.8]),
+}
+
+
+def _cloud_puff(data: dict, *, sigma_t: float | None = None, g: float | None = None, steps: int | None = None,
+                sun: str = "day", realism: bool = True) -> None:
+    """`sun`: "day" (over the camera's shoulder), "sunset" (low, warm, from the side) or "backlit"
+    (behind the cloud: a silver lining); `realism` False: plain single scattering (no ambient, no
+    multiple-scattering octaves, no edge fade), what accuracy checks of the march measure."""
     vol = data["volumes"][0]
     if sigma_t is not None:
         vol["sigma_t"] = sigma_t
@@ -44,6 +56,17 @@ def _cloud_puff(data: dict, *, sigma_t: float | None = None, g: float | None = N
         vol["phase"] = {"hg": {"g": g}}
     if steps is not None:
         data["lights"][0]["shadow"]["steps"] = steps
+    if sun not in CLOUD_PUFF_SUNS:
+        fail("cloud-puff.sun", sun, "expected one of " + ", ".join(CLOUD_PUFF_SUNS))
+    if sun != "day":
+        direction, color, intensity, sky = CLOUD_PUFF_SUNS[sun]
+        data["lights"][0].update(direction=direction, color=color, intensity=intensity)
+        data["sky"]["radiance"] = sky
+    if not isinstance(realism, bool):
+        fail("cloud-puff.realism", realism, "expected true or false")
+    if not realism:
+        for key in ("ambient", "multiple_scattering", "edge"):
+            vol.pop(key, None)
 
 
 def shader_camera_matrix(width: int, height: int, eye, focal: float = 0.8) -> dict:
@@ -141,6 +164,8 @@ def _atmosphere(data: dict, *, view: str = "space") -> None:
     if setting:
         data["camera"] = dict(setting["camera"])
         data["lights"][0]["direction"] = list(setting["sun"])
+
+
 def _cloudscape(data: dict, *, coverage: float | None = None, cloud_type: float | None = None,
                 sun_elevation: float | None = None, time: float | None = None) -> None:
     """coverage and cloud_type (0 stratus … 1 cumulonimbus) of the layer; the sun's elevation in
@@ -162,10 +187,52 @@ def _cloudscape(data: dict, *, coverage: float | None = None, cloud_type: float 
         clouds["wind"] = [0.5, 0.0, 0.0]
 
 
+def _particles(data: dict, *, time: float | None = None, seed: int | None = None, count: int | None = None) -> None:
+    particles = data["volumes"][0]["density"]["particles"]
+    if time is not None:
+        data["time"] = time
+    if seed is not None:
+        particles["seed"] = seed
+    if count is not None:
+        particles["count"] = count
+
+
+def god_rays_grid(seed: int, *, haze: float = 0.06, cells: tuple[int, int, int] = (72, 30, 48), holes: int = 24) -> np.ndarray:
+    """The god-rays preset's medium over its box [-6, 6] × [0, 3] × [-3, 5], as grid[k, j, i]: a
+    canopy (density 40) from y = 2.4 to 2.6 pierced by a hole of radius 0.5 where the camera sees
+    the sun and `holes` more of radius 0.3–0.55 placed from `seed`, over `haze` (nothing above)."""
+    nx, ny, nz = cells
+    rng = np.random.default_rng(seed)
+    x = -6.0 + 12.0 * (np.arange(nx) + 0.5) / nx
+    y = 3.0 * (np.arange(ny) + 0.5) / ny
+    z = -3.0 + 8.0 * (np.arange(nz) + 0.5) / nz
+    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+    centres = [(0.0, -1.66, 0.5)] + list(zip(rng.uniform(-3.5, 3.5, holes), rng.uniform(-1.5, 4.0, holes),
+                                             rng.uniform(0.3, 0.55, holes)))
+    open_ = np.zeros(xx.shape, dtype=bool)
+    for cx, cz, r in centres:
+        open_ |= (xx - cx) ** 2 + (zz - cz) ** 2 < r * r
+    canopy = (yy > 2.4) & (yy < 2.6) & ~open_
+    return np.where(canopy, 40.0, np.where(yy < 2.4, haze, 0.0))
+
+
+def _god_rays(data: dict, *, method: str = "both", seed: int = 3) -> None:
+    """`method`: "physical" (shadowed haze, no post effect), "screen" (the post effect, no haze)
+    or "both"."""
+    if method not in ("both", "physical", "screen"):
+        fail("god-rays.method", method, "expected 'both', 'physical' or 'screen'")
+    integer("god-rays.seed", seed, low=0)
+    data["volumes"][0]["density"] = {"grid": {"data": god_rays_grid(seed, haze=0.0 if method == "screen" else 0.06)}}
+    if method == "physical":
+        del data["post"]["god_rays"]
+
+
 PARAMS: dict[str, Callable[..., None]] = {
     "atmosphere": _atmosphere,
     "explosion": _emissive,
     "fire": _emissive,
+    "god-rays": _god_rays,
+    "particles": _particles,
     "voxel-terrain": _voxel_terrain,
     "voxel-glow": _voxel_glow,
     "voxel-rounded": _voxel_rounded,

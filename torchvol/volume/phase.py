@@ -89,10 +89,18 @@ class PhaseChoice(One):
         return {data: {}} if isinstance(data, str) else data
 
 
+# `anisotropic(params, cos, s, k [n])`: the kind with its anisotropy scaled by k (multiple
+# scattering's octaves, `volume/multiple.py`): g·k for the HG lobes and Mie, a blend towards
+# isotropic by k for the kinds without a g
 PHASES = Registry("phase")
-PHASES.register("isotropic", Empty, lambda p, cos, s: isotropic(cos))
-PHASES.register("hg", HG, lambda p, cos, s: henyey_greenstein(cos, take(p.g, s)))
+PHASES.register("isotropic", Empty, lambda p, cos, s: isotropic(cos), anisotropic=lambda p, cos, s, k: isotropic(cos))
+PHASES.register("hg", HG, lambda p, cos, s: henyey_greenstein(cos, take(p.g, s)),
+                anisotropic=lambda p, cos, s, k: henyey_greenstein(cos, take(p.g, s) * k))
 PHASES.register("dual_hg", DualHG, lambda p, cos, s: dual_henyey_greenstein(
-    cos, take(p.g_forward, s), take(p.g_backward, s), take(p.weight, s)))
-PHASES.register("rayleigh", Empty, lambda p, cos, s: rayleigh(cos))
-PHASES.register("mie", HG, lambda p, cos, s: mie_cornette_shanks(cos, take(p.g, s)))
+    cos, take(p.g_forward, s), take(p.g_backward, s), take(p.weight, s)),
+    anisotropic=lambda p, cos, s, k: dual_henyey_greenstein(cos, take(p.g_forward, s) * k, take(p.g_backward, s) * k,
+                                                            take(p.weight, s)))
+PHASES.register("rayleigh", Empty, lambda p, cos, s: rayleigh(cos),
+                anisotropic=lambda p, cos, s, k: torch.lerp(isotropic(cos), rayleigh(cos), k))
+PHASES.register("mie", HG, lambda p, cos, s: mie_cornette_shanks(cos, take(p.g, s)),
+                anisotropic=lambda p, cos, s, k: mie_cornette_shanks(cos, take(p.g, s) * k))

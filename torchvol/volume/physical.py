@@ -1,7 +1,8 @@
 """The physical medium: single scattering from each light with its shadow transmittance, plus
 emission, L = ∫ T(t) [σs(t) Σ p(θ) E T_light(t) + σe(t)] dt, as plain functions of a render's
 state (`ctx`: the batch's lights, counts and timer) and one volume's state (`vol`: its parameters,
-field, bounds, phase and planned lights)."""
+field, bounds, phase and planned lights). Where the volume asks for them, the lights' in-scatter
+is summed over Wrenninge's octaves (`multiple.py`) and sky light is scattered in (`ambient.py`)."""
 
 from __future__ import annotations
 
@@ -14,8 +15,10 @@ from ..batch import per_scene, take
 from ..camera import Rays
 from ..rays import clip_to_ray
 from .emission import EMISSION_MAPS, bloom_glow
+from .ambient import ambient_in_scatter
 from .integrate import frostbite_step
 from .march import LN2, Medium, expected_depth_fraction, gathered, lod_drop
+from .multiple import octave_response, octave_sum
 from .shadow import shadow_transmittance
 from .sun_volume import SunGrid, sun_transmittance_grid
 
@@ -25,15 +28,23 @@ def phase(vol, cos: Tensor, s: Tensor) -> Tensor:
     return vol.phase.fn(vol.params.phase.value, cos, s)
 
 
+def response(vol, irradiance: Tensor, cos: Tensor, s: Tensor) -> Tensor:
+    """E · p(θ) [n, 3] of a light of irradiance [n, 3] at cos θ [n]; with multiple scattering
+    each octave's [n, K, 3]."""
+    if vol.plan.multiple:
+        return octave_response(vol, irradiance, cos, s)
+    return irradiance * phase(vol, cos, s)[:, None]
+
+
 def light_responses(ctx, vol, d: Tensor, s: Tensor) -> list[Tensor | None]:
-    """E · p(θ) [n, 3] of each directional light along directions `d` [n, 3] of scenes `s` [n]; None
+    """`response` of each directional light along directions `d` [n, 3] of scenes `s` [n]; None
     for a light that is not directional. A sun's θ is the same all along a ray: a march computes
     this once per ray."""
     out = []
     for light in ctx.lights:
         if light.directional:
             toward = light.toward(d, s)
-            out.append(toward.irradiance * phase(vol, (d * toward.direction).sum(dim=1), s)[:, None])
+            out.append(response(vol, toward.irradiance, (d * toward.direction).sum(dim=1), s))
         else:
             out.append(None)
     return out
@@ -41,21 +52,30 @@ def light_responses(ctx, vol, d: Tensor, s: Tensor) -> list[Tensor | None]:
 
 def in_scatter(ctx, vol, p: Tensor, d: Tensor | None, s: Tensor, sigma_t: Tensor, responses: list[Tensor | None]) -> Tensor:
     """Σ over the volume's lights of σs · p(θ) · E · T_light at points `p` [n, 3] seen along `d`
-    [n, 3], of extinction `sigma_t` [n]; `responses`: `light_responses` at these samples (`d` is
-    needed only where one is None: a light that is not directional). -> [n, 3]."""
+    [n, 3], of extinction `sigma_t` [n] (summed over octaves with multiple scattering), plus the
+    ambient's σs · L_amb · V; `responses`: `light_responses` at these samples (`d` is needed only
+    where one is None: a light that is not directional). -> [n, 3]."""
     out = p.new_zeros(p.shape[0], 3)
     sigma_s = take(vol.params.albedo, s) * sigma_t
     for use in vol.plan.lights:
         light, toward = ctx.lights[use.light], None
-        response = responses[use.light]
-        if response is None:
+        resp = responses[use.light]
+        if resp is None:
             toward = light.toward(p, s)
-            response = toward.irradiance * phase(vol, (d * toward.direction).sum(dim=1), s)[:, None]
-        radiance = response * sigma_s[:, None]
+            resp = response(vol, toward.irradiance, (d * toward.direction).sum(dim=1), s)
+        trans = None
         if use.shadow is not None:
             with ctx.timer.section(use.name):
-                radiance = radiance * light_transmittance(ctx, vol, use, p, s, sigma_t, toward)[:, None]
+                trans = light_transmittance(ctx, vol, use, p, s, sigma_t, toward)
+        if vol.plan.multiple:
+            radiance = octave_sum(vol, resp, sigma_s, trans, s)
+        else:
+            radiance = resp * sigma_s[:, None]
+            if trans is not None:
+                radiance = radiance * trans[:, None]
         out = out + radiance
+    if vol.plan.ambient:
+        out = out + ambient_in_scatter(ctx, vol, p, s, sigma_s)
     return out
 
 
@@ -139,6 +159,7 @@ def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: 
     o, d, s_all = rays.origins, rays.directions, rays.scene_index
     threshold, lod_scale = ctx.settings.density_threshold, ctx.settings.lod_scale
     responses = light_responses(ctx, vol, d, s_all) if vol.plan.lights else []
+    lights = bool(vol.plan.lights) or vol.plan.ambient
     at = gathered(lambda ids: (s_all[ids], o[ids], d[ids], [None if r is None else r[ids] for r in responses]))
     field = vol.field.signed if signed else vol.field
 
@@ -150,7 +171,7 @@ def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: 
         sigma_raw = take(vol.params.sigma_t, s) * raw
         sigma_t = sigma_raw.clamp_min(0.0) if signed else sigma_raw
         source = p.new_zeros(p.shape[0], 3)
-        if vol.plan.lights:
+        if lights:
             lit = ((density > threshold) & (dt > 0)).nonzero().squeeze(1)  # dt = 0: a finished ray not dropped yet
             if lit.numel():
                 d_lit = d_ids[lit] if any(r is None for r in resp) else None  # only point lights need it per sample
@@ -164,8 +185,6 @@ def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: 
         if vol.plan.bloom is not None:
             with ctx.timer.section(vol.plan.bloom_pass):
                 source = source + bloom_glow(vol.params.bloom, ctx.lights[vol.plan.bloom].params, p, s)
-        if vol.plan.ambient:  # isotropic ambient light: the phase function integrates to 1
-            source = source + (take(vol.params.albedo, s) * sigma_t)[:, None] * vol.field.inner.ambient(p, s)
         if vol.plan.sky_blend:  # σt·sky integrates to the sky seen through the sample's opacity
             k = take(vol.params.sky_blend, s)
             sky = sigma_t[:, None] * (background[ids] if background is not None else 0.0)

@@ -1,0 +1,55 @@
+"""Density faded to 0 towards the volume's bounds, so that no bounding shape shows:
+density · smoothstep(0, width, depth), `depth` the distance from the point in to the bounds'
+surface (a sphere's r − |p − c|, a box's nearest face, a slab's nearest plane; the bounds kind's
+`depth`), or to the plane y = `base` below it where given (height shaping: a cumulus' flat base).
+Wraps any field; the fade is applied wherever the density is read (view march, shadow and ambient
+rays, sun grids)."""
+
+from __future__ import annotations
+
+import torch
+from pydantic import Field
+from torch import Tensor
+
+from ..batch import Stacked, take
+from ..schema import Strict
+
+
+class Edge(Strict):
+    """`volumes[i].edge`: density · smoothstep(0, width, distance inside the bounds)."""
+
+    width: float = Field(0.3, gt=0.0, description="world units over which the density fades in from the bounds")
+    base: float | None = Field(None, description="world height of a flat base: no density below it, fading in over width")
+
+
+def smoothstep01(x: Tensor) -> Tensor:
+    x = x.clamp(0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+class EdgeField:
+    """`inner` (a density field of B scenes) faded towards the bounds: `depth(bounds, p [n, 3], s [n])
+    -> [n]` the bounds kind's distance inside, `edge` the batch's `Edge` tables. Other attributes are the inner field's
+    (a grid's occupancy stays a superset of the faded one's, so empty-space skipping holds)."""
+
+    def __init__(self, inner, depth, bounds: Stacked, edge: Stacked):
+        self.inner, self.depth, self.bounds, self.edge = inner, depth, bounds, edge
+        self.feature_size = inner.feature_size
+
+    def fade(self, points: Tensor, s: Tensor) -> Tensor:
+        depth = self.depth(self.bounds, points, s)
+        if self.edge.base is not None:
+            depth = torch.minimum(depth, points[:, 1] - take(self.edge.base, s))
+        return smoothstep01(depth / take(self.edge.width, s))
+
+    def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        return self.inner(points, scene_index, lod) * self.fade(points, scene_index)
+
+    def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        raw = self.inner.signed(points, scene_index, lod)
+        return raw.where(raw <= 0.0, raw * self.fade(points, scene_index))  # empty stays as far from density
+
+    def __getattr__(self, name: str):
+        if name == "inner":  # not set yet (a copy under construction): no recursion
+            raise AttributeError(name)
+        return getattr(self.inner, name)

@@ -1,0 +1,90 @@
+"""Sky (ambient) light scattered into a medium: σs · L_amb(y) · V, an isotropic term (the sky's
+radiance integrated over the sphere against a 1/4π phase gives back its mean radiance).
+
+L_amb is the scene sky's mean radiance over the sphere (its ambient), or an explicit `radiance`,
+optionally graded linearly with height to `top` at the top of the volume's bounds (the production
+clouds' ambient gradient, seed 000 Step 6 Method C). V, the fraction of that light that reaches the
+point, is estimated as production cloud renderers do with one short march: the transmittance
+towards the sky along `direction` (up by default: the sky is brightest there and a cloud's base is
+the part it cannot reach), with σ_t scaled by `sigma_scale` (< 1: light that reaches the point from
+other directions, or diffuses in, is not lost). `visibility = "none"` takes V = 1."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+from pydantic import Field, field_validator
+from torch import Tensor
+
+from ..batch import take
+from ..schema import Strict, Vec3, nonneg
+from .shadow import shadow_transmittance
+
+SKY_DIRECTIONS = 64  # the Fibonacci sphere the sky's mean radiance is averaged over
+
+
+class Ambient(Strict):
+    """`volumes[i].ambient`: sky light in-scattered by the medium, σs · L_amb(y) · V."""
+
+    radiance: Vec3 | None = Field(None, description="None: the [sky]'s mean radiance over the sphere")
+    top: Vec3 | None = Field(None, description="radiance at the top of the bounds (radiance at the bottom)")
+    visibility: Literal["march", "none"] = "march"
+    direction: Vec3 = (0.0, 1.0, 0.0)
+    steps: int = Field(4, ge=1, le=256)
+    sigma_scale: float = Field(1.0, ge=0.0, le=1.0)
+    _r = field_validator("radiance", "top")(lambda v: v if v is None else nonneg(v))
+
+    @field_validator("direction")
+    @classmethod
+    def _direction(cls, v):
+        if math.hypot(*v) < 1e-9:
+            raise ValueError("direction must be a non-zero vector (towards the sky)")
+        return v
+
+
+def fibonacci_sphere(n: int, *, dtype, device) -> Tensor:
+    """`n` quasi-uniform unit directions [n, 3]."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    y = 1.0 - 2.0 * i / n
+    r = (1.0 - y * y).sqrt()
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return torch.stack([r * phi.cos(), y, r * phi.sin()], dim=1).to(dtype=dtype, device=device)
+
+
+def sky_mean(sky_fn, sky, sun: Tensor | None, count: int, *, dtype, device) -> Tensor:
+    """Each scene's sky radiance averaged over the sphere (B, 3); `sky_fn` the sky kind's function."""
+    d = fibonacci_sphere(SKY_DIRECTIONS, dtype=dtype, device=device)
+    s = torch.arange(count, device=device).repeat_interleave(SKY_DIRECTIONS)
+    return sky_fn(sky, d.repeat(count, 1), s, sun).reshape(count, SKY_DIRECTIONS, 3).mean(dim=1)
+
+
+def ambient_radiance(vol, p: Tensor, s: Tensor) -> Tensor:
+    """L_amb [n, 3] at points `p` [n, 3] of scenes `s` [n]: the bottom radiance, graded to `top`."""
+    bottom = take(vol.ambient_bottom, s)
+    if vol.params.ambient.top is None:
+        return bottom
+    b = vol.params.bounds.value
+    heights = take(vol.bounds.caps["height_range"](b), s)  # [n, 2]
+    altitude = vol.bounds.caps["altitude"](b, p, s) if "altitude" in vol.bounds.caps else p[:, 1]  # a shell's is radial
+    h = ((altitude - heights[:, 0]) / (heights[:, 1] - heights[:, 0])).clamp(0.0, 1.0)
+    return torch.lerp(bottom, take(vol.params.ambient.top, s), h[:, None])
+
+
+def ambient_in_scatter(ctx, vol, p: Tensor, s: Tensor, sigma_s: Tensor) -> Tensor:
+    """σs · L_amb · V [n, 3] at points `p` [n, 3] of scenes `s` [n], scattering `sigma_s` [n]."""
+    amb = vol.params.ambient
+    out = ambient_radiance(vol, p, s) * sigma_s[:, None]
+    if vol.plan.ambient_pass is None:
+        return out
+    with ctx.timer.section(vol.plan.ambient_pass):
+        direction = take(torch.nn.functional.normalize(amb.direction, dim=1), s)
+        exit_t = vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach)
+        scale = take(amb.sigma_scale * vol.params.sigma_t, s)
+        v = shadow_transmittance(p, direction, exit_t, lambda q, owner: scale[owner] * vol.field(q, s[owner]),
+                                 steps=amb.steps)
+    return out * v[:, None]
+
+
+__all__ = ["Ambient", "ambient_in_scatter", "sky_mean"]
