@@ -106,6 +106,18 @@ BASES: dict[str, dict] = {
                   "step_growth": 0.03, "dither": "sin", "dither_scale": 0.2, "max_distance": 12.0, "min_transmittance": 0.01,
                   "density_threshold": 0.01},
     },
+    "surface look, passes": {
+        "image": {**SMALL, "passes": 2, "blend": "exponential", "blend_weight": 0.3},
+        "camera": CAMERA,
+        "lights": [SUN, POINT],
+        "volumes": [{"bounds": {"sphere": {"center": [0.0, 0.0, 0.0], "radius": 1.0}},
+                     "density": {"fur": {"center": [0.05, 0.0, -0.05], "radius": 0.5, "length": 0.4, "frequency": 9.0,
+                                         "thickness": 0.4, "scale": 1.5, "seed": 3}},
+                     "shading": "surface",
+                     "surface": {"diffuse": [0.8, 0.5, 0.3], "specular": [0.5, 0.5, 0.6], "shininess": 20.0,
+                                 "ambient": [0.05, 0.06, 0.07], "epsilon": 0.02, "gradient": "forward", "alpha_scale": 0.6}}],
+        "march": {"quality": "draft", "integrator": "alpha", "placement": "size", "step_size": 0.08, "steps": 40},
+    },
     "physical clouds": {
         "image": SMALL,
         "camera": {"eye": [0.0, 0.3, 3.0], "target": [0.0, -0.5, 0.0], "fov_y": 60.0},

@@ -83,7 +83,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         scene = load_scene(args.scene, overrides)
     else:
         fail("SCENE", None, "give a scene (.toml path or preset name) or --preset NAME")
-    with progress(scene.image.width * scene.image.height, desc="render", unit="px", enabled=args.progress) as bar:
+    with progress(scene.image.width * scene.image.height * scene.image.passes, desc="render", unit="px", enabled=args.progress) as bar:
         out = render(scene, seed=args.seed, chunk_rays=args.chunk_rays, compile=args.compile, device=args.device,
                      progress=bar.update)
     path = Path(args.out)

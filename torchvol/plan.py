@@ -127,6 +127,8 @@ class Plan:
     spp: int
     post: tuple[tuple[str, str], ...]  # (POST kind, pass name), in order
     aovs: tuple[str, ...]  # the AOVs the render outputs
+    passes: int = 1  # `image.passes`: > 1 accumulates (torchvol.accumulate)
+    blend: str = "mean"
 
     def names(self) -> list[str]:
         """Every planned pass, in the order the render runs them."""
@@ -134,7 +136,8 @@ class Plan:
                 + (self.terrain.names() if self.terrain else [])
                 + [n for v in self.volumes for n in v.names()] + ["composite"] + (["atmosphere"] if self.atmosphere else [])
                 + (["post.flare"] if self.flare else [])
-                + (["resolve"] if self.spp > 1 else []) + [name for _, name in self.post])
+                + (["resolve"] if self.spp > 1 else []) + (["accumulate"] if self.passes > 1 else [])
+                + [name for _, name in self.post])
 
 
 def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
@@ -166,6 +169,8 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
     lights = list(enumerate(batch.lights))
     if shading.caps["lights"] == "first":  # the shader look's derivative light
         uses = tuple(LightPass(l, f"{name}.derivative_light", None) for l, _ in lights[:1] if vol.shader.light == "derivative")
+    elif shading.caps["lights"] == "unshadowed":  # lit inside the march pass, no shadow pass
+        uses = tuple(LightPass(l, None, None) for l, _ in lights)
     else:
         occluders = shadow_occluders(batch, exclude=v)
         uses = tuple(LightPass(l, None, None) if li.shadow is None
@@ -216,6 +221,8 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         spp=batch.image.spp,
         post=post,
         aovs=tuple(produced(batch)),
+        passes=batch.image.passes,
+        blend=batch.image.blend,
     )
 
 

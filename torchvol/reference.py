@@ -5,10 +5,10 @@ quality levels decide removed (`at_quality`). Rung k:
 
 - marches physically shaded volumes with the error-controlled march (`march.tolerance`) at
   `rung_tolerance(k)` = 1e-2 / 4^k (rays stop under a tenth of it). Volumes in the seeds' alpha
-  look (`shading = "shader"`) keep the scene's own march: each of their samples adds an opacity
-  that does not scale with its length, so their steps are the look, not an approximation of an
-  integral that more steps would converge to (docs/QUALITY.md); only their early exit, LOD and
-  density threshold go;
+  looks (`shading = "shader"` or `"surface"`) keep the scene's own march: each of their samples
+  adds an opacity that does not scale with its length, so their steps are the look, not an
+  approximation of an integral that more steps would converge to (docs/QUALITY.md); only their
+  early exit, LOD and density threshold go;
 - finds the suns' transmittance through volumes with a uniform shadow march of 16·2^k steps or on
   a sun grid of 96·2^k nodes across (box and sphere bounds only, up to MAX_GRID_RESOLUTION),
   whichever evaluates the density fewer times: the march costs about SHADOW_RAYS_PER_PIXEL·steps
@@ -50,6 +50,7 @@ from torch import Tensor
 from . import __version__
 from .quality import QUALITY, Quality, march_settings
 from .scene import load_scene
+from .volume.shading import SHADINGS
 
 # march keys that only set the approximation: the reference replaces them with its own
 APPROXIMATION_KEYS = ("quality", "placement", "steps", "step_size", "step_growth", "dither", "dither_scale",
@@ -122,11 +123,11 @@ def rung_scene(data: Mapping, k: int, *, spp: int) -> tuple[dict, torch.dtype]:
     tolerance, scale, level = rung_tolerance(k), 2**k, QUALITY["reference"]
     march = out["march"]
     march.update(steps=256 * scale, min_transmittance=tolerance / 10)
-    if any(v.shading == "shader" for v in scene.volumes):  # the look's own sampling, as the scene resolves it
+    if any(SHADINGS[v.shading].caps["semantics"] == "shader" for v in scene.volumes):  # the look's own sampling
         look = march_settings(load_scene(data).march)
         march.update(placement=look.rule.placement, steps=look.rule.steps, step_size=look.rule.step_size,
                      step_growth=look.rule.step_growth, dither=look.dither, dither_scale=look.dither_scale)
-    if any(v.shading == "physical" for v in scene.volumes) and march.get("integrator") != "alpha":
+    if any(SHADINGS[v.shading].caps["physical"] for v in scene.volumes) and march.get("integrator") != "alpha":
         march["tolerance"] = tolerance
     steps, resolution = min(16 * scale, MAX_SHADOW_STEPS), 96 * scale
     grid = (all(v.bounds.kind in ("box", "sphere") for v in scene.volumes) and resolution <= MAX_GRID_RESOLUTION

@@ -16,6 +16,7 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
+from .accumulate import Accumulator, pass_seeds
 from .aovs import RESOLVE
 from .batch import Stacked, check_same_structure, stack, take
 from .bounds import BOUNDS
@@ -242,7 +243,9 @@ def render(
     renders the same, to the bit, alone or anywhere in a batch and for any chunking. `dtype`
     defaults to the quality level's (float64 for reference). `chunk_rays` bounds peak memory.
     `compile` runs the noise kernels under torch.compile. `progress(pixels)`, where given, is called
-    after each chunk with the pixels it finished."""
+    after each chunk with the pixels it finished (in each of `image.passes` passes). With
+    `image.passes` > 1, `stats["accumulation"]` is the mean |change| of the blended radiance after
+    each pass after the first (`torchvol.accumulate`)."""
     scenes, seeds, device = _check_arguments(scene, seed, chunk_rays, dtype, device)
     start = time.perf_counter()
     batch = stack(scenes, dtype=torch.float64, device=device)  # the plan reads shared values only
@@ -254,23 +257,35 @@ def render(
     with ctx.timer.section("rays"):
         camera = camera_for(ctx.batch)
     pixels = b * h * w
+    if plan.passes > 1 and plan.settings.dither != "hash" and spp == 1:
+        fail("image.passes", plan.passes, "passes differ by their hashed march dither or sub-pixel jitter: set "
+             "march.dither = 'hash' or image.spp > 1")
     chunk_pixels = max(1, chunk_rays // spp)  # chunks hold whole pixels: sub-samples resolve in place
     keys = ["radiance", "alpha", "depth"] + [a for a in plan.aovs if a != "radiance"]
-    buffers = {}
-    for first in range(0, pixels, chunk_pixels):
-        last = min(pixels, first + chunk_pixels)
-        with ctx.timer.section("rays"):
-            jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp, dtype=dtype)
-            rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
-        values = run_chunk(ctx, rays)
-        with ctx.timer.section("resolve") if spp > 1 else nullcontext():
-            for key in keys:
-                value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)
-                if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
-                    buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
-                buffers[key][:, first:last] = value.T
-        if progress is not None:
-            progress(last - first)
+    acc = Accumulator(plan.blend, ctx.batch.image.blend_weight, h * w) if plan.passes > 1 else None
+    scene_seeds = ctx.seeds
+    for k in range(plan.passes):
+        ctx.seeds = pass_seeds(scene_seeds, k)
+        buffers = {}
+        for first in range(0, pixels, chunk_pixels):
+            last = min(pixels, first + chunk_pixels)
+            with ctx.timer.section("rays"):
+                jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp, dtype=dtype)
+                rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
+            values = run_chunk(ctx, rays)
+            with ctx.timer.section("resolve") if spp > 1 else nullcontext():
+                for key in keys:
+                    value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)
+                    if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
+                        buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
+                    buffers[key][:, first:last] = value.T
+            if progress is not None:
+                progress(last - first)
+        if acc is not None:
+            with ctx.timer.section("accumulate"):
+                acc.add(buffers)
+    if acc is not None:
+        buffers = acc.result()
     images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
     radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
     image = post_process(ctx, radiance, images, View(camera=camera, sun=ctx.sun(), alpha=alpha))
@@ -285,6 +300,7 @@ def render(
         "truncated_rays": ctx.counts.truncated_rays,
         **({"error_estimate": ctx.counts.error_estimate} if plan.settings.tolerance is not None else {}),
         **({"voxel_steps": ctx.surface.steps_total} if plan.voxels is not None else {}),
+        **({"accumulation": acc.changes} if acc is not None else {}),
         "dtype": str(dtype).removeprefix("torch."),
     }
     return RenderOutput(image=image, radiance=radiance, depth=depth, alpha=alpha, aovs=images, camera=camera, stats=stats)

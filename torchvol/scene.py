@@ -36,6 +36,7 @@ from .volume.multiple import MultipleScattering
 from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
+from .volume.surface_look import SurfaceLook
 
 PRESET_DIR = Path(__file__).parent / "presets"
 
@@ -44,6 +45,10 @@ class Image(Strict):
     width: int = Field(256, ge=1, le=16384)
     height: int = Field(256, ge=1, le=16384)
     spp: int | None = Field(None, ge=1, le=1024, description="samples per pixel; None: the quality level's")
+    # progressive accumulation (torchvol.accumulate): passes with their own dither and jitter, blended
+    passes: int = Field(1, ge=1, le=4096, description="passes blended into the image (1: a single render)")
+    blend: Literal["mean", "exponential"] = "mean"  # running mean, or the seeds' mix(old, new, blend_weight)
+    blend_weight: float = Field(0.05, gt=0.0, le=1.0)
 
 
 class CameraMatrix(Strict):
@@ -123,6 +128,7 @@ class Volume(Strict):
     edge: Edge | None = None
     ambient: Ambient | None = None
     multiple_scattering: MultipleScattering | None = None
+    surface: SurfaceLook = Field(default_factory=SurfaceLook)  # shading = "surface" (the fur ball)
     _e = field_validator("emission")(lambda v: nonneg(v))
 
     @model_validator(mode="after")

@@ -24,6 +24,7 @@ from .constant import Constant, ConstantDensity
 from .exponential import Exponential, ExponentialDensity
 from .explosion import ExplosionDensity, ExplosionField
 from .fbm import FbmDensity, FbmField
+from .fur import FurDensity, FurField
 from .grid import Grid, GridDensity
 from .particles import ParticleField, ParticlesDensity
 
@@ -36,5 +37,6 @@ DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True)
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True)
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
 DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True)
+DENSITIES.register("fur", FurDensity, FurField)
 
 __all__ = ["DENSITIES", "Field"]

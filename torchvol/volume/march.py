@@ -124,12 +124,15 @@ def march(
     channels: int = 3,
     semantics: Literal["segments", "shader"] = "segments",
     dither: Tensor | None = None,
+    dither_unit: Literal["step", "absolute"] = "step",
     min_transmittance: float = 0.0,
     occupied: tuple[Tensor, Tensor] | None = None,
     compact_below: float = COMPACT_BELOW,
 ) -> MarchResult:
     """March R rays through [t0, t1] where `hit`. `t0`, `t1`: [R]; `hit`: [R] bool; `dither`: [R]
-    in [0, 1) (segments: fraction of the first step) or an absolute start offset (shader).
+    in [0, 1): segments: the fraction of the first step; shader: the start offset, in steps
+    (`dither_unit` "step", the seeds' t += STEP_SIZE·hash) or in world units ("absolute": the
+    template's t += 0.1·fract(sin(...)), its scale already applied).
 
     `medium` returns (σ_t, source) for ``segments`` and (alpha, colour) for ``shader``, whose
     samples always composite as the seeds' alpha; `integrator` applies to ``segments``.
@@ -149,7 +152,9 @@ def march(
     span = t_end - t_start
     first = frac = None
     if semantics == "shader":
-        t = t_start + (dither[ids] if dither is not None else 0.0)
+        t = t_start
+        if dither is not None:
+            t = t + dither[ids] * (rule.length(t_start, span) if dither_unit == "step" else 1.0)
     else:
         t = t_start
         if dither is not None:

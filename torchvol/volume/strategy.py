@@ -60,7 +60,8 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
         medium = vol.shading.fn(ctx, vol, rays, background)
         res = march(
             t0, t1, marched, medium, rule=st.rule, integrator=st.integrator, semantics=vol.shading.semantics,
-            dither=ctx.dither(rays), min_transmittance=st.min_transmittance, occupied=occupied,
+            dither=ctx.dither(rays), dither_unit="absolute" if st.dither == "sin" else "step",
+            min_transmittance=st.min_transmittance, occupied=occupied,
             compact_below=vol.plan.compact_below,
         )
     return _part(ctx, vol, res, t0, hit)
