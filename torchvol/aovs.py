@@ -20,7 +20,8 @@ _aov("radiance", 3, "mean", lambda batch: True, "linear radiance before post-pro
 _aov("distance", 1, "hit_mean", lambda batch: bool(batch.volumes) or batch.post.fog is not None,
      "expected ray distance of what the ray hit (world units; 0: nothing)")
 _aov("depth_median", 1, "hit_mean", lambda batch: bool(batch.volumes), "planar depth where transmittance crosses 0.5 (0: never)")
-_aov("normal", 3, "mean", lambda batch: batch.voxels is not None, "voxel face normal (world, unit; 0: no hit)")
+_aov("normal", 3, "mean", lambda batch: batch.voxels is not None or batch.terrain is not None,
+     "surface normal: voxel face or terrain (world, unit; 0: no hit)")
 _aov("uv", 2, "mean", lambda batch: batch.voxels is not None, "voxel face UV in [0, 1]")
 _aov("material", 1, "first", lambda batch: batch.voxels is not None and (
     batch.voxels.materials.shape[1] > 1 or batch.voxels.texture is not None), "voxel material id (0: no hit)")

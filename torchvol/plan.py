@@ -35,13 +35,21 @@ Strategy = Literal["closed_form", "march", "skip", "tolerance"]
 
 @dataclass(frozen=True)
 class LightPass:
-    """Light `light` shading a volume or the voxels; `name` is its own pass in `stats` (its shadow,
-    or the shader look's derivative light; None: no pass of its own); `shadow` its shadow settings
-    (None: unshadowed)."""
+    """Light `light` shading a volume, the voxels or the terrain; `name` is its own pass in `stats`
+    (its shadow, or the shader look's derivative light; None: no pass of its own); `shadow` its
+    shadow settings (None: unshadowed). A shadow ray also sees the other volumes `occluders` (each
+    its own pass `{name}.volume{j}`) and, where `terrain`, the terrain (`{name}.terrain`)."""
 
     light: int
     name: str | None
     shadow: object | None
+    occluders: tuple[int, ...] = ()
+    terrain: bool = False
+
+    def names(self) -> list[str]:
+        if self.name is None:
+            return []
+        return [self.name] + [f"{self.name}.volume{j}" for j in self.occluders] + ([f"{self.name}.terrain"] if self.terrain else [])
 
 
 @dataclass(frozen=True)
@@ -79,7 +87,7 @@ class VolumePass:
 
     def names(self) -> list[str]:
         own = ([self.emission_pass] if self.emission_map is not None else []) + ([self.bloom_pass] if self.bloom is not None else [])
-        own += [li.name for li in self.lights if li.name is not None] + ([self.ambient_pass] if self.ambient_pass else [])
+        own += [n for li in self.lights for n in li.names()] + ([self.ambient_pass] if self.ambient_pass else [])
         return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
 
 
@@ -99,12 +107,21 @@ class VoxelPass:
 
 
 @dataclass(frozen=True)
+class TerrainPass:
+    shadows: tuple[LightPass, ...]  # one per light that casts shadows, seeing the terrain and every volume
+
+    def names(self) -> list[str]:
+        return ["terrain.trace", "terrain.shade"] + [n for li in self.shadows for n in li.names()]
+
+
+@dataclass(frozen=True)
 class Plan:
     settings: MarchSettings
     sky: str | None  # the sky kind
     halo: bool
     flare: bool
     voxels: VoxelPass | None
+    terrain: TerrainPass | None
     volumes: tuple[VolumePass, ...]
     atmosphere: bool  # the [atmosphere] medium over the composited scene (aerial perspective)
     spp: int
@@ -116,6 +133,7 @@ class Plan:
     def names(self) -> list[str]:
         """Every planned pass, in the order the render runs them."""
         return (["rays"] + (["sky"] if self.sky else []) + (self.voxels.names() if self.voxels else [])
+                + (self.terrain.names() if self.terrain else [])
                 + [n for v in self.volumes for n in v.names()] + ["composite"] + (["atmosphere"] if self.atmosphere else [])
                 + (["post.flare"] if self.flare else [])
                 + (["resolve"] if self.spp > 1 else []) + (["accumulate"] if self.passes > 1 else [])
@@ -139,6 +157,12 @@ def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
     return "march"
 
 
+def shadow_occluders(batch: Stacked, *, exclude: int | None = None) -> tuple[int, ...]:
+    """The volumes a shadow ray sees besides the one it starts in (`exclude`): every physically
+    shaded one (the shader look has no extinction of its own to cast)."""
+    return tuple(j for j, vol in enumerate(batch.volumes) if j != exclude and SHADINGS[vol.shading].caps["physical"])
+
+
 def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
     vol, name = batch.volumes[v], f"volume{v}"
     shading = SHADINGS[vol.shading]
@@ -148,7 +172,10 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
     elif shading.caps["lights"] == "unshadowed":  # lit inside the march pass, no shadow pass
         uses = tuple(LightPass(l, None, None) for l, _ in lights)
     else:
-        uses = tuple(LightPass(l, None if li.shadow is None else f"{name}.shadow{l}", li.shadow) for l, li in lights)
+        occluders = shadow_occluders(batch, exclude=v)
+        uses = tuple(LightPass(l, None, None) if li.shadow is None
+                     else LightPass(l, f"{name}.shadow{l}", li.shadow, occluders, batch.terrain is not None)
+                     for l, li in lights)
     bounds, density = BOUNDS[vol.bounds.kind], DENSITIES[vol.density.kind]
     if settings.max_distance is not None:
         reach = settings.max_distance
@@ -177,6 +204,10 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
         voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
                            glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None)
+    terrain = None
+    if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself
+        terrain = TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)
+                                            for l, li in enumerate(batch.lights) if li.shadow is not None))
     post = tuple((k.name, k.pass_name(batch.post)) for k in POST if k.active(batch.post))
     return Plan(
         settings=settings,
@@ -184,6 +215,7 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         halo=batch.sky is not None and batch.sky.halo is not None,
         flare=batch.sky is not None and batch.sky.flare is not None,
         voxels=voxels,
+        terrain=terrain,
         volumes=tuple(volume_pass(batch, v, settings) for v in range(len(batch.volumes))),
         atmosphere=batch.atmosphere is not None,
         spp=batch.image.spp,
@@ -194,4 +226,4 @@ def make_plan(batch: Stacked | Scene) -> Plan:
     )
 
 
-__all__ = ["LightPass", "Plan", "VolumePass", "VoxelPass", "make_plan"]
+__all__ = ["LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "make_plan"]

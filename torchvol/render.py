@@ -31,11 +31,13 @@ from .sampling import march_dither, subpixel_jitter
 from .scene import load_scene
 from .sky import SKIES, sun_glow
 from .stats import CountedField, Counts, Timer
+from .terrain import TerrainSurface
 from .validate import fail, integer, is_integer
 from .volume.atmosphere import aerial_perspective, gather_air
 from .volume.ambient import sky_mean
 from .volume.composite import composite_volumes, finish
 from .volume.phase import PHASES
+from .volume.physical import occluder_transmittance
 from .volume.shading import SHADINGS
 from .volume.strategy import STRATEGIES
 from .voxel.surface import VoxelSurface
@@ -89,10 +91,14 @@ class RenderContext:
         self.times = batch.time
         self.lights = [LightSource(LIGHTS[li.kind], li) for li in batch.lights]
         self.volumes = [self._volume(vp, compiled) for vp in plan.volumes]
-        self.surface = None
+        self.surface = self.terrain = None
         if plan.voxels is not None:
             self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, plan.aovs, dtype=dtype, device=device,
                                         compiled=compiled)
+        if plan.terrain is not None:  # the scene's one surface (voxels and terrain are refused together)
+            self.terrain = self.surface = TerrainSurface(
+                batch.terrain, self.lights, plan.terrain, plan.aovs,
+                lambda use, p, s, direction, distance: occluder_transmittance(self, use, p, s, direction, distance))
 
     def _volume(self, vp: VolumePass, compiled: bool) -> VolumeState:
         params = self.batch.volumes[vp.index]
@@ -293,7 +299,7 @@ def render(
         "march_steps": ctx.counts.march_steps,
         "truncated_rays": ctx.counts.truncated_rays,
         **({"error_estimate": ctx.counts.error_estimate} if plan.settings.tolerance is not None else {}),
-        **({"voxel_steps": ctx.surface.steps_total} if ctx.surface is not None else {}),
+        **({"voxel_steps": ctx.surface.steps_total} if plan.voxels is not None else {}),
         **({"accumulation": acc.changes} if acc is not None else {}),
         "dtype": str(dtype).removeprefix("torch."),
     }

@@ -26,6 +26,7 @@ from .lights import LIGHTS
 from .post import Post
 from .schema import EACH, SHARED, GridSource, One, Strict, Vec3, nonneg, reachable_models, refuse
 from .sky import SKIES
+from .terrain import Terrain
 from .validate import SceneError, did_you_mean, fail
 from .volume.emission import Bloom, EmissionMap
 from .volume.atmosphere import AtmosphereMedium
@@ -381,6 +382,7 @@ class Scene(Strict):
     lights: list[Light] = Field(default_factory=list)
     volumes: list[Volume] = Field(default_factory=list)
     voxels: Voxels | None = None
+    terrain: Terrain | None = None
     atmosphere: AtmosphereMedium | None = None  # the scene inside a planet's air (aerial perspective)
     march: Annotated[March, SHARED] = Field(default_factory=March)
     post: Post = Field(default_factory=Post)
@@ -463,8 +465,10 @@ class Scene(Strict):
 
     @model_validator(mode="after")
     def _keys_that_need_something_to_act_on(self):
-        if self.post.fog is not None and not self.volumes and self.voxels is None:
-            refuse("post.fog", "<fog>", "distance fog needs something to fog: add volumes or voxels")
+        if self.post.fog is not None and not self.volumes and self.voxels is None and self.terrain is None:
+            refuse("post.fog", "<fog>", "distance fog needs something to fog: add volumes, voxels or a terrain")
+        if self.terrain is not None and self.voxels is not None:
+            refuse("terrain", "<terrain>", "a scene has one surface: voxels or a terrain, not both")
         if self.march.lod is not None and not any(DENSITIES[v.density.kind].caps.get("octaves") for v in self.volumes):
             refuse("march.lod", "<lod>", "no volume has a density with octaves to drop (fbm, clouds, explosion)")
         return self

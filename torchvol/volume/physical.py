@@ -13,6 +13,7 @@ from torch import Tensor
 
 from ..batch import per_scene, take
 from ..camera import Rays
+from ..rays import clip_to_ray
 from .emission import EMISSION_MAPS, bloom_glow
 from .ambient import ambient_in_scatter
 from .integrate import frostbite_step
@@ -80,20 +81,54 @@ def in_scatter(ctx, vol, p: Tensor, d: Tensor | None, s: Tensor, sigma_t: Tensor
 
 def light_transmittance(ctx, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, toward) -> Tensor:
     """Transmittance [n] from `p` [n, 3] towards light `use.light` through this volume, ending where
-    the ray leaves the bounds or reaches the light; `sigma_t` [n] the extinction at `p`."""
+    the ray leaves the bounds or reaches the light; `sigma_t` [n] the extinction at `p`. Times what
+    the plan's other occluders let through (other volumes, the terrain), where it names any."""
     shadow = use.shadow
-    if shadow.method == "grid":
-        grids = sun_grids(ctx, vol, use.light)
-        return per_scene(p, s, len(grids), lambda b, i, q: grids[b].lookup(q, sigma_t[i]))
     light = ctx.lights[use.light]
     direction = take(light.direction, s) if toward is None else toward.direction
-    exit_t = vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach)
-    if toward is not None:
-        exit_t = torch.minimum(exit_t, toward.distance)
-    return shadow_transmittance(
-        p, direction, exit_t, lambda q, owner: take(vol.params.sigma_t, s[owner]) * vol.field(q, s[owner]),
-        steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step,
-    )
+    distance = p.new_full((p.shape[0],), math.inf) if toward is None else toward.distance
+    if shadow.method == "grid":
+        grids = sun_grids(ctx, vol, use.light)
+        own = per_scene(p, s, len(grids), lambda b, i, q: grids[b].lookup(q, sigma_t[i]))
+    else:
+        exit_t = torch.minimum(vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach), distance)
+        own = shadow_transmittance(
+            p, direction, exit_t, lambda q, owner: take(vol.params.sigma_t, s[owner]) * vol.field(q, s[owner]),
+            steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step,
+        )
+    if use.occluders or use.terrain:
+        own = own * occluder_transmittance(ctx, use, p, s, direction, distance)
+    return own
+
+
+def occluder_transmittance(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
+    """What a shadow ray of LightPass `use` from `p` [n, 3] along `direction` [n, 3], up to
+    `distance` [n] (inf: a sun), lets through besides its own volume: each volume `use.occluders`
+    names, marched over its chord in `use.shadow.steps` equal steps (exact for homogeneous media)
+    or, with `shadow.method = "grid"`, looked up in that volume's sun grid where the ray enters
+    it, times 0 where the terrain blocks it (`use.terrain`) -> [n]. Each is its own pass, reported
+    only where some shadow ray crosses it."""
+    out = p.new_ones(p.shape[0])
+    for j in use.occluders:
+        other = ctx.volumes[j]
+        t0, t1, crosses = clip_to_ray(*other.intersect(p, direction, s), torch.minimum(distance, p.new_tensor(other.plan.reach)))
+        ids = crosses.nonzero().squeeze(1)
+        if ids.numel() == 0:
+            continue
+        with ctx.timer.section(f"{use.name}.volume{j}"):
+            sj, entry = s[ids], torch.addcmul(p[ids], t0[ids, None], direction[ids])
+            if use.shadow.method == "grid":  # the other volume's sun grid, looked up where the ray enters it
+                grids, sigma = sun_grids(ctx, other, use.light), take(other.params.sigma_t, sj) * other.field(entry, sj)
+                through = per_scene(entry, sj, len(grids), lambda b, i, q: grids[b].lookup(q, sigma[i]))
+            else:
+                through = shadow_transmittance(
+                    entry, direction[ids], t1[ids] - t0[ids],
+                    lambda q, owner: take(other.params.sigma_t, sj[owner]) * other.field(q, sj[owner]), steps=use.shadow.steps)
+            out[ids] = out[ids] * through
+    if use.terrain:
+        with ctx.timer.section(f"{use.name}.terrain"):
+            out = out * ctx.terrain.visibility(p, direction, s, distance)
+    return out
 
 
 def sun_grids(ctx, vol, light: int) -> list[SunGrid]:

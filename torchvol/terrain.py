@@ -1,0 +1,180 @@
+"""A smooth SDF terrain, sphere traced (not voxels): the heightfield
+
+    y = base + amplitude · fbm(frequency · (x, 0, z))     (value noise in [−1, 1], per-scene seed)
+
+Its signed vertical gap g(p) = p.y − h(p.x, p.z) bounds the distance to the surface from above by
+a factor of the slope; a sphere-tracing step of `safety · g` (the Lipschitz safety factor) never
+crosses it where the slope is below √(1/safety² − 1) (1.73 at 0.5), and a step that does
+overshoot a steeper slope is pulled back to the secant root between its last two points. Rays are traced only through the slab the heights can reach
+(|fbm| < 1), so a shadow ray that leaves it upwards is done at once.
+
+The surface is Lambert-shaded by the lights: grass `color` blended to `rock_color` on steep slopes,
+`ambient` plus each light's n·l irradiance, times its visibility where the light casts shadows
+(`lights[i].shadow`): the terrain itself and every volume the shadow ray crosses (`transmittance`
+from the render, see `volume/physical.py: occluder_transmittance`). It outputs hit distance,
+colour and the `normal` AOV, like the voxel surface, and the volumes march up to its hit.
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+from typing import Annotated, Callable, Sequence
+
+import torch
+from pydantic import Field, field_validator
+from torch import Tensor
+
+from . import noise
+from .batch import Stacked, per_scene, take
+from .rays import clip_to_ray, intersect_slab
+from .schema import EACH, Strict, Vec3, nonneg
+
+
+class Terrain(Strict):
+    """A sphere-traced heightfield y = base + amplitude · fbm(frequency · (x, 0, z)) (value noise,
+    `octaves` octaves, gain 0.5, in (−1, 1)), Lambert-shaded: `color` on flat ground, `rock_color`
+    where 1 − n.y exceeds `rock_slope` (a 0.1-wide blend), plus `ambient`. `steps` sphere-tracing
+    steps of `safety` · (y − h) per primary and shadow ray, hits where the gap is under
+    `epsilon` · (1 + t), rays traced up to `max_distance`; shadow rays start `shadow_offset` above
+    the hit along the normal."""
+
+    seed: Annotated[int, EACH] = 0
+    base: float = 0.0
+    amplitude: float = Field(1.0, ge=0.0)
+    frequency: float = Field(0.5, gt=0.0, le=1e6)
+    octaves: int = Field(5, ge=1, le=12)
+    color: Vec3 = (0.3, 0.45, 0.18)
+    rock_color: Vec3 = (0.45, 0.4, 0.35)
+    rock_slope: float = Field(0.3, ge=0.0, le=1.0)
+    ambient: Vec3 = (0.1, 0.12, 0.15)
+    steps: int = Field(128, ge=1, le=100_000)
+    safety: float = Field(0.5, gt=0.0, le=1.0)
+    epsilon: float = Field(1e-3, gt=0.0, le=0.1)
+    max_distance: float = Field(200.0, gt=0.0)
+    shadow_offset: float = Field(0.01, ge=0.0)
+
+    _c = field_validator("color", "rock_color", "ambient")(lambda v: nonneg(v))
+
+
+TERRAIN_AOVS = ("normal",)
+
+
+def height(t: Stacked, xz: Tensor, s: Tensor) -> Tensor:
+    """Terrain height [n] at horizontal points `xz` [n, 2] of scenes `s` [n]."""
+    q = take(t.frequency, s)[:, None] * torch.stack([xz[:, 0], torch.zeros_like(xz[:, 0]), xz[:, 1]], dim=1)
+
+    def one_scene(b: int, idx, q_b: Tensor) -> Tensor:
+        seed = t.seed[b]
+        return noise.fbm(q_b, lambda x: noise.value_noise(x, seed=seed) * 2.0 - 1.0, octaves=t.octaves)
+
+    return take(t.base, s) + take(t.amplitude, s) * per_scene(q, s, len(t), one_scene)
+
+
+def gap(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    """Signed vertical distance [n] of points `p` [n, 3] above the terrain."""
+    return p[:, 1] - height(t, p[:, [0, 2]], s)
+
+
+def span(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(t0, t1, crosses) [n]: where rays `o`, `d` [n, 3] are inside the slab of reachable heights,
+    up to `t_max` [n] and `max_distance`."""
+    base, amp = take(t.base, s), take(t.amplitude, s)
+    pad = 1e-3 * (1.0 + amp)  # a flat terrain's slab has no thickness
+    t_near, t_far = intersect_slab(o, d, base - amp - pad, base + amp + pad)
+    return clip_to_ray(t_near, t_far, torch.minimum(t_max, take(t.max_distance, s)))
+
+
+def trace(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, *, steps: int) -> tuple[Tensor, Tensor]:
+    """Sphere-trace rays `o`, `d` [n, 3] (d unit) of scenes `s` [n] to the terrain, no farther than
+    `t_max` [n] -> (hit [n] bool, t [n]). Finished rays are compacted out of the loop."""
+    t0, t1, live = span(t, o, d, s, t_max)
+    dist = torch.where(live, t0, torch.zeros_like(t0))
+    hit = torch.zeros_like(live)
+    ids = live.nonzero().squeeze(1)
+    last_t, last_g = dist[ids], None  # the previous point of each live ray (for the overshoot secant)
+    safety, eps = take(t.safety, s), take(t.epsilon, s)
+    for _ in range(steps):
+        if ids.numel() == 0:
+            break
+        ti = dist[ids]
+        g = gap(t, o[ids] + ti[:, None] * d[ids], s[ids])
+        done = g < eps[ids] * (1.0 + ti)
+        if last_g is not None:  # a step that crossed the surface: the secant root between the two points
+            over = done & (g < 0)
+            frac = last_g / (last_g - g).clamp_min(torch.finfo(g.dtype).tiny)
+            ti = torch.where(over, last_t + frac * (ti - last_t), ti)
+            dist[ids] = ti
+        hit[ids[done]] = True
+        nxt = ti + safety[ids] * g
+        keep = ~done & (nxt <= t1[ids])
+        dist[ids[keep]] = nxt[keep]
+        ids, last_t, last_g = ids[keep], ti[keep], g[keep]
+    return hit, dist
+
+
+def normal(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    """Unit surface normal [n, 3] at points `p` [n, 3] on the terrain (central differences of the
+    height, a hundredth of the finest octave's period apart)."""
+    e = (0.01 * noise.finest_period(t.octaves)) / take(t.frequency, s)
+    xz = p[:, [0, 2]]
+    dx, dz = torch.stack([e, torch.zeros_like(e)], dim=1), torch.stack([torch.zeros_like(e), e], dim=1)
+    hs = height(t, torch.cat([xz + dx, xz - dx, xz + dz, xz - dz]), s.repeat(4)).view(4, -1)
+    n = torch.stack([-(hs[0] - hs[1]) / (2 * e), torch.ones_like(e), -(hs[2] - hs[3]) / (2 * e)], dim=1)
+    return torch.nn.functional.normalize(n, dim=1)
+
+
+def visibility(t: Stacked, p: Tensor, direction: Tensor, s: Tensor, distance: Tensor, *, steps: int) -> Tensor:
+    """1 where the ray from `p` [n, 3] along `direction` [n, 3] reaches `distance` [n] (inf: a sun)
+    without meeting the terrain, else 0 -> [n]."""
+    hit, _ = trace(t, p, direction, s, distance, steps=steps)
+    return (~hit).to(p.dtype)
+
+
+class TerrainSurface:
+    """One batch's terrain (`params`: the batch's `Stacked` terrain) lit by `lights`; `plan` the
+    batch's `TerrainPass`; `aovs` the AOV names to output; `transmittance(use, p, s, direction,
+    distance) -> [n]` what a shadow ray of LightPass `use` sees (volumes and terrain)."""
+
+    def __init__(self, params: Stacked, lights: Sequence, plan, aovs: Sequence[str],
+                 transmittance: Callable[..., Tensor]):
+        self.p, self.lights, self.plan, self.transmittance = params, list(lights), plan, transmittance
+        self.aov_names = [a for a in aovs if a in TERRAIN_AOVS]
+
+    def visibility(self, p: Tensor, direction: Tensor, s: Tensor, distance: Tensor) -> Tensor:
+        return visibility(self.p, p, direction, s, distance, steps=self.p.steps)
+
+    def run(self, o: Tensor, d: Tensor, s: Tensor, background: Tensor,
+            section: Callable[[str], object] = lambda name: nullcontext()) -> dict[str, Tensor]:
+        """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3] -> hit, t (inf: miss)
+        [n], color [n, 3] (the background where missed) and the AOVs."""
+        p, n = self.p, o.shape[0]
+        with section("terrain.trace"):
+            hit, t = trace(p, o, d, s, torch.full_like(o[:, 0], torch.inf), steps=p.steps)
+        color = background.clone()
+        aovs = {k: o.new_zeros(n, 3) for k in self.aov_names}
+        ids = hit.nonzero().squeeze(1)
+        if ids.numel():
+            sh, th = s[ids], t[ids]
+            with section("terrain.shade"):
+                x = o[ids] + th[:, None] * d[ids]
+                nrm = normal(p, x, sh)
+                rock = ((1.0 - nrm[:, 1] - take(p.rock_slope, sh)) * 10.0).clamp(0.0, 1.0)[:, None]
+                albedo = torch.lerp(take(p.color, sh), take(p.rock_color, sh), rock)
+                light = take(p.ambient, sh)
+                start = x + (take(p.shadow_offset, sh) + 2.0 * take(p.epsilon, sh))[:, None] * nrm  # clear of its own hit rule
+            shadows = {use.light: use for use in self.plan.shadows}
+            for l, source in enumerate(self.lights):
+                toward = source.toward(x, sh)
+                lit = (nrm * toward.direction).sum(dim=1).clamp_min(0.0)
+                if l in shadows:
+                    use = shadows[l]
+                    with section(use.name):
+                        lit = lit * self.transmittance(use, start, sh, toward.direction, toward.distance)
+                light = light + toward.irradiance * lit[:, None]
+            color[ids] = albedo * light
+            for k in self.aov_names:
+                aovs[k][ids] = nrm
+        return dict(hit=hit, t=torch.where(hit, t, torch.full_like(t, torch.inf)), color=color, aovs=aovs)
+
+
+__all__ = ["Terrain", "TerrainSurface", "gap", "height", "normal", "trace", "visibility"]
