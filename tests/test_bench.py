@@ -7,7 +7,7 @@ import torch
 from PIL import Image
 
 import torchvol as tv
-from torchvol.bench import FIXED_STEPS, accuracy
+from torchvol.bench import FIXED_STEPS, TECHNIQUES, accuracy
 from torchvol.cli import main
 from torchvol.quality import QUALITY, at_level, march_settings
 from torchvol.reference import BOUND_FLOOR, at_quality, image_error
@@ -22,8 +22,11 @@ PHYSICAL = {  # a shadowed fbm cloud filling the frame (no silhouette: level err
 }
 
 
-def _table(path):
-    return [[c.strip() for c in line.strip("|").split("|")] for line in path.read_text().splitlines() if line.startswith("| ")]
+def _table(path, index: int = 0):
+    """The `index`-th Markdown table of the report, as rows of cells."""
+    tables = path.read_text().split("\n\n")
+    tables = [t for t in tables if t.startswith("| ")]
+    return [[c.strip() for c in line.strip("|").split("|")] for line in tables[index].splitlines() if line.startswith("| ")]
 
 
 def test_bench_accuracy_writes_table_and_plot(tmp_path, capsys, one_thread):
@@ -43,6 +46,10 @@ def test_bench_accuracy_writes_table_and_plot(tmp_path, capsys, one_thread):
     assert float(under) >= 10 or float(bound) <= BOUND_FLOOR
     assert len({r[5] for r in rows}) == 1  # one reference for the scene's rows
     assert Image.open(out / "accuracy.png").format == "PNG"
+    # what each technique costs, per pass, in every report
+    header, _, *costs = _table(out / "accuracy.md", 1)
+    assert header[0] == "preset" and [r[0] for r in costs] == list(TECHNIQUES)
+    assert all(float(r[1]) > 0 and r[3] for r in costs), costs
     # a second run into the same folder reuses the stored references instead of rendering them again
     stored = {p: p.stat().st_mtime_ns for p in (out / "references").glob("render-*.pt")}
     assert len(stored) >= 2  # a rung and the one under it, which bounds its error
