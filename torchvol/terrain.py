@@ -84,9 +84,12 @@ def span(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor) -> tuple[Te
     return clip_to_ray(t_near, t_far, torch.minimum(t_max, take(t.max_distance, s)))
 
 
-def trace(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, *, steps: int) -> tuple[Tensor, Tensor]:
+def trace(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, *, steps: int,
+          refine: bool = False) -> tuple[Tensor, Tensor]:
     """Sphere-trace rays `o`, `d` [n, 3] (d unit) of scenes `s` [n] to the terrain, no farther than
-    `t_max` [n] -> (hit [n] bool, t [n]). Finished rays are compacted out of the loop."""
+    `t_max` [n] -> (hit [n] bool, t [n]). Finished rays are compacted out of the loop. `refine`: a
+    hit's t takes one secant step onto the surface (the hit rule stops up to ε·(1 + t) short of it:
+    depth labels belong on the surface; exact on a plane)."""
     t0, t1, live = span(t, o, d, s, t_max)
     dist = torch.where(live, t0, torch.zeros_like(t0))
     hit = torch.zeros_like(live)
@@ -109,7 +112,25 @@ def trace(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, *, steps: 
         keep = ~done & (nxt <= t1[ids])
         dist[ids[keep]] = nxt[keep]
         ids, last_t, last_g = ids[keep], ti[keep], g[keep]
+    if refine:
+        dist = _onto_surface(t, o, d, s, hit, dist)
     return hit, dist
+
+
+def _onto_surface(t: Stacked, o: Tensor, d: Tensor, s: Tensor, hit: Tensor, dist: Tensor) -> Tensor:
+    """One secant step of each hit [n] from dist [n] onto the surface, through the gap there and a
+    hit-rule width back along the ray; a ray along which the gap does not fall stays."""
+    ids = hit.nonzero().squeeze(1)
+    if ids.numel() == 0:
+        return dist
+    ti, si, oi, di = dist[ids], s[ids], o[ids], d[ids]
+    back = 2.0 * take(t.epsilon, si) * (1.0 + ti)
+    g = gap(t, torch.cat([oi + ti[:, None] * di, oi + (ti - back)[:, None] * di]), si.repeat(2)).view(2, -1)
+    fall = g[1] - g[0]  # > 0 where the gap shrinks along the ray
+    step = torch.where(fall > 0, back * g[0] / fall.clamp_min(torch.finfo(ti.dtype).tiny), torch.zeros_like(ti))
+    out = dist.clone()
+    out[ids] = ti + step.clamp(-back, 2.0 * back)
+    return out
 
 
 def normal(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
@@ -149,7 +170,7 @@ class TerrainSurface:
         [n], color [n, 3] (the background where missed) and the AOVs."""
         p, n = self.p, o.shape[0]
         with section("terrain.trace"):
-            hit, t = trace(p, o, d, s, torch.full_like(o[:, 0], torch.inf), steps=p.steps)
+            hit, t = trace(p, o, d, s, torch.full_like(o[:, 0], torch.inf), steps=p.steps, refine=True)
         color = background.clone()
         aovs = {k: o.new_zeros(n, 3) for k in self.aov_names}
         ids = hit.nonzero().squeeze(1)

@@ -1,6 +1,7 @@
 """Shadows across media and surfaces: a shadow ray sees every volume it crosses and the terrain.
 
-Analytic oracles: a homogeneous slab above a flat terrain darkens it by exp(−σ·thickness/cos θ);
+Analytic oracles: a homogeneous slab above a flat terrain darkens it by exp(−σ·thickness/cos θ),
+for a sun and for a point light behind it;
 the in-scatter of one homogeneous volume under (or over) another is the single-scattering
 integral with the product of both transmittances; a scene with one volume and no surface plans no
 occluders (its shadows are the volume's own march, as before)."""
@@ -40,6 +41,36 @@ def test_slab_shadow_on_a_plane_is_beer_lambert(theta, one_thread):
     expected = color * intensity * cos_theta * math.exp(-sigma * thickness / cos_theta)
     assert_close(out.radiance, expected, atol=1e-9, what="radiance of the plane under the slab")
     assert "terrain.shadow0.volume0" in out.stats["passes"]
+
+
+def test_a_point_light_behind_a_slab(one_thread):
+    """A point light above a homogeneous slab over a flat plane: each plane point receives
+    I·cos θ/r² · exp(−σ·thickness/cos θ), θ and r towards the light (the shadow ray ends there)."""
+    sigma, thickness, color, intensity, light = 0.9, 0.6, 0.7, 5.0, (0.2, 2.5, 0.1)
+    scene = {
+        "image": {"width": 9, "height": 7},
+        "camera": {"eye": [0.0, 0.9, -1.0], "target": [0.0, 0.0, 0.0], "fov_y": 40.0},
+        "lights": [{"kind": "point", "position": list(light), "color": [1.0, 1.0, 1.0], "intensity": intensity,
+                    "shadow": {"steps": 4}}],
+        "terrain": {"amplitude": 0.0, "base": 0.0, "color": [color] * 3, "ambient": [0.0] * 3},
+        "volumes": [{"bounds": {"slab": {"y_min": 1.0, "y_max": 1.0 + thickness}}, "density": {"constant": 1.0},
+                     "sigma_t": sigma, "albedo": 0.5}],
+    }
+    out = tv.render(scene, dtype=torch.float64)
+    cam = out.camera
+    h, w = out.depth.shape[-2:]
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    pixels = torch.stack([u, v, torch.ones_like(u)], dim=-1).reshape(-1, 3)
+    in_camera = (torch.linalg.inv(cam.K[0].double()) @ pixels.T).T * out.depth[0, 0].double().reshape(-1, 1)
+    to_world = torch.linalg.inv(cam.world_to_camera[0].double())
+    points = (to_world[:3, :3] @ in_camera.T).T + to_world[:3, 3]
+    assert float(points[:, 1].abs().max()) < 1e-6  # every pixel sees the plane, its depth on it
+    toward = torch.tensor(light, dtype=torch.float64) - points
+    r = toward.norm(dim=1)
+    cos = toward[:, 1] / r
+    expected = color * intensity * cos / r**2 * torch.exp(-sigma * thickness / cos)
+    # outputs (radiance, and the depth the points come from) are float32
+    assert_close(out.radiance[0, 0].reshape(-1).double(), expected, atol=1e-6, what="radiance of the plane under the point light")
 
 
 def test_terrain_shadow_sees_every_volume(one_thread):
