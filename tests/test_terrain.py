@@ -200,3 +200,19 @@ def test_trace_is_finite_for_any_ray(o, d, amplitude, safety):
     assert bool(torch.isfinite(t).all())
     vis = T.visibility(terrain, o, d, torch.zeros(1, dtype=torch.long), torch.full((1,), math.inf), steps=64)
     assert vis.item() in (0.0, 1.0)
+
+
+def test_no_shadow_acne_under_a_high_sun(one_thread):
+    """Hits are refined onto the surface: the shadow ray must still start clear of the hit rule's
+    width at that distance, or distant slopes shadow themselves in isolated pixels."""
+    scene = {
+        "image": {"width": 48, "height": 32},
+        "camera": {"eye": [0.0, 6.0, -14.0], "target": [0.0, 0.0, 10.0], "fov_y": 55.0},
+        "lights": [{"kind": "sun", "direction": [0.1, 1.0, 0.05], "intensity": 1.0, "shadow": {"steps": 4}}],
+        "terrain": {"amplitude": 1.5, "frequency": 0.15, "octaves": 6, "ambient": [0.0] * 3, "max_distance": 80.0},
+    }
+    lit = tv.render(scene)
+    bare = tv.render({**scene, "lights": [{**scene["lights"][0], "shadow": None}]})
+    hit = lit.depth[0, 0] > 0
+    shadowed = (lit.radiance[0, 1] < 0.5 * bare.radiance[0, 1]) & hit
+    assert float(shadowed.sum()) / float(hit.sum()) < 0.01, f"{int(shadowed.sum())} of {int(hit.sum())} hits self-shadowed"

@@ -182,7 +182,8 @@ class TerrainSurface:
                 rock = ((1.0 - nrm[:, 1] - take(p.rock_slope, sh)) * 10.0).clamp(0.0, 1.0)[:, None]
                 albedo = torch.lerp(take(p.color, sh), take(p.rock_color, sh), rock)
                 light = take(p.ambient, sh)
-                start = x + (take(p.shadow_offset, sh) + 2.0 * take(p.epsilon, sh))[:, None] * nrm  # clear of its own hit rule
+                # clear of the hit rule's width at this distance (the hit is on the surface, refined)
+                start = x + (take(p.shadow_offset, sh) + 2.0 * take(p.epsilon, sh) * (1.0 + th))[:, None] * nrm
             shadows = {use.light: use for use in self.plan.shadows}
             for l, source in enumerate(self.lights):
                 toward = source.toward(x, sh)
