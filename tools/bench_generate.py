@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchvol.generate import generate  # noqa: E402
 
-BUNDLED = ["clouds", "template-clouds", "voxel-terrain"]
+BUNDLED = sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
 
 
 def main() -> None:
