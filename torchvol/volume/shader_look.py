@@ -4,6 +4,7 @@ the sky by 1 − exp(−fog · t²); composited as the seeds' alpha (clamped sum
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal
 
 import torch
@@ -51,11 +52,14 @@ def ambient(vol, p: Tensor, s: Tensor) -> Tensor:
     return torch.lerp(take(look.ambient, s), take(look.ambient_top, s), height[:, None])
 
 
-def shader_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
-    """(alpha [n], colour [n, 3]) of the look at each sample (`signed` does not apply)."""
-    o, d, s_all = rays.origins, rays.directions, rays.scene_index
-    look, threshold, lod_scale = vol.params.shader, ctx.settings.density_threshold, ctx.settings.lod_scale
-    at = gathered(lambda ids: (s_all[ids], o[ids], d[ids]))
+def alpha_look_medium(ctx, vol, rays: Rays, shade: Callable[..., tuple[Tensor, Tensor]]) -> Medium:
+    """The medium of an alpha look (the seeds' loop): the density at each sample, and where it is
+    over `march.density_threshold`, `shade(ids, keep, s, p, t, d, density, lod)` of those samples
+    (`ids` the march's rays, `keep` [k] the samples shaded, the rest [k]/[k, 3]) -> (alpha [k],
+    colour [k, 3]); elsewhere alpha 0."""
+    o, d_all, s_all = rays.origins, rays.directions, rays.scene_index
+    threshold, lod_scale = ctx.settings.density_threshold, ctx.settings.lod_scale
+    at = gathered(lambda ids: (s_all[ids], o[ids], d_all[ids]))
 
     def medium(ids: Tensor, t: Tensor, dt: Tensor):
         s, o_ids, d_ids = at(ids)
@@ -66,20 +70,28 @@ def shader_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: bo
         color = p.new_zeros(p.shape[0], 3)
         keep = (density > threshold).nonzero().squeeze(1)
         if keep.numel():
-            sk, dk, tk, pk = s[keep], density[keep], t[keep], p[keep]
-            lin = ambient(vol, pk, sk)
-            for use in vol.plan.lights:  # the derivative light: the first light only
-                with ctx.timer.section(use.name):
-                    toward = ctx.lights[use.light].toward(pk, sk)
-                    ahead = vol.field(pk + take(look.light_offset, sk)[:, None] * toward.direction, sk,
-                                      None if lod is None else lod[keep])
-                    dif = derivative_light(dk, ahead, scale=take(look.light_scale, sk))
-                    lin = toward.irradiance * dif[:, None] + lin
-            col = torch.lerp(take(look.color_lit, sk), take(look.color_dark, sk), dk[:, None]) * lin
-            fog = take(look.fog, sk)
-            col = torch.lerp(col, background[ids][keep], (1.0 - torch.exp(-fog * tk * tk))[:, None])
-            color[keep] = col
-            alpha[keep] = dk * take(look.alpha_scale, sk)
+            alpha[keep], color[keep] = shade(ids, keep, s[keep], p[keep], t[keep], d_ids[keep], density[keep],
+                                             None if lod is None else lod[keep])
         return alpha, color
 
     return medium
+
+
+def shader_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
+    """(alpha [n], colour [n, 3]) of the look at each sample (`signed` does not apply)."""
+    look = vol.params.shader
+
+    def shade(ids, keep, s, p, t, d, density, lod):
+        lin = ambient(vol, p, s)
+        for use in vol.plan.lights:  # the derivative light: the first light only
+            with ctx.timer.section(use.name):
+                toward = ctx.lights[use.light].toward(p, s)
+                ahead = vol.field(p + take(look.light_offset, s)[:, None] * toward.direction, s, lod)
+                dif = derivative_light(density, ahead, scale=take(look.light_scale, s))
+                lin = toward.irradiance * dif[:, None] + lin
+        col = torch.lerp(take(look.color_lit, s), take(look.color_dark, s), density[:, None]) * lin
+        fog = take(look.fog, s)
+        col = torch.lerp(col, background[ids][keep], (1.0 - torch.exp(-fog * t * t))[:, None])
+        return density * take(look.alpha_scale, s), col
+
+    return alpha_look_medium(ctx, vol, rays, shade)

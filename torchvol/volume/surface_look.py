@@ -15,7 +15,8 @@ from ..batch import take
 from ..camera import Rays
 from ..mathops import pow_
 from ..schema import Strict, Vec3
-from .march import Medium, gathered, lod_drop
+from .march import Medium
+from .shader_look import alpha_look_medium
 
 
 class SurfaceLook(Strict):
@@ -70,31 +71,17 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
 def surface_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
     """(alpha [n], colour [n, 3]) of the surface look at each sample (`background` and `signed`
     do not apply)."""
-    o, d, s_all = rays.origins, rays.directions, rays.scene_index
-    look, threshold, lod_scale = vol.params.surface, ctx.settings.density_threshold, ctx.settings.lod_scale
-    at = gathered(lambda ids: (s_all[ids], o[ids], d[ids]))
+    look = vol.params.surface
 
-    def medium(ids: Tensor, t: Tensor, dt: Tensor):
-        s, o_ids, d_ids = at(ids)
-        p = torch.addcmul(o_ids, t[:, None], d_ids)
-        lod = lod_drop(t, lod_scale)
-        density = vol.field(p, s, lod)
-        alpha = torch.zeros_like(density)
-        color = p.new_zeros(p.shape[0], 3)
-        keep = (density > threshold).nonzero().squeeze(1)
-        if keep.numel():
-            sk, dk, pk = s[keep], density[keep], p[keep]
-            normal = density_normal(vol.field, pk, sk, dk, take(look.epsilon, sk), gradient=look.gradient,
-                                    lod=None if lod is None else lod[keep])
-            to_eye, shininess = -d_ids[keep], take(look.shininess, sk)
-            diffuse, specular = take(look.diffuse, sk), take(look.specular, sk)
-            col = take(look.ambient, sk)
-            for use in vol.plan.lights:
-                toward = ctx.lights[use.light].toward(pk, sk)
-                dif, spec = surface_light(normal, toward.direction, to_eye, shininess)
-                col = col + toward.irradiance * (diffuse * dif[:, None] + specular * spec[:, None])
-            color[keep] = col
-            alpha[keep] = (dk * take(look.alpha_scale, sk)).clamp_max(1.0)
-        return alpha, color
+    def shade(ids, keep, s, p, t, d, density, lod):
+        normal = density_normal(vol.field, p, s, density, take(look.epsilon, s), gradient=look.gradient, lod=lod)
+        to_eye, shininess = -d, take(look.shininess, s)
+        diffuse, specular = take(look.diffuse, s), take(look.specular, s)
+        col = take(look.ambient, s)
+        for use in vol.plan.lights:
+            toward = ctx.lights[use.light].toward(p, s)
+            dif, spec = surface_light(normal, toward.direction, to_eye, shininess)
+            col = col + toward.irradiance * (diffuse * dif[:, None] + specular * spec[:, None])
+        return (density * take(look.alpha_scale, s)).clamp_max(1.0), col
 
-    return medium
+    return alpha_look_medium(ctx, vol, rays, shade)
