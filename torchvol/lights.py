@@ -17,7 +17,7 @@ from torch import Tensor
 
 from .batch import Stacked, take
 from .registry import Registry
-from .schema import SHARED, Strict, Vec3, nonneg
+from .schema import SHARED, Strict, Vec3, nonneg, nonzero
 
 # A point light's 1/r² is capped at 1/POINT_RADIUS²: a ray through the light itself stays finite
 # (as if the light were a small sphere); it never changes a sample farther than POINT_RADIUS away.
@@ -53,12 +53,7 @@ class Sun(Strict):
     intensity: float = Field(1.0, ge=0.0)
     shadow: Shadow | None = None
 
-    @field_validator("direction")
-    @classmethod
-    def _nonzero(cls, v):
-        if math.hypot(*v) < 1e-12:
-            raise ValueError("direction must be a non-zero vector (it points towards the sun)")
-        return v
+    _d = field_validator("direction")(lambda v: nonzero(v, "it points towards the sun"))
 
     _c = field_validator("color")(lambda v: _color(v))
 

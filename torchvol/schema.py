@@ -17,10 +17,12 @@ Mark a field otherwise with ``Annotated[type, EACH]`` (or ``SHARED``, ``TENSOR``
 
 from __future__ import annotations
 
+import math
 import typing
+from collections.abc import Mapping
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Any, Mapping
+from typing import Annotated, Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, model_validator
@@ -86,6 +88,13 @@ def refuse(path: str, value: Any, allowed: str):
 def nonneg(v: Vec3, what: str = "components") -> Vec3:
     if min(v) < 0:
         raise ValueError(f"{what} must be >= 0")
+    return v
+
+
+def nonzero(v: Vec3, why: str) -> Vec3:
+    """A direction: refused where its length is 0 (it could not be normalised)."""
+    if math.hypot(*v) < 1e-12:
+        raise ValueError(f"direction must be a non-zero vector ({why})")
     return v
 
 

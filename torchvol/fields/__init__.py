@@ -21,8 +21,8 @@ from .base import Field
 from .clouds import CloudLayer, CloudsDensity
 from .cloudscape import Cloudscape, CloudscapeDensity
 from .constant import Constant, ConstantDensity
-from .exponential import Exponential, ExponentialDensity
 from .explosion import ExplosionDensity, ExplosionField
+from .exponential import Exponential, ExponentialDensity
 from .fbm import FbmDensity, FbmField
 from .fur import FurDensity, FurField
 from .grid import Grid, GridDensity

@@ -19,8 +19,9 @@ from pydantic import Field
 from torch import Tensor
 
 from .. import noise
-from ..batch import Stacked, per_scene, take
+from ..batch import Stacked, take
 from ..schema import EACH, Strict, Vec3
+from .fbm import seeded_fbm
 
 
 class ExplosionDensity(Strict):
@@ -56,13 +57,6 @@ class ExplosionField:
         p, s = self.p, scene_index
         q = (points - take(p.center, s)) / take(self.size, s)[:, None]
         x = take(p.frequency, s)[:, None] * q + take(self.shift, s)
-        octaves = None if lod is None else p.octaves - lod
-
-        def one_scene(b: int, idx: Tensor | slice, x_b: Tensor) -> Tensor:
-            seed = p.seed[b]
-            return noise.fbm(x_b, lambda y: self.basis(y, seed=seed), octaves=p.octaves,
-                             lod=None if octaves is None else octaves[idx])
-
-        n = per_scene(x, s, len(p), one_scene)
+        n = seeded_fbm(self.basis, x, s, p, lod)
         shape = 1.0 - q.norm(dim=1) + take(p.displacement, s) * (n - 0.5)
         return (take(p.sharpness, s) * shape).clamp_max(1.0)

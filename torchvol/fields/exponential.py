@@ -3,10 +3,9 @@ atmosphere (there radially; here along y)."""
 
 from __future__ import annotations
 
+import torch
 from pydantic import Field
 from torch import Tensor
-
-import torch
 
 from ..batch import Stacked, take
 from ..schema import Strict

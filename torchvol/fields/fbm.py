@@ -31,6 +31,19 @@ class FbmDensity(Strict):
     center: Vec3 = (0.0, 0.0, 0.0)
 
 
+def seeded_fbm(basis, q: Tensor, s: Tensor, params: Stacked, lod: Tensor | None) -> Tensor:
+    """fbm of `basis(x, seed=...)` at `q` [N, 3] of scenes `s` [N], each scene with its own
+    `params.seed` and `params.octaves`, `lod` [N] octaves dropped (None: all) -> [N]."""
+    octaves = None if lod is None else params.octaves - lod
+
+    def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
+        seed = params.seed[b]
+        return noise.fbm(q_b, lambda x: basis(x, seed=seed), octaves=params.octaves,
+                         lod=None if octaves is None else octaves[idx])
+
+    return per_scene(q, s, len(params), one_scene)
+
+
 class FbmField:
     def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
         self.p = params
@@ -45,13 +58,6 @@ class FbmField:
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         p, s = self.p, scene_index
         q = take(p.frequency, s)[:, None] * (points - take(self.shift, s)) + take(p.offset, s)
-        octaves = None if lod is None else p.octaves - lod
-
-        def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
-            seed = p.seed[b]
-            return noise.fbm(q_b, lambda x: self.basis(x, seed=seed), octaves=p.octaves,
-                             lod=None if octaves is None else octaves[idx])
-
-        f = per_scene(q, s, len(p), one_scene)
+        f = seeded_fbm(self.basis, q, s, p, lod)
         falloff = take(p.radial, s) * (points - take(p.center, s)).norm(dim=1)
         return take(p.bias, s) + take(p.amplitude, s) * f - falloff

@@ -21,7 +21,7 @@ from torch import Tensor
 from .. import noise
 from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
-from .fbm import NOISES
+from .fbm import NOISES, seeded_fbm
 
 MAX_PARTICLES = 256
 
@@ -128,14 +128,7 @@ class ParticleField:
         si = s[i]
         local = (points[i] - self.centers[si, k]) / self.radii[si, k][:, None]
         q = take(p.frequency, si)[:, None] * local + self.offsets[si, k]
-        octaves = None if lod is None else p.octaves - lod[i]
-
-        def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
-            seed = p.seed[b]
-            return noise.fbm(q_b, lambda x: self.basis(x, seed=seed), octaves=p.octaves,
-                             lod=None if octaves is None else octaves[idx])
-
-        f = per_scene(q, si, len(p), one_scene) if pairs.shape[0] else q.new_zeros(0)
+        f = seeded_fbm(self.basis, q, si, p, None if lod is None else lod[i]) if pairs.shape[0] else q.new_zeros(0)
         raw = (take(p.core, si) + take(p.amplitude, si) * f) * falloff(r[i, k], take(p.edge, si))
         # dense [N, K] then a reduction along K: a point's sum has the same rounding in any batch
         parts = r.new_zeros(r.shape)

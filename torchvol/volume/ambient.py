@@ -19,7 +19,7 @@ from pydantic import Field, field_validator
 from torch import Tensor
 
 from ..batch import take
-from ..schema import Strict, Vec3, nonneg
+from ..schema import Strict, Vec3, nonneg, nonzero
 from .shadow import shadow_transmittance
 
 SKY_DIRECTIONS = 64  # the Fibonacci sphere the sky's mean radiance is averaged over
@@ -36,12 +36,7 @@ class Ambient(Strict):
     sigma_scale: float = Field(1.0, ge=0.0, le=1.0)
     _r = field_validator("radiance", "top")(lambda v: v if v is None else nonneg(v))
 
-    @field_validator("direction")
-    @classmethod
-    def _direction(cls, v):
-        if math.hypot(*v) < 1e-9:
-            raise ValueError("direction must be a non-zero vector (towards the sky)")
-        return v
+    _d = field_validator("direction")(lambda v: nonzero(v, "towards the sky"))
 
 
 def fibonacci_sphere(n: int, *, dtype, device) -> Tensor:
