@@ -179,7 +179,7 @@ BASES: dict[str, dict] = {
                 "b": {"intersection": [{"sphere": {"center": [0.0, 1.0, 0.0], "radius": 5.5}}]}}}}},
             "cells": {"min": [-7, -6, -7], "max": [7, 8, 7]},
             "origin": [0.1, 0.0, -0.1], "voxel_size": 1.05, "max_steps": 48,
-            "materials": [[0.9, 0.8, 0.7], [0.5, 0.6, 0.9]], "face_tones": [0.6, 1.0, 0.8], "ambient": [0.2, 0.25, 0.3],
+            "materials": [{"color": [0.9, 0.8, 0.7], "emission": [0.1, 0.2, 0.05]}], "face_tones": [0.6, 1.0, 0.8], "ambient": [0.2, 0.25, 0.3],
             "ao": {"gamma": 0.6}, "shadow": {"steps": 24, "offset": 0.05},
             "texture": {"atlas": RNG.integers(0, 256, (8, 8, 3), dtype=np.uint8), "tiles": 2},
             "glow": {"intensity": 0.01, "epsilon": 0.05, "color": [0.4, 0.6, 1.0]},

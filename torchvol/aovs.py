@@ -24,7 +24,7 @@ _aov("normal", 3, "mean", lambda batch: batch.voxels is not None or batch.terrai
      "surface normal: voxel face or terrain (world, unit; 0: no hit)")
 _aov("uv", 2, "mean", lambda batch: batch.voxels is not None, "voxel face UV in [0, 1]")
 _aov("material", 1, "first", lambda batch: batch.voxels is not None and (
-    batch.voxels.materials.shape[1] > 1 or batch.voxels.texture is not None), "voxel material id (0: no hit)")
+    len(batch.voxels.materials) > 1 or batch.voxels.texture is not None), "voxel material id (0: no hit)")
 _aov("ao", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.ao is not None,
      "voxel neighbour ambient occlusion (1: open)")
 _aov("shadow", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.shadow is not None and bool(batch.lights),

@@ -100,6 +100,7 @@ class VoxelPass:
     glow: bool  # glow and fog accumulate per visited cell, inside voxels.dda
     fog: bool
     texture: bool
+    emission: bool = False  # some material of some scene emits (voxels.materials[i].emission)
 
     def names(self) -> list[str]:
         return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
@@ -203,7 +204,8 @@ def make_plan(batch: Stacked | Scene) -> Plan:
     if vx is not None:  # the surface pass runs before the volumes (they march up to its depth)
         shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
         voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
-                           glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None)
+                           glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
+                           emission=any(bool((m.emission > 0).any()) for m in vx.materials))
     terrain = None
     if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself
         terrain = TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)

@@ -37,6 +37,7 @@ from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
 from .volume.surface_look import SurfaceLook
+from .voxel.materials import Material
 
 PRESET_DIR = Path(__file__).parent / "presets"
 
@@ -357,7 +358,8 @@ class Voxels(Strict):
     voxel_size: float = Field(1.0, gt=0.0)
     max_steps: int | None = Field(None, ge=1, le=1_000_000, description="None: the quality level's")
     traversal: Literal["dda", "hybrid"] = "dda"
-    materials: list[Vec3] = Field(default_factory=lambda: [(1.0, 1.0, 1.0)], min_length=1, max_length=255)
+    materials: list[Material] = Field(default_factory=lambda: [Material()], min_length=1, max_length=255,
+                                      description="each a colour [r, g, b] or { color, emission }")
     face_tones: Vec3 = (0.5, 1.0, 0.75)  # x, y, z faces (seed Step 5); [1, 1, 1] turns it off
     ambient: Vec3 = (0.3, 0.3, 0.3)
     ao: VoxelAO | None = None

@@ -1,15 +1,56 @@
-"""Voxel surface materials: the `VOXEL_MATERIALS` registry. Each kind is its schema model (a
-`voxels.materials` entry) and its function `fn(normal [n, 3], light_dir [n, 3], irradiance [n, 3],
-visibility [n]) -> reflected light [n, 3]` per unit albedo: what one light adds at a surface
-point, multiplied into the material's albedo by the surface pass."""
+"""Voxel surface materials.
+
+`Material` is a `voxels.materials` entry: a colour `[r, g, b]` (the albedo: the first form, kept)
+or a table `{ color, emission = [0, 0, 0] }`; emission is the radiance leaving the material's
+faces. (`roughness` and `metallic` join the table with the GGX reflectance that reads them.)
+`material_table` reads a batch's entries as (B, M, ...) tensors.
+
+The `VOXEL_MATERIALS` registry holds the reflectance models: each kind is its schema model and its
+function `fn(normal [n, 3], light_dir [n, 3], irradiance [n, 3], visibility [n]) -> reflected light
+[n, 3]` per unit albedo: what one light adds at a surface point, multiplied into the material's
+albedo by the surface pass."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import torch
+from pydantic import field_validator, model_validator
 from torch import Tensor
 
 from ..registry import Registry
-from ..schema import Vec3
+from ..schema import Strict, Vec3, nonneg
 from .shade import lambert
+
+
+class Material(Strict):
+    """A voxel material: albedo `color` and `emission` (the radiance leaving its faces). A bare
+    `[r, g, b]` is `{ color = [r, g, b] }`."""
+
+    color: Vec3 = (1.0, 1.0, 1.0)
+    emission: Vec3 = (0.0, 0.0, 0.0)
+    _c = field_validator("color", "emission")(lambda v: nonneg(v))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _colour_form(cls, v):
+        if isinstance(v, (list, tuple)) or (hasattr(v, "shape") and not isinstance(v, dict)):
+            return {"color": v}
+        return v
+
+
+@dataclass(frozen=True)
+class MaterialTable:
+    """A batch's materials as tensors: `color`, `emission` (B, M, 3)."""
+
+    color: Tensor
+    emission: Tensor
+
+
+def material_table(materials: list) -> MaterialTable:
+    """`materials`: a batch's `voxels.materials`, one `Stacked` per entry -> the (B, M, ...) table."""
+    return MaterialTable(*(torch.stack([getattr(m, key) for m in materials], dim=1)
+                           for key in ("color", "emission")))
 
 
 def diffuse(normal: Tensor, light_dir: Tensor, irradiance: Tensor, visibility: Tensor) -> Tensor:

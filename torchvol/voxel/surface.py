@@ -23,7 +23,7 @@ from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
 from .dda import Hits, hybrid_traverse, traverse
 from .grid import VoxelGrid
-from .materials import VOXEL_MATERIALS
+from .materials import VOXEL_MATERIALS, material_table
 from .shade import atlas_sample, face_normal, face_tone, face_uv, rounded_refine, voxel_ao
 
 __all__ = ["VoxelSurface"]
@@ -41,6 +41,7 @@ class VoxelSurface:
         self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=plan.traversal == "hybrid")
         self.aov_names = [a for a in aovs if a in SURFACE_AOVS]
         self.material = VOXEL_MATERIALS["diffuse"]
+        self.materials = material_table(voxels.materials)  # (B, M, ...)
         if plan.texture:
             self.atlases = [torch.as_tensor(a, device=device) for a in voxels.texture.atlas]
         self.steps_total = 0
@@ -148,14 +149,18 @@ class VoxelSurface:
         local = (g.to_grid(x, s) - cell.to(x.dtype)).clamp(0.0, 1.0)
         face_n = face_normal(axis, d)
         uv = face_uv(local, axis)
-        albedo = p.materials[s, (mat - 1).clamp(0, p.materials.shape[1] - 1)]  # materials (B, M, 3)
+        index = (mat - 1).clamp(0, self.materials.color.shape[1] - 1)
+        albedo = self.materials.color[s, index]
         if self.plan.texture:  # one atlas per scene
             albedo = albedo * per_scene(torch.cat([mat[:, None].to(x.dtype), uv], dim=1), s, len(p),
                                         lambda b, i, q: atlas_sample(self.atlases[b], p.texture.tiles[b], q[:, 0].long(), q[:, 1:]))
         albedo = albedo * face_tone(axis, take(p.face_tones, s))[:, None]
         normal = face_n if normal_override is None else normal_override
-        return dict(x=x, cell=cell, axis=axis, face_normal=face_n, normal=normal, uv=uv, albedo=albedo,
-                    material=mat.to(x.dtype)[:, None])
+        out = dict(x=x, cell=cell, axis=axis, face_normal=face_n, normal=normal, uv=uv, albedo=albedo,
+                   material=mat.to(x.dtype)[:, None])
+        if self.plan.emission:
+            out["emission"] = self.materials.emission[s, index]
+        return out
 
     def _lit(self, surface: dict[str, Tensor], s: Tensor, section) -> Tensor:
         """Ambient plus each light's irradiance, shadowed by a DDA ray where `voxels.shadow` is set."""
@@ -171,7 +176,8 @@ class VoxelSurface:
                 if "shadow" not in surface:
                     surface["shadow"] = vis[:, None]
             light = light + self.material.fn(surface["normal"], toward.direction, toward.irradiance, vis)
-        return surface["albedo"] * light
+        lit = surface["albedo"] * light
+        return lit + surface["emission"] if self.plan.emission else lit
 
     def _rounded(self, o, d, s, hits: Hits):
         """Refine hits inside rounded voxels; rays that miss the rounded shape continue the DDA."""
