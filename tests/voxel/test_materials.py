@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import assert_close
 
 import torchvol as tv
 from torchvol.plan import make_plan
-
-from conftest import assert_close
 
 
 def room(materials, **voxels) -> dict:
