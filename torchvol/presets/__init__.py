@@ -6,11 +6,12 @@
 from __future__ import annotations
 
 import math
-import tomllib
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
+import tomllib
 
 from ..validate import did_you_mean, fail, integer
 
@@ -197,32 +198,15 @@ def _particles(data: dict, *, time: float | None = None, seed: int | None = None
         particles["count"] = count
 
 
-def god_rays_grid(seed: int, *, haze: float = 0.06, cells: tuple[int, int, int] = (72, 30, 48), holes: int = 24) -> np.ndarray:
-    """The god-rays preset's medium over its box [-6, 6] × [0, 3] × [-3, 5], as grid[k, j, i]: a
-    canopy (density 40) from y = 2.4 to 2.6 pierced by a hole of radius 0.5 where the camera sees
-    the sun and `holes` more of radius 0.3–0.55 placed from `seed`, over `haze` (nothing above)."""
-    nx, ny, nz = cells
-    rng = np.random.default_rng(seed)
-    x = -6.0 + 12.0 * (np.arange(nx) + 0.5) / nx
-    y = 3.0 * (np.arange(ny) + 0.5) / ny
-    z = -3.0 + 8.0 * (np.arange(nz) + 0.5) / nz
-    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
-    centres = [(0.0, -1.66, 0.5)] + list(zip(rng.uniform(-3.5, 3.5, holes), rng.uniform(-1.5, 4.0, holes),
-                                             rng.uniform(0.3, 0.55, holes)))
-    open_ = np.zeros(xx.shape, dtype=bool)
-    for cx, cz, r in centres:
-        open_ |= (xx - cx) ** 2 + (zz - cz) ** 2 < r * r
-    canopy = (yy > 2.4) & (yy < 2.6) & ~open_
-    return np.where(canopy, 40.0, np.where(yy < 2.4, haze, 0.0))
-
-
-def _god_rays(data: dict, *, method: str = "both", seed: int = 3) -> None:
+def _god_rays(data: dict, *, method: str = "both", seed: int = 2) -> None:
     """`method`: "physical" (shadowed haze, no post effect), "screen" (the post effect, no haze)
-    or "both"."""
+    or "both"; `seed` the canopy's noise (its holes)."""
     if method not in ("both", "physical", "screen"):
         fail("god-rays.method", method, "expected 'both', 'physical' or 'screen'")
     integer("god-rays.seed", seed, low=0)
-    data["volumes"][0]["density"] = {"grid": {"data": god_rays_grid(seed, haze=0.0 if method == "screen" else 0.06)}}
+    data["volumes"][0]["density"]["fbm"]["seed"] = seed
+    if method == "screen":
+        del data["volumes"][1]
     if method == "physical":
         del data["post"]["god_rays"]
 
