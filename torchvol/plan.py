@@ -100,10 +100,12 @@ class VoxelPass:
     glow: bool  # glow and fog accumulate per visited cell, inside voxels.dda
     fog: bool
     texture: bool
+    water: bool = False  # the water plane's reflected and refracted rays (voxels.water)
 
     def names(self) -> list[str]:
         return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
-                + (["voxels.ao"] if self.ao else []) + [li.name for li in self.shadows])
+                + (["voxels.ao"] if self.ao else []) + [li.name for li in self.shadows]
+                + (["voxels.water"] if self.water else []))
 
 
 @dataclass(frozen=True)
@@ -203,7 +205,8 @@ def make_plan(batch: Stacked | Scene) -> Plan:
     if vx is not None:  # the surface pass runs before the volumes (they march up to its depth)
         shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
         voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
-                           glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None)
+                           glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
+                           water=vx.water is not None)
     terrain = None
     if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself
         terrain = TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)
