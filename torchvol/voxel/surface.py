@@ -213,7 +213,7 @@ class VoxelSurface:
         p, n = self.p, o.shape[0]
         hits = self._traverse(o, d, s, max_steps=p.max_steps, plain=True)
         self.steps_total += int(hits.steps.sum())
-        color = self.sky(d, s) if self.sky is not None else o.new_zeros(n, 3)
+        color = self.sky(d, s).clone() if self.sky is not None else o.new_zeros(n, 3)  # a sky may be expanded
         ids = hits.hit.nonzero().squeeze(1)
         if ids.numel():
             sh = s[ids]
