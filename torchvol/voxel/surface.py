@@ -147,8 +147,7 @@ class VoxelSurface:
             out_color = out_color + acc["glow"][:, None] * take(p.glow.color, s)
         t_hit = torch.where(hit, t, torch.full_like(t, torch.inf))
         if self.plan.water:
-            with section("voxels.water"):
-                hit, t_hit, out_color = self._water(o, d, s, t_hit, out_color, aovs, section)
+            hit, t_hit, out_color = self._water(o, d, s, t_hit, out_color, aovs, section)
         return dict(hit=hit, t=t_hit, color=out_color, steps=steps, aovs=aovs)
 
     def _water(self, o, d, s, t_hit, color, aovs, section):
@@ -165,8 +164,15 @@ class VoxelSurface:
         if "water" in aovs:
             aovs["water"] = on.to(o.dtype)[:, None]
         ids = on.nonzero().squeeze(1)
-        if not ids.numel():
+        if not ids.numel():  # no ray met the water: the pass did not run
             return t_hit < torch.inf, t_hit, color
+        with section("voxels.water"):
+            return self._on_water(o, d, s, ids, on, t_water, t_hit, under, color, aovs, section)
+
+    def _on_water(self, o, d, s, ids, on, t_water, t_hit, under, color, aovs, section):
+        """`_water` for the rays ids [m] that meet the water (`on` [n]) at t_water [n]."""
+        w = self.p.water
+        level, absorb = take(w.level, s), take(w.absorption, s)
         di, si, ui, tw = d[ids], s[ids], under[ids], t_water[ids]
         x = o[ids] + tw[:, None] * di
         x[:, 1] = level[ids]  # exactly on the plane
