@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -15,8 +16,6 @@ import torchvol as tv
 from torchvol.plan import make_plan
 from torchvol.testing.glsl import gl_context, run_fragment, shadertoy_source
 from torchvol.voxel.water import beer, fresnel, plane_hit, reflect, refract, wave_normal
-
-from conftest import assert_close
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -167,7 +166,7 @@ def test_camera_under_water_sees_snells_window():
     assert_close(torch.from_numpy(got), torch.from_numpy(want), atol=2e-5, what="under-water radiance")
     cos_c = math.sqrt(1.0 - 1.0 / IOR**2)
     up = d[..., 1].numpy()
-    assert ((up > 0) & (up < cos_c - 1e-3)).sum() > 20 and ((up > cos_c + 1e-3)).sum() > 20, "both sides of the critical angle"
+    assert ((up > 0) & (up < cos_c - 1e-3)).sum() > 20 and (up > cos_c + 1e-3).sum() > 20, "both sides of the critical angle"
     assert (got[(up > 0) & (up < cos_c - 1e-3)] == 0).all()
 
 
@@ -234,3 +233,9 @@ def test_seed_water_code_matches_llvmpipe():
     t, tir = refract(up, -n, torch.full((n_,), 1.33))
     assert tir.any() and (~tir).any()
     assert_close(t, torch.from_numpy(gl[4][:, :3].copy()), atol=1e-5, what="refract out of water (TIR: 0)")
+
+
+def test_water_no_ray_meets_is_not_a_pass_that_ran():
+    out = tv.render(water_scene(2, eye=(0.0, 5.0, 0.0), target=(0.0, 10.0, 3.0), size=8))  # every ray rises
+    assert "voxels.water" in out.stats["plan"] and "voxels.water" not in out.stats["passes"]
+    assert (out.aovs["water"] == 0).all()
