@@ -238,6 +238,19 @@ BASES: dict[str, dict] = {
         "voxels": {"occupancy": {"grid": {"data": RNG.integers(0, 3, (5, 4, 5), dtype=np.uint8)}},
                    "cells": {"min": [-1, 0, 1]}, "materials": [[0.8, 0.2, 0.2], [0.2, 0.8, 0.2]]},
     },
+    "voxels: water": {
+        "time": 0.4,
+        "image": SMALL,
+        "camera": {"eye": [-9.0, 6.0, -9.0], "target": [0.0, 0.0, 0.0], "fov_y": 55.0},
+        "sky": {"kind": "constant", "radiance": [0.5, 0.6, 0.7]},
+        "lights": [{**SUN, "direction": [-0.4, 0.7, 0.5]}],
+        "voxels": {
+            "occupancy": {"terrain": {"seed": 2, "base": -3.0, "amplitude": 6.0, "frequency": 0.15, "octaves": 2}},
+            "cells": {"min": [-8, -4, -8], "max": [8, 5, 8]}, "max_steps": 48,
+            "water": {"level": 0.3, "ior": 1.4, "absorption": [0.5, 0.2, 0.1], "fresnel": "schlick", "offset": 0.02,
+                      "waves": {"amplitude": 0.1, "frequency": [1.5, 1.2], "speed": [1.1, 0.6]}},
+        },
+    },
 }
 
 

@@ -29,6 +29,10 @@ _aov("ao", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.ao
      "voxel neighbour ambient occlusion (1: open)")
 _aov("shadow", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.shadow is not None and bool(batch.lights),
      "visibility of the first light from the voxel surface (1: lit)")
+_aov("water", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.water is not None,
+     "voxel water mask: 1 where the ray met the water plane first (depth is then the water surface)")
+_aov("water_floor_distance", 1, "hit_mean", lambda batch: batch.voxels is not None and batch.voxels.water is not None,
+     "distance from the camera to the voxel a water-refracted ray reached (world units; 0: none)")
 
 # the render's own outputs resolve like AOVs (image, depth and alpha are not AOVs)
 RESOLVE = {"alpha": "mean", "depth": "hit_mean", **{k.name: k.resolve for k in AOVS}}

@@ -94,7 +94,8 @@ class RenderContext:
         self.surface = self.terrain = None
         if plan.voxels is not None:
             self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, plan.aovs, dtype=dtype, device=device,
-                                        compiled=compiled)
+                                        compiled=compiled, time=self.times,
+                                        sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s))
         if plan.terrain is not None:  # the scene's one surface (voxels and terrain are refused together)
             self.terrain = self.surface = TerrainSurface(
                 batch.terrain, self.lights, plan.terrain, plan.aovs,
@@ -135,10 +136,15 @@ class RenderContext:
 
 def sky_radiance(ctx: RenderContext, rays: Rays) -> Tensor:
     """The sky behind each ray [n, 3], with the sun's halo where the sky has one."""
-    sky, s = ctx.batch.sky, rays.scene_index
-    base = SKIES[ctx.plan.sky].fn(sky, rays.directions, s, ctx.sun())
+    return sky_toward(ctx, rays.directions, rays.scene_index)
+
+
+def sky_toward(ctx: RenderContext, directions: Tensor, s: Tensor) -> Tensor:
+    """The sky [n, 3] seen along unit directions [n, 3] of scenes s [n] (with the halo)."""
+    sky = ctx.batch.sky
+    base = SKIES[ctx.plan.sky].fn(sky, directions, s, ctx.sun())
     if ctx.plan.halo:
-        base = base + sun_glow(rays.directions, take(ctx.sun(), s), take(sky.halo.color, s), take(sky.halo.power, s))
+        base = base + sun_glow(directions, take(ctx.sun(), s), take(sky.halo.color, s), take(sky.halo.power, s))
     return base
 
 

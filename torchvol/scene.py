@@ -28,6 +28,7 @@ from .schema import EACH, SHARED, GridSource, One, Strict, Vec3, nonneg, reachab
 from .sky import SKIES
 from .terrain import Terrain
 from .validate import SceneError, did_you_mean, fail
+from .voxel.water import VoxelWater
 from .volume.emission import Bloom, EmissionMap
 from .volume.atmosphere import AtmosphereMedium
 from .fields.edge import Edge
@@ -368,6 +369,7 @@ class Voxels(Strict):
     glow: VoxelGlow | None = None
     rounded: VoxelRounded | None = None
     fog: VoxelFog | None = None
+    water: VoxelWater | None = None
 
     @model_validator(mode="after")
     def _consistent(self):

@@ -4,7 +4,9 @@
 `VoxelSurface.run(o, d, s, background, section)` returns, per ray [n]: ``hit``, ``t`` (world
 distance of the first hit, inf for misses), ``color`` [n, 3] (what the ray sees behind any volume:
 the shaded surface where hit, else `background`, with fog and glow applied), ``steps`` and the AOVs
-the plan calls for (``normal`` [n, 3], ``uv`` [n, 2], ``material``, ``ao``, ``shadow`` [n, 1]).
+the plan calls for (``normal`` [n, 3], ``uv`` [n, 2], ``material``, ``ao``, ``shadow`` [n, 1],
+``water`` and ``water_floor_distance`` [n, 1]). With `voxels.water` a ray that reaches the water
+plane first is a hit there: its colour mixes a reflected and a refracted ray (water.py).
 Every per-scene value arrives as a (B, ...) tensor of the batch's `Stacked` voxels, or is handled
 scene by scene (occupancy, texture atlas, the glow's SDF).
 """
@@ -25,19 +27,23 @@ from .dda import Hits, hybrid_traverse, traverse
 from .grid import VoxelGrid
 from .materials import VOXEL_MATERIALS, material_table
 from .shade import atlas_sample, face_normal, face_tone, face_uv, rounded_refine, voxel_ao
+from .water import beer, fresnel, plane_hit, reflect, refract, wave_normal
 
 __all__ = ["VoxelSurface"]
 
-SURFACE_AOVS = ("normal", "uv", "material", "ao", "shadow")
+SURFACE_AOVS = ("normal", "uv", "material", "ao", "shadow", "water", "water_floor_distance")
 
 
 class VoxelSurface:
     """One batch's voxel grids and shading parameters (`voxels`: the batch's `Stacked` voxels),
-    lit by `lights`; `plan` the batch's `VoxelPass`; `aovs` the AOV names to output."""
+    lit by `lights`; `plan` the batch's `VoxelPass`; `aovs` the AOV names to output; `time` (B,) the
+    scenes' times (water waves); `sky(directions [n, 3], s [n]) -> [n, 3]` what secondary rays that
+    leave the grid see (None: black)."""
 
     def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Sequence[str], *, dtype, device,
-                 compiled: bool = False):
+                 compiled: bool = False, time: Tensor | None = None, sky: Callable[[Tensor, Tensor], Tensor] | None = None):
         self.p, self.lights, self.plan, self.compiled = voxels, list(lights), plan, compiled
+        self.time, self.sky = time, sky
         self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=plan.traversal == "hybrid")
         self.aov_names = [a for a in aovs if a in SURFACE_AOVS]
         self.material = VOXEL_MATERIALS["diffuse"]
@@ -134,13 +140,97 @@ class VoxelSurface:
                     surface["ao"] = ao[:, None]
             out_color[ids] = self._lit(surface, sh, section)
             for k in self.aov_names:
-                aovs[k][ids] = surface[k]
+                if k in surface:  # the water's AOVs come from _water
+                    aovs[k][ids] = surface[k]
         if self.plan.fog:
             out_color = out_color * torch.exp(-acc["fog_tau"])[:, None] + acc["fog_light"]
         if self.plan.glow:
             out_color = out_color + acc["glow"][:, None] * take(p.glow.color, s)
         t_hit = torch.where(hit, t, torch.full_like(t, torch.inf))
+        if self.plan.water:
+            hit, t_hit, out_color = self._water(o, d, s, t_hit, out_color, aovs, section)
         return dict(hit=hit, t=t_hit, color=out_color, steps=steps, aovs=aovs)
+
+    def _water(self, o, d, s, t_hit, color, aovs, section):
+        """Rays o, d [n, 3] of scenes s [n] whose surface hit is at t_hit [n] (inf: none) and colour
+        [n, 3] through the water plane -> (hit, t, colour): a ray that reaches the plane first
+        stops there, its colour the Fresnel mix of a reflected and a refracted ray (total internal
+        reflection from below); paths under water are attenuated by Beer-Lambert."""
+        w = self.p.water
+        level, absorb = take(w.level, s), take(w.absorption, s)
+        under = o[:, 1] < level  # the camera is in the water: its whole primary path is
+        t_water = plane_hit(o, d, level)
+        on = t_water < t_hit
+        color = torch.where((under & ~on)[:, None], color * beer(absorb, t_hit), color)
+        if "water" in aovs:
+            aovs["water"] = on.to(o.dtype)[:, None]
+        ids = on.nonzero().squeeze(1)
+        if not ids.numel():  # no ray met the water: the pass did not run
+            return t_hit < torch.inf, t_hit, color
+        with section("voxels.water"):
+            return self._on_water(o, d, s, ids, on, t_water, t_hit, under, color, aovs, section)
+
+    def _on_water(self, o, d, s, ids, on, t_water, t_hit, under, color, aovs, section):
+        """`_water` for the rays ids [m] that meet the water (`on` [n]) at t_water [n]."""
+        w = self.p.water
+        level, absorb = take(w.level, s), take(w.absorption, s)
+        di, si, ui, tw = d[ids], s[ids], under[ids], t_water[ids]
+        x = o[ids] + tw[:, None] * di
+        x[:, 1] = level[ids]  # exactly on the plane
+        up = wave_normal(x, take(w.waves.amplitude, si), take(w.waves.frequency, si), take(w.waves.speed, si),
+                         take(self.time, si))
+        flat = torch.zeros_like(up)
+        flat[:, 1] = 1.0
+        sign = torch.where(ui, -1.0, 1.0).to(x.dtype)[:, None]  # the normal on the ray's side
+        n = up * sign
+        # a grazing ray can meet the back of a tilted wave normal: it sees the flat plane there
+        n = torch.where(((di * n).sum(1) >= 0)[:, None], flat * sign, n)
+        cos_i = (-(di * n).sum(1)).clamp(0.0, 1.0)
+        ior = take(w.ior, si)
+        eta = torch.where(ui, ior, 1.0 / ior)
+        f = fresnel(cos_i, eta, w.fresnel)
+        refr, tir = refract(di, n, eta)
+        off = take(w.offset, si)[:, None] * n
+        a = absorb[ids]
+        # the reflected ray stays on the ray's side (in water from below), the refracted one crosses
+        refl_col, refl_len = self._secondary(x + off, reflect(di, n), si, section)
+        refl_col = torch.where(ui[:, None], refl_col * beer(a, refl_len), refl_col)
+        refr_col = torch.zeros_like(refl_col)
+        floor = torch.full_like(tw, torch.inf)
+        k = (~tir).nonzero().squeeze(1)
+        if k.numel():
+            col, length = self._secondary(x[k] - off[k], refr[k], si[k], section)
+            refr_col[k] = torch.where(ui[k, None], col, col * beer(a[k], length))
+            floor[k] = torch.where(ui[k], floor[k], length)
+        mixed = f[:, None] * refl_col + (1.0 - f)[:, None] * refr_col
+        color[ids] = torch.where(ui[:, None], mixed * beer(a, tw), mixed)
+        if "water_floor_distance" in aovs:
+            seen = floor < torch.inf
+            aovs["water_floor_distance"][ids] = torch.where(
+                seen, torch.linalg.vector_norm(x + floor[:, None] * refr - o[ids], dim=1), torch.zeros_like(tw))[:, None]
+        for key in ("normal", "uv", "material", "ao", "shadow"):  # the water's hit, not the voxel's behind it
+            if key in aovs:
+                aovs[key][ids] = up * sign if key == "normal" else 0.0
+        t_hit = torch.where(on, t_water, t_hit)
+        return t_hit < torch.inf, t_hit, color
+
+    def _secondary(self, o, d, s, section) -> tuple[Tensor, Tensor]:
+        """One bounce off the water: rays o, d [n, 3] (d unit) through the voxels, lit like primary
+        hits (AO, shadows), the sky where they leave -> (colour [n, 3], hit distance [n], inf: none)."""
+        p, n = self.p, o.shape[0]
+        hits = self._traverse(o, d, s, max_steps=p.max_steps, plain=True)
+        self.steps_total += int(hits.steps.sum())
+        color = self.sky(d, s).clone() if self.sky is not None else o.new_zeros(n, 3)  # a sky may be expanded
+        ids = hits.hit.nonzero().squeeze(1)
+        if ids.numel():
+            sh = s[ids]
+            surface = self._surface(o[ids], d[ids], hits.t[ids], hits.cell[ids], hits.axis[ids], hits.material[ids], sh, None)
+            if self.plan.ao:
+                ao = voxel_ao(lambda c: (self.grid.lookup(c, sh.repeat(8)) > 0), surface["cell"], surface["face_normal"],
+                              surface["axis"], surface["uv"], gamma=take(p.ao.gamma, sh))
+                surface["albedo"] = surface["albedo"] * ao[:, None]
+            color[ids] = self._lit(surface, sh, section)
+        return color, torch.where(hits.hit, hits.t, torch.full_like(hits.t, torch.inf))
 
     def _surface(self, o, d, t, cell, axis, mat, s, normal_override) -> dict[str, Tensor]:
         """Hit position, normal, UV, material and albedo (face tone and texture applied) of hits."""
