@@ -101,10 +101,11 @@ class VoxelPass:
     fog: bool
     texture: bool
     emission: bool = False  # some material of some scene emits (voxels.materials[i].emission)
+    gi: bool = False  # voxels.gi: path-traced bounces replace the ambient
 
     def names(self) -> list[str]:
         return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
-                + (["voxels.ao"] if self.ao else []) + [li.name for li in self.shadows])
+                + (["voxels.ao"] if self.ao else []) + (["voxels.gi"] if self.gi else []) + [li.name for li in self.shadows])
 
 
 @dataclass(frozen=True)
@@ -205,7 +206,7 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
         voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
                            glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
-                           emission=any(bool((m.emission > 0).any()) for m in vx.materials))
+                           emission=any(bool((m.emission > 0).any()) for m in vx.materials), gi=vx.gi is not None)
     terrain = None
     if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself
         terrain = TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)

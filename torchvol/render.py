@@ -27,7 +27,7 @@ from .lights import LIGHTS, LightSource
 from .plan import Plan, VolumePass, make_plan
 from .post import POST, View
 from .quality import at_level
-from .sampling import march_dither, subpixel_jitter
+from .sampling import march_dither, ray_keys, subpixel_jitter
 from .scene import load_scene
 from .sky import SKIES, sun_glow
 from .stats import CountedField, Counts, Timer
@@ -94,7 +94,7 @@ class RenderContext:
         self.surface = self.terrain = None
         if plan.voxels is not None:
             self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, plan.aovs, dtype=dtype, device=device,
-                                        compiled=compiled)
+                                        compiled=compiled, sky=None if plan.sky is None else lambda d, s: sky_along(self, d, s))
         if plan.terrain is not None:  # the scene's one surface (voxels and terrain are refused together)
             self.terrain = self.surface = TerrainSurface(
                 batch.terrain, self.lights, plan.terrain, plan.aovs,
@@ -135,10 +135,15 @@ class RenderContext:
 
 def sky_radiance(ctx: RenderContext, rays: Rays) -> Tensor:
     """The sky behind each ray [n, 3], with the sun's halo where the sky has one."""
-    sky, s = ctx.batch.sky, rays.scene_index
-    base = SKIES[ctx.plan.sky].fn(sky, rays.directions, s, ctx.sun())
+    return sky_along(ctx, rays.directions, rays.scene_index)
+
+
+def sky_along(ctx: RenderContext, directions: Tensor, s: Tensor) -> Tensor:
+    """The sky [n, 3] along unit `directions` [n, 3] of scenes s [n], with the sun's halo where the sky has one."""
+    sky = ctx.batch.sky
+    base = SKIES[ctx.plan.sky].fn(sky, directions, s, ctx.sun())
     if ctx.plan.halo:
-        base = base + sun_glow(rays.directions, take(ctx.sun(), s), take(sky.halo.color, s), take(sky.halo.power, s))
+        base = base + sun_glow(directions, take(ctx.sun(), s), take(sky.halo.color, s), take(sky.halo.power, s))
     return base
 
 
@@ -152,7 +157,11 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
     surf = None
     if ctx.surface is not None:
         sky_bg = background if background is not None else rays.origins.new_zeros(n, 3)
-        surf = ctx.surface.run(rays.origins, rays.directions, rays.scene_index, sky_bg, ctx.timer.section)
+        args = (rays.origins, rays.directions, rays.scene_index, sky_bg, ctx.timer.section)
+        if plan.voxels is not None and plan.voxels.gi:  # its paths are hashed from (seed, pixel, sample)
+            surf = ctx.surface.run(*args, keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp))
+        else:
+            surf = ctx.surface.run(*args)
     t_limit = None if surf is None else surf["t"]
     parts = [STRATEGIES[vol.plan.strategy](ctx, vol, rays, background, t_limit) for vol in ctx.volumes]
     with ctx.timer.section("composite"):

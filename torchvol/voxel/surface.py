@@ -22,6 +22,7 @@ from ..aovs import AOVS
 from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
 from .dda import Hits, hybrid_traverse, traverse
+from .gi import bounce_uniforms, cosine_directions, path_keys
 from .grid import VoxelGrid
 from .materials import VOXEL_MATERIALS, material_table
 from .shade import atlas_sample, face_normal, face_tone, face_uv, rounded_refine, voxel_ao
@@ -36,8 +37,9 @@ class VoxelSurface:
     lit by `lights`; `plan` the batch's `VoxelPass`; `aovs` the AOV names to output."""
 
     def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Sequence[str], *, dtype, device,
-                 compiled: bool = False):
-        self.p, self.lights, self.plan, self.compiled = voxels, list(lights), plan, compiled
+                 compiled: bool = False, sky: Callable[[Tensor, Tensor], Tensor] | None = None):
+        # sky(directions [n, 3], scenes [n]) -> radiance [n, 3]: what GI paths that leave the grid see
+        self.p, self.lights, self.plan, self.compiled, self.sky = voxels, list(lights), plan, compiled, sky
         self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=plan.traversal == "hybrid")
         self.aov_names = [a for a in aovs if a in SURFACE_AOVS]
         self.material = VOXEL_MATERIALS["diffuse"]
@@ -103,8 +105,9 @@ class VoxelSurface:
     # -- the pass --------------------------------------------------------------------------------
 
     def run(self, o: Tensor, d: Tensor, s: Tensor, background: Tensor,
-            section: Callable[[str], object] = lambda name: nullcontext()) -> dict[str, Tensor]:
-        """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3]."""
+            section: Callable[[str], object] = lambda name: nullcontext(), keys: Tensor | None = None) -> dict[str, Tensor]:
+        """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3]; keys [n, 3] long: each
+        ray's (sub-pixel column, row, scene seed), the hash cells of its GI paths (needed with `voxels.gi`)."""
         p, n = self.p, o.shape[0]
         visit, acc = self._glow_and_fog(o, s) if self.plan.glow or self.plan.fog else (None, None)
         with section("voxels.dda"):
@@ -132,7 +135,11 @@ class VoxelSurface:
                                   surface["axis"], surface["uv"], gamma=take(p.ao.gamma, sh))
                     surface["albedo"] = surface["albedo"] * ao[:, None]
                     surface["ao"] = ao[:, None]
-            out_color[ids] = self._lit(surface, sh, section)
+            indirect = None
+            if self.plan.gi:
+                with section("voxels.gi"):
+                    indirect = self._gi(surface, sh, keys[ids])
+            out_color[ids] = self._lit(surface, sh, section, indirect)
             for k in self.aov_names:
                 aovs[k][ids] = surface[k]
         if self.plan.fog:
@@ -162,9 +169,16 @@ class VoxelSurface:
             out["emission"] = self.materials.emission[s, index]
         return out
 
-    def _lit(self, surface: dict[str, Tensor], s: Tensor, section) -> Tensor:
-        """Ambient plus each light's irradiance, shadowed by a DDA ray where `voxels.shadow` is set."""
-        p, light = self.p, take(self.p.ambient, s)
+    def _lit(self, surface: dict[str, Tensor], s: Tensor, section, indirect: Tensor | None = None) -> Tensor:
+        """Ambient (or the GI's `indirect` incoming radiance [n, 3]) plus each light's irradiance,
+        shadowed by a DDA ray where `voxels.shadow` is set."""
+        light = take(self.p.ambient, s) if indirect is None else indirect
+        lit = surface["albedo"] * (light + self._direct(surface, s, section))
+        return lit + surface["emission"] if self.plan.emission else lit
+
+    def _direct(self, surface: dict[str, Tensor], s: Tensor, section) -> Tensor:
+        """The lights' reflected irradiance [n, 3] per unit albedo at surface points."""
+        p, light = self.p, torch.zeros_like(surface["x"])
         shadows = {use.light: use for use in self.plan.shadows}
         for l, source in enumerate(self.lights):
             toward = source.toward(surface["x"], s)
@@ -176,8 +190,42 @@ class VoxelSurface:
                 if "shadow" not in surface:
                     surface["shadow"] = vis[:, None]
             light = light + self.material.fn(surface["normal"], toward.direction, toward.irradiance, vis)
-        lit = surface["albedo"] * light
-        return lit + surface["emission"] if self.plan.emission else lit
+        return light
+
+    def _gi(self, surface: dict[str, Tensor], s: Tensor, keys: Tensor) -> Tensor:
+        """The mean incoming radiance [n, 3] of `voxels.gi`'s paths from the hits `surface`
+        (scenes s [n], hash keys [n, 3]): cosine-weighted, so the estimate is the plain path mean."""
+        gi, n = self.p.gi, s.shape[0]
+        S = gi.samples
+        cells, ps = path_keys(keys, S), s.repeat_interleave(S)
+        x, normal = surface["x"].repeat_interleave(S, dim=0), surface["face_normal"].repeat_interleave(S, dim=0)
+        radiance, throughput = torch.zeros_like(x), torch.ones_like(x)
+        alive = torch.arange(x.shape[0], device=x.device)
+        # start just off the face (in grid units: a thousandth of a voxel) so the DDA leaves the hit cell
+        eps = 1e-3 * self.grid.voxel_size
+        for bounce in range(gi.bounces):
+            if not alive.numel():
+                break
+            sa = ps[alive]
+            d = cosine_directions(normal, *bounce_uniforms(cells[alive], bounce, x.dtype))
+            o = x + eps[sa, None] * normal
+            h = self._traverse(o, d, sa, max_steps=self.p.max_steps, plain=True)
+            self.steps_total += int(h.steps.sum())
+            if self.sky is not None:
+                miss = (~h.hit).nonzero().squeeze(1)
+                radiance.index_add_(0, alive[miss], throughput[alive[miss]] * self.sky(d[miss], sa[miss]))
+            keep = h.hit.nonzero().squeeze(1)
+            alive, sa = alive[keep], sa[keep]
+            if not alive.numel():
+                break
+            hit = self._surface(o[keep], d[keep], h.t[keep], h.cell[keep], h.axis[keep], h.material[keep], sa, None)
+            own = hit["albedo"] * self._direct(hit, sa, lambda name: nullcontext())
+            if self.plan.emission:
+                own = own + hit["emission"]
+            radiance.index_add_(0, alive, throughput[alive] * own)
+            throughput[alive] = throughput[alive] * hit["albedo"]
+            x, normal = hit["x"], hit["face_normal"]
+        return radiance.view(n, S, 3).mean(dim=1)
 
     def _rounded(self, o, d, s, hits: Hits):
         """Refine hits inside rounded voxels; rays that miss the rounded shape continue the DDA."""
