@@ -173,12 +173,13 @@ class VoxelSurface:
         """Ambient (or the GI's `indirect` incoming radiance [n, 3]) plus each light's irradiance,
         shadowed by a DDA ray where `voxels.shadow` is set."""
         light = take(self.p.ambient, s) if indirect is None else indirect
-        lit = surface["albedo"] * (light + self._direct(surface, s, section))
+        lit = surface["albedo"] * self._direct(surface, s, section, light)
         return lit + surface["emission"] if self.plan.emission else lit
 
-    def _direct(self, surface: dict[str, Tensor], s: Tensor, section) -> Tensor:
-        """The lights' reflected irradiance [n, 3] per unit albedo at surface points."""
-        p, light = self.p, torch.zeros_like(surface["x"])
+    def _direct(self, surface: dict[str, Tensor], s: Tensor, section, light: Tensor) -> Tensor:
+        """`light` [n, 3] plus the lights' reflected irradiance per unit albedo at surface points
+        (summed in this order: the render without GI is bitwise as before)."""
+        p = self.p
         shadows = {use.light: use for use in self.plan.shadows}
         for l, source in enumerate(self.lights):
             toward = source.toward(surface["x"], s)
@@ -219,7 +220,7 @@ class VoxelSurface:
             if not alive.numel():
                 break
             hit = self._surface(o[keep], d[keep], h.t[keep], h.cell[keep], h.axis[keep], h.material[keep], sa, None)
-            own = hit["albedo"] * self._direct(hit, sa, lambda name: nullcontext())
+            own = hit["albedo"] * self._direct(hit, sa, lambda name: nullcontext(), torch.zeros_like(hit["x"]))
             if self.plan.emission:
                 own = own + hit["emission"]
             radiance.index_add_(0, alive, throughput[alive] * own)
