@@ -59,6 +59,20 @@ def test_error_falls_as_one_over_root_samples():
     assert -0.7 < slope < -0.3, (errs, slope)
 
 
+def test_passes_accumulate_progressively():
+    """`image.passes` draws new paths each pass (their seeds change): 8 passes of 4 paths land as close
+    to the reference as one pass of 32 would (well under one pass of 4)."""
+    def scene(samples, passes=1):
+        s = room([[0.6] * 3, {"color": [0.6] * 3, "emission": [2.0] * 3}], gi={"bounces": 2, "samples": samples}, size=(6, 6))
+        s["voxels"]["occupancy"] = {"function": {"fn": ceiling}}
+        s["image"]["passes"] = passes
+        return s
+    ref = tv.render(scene(1024), dtype=torch.float64).radiance
+    rms = lambda out: (out.radiance - ref).pow(2).mean().sqrt().item()
+    one, eight = rms(tv.render(scene(4), dtype=torch.float64)), rms(tv.render(scene(4, passes=8), dtype=torch.float64))
+    assert eight < 0.5 * one, (one, eight)
+
+
 def ceiling(c: torch.Tensor) -> torch.Tensor:
     """Cells [N, 3] of a closed 6×4×6 room (walls material 1) whose ceiling (y = 2) is material 2."""
     x, y, z = c.unbind(1)
@@ -110,3 +124,14 @@ def test_bad_gi_is_refused():
         tv.load_scene(room([[0.5] * 3], gi={"bounces": 0}))
     with pytest.raises(ValueError, match="voxels.gi.method"):
         tv.load_scene(room([[0.5] * 3], gi={"method": "cone"}))
+
+
+def test_furnace_per_scene_in_a_batch():
+    """Albedo, emission and room shape differ per scene of one batch; each scene gets its own value."""
+    cases = [(0.5, 0.2, "box"), (0.8, 0.1, "L")]
+    scenes = [room([{"color": [a] * 3, "emission": [e] * 3}], shape=shape, gi={"bounces": 2, "samples": 2})
+              for a, e, shape in cases]
+    out = tv.render(scenes, dtype=torch.float64)
+    for b, (a, e, _) in enumerate(cases):
+        expected = torch.full_like(out.radiance[b], e * (1 + a + a * a))
+        assert torch.allclose(out.radiance[b].double(), expected.double(), rtol=0.01, atol=0.0)
