@@ -202,11 +202,9 @@ class VoxelSurface:
         x, normal = surface["x"].repeat_interleave(S, dim=0), surface["face_normal"].repeat_interleave(S, dim=0)
         radiance, throughput = torch.zeros_like(x), torch.ones_like(x)
         alive = torch.arange(x.shape[0], device=x.device)
-        # start just off the face (in grid units: a thousandth of a voxel) so the DDA leaves the hit cell
+        # start a thousandth of a voxel off the face so the DDA starts in the empty cell in front of it
         eps = 1e-3 * self.grid.voxel_size
         for bounce in range(gi.bounces):
-            if not alive.numel():
-                break
             sa = ps[alive]
             d = cosine_directions(normal, *bounce_uniforms(cells[alive], bounce, x.dtype))
             o = x + eps[sa, None] * normal
