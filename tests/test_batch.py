@@ -201,6 +201,21 @@ BASES: dict[str, dict] = {
             "fog": {"density": 0.06, "base": 0.5, "scale_height": 5.0, "color": [1.0, 0.95, 0.9], "shadow_steps": 12},
         },
     },
+    "voxels: gi": {
+        "image": {"width": 8, "height": 6},
+        "camera": {"eye": [0.5, 0.5, -2.0], "target": [0.0, -0.5, 2.0], "fov_y": 70.0},
+        "sky": {"kind": "constant", "radiance": [0.5, 0.6, 0.8]},
+        "lights": [{**SUN, "direction": [0.3, 0.8, 0.4]}],
+        "voxels": {
+            "occupancy": {"sdf": {"material": 1, "shape": {"subtraction": {
+                "a": {"box": {"center": [0.0, 0.0, 0.0], "half_size": [4.0, 3.0, 4.0]}},
+                "b": {"union": [{"box": {"center": [0.0, 0.0, 0.0], "half_size": [3.0, 2.0, 3.0]}},
+                                {"box": {"center": [1.0, 3.0, 1.0], "half_size": [1.0, 1.0, 1.0]}}]}}}}},
+            "cells": {"min": [-5, -4, -5], "max": [5, 4, 5]}, "max_steps": 24,
+            "materials": [{"color": [0.8, 0.5, 0.4], "emission": [0.05, 0.1, 0.0]}],
+            "gi": {"method": "path", "bounces": 2, "samples": 2},
+        },
+    },
     "terrain, cross shadows": {
         "image": SMALL,
         "camera": {"eye": [0.0, 2.0, -5.0], "target": [0.0, 0.0, 2.0], "fov_y": 60.0},

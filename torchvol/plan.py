@@ -102,10 +102,11 @@ class VoxelPass:
     texture: bool
     emission: bool = False  # some material of some scene emits (voxels.materials[i].emission)
     water: bool = False  # the water plane's reflected and refracted rays (voxels.water)
+    gi: bool = False  # voxels.gi: path-traced bounces replace the ambient
 
     def names(self) -> list[str]:
         return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
-                + (["voxels.ao"] if self.ao else []) + [li.name for li in self.shadows]
+                + (["voxels.ao"] if self.ao else []) + (["voxels.gi"] if self.gi else []) + [li.name for li in self.shadows]
                 + (["voxels.water"] if self.water else []))
 
 
@@ -208,7 +209,7 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
                            glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
                            emission=any(bool((m.emission > 0).any()) for m in vx.materials),
-                           water=vx.water is not None)
+                           water=vx.water is not None, gi=vx.gi is not None)
     terrain = None
     if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself
         terrain = TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)

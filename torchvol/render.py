@@ -27,7 +27,7 @@ from .lights import LIGHTS, LightSource
 from .plan import Plan, VolumePass, make_plan
 from .post import POST, View
 from .quality import at_level
-from .sampling import march_dither, subpixel_jitter
+from .sampling import march_dither, ray_keys, subpixel_jitter
 from .scene import load_scene
 from .sky import SKIES, sun_glow
 from .stats import CountedField, Counts, Timer
@@ -158,7 +158,11 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
     surf = None
     if ctx.surface is not None:
         sky_bg = background if background is not None else rays.origins.new_zeros(n, 3)
-        surf = ctx.surface.run(rays.origins, rays.directions, rays.scene_index, sky_bg, ctx.timer.section)
+        args = (rays.origins, rays.directions, rays.scene_index, sky_bg, ctx.timer.section)
+        if plan.voxels is not None and plan.voxels.gi:  # its paths are hashed from (seed, pixel, sample)
+            surf = ctx.surface.run(*args, keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp))
+        else:
+            surf = ctx.surface.run(*args)
     t_limit = None if surf is None else surf["t"]
     parts = [STRATEGIES[vol.plan.strategy](ctx, vol, rays, background, t_limit) for vol in ctx.volumes]
     with ctx.timer.section("composite"):

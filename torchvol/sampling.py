@@ -1,5 +1,6 @@
 """Per-ray random numbers of a render, hashed from (seed, ray): the same seed gives the same values
-whatever the chunking or batch, with no generator state. Sub-pixel jitter and march dither."""
+whatever the chunking or batch, with no generator state. Sub-pixel jitter, march dither and
+the keys of voxel GI paths."""
 
 from __future__ import annotations
 
@@ -42,6 +43,11 @@ def march_dither(rays: Rays, mode: Literal["none", "hash", "sin"], *, scale: flo
         py = height - 1 - rays.pixel[:, 1]
         x = torch.sin((px * 73 + py * 311).to(rays.origins.dtype)) * 43758.5453
         return scale * (x - torch.floor(x))
+    return noise.hash3(ray_keys(rays, seeds=seeds, spp=spp), 0x5EED, dtype=rays.origins.dtype)
+
+
+def ray_keys(rays: Rays, *, seeds: Tensor, spp: int) -> Tensor:
+    """Each ray's hash cell [n, 3] long: (column·spp + sub-sample, row, its scene's seed); `seeds`
+    (B,). Chunks hold whole pixels."""
     sub = torch.arange(len(rays), device=rays.pixel.device) % spp
-    cells = torch.stack([rays.pixel[:, 0] * spp + sub, rays.pixel[:, 1], seeds[rays.scene_index]], dim=1)
-    return noise.hash3(cells, 0x5EED, dtype=rays.origins.dtype)
+    return torch.stack([rays.pixel[:, 0] * spp + sub, rays.pixel[:, 1], seeds[rays.scene_index]], dim=1)

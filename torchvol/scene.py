@@ -38,6 +38,7 @@ from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
 from .volume.surface_look import SurfaceLook
+from .voxel.gi import VoxelGI
 from .voxel.materials import Material
 
 PRESET_DIR = Path(__file__).parent / "presets"
@@ -370,6 +371,7 @@ class Voxels(Strict):
     rounded: VoxelRounded | None = None
     fog: VoxelFog | None = None
     water: VoxelWater | None = None
+    gi: VoxelGI | None = None  # path-traced diffuse bounces, replacing `ambient`
 
     @model_validator(mode="after")
     def _consistent(self):

@@ -211,6 +211,28 @@ def _god_rays(data: dict, *, method: str = "both", seed: int = 2) -> None:
         del data["post"]["god_rays"]
 
 
+def cornell_grid() -> np.ndarray:
+    """The voxel-gi preset's 12³ material grid[k, j, i]: red (2) left and green (3) right walls,
+    white (1) floor, ceiling and back wall with an emissive panel (4) in the ceiling, open at the
+    front (k = 0), a tall and a short white block."""
+    g = np.zeros((12, 12, 12), dtype=np.uint8)
+    g[:, 0, :] = g[:, 11, :] = g[11, :, :] = 1
+    g[:, :, 0], g[:, :, 11] = 3, 2  # (the camera looks along +z: +x is screen left)
+    g[4:8, 11, 4:8] = 4
+    g[6:9, 1:7, 2:5] = 1  # tall block
+    g[3:6, 1:4, 7:10] = 1  # short block
+    return g
+
+
+def _voxel_gi(data: dict, *, bounces: int | None = None, samples: int | None = None) -> None:
+    data["voxels"]["occupancy"] = {"grid": {"data": cornell_grid()}}
+    gi = data["voxels"]["gi"]
+    if bounces is not None:
+        gi["bounces"] = integer("voxel-gi.bounces", bounces, low=1)
+    if samples is not None:
+        gi["samples"] = integer("voxel-gi.samples", samples, low=1)
+
+
 PARAMS: dict[str, Callable[..., None]] = {
     "atmosphere": _atmosphere,
     "explosion": _emissive,
@@ -222,6 +244,7 @@ PARAMS: dict[str, Callable[..., None]] = {
     "voxel-rounded": _voxel_rounded,
     "voxel-fog": _voxel_fog,
     "voxel-carved-box": _voxel_carved_box,
+    "voxel-gi": _voxel_gi,
     "template-clouds": _template_clouds,
     "cloud-puff": _cloud_puff,
     "cloudscape": _cloudscape,

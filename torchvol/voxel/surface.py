@@ -24,6 +24,7 @@ from ..aovs import AOVS
 from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
 from .dda import Hits, hybrid_traverse, traverse
+from .gi import bounce_uniforms, cosine_directions, path_keys
 from .grid import VoxelGrid
 from .materials import VOXEL_MATERIALS, material_table
 from .shade import atlas_sample, face_normal, face_tone, face_uv, rounded_refine, voxel_ao
@@ -42,6 +43,7 @@ class VoxelSurface:
 
     def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Sequence[str], *, dtype, device,
                  compiled: bool = False, time: Tensor | None = None, sky: Callable[[Tensor, Tensor], Tensor] | None = None):
+        # sky(directions [n, 3], scenes [n]) -> radiance [n, 3]: what secondary rays (water, GI paths) that leave the grid see
         self.p, self.lights, self.plan, self.compiled = voxels, list(lights), plan, compiled
         self.time, self.sky = time, sky
         self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=plan.traversal == "hybrid")
@@ -109,8 +111,9 @@ class VoxelSurface:
     # -- the pass --------------------------------------------------------------------------------
 
     def run(self, o: Tensor, d: Tensor, s: Tensor, background: Tensor,
-            section: Callable[[str], object] = lambda name: nullcontext()) -> dict[str, Tensor]:
-        """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3]."""
+            section: Callable[[str], object] = lambda name: nullcontext(), keys: Tensor | None = None) -> dict[str, Tensor]:
+        """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3]; keys [n, 3] long: each
+        ray's (sub-pixel column, row, scene seed), the hash cells of its GI paths (needed with `voxels.gi`)."""
         p, n = self.p, o.shape[0]
         visit, acc = self._glow_and_fog(o, s) if self.plan.glow or self.plan.fog else (None, None)
         with section("voxels.dda"):
@@ -138,7 +141,11 @@ class VoxelSurface:
                                   surface["axis"], surface["uv"], gamma=take(p.ao.gamma, sh))
                     surface["albedo"] = surface["albedo"] * ao[:, None]
                     surface["ao"] = ao[:, None]
-            out_color[ids] = self._lit(surface, sh, section)
+            indirect = None
+            if self.plan.gi:
+                with section("voxels.gi"):
+                    indirect = self._gi(surface, sh, keys[ids])
+            out_color[ids] = self._lit(surface, sh, section, indirect)
             for k in self.aov_names:
                 if k in surface:  # the water's AOVs come from _water
                     aovs[k][ids] = surface[k]
@@ -252,9 +259,17 @@ class VoxelSurface:
             out["emission"] = self.materials.emission[s, index]
         return out
 
-    def _lit(self, surface: dict[str, Tensor], s: Tensor, section) -> Tensor:
-        """Ambient plus each light's irradiance, shadowed by a DDA ray where `voxels.shadow` is set."""
-        p, light = self.p, take(self.p.ambient, s)
+    def _lit(self, surface: dict[str, Tensor], s: Tensor, section, indirect: Tensor | None = None) -> Tensor:
+        """Ambient (or the GI's `indirect` incoming radiance [n, 3]) plus each light's irradiance,
+        shadowed by a DDA ray where `voxels.shadow` is set."""
+        light = take(self.p.ambient, s) if indirect is None else indirect
+        lit = surface["albedo"] * self._direct(surface, s, section, light)
+        return lit + surface["emission"] if self.plan.emission else lit
+
+    def _direct(self, surface: dict[str, Tensor], s: Tensor, section, light: Tensor) -> Tensor:
+        """`light` [n, 3] plus the lights' reflected irradiance per unit albedo at surface points
+        (summed in this order: the render without GI is bitwise as before)."""
+        p = self.p
         shadows = {use.light: use for use in self.plan.shadows}
         for l, source in enumerate(self.lights):
             toward = source.toward(surface["x"], s)
@@ -266,8 +281,40 @@ class VoxelSurface:
                 if "shadow" not in surface:
                     surface["shadow"] = vis[:, None]
             light = light + self.material.fn(surface["normal"], toward.direction, toward.irradiance, vis)
-        lit = surface["albedo"] * light
-        return lit + surface["emission"] if self.plan.emission else lit
+        return light
+
+    def _gi(self, surface: dict[str, Tensor], s: Tensor, keys: Tensor) -> Tensor:
+        """The mean incoming radiance [n, 3] of `voxels.gi`'s paths from the hits `surface`
+        (scenes s [n], hash keys [n, 3]): cosine-weighted, so the estimate is the plain path mean."""
+        gi, n = self.p.gi, s.shape[0]
+        S = gi.samples
+        cells, ps = path_keys(keys, S), s.repeat_interleave(S)
+        x, normal = surface["x"].repeat_interleave(S, dim=0), surface["face_normal"].repeat_interleave(S, dim=0)
+        radiance, throughput = torch.zeros_like(x), torch.ones_like(x)
+        alive = torch.arange(x.shape[0], device=x.device)
+        # start a thousandth of a voxel off the face so the DDA starts in the empty cell in front of it
+        eps = 1e-3 * self.grid.voxel_size
+        for bounce in range(gi.bounces):
+            sa = ps[alive]
+            d = cosine_directions(normal, *bounce_uniforms(cells[alive], bounce, x.dtype))
+            o = x + eps[sa, None] * normal
+            h = self._traverse(o, d, sa, max_steps=self.p.max_steps, plain=True)
+            self.steps_total += int(h.steps.sum())
+            if self.sky is not None:
+                miss = (~h.hit).nonzero().squeeze(1)
+                radiance.index_add_(0, alive[miss], throughput[alive[miss]] * self.sky(d[miss], sa[miss]))
+            keep = h.hit.nonzero().squeeze(1)
+            alive, sa = alive[keep], sa[keep]
+            if not alive.numel():
+                break
+            hit = self._surface(o[keep], d[keep], h.t[keep], h.cell[keep], h.axis[keep], h.material[keep], sa, None)
+            own = hit["albedo"] * self._direct(hit, sa, lambda name: nullcontext(), torch.zeros_like(hit["x"]))
+            if self.plan.emission:
+                own = own + hit["emission"]
+            radiance.index_add_(0, alive, throughput[alive] * own)
+            throughput[alive] = throughput[alive] * hit["albedo"]
+            x, normal = hit["x"], hit["face_normal"]
+        return radiance.view(n, S, 3).mean(dim=1)
 
     def _rounded(self, o, d, s, hits: Hits):
         """Refine hits inside rounded voxels; rays that miss the rounded shape continue the DDA."""
