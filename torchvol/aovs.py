@@ -7,6 +7,7 @@ combine: ``mean``, ``hit_mean`` (the mean over the sub-samples that hit somethin
 from __future__ import annotations
 
 from .registry import Registry
+from .voxel.materials import any_ggx
 
 AOVS = Registry("aov")
 
@@ -29,6 +30,10 @@ _aov("ao", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.ao
      "voxel neighbour ambient occlusion (1: open)")
 _aov("shadow", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.shadow is not None and bool(batch.lights),
      "visibility of the first light from the voxel surface (1: lit)")
+_aov("roughness", 1, "mean", lambda batch: batch.voxels is not None and any_ggx(batch.voxels.materials),
+     "voxel material GGX roughness (0: no hit)")
+_aov("metallic", 1, "mean", lambda batch: batch.voxels is not None and any_ggx(batch.voxels.materials),
+     "voxel material metallic (0: no hit)")
 
 # the render's own outputs resolve like AOVs (image, depth and alpha are not AOVs)
 RESOLVE = {"alpha": "mean", "depth": "hit_mean", **{k.name: k.resolve for k in AOVS}}

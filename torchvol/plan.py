@@ -29,6 +29,7 @@ from .quality import MarchSettings, at_level, march_settings
 from .scene import Scene
 from .volume.march import COMPACT_BELOW
 from .volume.shading import SHADINGS
+from .voxel.materials import any_ggx
 
 Strategy = Literal["closed_form", "march", "skip", "tolerance"]
 
@@ -101,10 +102,13 @@ class VoxelPass:
     fog: bool
     texture: bool
     emission: bool = False  # some material of some scene emits (voxels.materials[i].emission)
+    ggx: bool = False  # some material of some scene is not Lambert (roughness < 1 or metallic > 0)
+    reflections: int = 0  # bounces of mirror reflection rays (voxels.reflections)
 
     def names(self) -> list[str]:
         return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
-                + (["voxels.ao"] if self.ao else []) + [li.name for li in self.shadows])
+                + (["voxels.ao"] if self.ao else []) + [li.name for li in self.shadows]
+                + (["voxels.reflections"] if self.reflections else []))
 
 
 @dataclass(frozen=True)
@@ -205,7 +209,9 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
         voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
                            glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
-                           emission=any(bool((m.emission > 0).any()) for m in vx.materials))
+                           emission=any(bool((m.emission > 0).any()) for m in vx.materials),
+                           ggx=any_ggx(vx.materials),
+                           reflections=vx.reflections.bounces if vx.reflections is not None and any_ggx(vx.materials) else 0)
     terrain = None
     if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself
         terrain = TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)

@@ -94,7 +94,8 @@ class RenderContext:
         self.surface = self.terrain = None
         if plan.voxels is not None:
             self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, plan.aovs, dtype=dtype, device=device,
-                                        compiled=compiled)
+                                        compiled=compiled,
+                                        sky=None if plan.sky is None else lambda d, s: sky_radiance(self, d, s))
         if plan.terrain is not None:  # the scene's one surface (voxels and terrain are refused together)
             self.terrain = self.surface = TerrainSurface(
                 batch.terrain, self.lights, plan.terrain, plan.aovs,
@@ -133,12 +134,12 @@ class RenderContext:
         return self.lights[0].direction if self.lights and self.lights[0].directional else None
 
 
-def sky_radiance(ctx: RenderContext, rays: Rays) -> Tensor:
-    """The sky behind each ray [n, 3], with the sun's halo where the sky has one."""
-    sky, s = ctx.batch.sky, rays.scene_index
-    base = SKIES[ctx.plan.sky].fn(sky, rays.directions, s, ctx.sun())
+def sky_radiance(ctx: RenderContext, directions: Tensor, s: Tensor) -> Tensor:
+    """The sky along each direction [n, 3] of scenes s [n], with the sun's halo where the sky has one."""
+    sky = ctx.batch.sky
+    base = SKIES[ctx.plan.sky].fn(sky, directions, s, ctx.sun())
     if ctx.plan.halo:
-        base = base + sun_glow(rays.directions, take(ctx.sun(), s), take(sky.halo.color, s), take(sky.halo.power, s))
+        base = base + sun_glow(directions, take(ctx.sun(), s), take(sky.halo.color, s), take(sky.halo.power, s))
     return base
 
 
@@ -148,7 +149,7 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
     background = None
     if plan.sky is not None:
         with ctx.timer.section("sky"):
-            background = sky_radiance(ctx, rays)
+            background = sky_radiance(ctx, rays.directions, rays.scene_index)
     surf = None
     if ctx.surface is not None:
         sky_bg = background if background is not None else rays.origins.new_zeros(n, 3)

@@ -227,6 +227,26 @@ def _god_rays(data: dict, *, method: str = "both", seed: int = 3) -> None:
         del data["post"]["god_rays"]
 
 
+def voxel_pbr_grid() -> np.ndarray:
+    """The voxel-pbr preset's grid[k, j, i] over cells (-9, 0, -9) .. (8, 7, 8): a floor slab
+    (material 1), a gold ball (2), a plastic cube (3) and a stone pillar (4)."""
+    k, j, i = np.meshgrid(np.arange(18) - 9, np.arange(8), np.arange(18) - 9, indexing="ij")
+    x, y, z = i + 0.5, j + 0.5, k + 0.5  # cell centres
+    grid = np.zeros(x.shape, dtype=np.uint8)
+    grid[j == 0] = 1
+    grid[(x + 3.5) ** 2 + (y - 3.5) ** 2 + (z - 1.0) ** 2 < 2.6 ** 2] = 2
+    grid[(abs(x - 1.5) < 1.6) & (y > 1) & (y < 4) & (abs(z + 3.5) < 1.6)] = 3
+    grid[(abs(x - 5.0) < 1.1) & (y > 1) & (y < 6) & (abs(z - 3.0) < 1.1)] = 4
+    return grid
+
+
+def _voxel_pbr(data: dict, *, floor_roughness: float | None = None) -> None:
+    """`floor_roughness`: the floor material's roughness (0: a mirror)."""
+    if floor_roughness is not None:
+        data["voxels"]["materials"][0]["roughness"] = floor_roughness
+    data["voxels"]["occupancy"] = {"grid": {"data": voxel_pbr_grid()}}
+
+
 PARAMS: dict[str, Callable[..., None]] = {
     "atmosphere": _atmosphere,
     "explosion": _emissive,
@@ -238,6 +258,7 @@ PARAMS: dict[str, Callable[..., None]] = {
     "voxel-rounded": _voxel_rounded,
     "voxel-fog": _voxel_fog,
     "voxel-carved-box": _voxel_carved_box,
+    "voxel-pbr": _voxel_pbr,
     "template-clouds": _template_clouds,
     "cloud-puff": _cloud_puff,
     "cloudscape": _cloudscape,
