@@ -228,15 +228,16 @@ def _god_rays(data: dict, *, method: str = "both", seed: int = 3) -> None:
 
 
 def voxel_pbr_grid() -> np.ndarray:
-    """The voxel-pbr preset's grid[k, j, i] over cells (-9, 0, -9) .. (8, 7, 8): a floor slab
-    (material 1), a gold ball (2), a plastic cube (3) and a stone pillar (4)."""
-    k, j, i = np.meshgrid(np.arange(18) - 9, np.arange(8), np.arange(18) - 9, indexing="ij")
-    x, y, z = i + 0.5, j + 0.5, k + 0.5  # cell centres
+    """The voxel-pbr preset's grid[k, j, i] of half-unit voxels over world [-9, 9] × [0, 8] × [-9, 9]
+    (cells (-18, 0, -18) .. (17, 15, 17)): a floor slab (material 1), a gold ball (2), a plastic cube
+    (3) and a stone pillar (4)."""
+    k, j, i = np.meshgrid(np.arange(36) - 18, np.arange(16), np.arange(36) - 18, indexing="ij")
+    x, y, z = (i + 0.5) * 0.5, (j + 0.5) * 0.5, (k + 0.5) * 0.5  # cell centres (world)
     grid = np.zeros(x.shape, dtype=np.uint8)
-    grid[j == 0] = 1
-    grid[(x + 3.5) ** 2 + (y - 3.5) ** 2 + (z - 1.0) ** 2 < 2.6 ** 2] = 2
-    grid[(abs(x - 1.5) < 1.6) & (y > 1) & (y < 4) & (abs(z + 3.5) < 1.6)] = 3
-    grid[(abs(x - 5.0) < 1.1) & (y > 1) & (y < 6) & (abs(z - 3.0) < 1.1)] = 4
+    grid[y < 0.5] = 1
+    grid[(x + 3.5) ** 2 + (y - 3.0) ** 2 + (z - 1.0) ** 2 < 2.5 ** 2] = 2
+    grid[(abs(x - 1.5) < 1.5) & (y > 0.5) & (y < 3.5) & (abs(z + 3.5) < 1.5)] = 3
+    grid[(abs(x - 5.0) < 1.0) & (y > 0.5) & (y < 6.0) & (abs(z - 3.0) < 1.0)] = 4
     return grid
 
 
