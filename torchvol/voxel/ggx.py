@@ -1,6 +1,6 @@
 """GGX PBR reflectance of voxel faces (seed 001, Variant 5): Cook-Torrance with the GGX
 (Trowbridge-Reitz) distribution, Smith height-correlated visibility and Schlick Fresnel (F0 0.04
-for dielectrics, the albedo for metals), plus the Lambert diffuse weighted (1 − F)(1 − metallic).
+for dielectrics, the albedo for metals), plus the Lambert diffuse weighted (1 − F(n·v))(1 − metallic).
 
 Plain functions on cosines [n] (or [n, 1] against colours [n, 3]). Safe in float32 and float64 at
 the hard cases: roughness 0 clamps alpha = roughness² to `ALPHA_MIN` (a very sharp lobe, not a
@@ -61,17 +61,18 @@ def ggx_reflect(normal: Tensor, view: Tensor, light_dir: Tensor, albedo: Tensor,
     """π · BRDF · max(n·l, 0) [n, 3] (what unit irradiance from `light_dir` reflects towards `view`).
 
     normal, view (towards the eye), light_dir (towards the light) [n, 3] unit; albedo [n, 3];
-    roughness, metallic [n]. Diffuse (1 − F)(1 − metallic) · albedo / π + specular D · V · F."""
+    roughness, metallic [n]. Diffuse (1 − F(n·v))(1 − metallic) · albedo / π + specular D · V · F(v·h)."""
     h = view + light_dir
     h = h / torch.linalg.vector_norm(h, dim=-1, keepdim=True).clamp_min(1e-12)  # v = −l: any h, n·l ≤ 0 there
     n_l = (normal * light_dir).sum(-1)
     n_v = (normal * view).sum(-1)
     n_h = (normal * h).sum(-1).clamp(0.0, 1.0)
     v_h = (view * h).sum(-1)
-    alpha = alpha_of(roughness)
-    f = f_schlick(f0_of(albedo, metallic), v_h[:, None])
-    spec = (d_ggx(n_h, alpha) * v_smith(n_v, n_l, alpha))[:, None] * f
-    diffuse = (1.0 - f) * (1.0 - metallic)[:, None] * albedo / math.pi
+    alpha, f0 = alpha_of(roughness), f0_of(albedo, metallic)
+    spec = (d_ggx(n_h, alpha) * v_smith(n_v, n_l, alpha))[:, None] * f_schlick(f0, v_h[:, None])
+    # the diffuse keeps what the specular lobe as a whole does not reflect towards v: 1 − F(n·v)
+    # (the seed's Fresnel weight); 1 − F(v·h) per light would exceed 1 at grazing views
+    diffuse = (1.0 - f_schlick(f0, n_v[:, None])) * (1.0 - metallic)[:, None] * albedo / math.pi
     return (math.pi * n_l.clamp_min(0.0))[:, None] * (diffuse + spec)
 
 

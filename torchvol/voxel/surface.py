@@ -179,7 +179,7 @@ class VoxelSurface:
         own reflection while bounces remain), else the sky."""
         h = self._traverse(o, d, s, max_steps=self.p.reflections.steps, plain=True)
         self.steps_total += int(h.steps.sum())
-        color = o.new_zeros(o.shape[0], 3) if self.sky is None else self.sky(d, s)
+        color = o.new_zeros(o.shape[0], 3) if self.sky is None else self.sky(d, s).clone()
         ids = h.hit.nonzero().squeeze(1)
         if ids.numel():
             sh = s[ids]
