@@ -126,6 +126,17 @@ def test_default_materials_render_as_before_and_plan_nothing_new():
     assert "voxels.reflections" not in after.stats["passes"] and "roughness" not in after.aovs
 
 
+def test_a_default_scene_batched_with_a_ggx_scene_renders_as_alone():
+    """The batch plans GGX and reflections for both; the default scene's faces stay Lambert and
+    reflect nothing (weight (1 − roughness)² = 0): bit for bit its render alone."""
+    plain = room([[0.8, 0.6, 0.5]], reflections={"bounces": 1})
+    shiny = room([{"color": [0.8, 0.6, 0.5], "roughness": 0.1, "metallic": 1.0}], reflections={"bounces": 1})
+    both = tv.render([shiny, plain], seed=[1, 2])
+    assert torch.equal(both.image[1], tv.render(plain, seed=2).image[0])
+    assert torch.equal(both.image[0], tv.render(shiny, seed=1).image[0])
+    assert not torch.equal(both.image[0], both.image[1])
+
+
 def test_ggx_materials_shade_and_report_their_aovs():
     out = tv.render(room([{"color": [0.8, 0.6, 0.5], "roughness": 0.3, "metallic": 1.0}], reflections={"bounces": 1}))
     assert "voxels.reflections" in out.stats["passes"]
