@@ -12,7 +12,7 @@ from torchvol.plan import make_plan
 # DESIGN.md's normative preset names
 NORMATIVE = ["template-clouds", "cloud-puff", "homogeneous-box", "voxel-carved-box", "voxel-terrain", "voxel-fog",
              "voxel-glow", "voxel-rounded", "explosion", "fire", "atmosphere", "cloudscape", "fur-ball",
-             "terrain-clouds", "multi-layer", "particles", "god-rays"]
+             "terrain-clouds", "multi-layer", "particles", "god-rays", "voxel-pbr"]
 
 
 def test_the_normative_presets_exist():

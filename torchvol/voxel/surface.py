@@ -29,8 +29,8 @@ from ..aovs import AOVS
 from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
 from .dda import Hits, hybrid_traverse, traverse
-from .grid import VoxelGrid
 from .ggx import f0_of, f_schlick, ggx_reflect
+from .grid import VoxelGrid
 from .materials import VOXEL_MATERIALS, default_material, material_table
 from .shade import atlas_sample, face_normal, face_tone, face_uv, rounded_refine, voxel_ao
 
