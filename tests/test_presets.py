@@ -13,7 +13,7 @@ from torchvol.plan import make_plan
 NORMATIVE = ["template-clouds", "cloud-puff", "homogeneous-box", "voxel-carved-box", "voxel-terrain", "voxel-fog",
              "voxel-glow", "voxel-rounded", "explosion", "fire", "atmosphere", "cloudscape", "fur-ball",
              "terrain-clouds", "multi-layer", "particles", "god-rays",
-             "voxel-gi"]
+             "voxel-pbr", "voxel-water", "voxel-gi"]
 
 
 def test_the_normative_presets_exist():

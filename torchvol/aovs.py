@@ -7,6 +7,7 @@ combine: ``mean``, ``hit_mean`` (the mean over the sub-samples that hit somethin
 from __future__ import annotations
 
 from .registry import Registry
+from .voxel.materials import any_ggx
 
 AOVS = Registry("aov")
 
@@ -33,6 +34,10 @@ _aov("water", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels
      "voxel water mask: 1 where the ray met the water plane first (depth is then the water surface)")
 _aov("water_floor_distance", 1, "hit_mean", lambda batch: batch.voxels is not None and batch.voxels.water is not None,
      "distance from the camera to the voxel a water-refracted ray reached (world units; 0: none)")
+_aov("roughness", 1, "mean", lambda batch: batch.voxels is not None and any_ggx(batch.voxels.materials),
+     "voxel material GGX roughness (0: no hit)")
+_aov("metallic", 1, "mean", lambda batch: batch.voxels is not None and any_ggx(batch.voxels.materials),
+     "voxel material metallic (0: no hit)")
 
 # the render's own outputs resolve like AOVs (image, depth and alpha are not AOVs)
 RESOLVE = {"alpha": "mean", "depth": "hit_mean", **{k.name: k.resolve for k in AOVS}}

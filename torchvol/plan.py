@@ -29,6 +29,7 @@ from .quality import MarchSettings, at_level, march_settings
 from .scene import Scene
 from .volume.march import COMPACT_BELOW
 from .volume.shading import SHADINGS
+from .voxel.materials import any_ggx
 
 Strategy = Literal["closed_form", "march", "skip", "tolerance"]
 
@@ -103,11 +104,13 @@ class VoxelPass:
     emission: bool = False  # some material of some scene emits (voxels.materials[i].emission)
     water: bool = False  # the water plane's reflected and refracted rays (voxels.water)
     gi: bool = False  # voxels.gi: path-traced bounces replace the ambient
+    ggx: bool = False  # some material of some scene is not Lambert (roughness < 1 or metallic > 0)
+    reflections: int = 0  # bounces of mirror reflection rays (voxels.reflections)
 
     def names(self) -> list[str]:
         return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
                 + (["voxels.ao"] if self.ao else []) + (["voxels.gi"] if self.gi else []) + [li.name for li in self.shadows]
-                + (["voxels.water"] if self.water else []))
+                + (["voxels.reflections"] if self.reflections else []) + (["voxels.water"] if self.water else []))
 
 
 @dataclass(frozen=True)
@@ -209,7 +212,8 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
                            glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
                            emission=any(bool((m.emission > 0).any()) for m in vx.materials),
-                           water=vx.water is not None, gi=vx.gi is not None)
+                           water=vx.water is not None, gi=vx.gi is not None, ggx=any_ggx(vx.materials),
+                           reflections=vx.reflections.bounces if vx.reflections is not None and any_ggx(vx.materials) else 0)
     terrain = None
     if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself
         terrain = TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)

@@ -296,6 +296,14 @@ class VoxelShadow(Strict):
     offset: float = Field(0.01, ge=0.0)
 
 
+class VoxelReflections(Strict):
+    """Mirror reflection rays from each hit through the same DDA (seed 001 Variant 5), added with
+    the Fresnel weight F · (1 − roughness)² (`voxel/surface.py`)."""
+
+    bounces: int = Field(1, ge=1, le=4)
+    steps: int = Field(64, ge=1, le=100_000)  # the seed's 64: fewer than the primary ray's
+
+
 class VoxelTexture(Strict):
     """Atlas (H, W, 3|4) uint8 (or a PNG path) of tiles × tiles tiles, per scene; material m uses tile m − 1
     (row-major from the top left), sampled at the face UV (nearest texel)."""
@@ -361,11 +369,12 @@ class Voxels(Strict):
     max_steps: int | None = Field(None, ge=1, le=1_000_000, description="None: the quality level's")
     traversal: Literal["dda", "hybrid"] = "dda"
     materials: list[Material] = Field(default_factory=lambda: [Material()], min_length=1, max_length=255,
-                                      description="each a colour [r, g, b] or { color, emission }")
+                                      description="each a colour [r, g, b] or { color, roughness, metallic, emission }")
     face_tones: Vec3 = (0.5, 1.0, 0.75)  # x, y, z faces (seed Step 5); [1, 1, 1] turns it off
     ambient: Vec3 = (0.3, 0.3, 0.3)
     ao: VoxelAO | None = None
     shadow: VoxelShadow | None = None
+    reflections: VoxelReflections | None = None
     texture: VoxelTexture | None = None
     glow: VoxelGlow | None = None
     rounded: VoxelRounded | None = None

@@ -231,6 +231,25 @@ def _voxel_gi(data: dict, *, bounces: int | None = None, samples: int | None = N
         gi["bounces"] = integer("voxel-gi.bounces", bounces, low=1)
     if samples is not None:
         gi["samples"] = integer("voxel-gi.samples", samples, low=1)
+def voxel_pbr_grid() -> np.ndarray:
+    """The voxel-pbr preset's grid[k, j, i] of half-unit voxels over world [-9, 9] × [0, 8] × [-9, 9]
+    (cells (-18, 0, -18) .. (17, 15, 17)): a floor slab (material 1), a gold ball (2), a plastic cube
+    (3) and a stone pillar (4)."""
+    k, j, i = np.meshgrid(np.arange(36) - 18, np.arange(16), np.arange(36) - 18, indexing="ij")
+    x, y, z = (i + 0.5) * 0.5, (j + 0.5) * 0.5, (k + 0.5) * 0.5  # cell centres (world)
+    grid = np.zeros(x.shape, dtype=np.uint8)
+    grid[y < 0.5] = 1
+    grid[(x + 3.5) ** 2 + (y - 3.0) ** 2 + (z - 1.0) ** 2 < 2.5 ** 2] = 2
+    grid[(abs(x - 1.5) < 1.5) & (y > 0.5) & (y < 3.5) & (abs(z + 3.5) < 1.5)] = 3
+    grid[(abs(x - 5.0) < 1.0) & (y > 0.5) & (y < 6.0) & (abs(z - 3.0) < 1.0)] = 4
+    return grid
+
+
+def _voxel_pbr(data: dict, *, floor_roughness: float | None = None) -> None:
+    """`floor_roughness`: the floor material's roughness (0: a mirror)."""
+    if floor_roughness is not None:
+        data["voxels"]["materials"][0]["roughness"] = floor_roughness
+    data["voxels"]["occupancy"] = {"grid": {"data": voxel_pbr_grid()}}
 
 
 PARAMS: dict[str, Callable[..., None]] = {
@@ -245,6 +264,7 @@ PARAMS: dict[str, Callable[..., None]] = {
     "voxel-fog": _voxel_fog,
     "voxel-carved-box": _voxel_carved_box,
     "voxel-gi": _voxel_gi,
+    "voxel-pbr": _voxel_pbr,
     "template-clouds": _template_clouds,
     "cloud-puff": _cloud_puff,
     "cloudscape": _cloudscape,

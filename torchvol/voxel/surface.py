@@ -4,9 +4,16 @@
 `VoxelSurface.run(o, d, s, background, section)` returns, per ray [n]: ``hit``, ``t`` (world
 distance of the first hit, inf for misses), ``color`` [n, 3] (what the ray sees behind any volume:
 the shaded surface where hit, else `background`, with fog and glow applied), ``steps`` and the AOVs
-the plan calls for (``normal`` [n, 3], ``uv`` [n, 2], ``material``, ``ao``, ``shadow`` [n, 1],
-``water`` and ``water_floor_distance`` [n, 1]). With `voxels.water` a ray that reaches the water
-plane first is a hit there: its colour mixes a reflected and a refracted ray (water.py).
+the plan calls for (``normal`` [n, 3], ``uv`` [n, 2], ``material``, ``ao``, ``shadow``,
+``roughness``, ``metallic``, ``water`` and ``water_floor_distance`` [n, 1]). With `voxels.water` a
+ray that reaches the water plane first is a hit there: its colour mixes a reflected and a refracted
+ray (water.py).
+
+GGX materials (`ggx.py`) shade the sun and, with `voxels.reflections`, add a mirror reflection
+ray traced through the same DDA and shaded the same way (AO, shadows, GGX; not the rounded, glow
+or fog variants), the sky where it misses, weighted by F · (1 − roughness)²: rough surfaces use the
+mirror direction faded out, not a sampled lobe (an approximation). Default materials (roughness 1,
+metallic 0) stay Lambert, bit for bit.
 Every per-scene value arrives as a (B, ...) tensor of the batch's `Stacked` voxels, or is handled
 scene by scene (occupancy, texture atlas, the glow's SDF).
 """
@@ -25,14 +32,16 @@ from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
 from .dda import Hits, hybrid_traverse, traverse
 from .gi import bounce_uniforms, cosine_directions, path_keys
+from .ggx import f0_of, f_schlick, ggx_reflect
 from .grid import VoxelGrid
-from .materials import VOXEL_MATERIALS, material_table
+from .materials import VOXEL_MATERIALS, default_material, material_table
 from .shade import atlas_sample, face_normal, face_tone, face_uv, rounded_refine, voxel_ao
 from .water import beer, fresnel, plane_hit, reflect, refract, wave_normal
 
 __all__ = ["VoxelSurface"]
 
-SURFACE_AOVS = ("normal", "uv", "material", "ao", "shadow", "water", "water_floor_distance")
+SURFACE_AOVS = ("normal", "uv", "material", "ao", "shadow", "roughness", "metallic", "water", "water_floor_distance")
+REFLECTION_OFFSET = 1e-3  # the seed's hitPos + normal · 0.001, in voxels
 
 
 class VoxelSurface:
@@ -135,17 +144,15 @@ class VoxelSurface:
             with section("voxels.shade"):
                 surface = self._surface(o[ids], d[ids], t[ids], cell[ids], axis[ids], mat[ids], sh,
                                         None if normal_override is None else normal_override[ids])
-            if self.plan.ao:
-                with section("voxels.ao"):
-                    ao = voxel_ao(lambda c: (self.grid.lookup(c, sh.repeat(8)) > 0), surface["cell"], surface["face_normal"],
-                                  surface["axis"], surface["uv"], gamma=take(p.ao.gamma, sh))
-                    surface["albedo"] = surface["albedo"] * ao[:, None]
-                    surface["ao"] = ao[:, None]
+            self._ao(surface, sh, section)
             indirect = None
             if self.plan.gi:
                 with section("voxels.gi"):
                     indirect = self._gi(surface, sh, keys[ids])
             out_color[ids] = self._lit(surface, sh, section, indirect)
+            if self.plan.reflections:
+                with section("voxels.reflections"):
+                    self._reflect(out_color, ids, surface, d[ids], sh, self.plan.reflections, section)
             for k in self.aov_names:
                 if k in surface:  # the water's AOVs come from _water
                     aovs[k][ids] = surface[k]
@@ -232,12 +239,49 @@ class VoxelSurface:
         if ids.numel():
             sh = s[ids]
             surface = self._surface(o[ids], d[ids], hits.t[ids], hits.cell[ids], hits.axis[ids], hits.material[ids], sh, None)
-            if self.plan.ao:
-                ao = voxel_ao(lambda c: (self.grid.lookup(c, sh.repeat(8)) > 0), surface["cell"], surface["face_normal"],
-                              surface["axis"], surface["uv"], gamma=take(p.ao.gamma, sh))
-                surface["albedo"] = surface["albedo"] * ao[:, None]
+            self._ao(surface, sh, section)
             color[ids] = self._lit(surface, sh, section)
         return color, torch.where(hits.hit, hits.t, torch.full_like(hits.t, torch.inf))
+
+    def _ao(self, surface: dict[str, Tensor], s: Tensor, section) -> None:
+        """Neighbour AO into the surface's albedo (and its AOV) where `voxels.ao` is set."""
+        if self.plan.ao:
+            with section("voxels.ao"):
+                ao = voxel_ao(lambda c: (self.grid.lookup(c, s.repeat(8)) > 0), surface["cell"], surface["face_normal"],
+                              surface["axis"], surface["uv"], gamma=take(self.p.ao.gamma, s))
+                surface["albedo"] = surface["albedo"] * ao[:, None]
+                surface["ao"] = ao[:, None]
+
+    def _reflect(self, color: Tensor, ids: Tensor, surface: dict[str, Tensor], d: Tensor, s: Tensor, bounces: int,
+                 section) -> None:
+        """Adds into color[ids] [n, 3] the mirror reflection of the hits `surface` seen along d [n, 3]
+        (scenes s [n]), weighted by Fresnel · (1 − roughness)²; only where that weight is not 0."""
+        rough = surface["roughness"][:, 0]
+        f = f_schlick(f0_of(surface["albedo"], surface["metallic"][:, 0]), (surface["normal"] * -d).sum(-1, keepdim=True))
+        weight = f * ((1.0 - rough) * (1.0 - rough))[:, None]
+        live = (weight > 0).any(dim=1).nonzero().squeeze(1)
+        if not live.numel():
+            return
+        n, dl, sl = surface["normal"][live], d[live], s[live]
+        r = dl - 2.0 * (dl * n).sum(-1, keepdim=True) * n
+        start = surface["x"][live] + (REFLECTION_OFFSET * self.grid.voxel_size[sl])[:, None] * surface["face_normal"][live]
+        color[ids[live]] += weight[live] * self._trace_shade(start, r, sl, bounces, section)
+
+    def _trace_shade(self, o: Tensor, d: Tensor, s: Tensor, bounces: int, section) -> Tensor:
+        """Radiance [n, 3] along reflection rays o, d [n, 3]: the shaded surface they hit (with its
+        own reflection while bounces remain), else the sky."""
+        h = self._traverse(o, d, s, max_steps=self.p.reflections.steps, plain=True)
+        self.steps_total += int(h.steps.sum())
+        color = o.new_zeros(o.shape[0], 3) if self.sky is None else self.sky(d, s).clone()
+        ids = h.hit.nonzero().squeeze(1)
+        if ids.numel():
+            sh = s[ids]
+            surface = self._surface(o[ids], d[ids], h.t[ids], h.cell[ids], h.axis[ids], h.material[ids], sh, None)
+            self._ao(surface, sh, section)
+            color[ids] = self._lit(surface, sh, section)
+            if bounces > 1:
+                self._reflect(color, ids, surface, d[ids], sh, bounces - 1, section)
+        return color
 
     def _surface(self, o, d, t, cell, axis, mat, s, normal_override) -> dict[str, Tensor]:
         """Hit position, normal, UV, material and albedo (face tone and texture applied) of hits."""
@@ -257,19 +301,28 @@ class VoxelSurface:
                    material=mat.to(x.dtype)[:, None])
         if self.plan.emission:
             out["emission"] = self.materials.emission[s, index]
+        if self.plan.ggx:
+            out.update(view=-d, roughness=self.materials.roughness[s, index][:, None],
+                       metallic=self.materials.metallic[s, index][:, None])
         return out
 
     def _lit(self, surface: dict[str, Tensor], s: Tensor, section, indirect: Tensor | None = None) -> Tensor:
         """Ambient (or the GI's `indirect` incoming radiance [n, 3]) plus each light's irradiance,
-        shadowed by a DDA ray where `voxels.shadow` is set."""
-        light = take(self.p.ambient, s) if indirect is None else indirect
-        lit = surface["albedo"] * self._direct(surface, s, section, light)
+        shadowed by a DDA ray where `voxels.shadow` is set; GGX materials reflect each light by
+        `ggx_reflect` (ambient and indirect light stay diffuse: albedo · ambient)."""
+        ambient = take(self.p.ambient, s) if indirect is None else indirect
+        light, specular = self._direct(surface, s, section, ambient)
+        lit = surface["albedo"] * light
+        if self.plan.ggx:
+            pbr = surface["albedo"] * ambient + specular
+            lit = torch.where(default_material(surface["roughness"], surface["metallic"]), lit, pbr)
         return lit + surface["emission"] if self.plan.emission else lit
 
-    def _direct(self, surface: dict[str, Tensor], s: Tensor, section, light: Tensor) -> Tensor:
-        """`light` [n, 3] plus the lights' reflected irradiance per unit albedo at surface points
-        (summed in this order: the render without GI is bitwise as before)."""
-        p = self.p
+    def _direct(self, surface: dict[str, Tensor], s: Tensor, section, light: Tensor) -> tuple[Tensor, Tensor | int]:
+        """`light` [n, 3] plus the lights' Lambert irradiance per unit albedo at surface points
+        (summed in this order: renders without GI are bitwise as before), and the lights' GGX
+        reflected radiance [n, 3] (0 without GGX)."""
+        p, specular = self.p, 0
         shadows = {use.light: use for use in self.plan.shadows}
         for l, source in enumerate(self.lights):
             toward = source.toward(surface["x"], s)
@@ -281,7 +334,11 @@ class VoxelSurface:
                 if "shadow" not in surface:
                     surface["shadow"] = vis[:, None]
             light = light + self.material.fn(surface["normal"], toward.direction, toward.irradiance, vis)
-        return light
+            if self.plan.ggx:
+                specular = specular + (ggx_reflect(surface["normal"], surface["view"], toward.direction, surface["albedo"],
+                                                   surface["roughness"][:, 0], surface["metallic"][:, 0])
+                                       * toward.irradiance * vis[:, None])
+        return light, specular
 
     def _gi(self, surface: dict[str, Tensor], s: Tensor, keys: Tensor) -> Tensor:
         """The mean incoming radiance [n, 3] of `voxels.gi`'s paths from the hits `surface`
@@ -308,7 +365,8 @@ class VoxelSurface:
             if not alive.numel():
                 break
             hit = self._surface(o[keep], d[keep], h.t[keep], h.cell[keep], h.axis[keep], h.material[keep], sa, None)
-            own = hit["albedo"] * self._direct(hit, sa, lambda name: nullcontext(), torch.zeros_like(hit["x"]))
+            incoming, _ = self._direct(hit, sa, lambda name: nullcontext(), torch.zeros_like(hit["x"]))  # paths see diffuse light
+            own = hit["albedo"] * incoming
             if self.plan.emission:
                 own = own + hit["emission"]
             radiance.index_add_(0, alive, throughput[alive] * own)
