@@ -207,13 +207,13 @@ class VoxelSurface:
         off = take(w.offset, si)[:, None] * n
         a = absorb[ids]
         # the reflected ray stays on the ray's side (in water from below), the refracted one crosses
-        refl_col, refl_len = self._secondary(x + off, reflect(di, n), si, section)
+        refl_col, refl_len = self._trace_shade(x + off, reflect(di, n), si, section, max_steps=self.p.max_steps)
         refl_col = torch.where(ui[:, None], refl_col * beer(a, refl_len), refl_col)
         refr_col = torch.zeros_like(refl_col)
         floor = torch.full_like(tw, torch.inf)
         k = (~tir).nonzero().squeeze(1)
         if k.numel():
-            col, length = self._secondary(x[k] - off[k], refr[k], si[k], section)
+            col, length = self._trace_shade(x[k] - off[k], refr[k], si[k], section, max_steps=self.p.max_steps)
             refr_col[k] = torch.where(ui[k, None], col, col * beer(a[k], length))
             floor[k] = torch.where(ui[k], floor[k], length)
         mixed = f[:, None] * refl_col + (1.0 - f)[:, None] * refr_col
@@ -227,21 +227,6 @@ class VoxelSurface:
                 aovs[key][ids] = up * sign if key == "normal" else 0.0
         t_hit = torch.where(on, t_water, t_hit)
         return t_hit < torch.inf, t_hit, color
-
-    def _secondary(self, o, d, s, section) -> tuple[Tensor, Tensor]:
-        """One bounce off the water: rays o, d [n, 3] (d unit) through the voxels, lit like primary
-        hits (AO, shadows), the sky where they leave -> (colour [n, 3], hit distance [n], inf: none)."""
-        p, n = self.p, o.shape[0]
-        hits = self._traverse(o, d, s, max_steps=p.max_steps, plain=True)
-        self.steps_total += int(hits.steps.sum())
-        color = self.sky(d, s).clone() if self.sky is not None else o.new_zeros(n, 3)  # a sky may be expanded
-        ids = hits.hit.nonzero().squeeze(1)
-        if ids.numel():
-            sh = s[ids]
-            surface = self._surface(o[ids], d[ids], hits.t[ids], hits.cell[ids], hits.axis[ids], hits.material[ids], sh, None)
-            self._ao(surface, sh, section)
-            color[ids] = self._lit(surface, sh, section)
-        return color, torch.where(hits.hit, hits.t, torch.full_like(hits.t, torch.inf))
 
     def _ao(self, surface: dict[str, Tensor], s: Tensor, section) -> None:
         """Neighbour AO into the surface's albedo (and its AOV) where `voxels.ao` is set."""
@@ -265,14 +250,18 @@ class VoxelSurface:
         n, dl, sl = surface["normal"][live], d[live], s[live]
         r = dl - 2.0 * (dl * n).sum(-1, keepdim=True) * n
         start = surface["x"][live] + (REFLECTION_OFFSET * self.grid.voxel_size[sl])[:, None] * surface["face_normal"][live]
-        color[ids[live]] += weight[live] * self._trace_shade(start, r, sl, bounces, section)
+        color[ids[live]] += weight[live] * self._trace_shade(start, r, sl, section, max_steps=self.p.reflections.steps,
+                                                             bounces=bounces)[0]
 
-    def _trace_shade(self, o: Tensor, d: Tensor, s: Tensor, bounces: int, section) -> Tensor:
-        """Radiance [n, 3] along reflection rays o, d [n, 3]: the shaded surface they hit (with its
-        own reflection while bounces remain), else the sky."""
-        h = self._traverse(o, d, s, max_steps=self.p.reflections.steps, plain=True)
+    def _trace_shade(self, o: Tensor, d: Tensor, s: Tensor, section, *, max_steps: int,
+                     bounces: int = 0) -> tuple[Tensor, Tensor]:
+        """A secondary ray (off the water, or a reflection) o, d [n, 3] (d unit) of scenes s [n]
+        through the voxels, its hit lit like a primary one (AO, shadows, materials; its own
+        reflection while `bounces` > 1 remain), the sky where it leaves -> (colour [n, 3], hit
+        distance [n], inf: none)."""
+        h = self._traverse(o, d, s, max_steps=max_steps, plain=True)
         self.steps_total += int(h.steps.sum())
-        color = o.new_zeros(o.shape[0], 3) if self.sky is None else self.sky(d, s).clone()
+        color = o.new_zeros(o.shape[0], 3) if self.sky is None else self.sky(d, s).clone()  # a sky may be expanded
         ids = h.hit.nonzero().squeeze(1)
         if ids.numel():
             sh = s[ids]
@@ -281,7 +270,7 @@ class VoxelSurface:
             color[ids] = self._lit(surface, sh, section)
             if bounces > 1:
                 self._reflect(color, ids, surface, d[ids], sh, bounces - 1, section)
-        return color
+        return color, torch.where(h.hit, h.t, torch.full_like(h.t, torch.inf))
 
     def _surface(self, o, d, t, cell, axis, mat, s, normal_override) -> dict[str, Tensor]:
         """Hit position, normal, UV, material and albedo (face tone and texture applied) of hits."""
