@@ -30,7 +30,8 @@ CONVENTIONS = {
              "world units; 0 where nothing was hit (invalid)",
     "alpha": "8-bit PNG of 1 - transmittance of the whole ray",
     "aovs": "compressed .npz holding one array named after the AOV, shape (C, H, W): float32 (lossless) for "
-            "normal, ao, shadow, distance, depth_median and radiance; uint8 for material ids; float16 for uv "
+            "normal, ao, shadow, distance, depth_median, radiance, optical_thickness, alpha_volumes and "
+            "sun_visibility; uint8 for material ids; uint16 for instance ids; float16 for uv "
             "(face coordinates in [0, 1], within 2.5e-4)",
     "units": "world units; angles in degrees; right-handed world, y up",
     "camera": "OpenCV/kornia: camera axes x right, y down, z forward; K in pixels with pixel centres at "
@@ -59,7 +60,7 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     items: list[dict | None] = [None] * len(drawn)
     for group in groups.values():
         out = render([drawn[k][0] for k in group], seed=[render_seed(int(indices[k]), seed) for k in group],
-                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS)
+                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs)
         for b, k in enumerate(group):
             missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
             if missing:
@@ -160,7 +161,8 @@ def _npy(array: np.ndarray) -> bytes:
 # How each AOV is stored, in a compressed .npz: lossless float32 (face normals, AO levels and hard
 # shadows take few distinct values: they compress well, docs/DATASETS.md), material ids as bytes
 # (at most 255 materials), and uv in float16: face coordinates in [0, 1] to within 2^-12 of a face.
-AOV_STORAGE = {"material": np.uint8, "uv": np.float16}
+# instance ids (torchvol.labels) as uint16: volumes and materials together stay far below 65536
+AOV_STORAGE = {"material": np.uint8, "uv": np.float16, "instance": np.uint16}
 
 
 def _npz(name: str, array: np.ndarray) -> bytes:

@@ -23,6 +23,7 @@ from .aovs import produced
 from .batch import Stacked, stack
 from .bounds import BOUNDS, SLAB_REACH
 from .fields import DENSITIES
+from .labels import LabelPass, label_pass
 from .lights import LIGHTS
 from .post import POST
 from .quality import MarchSettings, at_level, march_settings
@@ -136,12 +137,14 @@ class Plan:
     aovs: tuple[str, ...]  # the AOVs the render outputs
     passes: int = 1  # `image.passes`: > 1 accumulates (torchvol.accumulate)
     blend: str = "mean"
+    labels: LabelPass | None = None  # the per-medium labels asked for (torchvol.labels), after the composite
 
     def names(self) -> list[str]:
         """Every planned pass, in the order the render runs them."""
         return (["rays"] + (["sky"] if self.sky else []) + (self.voxels.names() if self.voxels else [])
                 + (self.terrain.names() if self.terrain else [])
-                + [n for v in self.volumes for n in v.names()] + ["composite"] + (["atmosphere"] if self.atmosphere else [])
+                + [n for v in self.volumes for n in v.names()] + ["composite"]
+                + (self.labels.pass_names() if self.labels else []) + (["atmosphere"] if self.atmosphere else [])
                 + (["post.flare"] if self.flare else [])
                 + (["resolve"] if self.spp > 1 else []) + (["accumulate"] if self.passes > 1 else [])
                 + [name for _, name in self.post])
@@ -200,8 +203,9 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
                       multiple=vol.multiple_scattering is not None)
 
 
-def make_plan(batch: Stacked | Scene) -> Plan:
-    """The plan of a batch (a `Stacked` view of scenes at their quality level), or of one scene."""
+def make_plan(batch: Stacked | Scene, aovs=()) -> Plan:
+    """The plan of a batch (a `Stacked` view of scenes at their quality level), or of one scene;
+    `aovs`: AOV names asked for beyond those always output (the labels of `torchvol.labels`)."""
     if isinstance(batch, Scene):
         batch = stack([at_level(batch)])
     settings = march_settings(batch.march)
@@ -230,9 +234,10 @@ def make_plan(batch: Stacked | Scene) -> Plan:
         atmosphere=batch.atmosphere is not None,
         spp=batch.image.spp,
         post=post,
-        aovs=tuple(produced(batch)),
+        aovs=tuple(produced(batch, aovs)),
         passes=batch.image.passes,
         blend=batch.image.blend,
+        labels=label_pass(batch, aovs),
     )
 
 

@@ -23,6 +23,7 @@ from .bounds import BOUNDS
 from .camera import Camera, Rays
 from .fields import DENSITIES
 from .fields.edge import EdgeField
+from .labels import per_ray as label_rays
 from .lights import LIGHTS, LightSource
 from .plan import Plan, VolumePass, make_plan
 from .post import POST, View
@@ -167,8 +168,10 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
     parts = [STRATEGIES[vol.plan.strategy](ctx, vol, rays, background, t_limit) for vol in ctx.volumes]
     with ctx.timer.section("composite"):
         behind = background if surf is None else surf["color"]  # the shaded surface where hit
-        out = finish(composite_volumes(parts, rays.origins[:, 0]), behind, surf, rays.forward_cos,
-                     ctx.settings.depth_threshold)
+        volumes = composite_volumes(parts, rays.origins[:, 0])
+        out = finish(volumes, behind, surf, rays.forward_cos, ctx.settings.depth_threshold)
+    if plan.labels is not None:
+        out.update(label_rays(ctx, rays, parts, volumes, surf))
     if plan.atmosphere:
         with ctx.timer.section("atmosphere"):
             out = through_the_air(ctx, rays, out)
@@ -245,6 +248,7 @@ def render(
     chunk_rays: int = DEFAULT_CHUNK_RAYS,
     compile: bool = False,
     progress: Callable[[int], None] | None = None,
+    aovs: Sequence[str] = (),
 ) -> RenderOutput:
     """Render a scene (or a list of scenes of one structure, as one batch).
 
@@ -255,11 +259,15 @@ def render(
     `compile` runs the noise kernels under torch.compile. `progress(pixels)`, where given, is called
     after each chunk with the pixels it finished (in each of `image.passes` passes). With
     `image.passes` > 1, `stats["accumulation"]` is the mean |change| of the blended radiance after
-    each pass after the first (`torchvol.accumulate`)."""
+    each pass after the first (`torchvol.accumulate`). `aovs` asks for the AOVs computed only on
+    request (the per-medium labels of `torchvol.labels`: optical_thickness, alpha_volumes,
+    instance, sun_visibility); the others are output wherever the scene computes them."""
     scenes, seeds, device = _check_arguments(scene, seed, chunk_rays, dtype, device)
+    if isinstance(aovs, str) or any(a not in RESOLVE for a in aovs):
+        fail("aovs", aovs, "expected a list of AOV names from: " + ", ".join(sorted(RESOLVE)))
     start = time.perf_counter()
     batch = stack(scenes, dtype=torch.float64, device=device)  # the plan reads shared values only
-    plan = make_plan(batch)
+    plan = make_plan(batch, tuple(aovs))
     dtype = dtype or plan.settings.dtype
     ctx = RenderContext(stack(scenes, dtype=dtype, device=device), plan, seeds=seeds, dtype=dtype, device=device,
                         compiled=compile)
