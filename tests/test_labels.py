@@ -13,12 +13,18 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import assert_close
+from volume.test_analytic import (
+    box_interval,
+    camera_rays,
+    slab_interval,
+    sphere_interval,
+    up_for,
+    well_conditioned,
+)
 
 import torchvol as tv
 from torchvol.generate import generate
-
-from conftest import TOL, assert_close
-from volume.test_analytic import box_interval, camera_rays, slab_interval, sphere_interval, up_for, well_conditioned
 
 LABELS = ["optical_thickness", "alpha_volumes", "instance", "sun_visibility"]
 SUN = [{"kind": "sun", "direction": [0.0, 1.0, 0.0]}]
@@ -178,3 +184,12 @@ def test_labels_flow_through_the_datasets(tmp_path, one_thread):
             assert a[key].dtype == torch.float32 and torch.equal(a[key], b[key]), key
     with np.load(next((tmp_path / "ds").rglob("*.instance.npz"))) as stored:
         assert stored["instance"].dtype.name == "uint16"
+
+
+def test_voxel_surfaces_instance_ids_and_sun_visibility_match_their_own_labels(one_thread):
+    out = tv.render(tv.preset("voxel-terrain", width=16, height=16), aovs=["instance", "sun_visibility"])
+    material, hit = out.aovs["material"], out.aovs["material"] > 0
+    assert 0 < hit.float().mean() < 1
+    assert torch.equal(out.aovs["instance"], material)  # no volumes: V = 0, ids are the material ids
+    assert torch.equal(out.aovs["sun_visibility"][hit], out.aovs["shadow"][hit])  # the surface's own shadow ray
+    assert (out.aovs["sun_visibility"][~hit] == 1).all()

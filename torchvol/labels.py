@@ -35,15 +35,12 @@ from .batch import take
 from .camera import Rays
 from .lights import LIGHTS, Shadow
 from .quality import QUALITY
+from .scene import VoxelShadow
 from .validate import fail
 from .volume.physical import occluder_transmittance
 from .volume.strategy import entry_exit
 
 LABELS = ("optical_thickness", "alpha_volumes", "instance", "sun_visibility")
-# a surface point's shadow ray starts this far (× (1 + t)) along the surface normal: clear of the
-# terrain's hit rule (2 · epsilon · (1 + t), epsilon ≤ 0.1 is refused above 1e-3 by default) and the
-# voxel faces
-SURFACE_OFFSET = 1e-2
 
 
 @dataclass(frozen=True)
@@ -126,6 +123,19 @@ def instance(ctx, alphas: Tensor | None, remaining: Tensor, surf: dict | None) -
     return torch.where(best == n_vol + 1, n_vol + surface_id, ids)
 
 
+def surface_lift(ctx, s: Tensor, t: Tensor) -> Tensor:
+    """How far [n] along its normal a shadow ray from a surface hit at distance `t` [n] of scenes `s`
+    [n] starts, as the surface pass's own: the terrain's `shadow_offset` plus its hit rule's width,
+    the voxels' `shadow.offset` (its default without `voxels.shadow`)."""
+    if ctx.plan.terrain is not None:
+        terrain = ctx.batch.terrain
+        return take(terrain.shadow_offset, s) + 2.0 * take(terrain.epsilon, s) * (1.0 + t)
+    shadow = ctx.batch.voxels.shadow
+    if shadow is None:
+        return torch.full_like(t, VoxelShadow.model_fields["offset"].default)
+    return take(shadow.offset, s)
+
+
 def sun_visibility(ctx, rays: Rays, volumes: dict[str, Tensor], surf: dict | None) -> Tensor:
     """Transmittance [n] to lights[0] from each ray's depth point (1 where it has none)."""
     use = ctx.plan.labels.sun
@@ -141,9 +151,9 @@ def sun_visibility(ctx, rays: Rays, volumes: dict[str, Tensor], surf: dict | Non
         return out
     si, ti = s[ids], t[ids]
     p = torch.addcmul(o[ids], ti[:, None], d[ids])
-    if surf is not None:  # a surface point's ray starts clear of its surface
-        lift = (SURFACE_OFFSET * (1.0 + ti) * on_surface[ids].to(t.dtype))[:, None]
-        p = p + lift * surf["aovs"]["normal"][ids]
+    if surf is not None:  # a surface point's ray starts where the surface's own shadow rays do
+        lift = surface_lift(ctx, si, ti) * on_surface[ids].to(t.dtype)
+        p = p + lift[:, None] * surf["aovs"]["normal"][ids]
     direction = take(ctx.lights[0].direction, si)
     distance = torch.full_like(ti, torch.inf)
     vis = occluder_transmittance(ctx, use, p, si, direction, distance)
