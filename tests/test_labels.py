@@ -68,15 +68,24 @@ def test_optical_thickness_through_a_homogeneous_sphere_is_sigma_times_the_chord
 
 
 def test_optical_thickness_through_a_slab_and_unbounded(one_thread):
-    sigma = 40.0  # τ up to ~100: beyond what float32 transmittance can hold, the label is not capped
+    sigma = 400.0  # τ in the hundreds: beyond what float32 transmittance can hold, the label is not capped
     s = scene([{"bounds": {"slab": {"y_min": -1.0, "y_max": -0.5}}, "density": {"constant": 1.0}, "sigma_t": sigma}],
               eye=(0.0, 1.0, -3.0), target=(0.0, -1.0, 0.0), march={"steps": 4})
     out = tv.render(s, aovs=["optical_thickness"])
     eye, dirs, _ = camera_rays(out)
     expected = sigma * chord(slab_interval, eye, dirs, -1.0, -0.5)
     tau = out.aovs["optical_thickness"][0, 0].double().numpy()
-    assert expected.max() > 30 and (expected > 0).all()
+    assert expected.min() > 200 and (out.alpha == 1).all()
     assert_close(torch.from_numpy(tau / expected), 1.0, atol=1e-5, what="τ / σ·chord")
+
+
+def test_optical_thickness_from_inside_a_sphere_is_sigma_times_the_radius(one_thread):
+    out = tv.render(scene([sphere((0, 0, 0), 2.0, 1.5)], eye=(0.0, 0.0, -0.5), march={"closed_form": False, "steps": 4}),
+                    aovs=["optical_thickness", "instance", "sun_visibility"])
+    eye, dirs, _ = camera_rays(out)
+    expected = 1.5 * chord(sphere_interval, eye, dirs, (0, 0, 0), 2.0)  # from the eye to the exit
+    assert_close(out.aovs["optical_thickness"][0, 0] / torch.from_numpy(expected).float(), 1.0, atol=1e-5, what="τ / σ·(exit − eye)")
+    assert (out.aovs["instance"] == 1).all() and torch.isfinite(out.aovs["sun_visibility"]).all()
 
 
 def test_optical_thickness_adds_over_disjoint_volumes(one_thread):
@@ -151,6 +160,7 @@ def test_a_label_nobody_asks_for_costs_nothing(one_thread):
     assert not any(p.startswith("labels") for p in plain.stats["passes"] + plain.stats["plan"])
     assert not set(LABELS) & set(plain.aovs)
     assert [p for p in labelled.stats["passes"] if not p.startswith("labels")] == plain.stats["passes"]
+    assert set(labelled.stats["passes"]) <= set(labelled.stats["plan"])
     for key in ("image", "radiance", "depth", "alpha"):
         assert torch.equal(getattr(plain, key), getattr(labelled, key)), key
     assert plain.stats["density_evals"] < labelled.stats["density_evals"]

@@ -1,6 +1,6 @@
 """Extra outputs (AOVs): the `AOVS` registry, the one list of their names. Each is its function
 `fn(batch (Stacked scene)) -> bool` (whether a scene of this structure computes it: only what was
-computed is output) and its capabilities: ``channels``, ``resolve`` (how a pixel's sub-samples
+computed is output) and its capabilities: ``channels`` (0: one per volume), ``resolve`` (how a pixel's sub-samples
 combine: ``mean``, ``hit_mean`` (the mean over the sub-samples that hit something: depths) or
 ``first`` (ids, which do not average)), ``doc`` and ``on_request`` (computed only when asked for:
 the per-medium labels of `torchvol.labels`)."""

@@ -53,8 +53,8 @@ class LabelPass:
     voxel_steps: int = 0  # DDA steps of the sun ray through the voxels (0: no voxels)
 
     def pass_names(self) -> list[str]:
-        return [n for name in self.names
-                for n in (self.sun.names() if name == "sun_visibility" else [f"labels.{name}"])]
+        sun = [] if self.sun is None else self.sun.names() + ([f"{self.sun.name}.voxels"] if self.voxel_steps else [])
+        return [n for name in self.names for n in (sun if name == "sun_visibility" else [f"labels.{name}"])]
 
 
 def label_pass(batch, requested) -> LabelPass | None:
