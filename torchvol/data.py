@@ -52,6 +52,10 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     from .render import DEFAULT_CHUNK_RAYS, render
 
     aovs = recipe.aovs if aovs is None else tuple(aovs)
+    if recipe.sequence is not None:  # frames > 1: every frame rendered, stacked, with flow
+        from .sequence import render_sequences
+
+        return render_sequences(recipe, indices, seed=seed, aovs=aovs, chunk_rays=chunk_rays)
     drawn = [recipe.sample_with_params(int(i), seed) for i in indices]
     groups: dict[tuple, list[int]] = {}
     for k, (scene, _) in enumerate(drawn):
@@ -160,7 +164,7 @@ def _npy(array: np.ndarray) -> bytes:
 # How each AOV is stored, in a compressed .npz: lossless float32 (face normals, AO levels and hard
 # shadows take few distinct values: they compress well, docs/DATASETS.md), material ids as bytes
 # (at most 255 materials), and uv in float16: face coordinates in [0, 1] to within 2^-12 of a face.
-AOV_STORAGE = {"material": np.uint8, "uv": np.float16}
+AOV_STORAGE = {"material": np.uint8, "uv": np.float16, "flow_valid": np.uint8}
 
 
 def _npz(name: str, array: np.ndarray) -> bytes:
@@ -230,6 +234,10 @@ class FolderDataset(Dataset):
         rec = self.records[index]
         item: dict[str, Any] = {}
         for key, rel in rec["files"].items():
+            if isinstance(rel, list):  # a sequence: one file per frame, {index}.f{frame:03d}.{suffix}
+                item[key] = torch.stack([decode_file(".".join(r.rsplit(".", 2)[1:]), (self.root / r).read_bytes())
+                                         for r in rel])
+                continue
             suffix = Path(rel).name.split(".", 1)[1]
             item[key] = decode_file(suffix, (self.root / rel).read_bytes())
         item["K"] = torch.tensor(rec["K"], dtype=torch.float32)
