@@ -4,7 +4,8 @@ One sample is a dict: image (3,H,W) float32 in [0,1], depth (1,H,W) float32 (pla
 alpha (1,H,W), K (3,3), world_to_camera (4,4), index, seed, params (the drawn values by key path)
 and the recipe's AOVs (C,H,W). `encode_sample` / `decode_file` turn one into named files (PNG for
 image and alpha, exact float32 .npy for depth, compressed .npz for AOVs (`AOV_STORAGE`), a JSON
-record) and back; the generator and FolderDataset share them so the two stay in step.
+record) and back; the generator and FolderDataset share them so the two stay in step. A sequence
+recipe's samples (`[dataset] frames`) gain a leading frame axis and `flow` (torchvol.sequence).
 """
 
 from __future__ import annotations

@@ -5,6 +5,7 @@ Layout (DIR):
   manifest.jsonl            one record per sample, by index (written last, atomically)
   folder:      samples/{index:06d}.{image.png, depth.npy, alpha.png, <aov>.npz, json}
   webdataset:  shards/shard-{k:06d}.tar holding {index:06d}.{json, image.png, depth.npy, alpha.png, <aov>.npz}
+  sequences (torchvol.sequence): per-frame files {index:06d}.f{frame:03d}.{image.png, ...}, and flow.npz, flow_valid.npz
 
 Every file is written to a hidden temporary name and renamed into place, so a reader never sees a
 partial file. A folder sample is finished when its .json record exists (written after its other
