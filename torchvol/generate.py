@@ -86,7 +86,7 @@ def run_task(task: Task) -> list[int]:
                 encoded = encode_item(item, aovs)
                 for suffix, data in encoded.items():
                     atomic_write(out / "samples" / f"{stem}.{suffix}", data)
-                files = file_map(encoded, lambda suffix: f"samples/{stem}.{suffix}")
+                files = file_map(encoded, f"samples/{stem}.")
                 # the record last: its presence marks the sample finished
                 atomic_write(out / "samples" / f"{stem}.json", _json_bytes(sample_record(item, files)))
         return todo
@@ -98,7 +98,7 @@ def run_task(task: Task) -> list[int]:
         for item in render_samples(task.recipe, task.indices[first:first + task.batch], seed=task.seed):
             stem = f"{item['index']:06d}"
             encoded = encode_item(item, aovs)
-            files = file_map(encoded, lambda suffix: f"{stem}.{suffix}")
+            files = file_map(encoded, f"{stem}.")
             record = {**sample_record(item, files), "shard": path.name}
             members.append((f"{stem}.json", _json_bytes(record)))
             members += [(f"{stem}.{suffix}", data) for suffix, data in encoded.items()]

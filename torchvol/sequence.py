@@ -41,7 +41,7 @@ from .flow import flow_from_depth
 from .quality import at_level
 from .recipe import Dist, Recipe, mix_seed, parse_dist, render_seed
 from .scene import Scene
-from .validate import SceneError, did_you_mean, fail, finite, integer, is_integer
+from .validate import SceneError, did_you_mean, fail, finite, is_integer
 
 __all__ = ["SEQUENCE_KEYS", "SequenceSpec", "parse_sequence", "frame_scenes", "render_sequences",
            "encode_sequence", "file_map"]
@@ -229,13 +229,13 @@ def encode_item(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
     return encode_sequence(item, aovs) if "flow" in item else encode_sample(item, aovs)
 
 
-def file_map(suffixes: Sequence[str], where) -> dict[str, str | list[str]]:
-    """The record's `files`: {label: where(suffix)}, or for per-frame files {label: [one per frame]}."""
+def file_map(suffixes: Sequence[str], prefix: str) -> dict[str, str | list[str]]:
+    """The record's `files`: {label: prefix + suffix}, or for per-frame files {label: [one per frame]}."""
     files: dict[str, Any] = {}
     for suffix in suffixes:
         parts = suffix.split(".")
         if len(parts) == 3 and parts[0][:1] == "f" and parts[0][1:].isdigit():
-            files.setdefault(parts[1], []).append(where(suffix))
+            files.setdefault(parts[1], []).append(prefix + suffix)
         else:
-            files[parts[0]] = where(suffix)
+            files[parts[0]] = prefix + suffix
     return files
