@@ -170,6 +170,7 @@ def test_time_moves_the_clouds_and_a_still_sequence_repeats_its_frame():
     ("dataset.camera_path.velocity", [1.0, 2.0], r"dataset\.camera_path\.velocity"),
     ("dataset.camera_path.velocity", {"uniform": [0, 1]}, r"dataset\.camera_path\.velocity"),
     ("dataset.camera_path.orbit", {"uniform": [[0, 0, 0], [1, 1, 1]]}, r"dataset\.camera_path\.orbit"),
+    ("dataset.camera_path.orbit", {"uniformly": [0, 1]}, r"dataset\.camera_path\.orbit.*distribution"),
     ("dataset.views", 4, r"views"),
 ])
 def test_bad_sequence_keys_are_refused_at_load(key, value, match):

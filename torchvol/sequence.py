@@ -39,7 +39,7 @@ from .batch import structure_key
 from .data import _npz, encode_sample
 from .flow import flow_from_depth
 from .quality import at_level
-from .recipe import Dist, Recipe, mix_seed, parse_dist, render_seed
+from .recipe import DIST_KINDS, Dist, Recipe, mix_seed, parse_dist, render_seed
 from .scene import Scene
 from .validate import SceneError, did_you_mean, fail, finite, is_integer
 
@@ -87,7 +87,9 @@ class SequenceSpec:
 
 def _path_value(path: str, raw: Any, check) -> Any:
     """A fixed value (checked) or a distribution whose corners pass the same check."""
-    if isinstance(raw, Mapping) and len(raw) == 1:
+    if isinstance(raw, Mapping):
+        if len(raw) != 1 or next(iter(raw)) not in DIST_KINDS:
+            fail(path, raw, "expected a value or a distribution table, one of: " + ", ".join(DIST_KINDS))
         dist = parse_dist(path, raw)
         for corner in dist.corners():
             check(path, corner)
