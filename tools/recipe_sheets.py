@@ -28,8 +28,10 @@ def main() -> None:
     names = args.names or sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
     for name in names:
         start = time.perf_counter()
-        ds = tv.SceneDataset(ROOT / "datasets" / f"{name}.toml", args.count, aovs=(),
-                             overrides={"image.width": args.width, "image.height": args.height})
+        recipe = tv.Recipe.load(ROOT / "datasets" / f"{name}.toml", {"image.width": args.width, "image.height": args.height})
+        if recipe.sequence is not None:  # a sequence's sheet shows each sample's frame 0 (tools/sequence_strip.py: all)
+            recipe = tv.Recipe.load(recipe, {"dataset.frames": 1})
+        ds = tv.SceneDataset(recipe, args.count, aovs=())
         samples = [s for first in range(0, args.count, 4) for s in ds.batch(range(first, min(args.count, first + 4)))]
         tiles = [([f"{name} #{s['index']}"], s["image"]) for s in samples]
         contact_sheet(tiles, ROOT / "docs" / "images" / f"sheet-{name}.png", columns=4)

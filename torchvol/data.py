@@ -4,7 +4,8 @@ One sample is a dict: image (3,H,W) float32 in [0,1], depth (1,H,W) float32 (pla
 alpha (1,H,W), K (3,3), world_to_camera (4,4), index, seed, params (the drawn values by key path)
 and the recipe's AOVs (C,H,W). `encode_sample` / `decode_file` turn one into named files (PNG for
 image and alpha, exact float32 .npy for depth, compressed .npz for AOVs (`AOV_STORAGE`), a JSON
-record) and back; the generator and FolderDataset share them so the two stay in step.
+record) and back; the generator and FolderDataset share them so the two stay in step. A sequence
+recipe's samples (`[dataset] frames`) gain a leading frame axis and `flow` (torchvol.sequence).
 """
 
 from __future__ import annotations
@@ -53,6 +54,10 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     from .render import DEFAULT_CHUNK_RAYS, render
 
     aovs = recipe.aovs if aovs is None else tuple(aovs)
+    if recipe.sequence is not None:  # frames > 1: every frame rendered, stacked, with flow
+        from .sequence import render_sequences
+
+        return render_sequences(recipe, indices, seed=seed, aovs=aovs, chunk_rays=chunk_rays)
     drawn = [recipe.sample_with_params(int(i), seed) for i in indices]
     groups: dict[tuple, list[int]] = {}
     for k, (scene, _) in enumerate(drawn):
@@ -162,7 +167,7 @@ def _npy(array: np.ndarray) -> bytes:
 # shadows take few distinct values: they compress well, docs/DATASETS.md), material ids as bytes
 # (at most 255 materials), and uv in float16: face coordinates in [0, 1] to within 2^-12 of a face.
 # instance ids (torchvol.labels) as uint16: volumes and materials together stay far below 65536
-AOV_STORAGE = {"material": np.uint8, "uv": np.float16, "instance": np.uint16}
+AOV_STORAGE = {"material": np.uint8, "uv": np.float16, "instance": np.uint16, "flow_valid": np.uint8}
 
 
 def _npz(name: str, array: np.ndarray) -> bytes:
@@ -232,6 +237,10 @@ class FolderDataset(Dataset):
         rec = self.records[index]
         item: dict[str, Any] = {}
         for key, rel in rec["files"].items():
+            if isinstance(rel, list):  # a sequence: one file per frame, {index}.f{frame:03d}.{suffix}
+                item[key] = torch.stack([decode_file(".".join(r.rsplit(".", 2)[1:]), (self.root / r).read_bytes())
+                                         for r in rel])
+                continue
             suffix = Path(rel).name.split(".", 1)[1]
             item[key] = decode_file(suffix, (self.root / rel).read_bytes())
         item["K"] = torch.tensor(rec["K"], dtype=torch.float32)

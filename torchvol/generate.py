@@ -5,6 +5,7 @@ Layout (DIR):
   manifest.jsonl            one record per sample, by index (written last, atomically)
   folder:      samples/{index:06d}.{image.png, depth.npy, alpha.png, <aov>.npz, json}
   webdataset:  shards/shard-{k:06d}.tar holding {index:06d}.{json, image.png, depth.npy, alpha.png, <aov>.npz}
+  sequences (torchvol.sequence): per-frame files {index:06d}.f{frame:03d}.{image.png, ...}, and flow.npz, flow_valid.npz
 
 Every file is written to a hidden temporary name and renamed into place, so a reader never sees a
 partial file. A folder sample is finished when its .json record exists (written after its other
@@ -24,9 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
 
-from .data import CONVENTIONS, encode_sample, render_samples, sample_record
+from .data import CONVENTIONS, render_samples, sample_record
 from .progress import progress as bar
 from .recipe import Recipe
+from .sequence import CONVENTIONS as SEQUENCE_CONVENTIONS, encode_item, file_map
 from .validate import fail, integer
 
 Layout = Literal["folder", "webdataset"]
@@ -81,10 +83,10 @@ def run_task(task: Task) -> list[int]:
             part = todo[first:first + task.batch]
             for item in render_samples(task.recipe, part, seed=task.seed):
                 stem = f"{item['index']:06d}"
-                files = {}
-                for suffix, data in encode_sample(item, aovs).items():
+                encoded = encode_item(item, aovs)
+                for suffix, data in encoded.items():
                     atomic_write(out / "samples" / f"{stem}.{suffix}", data)
-                    files[suffix.split(".")[0]] = f"samples/{stem}.{suffix}"
+                files = file_map(encoded, f"samples/{stem}.")
                 # the record last: its presence marks the sample finished
                 atomic_write(out / "samples" / f"{stem}.json", _json_bytes(sample_record(item, files)))
         return todo
@@ -95,8 +97,8 @@ def run_task(task: Task) -> list[int]:
     for first in range(0, len(task.indices), task.batch):
         for item in render_samples(task.recipe, task.indices[first:first + task.batch], seed=task.seed):
             stem = f"{item['index']:06d}"
-            encoded = encode_sample(item, aovs)
-            files = {suffix.split(".")[0]: f"{stem}.{suffix}" for suffix in encoded}
+            encoded = encode_item(item, aovs)
+            files = file_map(encoded, f"{stem}.")
             record = {**sample_record(item, files), "shard": path.name}
             members.append((f"{stem}.json", _json_bytes(record)))
             members += [(f"{stem}.{suffix}", data) for suffix, data in encoded.items()]
@@ -175,6 +177,7 @@ def generate(
         "aovs": list(recipe.aovs),
         "recipe": recipe.describe(),
         "conventions": CONVENTIONS,
+        **({"frames": recipe.sequence.frames, "sequence": SEQUENCE_CONVENTIONS} if recipe.sequence else {}),
     }
     meta_bytes = json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
     if (out / "meta.json").is_file():

@@ -41,7 +41,7 @@ from .scene import Scene, read_source, schema_keys, validate_scene
 from .validate import SceneError, did_you_mean, fail, finite, integer, is_integer
 
 DIST_KINDS = ("uniform", "loguniform", "normal", "integer", "choice", "hemisphere", "orbit")
-RECIPE_KEYS = ("aovs",)
+RECIPE_KEYS = ("aovs", "frames", "dt", "camera_path")  # sequences: torchvol.sequence
 
 
 def mix_seed(*parts: Any) -> int:
@@ -269,6 +269,7 @@ class Recipe:
     aovs: tuple[str, ...] = ()
     name: str = "recipe"
     source: dict = field(default_factory=dict, repr=False)
+    sequence: Any = None  # a sequence.SequenceSpec when [dataset] frames > 1
 
     @classmethod
     def load(cls, source: str | Path | Mapping | "Recipe", overrides: Mapping[str, Any] | None = None) -> "Recipe":
@@ -293,9 +294,11 @@ class Recipe:
         aovs = meta.get("aovs", [])
         if not isinstance(aovs, list) or any(a not in AOVS for a in aovs) or len(set(aovs)) != len(aovs):
             fail("dataset.aovs", aovs, "expected a list of distinct AOV names from: " + ", ".join(AOVS.names()))
+        from .sequence import parse_sequence  # (sequence imports this module)
+
         dists: dict[str, Dist] = {}
         _find_dists(data, (), dists)
-        recipe = cls(template=data, dists=dists, aovs=tuple(aovs), name=name, source=raw)
+        recipe = cls(template=data, dists=dists, aovs=tuple(aovs), name=name, source=raw, sequence=parse_sequence(meta))
         recipe._validate()
         return recipe
 

@@ -1,0 +1,243 @@
+"""Sequences: F frames of one drawn scene, time advancing and the camera moving, with optical flow.
+
+A recipe's `[dataset]` table asks for them:
+
+    [dataset]
+    frames = 8                      # F >= 2 makes a sample a sequence (1, the default: single frames)
+    dt = 0.5                        # seconds of scene `time` between frames (default 1/24)
+    camera_path = { velocity = { uniform = [[-0.3, 0, -0.3], [0.3, 0, 0.3]] }, orbit = 4.0, look_at = "moving" }
+
+Frame f (t = f·dt) is the sample's scene with `time + t` and the camera moved along its path:
+
+    c_f    = target + velocity·t                                  (the orbit centre)
+    eye_f  = eye + velocity·t + (Rot_y(orbit·t) − I)(eye − target)
+    target_f = c_f (look_at = "moving", the default) or target ("fixed")
+
+`velocity` (world units per second) translates the eye; `orbit` (degrees per second) adds to the
+eye's azimuth about the vertical axis through the orbit centre (azimuth from +z towards +x, as the
+recipe's `orbit` distribution). Each may be a number/vector or a distribution, drawn once per sample
+like any recipe key (its key path `dataset.camera_path.velocity` in the sample's `params`). Frame 0
+is the single-frame sample exactly (`frames = 1` gives it). Every frame renders with the sample's
+render seed (dither and jitter fixed on the screen, so a still scene gives equal frames), and the F
+frames of a batch of samples render as one batch.
+
+A sample gains a leading F axis: image (F,3,H,W), depth/alpha (F,1,H,W), AOVs (F,C,H,W), K (F,3,3),
+world_to_camera (F,4,4); and `flow` (F,2,H,W) float32 pixels, `flow_valid` (F,1,H,W) float32 0/1:
+flow[f] is the forward flow from frame f to f+1 of the static geometry at frame f's depth
+(`flow.flow_from_depth`); flow[F−1] is 0 with flow_valid 0 (no next frame).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal, Mapping, Sequence
+
+import torch
+
+from .batch import structure_key
+from .data import _npz, encode_sample
+from .flow import flow_from_depth
+from .quality import at_level
+from .recipe import DIST_KINDS, Dist, Recipe, mix_seed, parse_dist, render_seed
+from .scene import Scene
+from .validate import SceneError, did_you_mean, fail, finite, is_integer
+
+__all__ = ["SEQUENCE_KEYS", "SequenceSpec", "parse_sequence", "frame_scenes", "render_sequences",
+           "encode_sequence", "file_map"]
+
+SEQUENCE_KEYS = ("frames", "dt", "camera_path")
+PATH_KEYS = ("velocity", "orbit", "look_at")
+MAX_FRAMES = 1000  # frame files are named f000 ... f999
+DEFAULT_DT = 1.0 / 24.0
+
+# The meta.json conventions of a sequence dataset.
+CONVENTIONS = {
+    "frames": "image, depth, alpha and AOVs stored one file per frame: {index}.f{frame:03d}.{name}; "
+              "K (F,3,3) and world_to_camera (F,4,4) in the record",
+    "flow": "flow.npz (F, 2, H, W) float32 pixels (dx, dy): frame f's depth point projected into frame f+1 minus "
+            "its pixel centre, from planar depth and the two poses (static geometry; wind drift not followed); "
+            "0 where flow_valid is 0; flow[F-1] = 0",
+    "flow_valid": "flow_valid.npz (F, 1, H, W) uint8 0/1: depth > 0 and the point in front of the next camera",
+}
+
+
+@dataclass(frozen=True)
+class SequenceSpec:
+    """Validated `[dataset]` sequence keys. `velocity`/`orbit`: a fixed value or a Dist."""
+
+    frames: int
+    dt: float
+    velocity: Any = (0.0, 0.0, 0.0)
+    orbit: Any = 0.0
+    look_at: Literal["moving", "fixed"] = "moving"
+
+    def draw(self, index: int, seed: int) -> dict[str, Any]:
+        """The sample's camera path: {key path: value}, drawn like a recipe key (seed, index, path)."""
+        out = {}
+        for name in ("velocity", "orbit"):
+            value = getattr(self, name)
+            path = f"dataset.camera_path.{name}"
+            if isinstance(value, Dist):
+                g = torch.Generator().manual_seed(mix_seed("torchvol.recipe", int(seed), int(index), path))
+                value = value.sample(g)
+            out[path] = list(value) if name == "velocity" else value
+        return out
+
+
+def _path_value(path: str, raw: Any, check) -> Any:
+    """A fixed value (checked) or a distribution whose corners pass the same check."""
+    if isinstance(raw, Mapping):
+        if len(raw) != 1 or next(iter(raw)) not in DIST_KINDS:
+            fail(path, raw, "expected a value or a distribution table, one of: " + ", ".join(DIST_KINDS))
+        dist = parse_dist(path, raw)
+        for corner in dist.corners():
+            check(path, corner)
+        return dist
+    return check(path, raw)
+
+
+def _vec3(path: str, value: Any) -> tuple[float, float, float]:
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        fail(path, value, "expected [x, y, z] world units per second (or a distribution of them)")
+    return tuple(finite(f"{path}[{i}]", x) for i, x in enumerate(value))
+
+
+def _number(path: str, value: Any) -> float:
+    if isinstance(value, (list, tuple)):
+        fail(path, value, "expected a number of degrees per second (or a distribution of them)")
+    return finite(path, value)
+
+
+def parse_sequence(meta: Mapping) -> SequenceSpec | None:
+    """The sequence a recipe's `[dataset]` table asks for; None for single frames (frames = 1)."""
+    if not any(key in meta for key in SEQUENCE_KEYS):
+        return None
+    frames = meta.get("frames", 1)
+    if not is_integer(frames) or not 1 <= frames <= MAX_FRAMES:
+        fail("dataset.frames", frames, f"expected an integer from 1 to {MAX_FRAMES}")
+    dt = finite("dataset.dt", meta.get("dt", DEFAULT_DT))
+    if dt < 0:
+        fail("dataset.dt", dt, "expected seconds >= 0")
+    views = meta.get("views", 1)
+    if frames > 1 and views != 1:
+        fail("dataset.frames", frames, f"sequences of several views are not supported (dataset.views = {views!r}); "
+             "use frames or views")
+    path = meta.get("camera_path", {})
+    if not isinstance(path, Mapping):
+        fail("dataset.camera_path", path, "expected a table { velocity = [x, y, z], orbit = deg/s, look_at = 'moving' }")
+    for key in path:
+        if key not in PATH_KEYS:
+            fail(f"dataset.camera_path.{key}", path[key], "unknown key" + did_you_mean(key, PATH_KEYS)
+                 + "; allowed: " + ", ".join(PATH_KEYS))
+    look_at = path.get("look_at", "moving")
+    if look_at not in ("moving", "fixed"):
+        fail("dataset.camera_path.look_at", look_at, "expected 'moving' (the target moves with the eye) or 'fixed'")
+    spec = SequenceSpec(
+        frames=int(frames), dt=dt,
+        velocity=_path_value("dataset.camera_path.velocity", path.get("velocity", [0.0, 0.0, 0.0]), _vec3),
+        orbit=_path_value("dataset.camera_path.orbit", path.get("orbit", 0.0), _number),
+        look_at=look_at)
+    return spec if spec.frames > 1 else None
+
+
+def camera_at(eye: Sequence[float], target: Sequence[float], velocity: Sequence[float], orbit: float,
+              t: float, look_at: str) -> tuple[list[float], list[float]]:
+    """The eye and target at time t along the path (float64; exactly eye, target at t = 0)."""
+    theta = math.radians(orbit * t)
+    c, s = math.cos(theta), math.sin(theta)
+    r = [e - g for e, g in zip(eye, target)]
+    turned = [r[0] * c + r[2] * s - r[0], 0.0, -r[0] * s + r[2] * c - r[2]]  # (Rot_y(θ) − I) r
+    new_eye = [e + v * t + d for e, v, d in zip(eye, velocity, turned)]
+    new_target = [g + v * t for g, v in zip(target, velocity)] if look_at == "moving" else list(target)
+    return new_eye, new_target
+
+
+def frame_scenes(recipe: Recipe, scene: Scene, params: Mapping[str, Any], path: Mapping[str, Any]) -> list[Scene]:
+    """The F scenes of one sample: its drawn values with `time` and the camera set per frame."""
+    spec = recipe.sequence
+    if scene.camera.matrix is not None and (any(path["dataset.camera_path.velocity"]) or path["dataset.camera_path.orbit"]):
+        fail("dataset.camera_path", recipe.source.get("dataset", {}).get("camera_path"),
+             "moves the camera's eye and target; a camera given by `camera.matrix` cannot move")
+    out = []
+    for f in range(spec.frames):
+        t = f * spec.dt
+        eye, target = camera_at(scene.camera.eye, scene.camera.target, path["dataset.camera_path.velocity"],
+                                path["dataset.camera_path.orbit"], t, spec.look_at)
+        try:
+            out.append(recipe._scene({**params, "time": scene.time + t, "camera.eye": eye, "camera.target": target}))
+        except SceneError as err:
+            fail("dataset.camera_path", dict(path), f"frame {f} (t = {t:g} s) gives an invalid scene: {err}")
+    return out
+
+
+def render_sequences(recipe: Recipe, indices: Sequence[int], *, seed: int, aovs: Sequence[str],
+                     chunk_rays: int | None = None) -> list[dict]:
+    """Samples `indices` of a sequence recipe: every frame of every sample rendered in as few
+    batches as possible (one per scene structure), then stacked per sample with its flow."""
+    from .render import DEFAULT_CHUNK_RAYS, render
+
+    frames: list[tuple[int, Scene]] = []  # (sample k, frame scene), sample-major
+    drawn = []
+    for k, i in enumerate(indices):
+        scene, params = recipe.sample_with_params(int(i), seed)
+        path = recipe.sequence.draw(int(i), seed)
+        drawn.append({**params, **path})
+        frames += [(k, s) for s in frame_scenes(recipe, scene, params, path)]
+    groups: dict[tuple, list[int]] = {}
+    for n, (_, s) in enumerate(frames):
+        groups.setdefault(structure_key(at_level(s)), []).append(n)
+    rendered: list[dict | None] = [None] * len(frames)
+    for group in groups.values():
+        out = render([frames[n][1] for n in group], seed=[render_seed(int(indices[frames[n][0]]), seed) for n in group],
+                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS)
+        missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
+        if missing:
+            fail("dataset.aovs", missing, f"this scene does not compute them; it gives: {sorted(out.aovs) + ['radiance']}")
+        for b, n in enumerate(group):
+            rendered[n] = {
+                "image": out.image[b], "depth": out.depth[b], "alpha": out.alpha[b],
+                "K": out.camera.K[b], "world_to_camera": out.camera.world_to_camera[b],
+                **{a: (out.radiance if a == "radiance" else out.aovs[a])[b] for a in aovs},
+            }
+    F = recipe.sequence.frames
+    items = []
+    for k, i in enumerate(indices):
+        mine = rendered[k * F:(k + 1) * F]
+        item = {key: torch.stack([m[key] for m in mine]).float().contiguous() for key in mine[0]}
+        flow, valid = flow_from_depth(item["depth"][:-1], item["K"][:-1], item["world_to_camera"][:-1],
+                                      item["world_to_camera"][1:])
+        last = torch.zeros_like(flow[:1])
+        item["flow"] = torch.cat([flow, last]).contiguous()
+        item["flow_valid"] = torch.cat([valid.float(), last[:, :1]]).contiguous()
+        items.append({**item, "index": int(i), "seed": int(seed), "params": drawn[k]})
+    return items
+
+
+def encode_sequence(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
+    """{suffix: bytes}: each frame's files as `encode_sample` gives them, prefixed `f{frame:03d}.`,
+    then flow.npz (F,2,H,W) float32 and flow_valid.npz (F,1,H,W) uint8."""
+    files = {}
+    for f in range(item["image"].shape[0]):
+        frame = {key: item[key][f] for key in ("image", "depth", "alpha", *aovs)}
+        files.update({f"f{f:03d}.{suffix}": data for suffix, data in encode_sample(frame, aovs).items()})
+    files["flow.npz"] = _npz("flow", item["flow"].numpy())
+    files["flow_valid.npz"] = _npz("flow_valid", item["flow_valid"].numpy())
+    return files
+
+
+def encode_item(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
+    """A sample's files: a sequence's (`encode_sequence`) or a single frame's (`encode_sample`)."""
+    return encode_sequence(item, aovs) if "flow" in item else encode_sample(item, aovs)
+
+
+def file_map(suffixes: Sequence[str], prefix: str) -> dict[str, str | list[str]]:
+    """The record's `files`: {label: prefix + suffix}, or for per-frame files {label: [one per frame]}."""
+    files: dict[str, Any] = {}
+    for suffix in suffixes:
+        parts = suffix.split(".")
+        if len(parts) == 3 and parts[0][:1] == "f" and parts[0][1:].isdigit():
+            files.setdefault(parts[1], []).append(prefix + suffix)
+        else:
+            files[parts[0]] = prefix + suffix
+    return files
