@@ -190,7 +190,7 @@ def render_sequences(recipe: Recipe, indices: Sequence[int], *, seed: int, aovs:
     rendered: list[dict | None] = [None] * len(frames)
     for group in groups.values():
         out = render([frames[n][1] for n in group], seed=[render_seed(int(indices[frames[n][0]]), seed) for n in group],
-                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS)
+                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs)
         missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
         if missing:
             fail("dataset.aovs", missing, f"this scene does not compute them; it gives: {sorted(out.aovs) + ['radiance']}")
