@@ -20,7 +20,8 @@ on the band of the sphere between the elevations (uniform in sin(elevation)). Ea
 `elevation`, `azimuth` is a number (fixed) or a [low, high] range.
 
 A recipe may carry a `[dataset]` table (not part of the scene): `aovs = ["depth_median", ...]`, the
-extra outputs a generated dataset stores.
+extra outputs a generated dataset stores. A recipe with `[[families]]` is a mixture of whole recipes,
+one drawn per sample (`torchvol/mix.py`).
 
 Every draw comes from a `torch.Generator` seeded from a hash of (seed, index, key path): a sample
 depends only on (seed, index), never on global RNG, other indices, or the other random keys.
