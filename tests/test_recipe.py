@@ -111,7 +111,56 @@ def test_bundled_recipes_sample_and_render(name):
     samples = tv.SceneDataset(r, 3).batch([0, 1, 2])
     for s in samples:
         assert s["image"].shape[-3:] == (3, 12, 16) and torch.isfinite(s["image"]).all() and torch.isfinite(s["depth"]).all()
+        assert torch.isfinite(s["alpha"]).all() and all(torch.isfinite(s[a]).all() for a in r.aovs)
         assert set(r.aovs) <= set(s)
+
+
+def _techniques(scene) -> set[str]:
+    """The techniques a scene uses, by registry family: `family:name` (see docs/DATASETS.md)."""
+    out = {f"light:{l.kind}" for l in scene.lights} | {f"tonemap:{scene.post.tonemap}"}
+    out |= {f"post:{k}" for k in ("fog", "god_rays") if getattr(scene.post, k) is not None}
+    out |= {"post:vignette"} if scene.post.vignette > 0 else set()
+    out |= {f"sky:{scene.sky.kind}"} if scene.sky is not None else set()
+    out |= {f"image:{k}" for k in ("spp", "passes") if (getattr(scene.image, k) or 1) > 1}
+    out |= {"terrain"} if scene.terrain is not None else set()
+    out |= {"atmosphere"} if scene.atmosphere is not None else set()
+    for v in scene.volumes:
+        out |= {f"bounds:{v.bounds.kind}", f"density:{v.density.kind}", f"phase:{v.phase.kind}", f"shading:{v.shading}"}
+        out |= {f"emission_map:{v.emission_map.kind}"} if v.emission_map is not None else set()
+    if scene.voxels is not None:
+        vox = scene.voxels
+        out |= {f"voxels:{vox.occupancy.kind}", f"voxels:{vox.traversal}"}
+        out |= {f"voxels:{k}" for k in ("ao", "shadow", "reflections", "glow", "rounded", "fog", "water", "gi")
+                if getattr(vox, k) is not None}
+    return out
+
+
+def test_every_technique_is_reachable_from_a_bundled_recipe():
+    """The registries' kinds (and the voxel and post variants) each appear in some bundled recipe's
+    draws: the audit table of docs/DATASETS.md."""
+    from torchvol.bounds import BOUNDS
+    from torchvol.fields import DENSITIES
+    from torchvol.lights import LIGHTS
+    from torchvol.sky import SKIES
+    from torchvol.volume.emission import EMISSION_MAPS
+    from torchvol.volume.phase import PHASES
+    from torchvol.volume.shading import SHADINGS
+
+    seen: set[str] = set()
+    for path in sorted((ROOT / "datasets").glob("*.toml")):
+        r = Recipe.load(path, TINY)
+        for i in range(24):
+            seen |= _techniques(r.sample(i, seed=0))
+    wanted = {f"{family}:{name}" for family, registry in (
+        ("bounds", BOUNDS), ("density", DENSITIES), ("phase", PHASES), ("light", LIGHTS), ("sky", SKIES),
+        ("shading", SHADINGS), ("emission_map", EMISSION_MAPS)) for name in registry.names()}
+    wanted |= {f"tonemap:{t}" for t in ("none", "smoothstep", "reinhard", "aces")}
+    wanted |= {"post:fog", "post:god_rays", "post:vignette", "terrain", "atmosphere", "voxels:sdf", "voxels:terrain",
+               "voxels:hybrid", "voxels:ao", "voxels:shadow", "voxels:reflections", "voxels:glow", "voxels:rounded",
+               "voxels:fog", "voxels:water", "voxels:gi", "image:spp", "image:passes"}
+    # not asked for: grid and function occupancies and texture atlases need arrays, callables or image
+    # files, and march.tolerance is an accuracy mode (docs/DATASETS.md, "technique → recipe")
+    assert wanted - seen == set()
 
 
 def test_recipe_from_toml_with_override_distribution(tmp_path):

@@ -33,7 +33,9 @@ def main() -> None:
             recipe = tv.Recipe.load(recipe, {"dataset.frames": 1})
         ds = tv.SceneDataset(recipe, args.count, aovs=())
         samples = [s for first in range(0, args.count, 4) for s in ds.batch(range(first, min(args.count, first + 4)))]
-        tiles = [([f"{name} #{s['index']}"], s["image"]) for s in samples]
+        # a mixed recipe's tiles also name the family each sample drew
+        tiles = [([f"{name} #{s['index']}" + (f" {s['params']['family']}" if "family" in s["params"] else "")], s["image"])
+                 for s in samples]
         contact_sheet(tiles, ROOT / "docs" / "images" / f"sheet-{name}.png", columns=4)
         print(f"{name}: {time.perf_counter() - start:.1f} s", flush=True)
 

@@ -8,16 +8,20 @@ recipes; no scene key uses them):
     g         = { normal = { mean = 0.6, std = 0.1, min = 0.0, max = 0.9 } }   # clipped to [min, max]
     texture_seed = { integer = [0, 65535] }                 # inclusive
     phase     = { choice = ["isotropic", { hg = { g = 0.7 } }] }   # or { values = [...], weights = [...] }
+    phase     = { choice = ["isotropic", { hg = { g = { uniform = [0.2, 0.8] } } }] }   # draws inside a choice
     direction = { hemisphere = { elevation = [10, 60], azimuth = [0, 360] } }   # unit vector, y up
     eye       = { orbit = { center = [0, 0, 0], distance = [3, 4], elevation = [5, 30], azimuth = [0, 360] } }
 
 `orbit` places a point (a camera eye) at `distance` from `center` in the direction band.
+A choice's values may hold distributions: they are drawn after the choice, only inside the value
+chosen (each keyed by its path through the choice, `phase.choice[1].hg.g`).
 Directions: azimuth is measured from +z towards +x, elevation above the y = 0 horizon, area-uniform
 on the band of the sphere between the elevations (uniform in sin(elevation)). Each of `distance`,
 `elevation`, `azimuth` is a number (fixed) or a [low, high] range.
 
 A recipe may carry a `[dataset]` table (not part of the scene): `aovs = ["depth_median", ...]`, the
-extra outputs a generated dataset stores.
+extra outputs a generated dataset stores. A recipe with `[[families]]` is a mixture of whole recipes,
+one drawn per sample (`torchvol/mix.py`).
 
 Every draw comes from a `torch.Generator` seeded from a hash of (seed, index, key path): a sample
 depends only on (seed, index), never on global RNG, other indices, or the other random keys.
@@ -99,9 +103,7 @@ class Dist:
             lo, hi = s
             return int(torch.randint(lo, hi + 1, (1,), generator=g).item())
         if k == "choice":
-            values, weights = s
-            w = torch.tensor(weights, dtype=torch.float64)
-            return copy.deepcopy(values[int(torch.multinomial(w, 1, generator=g).item())])
+            return copy.deepcopy(s[0][self._pick(g)])
         if k == "hemisphere":
             return _direction(s, _uniform01(g, 2))
         if k == "orbit":
@@ -110,6 +112,25 @@ class Dist:
             d = distance[0] + (distance[1] - distance[0]) * u[2]
             return [t + d * c for t, c in zip(target, _direction(band, u[:2]))]
         raise AssertionError(k)
+
+    def _pick(self, g: torch.Generator) -> int:
+        """A choice's value index, by its weights."""
+        w = torch.tensor(self.spec[1], dtype=torch.float64)
+        return int(torch.multinomial(w, 1, generator=g).item())
+
+    def draw(self, seed: int, index: int) -> Any:
+        """The value of sample `index`: from a generator seeded by (seed, index, path); a choice then
+        draws the distributions inside the value it picked (each from its own path's generator)."""
+        g = torch.Generator().manual_seed(mix_seed("torchvol.recipe", int(seed), int(index), self.path))
+        if self.kind != "choice" or not any(self.spec[2]):
+            return self.sample(g)
+        k = self._pick(g)
+        value = copy.deepcopy(self.spec[0][k])
+        for rel, inner in self.spec[2][k].items():
+            if not rel:
+                return inner.draw(seed, index)  # the value is itself a distribution
+            set_path(value, rel, inner.draw(seed, index))
+        return value
 
     def corners(self) -> list[Any]:
         """Representative values (the extremes, every choice) used to validate a recipe up front."""
@@ -122,7 +143,18 @@ class Dist:
         if k == "integer":
             return [s[0], s[1]]
         if k == "choice":
-            return copy.deepcopy(s[0])
+            out = []
+            for value, inners in zip(s[0], s[2]):
+                corners = {rel: d.corners() for rel, d in inners.items()}
+                for r in range(max((len(c) for c in corners.values()), default=1)):
+                    v = copy.deepcopy(value)
+                    for rel, c in corners.items():
+                        if not rel:
+                            v = c[r % len(c)]
+                        else:
+                            set_path(v, rel, c[r % len(c)])
+                    out.append(v)
+            return out
         if k == "hemisphere":
             return [_direction(s, [0.0, 0.0]), _direction(s, [1.0, 1.0])]
         target, distance, band = s
@@ -212,7 +244,12 @@ def parse_dist(path: str, table: Mapping) -> Dist:
                 or any(isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0 for w in weights)
                 or sum(weights) <= 0):
             fail(f"{where}.weights", weights, f"expected {len(values)} finite weights >= 0, not all 0")
-        return Dist(path, kind, (list(values), [float(w) for w in weights]))
+        inners = []
+        for i, value in enumerate(values):
+            found: dict[str, Dist] = {}
+            _find_dists(value, (f"{where}[{i}]",), found)  # full paths: errors and seeds name them
+            inners.append({full[len(where) + len(f"[{i}]"):].lstrip("."): d for full, d in found.items()})
+        return Dist(path, kind, (list(values), [float(w) for w in weights], inners))
     if kind == "hemisphere":
         for key in spec if isinstance(spec, Mapping) else ():
             if key not in ("elevation", "azimuth"):
@@ -294,6 +331,10 @@ class Recipe:
         aovs = meta.get("aovs", [])
         if not isinstance(aovs, list) or any(a not in AOVS for a in aovs) or len(set(aovs)) != len(aovs):
             fail("dataset.aovs", aovs, "expected a list of distinct AOV names from: " + ", ".join(AOVS.names()))
+        if "families" in data:  # a mixture of whole recipes (torchvol/mix.py)
+            from .mix import MixedRecipe
+
+            return MixedRecipe.build(data, raw=raw, aovs=tuple(aovs), name=name, source=source)
         from .sequence import parse_sequence  # (sequence imports this module)
 
         dists: dict[str, Dist] = {}
@@ -330,11 +371,7 @@ class Recipe:
     def sample_params(self, index: int, seed: int = 0) -> dict[str, Any]:
         """The values drawn for sample `index`: {key path: value}, JSON-serialisable."""
         _check_index(index, seed)
-        out = {}
-        for path, dist in self.dists.items():
-            g = torch.Generator().manual_seed(mix_seed("torchvol.recipe", int(seed), int(index), path))
-            out[path] = dist.sample(g)
-        return out
+        return {path: dist.draw(seed, index) for path, dist in self.dists.items()}
 
     def sample_with_params(self, index: int, seed: int = 0) -> tuple[Scene, dict[str, Any]]:
         params = self.sample_params(index, seed)
