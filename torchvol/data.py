@@ -22,6 +22,8 @@ from .batch import structure_key
 from .quality import at_level
 from .recipe import Recipe, mix_seed, render_seed
 from .validate import fail, integer, is_integer
+from .views import encode_views, sample_params, stack_views, view_count, view_params
+from .volume_label import encode as encode_volume, extinction_grid
 
 # The conventions a generated dataset states in meta.json (DESIGN.md, Conventions).
 CONVENTIONS = {
@@ -52,30 +54,38 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     from .render import DEFAULT_CHUNK_RAYS, render
 
     aovs = recipe.aovs if aovs is None else tuple(aovs)
-    drawn = [recipe.sample_with_params(int(i), seed) for i in indices]
-    groups: dict[tuple, list[int]] = {}
-    for k, (scene, _) in enumerate(drawn):
-        groups.setdefault(structure_key(at_level(scene)), []).append(k)
-    items: list[dict | None] = [None] * len(drawn)
+    # each sample's views (one unless `views` > 1): every view of every sample goes in one batch
+    drawn = [view_params(recipe, int(i), seed) for i in indices]
+    scenes = [[recipe._scene(params) for params in views] for views in drawn]
+    groups: dict[tuple, list[tuple[int, int]]] = {}
+    for k, views in enumerate(scenes):
+        for v, scene in enumerate(views):
+            groups.setdefault(structure_key(at_level(scene)), []).append((k, v))
+    rendered: list[list[dict | None]] = [[None] * len(views) for views in scenes]
     for group in groups.values():
-        out = render([drawn[k][0] for k in group], seed=[render_seed(int(indices[k]), seed) for k in group],
+        out = render([scenes[k][v] for k, v in group], seed=[render_seed(int(indices[k]), seed) for k, _ in group],
                      chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS)
-        for b, k in enumerate(group):
+        for b, (k, v) in enumerate(group):
             missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
             if missing:
                 fail("dataset.aovs", missing, f"this scene does not compute them; it gives: {sorted(out.aovs) + ['radiance']}")
             extra = {a: (out.radiance if a == "radiance" else out.aovs[a])[b].float().contiguous() for a in aovs}
-            items[k] = {
+            rendered[k][v] = {
                 "image": out.image[b].float().contiguous(),
                 "depth": out.depth[b].float().contiguous(),
                 "alpha": out.alpha[b].float().contiguous(),
                 "K": out.camera.K[b].float().contiguous(),
                 "world_to_camera": out.camera.world_to_camera[b].float().contiguous(),
-                "index": int(indices[k]),
-                "seed": int(seed),
-                "params": drawn[k][1],
                 **extra,
             }
+    items = []
+    for k, views in enumerate(rendered):
+        tensors = stack_views(views)
+        item = {key: tensors.pop(key) for key in ("image", "depth", "alpha", "K", "world_to_camera")}
+        item.update(index=int(indices[k]), seed=int(seed), params=sample_params(recipe, drawn[k]), **tensors)
+        if recipe.volume_label is not None:
+            item["extinction"], item["extinction_box"] = extinction_grid(scenes[k][0], recipe.volume_label)
+        items.append(item)
     return items
 
 
@@ -182,7 +192,11 @@ def to_uint8(x: torch.Tensor) -> np.ndarray:
 
 
 def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
-    """{suffix: bytes}: image.png, depth.npy (H, W), alpha.png, one <aov>.npz each (C, H, W)."""
+    """{suffix: bytes}: image.png, depth.npy (H, W), alpha.png, one <aov>.npz each (C, H, W); with
+    several views each view's as image.{v}.png, ... (`torchvol.views`); with the volume label
+    extinction.npy (N, N, N) and extinction_box.npy (2, 3)."""
+    if view_count(item) is not None:
+        return {**encode_views(item, lambda one: encode_sample(one, aovs)), **encode_volume(item)}
     files = {
         "image.png": _png(to_uint8(item["image"].permute(1, 2, 0))),
         "depth.npy": _npy(item["depth"][0].numpy()),
@@ -190,7 +204,7 @@ def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
     }
     for name in aovs:
         files[f"{name}.npz"] = _npz(name, item[name].numpy())
-    return files
+    return {**files, **encode_volume(item)}
 
 
 def decode_file(suffix: str, data: bytes) -> torch.Tensor:
@@ -205,7 +219,7 @@ def decode_file(suffix: str, data: bytes) -> torch.Tensor:
         with np.load(io.BytesIO(data), allow_pickle=False) as stored:
             return torch.from_numpy(stored[suffix.split(".")[0]].astype(np.float32))
     array = torch.from_numpy(np.load(io.BytesIO(data), allow_pickle=False))
-    return array[None] if suffix == "depth.npy" else array
+    return array[None] if suffix.split(".")[0] == "depth" else array  # depth.npy, depth.{v}.npy
 
 
 class FolderDataset(Dataset):
@@ -230,9 +244,14 @@ class FolderDataset(Dataset):
         rec = self.records[index]
         item: dict[str, Any] = {}
         for key, rel in rec["files"].items():
-            suffix = Path(rel).name.split(".", 1)[1]
-            item[key] = decode_file(suffix, (self.root / rel).read_bytes())
+            if isinstance(rel, list):  # one file per view
+                item[key] = torch.stack([self._read(r) for r in rel])
+            else:
+                item[key] = self._read(rel)
         item["K"] = torch.tensor(rec["K"], dtype=torch.float32)
         item["world_to_camera"] = torch.tensor(rec["world_to_camera"], dtype=torch.float32)
         item["index"], item["seed"], item["params"] = rec["index"], rec["seed"], rec["params"]
         return item
+
+    def _read(self, rel: str) -> torch.Tensor:
+        return decode_file(Path(rel).name.split(".", 1)[1], (self.root / rel).read_bytes())

@@ -5,6 +5,8 @@ Layout (DIR):
   manifest.jsonl            one record per sample, by index (written last, atomically)
   folder:      samples/{index:06d}.{image.png, depth.npy, alpha.png, <aov>.npz, json}
   webdataset:  shards/shard-{k:06d}.tar holding {index:06d}.{json, image.png, depth.npy, alpha.png, <aov>.npz}
+  (`[dataset] views = V` > 1: image.{v}.png, depth.{v}.npy, ... per view, `torchvol.views`;
+  `volume_label`: extinction.npy, extinction_box.npy, `torchvol.volume_label`)
 
 Every file is written to a hidden temporary name and renamed into place, so a reader never sees a
 partial file. A folder sample is finished when its .json record exists (written after its other
@@ -28,6 +30,7 @@ from .data import CONVENTIONS, encode_sample, render_samples, sample_record
 from .progress import progress as bar
 from .recipe import Recipe
 from .validate import fail, integer
+from .views import file_table, meta as views_meta
 
 Layout = Literal["folder", "webdataset"]
 
@@ -81,10 +84,10 @@ def run_task(task: Task) -> list[int]:
             part = todo[first:first + task.batch]
             for item in render_samples(task.recipe, part, seed=task.seed):
                 stem = f"{item['index']:06d}"
-                files = {}
-                for suffix, data in encode_sample(item, aovs).items():
+                encoded = encode_sample(item, aovs)
+                for suffix, data in encoded.items():
                     atomic_write(out / "samples" / f"{stem}.{suffix}", data)
-                    files[suffix.split(".")[0]] = f"samples/{stem}.{suffix}"
+                files = file_table(list(encoded), lambda suffix: f"samples/{stem}.{suffix}")
                 # the record last: its presence marks the sample finished
                 atomic_write(out / "samples" / f"{stem}.json", _json_bytes(sample_record(item, files)))
         return todo
@@ -96,7 +99,7 @@ def run_task(task: Task) -> list[int]:
         for item in render_samples(task.recipe, task.indices[first:first + task.batch], seed=task.seed):
             stem = f"{item['index']:06d}"
             encoded = encode_sample(item, aovs)
-            files = {suffix.split(".")[0]: f"{stem}.{suffix}" for suffix in encoded}
+            files = file_table(list(encoded), lambda suffix: f"{stem}.{suffix}")
             record = {**sample_record(item, files), "shard": path.name}
             members.append((f"{stem}.json", _json_bytes(record)))
             members += [(f"{stem}.{suffix}", data) for suffix, data in encoded.items()]
@@ -175,6 +178,7 @@ def generate(
         "aovs": list(recipe.aovs),
         "recipe": recipe.describe(),
         "conventions": CONVENTIONS,
+        **views_meta(recipe),
     }
     meta_bytes = json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
     if (out / "meta.json").is_file():

@@ -17,7 +17,8 @@ on the band of the sphere between the elevations (uniform in sin(elevation)). Ea
 `elevation`, `azimuth` is a number (fixed) or a [low, high] range.
 
 A recipe may carry a `[dataset]` table (not part of the scene): `aovs = ["depth_median", ...]`, the
-extra outputs a generated dataset stores.
+extra outputs a generated dataset stores; `views = V`, cameras per sample (`torchvol.views`);
+`volume_label = { resolution = N }`, the extinction grid label (`torchvol.volume_label`).
 
 Every draw comes from a `torch.Generator` seeded from a hash of (seed, index, key path): a sample
 depends only on (seed, index), never on global RNG, other indices, or the other random keys.
@@ -39,9 +40,10 @@ from .aovs import AOVS
 from .keypath import lookup, path_str, set_path
 from .scene import Scene, read_source, schema_keys, validate_scene
 from .validate import SceneError, did_you_mean, fail, finite, integer, is_integer
+from .views import parse_dataset
 
 DIST_KINDS = ("uniform", "loguniform", "normal", "integer", "choice", "hemisphere", "orbit")
-RECIPE_KEYS = ("aovs",)
+RECIPE_KEYS = ("aovs", "views", "volume_label")
 
 
 def mix_seed(*parts: Any) -> int:
@@ -268,6 +270,8 @@ class Recipe:
     dists: dict[str, Dist]
     aovs: tuple[str, ...] = ()
     name: str = "recipe"
+    views: int = 1  # cameras per sample (`torchvol.views`)
+    volume_label: int | None = None  # the extinction label's resolution (`torchvol.volume_label`)
     source: dict = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -295,7 +299,9 @@ class Recipe:
             fail("dataset.aovs", aovs, "expected a list of distinct AOV names from: " + ", ".join(AOVS.names()))
         dists: dict[str, Dist] = {}
         _find_dists(data, (), dists)
-        recipe = cls(template=data, dists=dists, aovs=tuple(aovs), name=name, source=raw)
+        views, volume_label = parse_dataset(meta, dists)
+        recipe = cls(template=data, dists=dists, aovs=tuple(aovs), name=name, source=raw, views=views,
+                     volume_label=volume_label)
         recipe._validate()
         return recipe
 
