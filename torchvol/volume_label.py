@@ -75,3 +75,21 @@ def encode(item) -> dict[str, bytes]:
     if "extinction" not in item:
         return {}
     return {"extinction.npy": _npy(item["extinction"].numpy()), "extinction_box.npy": _npy(item["extinction_box"].numpy())}
+
+
+def grid_scene(scene, extinction: Tensor, box: Tensor):
+    """`scene` with its volumes replaced by the label rendered back: one grid medium of density
+    `extinction` (N, N, N) [k, j, i] over the box `box` (2, 3), σ_t = 1, with volumes[0]'s albedo,
+    phase and shading; camera, lights and sky as they are. Its alpha reproduces the scene's to
+    within the grid's resolution error (docs/DATASETS.md)."""
+    from .scene import load_scene, validate_scene
+
+    data = load_scene(scene).model_dump(exclude_unset=True)
+    first = data["volumes"][0]
+    data["volumes"] = [{
+        "bounds": {"box": {"min": box[0].tolist(), "max": box[1].tolist()}},
+        "density": {"grid": {"data": extinction.numpy()}},
+        "sigma_t": 1.0,
+        **{key: first[key] for key in ("albedo", "phase", "shading") if key in first},
+    }]
+    return validate_scene(data)
