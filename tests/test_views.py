@@ -210,7 +210,7 @@ def test_files_round_trip(tmp_path, layout):
     records = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
     live = tv.SceneDataset(CLOUDS, 2, overrides=overrides)
     meta = json.loads((out / "meta.json").read_text())
-    assert meta["views"] == 3 and meta["volume_label"] == {"resolution": 8}
+    assert meta["views"] == 3 and meta["volume_label"]["resolution"] == 8 and "[k, j, i]" in meta["volume_label"]["convention"]
     rec, item = records[1], live[1]
     assert torch.equal(torch.tensor(rec["K"]), item["K"]) and torch.equal(torch.tensor(rec["world_to_camera"]), item["world_to_camera"])
     if layout == "webdataset":

@@ -118,5 +118,10 @@ def meta(recipe) -> dict[str, Any]:
     if recipe.views > 1:
         out["views"] = recipe.views
     if recipe.volume_label is not None:
-        out["volume_label"] = {"resolution": recipe.volume_label}
+        out["volume_label"] = {
+            "resolution": recipe.volume_label,
+            "convention": "extinction.npy (N, N, N) float32: sigma_t * density summed over the volumes, per world "
+                          "unit; [k, j, i] at the centre of cell (i, j, k) of extinction_box.npy (2, 3) float32 "
+                          "(min, max corners; i along x, j along y, k along z), as grid media",
+        }
     return out
