@@ -159,6 +159,8 @@ def test_slab_bounds_are_refused():
     scene = {"volumes": [{"bounds": {"slab": {"y_min": 0, "y_max": 1}}, "density": {"constant": 1.0}}]}
     with pytest.raises(ValueError, match=r"dataset.volume_label.*volumes\[0\] has slab bounds"):
         extinction_grid(scene, 8)
+    with pytest.raises(ValueError, match=r"dataset.volume_label.*volumes\[0\] has slab bounds"):
+        tv.Recipe.load({**scene, "dataset": {"volume_label": {"resolution": 8}}})
 
 
 SPHERE_SCENE = {"image": {"width": 32, "height": 32}, "camera": {"eye": [0.4, 1.2, -3.2], "fov_y": 50},

@@ -23,7 +23,7 @@ from .quality import at_level
 from .recipe import Recipe, mix_seed, render_seed
 from .validate import fail, integer, is_integer
 from .views import encode_views, sample_params, stack_views, view_count, view_params
-from .volume_label import encode as encode_volume, extinction_grid
+from .volume_label import encode_label, extinction_grid
 
 # The conventions a generated dataset states in meta.json (DESIGN.md, Conventions).
 CONVENTIONS = {
@@ -196,7 +196,7 @@ def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
     several views each view's as image.{v}.png, ... (`torchvol.views`); with the volume label
     extinction.npy (N, N, N) and extinction_box.npy (2, 3)."""
     if view_count(item) is not None:
-        return {**encode_views(item, lambda one: encode_sample(one, aovs)), **encode_volume(item)}
+        return {**encode_views(item, lambda one: encode_sample(one, aovs)), **encode_label(item)}
     files = {
         "image.png": _png(to_uint8(item["image"].permute(1, 2, 0))),
         "depth.npy": _npy(item["depth"][0].numpy()),
@@ -204,7 +204,7 @@ def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
     }
     for name in aovs:
         files[f"{name}.npz"] = _npz(name, item[name].numpy())
-    return {**files, **encode_volume(item)}
+    return {**files, **encode_label(item)}
 
 
 def decode_file(suffix: str, data: bytes) -> torch.Tensor:

@@ -30,7 +30,7 @@ from .data import CONVENTIONS, encode_sample, render_samples, sample_record
 from .progress import progress as bar
 from .recipe import Recipe
 from .validate import fail, integer
-from .views import file_table, meta as views_meta
+from .views import dataset_meta, file_table
 
 Layout = Literal["folder", "webdataset"]
 
@@ -87,7 +87,7 @@ def run_task(task: Task) -> list[int]:
                 encoded = encode_sample(item, aovs)
                 for suffix, data in encoded.items():
                     atomic_write(out / "samples" / f"{stem}.{suffix}", data)
-                files = file_table(list(encoded), lambda suffix: f"samples/{stem}.{suffix}")
+                files = file_table(list(encoded), f"samples/{stem}.")
                 # the record last: its presence marks the sample finished
                 atomic_write(out / "samples" / f"{stem}.json", _json_bytes(sample_record(item, files)))
         return todo
@@ -99,7 +99,7 @@ def run_task(task: Task) -> list[int]:
         for item in render_samples(task.recipe, task.indices[first:first + task.batch], seed=task.seed):
             stem = f"{item['index']:06d}"
             encoded = encode_sample(item, aovs)
-            files = file_table(list(encoded), lambda suffix: f"{stem}.{suffix}")
+            files = file_table(list(encoded), f"{stem}.")
             record = {**sample_record(item, files), "shard": path.name}
             members.append((f"{stem}.json", _json_bytes(record)))
             members += [(f"{stem}.{suffix}", data) for suffix, data in encoded.items()]
@@ -178,7 +178,7 @@ def generate(
         "aovs": list(recipe.aovs),
         "recipe": recipe.describe(),
         "conventions": CONVENTIONS,
-        **views_meta(recipe),
+        **dataset_meta(recipe),
     }
     meta_bytes = json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
     if (out / "meta.json").is_file():

@@ -41,6 +41,7 @@ from .keypath import lookup, path_str, set_path
 from .scene import Scene, read_source, schema_keys, validate_scene
 from .validate import SceneError, did_you_mean, fail, finite, integer, is_integer
 from .views import parse_dataset
+from .volume_label import check_scene
 
 DIST_KINDS = ("uniform", "loguniform", "normal", "integer", "choice", "hemisphere", "orbit")
 RECIPE_KEYS = ("aovs", "views", "volume_label")
@@ -303,6 +304,8 @@ class Recipe:
         recipe = cls(template=data, dists=dists, aovs=tuple(aovs), name=name, source=raw, views=views,
                      volume_label=volume_label)
         recipe._validate()
+        if volume_label is not None:  # a label needs bounded volumes: refused at load, not on a sample
+            check_scene(recipe.sample(0), volume_label)
         return recipe
 
     def _validate(self) -> None:

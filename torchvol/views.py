@@ -98,20 +98,20 @@ def encode_views(item: Mapping[str, Any], encode_one: Callable[[Mapping[str, Any
     return files
 
 
-def file_table(suffixes: Sequence[str], path: Callable[[str], str]) -> dict[str, str | list[str]]:
-    """The manifest's `files`: key -> path, or key -> [path of view 0, 1, ...] for per-view files
-    (`image.0.png`, `image.1.png`, ...)."""
+def file_table(suffixes: Sequence[str], prefix: str) -> dict[str, str | list[str]]:
+    """The manifest's `files`: key -> `prefix + suffix`, or key -> [path of view 0, 1, ...] for
+    per-view files (`image.0.png`, `image.1.png`, ...)."""
     table: dict[str, Any] = {}
     for suffix in suffixes:
         parts = suffix.split(".")
         if len(parts) == 3 and parts[1].isdigit():
-            table.setdefault(parts[0], []).append((int(parts[1]), path(suffix)))
+            table.setdefault(parts[0], []).append((int(parts[1]), prefix + suffix))
         else:
-            table[parts[0]] = path(suffix)
+            table[parts[0]] = prefix + suffix
     return {k: [p for _, p in sorted(v)] if isinstance(v, list) else v for k, v in table.items()}
 
 
-def meta(recipe) -> dict[str, Any]:
+def dataset_meta(recipe) -> dict[str, Any]:
     """meta.json's entries for the multi-view and volume-label settings (none at their defaults, so
     a dataset without them keeps its meta.json bytes)."""
     out: dict[str, Any] = {}

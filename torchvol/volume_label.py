@@ -31,6 +31,20 @@ def cell_centres(box_min: Tensor, box_max: Tensor, n: int) -> Tensor:
     return torch.stack([x, y, z], dim=-1).reshape(-1, 3)
 
 
+def check_scene(scene, resolution: int) -> None:
+    """Refuse (naming `dataset.volume_label`) a scene whose extinction has no box to grid: no
+    volumes, or a volume with unbounded bounds (a slab)."""
+    from .bounds import BOUNDS
+
+    if not scene.volumes:
+        fail("dataset.volume_label", {"resolution": resolution}, "the scene has no volumes to label")
+    for i, vol in enumerate(scene.volumes):
+        if BOUNDS[vol.bounds.kind].caps.get("aabb") is None:
+            fail("dataset.volume_label", {"resolution": resolution},
+                 f"volumes[{i}] has {vol.bounds.kind} bounds, which have no box to grid; "
+                 "give every volume a box, sphere or shell")
+
+
 def extinction_grid(scene, resolution: int) -> tuple[Tensor, Tensor]:
     """(`extinction` (N, N, N) float32 [k, j, i], `extinction_box` (2, 3) float32) of one scene
     (a Scene, dict, path or preset name) at its `time`."""
@@ -41,19 +55,13 @@ def extinction_grid(scene, resolution: int) -> tuple[Tensor, Tensor]:
     from .scene import load_scene
 
     scene = at_level(load_scene(scene))
-    if not scene.volumes:
-        fail("dataset.volume_label", {"resolution": resolution}, "the scene has no volumes to label")
+    check_scene(scene, resolution)
     plan = make_plan(stack([scene], dtype=torch.float64))
     dtype = plan.settings.dtype
     ctx = RenderContext(stack([scene], dtype=dtype), plan, seeds=[0], dtype=dtype, device="cpu", compiled=False)
     boxes = []
-    for i, vol in enumerate(ctx.volumes):
-        aabb = vol.bounds.caps.get("aabb")
-        if aabb is None:
-            fail("dataset.volume_label", {"resolution": resolution},
-                 f"volumes[{i}] has {scene.volumes[i].bounds.kind} bounds, which have no box to grid; "
-                 "give every volume a box, sphere or shell")
-        boxes.append(torch.stack(aabb(vol.params.bounds.value))[:, 0])  # (2, 3): scene 0's min, max
+    for vol in ctx.volumes:
+        boxes.append(torch.stack(vol.bounds.caps["aabb"](vol.params.bounds.value))[:, 0])  # (2, 3): min, max
     box = torch.stack([torch.stack([b[0] for b in boxes]).amin(0), torch.stack([b[1] for b in boxes]).amax(0)])
     points = cell_centres(box[0], box[1], resolution)
     sigma = torch.zeros(points.shape[0], dtype=dtype)
@@ -67,7 +75,7 @@ def extinction_grid(scene, resolution: int) -> tuple[Tensor, Tensor]:
     return sigma.reshape(resolution, resolution, resolution).float(), box.float()
 
 
-def encode(item) -> dict[str, bytes]:
+def encode_label(item) -> dict[str, bytes]:
     """A sample's volume-label files: extinction.npy (N, N, N), extinction_box.npy (2, 3); none
     without the label."""
     from .data import _npy
