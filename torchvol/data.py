@@ -2,9 +2,12 @@
 
 One sample is a dict: image (3,H,W) float32 in [0,1], depth (1,H,W) float32 (planar z, 0 = no hit),
 alpha (1,H,W), K (3,3), world_to_camera (4,4), index, seed, params (the drawn values by key path)
-and the recipe's AOVs (C,H,W). `encode_sample` / `decode_file` turn one into named files (PNG for
-image and alpha, exact float32 .npy for depth, compressed .npz for AOVs (`AOV_STORAGE`), a JSON
-record) and back; the generator and FolderDataset share them so the two stay in step.
+and the recipe's AOVs (C,H,W). With `[dataset] views = V` > 1 the image, depth, alpha, camera and
+AOV tensors gain a leading V axis (`torchvol.views`); with `volume_label` the sample adds
+`extinction` (N,N,N) and `extinction_box` (2,3) (`torchvol.volume_label`). `encode_sample` /
+`decode_file` turn one into named files (PNG for image and alpha, exact float32 .npy for depth,
+compressed .npz for AOVs (`AOV_STORAGE`), a JSON record) and back; the generator and FolderDataset
+share them so the two stay in step.
 """
 
 from __future__ import annotations

@@ -59,10 +59,8 @@ def extinction_grid(scene, resolution: int) -> tuple[Tensor, Tensor]:
     plan = make_plan(stack([scene], dtype=torch.float64))
     dtype = plan.settings.dtype
     ctx = RenderContext(stack([scene], dtype=dtype), plan, seeds=[0], dtype=dtype, device="cpu", compiled=False)
-    boxes = []
-    for vol in ctx.volumes:
-        boxes.append(torch.stack(vol.bounds.caps["aabb"](vol.params.bounds.value))[:, 0])  # (2, 3): min, max
-    box = torch.stack([torch.stack([b[0] for b in boxes]).amin(0), torch.stack([b[1] for b in boxes]).amax(0)])
+    boxes = torch.stack([torch.cat(vol.bounds.caps["aabb"](vol.params.bounds.value)) for vol in ctx.volumes])  # (volumes, 2, 3)
+    box = torch.stack([boxes[:, 0].amin(0), boxes[:, 1].amax(0)])  # the union: (2, 3) min, max
     points = cell_centres(box[0], box[1], resolution)
     sigma = torch.zeros(points.shape[0], dtype=dtype)
     for first in range(0, points.shape[0], CHUNK_POINTS):
