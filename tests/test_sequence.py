@@ -194,7 +194,7 @@ def test_generated_sequences_read_back(tmp_path, layout):
     if layout == "folder":
         back = tv.FolderDataset(tmp_path / "ds")[0]
         record = json.loads((tmp_path / "ds" / "manifest.jsonl").read_text())
-        assert record["files"]["image"] == ["samples/000000.f000.image.png", "samples/000000.f001.image.png"]
+        assert record["files"]["image"] == ["samples/000000.image.0.png", "samples/000000.image.1.png"]
         assert back.keys() == live.keys()
         for key in ("depth", "depth_median", "K", "world_to_camera", "flow", "flow_valid"):
             assert torch.equal(back[key], live[key]), key
@@ -204,7 +204,7 @@ def test_generated_sequences_read_back(tmp_path, layout):
         return
     with tarfile.open(tmp_path / "ds" / "shards" / "shard-000000.tar") as tar:
         names = tar.getnames()
-    assert {"000000.json", "000000.f001.depth.npy", "000000.flow.npz", "000000.flow_valid.npz"} <= set(names)
+    assert {"000000.json", "000000.depth.1.npy", "000000.flow.npz", "000000.flow_valid.npz"} <= set(names)
     wds = pytest.importorskip("webdataset")
     s = next(iter(wds.WebDataset([str(tmp_path / "ds" / "shards" / "shard-000000.tar")], shardshuffle=False)))
     from torchvol.data import decode_file

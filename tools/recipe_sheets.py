@@ -3,7 +3,8 @@
     python tools/recipe_sheets.py [NAME ...] [--count 16 --width 128 --height 96]
 
 Samples are index 0..count−1 at seed 0, rendered as the generator renders them (`SceneDataset.batch`),
-each labelled with its index.
+each labelled with its index; a multi-view recipe (`[dataset] views = V`) shows count/V samples, a
+row of its V views each.
 """
 
 from __future__ import annotations
@@ -28,14 +29,16 @@ def main() -> None:
     names = args.names or sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
     for name in names:
         start = time.perf_counter()
-        recipe = tv.Recipe.load(ROOT / "datasets" / f"{name}.toml", {"image.width": args.width, "image.height": args.height})
+        recipe = tv.Recipe.load(ROOT / "datasets" / f"{name}.toml")
         if recipe.sequence is not None:  # a sequence's sheet shows each sample's frame 0 (tools/sequence_strip.py: all)
             recipe = tv.Recipe.load(recipe, {"dataset.frames": 1})
-        ds = tv.SceneDataset(recipe, args.count, aovs=())
-        samples = [s for first in range(0, args.count, 4) for s in ds.batch(range(first, min(args.count, first + 4)))]
+        count = max(1, args.count // recipe.views)  # a multi-view recipe: a row per sample, a tile per view
+        ds = tv.SceneDataset(recipe, count, aovs=(), overrides={"image.width": args.width, "image.height": args.height})
+        samples = [s for first in range(0, count, 4) for s in ds.batch(range(first, min(count, first + 4)))]
         # a mixed recipe's tiles also name the family each sample drew
-        tiles = [([f"{name} #{s['index']}" + (f" {s['params']['family']}" if "family" in s["params"] else "")], s["image"])
-                 for s in samples]
+        tiles = [([f"{name} #{s['index']}" + (f" view {v}" if recipe.views > 1 else "")
+                   + (f" {s['params']['family']}" if "family" in s["params"] else "")], image)
+                 for s in samples for v, image in enumerate(s["image"] if recipe.views > 1 else [s["image"]])]
         contact_sheet(tiles, ROOT / "docs" / "images" / f"sheet-{name}.png", columns=4)
         print(f"{name}: {time.perf_counter() - start:.1f} s", flush=True)
 

@@ -2,10 +2,13 @@
 
 One sample is a dict: image (3,H,W) float32 in [0,1], depth (1,H,W) float32 (planar z, 0 = no hit),
 alpha (1,H,W), K (3,3), world_to_camera (4,4), index, seed, params (the drawn values by key path)
-and the recipe's AOVs (C,H,W). `encode_sample` / `decode_file` turn one into named files (PNG for
-image and alpha, exact float32 .npy for depth, compressed .npz for AOVs (`AOV_STORAGE`), a JSON
-record) and back; the generator and FolderDataset share them so the two stay in step. A sequence
-recipe's samples (`[dataset] frames`) gain a leading frame axis and `flow` (torchvol.sequence).
+and the recipe's AOVs (C,H,W). With `[dataset] views = V` > 1 the image, depth, alpha, camera and
+AOV tensors gain a leading V axis (`torchvol.views`); with `volume_label` the sample adds
+`extinction` (N,N,N) and `extinction_box` (2,3) (`torchvol.volume_label`). `encode_sample` /
+`decode_file` turn one into named files (PNG for image and alpha, exact float32 .npy for depth,
+compressed .npz for AOVs (`AOV_STORAGE`), a JSON record) and back; the generator and FolderDataset
+share them so the two stay in step. A sequence recipe's samples
+(`[dataset] frames`) gain a leading frame axis and `flow` (torchvol.sequence).
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from .batch import structure_key
 from .quality import at_level
 from .recipe import Recipe, mix_seed, render_seed
 from .validate import fail, integer, is_integer
+from .views import encode_views, sample_params, stack_views, view_count, view_params
+from .volume_label import encode_label, extinction_grid
 
 # The conventions a generated dataset states in meta.json (DESIGN.md, Conventions).
 CONVENTIONS = {
@@ -52,36 +57,47 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
     e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch."""
     from .render import DEFAULT_CHUNK_RAYS, render
+    from .sequence import add_flow, sequence_scenes  # (sequence imports this module)
 
     aovs = recipe.aovs if aovs is None else tuple(aovs)
-    if recipe.sequence is not None:  # frames > 1: every frame rendered, stacked, with flow
-        from .sequence import render_sequences
-
-        return render_sequences(recipe, indices, seed=seed, aovs=aovs, chunk_rays=chunk_rays)
-    drawn = [recipe.sample_with_params(int(i), seed) for i in indices]
-    groups: dict[tuple, list[int]] = {}
-    for k, (scene, _) in enumerate(drawn):
-        groups.setdefault(structure_key(at_level(scene)), []).append(k)
-    items: list[dict | None] = [None] * len(drawn)
+    if recipe.sequence is not None:  # frames > 1: a sample's frames are rendered like views, then its flow
+        scenes, params = sequence_scenes(recipe, indices, seed=seed)
+    else:  # each sample's views (one unless `views` > 1)
+        drawn = [view_params(recipe, int(i), seed) for i in indices]
+        scenes = [[recipe._scene(p) for p in views] for views in drawn]
+        params = [sample_params(recipe, views) for views in drawn]
+    # every view or frame of every sample of one structure goes in one batch
+    groups: dict[tuple, list[tuple[int, int]]] = {}
+    for k, views in enumerate(scenes):
+        for v, scene in enumerate(views):
+            groups.setdefault(structure_key(at_level(scene)), []).append((k, v))
+    rendered: list[list[dict | None]] = [[None] * len(views) for views in scenes]
     for group in groups.values():
-        out = render([drawn[k][0] for k in group], seed=[render_seed(int(indices[k]), seed) for k in group],
+        out = render([scenes[k][v] for k, v in group], seed=[render_seed(int(indices[k]), seed) for k, _ in group],
                      chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs)
-        for b, k in enumerate(group):
+        for b, (k, v) in enumerate(group):
             missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
             if missing:
                 fail("dataset.aovs", missing, f"this scene does not compute them; it gives: {sorted(out.aovs) + ['radiance']}")
             extra = {a: (out.radiance if a == "radiance" else out.aovs[a])[b].float().contiguous() for a in aovs}
-            items[k] = {
+            rendered[k][v] = {
                 "image": out.image[b].float().contiguous(),
                 "depth": out.depth[b].float().contiguous(),
                 "alpha": out.alpha[b].float().contiguous(),
                 "K": out.camera.K[b].float().contiguous(),
                 "world_to_camera": out.camera.world_to_camera[b].float().contiguous(),
-                "index": int(indices[k]),
-                "seed": int(seed),
-                "params": drawn[k][1],
                 **extra,
             }
+    items = []
+    for k, views in enumerate(rendered):
+        tensors = stack_views(views)
+        item = {key: tensors.pop(key) for key in ("image", "depth", "alpha", "K", "world_to_camera")}
+        item.update(index=int(indices[k]), seed=int(seed), params=params[k], **tensors)
+        if recipe.sequence is not None:
+            add_flow(item)
+        if recipe.volume_label is not None:
+            item["extinction"], item["extinction_box"] = extinction_grid(scenes[k][0], recipe.volume_label)
+        items.append(item)
     return items
 
 
@@ -189,7 +205,11 @@ def to_uint8(x: torch.Tensor) -> np.ndarray:
 
 
 def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
-    """{suffix: bytes}: image.png, depth.npy (H, W), alpha.png, one <aov>.npz each (C, H, W)."""
+    """{suffix: bytes}: image.png, depth.npy (H, W), alpha.png, one <aov>.npz each (C, H, W); with
+    several views each view's as image.{v}.png, ... (`torchvol.views`); with the volume label
+    extinction.npy (N, N, N) and extinction_box.npy (2, 3)."""
+    if view_count(item) is not None:
+        return {**encode_views(item, lambda one: encode_sample(one, aovs)), **encode_label(item)}
     files = {
         "image.png": _png(to_uint8(item["image"].permute(1, 2, 0))),
         "depth.npy": _npy(item["depth"][0].numpy()),
@@ -197,7 +217,7 @@ def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
     }
     for name in aovs:
         files[f"{name}.npz"] = _npz(name, item[name].numpy())
-    return files
+    return {**files, **encode_label(item)}
 
 
 def decode_file(suffix: str, data: bytes) -> torch.Tensor:
@@ -212,7 +232,7 @@ def decode_file(suffix: str, data: bytes) -> torch.Tensor:
         with np.load(io.BytesIO(data), allow_pickle=False) as stored:
             return torch.from_numpy(stored[suffix.split(".")[0]].astype(np.float32))
     array = torch.from_numpy(np.load(io.BytesIO(data), allow_pickle=False))
-    return array[None] if suffix == "depth.npy" else array
+    return array[None] if suffix.split(".")[0] == "depth" else array  # depth.npy, depth.{v}.npy
 
 
 class FolderDataset(Dataset):
@@ -237,13 +257,14 @@ class FolderDataset(Dataset):
         rec = self.records[index]
         item: dict[str, Any] = {}
         for key, rel in rec["files"].items():
-            if isinstance(rel, list):  # a sequence: one file per frame, {index}.f{frame:03d}.{suffix}
-                item[key] = torch.stack([decode_file(".".join(r.rsplit(".", 2)[1:]), (self.root / r).read_bytes())
-                                         for r in rel])
-                continue
-            suffix = Path(rel).name.split(".", 1)[1]
-            item[key] = decode_file(suffix, (self.root / rel).read_bytes())
+            if isinstance(rel, list):  # one file per view
+                item[key] = torch.stack([self._read(r) for r in rel])
+            else:
+                item[key] = self._read(rel)
         item["K"] = torch.tensor(rec["K"], dtype=torch.float32)
         item["world_to_camera"] = torch.tensor(rec["world_to_camera"], dtype=torch.float32)
         item["index"], item["seed"], item["params"] = rec["index"], rec["seed"], rec["params"]
         return item
+
+    def _read(self, rel: str) -> torch.Tensor:
+        return decode_file(Path(rel).name.split(".", 1)[1], (self.root / rel).read_bytes())

@@ -5,7 +5,9 @@ Layout (DIR):
   manifest.jsonl            one record per sample, by index (written last, atomically)
   folder:      samples/{index:06d}.{image.png, depth.npy, alpha.png, <aov>.npz, json}
   webdataset:  shards/shard-{k:06d}.tar holding {index:06d}.{json, image.png, depth.npy, alpha.png, <aov>.npz}
-  sequences (torchvol.sequence): per-frame files {index:06d}.f{frame:03d}.{image.png, ...}, and flow.npz, flow_valid.npz
+  (`[dataset] views = V` > 1 or `frames = F` > 1: image.{v}.png, depth.{v}.npy, ... per view or frame,
+  `torchvol.views`; sequences add flow.npz, flow_valid.npz, `torchvol.sequence`; `volume_label`:
+  extinction.npy, extinction_box.npy, `torchvol.volume_label`)
 
 Every file is written to a hidden temporary name and renamed into place, so a reader never sees a
 partial file. A folder sample is finished when its .json record exists (written after its other
@@ -28,8 +30,9 @@ from typing import Any, Literal, Mapping, Sequence
 from .data import CONVENTIONS, render_samples, sample_record
 from .progress import progress as bar
 from .recipe import Recipe
-from .sequence import CONVENTIONS as SEQUENCE_CONVENTIONS, encode_item, file_map
+from .sequence import CONVENTIONS as SEQUENCE_CONVENTIONS, encode_item
 from .validate import fail, integer
+from .views import dataset_meta, file_table
 
 Layout = Literal["folder", "webdataset"]
 
@@ -86,7 +89,7 @@ def run_task(task: Task) -> list[int]:
                 encoded = encode_item(item, aovs)
                 for suffix, data in encoded.items():
                     atomic_write(out / "samples" / f"{stem}.{suffix}", data)
-                files = file_map(encoded, f"samples/{stem}.")
+                files = file_table(list(encoded), f"samples/{stem}.")
                 # the record last: its presence marks the sample finished
                 atomic_write(out / "samples" / f"{stem}.json", _json_bytes(sample_record(item, files)))
         return todo
@@ -98,7 +101,7 @@ def run_task(task: Task) -> list[int]:
         for item in render_samples(task.recipe, task.indices[first:first + task.batch], seed=task.seed):
             stem = f"{item['index']:06d}"
             encoded = encode_item(item, aovs)
-            files = file_map(encoded, f"{stem}.")
+            files = file_table(list(encoded), f"{stem}.")
             record = {**sample_record(item, files), "shard": path.name}
             members.append((f"{stem}.json", _json_bytes(record)))
             members += [(f"{stem}.{suffix}", data) for suffix, data in encoded.items()]
@@ -178,6 +181,7 @@ def generate(
         "recipe": recipe.describe(),
         "conventions": CONVENTIONS,
         **({"frames": recipe.sequence.frames, "sequence": SEQUENCE_CONVENTIONS} if recipe.sequence else {}),
+        **dataset_meta(recipe),
     }
     meta_bytes = json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
     if (out / "meta.json").is_file():

@@ -20,8 +20,10 @@ on the band of the sphere between the elevations (uniform in sin(elevation)). Ea
 `elevation`, `azimuth` is a number (fixed) or a [low, high] range.
 
 A recipe may carry a `[dataset]` table (not part of the scene): `aovs = ["depth_median", ...]`, the
-extra outputs a generated dataset stores. A recipe with `[[families]]` is a mixture of whole recipes,
-one drawn per sample (`torchvol/mix.py`).
+extra outputs a generated dataset stores; `views = V`, cameras per sample (`torchvol.views`);
+`volume_label = { resolution = N }`, the extinction grid label (`torchvol.volume_label`); `frames`,
+`dt`, `camera_path`: sequences (`torchvol.sequence`). A recipe with `[[families]]` is a mixture of
+whole recipes, one drawn per sample (`torchvol/mix.py`).
 
 Every draw comes from a `torch.Generator` seeded from a hash of (seed, index, key path): a sample
 depends only on (seed, index), never on global RNG, other indices, or the other random keys.
@@ -43,9 +45,11 @@ from .aovs import AOVS
 from .keypath import lookup, path_str, set_path
 from .scene import Scene, read_source, schema_keys, validate_scene
 from .validate import SceneError, did_you_mean, fail, finite, integer, is_integer
+from .views import parse_dataset
+from .volume_label import check_scene
 
 DIST_KINDS = ("uniform", "loguniform", "normal", "integer", "choice", "hemisphere", "orbit")
-RECIPE_KEYS = ("aovs", "frames", "dt", "camera_path")  # sequences: torchvol.sequence
+RECIPE_KEYS = ("aovs", "views", "volume_label", "frames", "dt", "camera_path")  # torchvol.views, torchvol.sequence
 
 
 def mix_seed(*parts: Any) -> int:
@@ -305,6 +309,8 @@ class Recipe:
     dists: dict[str, Dist]
     aovs: tuple[str, ...] = ()
     name: str = "recipe"
+    views: int = 1  # cameras per sample (`torchvol.views`)
+    volume_label: int | None = None  # the extinction label's resolution (`torchvol.volume_label`)
     source: dict = field(default_factory=dict, repr=False)
     sequence: Any = None  # a sequence.SequenceSpec when [dataset] frames > 1
 
@@ -332,6 +338,9 @@ class Recipe:
         if not isinstance(aovs, list) or any(a not in AOVS for a in aovs) or len(set(aovs)) != len(aovs):
             fail("dataset.aovs", aovs, "expected a list of distinct AOV names from: " + ", ".join(AOVS.names()))
         if "families" in data:  # a mixture of whole recipes (torchvol/mix.py)
+            for key in meta:
+                if key != "aovs":
+                    fail(f"dataset.{key}", meta[key], "a mixed recipe ([[families]]) takes only dataset.aovs")
             from .mix import MixedRecipe
 
             return MixedRecipe.build(data, raw=raw, aovs=tuple(aovs), name=name, source=source)
@@ -339,8 +348,12 @@ class Recipe:
 
         dists: dict[str, Dist] = {}
         _find_dists(data, (), dists)
-        recipe = cls(template=data, dists=dists, aovs=tuple(aovs), name=name, source=raw, sequence=parse_sequence(meta))
+        views, volume_label = parse_dataset(meta, dists)
+        recipe = cls(template=data, dists=dists, aovs=tuple(aovs), name=name, source=raw, views=views,
+                     volume_label=volume_label, sequence=parse_sequence(meta))
         recipe._validate()
+        if volume_label is not None:  # a label needs bounded volumes: refused at load, not on a sample
+            check_scene(recipe.sample(0), volume_label)
         return recipe
 
     def _validate(self) -> None:

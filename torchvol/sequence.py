@@ -35,25 +35,23 @@ from typing import Any, Literal, Mapping, Sequence
 
 import torch
 
-from .batch import structure_key
 from .data import _npz, encode_sample
 from .flow import flow_from_depth
-from .quality import at_level
-from .recipe import DIST_KINDS, Dist, Recipe, mix_seed, parse_dist, render_seed
+from .recipe import DIST_KINDS, Dist, Recipe, mix_seed, parse_dist
 from .scene import Scene
 from .validate import SceneError, did_you_mean, fail, finite, is_integer
 
-__all__ = ["SEQUENCE_KEYS", "SequenceSpec", "parse_sequence", "frame_scenes", "render_sequences",
-           "encode_sequence", "file_map"]
+__all__ = ["SEQUENCE_KEYS", "SequenceSpec", "parse_sequence", "frame_scenes", "sequence_scenes",
+           "add_flow", "encode_item"]
 
 SEQUENCE_KEYS = ("frames", "dt", "camera_path")
 PATH_KEYS = ("velocity", "orbit", "look_at")
-MAX_FRAMES = 1000  # frame files are named f000 ... f999
+MAX_FRAMES = 1000
 DEFAULT_DT = 1.0 / 24.0
 
 # The meta.json conventions of a sequence dataset.
 CONVENTIONS = {
-    "frames": "image, depth, alpha and AOVs stored one file per frame: {index}.f{frame:03d}.{name}; "
+    "frames": "image, depth, alpha and AOVs stored one file per frame: {index}.{name}.{frame}.{ext}; "
               "K (F,3,3) and world_to_camera (F,4,4) in the record",
     "flow": "flow.npz (F, 2, H, W) float32 pixels (dx, dy): frame f's depth point projected into frame f+1 minus "
             "its pixel centre, from planar depth and the two poses (static geometry; wind drift not followed); "
@@ -171,73 +169,33 @@ def frame_scenes(recipe: Recipe, scene: Scene, params: Mapping[str, Any], path: 
     return out
 
 
-def render_sequences(recipe: Recipe, indices: Sequence[int], *, seed: int, aovs: Sequence[str],
-                     chunk_rays: int | None = None) -> list[dict]:
-    """Samples `indices` of a sequence recipe: every frame of every sample rendered in as few
-    batches as possible (one per scene structure), then stacked per sample with its flow."""
-    from .render import DEFAULT_CHUNK_RAYS, render
-
-    frames: list[tuple[int, Scene]] = []  # (sample k, frame scene), sample-major
-    drawn = []
-    for k, i in enumerate(indices):
+def sequence_scenes(recipe: Recipe, indices: Sequence[int], *, seed: int) -> tuple[list[list[Scene]], list[dict]]:
+    """The F frame scenes of each sample `indices` and each sample's `params` (its drawn values and
+    its camera path's)."""
+    scenes, drawn = [], []
+    for i in indices:
         scene, params = recipe.sample_with_params(int(i), seed)
         path = recipe.sequence.draw(int(i), seed)
         drawn.append({**params, **path})
-        frames += [(k, s) for s in frame_scenes(recipe, scene, params, path)]
-    groups: dict[tuple, list[int]] = {}
-    for n, (_, s) in enumerate(frames):
-        groups.setdefault(structure_key(at_level(s)), []).append(n)
-    rendered: list[dict | None] = [None] * len(frames)
-    for group in groups.values():
-        out = render([frames[n][1] for n in group], seed=[render_seed(int(indices[frames[n][0]]), seed) for n in group],
-                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs)
-        missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
-        if missing:
-            fail("dataset.aovs", missing, f"this scene does not compute them; it gives: {sorted(out.aovs) + ['radiance']}")
-        for b, n in enumerate(group):
-            rendered[n] = {
-                "image": out.image[b], "depth": out.depth[b], "alpha": out.alpha[b],
-                "K": out.camera.K[b], "world_to_camera": out.camera.world_to_camera[b],
-                **{a: (out.radiance if a == "radiance" else out.aovs[a])[b] for a in aovs},
-            }
-    F = recipe.sequence.frames
-    items = []
-    for k, i in enumerate(indices):
-        mine = rendered[k * F:(k + 1) * F]
-        item = {key: torch.stack([m[key] for m in mine]).float().contiguous() for key in mine[0]}
-        flow, valid = flow_from_depth(item["depth"][:-1], item["K"][:-1], item["world_to_camera"][:-1],
-                                      item["world_to_camera"][1:])
-        last = torch.zeros_like(flow[:1])
-        item["flow"] = torch.cat([flow, last]).contiguous()
-        item["flow_valid"] = torch.cat([valid.float(), last[:, :1]]).contiguous()
-        items.append({**item, "index": int(i), "seed": int(seed), "params": drawn[k]})
-    return items
+        scenes.append(frame_scenes(recipe, scene, params, path))
+    return scenes, drawn
 
 
-def encode_sequence(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
-    """{suffix: bytes}: each frame's files as `encode_sample` gives them, prefixed `f{frame:03d}.`,
-    then flow.npz (F,2,H,W) float32 and flow_valid.npz (F,1,H,W) uint8."""
-    files = {}
-    for f in range(item["image"].shape[0]):
-        frame = {key: item[key][f] for key in ("image", "depth", "alpha", *aovs)}
-        files.update({f"f{f:03d}.{suffix}": data for suffix, data in encode_sample(frame, aovs).items()})
-    files["flow.npz"] = _npz("flow", item["flow"].numpy())
-    files["flow_valid.npz"] = _npz("flow_valid", item["flow_valid"].numpy())
-    return files
+def add_flow(item: dict) -> None:
+    """Adds a stacked sequence sample's `flow` (F, 2, H, W) and `flow_valid` (F, 1, H, W): frame f to
+    f + 1 from its depth and the two poses; the last frame's is 0 and invalid."""
+    flow, valid = flow_from_depth(item["depth"][:-1], item["K"][:-1], item["world_to_camera"][:-1],
+                                  item["world_to_camera"][1:])
+    last = torch.zeros_like(flow[:1])
+    item["flow"] = torch.cat([flow, last]).contiguous()
+    item["flow_valid"] = torch.cat([valid.float(), last[:, :1]]).contiguous()
 
 
 def encode_item(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
-    """A sample's files: a sequence's (`encode_sequence`) or a single frame's (`encode_sample`)."""
-    return encode_sequence(item, aovs) if "flow" in item else encode_sample(item, aovs)
-
-
-def file_map(suffixes: Sequence[str], prefix: str) -> dict[str, str | list[str]]:
-    """The record's `files`: {label: prefix + suffix}, or for per-frame files {label: [one per frame]}."""
-    files: dict[str, Any] = {}
-    for suffix in suffixes:
-        parts = suffix.split(".")
-        if len(parts) == 3 and parts[0][:1] == "f" and parts[0][1:].isdigit():
-            files.setdefault(parts[1], []).append(prefix + suffix)
-        else:
-            files[parts[0]] = prefix + suffix
+    """A sample's files (`encode_sample`: per frame as per view, image.{f}.png, ...), and a
+    sequence's flow.npz (F,2,H,W) float32 and flow_valid.npz (F,1,H,W) uint8."""
+    files = encode_sample(item, aovs)
+    if "flow" in item:
+        files["flow.npz"] = _npz("flow", item["flow"].numpy())
+        files["flow_valid.npz"] = _npz("flow_valid", item["flow_valid"].numpy())
     return files
