@@ -110,7 +110,7 @@ def test_bundled_recipes_sample_and_render(name):
     assert len({r.sample(i, seed=0).model_dump_json() for i in range(3)}) == 3
     samples = tv.SceneDataset(r, 3).batch([0, 1, 2])
     for s in samples:
-        assert s["image"].shape[-3:] == (3, 12, 16) and s["image"].shape == (r.views,) * (r.views > 1) + (3, 12, 16) and torch.isfinite(s["image"]).all() and torch.isfinite(s["depth"]).all()
+        assert s["image"].shape == (r.views * (r.sequence.frames if r.sequence else 1),) * (r.views > 1 or r.sequence is not None) + (3, 12, 16) and torch.isfinite(s["image"]).all() and torch.isfinite(s["depth"]).all()
         assert torch.isfinite(s["alpha"]).all() and all(torch.isfinite(s[a]).all() for a in r.aovs)
         assert set(r.aovs) <= set(s)
 

@@ -210,4 +210,4 @@ def test_generated_sequences_read_back(tmp_path, layout):
     from torchvol.data import decode_file
 
     assert torch.equal(decode_file("flow.npz", s["flow.npz"]), live["flow"])
-    assert torch.equal(decode_file("depth.npy", s["f001.depth.npy"]), live["depth"][1])
+    assert torch.equal(decode_file("depth.npy", s["depth.1.npy"]), live["depth"][1])

@@ -62,10 +62,13 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     aovs = recipe.aovs if aovs is None else tuple(aovs)
     if recipe.sequence is not None:  # frames > 1: a sample's frames are rendered like views, then its flow
         scenes, params = sequence_scenes(recipe, indices, seed=seed)
-    else:  # each sample's views (one unless `views` > 1)
+    elif recipe.views > 1:  # each sample's views
         drawn = [view_params(recipe, int(i), seed) for i in indices]
         scenes = [[recipe._scene(p) for p in views] for views in drawn]
         params = [sample_params(recipe, views) for views in drawn]
+    else:  # (a mixed recipe's samples come from their family's recipe)
+        drawn = [recipe.sample_with_params(int(i), seed) for i in indices]
+        scenes, params = [[scene] for scene, _ in drawn], [p for _, p in drawn]
     # every view or frame of every sample of one structure goes in one batch
     groups: dict[tuple, list[tuple[int, int]]] = {}
     for k, views in enumerate(scenes):
