@@ -217,8 +217,9 @@ def plot(stats: dict, path: str | Path) -> None:
             def draw(ax, counts=dist["counts"]):
                 labels = list(counts)
                 ax.bar(range(len(labels)), [counts[k] for k in labels], color="tab:orange")
-                ax.set_xticks(range(len(labels)), [k if len(k) <= 18 else k[:16] + "…" for k in labels],
-                              rotation=30, ha="right", fontsize=6)
+                short = all(len(k) <= 18 for k in labels)  # tables are numbered: stats.json has them in full
+                ax.set_xticks(range(len(labels)), labels if short else [f"#{k}" for k in range(len(labels))],
+                              rotation=30 if short else 0, ha="right" if short else "center", fontsize=6)
         panels.append((key, draw))
     cols = 4
     nrows = -(-len(panels) // cols)
@@ -232,7 +233,8 @@ def plot(stats: dict, path: str | Path) -> None:
     s = stats["summary"]
     fig.suptitle(f"{stats['recipe']}: {s['images']} images, empty {s['empty_share']:.0%}, "
                  f"saturated {s['saturated_share']:.0%}" + ("  DEGENERATE" if stats["flagged"] else ""), fontsize=10)
-    fig.tight_layout()
+    inch = 2.4 * nrows  # margins in inches: the title above, rotated labels below
+    fig.subplots_adjust(left=0.05, right=0.98, bottom=0.55 / inch, top=1 - 0.7 / inch, hspace=0.75, wspace=0.3)
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
