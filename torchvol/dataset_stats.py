@@ -15,6 +15,9 @@ channels), alpha a and depth d of one image:
 - empty: (alpha coverage < `empty_alpha` and hit share < `empty_alpha`: nothing but the sky) or
   the image is nearly constant (every channel's standard deviation over pixels < 1/255);
 - saturated: clipped share > `saturated_pixels`.
+
+The depth quantiles and histogram pool the valid depths of every sample (evenly strided down to
+`DEPTHS_PER_SAMPLE` a sample, so that memory stays bounded for large datasets).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ EMPTY_ALPHA = 0.01  # alpha coverage and hit share under which an image shows no
 CONSTANT_STD = 1.0 / 255.0  # a channel whose pixels vary less than one 8-bit step is constant
 SATURATED_PIXELS = 0.10  # clipped share over which an image is saturated
 MAX_SHARE = 0.10  # share of empty (or of saturated) images over which a recipe is degenerate
+DEPTHS_PER_SAMPLE = 4096  # valid depths kept (evenly strided) per sample for the depth quantiles and histogram
 
 
 def _records(root: Path) -> tuple[dict, list[dict]]:
@@ -144,7 +148,8 @@ def dataset_stats(root: str | Path, *, empty_alpha: float = EMPTY_ALPHA, saturat
         for view, row in enumerate(image_stats(image, alpha, depth, empty_alpha=empty_alpha,
                                                saturated_pixels=saturated_pixels)):
             rows.append({"index": rec["index"], "image": view, **row})
-        depths.append(depth[np.isfinite(depth) & (depth > 0)].ravel())
+        valid = depth[np.isfinite(depth) & (depth > 0)].ravel()
+        depths.append(valid[::-(-valid.size // DEPTHS_PER_SAMPLE) or 1])
     depth = np.concatenate(depths)
     n = len(rows)
     empty, saturated = sum(r["empty"] for r in rows), sum(r["saturated"] for r in rows)
