@@ -1,4 +1,4 @@
-"""`torchvol render | generate | sweep | bench`: thin shell over the library; errors print as one
+"""`torchvol render | generate | stats | sweep | bench`: thin shell over the library; errors print as one
 line (exit code 2), progress goes to stderr."""
 
 from __future__ import annotations
@@ -115,6 +115,18 @@ def cmd_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_stats(args: argparse.Namespace) -> int:
+    from .dataset_stats import write_stats
+
+    stats = write_stats(args.dir, out=args.out, empty_alpha=args.empty_alpha, saturated_pixels=args.saturated_pixels,
+                        max_share=args.max_share)
+    print(open(stats["written"][2]).read(), end="")
+    for line in stats["warnings"]:
+        print(f"torchvol: warning: degenerate recipe: {line}", file=sys.stderr)
+    print("wrote " + ", ".join(stats["written"]))
+    return 1 if args.strict and stats["flagged"] else 0
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
     from .sweep import split_values, sweep
 
@@ -199,6 +211,24 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--scheduler", default=None, metavar="ADDRESS", help="run the tasks on this Dask cluster")
     _common(g)
     g.set_defaults(func=cmd_generate)
+
+    from .dataset_stats import EMPTY_ALPHA, MAX_SHARE, SATURATED_PIXELS
+
+    q = sub.add_parser("stats", help="dataset QA: parameter and image-statistic distributions, degenerate-recipe flags",
+                       description=wrap("Read a generated dataset (folder or webdataset) and write DIR/stats.png "
+                                        "(distributions of the drawn parameters and of mean radiance, alpha coverage, "
+                                        "clipped share and depth), DIR/stats.json and DIR/stats.md; warn when more than "
+                                        "--max-share of the images are empty or saturated (docs/DATASETS.md, QA)."))
+    q.add_argument("dir", metavar="DIR", help="a folder written by `torchvol generate`")
+    q.add_argument("--out", default=None, help="plot path (default DIR/stats.png)")
+    q.add_argument("--empty-alpha", type=float, default=EMPTY_ALPHA,
+                   help=f"an image whose alpha coverage and hit share are both under this is empty (default {EMPTY_ALPHA})")
+    q.add_argument("--saturated-pixels", type=float, default=SATURATED_PIXELS,
+                   help=f"an image with more than this share of pixels at 1.0 is saturated (default {SATURATED_PIXELS})")
+    q.add_argument("--max-share", type=float, default=MAX_SHARE,
+                   help=f"a recipe with more than this share of empty or of saturated images is degenerate (default {MAX_SHARE})")
+    q.add_argument("--strict", action="store_true", help="exit 1 when the recipe is degenerate")
+    q.set_defaults(func=cmd_stats)
 
     w = sub.add_parser("sweep", help="time and error of every combination of swept values; results.csv, verdict, plots",
                        description=wrap("Render every combination of the swept values and measure each against a "
