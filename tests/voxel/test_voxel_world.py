@@ -5,7 +5,6 @@ walls, GI bounded). Roughness 0 and 1 are in test_ggx.py's furnace and finitenes
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
