@@ -194,7 +194,8 @@ BASES: dict[str, dict] = {
         "lights": [{**SUN, "direction": [-0.4, 0.6, 0.5]}],
         "voxels": {
             "occupancy": {"terrain": {"seed": 3, "base": 1.0, "amplitude": 5.0, "frequency": 0.11, "octaves": 2, "gain": 0.6,
-                                      "lacunarity": 2.1, "dirt_depth": 1.5, "materials": [1, 2, 3]}},
+                                      "lacunarity": 2.1, "dirt_depth": 1.5, "materials": [1, 2, 3],
+                                      "ores": {"material": 2, "density": 0.8, "seed": 7, "depth": 0.4}}},
             "cells": {"min": [-10, -3, -10], "max": [10, 10, 10]}, "traversal": "hybrid", "max_steps": 64,
             "materials": [{"color": [0.35, 0.7, 0.25], "roughness": 0.2, "metallic": 0.3},
                           {"color": [0.55, 0.4, 0.25], "roughness": 0.5, "metallic": 0.8}, [0.5, 0.5, 0.52]],

@@ -224,9 +224,20 @@ class SdfOccupancy(Strict):
     material: int = Field(1, ge=1, le=255)
 
 
+class TerrainOres(Strict):
+    """Sparse blocks of `material` in a terrain: a solid cell within `depth` of the surface (j > h − depth;
+    1: the top layer) becomes `material` where hash3(cell, seed) < `density` (lamps, ores)."""
+
+    material: int = Field(4, ge=1, le=255)
+    density: float = Field(0.02, ge=0.0, le=1.0)
+    seed: int = 0
+    depth: float = Field(1.0, gt=0.0)
+
+
 class TerrainOccupancy(Strict):
     """Heightmap h(x, z) = base + amplitude · Σ_k gain^k · value_noise(frequency · lacunarity^k · (x, z));
-    cell (i, j, k) with j > h is air, else grass (j > h − 1), dirt (j > h − 1 − dirt_depth), stone."""
+    cell (i, j, k) with j > h is air, else grass (j > h − 1), dirt (j > h − 1 − dirt_depth), stone;
+    `ores` scatter a sparse material through the layers near the surface."""
 
     seed: int = 0
     base: float = 0.0
@@ -237,6 +248,7 @@ class TerrainOccupancy(Strict):
     lacunarity: float = Field(2.0, gt=0.0)
     dirt_depth: float = Field(3.0, ge=0.0)
     materials: Int3 = (1, 2, 3)  # grass, dirt, stone ids
+    ores: TerrainOres | None = None
 
 
 class GridOccupancy(GridSource):

@@ -54,7 +54,7 @@ def directional_albedo(cos_v: float, roughness: float, albedo: float, metallic: 
     return float(torch.where(ok, f_cos / torch.where(ok, pdf, torch.ones_like(pdf)), torch.zeros_like(pdf)).mean())
 
 
-@pytest.mark.parametrize("roughness", [0.05, 0.2, 0.5, 0.8, 1.0])
+@pytest.mark.parametrize("roughness", [0.0, 0.05, 0.2, 0.5, 0.8, 1.0])
 @pytest.mark.parametrize("cos_v", [1.0, 0.7, 0.3, 0.1])
 def test_white_furnace(roughness, cos_v):
     """A white metal (F = 1: specular only) and a white dielectric reflect at most what they

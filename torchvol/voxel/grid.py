@@ -6,7 +6,8 @@ Every occupancy kind of the scene schema becomes one dense grid over its integer
 * ``grid``: the array itself, ``grid[k, j, i]`` for cell ``lo + (i, j, k)``;
 * ``sdf``: `sdf.evaluate` at the world cell centres ``origin + (c + 0.5) · voxel_size`` — the seed's
   ``getVoxel`` (``d < 0`` occupied);
-* ``terrain``: an fbm heightmap with grass / dirt / stone layers (`terrain_materials`);
+* ``terrain``: an fbm heightmap with grass / dirt / stone layers (`terrain_materials`), and optional
+  sparse `ores` blocks near the surface (`ore_cells`);
 * ``function``: any callable mapping integer cells ``[N, 3]`` to material ids ``[N]``.
 
 `VoxelGrid` stacks the grids of B scenes (zero-padded to a common shape) so that one gather looks
@@ -24,7 +25,7 @@ from torch import Tensor
 from .. import noise, sdf
 from ..grid_ops import chebyshev_distance
 
-__all__ = ["VoxelGrid", "cell_range", "dense_materials", "terrain_height", "terrain_materials", "cell_centres"]
+__all__ = ["VoxelGrid", "cell_range", "dense_materials", "ore_cells", "terrain_height", "terrain_materials", "cell_centres"]
 
 
 def cell_range(spec) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
@@ -69,7 +70,17 @@ def terrain_materials(cells: Tensor, spec, dtype=torch.float32) -> Tensor:
     out = torch.full_like(cells[:, 0], stone)
     out = torch.where(y > h - 1.0 - spec.dirt_depth, torch.full_like(out, dirt), out)
     out = torch.where(y > h - 1.0, torch.full_like(out, grass), out)
+    if spec.ores is not None:
+        out = torch.where(ore_cells(cells, h, spec.ores), torch.full_like(out, spec.ores.material), out)
     return torch.where(y > h, torch.zeros_like(out), out)
+
+
+def ore_cells(cells: Tensor, h: Tensor, ores) -> Tensor:
+    """Where [N] cells [N, 3] (long) under column heights h [N] hold the `ores` material: within
+    `ores.depth` below the surface and hashed below `ores.density` (float64 hash: the same cells at
+    any render dtype). Solidity (j ≤ h) is the caller's."""
+    near = cells[:, 1].to(h.dtype) > h - ores.depth
+    return near & (noise.hash3(cells, ores.seed, dtype=torch.float64) < ores.density)
 
 
 def dense_materials(spec, *, dtype=torch.float32, device="cpu", batch_cells: int = 1 << 22) -> Tensor:
@@ -86,6 +97,9 @@ def dense_materials(spec, *, dtype=torch.float32, device="cpu", batch_cells: int
         y = torch.arange(lo[1], hi[1], device=device).to(dtype).reshape(1, -1, 1)
         grass, dirt, stone = t.materials
         m = torch.where(y > h, 0, torch.where(y > h - 1.0, grass, torch.where(y > h - 1.0 - t.dirt_depth, dirt, stone)))
+        if t.ores is not None:
+            ore = ore_cells(_cells(lo, hi, device), h.expand(shape).reshape(-1), t.ores).reshape(shape)
+            m = torch.where(ore & (m > 0), t.ores.material, m)
         return m.to(torch.uint8)
     cells = _cells(lo, hi, device)
     out = torch.empty(cells.shape[0], dtype=torch.uint8, device=device)

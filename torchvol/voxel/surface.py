@@ -174,6 +174,8 @@ class VoxelSurface:
         level, absorb = take(w.level, s), take(w.absorption, s)
         under = o[:, 1] < level  # the camera is in the water: its whole primary path is
         t_water = plane_hit(o, d, level)
+        # a camera exactly on the plane looking down enters the water where it stands (the limit from above)
+        t_water = torch.where((o[:, 1] == level) & (d[:, 1] < 0), torch.zeros_like(t_water), t_water)
         on = t_water < t_hit
         color = torch.where((under & ~on)[:, None], color * beer(absorb, t_hit), color)
         if "water" in aovs:
