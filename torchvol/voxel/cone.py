@@ -227,6 +227,7 @@ def trace_cones(levels: list[Tensor], origin: Tensor, direction: Tensor, s: Tens
         color[alive] += weight[:, None] * rad
         occ[alive] += weight
         t[alive] = ta + radius
-        inside = ((p > -radius[:, None]) & (p < P + radius[:, None])).all(dim=1)
+        # past the cube (outside is empty: open to the sky), or wider than it (the top level's one cell)
+        inside = ((p >= 0.0) & (p <= P)).all(dim=1) & (radius <= P)
         alive = alive[(occ[alive] < OPAQUE) & inside & (t[alive] < max_t[alive])]
     return color, occ
