@@ -81,7 +81,7 @@ class VoxelCone(Strict):
     method: Literal["cone"] = "cone"
     cones: int = Field(6, ge=1, le=64)
     aperture: float | None = Field(None, gt=0.0, lt=90.0, description="cone half-angle, degrees; None: the cones "
-                                   "cover the hemisphere (cos = 1 - 1/cones)")
+                                   "cover the hemisphere (cos = 1 - 1/cones, at most 60)")
     steps: int = Field(48, ge=1, le=4096)  # samples per cone at most
     max_distance: float = Field(1e9, gt=0.0)  # world units a cone travels at most
     ao: bool = False  # the cones' visibility multiplies the albedo (and is the `ao` AOV)
@@ -102,8 +102,9 @@ def cone_ao(voxels) -> bool:
 
 
 def default_aperture(cones: int) -> float:
-    """The half-angle (degrees) at which `cones` cones' solid angles add up to the hemisphere's."""
-    return math.degrees(math.acos(1.0 - 1.0 / cones))
+    """The half-angle (degrees) at which `cones` cones' solid angles add up to the hemisphere's, at
+    most 60° (one cone would be the whole hemisphere: the top level at its first sample)."""
+    return min(60.0, math.degrees(math.acos(1.0 - 1.0 / cones)))
 
 
 def cone_directions(normal: Tensor, count: int) -> Tensor:
