@@ -223,7 +223,7 @@ BASES: dict[str, dict] = {
                                 {"box": {"center": [1.0, 3.0, 1.0], "half_size": [1.0, 1.0, 1.0]}}]}}}}},
             "cells": {"min": [-5, -4, -5], "max": [5, 4, 5]}, "max_steps": 24,
             "materials": [{"color": [0.8, 0.5, 0.4], "emission": [0.05, 0.1, 0.0]}],
-            "gi": {"method": "path", "bounces": 2, "samples": 2},
+            "gi": {"method": "path", "bounces": 2, "samples": 3, "lod": {"near": 2.0, "far": 3.5, "samples": 1}},
         },
     },
     "voxels: cone": {

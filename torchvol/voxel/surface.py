@@ -33,7 +33,7 @@ from ..lights import LightSource
 from . import cone as cone_mod
 from .cone import build_mips, cone_directions, default_aperture, face_cells, trace_cones
 from .dda import Hits, hybrid_traverse, traverse
-from .gi import bounce_uniforms, cosine_directions, path_keys
+from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
 from .ggx import f0_of, f_schlick, ggx_reflect
 from .grid import VoxelGrid
 from .materials import VOXEL_MATERIALS, default_material, material_table
@@ -153,7 +153,7 @@ class VoxelSurface:
                 indirect = self._cone(surface, sh, t[ids], section)
             elif self.plan.gi:
                 with section("voxels.gi"):
-                    indirect = self._gi(surface, sh, keys[ids])
+                    indirect = self._gi(surface, sh, keys[ids], t[ids])
             out_color[ids] = self._lit(surface, sh, section, indirect)
             if self.plan.reflections:
                 with section("voxels.reflections"):
@@ -334,13 +334,20 @@ class VoxelSurface:
                                        * toward.irradiance * vis[:, None])
         return light, specular
 
-    def _gi(self, surface: dict[str, Tensor], s: Tensor, keys: Tensor) -> Tensor:
+    def _gi(self, surface: dict[str, Tensor], s: Tensor, keys: Tensor, distance: Tensor) -> Tensor:
         """The mean incoming radiance [n, 3] of `voxels.gi`'s paths from the hits `surface`
-        (scenes s [n], hash keys [n, 3]): cosine-weighted, so the estimate is the plain path mean."""
+        (scenes s [n], hash keys [n, 3], camera distance [n]): cosine-weighted, so the estimate is
+        the plain path mean."""
         gi, n = self.p.gi, s.shape[0]
         S = gi.samples
-        cells, ps = path_keys(keys, S), s.repeat_interleave(S)
-        x, normal = surface["x"].repeat_interleave(S, dim=0), surface["face_normal"].repeat_interleave(S, dim=0)
+        if gi.lod is None:
+            cells, owner = path_keys(keys, S), None
+            ps = s.repeat_interleave(S)
+            x, normal = surface["x"].repeat_interleave(S, dim=0), surface["face_normal"].repeat_interleave(S, dim=0)
+        else:
+            counts = lod_counts(distance, S, take(gi.lod.near, s), take(gi.lod.far, s), gi.lod.samples)
+            cells, owner = lod_keys(keys, counts, S)
+            ps, x, normal = s[owner], surface["x"][owner], surface["face_normal"][owner]
         radiance, throughput = torch.zeros_like(x), torch.ones_like(x)
         alive = torch.arange(x.shape[0], device=x.device)
         # start a thousandth of a voxel off the face so the DDA starts in the empty cell in front of it
@@ -366,7 +373,9 @@ class VoxelSurface:
             radiance.index_add_(0, alive, throughput[alive] * own)
             throughput[alive] = throughput[alive] * hit["albedo"]
             x, normal = hit["x"], hit["face_normal"]
-        return radiance.view(n, S, 3).mean(dim=1)
+        if owner is None:
+            return radiance.view(n, S, 3).mean(dim=1)
+        return torch.zeros_like(surface["x"]).index_add_(0, owner, radiance) / counts[:, None].to(radiance.dtype)
 
     def _cone_mips(self) -> list[Tensor]:
         """The mip chain (`cone.build_mips`) of the batch's grids: each cell's radiance the mean over
