@@ -110,7 +110,9 @@ class VoxelPass:
 
     def names(self) -> list[str]:
         return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
-                + (["voxels.ao"] if self.ao else []) + (["voxels.gi.mips", "voxels.gi.cones"] if self.cone else ["voxels.gi"] if self.gi else []) + [li.name for li in self.shadows]
+                + (["voxels.ao"] if self.ao else [])
+                + (["voxels.gi.mips", "voxels.gi.cones"] if self.cone else ["voxels.gi"] if self.gi else [])
+                + [li.name for li in self.shadows]
                 + (["voxels.reflections"] if self.reflections else []) + (["voxels.water"] if self.water else []))
 
 

@@ -514,7 +514,7 @@ def _scene_error(err: ValidationError, raw: Any) -> SceneError:
         tag, allowed = e["ctx"]["tag"], [t.strip(" '") for t in e["ctx"]["expected_tags"].split(",")]
         key = "method" if isinstance(lookup(raw, loc), Mapping) and "method" in lookup(raw, loc) else "kind"
         return SceneError(path_str(loc + (key,)), tag, f"unknown {key}" + did_you_mean(tag, allowed)
-                          + "; kinds: " + ", ".join(allowed))
+                          + f"; {key}s: " + ", ".join(allowed))
     if e["type"] == "unknown_key":
         key = e["ctx"]["key"]
         loc = loc + (key,)

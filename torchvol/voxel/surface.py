@@ -14,6 +14,8 @@ ray traced through the same DDA and shaded the same way (AO, shadows, GGX; not t
 or fog variants), the sky where it misses, weighted by F · (1 − roughness)²: rough surfaces use the
 mirror direction faded out, not a sampled lobe (an approximation). Default materials (roughness 1,
 metallic 0) stay Lambert, bit for bit.
+`voxels.gi` replaces the ambient with path-traced bounces (`_gi`) or, with `method = "cone"`, with
+cones through a mip chain of the grids' opacity and reflected light (`_cone`, `cone.py`).
 Every per-scene value arrives as a (B, ...) tensor of the batch's `Stacked` voxels, or is handled
 scene by scene (occupancy, texture atlas, the glow's SDF).
 """
@@ -30,8 +32,7 @@ from .. import sdf
 from ..aovs import AOVS
 from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
-from . import cone as cone_mod
-from .cone import build_mips, cone_directions, default_aperture, face_cells, trace_cones
+from .cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
 from .dda import Hits, hybrid_traverse, traverse
 from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
 from .ggx import f0_of, f_schlick, ggx_reflect
@@ -435,7 +436,7 @@ class VoxelSurface:
             weight = torch.cat([torch.full((h.numel() * k,), 1.0 / k, dtype=dt, device=s.device) for h, k in groups])
             d = torch.cat([cone_directions(surface["face_normal"][h], k).reshape(-1, 3) for h, k in groups])
             so = s[owner]
-            origin = g.to_grid(surface["x"][owner], so) - g.lo[so].to(dt) + cone_mod.OFFSET * surface["face_normal"][owner]
+            origin = g.to_grid(surface["x"][owner], so) - g.lo[so].to(dt) + OFFSET * surface["face_normal"][owner]
             color, occ = trace_cones(self.mips, origin, d, so, ratio[owner], steps=gi.steps,
                                      max_t=take(gi.max_distance, so) / g.voxel_size[so])
             if self.sky is not None:
