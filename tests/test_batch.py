@@ -31,6 +31,15 @@ SMALL = {"width": 12, "height": 9}
 RNG = np.random.default_rng(0)
 
 # Scenes that together hold every model of the schema, each small and lit so that every value shows
+def walled_pit(c: torch.Tensor) -> torch.Tensor:
+    """Cells [N, 3] of an open-topped pit (material 1) with a blue pillar (2), in solid ground that
+    fills the grid to its edges (a larger grid is more ground)."""
+    x, y, z = c.unbind(1)
+    ground = ((x.abs() >= 4) | (z.abs() >= 4) | (y < -2)) & (y < 1)
+    pillar = (x == 1) & (z == 1) & (y < 0)
+    return torch.where(ground, 1, torch.where(pillar, 2, 0))
+
+
 BASES: dict[str, dict] = {
     "physical": {
         "time": 0.5,
@@ -215,7 +224,20 @@ BASES: dict[str, dict] = {
                                 {"box": {"center": [1.0, 3.0, 1.0], "half_size": [1.0, 1.0, 1.0]}}]}}}}},
             "cells": {"min": [-5, -4, -5], "max": [5, 4, 5]}, "max_steps": 24,
             "materials": [{"color": [0.8, 0.5, 0.4], "emission": [0.05, 0.1, 0.0]}],
-            "gi": {"method": "path", "bounces": 2, "samples": 2},
+            "gi": {"method": "path", "bounces": 2, "samples": 3, "lod": {"near": 2.0, "far": 3.5, "samples": 1}},
+        },
+    },
+    "voxels: cone": {
+        "image": {"width": 8, "height": 6},
+        "camera": {"eye": [0.5, 0.5, -2.0], "target": [0.0, -1.5, 2.0], "fov_y": 70.0},
+        "sky": {"kind": "constant", "radiance": [0.5, 0.6, 0.8]},
+        "lights": [{**SUN, "direction": [0.3, 0.8, 0.4]}],
+        "voxels": {
+            "occupancy": {"function": {"fn": walled_pit}},
+            "cells": {"min": [-6, -4, -6], "max": [6, 4, 6]}, "max_steps": 24,
+            "materials": [{"color": [0.8, 0.5, 0.4], "emission": [0.05, 0.1, 0.0]}, [0.3, 0.6, 0.9]],
+            "gi": {"method": "cone", "cones": 5, "aperture": 35.0, "steps": 7, "max_distance": 5.0, "ao": True,
+                   "lod": {"near": 2.0, "far": 3.5, "cones": 2, "aperture": 55.0}},
         },
     },
     "terrain, cross shadows": {

@@ -8,6 +8,7 @@ the per-medium labels of `torchvol.labels`)."""
 from __future__ import annotations
 
 from .registry import Registry
+from .voxel.cone import cone_ao
 from .voxel.materials import any_ggx
 
 AOVS = Registry("aov")
@@ -27,8 +28,8 @@ _aov("normal", 3, "mean", lambda batch: batch.voxels is not None or batch.terrai
 _aov("uv", 2, "mean", lambda batch: batch.voxels is not None, "voxel face UV in [0, 1]")
 _aov("material", 1, "first", lambda batch: batch.voxels is not None and (
     len(batch.voxels.materials) > 1 or batch.voxels.texture is not None), "voxel material id (0: no hit)")
-_aov("ao", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.ao is not None,
-     "voxel neighbour ambient occlusion (1: open)")
+_aov("ao", 1, "mean", lambda batch: batch.voxels is not None and (batch.voxels.ao is not None or cone_ao(batch.voxels)),
+     "voxel neighbour (or cone-traced: voxels.gi.ao) ambient occlusion (1: open)")
 _aov("shadow", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.shadow is not None and bool(batch.lights),
      "visibility of the first light from the voxel surface (1: lit)")
 _aov("water", 1, "mean", lambda batch: batch.voxels is not None and batch.voxels.water is not None,

@@ -14,8 +14,9 @@ alpha), against the same scene and rays with only the march made exact, with whe
 held and what the cheapest as-accurate fixed count took. References are cached in DIR/references/
 (or `cache`), keyed by a hash of the reference scene: a re-run (another knob, more repeats) reuses
 them instead of rendering the slowest part of the report again. Every report ends with what each
-technique preset (`TECHNIQUES`) costs as bundled, per pass; `--scenes` takes those presets too, for
-their error curves.
+technique preset (`TECHNIQUES`) costs as bundled, per pass, and with voxel GI's accuracy-for-time
+trade (`cone_rows`: cone tracing and path tracing, with and without distance LOD, against many paths);
+`--scenes` takes those presets too, for their error curves.
 """
 
 from __future__ import annotations
@@ -265,6 +266,45 @@ def cost_table(rows: Sequence[dict], *, width: int, height: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+# cone tracing against path tracing (`cone_rows`): the voxel-cone preset without its tonemap and cone AO
+# (the path tracer has none), one bounce; each row (method, its voxels.gi, its label) against REF_PATHS paths
+CONE_PRESET, REF_PATHS, CONE_LOD = "voxel-cone", 256, {"near": 12.0, "far": 24.0}
+CONE_SETTINGS = (
+    [("path", {"method": "path", "bounces": 1, "samples": n}, f"{n} paths") for n in (4, 16, 64)]
+    + [("path", {"method": "path", "bounces": 1, "samples": 16, "lod": {**CONE_LOD, "samples": 4}}, "16 paths, LOD (4 far)")]
+    + [("cone", {"method": "cone", "cones": n}, f"{n} cones") for n in (1, 3, 6, 16)]
+    + [("cone", {"method": "cone", "cones": 6, "lod": {**CONE_LOD, "cones": 3, "aperture": 50.0}}, "6 cones, LOD (3 far)")])
+
+
+def cone_rows(*, width: int, height: int, repeat: int, seed: int = 0, shown=None) -> list[dict]:
+    """Cone-traced against path-traced GI on the voxel-cone preset at `width`×`height`: rows (method,
+    setting, time_s (median of `repeat`), rel_rmse of the radiance against a REF_PATHS-path render,
+    its time (ref_s) and the rows' own time over it (measured in the same run))."""
+    data = scene_data(CONE_PRESET, width=width, height=height)
+    data["post"] = {}
+    data["voxels"]["gi"] = {"method": "path", "bounces": 1, "samples": REF_PATHS}
+    ref_s, ref = measure(data, Setting("reference"), repeat=1, seed=seed)
+    rows = []
+    for method, gi, label in CONE_SETTINGS:
+        if shown is not None:
+            shown.set_postfix_str(f"cone: {label}")
+        data["voxels"]["gi"] = gi
+        time_s, out = measure(data, Setting(label), repeat=repeat, seed=seed)
+        rel = image_error(out.radiance, ref.radiance)["rel_rmse"]
+        rows.append({"method": method, "setting": label, "time_s": time_s, "rel_rmse": rel, "ref_s": ref_s})
+        if shown is not None:
+            shown.update(1)
+    return rows
+
+
+def cone_table(rows: Sequence[dict], *, width: int, height: int) -> str:
+    lines = [f"| GI | setting | time (s) at {width}×{height} | × reference time | rel. RMSE vs {REF_PATHS} paths |",
+             "| --- | --- | ---: | ---: | ---: |"]
+    for r in rows:
+        lines.append(f"| {r['method']} | {r['setting']} | {r['time_s']:.3f} | {r['time_s'] / r['ref_s']:.3f} | {r['rel_rmse']:.2%} |")
+    return "\n".join(lines) + f"\n\nReference: {REF_PATHS} paths (one bounce), {rows[0]['ref_s']:.2f} s.\n"
+
+
 def plot(rows: Sequence[dict], path: Path) -> None:
     """Relative RMSE against time (log-log), one panel per scene, one curve per knob, levels
     labelled; each error's bar is the reference's bound."""
@@ -320,7 +360,7 @@ def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int 
     knob_names = KNOBS if knob_names is None else knob_names
     physical = [n for n in names if is_physical(SCENES.get(n, n))] if "tolerance" in knob_names else []
     total = sum(len([s for k, v in knobs(SCENES.get(n, n)).items() if k in knob_names for s in v]) + len(QUALITY) for n in names)
-    total += len(physical) * (len(FIXED_STEPS) + len(TOLERANCES)) + len(TECHNIQUES)
+    total += len(physical) * (len(FIXED_STEPS) + len(TOLERANCES)) + len(TECHNIQUES) + len(CONE_SETTINGS)
     rows, references, tolerance = [], [], []
     with bar(total, desc="bench accuracy", unit="render", enabled=sys.stderr.isatty() if progress is None else progress) as shown:
         for name in names:
@@ -331,10 +371,13 @@ def accuracy(out: str | Path, *, width: int = 64, height: int = 36, repeat: int 
         for name in physical:
             tolerance += tolerance_rows(name, width=width, height=height, repeat=repeat, seed=seed, cache=cache, shown=shown)
         costs = cost_rows(TECHNIQUES, width=width, height=height, repeat=repeat, seed=seed, shown=shown)
+        cones = cone_rows(width=width, height=height, repeat=repeat, seed=seed, shown=shown)
     text = table(rows, references)
     text += "\n## What each technique costs, as bundled\n\n" + cost_table(costs, width=width, height=height)
     if tolerance:
         text += "\n## Error-controlled marching (`march.tolerance`) against fixed step counts\n\n" + tolerance_table(tolerance)
+    text += ("\n## Voxel GI: cone tracing against path tracing (voxel-cone, one bounce)\n\n"
+             + cone_table(cones, width=width, height=height))
     out.mkdir(parents=True, exist_ok=True)
     (out / "accuracy.md").write_text(text)
     plot(rows, out / "accuracy.png")

@@ -104,13 +104,16 @@ class VoxelPass:
     texture: bool
     emission: bool = False  # some material of some scene emits (voxels.materials[i].emission)
     water: bool = False  # the water plane's reflected and refracted rays (voxels.water)
-    gi: bool = False  # voxels.gi: path-traced bounces replace the ambient
+    gi: bool = False  # voxels.gi: path-traced bounces (or cones) replace the ambient
+    cone: bool = False  # voxels.gi.method = "cone": a mip chain and cones instead of paths
     ggx: bool = False  # some material of some scene is not Lambert (roughness < 1 or metallic > 0)
     reflections: int = 0  # bounces of mirror reflection rays (voxels.reflections)
 
     def names(self) -> list[str]:
         return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
-                + (["voxels.ao"] if self.ao else []) + (["voxels.gi"] if self.gi else []) + [li.name for li in self.shadows]
+                + (["voxels.ao"] if self.ao else [])
+                + (["voxels.gi.mips", "voxels.gi.cones"] if self.cone else ["voxels.gi"] if self.gi else [])
+                + [li.name for li in self.shadows]
                 + (["voxels.reflections"] if self.reflections else []) + (["voxels.water"] if self.water else []))
 
 
@@ -216,7 +219,8 @@ def make_plan(batch: Stacked | Scene, aovs=()) -> Plan:
         voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
                            glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
                            emission=any(bool((m.emission > 0).any()) for m in vx.materials),
-                           water=vx.water is not None, gi=vx.gi is not None, ggx=any_ggx(vx.materials),
+                           water=vx.water is not None, gi=vx.gi is not None,
+                           cone=vx.gi is not None and vx.gi.method == "cone", ggx=any_ggx(vx.materials),
                            reflections=vx.reflections.bounces if vx.reflections is not None and any_ggx(vx.materials) else 0)
     terrain = None
     if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself

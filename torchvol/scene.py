@@ -38,7 +38,7 @@ from .volume.phase import PHASES, Empty, PhaseChoice
 from .volume.shader_look import ShaderLook
 from .volume.shading import SHADINGS
 from .volume.surface_look import SurfaceLook
-from .voxel.gi import VoxelGI
+from .voxel.cone import VoxelGIs
 from .voxel.materials import Material
 
 PRESET_DIR = Path(__file__).parent / "presets"
@@ -111,6 +111,7 @@ Light = LIGHTS.tagged_union(default="sun")
 Sky = SKIES.tagged_union(default="constant")
 Shading = Literal[SHADINGS.names()]
 _TAGS = set(LIGHTS.names()) | set(SKIES.names())  # the tables chosen by their `kind` key
+_METHODS = {"path", "cone"}  # voxels.gi, chosen by its `method` key
 
 
 class Volume(Strict):
@@ -392,7 +393,7 @@ class Voxels(Strict):
     rounded: VoxelRounded | None = None
     fog: VoxelFog | None = None
     water: VoxelWater | None = None
-    gi: VoxelGI | None = None  # path-traced diffuse bounces, replacing `ambient`
+    gi: VoxelGIs | None = None  # path-traced diffuse bounces or cones (method), replacing `ambient`
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -516,13 +517,16 @@ def _scene_error(err: ValidationError, raw: Any) -> SceneError:
         node = lookup(raw, loc)
         if part in _TAGS and isinstance(node, Mapping) and part not in node and node.get("kind", part) == part:
             continue  # a tagged union's tag
+        if part in _METHODS and isinstance(node, Mapping) and part not in node and node.get("method", "path") == part:
+            continue
         loc = loc + (part,)
     if e["type"] == "at_path":
         return SceneError(e["ctx"]["path"], e["ctx"]["value"], e["msg"])
     if e["type"] == "union_tag_invalid":  # a `kind` no registry holds
         tag, allowed = e["ctx"]["tag"], [t.strip(" '") for t in e["ctx"]["expected_tags"].split(",")]
-        return SceneError(path_str(loc + ("kind",)), tag, "unknown kind" + did_you_mean(tag, allowed)
-                          + "; kinds: " + ", ".join(allowed))
+        key = "method" if isinstance(lookup(raw, loc), Mapping) and "method" in lookup(raw, loc) else "kind"
+        return SceneError(path_str(loc + (key,)), tag, f"unknown {key}" + did_you_mean(tag, allowed)
+                          + f"; {key}s: " + ", ".join(allowed))
     if e["type"] == "unknown_key":
         key = e["ctx"]["key"]
         loc = loc + (key,)

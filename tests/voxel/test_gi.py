@@ -123,7 +123,7 @@ def test_bad_gi_is_refused():
     with pytest.raises(ValueError, match="voxels.gi.bounces"):
         tv.load_scene(room([[0.5] * 3], gi={"bounces": 0}))
     with pytest.raises(ValueError, match="voxels.gi.method"):
-        tv.load_scene(room([[0.5] * 3], gi={"method": "cone"}))
+        tv.load_scene(room([[0.5] * 3], gi={"method": "photon"}))
 
 
 def test_furnace_per_scene_in_a_batch():

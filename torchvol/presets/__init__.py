@@ -252,6 +252,31 @@ def _voxel_pbr(data: dict, *, floor_roughness: float | None = None) -> None:
     data["voxels"]["occupancy"] = {"grid": {"data": voxel_pbr_grid()}}
 
 
+def courtyard_grid() -> np.ndarray:
+    """The voxel-cone preset's 32 × 16 × 32 material grid[k, j, i]: a white floor (1), a red wall (2)
+    on the +x side and a green one (3) at the back (+z), a white pillar, a low white block, a blue
+    cube (4), a white roof over the back corner with a warm lamp block (5) in its shade."""
+    g = np.zeros((32, 16, 32), dtype=np.uint8)
+    g[:, 0, :] = 1
+    g[:, :12, 30:] = 2
+    g[30:, :12, :30] = 3
+    g[16:20, 1:11, 8:12] = 1  # pillar
+    g[8:14, 1:5, 18:24] = 1  # low block
+    g[6:11, 1:6, 3:8] = 4  # blue cube
+    g[20:30, 9:11, 19:30] = 1  # roof over the back corner
+    g[24:27, 1:3, 23:26] = 5  # the lamp under it
+    return g
+
+
+def _voxel_cone(data: dict, *, cones: int | None = None, ao: bool | None = None) -> None:
+    """`cones`: diffuse cones per pixel; `ao`: cone AO on the albedo."""
+    data["voxels"]["occupancy"] = {"grid": {"data": courtyard_grid()}}
+    if cones is not None:
+        data["voxels"]["gi"]["cones"] = integer("voxel-cone.cones", cones, low=1)
+    if ao is not None:
+        data["voxels"]["gi"]["ao"] = bool(ao)
+
+
 PARAMS: dict[str, Callable[..., None]] = {
     "atmosphere": _atmosphere,
     "explosion": _emissive,
@@ -264,6 +289,7 @@ PARAMS: dict[str, Callable[..., None]] = {
     "voxel-fog": _voxel_fog,
     "voxel-carved-box": _voxel_carved_box,
     "voxel-gi": _voxel_gi,
+    "voxel-cone": _voxel_cone,
     "voxel-pbr": _voxel_pbr,
     "template-clouds": _template_clouds,
     "cloud-puff": _cloud_puff,

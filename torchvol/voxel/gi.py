@@ -7,7 +7,8 @@ A bounce's hit adds throughput · (emission + albedo · direct light) and multip
 by its albedo; a miss adds throughput · sky and ends the path. With cosine-weighted sampling the
 Lambertian BRDF·cos/pdf is the albedo, so the incoming radiance is the plain mean of the path
 radiances (no π factors): the furnace room of albedo a, emission e gives e · (1 + a + … + a^B).
-GI replaces `voxels.ambient` where it is set. Cost: samples · bounces DDA rays per hit pixel (plus
+GI replaces `voxels.ambient` where it is set. Distance LOD (`lod = { near, far, samples }`): hits
+further from the camera trace fewer paths (their first ones: a near hit's paths are the same). Cost: samples · bounces DDA rays per hit pixel (plus
 one shadow ray per light per bounce where `voxels.shadow` is set; unshadowed otherwise)."""
 
 from __future__ import annotations
@@ -16,13 +17,28 @@ import math
 from typing import Literal
 
 import torch
-from pydantic import Field
+from pydantic import Field, model_validator
 from torch import Tensor
 
 from .. import noise
 from ..schema import Strict
 
-__all__ = ["VoxelGI", "cosine_directions", "path_keys"]
+__all__ = ["PathLOD", "VoxelGI", "cosine_directions", "lod_counts", "lod_keys", "path_keys"]
+
+
+class PathLOD(Strict):
+    """Distance LOD of the paths: hits further from the camera than `near` (world units) trace fewer
+    paths, down to `samples` at `far` and beyond (linearly in between, rounded)."""
+
+    near: float = Field(8.0, ge=0.0)
+    far: float = Field(32.0, gt=0.0)
+    samples: int = Field(2, ge=1, le=4096)
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.far <= self.near:
+            raise ValueError(f"far ({self.far}) must exceed near ({self.near})")
+        return self
 
 
 class VoxelGI(Strict):
@@ -31,6 +47,24 @@ class VoxelGI(Strict):
     method: Literal["path"] = "path"
     bounces: int = Field(1, ge=1, le=16)
     samples: int = Field(8, ge=1, le=4096)
+    lod: PathLOD | None = None
+
+
+def lod_counts(distance: Tensor, samples: int, near: Tensor, far: Tensor, far_samples: int) -> Tensor:
+    """Paths [n] (long) per hit at camera distance [n]: `samples` up to near [n], `far_samples` from
+    far [n] on, linear (rounded) in between."""
+    w = ((distance - near) / (far - near)).clamp(0.0, 1.0)
+    return torch.round(samples + w * (far_samples - samples)).long()
+
+
+def lod_keys(keys: Tensor, counts: Tensor, samples: int) -> tuple[Tensor, Tensor]:
+    """`path_keys` with counts [n] paths per ray (≤ samples, hashed as the first ones of `samples`)
+    -> (hash cells [Σ counts, 3], owner [Σ counts]: each path's ray)."""
+    owner = torch.repeat_interleave(torch.arange(keys.shape[0], device=keys.device), counts)
+    start = torch.cumsum(counts, 0) - counts
+    j = torch.arange(owner.shape[0], device=keys.device) - start[owner]
+    k = keys[owner]
+    return torch.stack([k[:, 0] * samples + j, k[:, 1], k[:, 2]], dim=1), owner
 
 
 def cosine_directions(normal: Tensor, u1: Tensor, u2: Tensor) -> Tensor:

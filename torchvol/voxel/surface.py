@@ -14,6 +14,8 @@ ray traced through the same DDA and shaded the same way (AO, shadows, GGX; not t
 or fog variants), the sky where it misses, weighted by F · (1 − roughness)²: rough surfaces use the
 mirror direction faded out, not a sampled lobe (an approximation). Default materials (roughness 1,
 metallic 0) stay Lambert, bit for bit.
+`voxels.gi` replaces the ambient with path-traced bounces (`_gi`) or, with `method = "cone"`, with
+cones through a mip chain of the grids' opacity and reflected light (`_cone`, `cone.py`).
 Every per-scene value arrives as a (B, ...) tensor of the batch's `Stacked` voxels, or is handled
 scene by scene (occupancy, texture atlas, the glow's SDF).
 """
@@ -30,8 +32,9 @@ from .. import sdf
 from ..aovs import AOVS
 from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
+from .cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
 from .dda import Hits, hybrid_traverse, traverse
-from .gi import bounce_uniforms, cosine_directions, path_keys
+from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
 from .ggx import f0_of, f_schlick, ggx_reflect
 from .grid import VoxelGrid
 from .materials import VOXEL_MATERIALS, default_material, material_table
@@ -62,6 +65,7 @@ class VoxelSurface:
         if plan.texture:
             self.atlases = [torch.as_tensor(a, device=device) for a in voxels.texture.atlas]
         self.steps_total = 0
+        self.mips = None  # the cone tracer's mip chain, built by the first chunk that needs it
 
     # -- helpers ---------------------------------------------------------------------------------
 
@@ -146,9 +150,11 @@ class VoxelSurface:
                                         None if normal_override is None else normal_override[ids])
             self._ao(surface, sh, section)
             indirect = None
-            if self.plan.gi:
+            if self.plan.cone:
+                indirect = self._cone(surface, sh, t[ids], section)
+            elif self.plan.gi:
                 with section("voxels.gi"):
-                    indirect = self._gi(surface, sh, keys[ids])
+                    indirect = self._gi(surface, sh, keys[ids], t[ids])
             out_color[ids] = self._lit(surface, sh, section, indirect)
             if self.plan.reflections:
                 with section("voxels.reflections"):
@@ -331,13 +337,20 @@ class VoxelSurface:
                                        * toward.irradiance * vis[:, None])
         return light, specular
 
-    def _gi(self, surface: dict[str, Tensor], s: Tensor, keys: Tensor) -> Tensor:
+    def _gi(self, surface: dict[str, Tensor], s: Tensor, keys: Tensor, distance: Tensor) -> Tensor:
         """The mean incoming radiance [n, 3] of `voxels.gi`'s paths from the hits `surface`
-        (scenes s [n], hash keys [n, 3]): cosine-weighted, so the estimate is the plain path mean."""
+        (scenes s [n], hash keys [n, 3], camera distance [n]): cosine-weighted, so the estimate is
+        the plain path mean."""
         gi, n = self.p.gi, s.shape[0]
         S = gi.samples
-        cells, ps = path_keys(keys, S), s.repeat_interleave(S)
-        x, normal = surface["x"].repeat_interleave(S, dim=0), surface["face_normal"].repeat_interleave(S, dim=0)
+        if gi.lod is None:
+            cells, owner = path_keys(keys, S), None
+            ps = s.repeat_interleave(S)
+            x, normal = surface["x"].repeat_interleave(S, dim=0), surface["face_normal"].repeat_interleave(S, dim=0)
+        else:
+            counts = lod_counts(distance, S, take(gi.lod.near, s), take(gi.lod.far, s), gi.lod.samples)
+            cells, owner = lod_keys(keys, counts, S)
+            ps, x, normal = s[owner], surface["x"][owner], surface["face_normal"][owner]
         radiance, throughput = torch.zeros_like(x), torch.ones_like(x)
         alive = torch.arange(x.shape[0], device=x.device)
         # start a thousandth of a voxel off the face so the DDA starts in the empty cell in front of it
@@ -363,7 +376,79 @@ class VoxelSurface:
             radiance.index_add_(0, alive, throughput[alive] * own)
             throughput[alive] = throughput[alive] * hit["albedo"]
             x, normal = hit["x"], hit["face_normal"]
-        return radiance.view(n, S, 3).mean(dim=1)
+        if owner is None:
+            return radiance.view(n, S, 3).mean(dim=1)
+        return torch.zeros_like(surface["x"]).index_add_(0, owner, radiance) / counts[:, None].to(radiance.dtype)
+
+    def _cone_mips(self) -> list[Tensor]:
+        """The mip chain (`cone.build_mips`) of the batch's grids: each cell's radiance the mean over
+        its exposed faces of what a path-traced bounce sees there (albedo · direct light + emission,
+        shaded by `_surface` and `_direct` at the face centre)."""
+        g = self.grid
+        occupied = g.materials > 0
+        B, Z, Y, X = occupied.shape
+        dt = g.origin.dtype
+        faces = [(b, axis, sign, idx) for b in range(B) for axis, sign, idx in face_cells(occupied[b]) if idx.numel()]
+        radiance = g.origin.new_zeros(B * Z * Y * X, 3)
+        count = g.origin.new_zeros(B * Z * Y * X)
+        if faces:
+            idx = torch.cat([f[3] for f in faces])
+            s = torch.cat([torch.full((f[3].shape[0],), f[0], dtype=torch.long, device=idx.device) for f in faces])
+            axis = torch.cat([torch.full((f[3].shape[0],), f[1], dtype=torch.long, device=idx.device) for f in faces])
+            outward = g.origin.new_zeros(idx.shape[0], 3)
+            outward[torch.arange(idx.shape[0]), axis] = torch.cat([torch.full((f[3].shape[0],), float(f[2]), dtype=dt)
+                                                                   for f in faces])
+            cell = idx + g.lo[s]
+            flat = ((s * Z + idx[:, 2]) * Y + idx[:, 1]) * X + idx[:, 0]
+            # a ray from one voxel out, straight onto the face's centre
+            x = g.to_world(cell.to(dt) + 0.5 + 0.5 * outward, s)
+            size = g.voxel_size[s]
+            hit = self._surface(x + size[:, None] * outward, -outward, size, cell, axis,
+                                g.materials.reshape(-1)[flat].long(), s, None)
+            incoming, _ = self._direct(hit, s, lambda name: nullcontext(), torch.zeros_like(x))
+            own = hit["albedo"] * incoming + (hit["emission"] if self.plan.emission else 0.0)
+            radiance.index_add_(0, flat, own)
+            count.index_add_(0, flat, torch.ones_like(flat, dtype=dt))
+        radiance = (radiance / count.clamp_min(1.0)[:, None]).view(B, Z, Y, X, 3).permute(0, 4, 1, 2, 3)
+        return build_mips(occupied.to(dt), radiance, (count > 0).to(dt).view(B, Z, Y, X))
+
+    def _cone(self, surface: dict[str, Tensor], s: Tensor, distance: Tensor, section) -> Tensor:
+        """The cones' incoming radiance [n, 3] at the hits `surface` of scenes s [n], seen from the
+        camera at `distance` [n] (world units); with `ao` their visibility multiplies the albedo."""
+        gi, g = self.p.gi, self.grid
+        if self.mips is None:
+            with section("voxels.gi.mips"):
+                self.mips = self._cone_mips()
+        with section("voxels.gi.cones"):
+            n, dt = s.shape[0], surface["x"].dtype
+            cones = gi.cones
+            half = (torch.full((len(self.p),), default_aperture(cones), dtype=dt, device=s.device)
+                    if gi.aperture is None else gi.aperture)
+            half = take(half, s)
+            groups = [(torch.arange(n, device=s.device), cones)]
+            if gi.lod is not None:
+                near, far = take(gi.lod.near, s), take(gi.lod.far, s)
+                w = ((distance - near) / (far - near)).clamp(0.0, 1.0)
+                half = half + w * (take(gi.lod.aperture, s) - half)
+                beyond = distance >= far
+                groups = [(h, k) for h, k in (((~beyond).nonzero().squeeze(1), cones),
+                                              (beyond.nonzero().squeeze(1), gi.lod.cones)) if h.numel()]
+            ratio = 2.0 * torch.tan(torch.deg2rad(half))
+            owner = torch.cat([h.repeat_interleave(k) for h, k in groups])
+            weight = torch.cat([torch.full((h.numel() * k,), 1.0 / k, dtype=dt, device=s.device) for h, k in groups])
+            d = torch.cat([cone_directions(surface["face_normal"][h], k).reshape(-1, 3) for h, k in groups])
+            so = s[owner]
+            origin = g.to_grid(surface["x"][owner], so) - g.lo[so].to(dt) + OFFSET * surface["face_normal"][owner]
+            color, occ = trace_cones(self.mips, origin, d, so, ratio[owner], steps=gi.steps,
+                                     max_t=take(gi.max_distance, so) / g.voxel_size[so])
+            if self.sky is not None:
+                color = color + (1.0 - occ)[:, None] * self.sky(d, so)
+            indirect = torch.zeros_like(surface["x"]).index_add_(0, owner, weight[:, None] * color)
+            if gi.ao:
+                ao = torch.zeros_like(distance).index_add_(0, owner, weight * (1.0 - occ))[:, None]
+                surface["albedo"] = surface["albedo"] * ao
+                surface["ao"] = surface["ao"] * ao if "ao" in surface else ao
+        return indirect
 
     def _rounded(self, o, d, s, hits: Hits):
         """Refine hits inside rounded voxels; rays that miss the rounded shape continue the DDA."""
