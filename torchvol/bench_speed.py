@@ -124,18 +124,20 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     return [dict(kernel=name, evals_per_s=points / statistics.median(t), first_s=first[name]) for name, t in times.items()]
 
 
-def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int, batch: int = 4) -> list[dict]:
-    """Samples/s of `generate` for each recipe at size×size with each worker count."""
+def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
+                    layout: str = "folder") -> list[dict]:
+    """Samples/s and bytes/sample (every file of the dataset over the sample count) of `generate`
+    for each recipe at size×size (None: the recipe's own size) with each worker count."""
     from .generate import generate
 
     rows = []
-    overrides = {"image.width": size, "image.height": size}
+    overrides = {} if size is None else {"image.width": size, "image.height": size}
     for name in recipes:
         for n in workers:
             with tempfile.TemporaryDirectory() as tmp:
                 start = time.perf_counter()
                 generate(ROOT / "datasets" / f"{name}.toml", count=count, out=Path(tmp) / "ds", workers=n, batch=batch,
-                         overrides=overrides, progress=False)
+                         layout=layout, overrides=overrides, progress=False)
                 seconds = time.perf_counter() - start
                 size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
             rows.append(dict(recipe=name, workers=n, seconds=seconds, samples_per_s=count / seconds,
