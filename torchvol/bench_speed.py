@@ -1,8 +1,10 @@
 """`torchvol bench speed`: where a render's time goes against its peers, in one run (docs/SPEED.md).
 
-Four tables, every figure a median of `repeat` runs measured in this one run, so ratios hold on
+A profile, then four tables, every figure a median of `repeat` runs measured in this one run, so ratios hold on
 any machine (absolute times only on a quiet one):
 
+0. Where a render's time goes: torch.profiler's top ops (self CPU time) of `cloud-puff` (physical,
+   table-hash value-noise fbm) and `template-clouds` (texture noise) at 64×64.
 1. `template-clouds` on Mesa llvmpipe (the same GLSL template, `torchvol.testing.glsl`) against
    torchvol eager and under torch.compile, and a physical cloud (`cloud-puff`) with the table hash,
    the arithmetic hash eager and the arithmetic hash's fused compiled fbm (`torchvol.fastnoise`);
@@ -101,6 +103,20 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
     return rows
 
 
+def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table") -> list[dict]:
+    """torch.profiler's `top` ops by self CPU time of one render of preset `name` at size×size
+    (after a warm-up render): rows {op, share, calls}; share of the profiled self CPU time."""
+    from torch.profiler import ProfilerActivity, profile
+
+    scene = _cloud_puff(size, size, hash) if name == "cloud-puff" else preset(name, width=size, height=size)
+    render(scene)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        render(scene)
+    events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    total = sum(e.self_cpu_time_total for e in events) or 1.0
+    return [dict(op=e.key, share=e.self_cpu_time_total / total, calls=e.count) for e in events[:top]]
+
+
 def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     """Density evaluations/s of the value-noise fbm alone on the same `points` random points
     (interleaved runs): rows {kernel, evals_per_s, first_s}."""
@@ -196,6 +212,13 @@ def markdown(sections: dict) -> str:
              f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs, "
              f"{platform.processor() or platform.machine()}; GL: {renderer_name()}. Medians of {sections['repeat']} runs; "
              "compilation (first call) reported apart.", ""]
+    if "profile" in sections:
+        lines += ["## Where the time goes (torch.profiler, self CPU time, one render)", "",
+                  "| render | op | share | calls |", "| --- | --- | ---: | ---: |"]
+        lines += [f"| {name} | `{r['op']}` | {r['share']:.0%} | {r['calls']} |" for name, rows in sections["profile"].items() for r in rows]
+        lines += ["", "`aten::index` in cloud-puff is the value noise's permutation-table gathers (Perlin's "
+                  "perm[perm[perm[x] + y] + z], 8 corners per octave); `density.fbm.hash = \"arithmetic\"` replaces them "
+                  "(torchvol.fastnoise).", ""]
     if "render" in sections:
         lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | first call s |",
                   "| --- | --- | ---: | ---: | ---: | ---: |"]
@@ -221,11 +244,15 @@ def markdown(sections: dict) -> str:
 
 
 def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | None = None,
-          recipes: Sequence[str] | None = None, parts: Sequence[str] = ("render", "floor", "generate", "loaded")) -> str:
+          recipes: Sequence[str] | None = None,
+          parts: Sequence[str] = ("profile", "render", "floor", "generate", "loaded")) -> str:
     """Run the benchmark; returns the Markdown (and writes it to `out` where given). `quick`: small
     sizes, two recipes, fewer points (about 2 minutes on 2 cores once inductor's cache is warm)."""
     repeat = repeat or (2 if quick else 3)
     sections: dict = {"quick": quick, "repeat": repeat}
+    if "profile" in parts:
+        size = 32 if quick else 64
+        sections["profile"] = {f"{name} {size}×{size}": profile_rows(name, size=size) for name in ("cloud-puff", "template-clouds")}
     if "render" in parts:
         sizes = ((160, 90),) if quick else TEMPLATE_SIZES
         sections["render"] = render_rows(sizes, repeat=repeat, physical_size=(48, 48) if quick else (128, 128))
