@@ -26,8 +26,10 @@ def test_speed_quick_logic_on_tiny_sizes(tmp_path):
     assert {r["renderer"] for r in rows} >= {"torchvol eager", "torchvol torch.compile", "arithmetic hash, fused fbm compiled"}
     floor = bench_speed.floor_rows(points=2048, repeat=1)
     assert all(r["evals_per_s"] > 0 for r in floor)
-    text = bench_speed.markdown({"quick": True, "repeat": 1, "render": rows, "floor": floor})
-    assert "## Renders" in text and "## The floor" in text
+    profile = {"cloud-puff 8×8": bench_speed.profile_rows("cloud-puff", size=8, top=3)}
+    assert len(profile["cloud-puff 8×8"]) == 3 and all(0 < r["share"] <= 1 for r in profile["cloud-puff 8×8"])
+    text = bench_speed.markdown({"quick": True, "repeat": 1, "profile": profile, "render": rows, "floor": floor})
+    assert "## Where the time goes" in text and "## Renders" in text and "## The floor" in text
 
 
 @pytest.mark.parametrize("preset, expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])

@@ -211,7 +211,8 @@ def markdown(sections: dict) -> str:
     lines = ["# Speed", "", f"`torchvol bench speed{' --quick' if sections['quick'] else ''}`, {time.strftime('%Y-%m-%d')}: "
              f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs, "
              f"{platform.processor() or platform.machine()}; GL: {renderer_name()}. Medians of {sections['repeat']} runs; "
-             "compilation (first call) reported apart.", ""]
+             "compilation (first call) reported apart. Ratios hold on a busy machine; absolute times only on a quiet "
+             "one. `torchvol bench speed --out docs/SPEED.md` writes this page (`--quick`: small sizes, two recipes).", ""]
     if "profile" in sections:
         lines += ["## Where the time goes (torch.profiler, self CPU time, one render)", "",
                   "| render | op | share | calls |", "| --- | --- | ---: | ---: |"]
@@ -224,7 +225,10 @@ def markdown(sections: dict) -> str:
                   "| --- | --- | ---: | ---: | ---: | ---: |"]
         lines += [f"| {r['work']} | {r['renderer']} | {r['seconds']:.3f} | {_fmt(r['evals_per_s'], ',.0f')} | "
                   f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['first_s'], '.1f')} |" for r in sections["render"]]
-        lines += ["", "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff).", ""]
+        lines += ["", "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
+                  "`torch.compile` on template-clouds compiles its texture-noise kernel per octave (the march around it "
+                  "stays eager); the arithmetic hash's fbm is one fused kernel (docs/VOLUMES.md). A render's density "
+                  "evals/s against the floor below is how far the march around the density is from free.", ""]
     if "floor" in sections:
         lines += ["## The floor: 4-octave value-noise fbm alone", "", "| kernel | evals/s | first call s |", "| --- | ---: | ---: |"]
         lines += [f"| {r['kernel']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |" for r in sections["floor"]]
@@ -235,7 +239,9 @@ def markdown(sections: dict) -> str:
                   for r in sections["generate"]]
         lines += [""]
     if "loaded" in sections:
-        lines += ["## One busy competitor", "", "| torch threads | OMP_WAIT_POLICY | alone s | loaded s | slowdown |",
+        lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
+                  "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
+                  "(torchvol/__init__.py): spinning OpenMP threads fight the competitor at every one of a render's small ops.", "", "| torch threads | OMP_WAIT_POLICY | alone s | loaded s | slowdown |",
                   "| ---: | --- | ---: | ---: | ---: |"]
         lines += [f"| {r['threads']} | {r['policy']} | {r['alone_s']:.3f} | {r['loaded_s']:.3f} | {r['slowdown']:.2f} |"
                   for r in sections["loaded"]]
@@ -262,7 +268,8 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
         chosen = recipes or (("clouds", "template-clouds") if quick else RECIPES)
         sections["generate"] = generation_rows(chosen, workers=(1, 2), count=4 if quick else 16, size=32 if quick else 128)
     if "loaded" in parts:
-        sections["loaded"] = loaded_rows(width=96 if quick else 320, height=54 if quick else 180, repeat=repeat)
+        # quick: one small render per config (2 threads spinning against a competitor run ~20x longer)
+        sections["loaded"] = loaded_rows(width=64 if quick else 320, height=36 if quick else 180, repeat=1 if quick else repeat)
     text = markdown(sections)
     if out is not None:
         Path(out).write_text(text + "\n")
