@@ -70,7 +70,7 @@ def _commands(parser, path=()):
 
 def test_help_describes_every_option_and_lists_the_presets(capsys):
     commands = dict(_commands(build_parser()))
-    assert set(commands) == {("render",), ("generate",), ("stats",), ("sweep",), ("bench", "accuracy")}
+    assert set(commands) == {("render",), ("generate",), ("stats",), ("sweep",), ("bench", "accuracy"), ("bench", "speed")}
     for path, parser in commands.items():
         for action in parser._actions:
             assert action.help, f"torchvol {' '.join(path)} {action.option_strings or action.dest}: no help"

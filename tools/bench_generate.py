@@ -1,5 +1,6 @@
 """Generation throughput and output size: samples/s and bytes per sample of each bundled recipe at
-its default size, 1 and 2 workers.
+its default size, 1 and 2 workers (`torchvol.bench_speed.generation_rows`; `torchvol bench speed`
+runs it at 128×128).
 
     python tools/bench_generate.py [--count 8] [--batch 4] [--workers 1 2] [--layout folder]
 
@@ -13,16 +14,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
-import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchvol.generate import generate  # noqa: E402
-
-BUNDLED = sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
+from torchvol.bench_speed import RECIPES, generation_rows  # noqa: E402
 
 
 def main() -> None:
@@ -30,20 +26,15 @@ def main() -> None:
     parser.add_argument("--count", type=int, default=8)
     parser.add_argument("--batch", type=int, default=4)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
-    parser.add_argument("--recipes", nargs="+", default=BUNDLED)
+    parser.add_argument("--recipes", nargs="+", default=RECIPES)
     parser.add_argument("--layout", choices=["folder", "webdataset"], default="folder")
     args = parser.parse_args()
     print(f"cores: {os.cpu_count()}  count: {args.count}  batch: {args.batch}  layout: {args.layout}")
     print(f"{'recipe':<18} {'workers':>7} {'seconds':>8} {'samples/s':>10} {'bytes/sample':>13}")
     for name in args.recipes:
-        for workers in args.workers:
-            with tempfile.TemporaryDirectory() as tmp:
-                start = time.perf_counter()
-                generate(ROOT / "datasets" / f"{name}.toml", count=args.count, out=Path(tmp) / "ds",
-                         workers=workers, batch=args.batch, layout=args.layout, progress=False)
-                seconds = time.perf_counter() - start
-                size = sum(p.stat().st_size for p in (Path(tmp) / "ds").rglob("*") if p.is_file())
-            print(f"{name:<18} {workers:>7} {seconds:>8.2f} {args.count / seconds:>10.3f} {size / args.count:>13,.0f}", flush=True)
+        for r in generation_rows([name], workers=args.workers, count=args.count, size=None, batch=args.batch, layout=args.layout):
+            print(f"{name:<18} {r['workers']:>7} {r['seconds']:>8.2f} {r['samples_per_s']:>10.3f} {r['bytes_per_sample']:>13,.0f}",
+                  flush=True)
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ template on Mesa llvmpipe, at 640×360 and 1280×720.
 Prints a Markdown table: median wall time of `repeat` renders (after one warm-up render, which also
 pays torch.compile's compilation), density evaluations per second, and the ratio to llvmpipe
 measured in the same run. llvmpipe uses all CPU threads it finds (LP_NUM_THREADS to change).
+`torchvol bench speed` runs the same comparison (torchvol.bench_speed) with the rest of docs/SPEED.md.
 """
 
 from __future__ import annotations
@@ -13,38 +14,17 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
-from pathlib import Path
 
 import torch
 
-import torchvol as tv
-from torchvol import noise
-from torchvol.testing.glsl import gl_context, renderer_name, shadertoy_source, time_fragment
-
-TEMPLATE = (Path(tv.__file__).parent / "testing" / "template_clouds.glsl").read_text()
+from torchvol.bench_speed import time_llvmpipe, time_render
+from torchvol.scene import preset
+from torchvol.testing.glsl import renderer_name
 
 
 def time_torchvol(width: int, height: int, *, compile: bool, repeat: int) -> tuple[float, int]:
-    scene = tv.preset("template-clouds", width=width, height=height)
-    tv.render(scene, compile=compile)  # warm-up (and compilation)
-    times, evals = [], 0
-    for _ in range(repeat):
-        start = time.perf_counter()
-        out = tv.render(scene, compile=compile)
-        times.append(time.perf_counter() - start)
-        evals = out.stats["density_evals"]
-    return statistics.median(times), evals
-
-
-def time_llvmpipe(width: int, height: int, *, repeat: int) -> float | None:
-    if gl_context() is None:
-        return None
-    uniforms = dict(iResolution=(width, height, 1.0), iTime=0.0, iMouse=(0.0, 0.0, 0.0, 0.0))
-    texture = noise.default_noise_texture(0).numpy()
-    return time_fragment(shadertoy_source(TEMPLATE), width, height, uniforms=uniforms,
-                         textures={"iChannel0": texture}, repeat=repeat)
+    seconds, evals, _ = time_render(preset("template-clouds", width=width, height=height), compile=compile, repeat=repeat)
+    return seconds, evals
 
 
 def main() -> None:

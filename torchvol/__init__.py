@@ -1,5 +1,13 @@
 """torchvol: batched PyTorch renderer of volumes and voxels for synthetic training data."""
 
+import os
+
+# OpenMP threads sleep between parallel regions instead of spinning: a render's thousands of small
+# ops otherwise spin against any other busy process (docs/SPEED.md, "One busy competitor"). libgomp
+# reads this once, when torch loads: it holds where torchvol is imported first (the CLI) and in
+# every process started later (generator and DataLoader workers). A user's own setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 from .camera import Camera, Rays
 from .data import FolderDataset, SceneDataset
 from .recipe import Recipe

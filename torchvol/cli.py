@@ -159,6 +159,13 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_speed(args: argparse.Namespace) -> int:
+    from .bench_speed import speed
+
+    print(speed(args.out, quick=args.quick, repeat=args.repeat))
+    return 0
+
+
 def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", dest="progress", action="store_false",
                         help="no progress bar on stderr (by default a live bar on a terminal, a line every few seconds otherwise)")
@@ -268,6 +275,13 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--seed", type=int, default=0, help="render seed (default 0)")
     _common(a)
     a.set_defaults(func=cmd_bench_accuracy)
+    s = b.add_parser("speed", help="llvmpipe vs eager vs fast renders, the fbm floor, generation samples/s, loaded-machine slowdown",
+                     description="One run of every speed figure of docs/SPEED.md (torchvol.bench_speed); ratios hold on any "
+                                 "machine, absolute times only on a quiet one.")
+    s.add_argument("--out", default=None, help="write the Markdown report here (e.g. docs/SPEED.md)")
+    s.add_argument("--quick", action="store_true", help="small sizes, two recipes (about 2 minutes on 2 cores)")
+    s.add_argument("--repeat", type=int, default=None, help="runs per figure; the median is reported (default 3, quick 2)")
+    s.set_defaults(func=cmd_bench_speed)
     return parser
 
 

@@ -132,9 +132,10 @@ def _check_points(p: Tensor, name: str = "p") -> None:
         raise ValueError(f"{name}: got shape {tuple(p.shape)}, dtype {p.dtype}; float tensor [N, 3]")
 
 
-def _trilinear(vals: list[Tensor], u: Tensor) -> Tensor:
-    """Blend 8 corner values (each ``[N]``, `_CORNERS` order) with weights ``u [N, 3]``."""
-    ux, uy, uz = u.unbind(-1)
+def _trilinear(vals: list[Tensor], u: Tensor | Sequence[Tensor]) -> Tensor:
+    """Blend 8 corner values (each ``[N]``, `_CORNERS` order) with weights ``u [N, 3]`` (or its
+    three columns, each ``[N]``: what a fused compiled kernel can load contiguously)."""
+    ux, uy, uz = u.unbind(-1) if isinstance(u, Tensor) else u
     x00 = torch.lerp(vals[0], vals[1], ux)
     x10 = torch.lerp(vals[2], vals[3], ux)
     x01 = torch.lerp(vals[4], vals[5], ux)

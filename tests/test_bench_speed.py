@@ -1,0 +1,46 @@
+"""`torchvol bench speed` (torchvol.bench_speed): each section runs and reports, on tiny sizes."""
+
+import pytest
+
+from torchvol import bench_speed
+from torchvol.cli import build_parser
+
+
+def test_cli_parses_bench_speed():
+    args = build_parser().parse_args(["bench", "speed", "--quick", "--out", "x.md"])
+    assert args.quick and args.out == "x.md" and args.func.__name__ == "cmd_bench_speed"
+
+
+def test_generation_and_loaded_sections_report(tmp_path):
+    rows = bench_speed.generation_rows(["clouds"], workers=(1,), count=1, size=8)
+    assert rows[0]["recipe"] == "clouds" and rows[0]["samples_per_s"] > 0 and rows[0]["bytes_per_sample"] > 0
+    loaded = bench_speed.loaded_rows(width=8, height=6, repeat=1, configs=[(1, "PASSIVE")])
+    assert loaded[0]["slowdown"] > 0
+    text = bench_speed.markdown({"quick": True, "repeat": 1, "generate": rows, "loaded": loaded})
+    assert "| clouds | 1 |" in text and "| 1 | PASSIVE |" in text
+
+
+@pytest.mark.slow  # compiles the template's and the fused fbm's kernels (tens of seconds on 2 cores, once)
+def test_speed_quick_logic_on_tiny_sizes(tmp_path):
+    rows = bench_speed.render_rows(((16, 9),), repeat=1, physical_size=(8, 8))
+    assert {r["renderer"] for r in rows} >= {"torchvol eager", "torchvol torch.compile", "arithmetic hash, fused fbm compiled"}
+    floor = bench_speed.floor_rows(points=2048, repeat=1)
+    assert all(r["evals_per_s"] > 0 for r in floor)
+    profile = {"cloud-puff 8×8": bench_speed.profile_rows("cloud-puff", size=8, top=3)}
+    assert len(profile["cloud-puff 8×8"]) == 3 and all(0 < r["share"] <= 1 for r in profile["cloud-puff 8×8"])
+    text = bench_speed.markdown({"quick": True, "repeat": 1, "profile": profile, "render": rows, "floor": floor})
+    assert "## Where the time goes" in text and "## Renders" in text and "## The floor" in text
+
+
+@pytest.mark.parametrize("preset, expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+def test_openmp_waits_passively_unless_the_user_says_otherwise(preset, expected):
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if preset:
+        env["OMP_WAIT_POLICY"] = preset
+    code = "import torchvol, os, torch; print(os.environ['OMP_WAIT_POLICY'])"
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True)
+    assert out.stdout.strip() == expected

@@ -1,0 +1,134 @@
+"""The arithmetic-hash value-noise fBm (`torchvol.fastnoise`): its hash against a uint32 reference,
+its statistics against the table hash's, the compiled kernel against its eager twin."""
+
+import pytest
+import torch
+
+import torchvol as tv
+from torchvol import fastnoise, noise
+
+from conftest import assert_close
+
+
+def _points(n: int, seed: int = 0, dtype=torch.float32) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(n, 3, generator=g, dtype=torch.float64) * 40.0 - 20.0).to(dtype)
+
+
+def _reference_hash(x: int, y: int, z: int, seed: int) -> int:
+    """`fastnoise.hash_cells` in Python uint32 arithmetic (what the int32 wrap must equal)."""
+    m = 0xFFFFFFFF
+
+    def mix(h: int) -> int:
+        h ^= h >> 16
+        h = (h * 0x7FEB352D) & m
+        h ^= h >> 15
+        h = (h * 0x1B873593) & m
+        return h ^ (h >> 16)
+
+    s = mix((seed * 0x9E3779B9 + 0x632BE5AB) & m)
+    h = mix(((x * 0x1B873593) ^ (y * 0x27D4EB2F) ^ (z * 0x165667B1) ^ s) & m)
+    return h >> 8
+
+
+def test_hash_equals_uint32_reference():
+    cells = [(0, 0, 0), (1, -1, 7), (-40000, 123456, -9), (2**31 - 1, -(2**31), 5), (17, 17, 17)]
+    x, y, z = (torch.tensor(c, dtype=torch.int32) for c in zip(*cells))
+    for seed in (0, 1, 123456789, 2**40 + 3):
+        got = fastnoise.hash_cells(x, y, z, fastnoise._seed32(seed)).tolist()
+        assert got == [_reference_hash(*c, seed) for c in cells]
+
+
+def test_value_noise_at_lattice_points_is_the_hash():
+    g = torch.Generator().manual_seed(1)
+    cells = torch.randint(-300, 300, (500, 3), generator=g, dtype=torch.int32)
+    got = fastnoise.value_noise_hashed(cells.to(torch.float32), seed=5)
+    want = fastnoise.hash_cells(*cells.unbind(-1), fastnoise._seed32(5)).to(torch.float32) * 2.0**-24
+    assert torch.equal(got, want)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_value_noise_range_and_statistics_match_the_table_hash(dtype):
+    p = _points(200_000, dtype=dtype)
+    new = fastnoise.value_noise_hashed(p, seed=3)
+    old = noise.value_noise(p, seed=3)
+    assert new.dtype == dtype and bool(torch.isfinite(new).all())
+    assert 0.0 <= new.min() and new.max() < 1.0
+    assert abs(new.mean() - old.mean()) < 0.01  # both 0.5 in expectation
+    assert abs(new.std() - old.std()) < 0.01
+    assert abs(fastnoise.value_noise_hashed(p, seed=4).sub(0.5).mul(new - 0.5).mean()) < 2e-3  # seeds decorrelate
+
+
+def test_fbm_spectrum_matches_the_table_hash():
+    """Power spectra of a 2D slice of each 4-octave fBm, in octave bands, agree within 25%."""
+    n = 256
+    axis = torch.arange(n, dtype=torch.float64) * (8.0 / n)
+    yy, xx = torch.meshgrid(axis, axis, indexing="ij")
+    p = torch.stack([xx, yy, torch.full_like(xx, 0.37)], -1).reshape(-1, 3)
+
+    def bands(values: torch.Tensor) -> torch.Tensor:
+        power = torch.fft.rfft2((values - values.mean()).reshape(n, n)).abs().square()
+        ky = torch.fft.fftfreq(n).abs()[:, None] * n
+        kx = torch.fft.rfftfreq(n)[None, :] * n
+        k = torch.sqrt(kx**2 + ky**2)
+        edges = [2, 4, 8, 16, 32, 64]  # below 2 cycles per slice: too few modes to compare
+        return torch.stack([power[(k >= a) & (k < b)].mean() for a, b in zip(edges, edges[1:])])
+
+    old, new = torch.zeros(5, dtype=torch.float64), torch.zeros(5, dtype=torch.float64)
+    for seed in range(4):  # average over seeds: one field's band powers scatter by ~10-20%
+        old += bands(noise.fbm(p, lambda q: noise.value_noise(q, seed=seed), octaves=4))
+        new += bands(fastnoise.fbm_value_hashed(p, seed=seed, octaves=4))
+    ratio = new / old
+    assert bool(((ratio > 0.75) & (ratio < 1.33)).all()), ratio
+
+
+def test_eager_fbm_is_noise_fbm_of_the_hashed_basis():
+    p = _points(1000)
+    lod = torch.arange(1000) % 6
+    got = fastnoise.fbm_value_hashed(p, seed=2, octaves=5, lod=lod)
+    want = noise.fbm(p, lambda q: fastnoise.value_noise_hashed(q, seed=2), octaves=5, lod=lod)
+    assert torch.equal(got, want)
+
+
+def test_arithmetic_hash_refused_for_gradient_noise():
+    scene = tv.preset("cloud-puff", width=8, height=8).model_dump()
+    scene["volumes"][0]["density"]["fbm"].update(noise="perlin", hash="arithmetic")
+    with pytest.raises(ValueError, match="hash"):
+        tv.render(scene)
+
+
+def test_scene_with_arithmetic_hash_renders_and_differs_from_table():
+    scene = tv.preset("cloud-puff", width=12, height=12).model_dump()
+    table = tv.render(scene)
+    scene["volumes"][0]["density"]["fbm"]["hash"] = "arithmetic"
+    arith = tv.render(scene)
+    assert bool(torch.isfinite(arith.radiance).all())
+    assert not torch.equal(arith.radiance, table.radiance)
+    assert abs(arith.alpha.mean() - table.alpha.mean()) < 0.1  # the same cloud, another draw of its noise
+
+
+@pytest.mark.slow  # torch.compile: ~20-100 s the first time on 2 cores (cached on disk after)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_fbm_matches_eager_twin(dtype):
+    """Not bitwise: inductor's lerp and contraction differ from eager's by an ulp; stated tolerance
+    4 ulp of 1 (the values lie in [0, 1))."""
+    atol = 4 * torch.finfo(dtype).eps
+    p = _points(5000, seed=3, dtype=dtype)
+    lod = torch.arange(5000) % 6
+    for kwargs in ({}, {"lod": lod}):
+        eager = fastnoise.fbm_value_hashed(p, seed=11, octaves=4, **kwargs)
+        fast = fastnoise.fbm_value_hashed(p, seed=11, octaves=4, compiled=True, **kwargs)
+        assert_close(fast, eager, atol=atol, what=f"compiled fbm {kwargs.keys()}")
+    # another size and seed: no recompile needed, same agreement
+    q = p[:777]
+    assert_close(fastnoise.fbm_value_hashed(q, seed=-4, octaves=4, compiled=True),
+                 fastnoise.fbm_value_hashed(q, seed=-4, octaves=4), atol=atol)
+
+
+@pytest.mark.slow
+def test_compiled_render_matches_eager_render():
+    scene = tv.preset("cloud-puff", width=16, height=16).model_dump()
+    scene["volumes"][0]["density"]["fbm"]["hash"] = "arithmetic"
+    eager, fast = tv.render(scene), tv.render(scene, compile=True)
+    assert_close(fast.radiance, eager.radiance, atol=1e-5, what="radiance")
+    assert_close(fast.alpha, eager.alpha, atol=1e-5, what="alpha")

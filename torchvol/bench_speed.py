@@ -1,0 +1,276 @@
+"""`torchvol bench speed`: where a render's time goes against its peers, in one run (docs/SPEED.md).
+
+A profile, then four tables, every figure a median of `repeat` runs measured in this one run, so ratios hold on
+any machine (absolute times only on a quiet one):
+
+0. Where a render's time goes: torch.profiler's top ops (self CPU time) of `cloud-puff` (physical,
+   table-hash value-noise fbm) and `template-clouds` (texture noise) at 64×64.
+1. `template-clouds` on Mesa llvmpipe (the same GLSL template, `torchvol.testing.glsl`) against
+   torchvol eager and under torch.compile, and a physical cloud (`cloud-puff`) with the table hash,
+   the arithmetic hash eager and the arithmetic hash's fused compiled fbm (`torchvol.fastnoise`);
+   each row with its density evaluations per second.
+2. The floor: density evaluations per second of the 4-octave value-noise fbm alone on the same
+   points (table hash eager, arithmetic hash eager, fused compiled kernel).
+3. Generation: samples/s of bundled recipes at 128×128 with 1 and 2 workers (`generate`, the
+   full path: sampling, batched render, encoding, writes; worker runs include process start-up).
+4. The loaded-machine slowdown: a render in a fresh process alone and while one
+   ``python -c "while True: pass"`` keeps a core busy, per thread count and OpenMP wait policy.
+
+Compile time is excluded from the steady-state rows and reported on its own (first call).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import torch
+
+from . import fastnoise, noise
+from .render import render
+from .scene import preset
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPES = sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
+TEMPLATE_SIZES = ((640, 360), (1280, 720))
+
+
+def _median_time(fn: Callable[[], object], repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def time_render(scene, *, compile: bool, repeat: int) -> tuple[float, int, float]:
+    """(median seconds, density evaluations, first-call seconds) of `render(scene)`; the first call
+    (compilation under `compile`) is not in the median."""
+    start = time.perf_counter()
+    out = render(scene, compile=compile)
+    first = time.perf_counter() - start
+    return _median_time(lambda: render(scene, compile=compile), repeat), out.stats["density_evals"], first
+
+
+def time_llvmpipe(width: int, height: int, *, repeat: int) -> float | None:
+    """Median seconds of the template GLSL on llvmpipe at width×height (None: no EGL/GL context)."""
+    from .testing.glsl import gl_context, shadertoy_source, time_fragment
+
+    if gl_context() is None:
+        return None
+    template = (Path(__file__).parent / "testing" / "template_clouds.glsl").read_text()
+    uniforms = dict(iResolution=(width, height, 1.0), iTime=0.0, iMouse=(0.0, 0.0, 0.0, 0.0))
+    return time_fragment(shadertoy_source(template), width, height, uniforms=uniforms,
+                         textures={"iChannel0": noise.default_noise_texture(0).numpy()}, repeat=repeat)
+
+
+def _cloud_puff(width: int, height: int, hash: str) -> dict:
+    scene = preset("cloud-puff", width=width, height=height).model_dump()
+    scene["volumes"][0]["density"]["fbm"]["hash"] = hash
+    return scene
+
+
+def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size: tuple[int, int]) -> list[dict]:
+    """Rows {work, renderer, seconds, evals_per_s, ratio, first_s}: template-clouds per size against
+    llvmpipe, then cloud-puff at `physical_size` against its table-hash eager render."""
+    rows = []
+    for width, height in sizes:
+        gl = time_llvmpipe(width, height, repeat=repeat)
+        work = f"template-clouds {width}×{height}"
+        if gl is not None:
+            rows.append(dict(work=work, renderer="llvmpipe (GLSL template)", seconds=gl, evals_per_s=None, ratio=1.0, first_s=None))
+        scene = preset("template-clouds", width=width, height=height)
+        for compile, name in ((False, "torchvol eager"), (True, "torchvol torch.compile")):
+            seconds, evals, first = time_render(scene, compile=compile, repeat=repeat)
+            rows.append(dict(work=work, renderer=name, seconds=seconds, evals_per_s=evals / seconds,
+                             ratio=seconds / gl if gl else None, first_s=first))
+    width, height = physical_size
+    work, base = f"cloud-puff {width}×{height}", None
+    for hash, compile, name in (("table", False, "table hash, eager"), ("arithmetic", False, "arithmetic hash, eager"),
+                                ("arithmetic", True, "arithmetic hash, fused fbm compiled")):
+        seconds, evals, first = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat)
+        base = base or seconds
+        rows.append(dict(work=work, renderer=name, seconds=seconds, evals_per_s=evals / seconds, ratio=seconds / base, first_s=first))
+    return rows
+
+
+def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table") -> list[dict]:
+    """torch.profiler's `top` ops by self CPU time of one render of preset `name` at size×size
+    (after a warm-up render): rows {op, share, calls}; share of the profiled self CPU time."""
+    from torch.profiler import ProfilerActivity, profile
+
+    scene = _cloud_puff(size, size, hash) if name == "cloud-puff" else preset(name, width=size, height=size)
+    render(scene)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        render(scene)
+    events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    total = sum(e.self_cpu_time_total for e in events) or 1.0
+    return [dict(op=e.key, share=e.self_cpu_time_total / total, calls=e.count) for e in events[:top]]
+
+
+def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
+    """Density evaluations/s of the value-noise fbm alone on the same `points` random points
+    (interleaved runs): rows {kernel, evals_per_s, first_s}."""
+    g = torch.Generator().manual_seed(0)
+    p = torch.rand(points, 3, generator=g) * 20.0 - 10.0
+    kernels = {
+        "table hash (noise.fbm over noise.value_noise), eager":
+            lambda: noise.fbm(p, lambda q: noise.value_noise(q, seed=7), octaves=octaves),
+        "arithmetic hash, eager twin": lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves),
+        "arithmetic hash, fused compiled kernel": lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves, compiled=True),
+    }
+    first = {}
+    for name, fn in kernels.items():
+        start = time.perf_counter()
+        fn()
+        first[name] = time.perf_counter() - start
+    times: dict[str, list[float]] = {name: [] for name in kernels}
+    for _ in range(repeat):  # interleaved: a change in the machine's load hits every kernel alike
+        for name, fn in kernels.items():
+            times[name].append(_median_time(fn, 1))
+    return [dict(kernel=name, evals_per_s=points / statistics.median(t), first_s=first[name]) for name, t in times.items()]
+
+
+def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
+                    layout: str = "folder") -> list[dict]:
+    """Samples/s and bytes/sample (every file of the dataset over the sample count) of `generate`
+    for each recipe at size×size (None: the recipe's own size) with each worker count."""
+    from .generate import generate
+
+    rows = []
+    overrides = {} if size is None else {"image.width": size, "image.height": size}
+    for name in recipes:
+        for n in workers:
+            with tempfile.TemporaryDirectory() as tmp:
+                start = time.perf_counter()
+                generate(ROOT / "datasets" / f"{name}.toml", count=count, out=Path(tmp) / "ds", workers=n, batch=batch,
+                         layout=layout, overrides=overrides, progress=False)
+                seconds = time.perf_counter() - start
+                size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
+            rows.append(dict(recipe=name, workers=n, seconds=seconds, samples_per_s=count / seconds,
+                             bytes_per_sample=size_bytes / count))
+    return rows
+
+
+_RENDER_CHILD = textwrap.dedent("""
+    import statistics, sys, time, torch
+    torch.set_num_threads(int(sys.argv[1]))
+    import torchvol as tv
+    scene = tv.preset("template-clouds", width=int(sys.argv[2]), height=int(sys.argv[3]))
+    tv.render(scene)
+    times = []
+    for _ in range(int(sys.argv[4])):
+        start = time.perf_counter(); tv.render(scene); times.append(time.perf_counter() - start)
+    print(statistics.median(times))
+""")
+
+
+def _child_render(threads: int, policy: str, width: int, height: int, repeat: int) -> float:
+    env = {**os.environ, "OMP_WAIT_POLICY": policy, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    env.pop("OMP_NUM_THREADS", None)  # the child sets its own thread count
+    out = subprocess.run([sys.executable, "-c", _RENDER_CHILD, str(threads), str(width), str(height), str(repeat)],
+                         env=env, check=True, capture_output=True, text=True)
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def loaded_rows(*, width: int, height: int, repeat: int, configs: Sequence[tuple[int, str]] | None = None) -> list[dict]:
+    """template-clouds at width×height in a fresh process, alone and with one busy competitor, per
+    (torch threads, OMP_WAIT_POLICY): rows {threads, policy, alone_s, loaded_s, slowdown}."""
+    cores = os.cpu_count() or 1
+    configs = configs or [(cores, "ACTIVE"), (cores, "PASSIVE"), (max(1, cores - 1), "PASSIVE")]
+    rows = []
+    for threads, policy in configs:
+        alone = _child_render(threads, policy, width, height, repeat)
+        busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        try:
+            loaded = _child_render(threads, policy, width, height, repeat)
+        finally:
+            busy.kill()
+            busy.wait()
+        rows.append(dict(threads=threads, policy=policy, alone_s=alone, loaded_s=loaded, slowdown=loaded / alone))
+    return rows
+
+
+def _fmt(value, spec: str = ".3f") -> str:
+    return "" if value is None else format(value, spec)
+
+
+def markdown(sections: dict) -> str:
+    """The report: machine line, then each measured section as a Markdown table."""
+    from .testing.glsl import renderer_name
+
+    lines = ["# Speed", "", f"`torchvol bench speed{' --quick' if sections['quick'] else ''}`, {time.strftime('%Y-%m-%d')}: "
+             f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs, "
+             f"{platform.processor() or platform.machine()}; GL: {renderer_name()}. Medians of {sections['repeat']} runs; "
+             "compilation (first call) reported apart. Ratios hold on a busy machine; absolute times only on a quiet "
+             "one. `torchvol bench speed --out docs/SPEED.md` writes this page (`--quick`: small sizes, two recipes).", ""]
+    if "profile" in sections:
+        lines += ["## Where the time goes (torch.profiler, self CPU time, one render)", "",
+                  "| render | op | share | calls |", "| --- | --- | ---: | ---: |"]
+        lines += [f"| {name} | `{r['op']}` | {r['share']:.0%} | {r['calls']} |" for name, rows in sections["profile"].items() for r in rows]
+        lines += ["", "`aten::index` in cloud-puff is the value noise's permutation-table gathers (Perlin's "
+                  "perm[perm[perm[x] + y] + z], 8 corners per octave); `density.fbm.hash = \"arithmetic\"` replaces them "
+                  "(torchvol.fastnoise).", ""]
+    if "render" in sections:
+        lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | first call s |",
+                  "| --- | --- | ---: | ---: | ---: | ---: |"]
+        lines += [f"| {r['work']} | {r['renderer']} | {r['seconds']:.3f} | {_fmt(r['evals_per_s'], ',.0f')} | "
+                  f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['first_s'], '.1f')} |" for r in sections["render"]]
+        lines += ["", "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
+                  "`torch.compile` on template-clouds compiles its texture-noise kernel per octave (the march around it "
+                  "stays eager); the arithmetic hash's fbm is one fused kernel (docs/VOLUMES.md). A render's density "
+                  "evals/s against the floor below is how far the march around the density is from free.", ""]
+    if "floor" in sections:
+        lines += ["## The floor: 4-octave value-noise fbm alone", "", "| kernel | evals/s | first call s |", "| --- | ---: | ---: |"]
+        lines += [f"| {r['kernel']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |" for r in sections["floor"]]
+        lines += [""]
+    if "generate" in sections:
+        lines += ["## Generation", "", "| recipe | workers | seconds | samples/s | bytes/sample |", "| --- | ---: | ---: | ---: | ---: |"]
+        lines += [f"| {r['recipe']} | {r['workers']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | {r['bytes_per_sample']:,.0f} |"
+                  for r in sections["generate"]]
+        lines += [""]
+    if "loaded" in sections:
+        lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
+                  "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
+                  "(torchvol/__init__.py): spinning OpenMP threads fight the competitor at every one of a render's small ops.", "", "| torch threads | OMP_WAIT_POLICY | alone s | loaded s | slowdown |",
+                  "| ---: | --- | ---: | ---: | ---: |"]
+        lines += [f"| {r['threads']} | {r['policy']} | {r['alone_s']:.3f} | {r['loaded_s']:.3f} | {r['slowdown']:.2f} |"
+                  for r in sections["loaded"]]
+        lines += [""]
+    return "\n".join(lines)
+
+
+def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | None = None,
+          recipes: Sequence[str] | None = None,
+          parts: Sequence[str] = ("profile", "render", "floor", "generate", "loaded")) -> str:
+    """Run the benchmark; returns the Markdown (and writes it to `out` where given). `quick`: small
+    sizes, two recipes, fewer points (about 2 minutes on 2 cores once inductor's cache is warm)."""
+    repeat = repeat or (2 if quick else 3)
+    sections: dict = {"quick": quick, "repeat": repeat}
+    if "profile" in parts:
+        size = 32 if quick else 64
+        sections["profile"] = {f"{name} {size}×{size}": profile_rows(name, size=size) for name in ("cloud-puff", "template-clouds")}
+    if "render" in parts:
+        sizes = ((160, 90),) if quick else TEMPLATE_SIZES
+        sections["render"] = render_rows(sizes, repeat=repeat, physical_size=(48, 48) if quick else (128, 128))
+    if "floor" in parts:
+        sections["floor"] = floor_rows(points=2**16 if quick else 2**20, repeat=repeat)
+    if "generate" in parts:
+        chosen = recipes or (("clouds", "template-clouds") if quick else RECIPES)
+        sections["generate"] = generation_rows(chosen, workers=(1, 2), count=4 if quick else 16, size=32 if quick else 128)
+    if "loaded" in parts:
+        # quick: a small render (2 threads spinning against a competitor run ~20x longer), 3 runs: the ratio is noisy
+        sections["loaded"] = loaded_rows(width=64 if quick else 320, height=36 if quick else 180, repeat=3 if quick else repeat)
+    text = markdown(sections)
+    if out is not None:
+        Path(out).write_text(text + "\n")
+    return text

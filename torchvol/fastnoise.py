@@ -1,0 +1,128 @@
+"""Value-noise fBm with an arithmetic integer hash: the fast twin of ``noise.fbm`` over
+``noise.value_noise`` (``density.fbm.hash = "arithmetic"``).
+
+`noise.value_noise` hashes lattice corners with Perlin's permutation table: three dependent
+gathers per corner, which neither vectorise nor fuse. Here each corner's value comes from int32
+multiplies, xors and shifts only (``h = mix32(x·P1 ^ y·P2 ^ z·P3 ^ seed)``, lowbias32 finaliser,
+int32 arithmetic wrapping mod 2**32), so inductor turns a whole fBm (all octaves, trilinear blends
+and the weighted sum) into one fused, vectorised loop (`fbm_value_hashed(..., compiled=True)`).
+
+`fbm_value_hashed(..., compiled=False)` is the eager reference twin: ``noise.fbm`` (the seeds'
+float order, Mesa's folded octave scales, LOD compaction) over `value_noise_hashed`. The compiled
+kernel evaluates every octave and masks the ones LOD drops instead of compacting (static shapes),
+which adds exact zeros; tests hold it to the twin. The lattice values are a different random
+field than the table's, with the same distribution (uniform 24-bit values in [0, 1)), so images
+change where a scene switches hash; the statistics do not (tests/test_fastnoise.py).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from . import noise
+
+__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed"]
+
+# odd multipliers below 2**31 (xxHash's primes and murmur3's c2): Python ints that stay int32 in torch
+_P = (0x1B873593, 0x27D4EB2F, 0x165667B1)
+
+
+def _mix32(h: Tensor) -> Tensor:
+    """lowbias32 on int32 holding uint32 bits: int32 multiplies wrap mod 2**32 like uint32 ones;
+    ``(h >> s) & mask`` is the logical shift (torch's ``>>`` on int32 is arithmetic)."""
+    h = h ^ ((h >> 16) & 0xFFFF)
+    h = h * 0x7FEB352D
+    h = h ^ ((h >> 15) & 0x1FFFF)
+    h = h * 0x1B873593
+    return h ^ ((h >> 16) & 0xFFFF)
+
+
+def _seed32(seed: int) -> int:
+    """A mixed 32-bit seed as a signed int32 value (so it fits an int32 tensor)."""
+    h = (int(seed) * 0x9E3779B9 + 0x632BE5AB) & 0xFFFFFFFF
+    h = _mix32(torch.tensor(h - (1 << 32) if h >= 1 << 31 else h, dtype=torch.int32))
+    return int(h)
+
+
+def hash_cells(x: Tensor, y: Tensor, z: Tensor, seed: Tensor | int) -> Tensor:
+    """Uniform values in [0, 1) of integer lattice cells (x, y, z), each ``[N]`` int32 (values
+    taken mod 2**32), and a mixed seed (`_seed32`; int or 0-dim int32 tensor) -> ``[N]`` int32 in
+    [0, 2**24): the hash's top 24 bits."""
+    h = _mix32((x * _P[0]) ^ (y * _P[1]) ^ (z * _P[2]) ^ seed)
+    return (h >> 8) & 0xFFFFFF
+
+
+def _value(p: Sequence[Tensor], seed: Tensor | int) -> Tensor:
+    """Value noise of points given as their three coordinates (each ``[N]``) with a mixed seed
+    -> ``[N]`` in [0, 1) (`value_noise_hashed`). Coordinates, not ``[N, 3]``: contiguous loads
+    let inductor vectorise the fused loop."""
+    fl = [torch.floor(c) for c in p]
+    u = [(c - f) * (c - f) * (3.0 - 2.0 * (c - f)) for c, f in zip(p, fl)]
+    x0, y0, z0 = (f.to(torch.int32) for f in fl)
+    x1, y1, z1 = x0 + 1, y0 + 1, z0 + 1
+    vals = [hash_cells(xs, ys, zs, seed).to(p[0].dtype) * 2.0**-24
+            for zs in (z0, z1) for ys in (y0, y1) for xs in (x0, x1)]  # noise._CORNERS order
+    return noise._trilinear(vals, u)
+
+
+def value_noise_hashed(p: Tensor, *, seed: int = 0) -> Tensor:
+    """Value noise with the arithmetic hash: `noise.value_noise`'s signature and fade, lattice values
+    from `hash_cells`. p: ``[N, 3]`` float points with |p| < 2**31. Returns ``[N]`` in [0, 1)."""
+    noise._check_points(p)
+    return _value(p.unbind(-1), _seed32(seed))
+
+
+@functools.cache
+def _compiled_fbm(octaves: int, gain: float):
+    """Every octave of `noise.fbm` in its float order, LOD as a mask, as one compiled graph
+    (octaves and gain are constants of it). Arguments: x, y, z each ``[N]``; seed 0-dim int32;
+    scales ``[octaves - 1]`` in the points' dtype; lod ``[N]`` or None."""
+
+    def fused(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None) -> Tensor:
+        f = _value((x, y, z), seed) * 0.5
+        for k in range(1, octaves):
+            s = scales[k - 1]
+            term = _value((x * s, y * s, z * s), seed) * (0.5 * gain**k)
+            f = f + (term if lod is None else torch.where(lod >= k + 1, term, torch.zeros_like(term)))
+        return f
+
+    # dynamic shapes: the march hands over a different number of active points every step
+    return torch.compile(fused, dynamic=True)
+
+
+def fbm_value_hashed(
+    p: Tensor,
+    *,
+    seed: int = 0,
+    octaves: int = 5,
+    lacunarity: float | Sequence[float] = (2.02, 2.03, 2.01, 2.02),
+    gain: float = 0.5,
+    lod: Tensor | None = None,
+    compiled: bool = False,
+) -> Tensor:
+    """``noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), ...)`` (fold "mesa").
+
+    p: ``[N, 3]`` points; lod: optional ``[N]`` (or scalar) as in `noise.fbm`. compiled: run the
+    fused kernel under torch.compile (compiled once per octave count, dtype and LOD presence, for
+    all sizes and seeds; inductor's on-disk cache serves later processes; past dynamo's recompile
+    limit, 8 variants, it runs eagerly: slower, same values). Returns ``[N]``.
+    """
+    if not compiled:
+        return noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), octaves=octaves, lacunarity=lacunarity,
+                         gain=gain, lod=lod)
+    noise._check_points(p)
+    if octaves < 1:
+        raise ValueError(f"octaves: got {octaves!r}; an integer >= 1")
+    lac = [float(lacunarity)] if isinstance(lacunarity, (int, float)) else [float(x) for x in lacunarity]
+    steps = [lac[i % len(lac)] for i in range(octaves - 1)]
+    scales = noise._mesa_folded_scales(steps, p.dtype, p.device)
+    scales = torch.stack(scales) if scales else p.new_zeros(0)
+    if lod is not None:
+        lod = torch.as_tensor(lod, device=p.device).expand(p.shape[:1])
+    seed_t = torch.tensor(_seed32(seed), dtype=torch.int32, device=p.device)
+    x, y, z = (c.contiguous() for c in p.unbind(-1))
+    return _compiled_fbm(int(octaves), float(gain))(x, y, z, seed_t, scales, lod)
