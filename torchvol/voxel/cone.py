@@ -44,12 +44,12 @@ from typing import Annotated, Literal, Union
 
 import torch
 import torch.nn.functional as F
-from pydantic import Discriminator, Field, Tag, model_validator
+from pydantic import Discriminator, Field, Tag
 from torch import Tensor
 
 from .. import mathops
 from ..schema import Strict
-from .gi import VoxelGI
+from .gi import DistanceLOD, VoxelGI
 
 __all__ = ["ConeLOD", "VoxelCone", "VoxelGIs", "build_mips", "cone_ao", "cone_directions", "default_aperture", "face_cells",
            "sample_mips", "trace_cones"]
@@ -59,20 +59,12 @@ CHANNELS = 5  # radiance · surface (3), surface, opacity
 OFFSET = 1.0  # a cone starts this many voxels off the face (less self-occlusion at coarse levels)
 
 
-class ConeLOD(Strict):
+class ConeLOD(DistanceLOD):
     """Distance LOD of the cones: beyond `near` (world distance from the camera) the half-angle
     widens linearly to `aperture` at `far`; beyond `far` only `cones` cones are traced."""
 
-    near: float = Field(8.0, ge=0.0)
-    far: float = Field(32.0, gt=0.0)
     cones: int = Field(3, ge=1, le=64)
     aperture: float = Field(50.0, gt=0.0, lt=90.0)
-
-    @model_validator(mode="after")
-    def _ordered(self):
-        if self.far <= self.near:
-            raise ValueError(f"far ({self.far}) must exceed near ({self.near})")
-        return self
 
 
 class VoxelCone(Strict):

@@ -23,22 +23,27 @@ from torch import Tensor
 from .. import noise
 from ..schema import Strict
 
-__all__ = ["PathLOD", "VoxelGI", "cosine_directions", "lod_counts", "lod_keys", "path_keys"]
+__all__ = ["DistanceLOD", "PathLOD", "VoxelGI", "cosine_directions", "lod_counts", "lod_keys", "path_keys"]
 
 
-class PathLOD(Strict):
-    """Distance LOD of the paths: hits further from the camera than `near` (world units) trace fewer
-    paths, down to `samples` at `far` and beyond (linearly in between, rounded)."""
+class DistanceLOD(Strict):
+    """A quality that falls with the world distance of a hit from the camera, from `near` to `far`."""
 
     near: float = Field(8.0, ge=0.0)
     far: float = Field(32.0, gt=0.0)
-    samples: int = Field(2, ge=1, le=4096)
 
     @model_validator(mode="after")
     def _ordered(self):
         if self.far <= self.near:
             raise ValueError(f"far ({self.far}) must exceed near ({self.near})")
         return self
+
+
+class PathLOD(DistanceLOD):
+    """Distance LOD of the paths: hits further from the camera than `near` (world units) trace fewer
+    paths, down to `samples` at `far` and beyond (linearly in between, rounded)."""
+
+    samples: int = Field(2, ge=1, le=4096)
 
 
 class VoxelGI(Strict):
