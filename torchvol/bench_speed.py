@@ -96,22 +96,23 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
     width, height = physical_size
     work, base = f"cloud-puff {width}×{height}", None
     for hash, compile, name in (("table", False, "table hash, eager"), ("arithmetic", False, "arithmetic hash, eager"),
-                                ("arithmetic", True, "arithmetic hash, fused fbm compiled")):
+                                ("arithmetic", True, "arithmetic hash, fused field compiled")):
         seconds, evals, first = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat)
         base = base or seconds
         rows.append(dict(work=work, renderer=name, seconds=seconds, evals_per_s=evals / seconds, ratio=seconds / base, first_s=first))
     return rows
 
 
-def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table") -> list[dict]:
+def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", compile: bool = False) -> list[dict]:
     """torch.profiler's `top` ops by self CPU time of one render of preset `name` at size×size
-    (after a warm-up render): rows {op, share, calls}; share of the profiled self CPU time."""
+    (after a warm-up render, which compiles under `compile`): rows {op, share, calls}; share of the
+    profiled self CPU time."""
     from torch.profiler import ProfilerActivity, profile
 
     scene = _cloud_puff(size, size, hash) if name == "cloud-puff" else preset(name, width=size, height=size)
-    render(scene)
+    render(scene, compile=compile)
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        render(scene)
+        render(scene, compile=compile)
     events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
     total = sum(e.self_cpu_time_total for e in events) or 1.0
     return [dict(op=e.key, share=e.self_cpu_time_total / total, calls=e.count) for e in events[:top]]
@@ -259,6 +260,9 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
     if "profile" in parts:
         size = 32 if quick else 64
         sections["profile"] = {f"{name} {size}×{size}": profile_rows(name, size=size) for name in ("cloud-puff", "template-clouds")}
+        # the fused path: what is left around the compiled density kernel
+        sections["profile"][f"cloud-puff arithmetic compiled {size}×{size}"] = profile_rows(
+            "cloud-puff", size=size, hash="arithmetic", compile=True)
     if "render" in parts:
         sizes = ((160, 90),) if quick else TEMPLATE_SIZES
         sections["render"] = render_rows(sizes, repeat=repeat, physical_size=(48, 48) if quick else (128, 128))
