@@ -159,3 +159,33 @@ def test_compiled_fbm_field_matches_eager_field():
     for kwargs in ({}, {"lod": lod}):
         assert_close(fast.signed(p, s, **kwargs), eager.signed(p, s, **kwargs), atol=1e-5, what=f"field {kwargs.keys()}")
     assert_close(fast(p, s), eager(p, s), atol=1e-5, what="clamped field")
+
+
+def test_compile_pays_only_for_scenes_of_arithmetic_fbm_volumes():
+    scene = tv.preset("cloud-puff", width=8, height=8).model_dump()
+    assert not fastnoise.compile_pays(tv.preset("cloud-puff", width=8, height=8))  # the table hash
+    scene["volumes"][0]["density"]["fbm"]["hash"] = "arithmetic"
+    from torchvol.scene import load_scene
+    assert fastnoise.compile_pays(load_scene(scene))
+    assert not fastnoise.compile_pays(tv.preset("template-clouds", width=8, height=8))
+    assert not fastnoise.compile_pays(tv.preset("voxel-terrain", width=8, height=8))
+
+
+@pytest.mark.slow  # compiles the fused field (cached on disk after the first run)
+def test_generated_samples_compiled_match_eager(tmp_path):
+    """`render_samples(..., compile=True)` (what `generate` runs from COMPILE_MIN_SAMPLES samples on)
+    against eager: within 1e-5; `generate(compile=True)` writes a finished dataset."""
+    from pathlib import Path
+
+    from torchvol.data import render_samples
+    from torchvol.generate import generate
+    from torchvol.recipe import Recipe
+
+    path = Path(__file__).resolve().parents[1] / "datasets" / "clouds.toml"
+    recipe = Recipe.load(path, {"image.width": 12, "image.height": 12})
+    eager, fast = render_samples(recipe, [0, 1]), render_samples(recipe, [0, 1], compile=True)
+    for a, b in zip(eager, fast):
+        assert_close(b["image"], a["image"], atol=1e-5, what="image")
+        assert_close(b["depth_median"], a["depth_median"], atol=1e-4, what="depth_median")
+    report = generate(path, count=1, out=tmp_path / "ds", overrides={"image.width": 8, "image.height": 8}, compile=True)
+    assert report["finished"] and report["written"] == 1

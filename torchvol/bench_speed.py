@@ -142,23 +142,30 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
 
 
 def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
-                    layout: str = "folder") -> list[dict]:
+                    layout: str = "folder", compiled: bool = True) -> list[dict]:
     """Samples/s and bytes/sample (every file of the dataset over the sample count) of `generate`
-    for each recipe at size×size (None: the recipe's own size) with each worker count."""
+    for each recipe at size×size (None: the recipe's own size) with each worker count, eager and,
+    where the recipe's scenes take it (`fastnoise.compile_pays`) and `compiled`, compiled (its
+    compilation in each worker process included)."""
+    from .fastnoise import compile_pays
     from .generate import generate
+    from .recipe import Recipe
 
     rows = []
     overrides = {} if size is None else {"image.width": size, "image.height": size}
     for name in recipes:
+        path = ROOT / "datasets" / f"{name}.toml"
+        modes = (False, True) if compiled and compile_pays(Recipe.load(path, overrides).sample_with_params(0, 0)[0]) else (False,)
         for n in workers:
-            with tempfile.TemporaryDirectory() as tmp:
-                start = time.perf_counter()
-                generate(ROOT / "datasets" / f"{name}.toml", count=count, out=Path(tmp) / "ds", workers=n, batch=batch,
-                         layout=layout, overrides=overrides, progress=False)
-                seconds = time.perf_counter() - start
-                size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
-            rows.append(dict(recipe=name, workers=n, seconds=seconds, samples_per_s=count / seconds,
-                             bytes_per_sample=size_bytes / count))
+            for compile in modes:
+                with tempfile.TemporaryDirectory() as tmp:
+                    start = time.perf_counter()
+                    generate(path, count=count, out=Path(tmp) / "ds", workers=n, batch=batch, layout=layout,
+                             overrides=overrides, progress=False, compile=compile)
+                    seconds = time.perf_counter() - start
+                    size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
+                rows.append(dict(recipe=name, workers=n, mode="compiled" if compile else "eager", seconds=seconds,
+                                 samples_per_s=count / seconds, bytes_per_sample=size_bytes / count))
     return rows
 
 
@@ -235,10 +242,13 @@ def markdown(sections: dict) -> str:
         lines += [f"| {r['kernel']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |" for r in sections["floor"]]
         lines += [""]
     if "generate" in sections:
-        lines += ["## Generation", "", "| recipe | workers | seconds | samples/s | bytes/sample |", "| --- | ---: | ---: | ---: | ---: |"]
-        lines += [f"| {r['recipe']} | {r['workers']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | {r['bytes_per_sample']:,.0f} |"
-                  for r in sections["generate"]]
-        lines += [""]
+        lines += ["## Generation", "", "| recipe | workers | mode | seconds | samples/s | bytes/sample |",
+                  "| --- | ---: | --- | ---: | ---: | ---: |"]
+        lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
+                  f"{r['bytes_per_sample']:,.0f} |" for r in sections["generate"]]
+        lines += ["", "compiled: `generate(..., compile=True)`, the default from `fastnoise.COMPILE_MIN_SAMPLES` samples on "
+                  "for recipes whose scenes take it (an fbm on the arithmetic hash); its seconds include compiling in "
+                  "every worker process (inductor's on-disk cache, shared by the workers, warm).", ""]
     if "loaded" in sections:
         lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
                   "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
