@@ -227,7 +227,9 @@ def markdown(sections: dict) -> str:
         lines += [f"| {name} | `{r['op']}` | {r['share']:.0%} | {r['calls']} |" for name, rows in sections["profile"].items() for r in rows]
         lines += ["", "`aten::index` in cloud-puff is the value noise's permutation-table gathers (Perlin's "
                   "perm[perm[perm[x] + y] + z], 8 corners per octave); `density.fbm.hash = \"arithmetic\"` replaces them "
-                  "(torchvol.fastnoise).", ""]
+                  "(torchvol.fastnoise). In the compiled arithmetic-hash render the fused density kernels (`Torch-Compiled Region`, "
+                  "dynamo's guard checks in `TorchDynamo Cache Lookup`) sit among the march's small eager ops "
+                  "(docs/VOLUMES.md, \"The fused field\").", ""]
     if "render" in sections:
         lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | first call s |",
                   "| --- | --- | ---: | ---: | ---: | ---: |"]
@@ -247,8 +249,9 @@ def markdown(sections: dict) -> str:
         lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
                   f"{r['bytes_per_sample']:,.0f} |" for r in sections["generate"]]
         lines += ["", "compiled: `generate(..., compile=True)`, the default from `fastnoise.COMPILE_MIN_SAMPLES` samples on "
-                  "for recipes whose scenes take it (an fbm on the arithmetic hash); its seconds include compiling in "
-                  "every worker process (inductor's on-disk cache, shared by the workers, warm).", ""]
+                  "for recipes whose scenes take it (an fbm on the arithmetic hash). With 1 worker generate runs in this "
+                  "process, which the rows above already compiled; with 2, each spawned worker compiles again (dynamo "
+                  "traces; inductor's on-disk cache, shared, is warm): seconds a short run does not repay.", ""]
     if "loaded" in sections:
         lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
                   "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
