@@ -13,6 +13,10 @@ kernel evaluates every octave and masks the ones LOD drops instead of compacting
 which adds exact zeros; tests hold it to the twin. The lattice values are a different random
 field than the table's, with the same distribution (uniform 24-bit values in [0, 1)), so images
 change where a scene switches hash; the statistics do not (tests/test_fastnoise.py).
+
+`fbm_field_hashed` is the fbm field's whole signed density (affine map, fbm, falloff) as one compiled
+kernel, what `fields.fbm.FbmField` runs under compile; `compile_pays` says where a render compiled is
+the fast path (`generate` uses it).
 """
 
 from __future__ import annotations

@@ -204,7 +204,7 @@ def generate(
     atomic_write(out / "meta.json", meta_bytes)
 
     tasks = plan_tasks(recipe, count=count, seed=seed, out=out, layout=layout, batch=batch, shard_size=shard_size)
-    if count >= COMPILE_MIN_SAMPLES if compile is None else compile:  # compiling pays for a large dataset
+    if (count >= COMPILE_MIN_SAMPLES) if compile is None else compile:  # compiling pays for a large dataset
         tasks = [replace(t, compile=True) for t in tasks]
     done = sum(_finished(t) for t in tasks)
     pending = [t for t in tasks if _finished(t) < len(t.indices)]

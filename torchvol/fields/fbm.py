@@ -62,8 +62,7 @@ class FbmField:
         self.p = params
         basis = NOISES[params.noise]
         self.basis = noise.compiled(basis) if compiled else basis
-        self.fused = (partial(fastnoise.fbm_value_hashed, compiled=compiled)
-                      if params.hash == "arithmetic" else None)
+        self.fused = fastnoise.fbm_value_hashed if params.hash == "arithmetic" else None
         # compiled arithmetic hash: the whole signed field is one kernel (eager: the code below is its twin)
         self.fused_field = compiled and params.hash == "arithmetic"
         self.shift = params.wind * times[:, None]  # (B, 3)
