@@ -12,7 +12,7 @@ def test_cli_parses_bench_speed():
 
 
 def test_generation_and_loaded_sections_report(tmp_path):
-    rows = bench_speed.generation_rows(["clouds"], workers=(1,), count=1, size=8)
+    rows = bench_speed.generation_rows(["clouds"], workers=(1,), count=1, size=8, compiled=False)
     assert rows[0]["recipe"] == "clouds" and rows[0]["samples_per_s"] > 0 and rows[0]["bytes_per_sample"] > 0
     loaded = bench_speed.loaded_rows(width=8, height=6, repeat=1, configs=[(1, "PASSIVE")])
     assert loaded[0]["slowdown"] > 0
@@ -23,13 +23,18 @@ def test_generation_and_loaded_sections_report(tmp_path):
 @pytest.mark.slow  # compiles the template's and the fused fbm's kernels (tens of seconds on 2 cores, once)
 def test_speed_quick_logic_on_tiny_sizes(tmp_path):
     rows = bench_speed.render_rows(((16, 9),), repeat=1, physical_size=(8, 8))
-    assert {r["renderer"] for r in rows} >= {"torchvol eager", "torchvol torch.compile", "arithmetic hash, fused fbm compiled"}
+    assert {r["renderer"] for r in rows} >= {"torchvol eager", "torchvol torch.compile", "arithmetic hash, fused field compiled"}
     floor = bench_speed.floor_rows(points=2048, repeat=1)
     assert all(r["evals_per_s"] > 0 for r in floor)
     profile = {"cloud-puff 8×8": bench_speed.profile_rows("cloud-puff", size=8, top=3)}
-    assert len(profile["cloud-puff 8×8"]) == 3 and all(0 < r["share"] <= 1 for r in profile["cloud-puff 8×8"])
-    text = bench_speed.markdown({"quick": True, "repeat": 1, "profile": profile, "render": rows, "floor": floor})
+    profile["fused"] = bench_speed.profile_rows("cloud-puff", size=8, top=3, hash="arithmetic", compile=True)
+    assert all(len(rows) == 3 and all(0 < r["share"] <= 1 for r in rows) for rows in profile.values())
+    generation = bench_speed.generation_rows(["clouds"], workers=(1,), count=1, size=8)
+    assert [r["mode"] for r in generation] == ["eager", "compiled"]
+    text = bench_speed.markdown({"quick": True, "repeat": 1, "profile": profile, "render": rows, "floor": floor,
+                                 "generate": generation})
     assert "## Where the time goes" in text and "## Renders" in text and "## The floor" in text
+    assert "| clouds | 1 | compiled |" in text
 
 
 @pytest.mark.parametrize("preset, expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])

@@ -96,22 +96,23 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
     width, height = physical_size
     work, base = f"cloud-puff {width}×{height}", None
     for hash, compile, name in (("table", False, "table hash, eager"), ("arithmetic", False, "arithmetic hash, eager"),
-                                ("arithmetic", True, "arithmetic hash, fused fbm compiled")):
+                                ("arithmetic", True, "arithmetic hash, fused field compiled")):
         seconds, evals, first = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat)
         base = base or seconds
         rows.append(dict(work=work, renderer=name, seconds=seconds, evals_per_s=evals / seconds, ratio=seconds / base, first_s=first))
     return rows
 
 
-def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table") -> list[dict]:
+def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", compile: bool = False) -> list[dict]:
     """torch.profiler's `top` ops by self CPU time of one render of preset `name` at size×size
-    (after a warm-up render): rows {op, share, calls}; share of the profiled self CPU time."""
+    (after a warm-up render, which compiles under `compile`): rows {op, share, calls}; share of the
+    profiled self CPU time."""
     from torch.profiler import ProfilerActivity, profile
 
     scene = _cloud_puff(size, size, hash) if name == "cloud-puff" else preset(name, width=size, height=size)
-    render(scene)
+    render(scene, compile=compile)
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        render(scene)
+        render(scene, compile=compile)
     events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
     total = sum(e.self_cpu_time_total for e in events) or 1.0
     return [dict(op=e.key, share=e.self_cpu_time_total / total, calls=e.count) for e in events[:top]]
@@ -141,23 +142,30 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
 
 
 def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
-                    layout: str = "folder") -> list[dict]:
+                    layout: str = "folder", compiled: bool = True) -> list[dict]:
     """Samples/s and bytes/sample (every file of the dataset over the sample count) of `generate`
-    for each recipe at size×size (None: the recipe's own size) with each worker count."""
+    for each recipe at size×size (None: the recipe's own size) with each worker count, eager and,
+    where the recipe's scenes take it (`fastnoise.compile_pays`) and `compiled`, compiled (its
+    compilation in each worker process included)."""
+    from .fastnoise import compile_pays
     from .generate import generate
+    from .recipe import Recipe
 
     rows = []
     overrides = {} if size is None else {"image.width": size, "image.height": size}
     for name in recipes:
+        path = ROOT / "datasets" / f"{name}.toml"
+        modes = (False, True) if compiled and compile_pays(Recipe.load(path, overrides).sample_with_params(0, 0)[0]) else (False,)
         for n in workers:
-            with tempfile.TemporaryDirectory() as tmp:
-                start = time.perf_counter()
-                generate(ROOT / "datasets" / f"{name}.toml", count=count, out=Path(tmp) / "ds", workers=n, batch=batch,
-                         layout=layout, overrides=overrides, progress=False)
-                seconds = time.perf_counter() - start
-                size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
-            rows.append(dict(recipe=name, workers=n, seconds=seconds, samples_per_s=count / seconds,
-                             bytes_per_sample=size_bytes / count))
+            for compile in modes:
+                with tempfile.TemporaryDirectory() as tmp:
+                    start = time.perf_counter()
+                    generate(path, count=count, out=Path(tmp) / "ds", workers=n, batch=batch, layout=layout,
+                             overrides=overrides, progress=False, compile=compile)
+                    seconds = time.perf_counter() - start
+                    size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
+                rows.append(dict(recipe=name, workers=n, mode="compiled" if compile else "eager", seconds=seconds,
+                                 samples_per_s=count / seconds, bytes_per_sample=size_bytes / count))
     return rows
 
 
@@ -219,7 +227,9 @@ def markdown(sections: dict) -> str:
         lines += [f"| {name} | `{r['op']}` | {r['share']:.0%} | {r['calls']} |" for name, rows in sections["profile"].items() for r in rows]
         lines += ["", "`aten::index` in cloud-puff is the value noise's permutation-table gathers (Perlin's "
                   "perm[perm[perm[x] + y] + z], 8 corners per octave); `density.fbm.hash = \"arithmetic\"` replaces them "
-                  "(torchvol.fastnoise).", ""]
+                  "(torchvol.fastnoise). In the compiled arithmetic-hash render the fused density kernels (`Torch-Compiled Region`, "
+                  "dynamo's guard checks in `TorchDynamo Cache Lookup`) sit among the march's small eager ops "
+                  "(docs/VOLUMES.md, \"The fused field\").", ""]
     if "render" in sections:
         lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | first call s |",
                   "| --- | --- | ---: | ---: | ---: | ---: |"]
@@ -234,10 +244,14 @@ def markdown(sections: dict) -> str:
         lines += [f"| {r['kernel']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |" for r in sections["floor"]]
         lines += [""]
     if "generate" in sections:
-        lines += ["## Generation", "", "| recipe | workers | seconds | samples/s | bytes/sample |", "| --- | ---: | ---: | ---: | ---: |"]
-        lines += [f"| {r['recipe']} | {r['workers']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | {r['bytes_per_sample']:,.0f} |"
-                  for r in sections["generate"]]
-        lines += [""]
+        lines += ["## Generation", "", "| recipe | workers | mode | seconds | samples/s | bytes/sample |",
+                  "| --- | ---: | --- | ---: | ---: | ---: |"]
+        lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
+                  f"{r['bytes_per_sample']:,.0f} |" for r in sections["generate"]]
+        lines += ["", "compiled: `generate(..., compile=True)`, the default from `fastnoise.COMPILE_MIN_SAMPLES` samples on "
+                  "for recipes whose scenes take it (an fbm on the arithmetic hash). With 1 worker generate runs in this "
+                  "process, which the rows above already compiled; with 2, each spawned worker compiles again (dynamo "
+                  "traces; inductor's on-disk cache, shared, is warm): seconds a short run does not repay.", ""]
     if "loaded" in sections:
         lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
                   "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
@@ -259,6 +273,9 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
     if "profile" in parts:
         size = 32 if quick else 64
         sections["profile"] = {f"{name} {size}×{size}": profile_rows(name, size=size) for name in ("cloud-puff", "template-clouds")}
+        # the fused path: what is left around the compiled density kernel
+        sections["profile"][f"cloud-puff arithmetic compiled {size}×{size}"] = profile_rows(
+            "cloud-puff", size=size, hash="arithmetic", compile=True)
     if "render" in parts:
         sizes = ((160, 90),) if quick else TEMPLATE_SIZES
         sections["render"] = render_rows(sizes, repeat=repeat, physical_size=(48, 48) if quick else (128, 128))

@@ -53,9 +53,11 @@ def epoch_seed(seed: int, epoch: int | None) -> int:
 
 
 def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aovs: Sequence[str] | None = None,
-                   chunk_rays: int | None = None) -> list[dict]:
+                   chunk_rays: int | None = None, compile: bool = False) -> list[dict]:
     """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
-    e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch."""
+    e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch.
+    `compile`: render compiled the batches where that is the fast path (`fastnoise.compile_pays`)."""
+    from .fastnoise import compile_pays
     from .render import DEFAULT_CHUNK_RAYS, render
     from .sequence import add_flow, sequence_scenes  # (sequence imports this module)
 
@@ -76,8 +78,9 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
             groups.setdefault(structure_key(at_level(scene)), []).append((k, v))
     rendered: list[list[dict | None]] = [[None] * len(views) for views in scenes]
     for group in groups.values():
+        first = scenes[group[0][0]][group[0][1]]
         out = render([scenes[k][v] for k, v in group], seed=[render_seed(int(indices[k]), seed) for k, _ in group],
-                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs)
+                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs, compile=compile and compile_pays(first))
         for b, (k, v) in enumerate(group):
             missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
             if missing:

@@ -13,6 +13,10 @@ kernel evaluates every octave and masks the ones LOD drops instead of compacting
 which adds exact zeros; tests hold it to the twin. The lattice values are a different random
 field than the table's, with the same distribution (uniform 24-bit values in [0, 1)), so images
 change where a scene switches hash; the statistics do not (tests/test_fastnoise.py).
+
+`fbm_field_hashed` is the fbm field's whole signed density (affine map, fbm, falloff) as one compiled
+kernel, what `fields.fbm.FbmField` runs under compile; `compile_pays` says where a render compiled is
+the fast path (`generate` uses it).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from torch import Tensor
 
 from . import noise
 
-__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed"]
+__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed", "COMPILE_MIN_SAMPLES", "compile_pays"]
 
 # odd multipliers below 2**31 (xxHash's primes and murmur3's c2): Python ints that stay int32 in torch
 _P = (0x1B873593, 0x27D4EB2F, 0x165667B1)
@@ -41,6 +45,7 @@ def _mix32(h: Tensor) -> Tensor:
     return h ^ ((h >> 16) & 0xFFFF)
 
 
+@functools.lru_cache(maxsize=4096)
 def _seed32(seed: int) -> int:
     """A mixed 32-bit seed as a signed int32 value (so it fits an int32 tensor)."""
     h = (int(seed) * 0x9E3779B9 + 0x632BE5AB) & 0xFFFFFFFF
@@ -76,22 +81,64 @@ def value_noise_hashed(p: Tensor, *, seed: int = 0) -> Tensor:
     return _value(p.unbind(-1), _seed32(seed))
 
 
+def _fbm_sum(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None, octaves: int,
+             gain: float) -> Tensor:
+    """Every octave of `noise.fbm` in its float order, LOD as a mask: the body of the compiled
+    graphs. x, y, z each ``[N]``; seed 0-dim int32; scales ``[octaves - 1]``; lod ``[N]`` or None."""
+    f = _value((x, y, z), seed) * 0.5
+    for k in range(1, octaves):
+        s = scales[k - 1]
+        term = _value((x * s, y * s, z * s), seed) * (0.5 * gain**k)
+        f = f + (term if lod is None else torch.where(lod >= k + 1, term, torch.zeros_like(term)))
+    return f
+
+
 @functools.cache
 def _compiled_fbm(octaves: int, gain: float):
-    """Every octave of `noise.fbm` in its float order, LOD as a mask, as one compiled graph
-    (octaves and gain are constants of it). Arguments: x, y, z each ``[N]``; seed 0-dim int32;
-    scales ``[octaves - 1]`` in the points' dtype; lod ``[N]`` or None."""
+    """`_fbm_sum` as one compiled graph (octaves and gain are constants of it)."""
 
     def fused(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None) -> Tensor:
-        f = _value((x, y, z), seed) * 0.5
-        for k in range(1, octaves):
-            s = scales[k - 1]
-            term = _value((x * s, y * s, z * s), seed) * (0.5 * gain**k)
-            f = f + (term if lod is None else torch.where(lod >= k + 1, term, torch.zeros_like(term)))
-        return f
+        return _fbm_sum(x, y, z, seed, scales, lod, octaves, gain)
 
     # dynamic shapes: the march hands over a different number of active points every step
     return torch.compile(fused, dynamic=True)
+
+
+@functools.cache
+def _compiled_field(octaves: int, gain: float):
+    """`fbm_field_hashed` as one compiled graph: the fbm with the field's affine map in front and
+    its bias, amplitude and radial falloff after (eagerly these are ~15 small ops per call)."""
+
+    def fused(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None, frequency: Tensor,
+              shift: Tensor, offset: Tensor, bias: Tensor, amplitude: Tensor, radial: Tensor, center: Tensor) -> Tensor:
+        q = [frequency * (c - shift[i]) + offset[i] for i, c in enumerate((x, y, z))]
+        f = _fbm_sum(*q, seed, scales, lod, octaves, gain)
+        dist = torch.sqrt((x - center[0]) ** 2 + (y - center[1]) ** 2 + (z - center[2]) ** 2)
+        return bias + amplitude * f - radial * dist
+
+    return torch.compile(fused, dynamic=True)
+
+
+@functools.cache
+def _scales(octaves: int, lacunarity: tuple[float, ...], dtype: torch.dtype, device: str) -> Tensor:
+    """Mesa's folded octave scales as one ``[octaves - 1]`` tensor (cached: the march asks every step)."""
+    steps = [lacunarity[i % len(lacunarity)] for i in range(octaves - 1)]
+    scales = noise._mesa_folded_scales(steps, dtype, device)
+    return torch.stack(scales) if scales else torch.zeros(0, dtype=dtype, device=device)
+
+
+def _kernel_args(p: Tensor, seed: int, octaves: int, lacunarity: float | Sequence[float], lod: Tensor | None):
+    """The compiled graphs' arguments: x, y, z, seed, scales, lod."""
+    noise._check_points(p)
+    if octaves < 1:
+        raise ValueError(f"octaves: got {octaves!r}; an integer >= 1")
+    lac = (float(lacunarity),) if isinstance(lacunarity, (int, float)) else tuple(float(x) for x in lacunarity)
+    scales = _scales(int(octaves), lac, p.dtype, str(p.device))
+    if lod is not None:
+        lod = torch.as_tensor(lod, device=p.device).expand(p.shape[:1])
+    seed_t = torch.tensor(_seed32(seed), dtype=torch.int32, device=p.device)
+    x, y, z = (c.contiguous() for c in p.unbind(-1))
+    return x, y, z, seed_t, scales, lod
 
 
 def fbm_value_hashed(
@@ -114,15 +161,45 @@ def fbm_value_hashed(
     if not compiled:
         return noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), octaves=octaves, lacunarity=lacunarity,
                          gain=gain, lod=lod)
-    noise._check_points(p)
-    if octaves < 1:
-        raise ValueError(f"octaves: got {octaves!r}; an integer >= 1")
-    lac = [float(lacunarity)] if isinstance(lacunarity, (int, float)) else [float(x) for x in lacunarity]
-    steps = [lac[i % len(lac)] for i in range(octaves - 1)]
-    scales = noise._mesa_folded_scales(steps, p.dtype, p.device)
-    scales = torch.stack(scales) if scales else p.new_zeros(0)
-    if lod is not None:
-        lod = torch.as_tensor(lod, device=p.device).expand(p.shape[:1])
-    seed_t = torch.tensor(_seed32(seed), dtype=torch.int32, device=p.device)
-    x, y, z = (c.contiguous() for c in p.unbind(-1))
-    return _compiled_fbm(int(octaves), float(gain))(x, y, z, seed_t, scales, lod)
+    return _compiled_fbm(int(octaves), float(gain))(*_kernel_args(p, seed, octaves, lacunarity, lod))
+
+
+def fbm_field_hashed(
+    p: Tensor,
+    *,
+    seed: int,
+    octaves: int,
+    frequency: Tensor,
+    shift: Tensor,
+    offset: Tensor,
+    bias: Tensor,
+    amplitude: Tensor,
+    radial: Tensor,
+    center: Tensor,
+    lacunarity: float | Sequence[float] = (2.02, 2.03, 2.01, 2.02),
+    gain: float = 0.5,
+    lod: Tensor | None = None,
+) -> Tensor:
+    """The fbm field's signed density of one scene as one compiled kernel: ``bias + amplitude ·
+    fbm_value_hashed(frequency·(p − shift) + offset) − radial·|p − center|`` (`fields.fbm.FbmField`;
+    its eager code over `fbm_value_hashed` is the reference twin). p: ``[N, 3]``; frequency, bias,
+    amplitude, radial: 0-dim; shift, offset, center: ``[3]``; lod ``[N]`` octaves kept or None.
+    Returns ``[N]``."""
+    args = _kernel_args(p, seed, octaves, lacunarity, lod)
+    return _compiled_field(int(octaves), float(gain))(*args, frequency, shift, offset, bias, amplitude, radial, center)
+
+
+# a dataset of at least this many samples is generated compiled where `compile_pays`: compiling
+# costs ~5-10 s a process with inductor's on-disk cache warm (20-100 s cold), a clouds.toml sample
+# at 128² saves ~1.5 s (docs/VOLUMES.md, "A fast fbm")
+COMPILE_MIN_SAMPLES = 32
+
+
+def compile_pays(scene) -> bool:
+    """Whether `render(scene, compile=True)` is the fast path: the scene has volumes, each with an
+    fbm density on the arithmetic hash (one fused kernel), and no voxels or terrain (whose
+    compiled kernels are other trade-offs). Compiled renders match eager ones within 1e-5, not
+    bitwise (tests/test_fastnoise.py)."""
+    volumes = scene.volumes
+    return (bool(volumes) and scene.voxels is None and scene.terrain is None
+            and all(v.density.kind == "fbm" and v.density.value.hash == "arithmetic" for v in volumes))
