@@ -173,7 +173,7 @@ def test_compile_pays_only_for_scenes_of_arithmetic_fbm_volumes():
 
 @pytest.mark.slow  # compiles the fused field (cached on disk after the first run)
 def test_generated_samples_compiled_match_eager(tmp_path):
-    """`render_samples(..., compile=True)` (what `generate` runs from COMPILE_MIN_SAMPLES samples on)
+    """`render_samples(..., compile=True)` (what `generate(..., compile=True)` runs)
     against eager: within 1e-5; `generate(compile=True)` writes a finished dataset."""
     from pathlib import Path
 

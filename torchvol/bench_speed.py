@@ -248,7 +248,7 @@ def markdown(sections: dict) -> str:
                   "| --- | ---: | --- | ---: | ---: | ---: |"]
         lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
                   f"{r['bytes_per_sample']:,.0f} |" for r in sections["generate"]]
-        lines += ["", "compiled: `generate(..., compile=True)`, the default from `fastnoise.COMPILE_MIN_SAMPLES` samples on "
+        lines += ["", "compiled: `generate(..., compile=True)`, opt-in (`torchvol generate --compile`) "
                   "for recipes whose scenes take it (an fbm on the arithmetic hash). With 1 worker generate runs in this "
                   "process, which the rows above already compiled; with 2, each spawned worker compiles again (dynamo "
                   "traces; inductor's on-disk cache, shared, is warm): seconds a short run does not repay.", ""]

@@ -110,7 +110,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
     report = generate(args.recipe, count=args.count, out=args.out, seed=args.seed, workers=args.workers,
                       layout=args.format, overrides=_pairs(args.set, "--set"), batch=args.batch,
-                      shard_size=args.shard_size, threads=args.threads, scheduler=args.scheduler, progress=args.progress)
+                      shard_size=args.shard_size, threads=args.threads, scheduler=args.scheduler, progress=args.progress,
+                      compile=args.compile)
     print(json.dumps(report))
     return 0
 
@@ -211,6 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0, help="dataset seed: sample i depends only on (seed, i) (default 0)")
     g.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     g.add_argument("--threads", type=int, default=None, help="torch threads per worker (default: cores / workers)")
+    g.add_argument("--compile", action="store_true", help="render compiled where that is faster (fbm clouds on the "
+                   "arithmetic hash: within 1e-5 of eager, not bitwise; pays from about 8 samples a worker)")
     g.add_argument("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)")
     g.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)")
     g.add_argument("--batch", type=int, default=4, help="samples rendered as one batch (default 4)")

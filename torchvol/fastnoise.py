@@ -29,7 +29,7 @@ from torch import Tensor
 
 from . import noise
 
-__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed", "COMPILE_MIN_SAMPLES", "compile_pays"]
+__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed", "compile_pays"]
 
 # odd multipliers below 2**31 (xxHash's primes and murmur3's c2): Python ints that stay int32 in torch
 _P = (0x1B873593, 0x27D4EB2F, 0x165667B1)
@@ -187,12 +187,6 @@ def fbm_field_hashed(
     Returns ``[N]``."""
     args = _kernel_args(p, seed, octaves, lacunarity, lod)
     return _compiled_field(int(octaves), float(gain))(*args, frequency, shift, offset, bias, amplitude, radial, center)
-
-
-# a dataset of at least this many samples is generated compiled where `compile_pays`: compiling
-# costs ~5-10 s a process with inductor's on-disk cache warm (20-100 s cold), a clouds.toml sample
-# at 128² saves ~1.5 s (docs/VOLUMES.md, "A fast fbm")
-COMPILE_MIN_SAMPLES = 32
 
 
 def compile_pays(scene) -> bool:

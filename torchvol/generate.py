@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
 
 from .data import CONVENTIONS, render_samples, sample_record
-from .fastnoise import COMPILE_MIN_SAMPLES
 from .progress import progress as bar
 from .recipe import Recipe
 from .sequence import CONVENTIONS as SEQUENCE_CONVENTIONS, encode_item
@@ -158,15 +157,15 @@ def generate(
     scheduler: str | None = None,
     progress: bool | None = None,
     stop_after: int | None = None,
-    compile: bool | None = None,
+    compile: bool = False,
 ) -> dict:
     """Generate (or finish) the dataset in `out`. `workers` local processes (spawned, each with
     `threads` torch threads), or the Dask cluster at `scheduler`. `progress`: a bar of samples
     done on stderr (None: only when stderr is a terminal). `stop_after` (testing: simulates a kill)
     stops once that many samples were written, leaving the dataset unfinished. `compile`: render
     compiled where that is the fast path (`fastnoise.compile_pays`: within 1e-5 of eager, not
-    bitwise); None: from `fastnoise.COMPILE_MIN_SAMPLES` samples on (`count` decides, so a resumed
-    run renders as the first did).
+    bitwise, so opt-in: a sample's bytes otherwise equal `SceneDataset`'s; recorded in meta.json,
+    so a resumed run renders as the first did).
     Returns {"written": samples rendered now, "count", "out"}."""
     for name, value in (("count", count), ("workers", workers), ("batch", batch), ("shard_size", shard_size)):
         integer(name, value, low=1)
@@ -189,12 +188,13 @@ def generate(
         "conventions": CONVENTIONS,
         **({"frames": recipe.sequence.frames, "sequence": SEQUENCE_CONVENTIONS} if recipe.sequence else {}),
         **dataset_meta(recipe),
+        **({"compiled": True} if compile else {}),  # absent when eager: older datasets keep their meta bytes
     }
     meta_bytes = json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
     if (out / "meta.json").is_file():
         if (out / "meta.json").read_bytes() != meta_bytes:
-            fail("out", str(out), "holds a dataset made with other settings (recipe, seed, count, layout or "
-                 "shard size); use a new folder")
+            fail("out", str(out), "holds a dataset made with other settings (recipe, seed, count, layout, "
+                 "shard size or compile); use a new folder")
     elif out.exists() and any(out.iterdir()):
         fail("out", str(out), "exists and is not a torchvol dataset; use a new or empty folder")
     sub = out / ("samples" if layout == "folder" else "shards")
@@ -204,7 +204,7 @@ def generate(
     atomic_write(out / "meta.json", meta_bytes)
 
     tasks = plan_tasks(recipe, count=count, seed=seed, out=out, layout=layout, batch=batch, shard_size=shard_size)
-    if (count >= COMPILE_MIN_SAMPLES) if compile is None else compile:  # compiling pays for a large dataset
+    if compile:
         tasks = [replace(t, compile=True) for t in tasks]
     done = sum(_finished(t) for t in tasks)
     pending = [t for t in tasks if _finished(t) < len(t.indices)]
