@@ -49,7 +49,7 @@ from torch import Tensor
 
 from .. import mathops
 from ..schema import Strict
-from .gi import DistanceLOD, VoxelGI
+from .gi import DistanceLOD, VoxelGI, tangent_frame
 
 __all__ = ["ConeLOD", "VoxelCone", "VoxelGIs", "build_mips", "cone_ao", "cone_directions", "default_aperture", "face_cells",
            "sample_mips", "trace_cones"]
@@ -112,13 +112,7 @@ def cone_directions(normal: Tensor, count: int) -> Tensor:
     local = torch.cat([torch.tensor([[0.0, 0.0, 1.0]], dtype=dt, device=normal.device),
                        torch.stack([r * torch.cos(phi), r * torch.sin(phi),
                                     torch.full_like(phi, math.sqrt(1.0 - r * r))], dim=1)])  # [count, 3]
-    # Duff et al.'s orthonormal basis about the normal (as gi.cosine_directions)
-    nx, ny, nz = normal.unbind(1)
-    sign = torch.where(nz >= 0, torch.ones_like(nz), -torch.ones_like(nz))
-    a = -1.0 / (sign + nz)
-    b = nx * ny * a
-    t = torch.stack([1.0 + sign * nx * nx * a, sign * b, -sign * nx], dim=1)
-    bt = torch.stack([b, sign + ny * ny * a, -ny], dim=1)
+    t, bt = tangent_frame(normal)
     return local[None, :, 0:1] * t[:, None] + local[None, :, 1:2] * bt[:, None] + local[None, :, 2:3] * normal[:, None]
 
 

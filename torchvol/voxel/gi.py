@@ -23,7 +23,7 @@ from torch import Tensor
 from .. import noise
 from ..schema import Strict
 
-__all__ = ["DistanceLOD", "PathLOD", "VoxelGI", "cosine_directions", "lod_counts", "lod_keys", "path_keys"]
+__all__ = ["DistanceLOD", "PathLOD", "VoxelGI", "cosine_directions", "tangent_frame", "lod_counts", "lod_keys", "path_keys"]
 
 
 class DistanceLOD(Strict):
@@ -72,18 +72,24 @@ def lod_keys(keys: Tensor, counts: Tensor, samples: int) -> tuple[Tensor, Tensor
     return torch.stack([k[:, 0] * samples + j, k[:, 1], k[:, 2]], dim=1), owner
 
 
-def cosine_directions(normal: Tensor, u1: Tensor, u2: Tensor) -> Tensor:
-    """Cosine-weighted unit directions [n, 3] about unit `normal` [n, 3] from uniforms u1, u2 [n] in [0, 1)
-    (pdf cos θ / π)."""
-    r, phi = torch.sqrt(u1), 2.0 * math.pi * u2
-    local_z = torch.sqrt((1.0 - u1).clamp_min(0.0))
-    # Duff et al.'s branchless orthonormal basis about the normal
+def tangent_frame(normal: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit tangents [n, 3], [n, 3] completing unit `normal` [n, 3] to an orthonormal basis
+    (Duff et al.'s branchless construction)."""
     nx, ny, nz = normal.unbind(1)
     sign = torch.where(nz >= 0, torch.ones_like(nz), -torch.ones_like(nz))
     a = -1.0 / (sign + nz)
     b = nx * ny * a
     t = torch.stack([1.0 + sign * nx * nx * a, sign * b, -sign * nx], dim=1)
     bt = torch.stack([b, sign + ny * ny * a, -ny], dim=1)
+    return t, bt
+
+
+def cosine_directions(normal: Tensor, u1: Tensor, u2: Tensor) -> Tensor:
+    """Cosine-weighted unit directions [n, 3] about unit `normal` [n, 3] from uniforms u1, u2 [n] in [0, 1)
+    (pdf cos θ / π)."""
+    r, phi = torch.sqrt(u1), 2.0 * math.pi * u2
+    local_z = torch.sqrt((1.0 - u1).clamp_min(0.0))
+    t, bt = tangent_frame(normal)
     return (r * torch.cos(phi))[:, None] * t + (r * torch.sin(phi))[:, None] * bt + local_z[:, None] * normal
 
 
