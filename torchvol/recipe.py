@@ -122,18 +122,19 @@ class Dist:
         w = torch.tensor(self.spec[1], dtype=torch.float64)
         return int(torch.multinomial(w, 1, generator=g).item())
 
-    def draw(self, seed: int, index: int) -> Any:
-        """The value of sample `index`: from a generator seeded by (seed, index, path); a choice then
-        draws the distributions inside the value it picked (each from its own path's generator)."""
-        g = torch.Generator().manual_seed(mix_seed("torchvol.recipe", int(seed), int(index), self.path))
+    def draw(self, seed: int, index: int, *salt: Any) -> Any:
+        """The value of sample `index`: from a generator seeded by (seed, index, path, *salt); a choice
+        then draws the distributions inside the value it picked (each from its own path's generator).
+        `salt` tells apart several draws of one sample (a multi-view sample's cameras)."""
+        g = torch.Generator().manual_seed(mix_seed("torchvol.recipe", int(seed), int(index), self.path, *salt))
         if self.kind != "choice" or not any(self.spec[2]):
             return self.sample(g)
         k = self._pick(g)
         value = copy.deepcopy(self.spec[0][k])
         for rel, inner in self.spec[2][k].items():
             if not rel:
-                return inner.draw(seed, index)  # the value is itself a distribution
-            set_path(value, rel, inner.draw(seed, index))
+                return inner.draw(seed, index, *salt)  # the value is itself a distribution
+            set_path(value, rel, inner.draw(seed, index, *salt))
         return value
 
     def corners(self) -> list[Any]:

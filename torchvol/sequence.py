@@ -37,7 +37,7 @@ import torch
 
 from .data import _npz, encode_sample
 from .flow import flow_from_depth
-from .recipe import DIST_KINDS, Dist, Recipe, mix_seed, parse_dist
+from .recipe import DIST_KINDS, Dist, Recipe, parse_dist
 from .scene import Scene
 from .validate import SceneError, did_you_mean, fail, finite, is_integer
 
@@ -76,9 +76,8 @@ class SequenceSpec:
         for name in ("velocity", "orbit"):
             value = getattr(self, name)
             path = f"dataset.camera_path.{name}"
-            if isinstance(value, Dist):
-                g = torch.Generator().manual_seed(mix_seed("torchvol.recipe", int(seed), int(index), path))
-                value = value.sample(g)
+            if isinstance(value, Dist):  # parsed at `path`: drawn like a recipe key
+                value = value.draw(seed, index)
             out[path] = list(value) if name == "velocity" else value
         return out
 

@@ -54,13 +54,10 @@ def parse_dataset(meta: Mapping[str, Any], dists: Mapping[str, Any]) -> tuple[in
 def view_params(recipe, index: int, seed: int) -> list[dict[str, Any]]:
     """The drawn values of each of the recipe's `views`: view 0's are `recipe.sample_params`; a later
     view redraws the camera's key paths with the view index in their generators' seeds."""
-    from .recipe import mix_seed
-
     first = recipe.sample_params(index, seed)
     out = [first]
     for v in range(1, recipe.views):
-        redrawn = {p: recipe.dists[p].sample(torch.Generator().manual_seed(
-            mix_seed("torchvol.recipe", int(seed), int(index), p, "view", v))) for p in camera_paths(recipe.dists)}
+        redrawn = {p: recipe.dists[p].draw(seed, index, "view", v) for p in camera_paths(recipe.dists)}
         out.append({**first, **redrawn})
     return out
 
