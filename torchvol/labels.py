@@ -37,6 +37,7 @@ from .lights import LIGHTS, Shadow
 from .quality import QUALITY
 from .scene import VoxelShadow
 from .validate import fail
+from .volume.composite import entry_order
 from .volume.physical import occluder_transmittance
 from .volume.strategy import entry_exit
 
@@ -102,7 +103,7 @@ def volume_alphas(parts: list[dict[str, Tensor]]) -> Tensor:
     """[V, n]: each volume's alpha share, composited front to back in order of entry (`t0`) as
     `composite_volumes` does; `parts` the volumes' parts in scene order."""
     trans = torch.stack([p["transmittance"] for p in parts])  # [V, n]
-    order = torch.argsort(torch.stack([p["t0"] for p in parts]), dim=0)
+    order = entry_order(parts)
     ordered = trans.gather(0, order)
     before = torch.cumprod(torch.cat([torch.ones_like(ordered[:1]), ordered[:-1]]), dim=0)
     return torch.empty_like(trans).scatter_(0, order, before * (1.0 - ordered))

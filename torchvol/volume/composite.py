@@ -10,6 +10,11 @@ from torch import Tensor
 PART_KEYS = ("radiance", "transmittance", "weight_sum", "weighted_t", "median_t")
 
 
+def entry_order(parts: list[dict[str, Tensor]]) -> Tensor:
+    """[V, n]: per ray, the parts' indices front to back by entry `t0` (the composite's order)."""
+    return torch.argsort(torch.stack([p["t0"] for p in parts]), dim=0)
+
+
 def composite_volumes(parts: list[dict[str, Tensor]], like: Tensor) -> dict[str, Tensor]:
     """Front-to-back composite of volume parts (each: radiance [n, 3], transmittance, weight_sum,
     weighted_t, median_t and entry t0 [n]), ordered per ray by entry. `like`: [n] (dtype, device).
@@ -18,7 +23,7 @@ def composite_volumes(parts: list[dict[str, Tensor]], like: Tensor) -> dict[str,
     trans = torch.ones_like(like)
     wsum, wt, median = torch.zeros_like(trans), torch.zeros_like(trans), torch.zeros_like(trans)
     if parts:
-        order = torch.argsort(torch.stack([p["t0"] for p in parts]), dim=0)  # [V, n]: front to back per ray
+        order = entry_order(parts)
         ordered = {}
         for key in PART_KEYS:
             stacked = torch.stack([p[key] for p in parts])  # [V, n] or [V, n, 3]
