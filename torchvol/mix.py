@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from .recipe import DIST_KINDS, Dist, Recipe, _check_index
-from .validate import SceneError, did_you_mean, fail, finite
+from .validate import SceneError, did_you_mean, fail, finite, known_keys
 
 BUNDLED = Path(__file__).resolve().parents[1] / "datasets"
 FAMILY_KEYS = ("recipe", "weight", "name", "set")
@@ -83,10 +83,7 @@ class MixedRecipe(Recipe):
             where = f"families[{k}]"
             if not isinstance(family, Mapping):
                 fail(where, family, "expected a table { recipe = \"clouds\", weight = 1.0 }")
-            for key in family:
-                if key not in FAMILY_KEYS:
-                    fail(f"{where}.{key}", family[key], "unknown key" + did_you_mean(key, FAMILY_KEYS)
-                         + "; allowed: " + ", ".join(FAMILY_KEYS))
+            known_keys(where, family, FAMILY_KEYS)
             if "recipe" not in family:
                 fail(where, family, "a family needs recipe = \"NAME\" (a recipe file)")
             path = _member_path(f"{where}.recipe", family["recipe"], base)

@@ -44,7 +44,7 @@ import torch
 from .aovs import AOVS
 from .keypath import lookup, path_str, set_path
 from .scene import Scene, read_source, schema_keys, validate_scene
-from .validate import SceneError, did_you_mean, fail, finite, integer, is_integer
+from .validate import SceneError, did_you_mean, fail, finite, integer, is_integer, known_keys
 from .views import parse_dataset
 from .volume_label import check_scene
 
@@ -216,9 +216,7 @@ def parse_dist(path: str, table: Mapping) -> Dist:
     if kind == "normal":
         if not isinstance(spec, Mapping):
             fail(where, spec, "expected a table { mean = m, std = s, min = lo, max = hi } (min/max optional)")
-        for key in spec:
-            if key not in ("mean", "std", "min", "max"):
-                fail(f"{where}.{key}", spec[key], "unknown key" + did_you_mean(key, ("mean", "std", "min", "max")) + "; allowed: mean, std, min, max")
+        known_keys(where, spec, ("mean", "std", "min", "max"))
         if "mean" not in spec or "std" not in spec:
             fail(where, spec, "normal needs mean and std")
         mean, std = _number(f"{where}.mean", spec["mean"]), _number(f"{where}.std", spec["std"])
@@ -237,9 +235,7 @@ def parse_dist(path: str, table: Mapping) -> Dist:
     if kind == "choice":
         values, weights = spec, None
         if isinstance(spec, Mapping):
-            for key in spec:
-                if key not in ("values", "weights"):
-                    fail(f"{where}.{key}", spec[key], "unknown key" + did_you_mean(key, ("values", "weights")) + "; allowed: values, weights")
+            known_keys(where, spec, ("values", "weights"))
             values, weights = spec.get("values"), spec.get("weights")
         if not isinstance(values, (list, tuple)) or not values:
             fail(where, spec, "expected a non-empty list of values (or { values = [...], weights = [...] })")
@@ -256,17 +252,12 @@ def parse_dist(path: str, table: Mapping) -> Dist:
             inners.append({full[len(where) + len(f"[{i}]"):].lstrip("."): d for full, d in found.items()})
         return Dist(path, kind, (list(values), [float(w) for w in weights], inners))
     if kind == "hemisphere":
-        for key in spec if isinstance(spec, Mapping) else ():
-            if key not in ("elevation", "azimuth"):
-                fail(f"{where}.{key}", spec[key], "unknown key" + did_you_mean(key, ("elevation", "azimuth")) + "; allowed: elevation, azimuth")
+        known_keys(where, spec if isinstance(spec, Mapping) else {}, ("elevation", "azimuth"))
         return Dist(path, kind, _band(where, spec))
     # orbit
     if not isinstance(spec, Mapping):
         fail(where, spec, "expected a table { center, distance, elevation, azimuth }")
-    allowed = ("center", "distance", "elevation", "azimuth")
-    for key in spec:
-        if key not in allowed:
-            fail(f"{where}.{key}", spec[key], "unknown key" + did_you_mean(key, allowed) + "; allowed: " + ", ".join(allowed))
+    known_keys(where, spec, ("center", "distance", "elevation", "azimuth"))
     center = spec.get("center", [0.0, 0.0, 0.0])
     if not isinstance(center, (list, tuple)) or len(center) != 3:
         fail(f"{where}.center", center, "expected [x, y, z]")
@@ -332,9 +323,7 @@ class Recipe:
         meta = data.pop("dataset", None) or {}
         if not isinstance(meta, Mapping):
             fail("dataset", meta, "expected a table { aovs = [...] }")
-        for key in meta:
-            if key not in RECIPE_KEYS:
-                fail(f"dataset.{key}", meta[key], "unknown key" + did_you_mean(key, RECIPE_KEYS) + "; allowed: " + ", ".join(RECIPE_KEYS))
+        known_keys("dataset", meta, RECIPE_KEYS)
         aovs = meta.get("aovs", [])
         if not isinstance(aovs, list) or any(a not in AOVS for a in aovs) or len(set(aovs)) != len(aovs):
             fail("dataset.aovs", aovs, "expected a list of distinct AOV names from: " + ", ".join(AOVS.names()))

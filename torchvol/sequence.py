@@ -39,7 +39,7 @@ from .data import _npz, encode_sample
 from .flow import flow_from_depth
 from .recipe import DIST_KINDS, Dist, Recipe, parse_dist
 from .scene import Scene
-from .validate import SceneError, did_you_mean, fail, finite, is_integer
+from .validate import SceneError, fail, finite, is_integer, known_keys
 
 __all__ = ["SEQUENCE_KEYS", "SequenceSpec", "parse_sequence", "frame_scenes", "sequence_scenes",
            "add_flow", "encode_item"]
@@ -123,10 +123,7 @@ def parse_sequence(meta: Mapping) -> SequenceSpec | None:
     path = meta.get("camera_path", {})
     if not isinstance(path, Mapping):
         fail("dataset.camera_path", path, "expected a table { velocity = [x, y, z], orbit = deg/s, look_at = 'moving' }")
-    for key in path:
-        if key not in PATH_KEYS:
-            fail(f"dataset.camera_path.{key}", path[key], "unknown key" + did_you_mean(key, PATH_KEYS)
-                 + "; allowed: " + ", ".join(PATH_KEYS))
+    known_keys("dataset.camera_path", path, PATH_KEYS)
     look_at = path.get("look_at", "moving")
     if look_at not in ("moving", "fixed"):
         fail("dataset.camera_path.look_at", look_at, "expected 'moving' (the target moves with the eye) or 'fixed'")

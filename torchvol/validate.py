@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import difflib
 import math
-from typing import Any, Iterable, NoReturn
+from typing import Any, Iterable, Mapping, NoReturn, Sequence
 
 import numpy as np
 
@@ -24,6 +24,14 @@ def fail(path: str, value: Any, allowed: str) -> NoReturn:
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
     close = difflib.get_close_matches(word, list(choices), n=1)
     return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def known_keys(path: str, table: Mapping, allowed: Sequence[str]) -> None:
+    """Refuses a key of `table` (at `path`) that is not in `allowed`, naming it, a near match and
+    what is allowed."""
+    for key in table:
+        if key not in allowed:
+            fail(f"{path}.{key}", table[key], "unknown key" + did_you_mean(key, allowed) + "; allowed: " + ", ".join(allowed))
 
 
 def finite(path: str, value: Any, *, low: float | None = None, above: float | None = None, why: str = "") -> float:
