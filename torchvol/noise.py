@@ -298,9 +298,11 @@ def texture_noise(p: Tensor, texture: Tensor, *, filter_bits: int | None = LLVMP
     return texture_noise_table(p, texture_table(texture, p.device), filter_bits=filter_bits)
 
 
-def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = LLVMPIPE_FILTER_BITS) -> Tensor:
+def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = LLVMPIPE_FILTER_BITS,
+                        base: Tensor | None = None) -> Tensor:
     """`texture_noise` on a prepared `texture_table` ``[65536, 2]``: no Python-side caching, so
-    it compiles with torch.compile into one fused kernel."""
+    it compiles with torch.compile into one fused kernel. `base` ``[N]`` long: each point's row
+    offset into a table of several textures stacked (``[B·65536, 2]``; `torch.cat` of tables)."""
     dtype, dev = p.dtype, p.device
     fl = torch.floor(p)
     f = p - fl
@@ -314,7 +316,7 @@ def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = L
         x0, y0 = i0[:, 0] & 255, i0[:, 1] & 255
         x1, y1 = (x0 + 1) & 255, (y0 + 1) & 255
         def fetch(y: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
-            v = table[y * 256 + x].to(dtype) / 255.0
+            v = table[y * 256 + x if base is None else y * 256 + x + base].to(dtype) / 255.0
             return v[:, 0], v[:, 1]
 
         (g00, r00), (g01, r01) = fetch(y0, x0), fetch(y0, x1)
@@ -338,7 +340,7 @@ def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = L
         x0, y0 = torch.remainder(i0[:, 0], 256.0), torch.remainder(i0[:, 1], 256.0)
         x1, y1 = torch.remainder(x0 + 1.0, 256.0), torch.remainder(y0 + 1.0, 256.0)
         wx, wy = w[:, 0:1], w[:, 1:2]
-        at = lambda y, x: table[(y * 256.0 + x).long()]  # noqa: E731  [N, 2] (G, R)
+        at = lambda y, x: table[(y * 256.0 + x).long() if base is None else (y * 256.0 + x).long() + base]  # noqa: E731  [N, 2] (G, R)
 
         def lerp(a: Tensor, b: Tensor, wt: Tensor) -> Tensor:  # a + ((w (b − a) + half) >> bits)
             return torch.floor((a * (one - wt) + b * wt + half) / one)
@@ -349,6 +351,56 @@ def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = L
         r = v[:, 1].to(dtype) * inv255
     fz = f[:, 2]
     return g + fz * (r - g)
+
+
+def packed_table(table: Tensor) -> Tensor:
+    """A `texture_table` ``[M, 2]`` of (G, R) as int32 ``[M]``, G + 256·R: one gather per texel."""
+    t = table.to(torch.int32)
+    return t[:, 0] + t[:, 1] * 256
+
+
+def texture_noise_coords(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: Tensor | None = None, *,
+                         filter_bits: int = LLVMPIPE_FILTER_BITS) -> Tensor:
+    """`texture_noise_table` with a fixed-point filter, bit for bit, for points given as their
+    coordinates (each ``[N]``) and a `packed_table`, its integer steps in integers (int32 for
+    float32 points, int64 for float64) instead of float64: contiguous loads and integer lanes
+    are what inductor vectorises (`volume.fused`). `base` ``[N]``: rows in stacked tables."""
+    bits = int(filter_bits)
+    if not 1 <= bits <= 15:
+        raise ValueError(f"filter_bits: got {filter_bits!r}; an int in 1..15")
+    itype = torch.int32 if x.dtype == torch.float32 else torch.int64
+    one, half = 1 << bits, 1 << (bits - 1)
+    fx, fy, fz = torch.floor(x), torch.floor(y), torch.floor(z)
+    wx_, wy_, wz = x - fx, y - fy, z - fz
+    wx_, wy_, wz = wx_ * wx_ * (3.0 - 2.0 * wx_), wy_ * wy_ * (3.0 - 2.0 * wy_), wz * wz * (3.0 - 2.0 * wz)
+    u = (fx + 37.0 * fz) + wx_
+    v = (fy + 239.0 * fz) + wy_
+
+    def texel(c: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # (i0 & 255, i1 & 255, weight) of one axis
+        s = torch.round((c + 0.5) * float(one))
+        bad = ~(s.abs() < 2.0**31)  # x86 cvt overflow / NaN -> 0x80000000, then the int32 wrap of −half
+        if itype == torch.int32:  # |s| < 2**31 in float32 is at most 2**31 − 128: s − half cannot wrap
+            shifted = torch.where(bad, 2**31 - half, torch.where(bad, 0.0, s).to(itype) - half)
+        else:
+            si = torch.where(bad, -(2.0**31), s).to(itype) - half
+            shifted = torch.where(si < -(2**31), si + 2**32, si)
+        i0 = shifted >> bits
+        return i0 & 255, (i0 + 1) & 255, shifted & (one - 1)
+
+    x0, x1, wx = texel(u)
+    y0, y1, wy = texel(v)
+    row0, row1 = y0 * 256, y1 * 256
+    if base is not None:
+        row0, row1 = row0 + base, row1 + base
+    at = lambda row, col: packed[row + col]  # noqa: E731
+
+    def lerp(a: Tensor, b: Tensor, w: Tensor) -> Tensor:  # a + ((w (b − a) + half) >> bits), both channels
+        return ((a & 255) * (one - w) + (b & 255) * w + half) >> bits, ((a >> 8) * (one - w) + (b >> 8) * w + half) >> bits
+
+    (g0, r0), (g1, r1) = lerp(at(row0, x0), at(row0, x1), wx), lerp(at(row1, x0), at(row1, x1), wx)
+    g = (((g0 * (one - wy) + g1 * wy + half) >> bits).to(x.dtype)) * (1.0 / 255.0)
+    r = (((r0 * (one - wy) + r1 * wy + half) >> bits).to(x.dtype)) * (1.0 / 255.0)
+    return g + wz * (r - g)
 
 
 @functools.cache

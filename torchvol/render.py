@@ -87,7 +87,7 @@ class RenderContext:
     def __init__(self, batch: Stacked, plan: Plan, *, seeds: Sequence[int], dtype, device, compiled: bool):
         self.batch, self.plan, self.settings = batch, plan, plan.settings
         self.seeds = torch.tensor([int(x) % 2**32 for x in seeds], dtype=torch.int64, device=device)  # (B,)
-        self.dtype, self.device = dtype, device
+        self.dtype, self.device, self.compiled = dtype, device, compiled
         self.timer, self.counts = Timer(), Counts()
         self.times = batch.time
         self.lights = [LightSource(LIGHTS[li.kind], li) for li in batch.lights]

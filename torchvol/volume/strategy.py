@@ -14,6 +14,7 @@ from torch import Tensor
 from ..batch import take
 from ..camera import Rays
 from ..rays import clip_to_ray
+from .fused import fusable, march_fused
 from .march import march, march_adaptive
 from .physical import closed_form
 from .skip import macro_grid, occupied_span
@@ -57,6 +58,8 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
         with ctx.timer.section(vol.plan.skip_pass):
             occupied, marched = skipped_span(vol, rays, t0, t1, hit)
     with ctx.timer.section(vol.plan.step_pass):
+        if ctx.compiled and not skip and fusable(ctx, vol):  # one compiled kernel per step
+            return _part(ctx, vol, march_fused(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays)), t0, hit)
         medium = vol.shading.fn(ctx, vol, rays, background)
         res = march(
             t0, t1, marched, medium, rule=st.rule, integrator=st.integrator, semantics=vol.shading.semantics,

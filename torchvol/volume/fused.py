@@ -1,0 +1,297 @@
+"""One march step as one compiled kernel: the seeds' alpha look (`shading = "shader"`) over the
+template's texture-noise cloud layer (`density.clouds`), marched in fixed-size wavefronts.
+
+The generic `march` calls a medium closure that runs ~100 small eager ops per step (an fbm
+octave is a dozen, the derivative light evaluates the fbm again, the look and the compositing add
+their own); on a 2-core machine those ops, not the arithmetic, are the render. Here one step —
+the sample point, its LOD, the cloud's fbm there and towards the light, the look's colour and fog,
+alpha compositing, the step rule and the end tests — is one pure function of plain tensors
+(`shader_step`), which torch.compile turns into one fused C++ loop over the rays. The rays go
+through in wavefronts of at most `WAVEFRONT` slots: every `REFILL_EVERY` steps the finished slots
+are written out and refilled from the rays not started yet, so the kernel keeps seeing full
+batches (shapes are dynamic: one compiled kernel serves every size).
+
+Eager `shader_step` is the reference twin: over the same rays it gives the generic march's result
+(tests/volume/test_fused.py: to float rounding, since the LOD's dropped octaves are masked here,
+not skipped); compiled, it matches the eager twin within `tolerances` (inductor contracts
+multiply-adds, and the texture's 8-bit filter turns an ulp of a coordinate into a 1/255 step
+at a few points). The render takes this path under `render(..., compile=True)` where `fusable`
+says the volume is this technique (`docs/SPEED.md`).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from .. import noise
+from .march import MarchResult, StepRule
+
+# slots marched at once: big enough that a kernel call's overhead (~0.1 ms) is small against its
+# work; not 2**16, the texture table's size: dynamo's duck sizing would tie the two and recompile
+WAVEFRONT = 61440
+# steps between refills: a refill gathers and scatters the whole state (a few eager ops)
+REFILL_EVERY = 8
+# rows of the slot state
+_T, _T_END, _SPAN, _TRANS, _WSUM, _WT, _MEDIAN, _STEPS, _ALIVE, _TRUNC, _EVALS, _RADIANCE = range(12)
+_ROWS = _RADIANCE + 3
+
+
+class CloudLook(NamedTuple):
+    """Per-scene values of the cloud layer and its look, each (B, ...) in the render's dtype.
+
+    `base` (B,) long: the scene's first row in the stacked texture tables."""
+
+    shift: Tensor  # (B, 3) wind · time
+    bias: Tensor  # (B,)
+    density_scale: Tensor  # (B,)
+    light_step: Tensor  # (B, 3) light_offset · direction to the first light (zeros: no light)
+    irradiance: Tensor  # (B, 3)
+    light_scale: Tensor  # (B,)
+    ambient: Tensor  # (B, 3)
+    ambient_top: Tensor  # (B, 3) (= ambient: no height gradient)
+    heights: Tensor  # (B, 2) the bounds' height range
+    color_lit: Tensor  # (B, 3)
+    color_dark: Tensor  # (B, 3)
+    alpha_scale: Tensor  # (B,)
+    fog: Tensor  # (B,)
+    base: Tensor  # (B,)
+
+
+@dataclass(frozen=True)
+class StepConfig:
+    """What a compiled step is specialised on (constants of its graph)."""
+
+    rule: StepRule
+    octaves: int
+    lod_scale: float | None
+    threshold: float
+    min_transmittance: float
+    max_iterations: int
+    light: bool  # the derivative light is on
+    graded: bool  # the ambient has a height gradient
+
+
+def fusable(ctx, vol) -> bool:
+    """Whether volume `vol` of the render `ctx` is this technique: the template's cloud layer
+    with the seeds' look, lit (if at all) by a sun, no edge falloff."""
+    from ..fields.clouds import CloudLayer  # fields import volume modules; avoid the cycle
+
+    if vol.shading.semantics != "shader" or vol.params.shading != "shader" or vol.params.edge is not None:
+        return False
+    if not isinstance(vol.field.inner, CloudLayer):
+        return False
+    return all(ctx.lights[use.light].directional for use in vol.plan.lights)
+
+
+def cloud_look(ctx, vol) -> tuple[CloudLook, Tensor]:
+    """The per-scene values of `vol` and its stacked texture tables, packed (`noise.packed_table`)."""
+    layer, look, params = vol.field.inner, vol.params.shader, vol.params
+    b, like = len(params), layer.shift
+    zeros3 = like.new_zeros(b, 3)
+    if vol.plan.lights:
+        light = ctx.lights[vol.plan.lights[0].light]
+        light_step, irradiance = look.light_offset[:, None] * light.direction, light.radiant
+    else:
+        light_step, irradiance = zeros3, zeros3
+    heights = (vol.bounds.height_range(params.bounds.value) if look.ambient_top is not None
+               else torch.stack([like.new_zeros(b), like.new_ones(b)], dim=1))
+    cl = CloudLook(
+        shift=layer.shift, bias=layer.p.bias, density_scale=layer.p.density_scale, light_step=light_step,
+        irradiance=irradiance, light_scale=look.light_scale, ambient=look.ambient,
+        ambient_top=look.ambient if look.ambient_top is None else look.ambient_top, heights=heights,
+        color_lit=look.color_lit, color_dark=look.color_dark, alpha_scale=look.alpha_scale, fog=look.fog,
+        base=torch.arange(b, device=like.device) * 65536)
+    return cl, noise.packed_table(torch.cat(layer.tables))
+
+
+def cloud_fbm(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: Tensor, count: Tensor | None, *, octaves: int,
+              scales: list[Tensor]) -> Tensor:
+    """`noise.fbm` of the template's texture noise (`fields.clouds.CloudLayer`) at points given
+    as coordinates `x`, `y`, `z` [N], with its LOD as a mask: octave k ≥ 1 adds where `count` [N]
+    (octaves kept) ≥ k + 1. `base` [N]: the points' rows in the stacked `packed` tables. -> [N]."""
+    f = (noise.texture_noise_coords(x, y, z, packed, base) * 2.0 - 1.0) * 0.5
+    for k in range(1, octaves):
+        c = scales[k - 1]
+        term = (noise.texture_noise_coords(x * c, y * c, z * c, packed, base) * 2.0 - 1.0) * (0.5 * 0.5**k)
+        f = f + term if count is None else torch.where(count >= k + 1, f + term, f)
+    return f
+
+
+def _count(t: Tensor, config: StepConfig) -> Tensor | None:
+    """Octaves kept at distance `t` [N] (the template's LOD, `march.lod_drop`); None: all."""
+    if config.lod_scale is None:
+        return None
+    return config.octaves - torch.floor(torch.log2(1.0 + t * config.lod_scale)).long()
+
+
+def _density(x: Tensor, y: Tensor, z: Tensor, t: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor],
+             config: StepConfig) -> Tensor:
+    """`CloudLayer`'s density at points `x`, `y`, `z` [N] sampled at distance `t` [N] of scenes `s` [N]."""
+    shift = look.shift[s]
+    f = cloud_fbm(x - shift[:, 0], y - shift[:, 1], z - shift[:, 2], packed, look.base[s], _count(t, config),
+                  octaves=config.octaves, scales=scales)
+    return (look.bias[s] - y + look.density_scale[s] * f).clamp_max(1.0).clamp_min(0.0)
+
+
+def sample_density(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor], *,
+                   config: StepConfig) -> Tensor:
+    """A step's first kernel: each slot's sample point, its density and whether it is lit (alive
+    and over `march.density_threshold`) -> [5, N] (density, x, y, z, lit as 1.0 / 0.0)."""
+    t = state[_T]
+    p = [torch.addcmul(ray[i], t, ray[3 + i]) for i in range(3)]
+    density = _density(*p, t, s, look, packed, scales, config)
+    lit = (state[_ALIVE] > 0) & (density > config.threshold)
+    return torch.stack([density, *p, lit.to(t.dtype)])
+
+
+def light_density(sample: Tensor, t: Tensor, s: Tensor, lit: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor],
+                  *, config: StepConfig) -> Tensor:
+    """The second: the density `light_offset` towards the light from the points of the lit
+    samples `lit` [k] (`sample` [5, N] of `sample_density`; `t`, `s` [N]) -> [N] (0 elsewhere)."""
+    ts, ss, ls = t[lit], s[lit], look.light_step[s[lit]]
+    ahead = _density(*(sample[1 + c, lit] + ls[:, c] for c in range(3)), ts, ss, look, packed, scales, config)
+    return torch.zeros_like(t).index_put((lit,), ahead)
+
+
+def advance(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, sample: Tensor, ahead: Tensor, *,
+            config: StepConfig) -> Tensor:
+    """The third: the look's colour, alpha compositing, the step rule and the end tests -> the
+    next state [_ROWS, N]. `ahead` [N]: `light_density` where lit (elsewhere unused)."""
+    t, t_end, trans = state[_T], state[_T_END], state[_TRANS]
+    density, py, lit = sample[0], sample[2], sample[4] > 0
+    alive = state[_ALIVE] > 0
+    ambient = look.ambient[s]
+    lin = [ambient[:, c] for c in range(3)]
+    if config.graded:
+        h, top = look.heights[s], look.ambient_top[s]
+        w = ((py - h[:, 0]) / (h[:, 1] - h[:, 0])).clamp(0.0, 1.0)
+        lin = [torch.lerp(lin[c], top[:, c], w) for c in range(3)]
+    if config.light:
+        dif = ((density - ahead) / look.light_scale[s]).clamp(0.0, 1.0)
+        irradiance = look.irradiance[s]
+        lin = [irradiance[:, c] * dif + lin[c] for c in range(3)]
+    lit_color, dark_color = look.color_lit[s], look.color_dark[s]
+    haze = 1.0 - torch.exp(-look.fog[s] * t * t)
+    alpha = torch.where(lit, density * look.alpha_scale[s], 0.0)
+    color = [torch.where(lit, torch.lerp(torch.lerp(lit_color[:, c], dark_color[:, c], density) * lin[c], ray[6 + c], haze), 0.0)
+             for c in range(3)]
+    # alpha_step, then march's accumulation
+    seg = 1.0 - alpha
+    weight = trans * (1.0 - seg)
+    new_trans = trans * seg
+    crossed = (trans > 0.5) & (new_trans <= 0.5)
+    steps = state[_STEPS] + alive
+    t_next = t + config.rule.length(t, state[_SPAN])
+    keep = t_next <= t_end
+    if config.min_transmittance > 0:
+        keep = keep & (new_trans >= config.min_transmittance)
+    last = steps >= config.max_iterations
+    return torch.stack([
+        torch.where(alive, t_next, t), t_end, state[_SPAN], torch.where(alive, new_trans, trans),
+        state[_WSUM] + weight, state[_WT] + weight * t, torch.where(crossed, t, state[_MEDIAN]), steps,
+        (alive & keep & ~last).to(t.dtype), torch.where(alive, (keep & last).to(t.dtype), state[_TRUNC]),
+        state[_EVALS] + alive + (lit if config.light else 0),
+        *(state[_RADIANCE + c] + trans * (color[c] * alpha) for c in range(3)),
+    ])
+
+
+class Kernels(NamedTuple):
+    """A step's three kernels (`sample_density`, `light_density`, `advance`), eager or compiled."""
+
+    sample: Callable
+    light: Callable
+    advance: Callable
+
+
+EAGER = Kernels(sample_density, light_density, advance)
+
+
+def shader_step(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor], *,
+                config: StepConfig, kernels: Kernels = EAGER) -> Tensor:
+    """One step of every slot: `state` [_ROWS, N] (rows `_T` ...) -> the next state. `ray` [9, N]:
+    each slot's origin, direction and the sky behind it, a row per coordinate; `s` [N] its scene.
+    A slot whose `_ALIVE` is 0 keeps its state. Per ray, the ops and their order are those of
+    `march`, `shader_look.shader_medium` and `CloudLayer`. The light's density is taken only at
+    the lit samples (about a tenth of a template's), gathered between the kernels: an eager op
+    whose size depends on the data."""
+    sample = kernels.sample(state, ray, s, look, packed, scales, config=config)
+    ahead = torch.zeros_like(state[_T])  # unused without lit samples
+    if config.light:
+        lit = sample[4].nonzero().squeeze(1)
+        if lit.shape[0]:
+            if lit.shape[0] == 1:  # a compiled kernel would specialise (recompile) on one point
+                lit = lit.repeat(2)
+            ahead = kernels.light(sample, state[_T], s, lit, look, packed, scales, config=config)
+    return kernels.advance(state, ray, s, look, sample, ahead, config=config)
+
+
+@functools.cache
+def compiled_step(config: StepConfig) -> Callable:
+    """`shader_step` with its three kernels under torch.compile (each one graph per `config`, for
+    every size)."""
+    kernels = Kernels(*(torch.compile(fn, dynamic=True) for fn in EAGER))
+    return functools.partial(shader_step, config=config, kernels=kernels)
+
+
+def fused_march(step, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Tensor, *,
+                wavefront: int = WAVEFRONT, refill_every: int = REFILL_EVERY) -> tuple[MarchResult, Tensor]:
+    """March the R rays where `hit` with `step(state, ray, s)` (a `shader_step` with the rest
+    bound) in wavefronts. `t0`, `t1`, `start` (the first sample's t) [R]; `hit` [R] bool; `ray`
+    [9, R] as `shader_step` takes it; `s` [R]. -> (the `march` result, density evaluations)."""
+    final = t0.new_zeros(_ROWS, t0.shape[0])
+    final[_TRANS] = 1.0
+    queue = hit.nonzero().squeeze(1)
+    slots, state, taken = queue[:0], final[:, :0], 0
+    while True:
+        room = min(wavefront - slots.shape[0], queue.shape[0] - taken)
+        if room > 0:  # refill: fresh rays at their start
+            new = queue[taken:taken + room]
+            taken += room
+            fresh = t0.new_zeros(_ROWS, room)
+            fresh[_T], fresh[_T_END], fresh[_SPAN], fresh[_TRANS], fresh[_ALIVE] = start[new], t1[new], t1[new] - t0[new], 1.0, 1.0
+            slots, state = torch.cat([slots, new]), torch.cat([state, fresh], dim=1)
+        if slots.shape[0] == 0:
+            break
+        slot_ray, slot_s = ray[:, slots], s[slots]
+        for _ in range(refill_every):
+            state = step(state, slot_ray, slot_s)
+        alive = state[_ALIVE] > 0
+        if bool(alive.all()):
+            continue
+        final[:, slots[~alive]] = state[:, ~alive]
+        keep = alive.nonzero().squeeze(1)
+        if keep.shape[0] == 1:  # a finished slot rides along: one slot would recompile the kernels
+            keep = torch.cat([keep, (~alive).nonzero()[:1, 0]])
+        slots, state = slots[keep], state[:, keep]
+    res = MarchResult(radiance=final[_RADIANCE:].T.contiguous(), transmittance=final[_TRANS], weight_sum=final[_WSUM],
+                      weighted_t=final[_WT], median_t=final[_MEDIAN], steps=final[_STEPS].long(),
+                      truncated=final[_TRUNC] > 0)
+    return res, final[_EVALS].sum()
+
+
+def march_fused(ctx, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit: Tensor, dither: Tensor | None, *,
+                compiled: bool = True) -> MarchResult:
+    """The render's fused march of a `fusable` volume over a chunk's rays (`run_march`'s fast
+    path); `compiled` False runs the eager twin."""
+    st = ctx.settings
+    look, packed = cloud_look(ctx, vol)
+    octaves = int(vol.field.inner.p.octaves)
+    scales = noise._mesa_folded_scales([(2.02, 2.03, 2.01, 2.02)[i % 4] for i in range(octaves - 1)], t0.dtype, t0.device)
+    config = StepConfig(rule=st.rule, octaves=octaves, lod_scale=st.lod_scale, threshold=float(st.density_threshold),
+                        min_transmittance=float(st.min_transmittance), max_iterations=st.rule.max_iterations,
+                        light=bool(vol.plan.lights), graded=vol.params.shader.ambient_top is not None)
+    kernel = compiled_step(config) if compiled else functools.partial(shader_step, config=config)
+    start = t0
+    if dither is not None:  # the template's absolute offset, or a fraction of the first step
+        start = t0 + (dither if st.dither == "sin" else dither * st.rule.length(t0, t1 - t0))
+    ray = torch.cat([rays.origins.T, rays.directions.T, background.T])
+    res, evals = fused_march(lambda state, r, s: kernel(state, r, s, look, packed, scales), t0, t1, hit, start, ray,
+                             rays.scene_index, wavefront=WAVEFRONT, refill_every=REFILL_EVERY)
+    ctx.counts.density_evals += int(evals)
+    return res
