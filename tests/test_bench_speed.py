@@ -14,6 +14,7 @@ def test_cli_parses_bench_speed():
 def test_generation_and_loaded_sections_report(tmp_path):
     rows = bench_speed.generation_rows(["clouds"], workers=(1,), count=1, size=8, compiled=False)
     assert rows[0]["recipe"] == "clouds" and rows[0]["samples_per_s"] > 0 and rows[0]["bytes_per_sample"] > 0
+    assert rows[0]["steady_per_s"] > 0 and rows[0]["first_s"] >= 0
     loaded = bench_speed.loaded_rows(width=8, height=6, repeat=1, configs=[(1, "PASSIVE")])
     assert loaded[0]["slowdown"] > 0
     text = bench_speed.markdown({"quick": True, "repeat": 1, "generate": rows, "loaded": loaded})

@@ -143,10 +143,12 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
 
 def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
                     layout: str = "folder", compiled: bool = True) -> list[dict]:
-    """Samples/s and bytes/sample (every file of the dataset over the sample count) of `generate`
-    for each recipe at size×size (None: the recipe's own size) with each worker count, eager and,
-    where the recipe's scenes take it (`fastnoise.compile_pays`) and `compiled`, compiled (its
-    compilation in each worker process included)."""
+    """`generate` of each recipe at size×size (None: the recipe's own size) with each worker count,
+    eager and, where the recipe's scenes take it (`fastnoise.compile_pays`) and `compiled`,
+    compiled: rows {recipe, workers, mode, seconds, samples_per_s, steady_per_s, first_s,
+    bytes_per_sample}. Each is run for `count` and for 2·`count` samples: the difference is the
+    steady rate (count / (T₂ − T₁)); what the first run took beyond `count` samples at that rate
+    is the start-up (worker processes, compilation: `first_s`). `samples_per_s`: 2·count / T₂."""
     from .fastnoise import compile_pays
     from .generate import generate
     from .recipe import Recipe
@@ -158,14 +160,18 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
         modes = (False, True) if compiled and compile_pays(Recipe.load(path, overrides).sample_with_params(0, 0)[0]) else (False,)
         for n in workers:
             for compile in modes:
-                with tempfile.TemporaryDirectory() as tmp:
-                    start = time.perf_counter()
-                    generate(path, count=count, out=Path(tmp) / "ds", workers=n, batch=batch, layout=layout,
-                             overrides=overrides, progress=False, compile=compile)
-                    seconds = time.perf_counter() - start
-                    size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
-                rows.append(dict(recipe=name, workers=n, mode="compiled" if compile else "eager", seconds=seconds,
-                                 samples_per_s=count / seconds, bytes_per_sample=size_bytes / count))
+                seconds = []
+                for k in (count, 2 * count):
+                    with tempfile.TemporaryDirectory() as tmp:
+                        start = time.perf_counter()
+                        generate(path, count=k, out=Path(tmp) / "ds", workers=n, batch=batch, layout=layout,
+                                 overrides=overrides, progress=False, compile=compile)
+                        seconds.append(time.perf_counter() - start)
+                        size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
+                steady = count / max(seconds[1] - seconds[0], 1e-9)
+                rows.append(dict(recipe=name, workers=n, mode="compiled" if compile else "eager", seconds=seconds[1],
+                                 samples_per_s=2 * count / seconds[1], steady_per_s=steady,
+                                 first_s=max(seconds[0] - count / steady, 0.0), bytes_per_sample=size_bytes / (2 * count)))
     return rows
 
 
@@ -236,22 +242,24 @@ def markdown(sections: dict) -> str:
         lines += [f"| {r['work']} | {r['renderer']} | {r['seconds']:.3f} | {_fmt(r['evals_per_s'], ',.0f')} | "
                   f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['first_s'], '.1f')} |" for r in sections["render"]]
         lines += ["", "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
-                  "`torch.compile` on template-clouds compiles its texture-noise kernel per octave (the march around it "
-                  "stays eager); the arithmetic hash's fbm is one fused kernel (docs/VOLUMES.md). A render's density "
-                  "evals/s against the floor below is how far the march around the density is from free.", ""]
+                  "`torch.compile` on template-clouds runs the fused march step (torchvol/volume/fused.py: a step is three "
+                  "compiled kernels over wavefronts of rays); the arithmetic hash's fbm is one fused kernel, the physical "
+                  "march around it eager (docs/VOLUMES.md). Density evals/s count the evaluations the eager march makes; "
+                  "the fused step evaluates the cloud at every live ray and again towards the light where lit.", ""]
     if "floor" in sections:
         lines += ["## The floor: 4-octave value-noise fbm alone", "", "| kernel | evals/s | first call s |", "| --- | ---: | ---: |"]
         lines += [f"| {r['kernel']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |" for r in sections["floor"]]
         lines += [""]
     if "generate" in sections:
-        lines += ["## Generation", "", "| recipe | workers | mode | seconds | samples/s | bytes/sample |",
-                  "| --- | ---: | --- | ---: | ---: | ---: |"]
+        lines += ["## Generation", "", "| recipe | workers | mode | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
+                  "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |"]
         lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
-                  f"{r['bytes_per_sample']:,.0f} |" for r in sections["generate"]]
-        lines += ["", "compiled: `generate(..., compile=True)`, opt-in (`torchvol generate --compile`) "
-                  "for recipes whose scenes take it (an fbm on the arithmetic hash). With 1 worker generate runs in this "
-                  "process, which the rows above already compiled; with 2, each spawned worker compiles again (dynamo "
-                  "traces; inductor's on-disk cache, shared, is warm): seconds a short run does not repay.", ""]
+                  f"{r['steady_per_s']:.2f} | {r['first_s']:.1f} | {r['bytes_per_sample']:,.0f} |" for r in sections["generate"]]
+        lines += ["", "Each row generates N and then 2N samples: steady samples/s = N / (T₂ − T₁), start-up = what the first "
+                  "run took beyond N samples at that rate (worker processes; compilation, served by inductor's on-disk "
+                  "cache after a machine's first run); seconds and samples/s are the 2N run's. compiled: `torchvol "
+                  "generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the template's "
+                  "fused march step); each worker process compiles (traces) on its own.", ""]
     if "loaded" in sections:
         lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
                   "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
@@ -276,6 +284,7 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
         # the fused path: what is left around the compiled density kernel
         sections["profile"][f"cloud-puff arithmetic compiled {size}×{size}"] = profile_rows(
             "cloud-puff", size=size, hash="arithmetic", compile=True)
+        sections["profile"][f"template-clouds compiled {size}×{size}"] = profile_rows("template-clouds", size=size, compile=True)
     if "render" in parts:
         sizes = ((160, 90),) if quick else TEMPLATE_SIZES
         sections["render"] = render_rows(sizes, repeat=repeat, physical_size=(48, 48) if quick else (128, 128))
