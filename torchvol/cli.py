@@ -163,7 +163,7 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
 def cmd_bench_speed(args: argparse.Namespace) -> int:
     from .bench_speed import speed
 
-    print(speed(args.out, quick=args.quick, repeat=args.repeat))
+    print(speed(args.out, quick=args.quick, repeat=args.repeat, recipes=args.recipes))
     return 0
 
 
@@ -284,6 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default=None, help="write the Markdown report here (e.g. docs/SPEED.md)")
     s.add_argument("--quick", action="store_true", help="small sizes, two recipes (about 2 minutes on 2 cores)")
     s.add_argument("--repeat", type=int, default=None, help="runs per figure; the median is reported (default 3, quick 2)")
+    s.add_argument("--recipes", nargs="+", default=None, metavar="NAME",
+                   help="bundled recipes whose generation is timed (default: every one; quick: clouds, template-clouds)")
     s.set_defaults(func=cmd_bench_speed)
     return parser
 
