@@ -146,9 +146,11 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
     """`generate` of each recipe at size×size (None: the recipe's own size) with each worker count,
     eager and, where the recipe's scenes take it (`fastnoise.compile_pays`) and `compiled`,
     compiled: rows {recipe, workers, mode, seconds, samples_per_s, steady_per_s, first_s,
-    bytes_per_sample}. Each is run for `count` and for 2·`count` samples: the difference is the
-    steady rate (count / (T₂ − T₁)); what the first run took beyond `count` samples at that rate
-    is the start-up (worker processes, compilation: `first_s`). `samples_per_s`: 2·count / T₂."""
+    bytes_per_sample}. After a warm-up run (one batch a worker: inductor's on-disk cache is then
+    warm for both timed runs), each is run for N and for 2N samples (N = `count`, 4·`count`
+    compiled, whose samples are fast and whose start-up is long): the difference is the steady
+    rate (N / (T₂ − T₁)); what the first run took beyond N samples at that rate is the start-up
+    (worker processes, dynamo's tracing: `first_s`). `samples_per_s`: 2N / T₂."""
     from .fastnoise import compile_pays
     from .generate import generate
     from .recipe import Recipe
@@ -160,18 +162,19 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
         modes = (False, True) if compiled and compile_pays(Recipe.load(path, overrides).sample_with_params(0, 0)[0]) else (False,)
         for n in workers:
             for compile in modes:
-                seconds = []
-                for k in (count, 2 * count):
+                seconds, n_samples = [], count * (4 if compile else 1)
+                for k in (batch * n, n_samples, 2 * n_samples):  # warm-up, N, 2N
                     with tempfile.TemporaryDirectory() as tmp:
                         start = time.perf_counter()
                         generate(path, count=k, out=Path(tmp) / "ds", workers=n, batch=batch, layout=layout,
                                  overrides=overrides, progress=False, compile=compile)
                         seconds.append(time.perf_counter() - start)
                         size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
-                steady = count / max(seconds[1] - seconds[0], 1e-9)
-                rows.append(dict(recipe=name, workers=n, mode="compiled" if compile else "eager", seconds=seconds[1],
-                                 samples_per_s=2 * count / seconds[1], steady_per_s=steady,
-                                 first_s=max(seconds[0] - count / steady, 0.0), bytes_per_sample=size_bytes / (2 * count)))
+                steady = n_samples / max(seconds[2] - seconds[1], 1e-9)
+                rows.append(dict(recipe=name, workers=n, mode="compiled" if compile else "eager", samples=2 * n_samples,
+                                 seconds=seconds[2], samples_per_s=2 * n_samples / seconds[2], steady_per_s=steady,
+                                 first_s=max(seconds[1] - n_samples / steady, 0.0),
+                                 bytes_per_sample=size_bytes / (2 * n_samples)))
     return rows
 
 
@@ -251,13 +254,14 @@ def markdown(sections: dict) -> str:
         lines += [f"| {r['kernel']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |" for r in sections["floor"]]
         lines += [""]
     if "generate" in sections:
-        lines += ["## Generation", "", "| recipe | workers | mode | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
-                  "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |"]
-        lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
+        lines += ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
+                  "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['samples']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
                   f"{r['steady_per_s']:.2f} | {r['first_s']:.1f} | {r['bytes_per_sample']:,.0f} |" for r in sections["generate"]]
-        lines += ["", "Each row generates N and then 2N samples: steady samples/s = N / (T₂ − T₁), start-up = what the first "
-                  "run took beyond N samples at that rate (worker processes; compilation, served by inductor's on-disk "
-                  "cache after a machine's first run); seconds and samples/s are the 2N run's. compiled: `torchvol "
+        lines += ["", "Each row generates one batch a worker (warm-up), then N and 2N samples (N four times as many compiled; "
+                  "samples, seconds and samples/s are the 2N run's): steady samples/s = N / (T₂ − T₁), start-up = what the "
+                  "N run took beyond N samples at that rate (worker processes; dynamo tracing the compiled kernels, "
+                  "inductor's on-disk cache being warm). compiled: `torchvol "
                   "generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the template's "
                   "fused march step); each worker process compiles (traces) on its own.", ""]
     if "loaded" in sections:

@@ -213,7 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     g.add_argument("--threads", type=int, default=None, help="torch threads per worker (default: cores / workers)")
     g.add_argument("--compile", action="store_true", help="render compiled where that is faster (fbm clouds on the "
-                   "arithmetic hash: within 1e-5 of eager, not bitwise; pays from about 8 samples a worker)")
+                   "arithmetic hash, the template's fused march step: within 1e-5 of eager, not bitwise; pays from "
+                   "about 8 samples a worker once inductor's cache is warm)")
     g.add_argument("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)")
     g.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)")
     g.add_argument("--batch", type=int, default=4, help="samples rendered as one batch (default 4)")

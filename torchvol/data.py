@@ -111,10 +111,13 @@ class SceneDataset(Dataset):
     """Map-style dataset of `length` samples of `recipe` (a Recipe or anything Recipe.load takes).
 
     ds[i] depends only on (seed, epoch, i): the same in any process, DataLoader worker or order.
-    `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes."""
+    `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`: render
+    compiled where that is the fast path (`fastnoise.compile_pays`), as `torchvol generate
+    --compile` does: the samples of such a dataset, within 1e-5 of eager ones (each worker process
+    compiles once)."""
 
     def __init__(self, recipe: Recipe | str | Path | Mapping, length: int, seed: int = 0, epoch: int | None = None, *,
-                 aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None):
+                 aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None, compile: bool = False):
         integer("length", length, low=0)
         integer("seed", seed)
         if epoch is not None and not is_integer(epoch):
@@ -123,6 +126,7 @@ class SceneDataset(Dataset):
         self.length, self.base_seed, self.epoch = length, seed, epoch
         self.seed = epoch_seed(seed, epoch)
         self.aovs = self.recipe.aovs if aovs is None else tuple(aovs)
+        self.compile = bool(compile)
 
     def __len__(self) -> int:
         return self.length
@@ -137,7 +141,8 @@ class SceneDataset(Dataset):
 
     def batch(self, indices: Sequence[int]) -> list[dict]:
         """Several samples rendered as one batch (the generator's path); same values as ds[i]."""
-        return render_samples(self.recipe, [self._check(i) for i in indices], seed=self.seed, aovs=self.aovs)
+        return render_samples(self.recipe, [self._check(i) for i in indices], seed=self.seed, aovs=self.aovs,
+                              compile=self.compile)
 
 
 def collate(items: Sequence[dict]) -> dict:

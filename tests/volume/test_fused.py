@@ -149,3 +149,16 @@ def test_compiled_step_matches_the_eager_twin():
     assert_close(fast.alpha, slow.alpha, atol=1e-5, what="alpha")
     assert_close(fast.depth, slow.depth, atol=1e-4, what="depth")
     assert fast.stats["density_evals"] == slow.stats["density_evals"]
+
+
+def test_compiled_datasets_take_the_fused_path(eager_twin, one_thread):
+    """`SceneDataset(compile=True)` and `render_samples(compile=True)` (what `generate --compile`
+    runs) reach the fused step for the template recipe (here its eager twin: same bytes as eager)."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "datasets" / "template-clouds.toml"
+    tiny = {"image.width": 12, "image.height": 8}
+    fast, slow = tv.SceneDataset(path, 2, overrides=tiny, compile=True), tv.SceneDataset(path, 2, overrides=tiny)
+    for i in range(2):
+        assert torch.equal(fast[i]["image"], slow[i]["image"])
+    assert len(eager_twin) == 2
