@@ -1,22 +1,23 @@
-"""One march step as one compiled kernel: the seeds' alpha look (`shading = "shader"`) over the
+"""One march step as compiled kernels: the seeds' alpha look (`shading = "shader"`) over the
 template's texture-noise cloud layer (`density.clouds`), marched in fixed-size wavefronts.
 
 The generic `march` calls a medium closure that runs ~100 small eager ops per step (an fbm
 octave is a dozen, the derivative light evaluates the fbm again, the look and the compositing add
-their own); on a 2-core machine those ops, not the arithmetic, are the render. Here one step —
-the sample point, its LOD, the cloud's fbm there and towards the light, the look's colour and fog,
-alpha compositing, the step rule and the end tests — is one pure function of plain tensors
-(`shader_step`), which torch.compile turns into one fused C++ loop over the rays. The rays go
-through in wavefronts of at most `WAVEFRONT` slots: every `REFILL_EVERY` steps the finished slots
-are written out and refilled from the rays not started yet, so the kernel keeps seeing full
-batches (shapes are dynamic: one compiled kernel serves every size).
+their own); on a 2-core machine those ops, not the arithmetic, are the render. Here a step — the
+sample point, its LOD, the cloud's fbm there and towards the light, the look's colour and fog,
+alpha compositing, the step rule and the end tests — is three pure functions of plain tensors
+(`sample_density`, `light_density` on the lit samples only, `advance`), which torch.compile turns
+into fused C++ loops over the rays. The rays go through in wavefronts of at most `WAVEFRONT`
+slots: every `REFILL_EVERY` steps the finished slots are written out and refilled from the rays
+not started yet, so the kernels keep seeing full batches (shapes are dynamic: one compilation
+serves every size).
 
-Eager `shader_step` is the reference twin: over the same rays it gives the generic march's result
-(tests/volume/test_fused.py: to float rounding, since the LOD's dropped octaves are masked here,
-not skipped); compiled, it matches the eager twin within `tolerances` (inductor contracts
-multiply-adds, and the texture's 8-bit filter turns an ulp of a coordinate into a 1/255 step
-at a few points). The render takes this path under `render(..., compile=True)` where `fusable`
-says the volume is this technique (`docs/SPEED.md`).
+The eager `shader_step` is the reference twin: it renders bitwise what the generic march renders
+(tests/volume/test_fused.py; the LOD's dropped octaves are masked by `where`, which changes no
+value); compiled, it matches the eager twin within 1e-5 (inductor contracts multiply-adds, and
+the texture's 8-bit filter turns an ulp of a coordinate into a 1/255 step at a few points). The
+render takes this path under `render(..., compile=True)` where `fusable` says the volume is this
+technique (docs/VOLUMES.md, "The fused march step"; figures in docs/SPEED.md).
 """
 
 from __future__ import annotations
