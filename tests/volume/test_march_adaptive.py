@@ -125,25 +125,29 @@ def _cloud_puff(**overrides):
     return out.alpha.double(), out.radiance.double()
 
 
-@pytest.mark.parametrize("sees_islands", [True, False])
-def test_tight_tolerance_holds_on_an_fbm_cloud_only_with_the_missed_depth(sees_islands, monkeypatch):
+def test_tight_tolerance_holds_on_an_fbm_cloud_only_with_the_missed_depth(monkeypatch):
     """Under the feature cap, steps whose samples all read 0 still step over thin islands of
     clamped noise: step doubling estimates no error there. `missed_depth` (the quadratic through
-    the signed samples) sees them: with it 1e-4 holds; without it the error stays above 1e-4."""
+    the signed samples) sees them: with it 1e-4 holds; without it the error is larger (how much
+    depends on the CPU's last bits in the noise: 5.7e-5 with, 8.2e-5 without on one machine; over
+    1e-4 without on another)."""
     from torchvol.volume import march as march_module
 
-    if not sees_islands:
-        monkeypatch.setattr(march_module, "missed_depth", lambda sigma_a, sigma_m, sigma_b, dt: torch.zeros_like(dt))
     tolerance, light = 1e-4, 40.0
     ref_alpha, ref_radiance = _cloud_puff(**{"march.quality": "reference", "march.steps": 2048, "march.dither": "none"})
-    alpha, radiance = _cloud_puff.__wrapped__(**{"march.tolerance": tolerance})
-    alpha_err = (alpha - ref_alpha).abs()
-    err = max(alpha_err.max().item(), ((radiance - ref_radiance).abs().max() / light).item())
-    where = divmod(int(alpha_err.flatten().argmax()), 24)
-    if sees_islands:
-        assert err <= tolerance, f"error {err:.2e} over {tolerance:g} (worst alpha at row, col {where})"
-    else:
-        assert err > tolerance, f"without missed_depth the error {err:.2e} should exceed {tolerance:g}: the test lost its teeth"
+
+    def error() -> tuple[float, tuple[int, int]]:
+        alpha, radiance = _cloud_puff.__wrapped__(**{"march.tolerance": tolerance})
+        alpha_err = (alpha - ref_alpha).abs()
+        err = max(alpha_err.max().item(), ((radiance - ref_radiance).abs().max() / light).item())
+        return err, divmod(int(alpha_err.flatten().argmax()), 24)
+
+    seen, where = error()
+    assert seen <= tolerance, f"error {seen:.2e} over {tolerance:g} (worst alpha at row, col {where})"
+    monkeypatch.setattr(march_module, "missed_depth", lambda sigma_a, sigma_m, sigma_b, dt: torch.zeros_like(dt))
+    blind, _ = error()
+    assert blind > 1.2 * seen, (
+        f"without missed_depth the error {blind:.2e} should be well above {seen:.2e} (with it): the test lost its teeth")
 
 
 def test_missed_depth_is_the_depth_of_an_island_between_samples():

@@ -50,7 +50,11 @@ class SunGrid:
 
     def lookup(self, points: Tensor, sigma_t: Tensor) -> Tensor:
         """T to the sun at `points` [N, 3], whose extinction is `sigma_t` [N]. -> [N]."""
-        q = torch.addmm(self.offset, points, self.to_atlas).clamp_(self.low, self.high)  # one affine map: few ops per point
+        # the affine map as three multiply-adds, not addmm: BLAS takes another path for a single
+        # row (a 1-ray chunk), whose rounding differs; these are the same for any chunking
+        m = self.to_atlas
+        q = torch.addcmul(torch.addcmul(torch.addcmul(self.offset, points[:, :1], m[0]), points[:, 1:2], m[1]), points[:, 2:3], m[2])
+        q = q.clamp_(self.low, self.high)
         w = q[:, 2]
         plane = torch.ceil(w)
         gap = (plane - w) * self.plane_gap  # world distance to the next plane towards the sun
