@@ -14,7 +14,7 @@ serves every size).
 
 The eager `shader_step` is the reference twin: it renders bitwise what the generic march renders
 (tests/volume/test_fused.py; the LOD's dropped octaves are masked by `where`, which changes no
-value); compiled, it matches the eager twin within 1e-5 (inductor contracts multiply-adds, and
+value); compiled, it matches the eager twin to ~1e-6, up to 4e-4 at a few pixels (inductor contracts multiply-adds, and
 the texture's 8-bit filter turns an ulp of a coordinate into a 1/255 step at a few points). The
 render takes this path under `render(..., compile=True)` where `fusable` says the volume is this
 technique (docs/VOLUMES.md, "The fused march step"; figures in docs/SPEED.md).
