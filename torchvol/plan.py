@@ -99,8 +99,8 @@ class VoxelPass:
     rounded: bool
     ao: bool
     shadows: tuple[LightPass, ...]  # one per light when `voxels.shadow` is set
-    glow: bool  # glow and fog accumulate per visited cell, inside voxels.dda
-    fog: bool
+    glow: bool  # glow and fog's extinction accumulate per visited cell, inside voxels.dda
+    fog: bool  # its in-scattered light: voxels.fog, one shadow ray per distinct visited cell
     texture: bool
     emission: bool = False  # some material of some scene emits (voxels.materials[i].emission)
     water: bool = False  # the water plane's reflected and refracted rays (voxels.water)
@@ -110,7 +110,7 @@ class VoxelPass:
     reflections: int = 0  # bounces of mirror reflection rays (voxels.reflections)
 
     def names(self) -> list[str]:
-        return (["voxels.dda"] + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
+        return (["voxels.dda"] + (["voxels.fog"] if self.fog else []) + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
                 + (["voxels.ao"] if self.ao else [])
                 + (["voxels.gi.mips", "voxels.gi.cones"] if self.cone else ["voxels.gi"] if self.gi else [])
                 + [li.name for li in self.shadows]

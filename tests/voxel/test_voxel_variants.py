@@ -66,6 +66,30 @@ def test_fog_in_scatter_adds_sunlight():
     assert (b.radiance > a.radiance).all() and not torch.equal(b.radiance, c.radiance)
 
 
+def test_fog_light_per_distinct_cell_is_bitwise_the_per_visit_twin(monkeypatch):
+    """voxels.fog traces one shadow ray per distinct visited (scene, cell); the per-visit reference
+    gives the same bits: a batch of two scenes (their own densities and suns), a sun and a point light."""
+    from torchvol.presets import preset_dict
+    from torchvol.voxel.surface import VoxelSurface
+
+    def scene(density, sun):
+        s = preset_dict("voxel-fog", width=48, height=32, density=density)
+        s["lights"][0]["direction"] = sun
+        s["lights"].append({"kind": "point", "position": [2.0, 9.0, -3.0], "intensity": 20.0})
+        return s
+
+    scenes = [scene(0.04, [-0.4, 0.5, 0.6]), scene(0.1, [0.5, 0.3, -0.2])]
+    fast = tv.render(scenes)
+    calls = []
+    reference = VoxelSurface.fog_light_reference
+    monkeypatch.setattr(VoxelSurface, "_fog_light", lambda self, visits: calls.append(1) or reference(self, visits))
+    slow = tv.render(scenes)
+    assert calls and fast.stats["voxel_steps"] == slow.stats["voxel_steps"]
+    diff = (fast.radiance - slow.radiance).abs()
+    assert torch.equal(fast.radiance, slow.radiance), f"largest difference {diff.max():.3g} at {diff.argmax()}"
+    assert not torch.equal(fast.radiance, tv.render([tv.preset("voxel-fog", width=48, height=32, density=0.0)] * 2).radiance)
+
+
 def test_rounded_voxels_zero_radius_is_the_cube_and_rounding_recedes():
     plain = tv.render(wall())
     cube = tv.render(wall(rounded={"radius_min": 0.0, "radius_range": 0.0}))

@@ -93,9 +93,11 @@ class VoxelSurface:
         return (~h.hit).to(p.dtype)
 
     def _glow_and_fog(self, o: Tensor, s: Tensor):
-        """The per-cell callback of the DDA when glow or fog accumulate, and its accumulators."""
+        """The per-cell callback of the DDA when glow or fog accumulate, its accumulators and, with
+        fog, `finish()`, which adds the fog's in-scattered light after the traversal (`_fog_light`)."""
         p, g, n, dt = self.p, self.grid, o.shape[0], o.dtype
         acc = dict(glow=o.new_zeros(n), fog_tau=o.new_zeros(n), fog_light=o.new_zeros(n, 3))
+        visits = []  # (ray ids [m], scenes [m], cells [m, 3], weights [m]) of the fog's visited empty cells
 
         def visit(ids, cells, t_in, t_out, hit):
             sc = s[ids]
@@ -106,20 +108,55 @@ class VoxelSurface:
             if self.plan.fog:
                 e = (~hit).nonzero().squeeze(1)
                 if e.numel():
-                    ie, se = ids[e], sc[e]
-                    centre = g.to_world(cells[e].to(dt) + 0.5, se)
+                    ie, se, ce = ids[e], sc[e], cells[e]
+                    centre = g.to_world(ce.to(dt) + 0.5, se)
                     f = p.fog
                     sigma = take(f.density, se) * torch.exp(-(centre[:, 1] - take(f.base, se)) / take(f.scale_height, se))
                     tau = sigma * (t_out[e] - t_in[e]).clamp_min(0.0)
                     acc["fog_tau"].index_add_(0, ie, tau)
-                    light = o.new_zeros(e.numel(), 3)
-                    for source in self.lights:
-                        toward = source.toward(centre, se)
-                        vis = self._visibility(centre, se, source, f.shadow_steps, toward)
-                        light = light + toward.irradiance * vis[:, None]
-                    acc["fog_light"].index_add_(0, ie, (tau * torch.exp(-acc["fog_tau"][ie]))[:, None] * light * take(f.color, se))
+                    visits.append((ie, se, ce, tau * torch.exp(-acc["fog_tau"][ie])))
 
-        return visit, acc
+        def finish():
+            for ie, se, light in self._fog_light(visits):
+                acc["fog_light"].index_add_(0, ie, light * take(p.fog.color, se))
+
+        return visit, acc, finish
+
+    def _fog_light(self, visits: list) -> list:
+        """The light [m, 3] each fog visit (ray ids, scenes, cells, weights as `visit` recorded them)
+        scatters towards its ray: weight · Σ lights' irradiance · visibility at the cell centre. The
+        light at a centre depends on its cell alone, so one shadow ray per distinct visited cell
+        (`fog_light_reference`: one per visit) gives the same bits at a tenth of the rays."""
+        if not visits:
+            return []
+        g, dt = self.grid, visits[0][3].dtype
+        scenes, cells = torch.cat([v[1] for v in visits]), torch.cat([v[2] for v in visits])
+        extent = (g.hi - g.lo).amax(dim=0)  # a key per (scene, cell) of the padded grids
+        rel = cells - g.lo[scenes]
+        key = ((scenes * extent[2] + rel[:, 2]) * extent[1] + rel[:, 1]) * extent[0] + rel[:, 0]
+        unique, inverse = torch.unique(key, return_inverse=True)
+        first = torch.full_like(unique, key.shape[0]).scatter_reduce_(0, inverse, torch.arange(key.shape[0], device=key.device), "amin")
+        light = self._fog_irradiance(cells[first], scenes[first])[inverse]
+        out, start = [], 0
+        for ie, se, _, weight in visits:
+            out.append((ie, se, weight[:, None] * light[start:start + ie.shape[0]]))
+            start += ie.shape[0]
+        return out
+
+    def fog_light_reference(self, visits: list) -> list:
+        """`_fog_light` with a shadow ray per visit: the slow, obvious twin."""
+        return [(ie, se, weight[:, None] * self._fog_irradiance(ce, se)) for ie, se, ce, weight in visits]
+
+    def _fog_irradiance(self, cells: Tensor, s: Tensor) -> Tensor:
+        """Σ lights' irradiance [m, 3] reaching the centres of cells [m, 3] of scenes s [m], each
+        shadowed by a `fog.shadow_steps` DDA ray."""
+        centre = self.grid.to_world(cells.to(self.grid.origin.dtype) + 0.5, s)
+        light = centre.new_zeros(centre.shape[0], 3)
+        for source in self.lights:
+            toward = source.toward(centre, s)
+            vis = self._visibility(centre, s, source, self.p.fog.shadow_steps, toward)
+            light = light + toward.irradiance * vis[:, None]
+        return light
 
     # -- the pass --------------------------------------------------------------------------------
 
@@ -128,9 +165,12 @@ class VoxelSurface:
         """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3]; keys [n, 3] long: each
         ray's (sub-pixel column, row, scene seed), the hash cells of its GI paths (needed with `voxels.gi`)."""
         p, n = self.p, o.shape[0]
-        visit, acc = self._glow_and_fog(o, s) if self.plan.glow or self.plan.fog else (None, None)
+        visit, acc, finish = self._glow_and_fog(o, s) if self.plan.glow or self.plan.fog else (None, None, None)
         with section("voxels.dda"):
             hits = self._traverse(o, d, s, max_steps=p.max_steps, visit=visit)
+        if self.plan.fog:
+            with section("voxels.fog"):
+                finish()
         steps = hits.steps.clone()
         hit, t, cell, axis, mat = hits.hit, hits.t, hits.cell, hits.axis, hits.material
         normal_override = None
