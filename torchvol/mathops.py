@@ -1,4 +1,5 @@
-"""Elementwise maths whose result does not depend on where an element sits in its tensor.
+"""Elementwise maths whose result does not depend on where an element sits in its tensor, and
+`take_rows`, the fast form of a gather.
 
 torch's CPU kernels run a vectorised body and a scalar tail; for most functions (exp, log, sin,
 sqrt, ...) both round alike, but not for `pow` with a non-integer exponent (nor `atan2`): the same
@@ -14,3 +15,11 @@ from torch import Tensor
 def pow_(x: Tensor, y: Tensor | float) -> Tensor:
     """x ** y for x ≥ 0 and y > 0, as exp(y · ln x) (0 at x = 0). Shapes broadcast."""
     return torch.exp(y * torch.log(x))
+
+
+def take_rows(table: Tensor, index: Tensor) -> Tensor:
+    """``table[index]`` for an integer index of any shape with values in [0, len(table)) ->
+    ``[*index.shape, *table.shape[1:]]``, the same values. `index_select` is 3–5× faster than
+    advanced indexing on CPU (torch 2.13, 60k rows: 50 µs against 250 µs; `bench speed`), and the
+    march, the DDA and the lattice noises gather at every step."""
+    return table.index_select(0, index.reshape(-1)).reshape(*index.shape, *table.shape[1:])

@@ -18,6 +18,8 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from .mathops import take_rows
+
 __all__ = [
     "hash3",
     "lattice_hash",
@@ -98,13 +100,26 @@ def lattice_hash(cells: Tensor, seed: int) -> Tensor:
     it 8 to 27 times per point. `hash3` stays the full-period hash for per-ray uses (dither)."""
     perm, _ = _lattice_tables(int(seed), str(cells.device))
     c = cells & 255
-    return perm[perm[perm[c[..., 0]] + c[..., 1]] + c[..., 2]]
+    return take_rows(perm, take_rows(perm, take_rows(perm, c[..., 0]) + c[..., 1]) + c[..., 2])
+
+
+def corner_hashes(cells: Tensor, seed: int) -> list[Tensor]:
+    """`lattice_hash` of the 8 corners (`_CORNERS` order) of cells [N, 3] -> 8 × [N] int32.
+
+    Perlin's chain shares its prefixes: perm[x] for 2 x's, perm[· + y] for 4 (x, y), perm[· + z]
+    for 8: 14 gathers of N instead of 24, and the doubled table absorbs the corner's +1 (every
+    index stays below 512), so no [N, 8, 3] corner cells are formed. Bitwise `lattice_hash`."""
+    perm = _lattice_tables(int(seed), str(cells.device))[0].to(torch.int32)
+    x, y, z = (cells & 255).to(torch.int32).unbind(-1)
+    px = [take_rows(perm, x + i) for i in (0, 1)]
+    pxy = [take_rows(perm, px[i] + (y + j)) for j in (0, 1) for i in (0, 1)]
+    return [take_rows(perm, pxy[i] + (z + k)) for k in (0, 1) for i in range(4)]
 
 
 def lattice_values(cells: Tensor, seed: int, dtype: torch.dtype) -> Tensor:
     """Three uniform values in [0, 1) per lattice cell: ``[..., 3]`` -> ``[..., 3]``."""
     _, values = _lattice_tables(int(seed), str(cells.device))
-    return values[lattice_hash(cells, seed)].to(dtype)
+    return take_rows(values, lattice_hash(cells, seed)).to(dtype)
 
 
 def _u32_to_unit(h: Tensor, dtype: torch.dtype) -> Tensor:
@@ -152,9 +167,8 @@ def value_noise(p: Tensor, *, seed: int = 0) -> Tensor:
     _check_points(p)
     cell, f = _cell_frac(p)
     u = f * f * (3.0 - 2.0 * f)
-    corners = torch.tensor(_CORNERS, dtype=torch.int64, device=p.device)  # [8, 3]
-    vals = lattice_values(cell[:, None, :] + corners, seed, p.dtype)[..., 0]  # [N, 8]
-    return _trilinear(list(vals.unbind(-1)), u)
+    first = _lattice_tables(int(seed), str(p.device))[1][:, 0].to(p.dtype)  # lattice_values' first column
+    return _trilinear([take_rows(first, h) for h in corner_hashes(cell, seed)], u)
 
 
 # Ken Perlin's 12 edge gradients (indexed by hash mod 12)
@@ -182,8 +196,9 @@ def perlin_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
     cell, f = _cell_frac(p)
     corners = torch.tensor(_CORNERS, dtype=torch.int64, device=p.device)  # [8, 3]
     grads = torch.tensor(_GRADS, dtype=p.dtype, device=p.device)  # [12, 3]
-    h = lattice_hash(_wrap(cell[:, None, :] + corners, period), seed)  # [N, 8]
-    g = grads[h % 12]  # [N, 8, 3]
+    h = (torch.stack(corner_hashes(cell, seed), dim=1) if period is None
+         else lattice_hash(_wrap(cell[:, None, :] + corners, period), seed))  # [N, 8]
+    g = take_rows(grads, h % 12)  # [N, 8, 3]
     d = f[:, None, :] - corners.to(p.dtype)  # [N, 8, 3]
     dots = (g * d).sum(-1)  # [N, 8]
     u = f * f * f * (f * (f * 6.0 - 15.0) + 10.0)
@@ -340,7 +355,7 @@ def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = L
         x0, y0 = torch.remainder(i0[:, 0], 256.0), torch.remainder(i0[:, 1], 256.0)
         x1, y1 = torch.remainder(x0 + 1.0, 256.0), torch.remainder(y0 + 1.0, 256.0)
         wx, wy = w[:, 0:1], w[:, 1:2]
-        at = lambda y, x: table[(y * 256.0 + x).long() if base is None else (y * 256.0 + x).long() + base]  # noqa: E731  [N, 2] (G, R)
+        at = lambda y, x: take_rows(table, (y * 256.0 + x).long() if base is None else (y * 256.0 + x).long() + base)  # noqa: E731  [N, 2] (G, R)
 
         def lerp(a: Tensor, b: Tensor, wt: Tensor) -> Tensor:  # a + ((w (b − a) + half) >> bits)
             return torch.floor((a * (one - wt) + b * wt + half) / one)
@@ -392,7 +407,7 @@ def texture_noise_coords(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: 
     row0, row1 = y0 * 256, y1 * 256
     if base is not None:
         row0, row1 = row0 + base, row1 + base
-    at = lambda row, col: packed[row + col]  # noqa: E731
+    at = lambda row, col: take_rows(packed, row + col)  # noqa: E731
 
     def lerp(a: Tensor, b: Tensor, w: Tensor) -> Tensor:  # a + ((w (b − a) + half) >> bits), both channels
         return ((a & 255) * (one - w) + (b & 255) * w + half) >> bits, ((a >> 8) * (one - w) + (b >> 8) * w + half) >> bits

@@ -54,7 +54,11 @@ class CloudLayer:
             noise.texture_table(torch.as_tensor(tex) if tex is not None else noise.default_noise_texture(seed), times.device)
             for tex, seed in zip(params.texture, params.texture_seed)
         ]
-        self.kernel = noise.compiled(noise.texture_noise_table) if compiled else noise.texture_noise_table
+        if compiled:
+            self.kernels = [lambda x, table=table: noise.compiled(noise.texture_noise_table)(x, table) for table in self.tables]
+        else:  # the integer filter: bitwise texture_noise_table, ~4× faster eager
+            packed = [noise.packed_table(table) for table in self.tables]
+            self.kernels = [lambda x, pk=pk: noise.texture_noise_coords(*x.unbind(1), pk) for pk in packed]
         self.shift = params.wind * times[:, None]  # (B, 3)
         self.feature_size = torch.full_like(times, noise.finest_period(params.octaves))
 
@@ -67,8 +71,8 @@ class CloudLayer:
         octaves = None if lod is None else p.octaves - lod
 
         def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
-            table = self.tables[b]
-            return noise.fbm(q_b, lambda x: self.kernel(x, table) * 2.0 - 1.0, octaves=p.octaves,
+            kernel = self.kernels[b]
+            return noise.fbm(q_b, lambda x: kernel(x) * 2.0 - 1.0, octaves=p.octaves,
                              lod=None if octaves is None else octaves[idx])
 
         f = per_scene(q, s, len(p), one_scene)

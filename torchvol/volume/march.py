@@ -25,7 +25,7 @@ from typing import Callable, Literal
 import torch
 from torch import Tensor
 
-from ..mathops import pow_
+from ..mathops import pow_, take_rows
 from .integrate import alpha_linear_step, alpha_step, frostbite_step, riemann_step
 
 Placement = Literal["count", "size", "adaptive"]
@@ -227,12 +227,12 @@ def march(
             break
         if kept < compact_below * keep.shape[0]:
             done = (~keep).nonzero().squeeze(1)
-            final[:, ids[done]] = state[:, done]
+            final.index_copy_(1, take_rows(ids, done), state.index_select(1, done))
             keep_idx = keep.nonzero().squeeze(1)
-            state, ids, active = state[:, keep_idx], ids[keep_idx], None
+            state, ids, active = state.index_select(1, keep_idx), take_rows(ids, keep_idx), None
         else:
             active = keep.to(t.dtype)
-    final[:, ids] = state
+    final.index_copy_(1, ids, state)
     return MarchResult(radiance=final[_RADIANCE:].T.contiguous(), transmittance=final[_TRANS], weight_sum=final[_WSUM],
                        weighted_t=final[_WT], median_t=final[_MEDIAN], steps=final[_STEPS].long(), truncated=truncated)
 

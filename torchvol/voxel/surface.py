@@ -32,6 +32,7 @@ from .. import sdf
 from ..aovs import AOVS
 from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
+from ..mathops import take_rows
 from .cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
 from .dda import Hits, hybrid_traverse, traverse
 from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
@@ -74,10 +75,10 @@ class VoxelSurface:
         """World rays [n, 3] of scenes s [n] through their grids (t in world units)."""
         g = self.grid
         og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
-        lookup = lambda c, ids: g.lookup(c, s[ids])
+        lookup = lambda c, ids: g.lookup(c, take_rows(s, ids))
         lo, hi = g.lo[s], g.hi[s]
         if self.plan.traversal == "hybrid" and visit is None and not plain:
-            return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, s[ids]), lo, hi,
+            return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, take_rows(s, ids)), lo, hi,
                                    max_steps=max_steps, t_min=t_min, compiled=self.compiled)
         return traverse(og, dg, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit,
                         compiled=self.compiled)
