@@ -33,13 +33,27 @@ from ..aovs import AOVS
 from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
 from ..mathops import take_rows
-from .cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
+from .cone import (
+    OFFSET,
+    build_mips,
+    cone_directions,
+    default_aperture,
+    face_cells,
+    trace_cones,
+)
 from .dda import Hits, hybrid_traverse, traverse
-from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
 from .ggx import f0_of, f_schlick, ggx_reflect
+from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
 from .grid import VoxelGrid
 from .materials import VOXEL_MATERIALS, default_material, material_table
-from .shade import atlas_sample, face_normal, face_tone, face_uv, rounded_refine, voxel_ao
+from .shade import (
+    atlas_sample,
+    face_normal,
+    face_tone,
+    face_uv,
+    rounded_refine,
+    voxel_ao,
+)
 from .water import beer, fresnel, plane_hit, reflect, refract, wave_normal
 
 __all__ = ["VoxelSurface"]
@@ -130,7 +144,7 @@ class VoxelSurface:
         (`fog_light_reference`: one per visit) gives the same bits at a tenth of the rays."""
         if not visits:
             return []
-        g, dt = self.grid, visits[0][3].dtype
+        g = self.grid
         scenes, cells = torch.cat([v[1] for v in visits]), torch.cat([v[2] for v in visits])
         extent = (g.hi - g.lo).amax(dim=0)  # a key per (scene, cell) of the padded grids
         rel = cells - g.lo[scenes]
