@@ -33,27 +33,13 @@ from ..aovs import AOVS
 from ..batch import Stacked, per_scene, take
 from ..lights import LightSource
 from ..mathops import take_rows
-from .cone import (
-    OFFSET,
-    build_mips,
-    cone_directions,
-    default_aperture,
-    face_cells,
-    trace_cones,
-)
+from .cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
 from .dda import Hits, hybrid_traverse, traverse
-from .ggx import f0_of, f_schlick, ggx_reflect
 from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
+from .ggx import f0_of, f_schlick, ggx_reflect
 from .grid import VoxelGrid
 from .materials import VOXEL_MATERIALS, default_material, material_table
-from .shade import (
-    atlas_sample,
-    face_normal,
-    face_tone,
-    face_uv,
-    rounded_refine,
-    voxel_ao,
-)
+from .shade import atlas_sample, face_normal, face_tone, face_uv, rounded_refine, voxel_ao
 from .water import beer, fresnel, plane_hit, reflect, refract, wave_normal
 
 __all__ = ["VoxelSurface"]
