@@ -23,6 +23,7 @@ from pydantic import BaseModel
 from torch import Tensor
 
 from .keypath import path_str
+from .mathops import take_rows
 from .schema import EACH, SHARED, TENSOR, One, Role
 from .validate import fail
 
@@ -143,7 +144,7 @@ def take(param: Tensor, s: Tensor) -> Tensor:
     view: the gather would copy n rows of the same value (millions of samples per chunk)."""
     if param.shape[0] == 1:
         return param[0].expand(s.shape[0], *param.shape[1:])
-    return param[s]
+    return take_rows(param, s)
 
 
 def _shape(value: Any) -> Any:
@@ -218,10 +219,10 @@ def per_scene(points: Tensor, scene_index: Tensor, batch: int, fn: Callable[[int
     for b in range(batch):
         idx = (scene_index == b).nonzero().squeeze(1)
         if idx.numel():
-            value = fn(b, idx, points[idx])
+            value = fn(b, idx, take_rows(points, idx))
             if out is None:
                 out = value.new_zeros(points.shape[0], *value.shape[1:])
-            out[idx] = value
+            out.index_copy_(0, idx, value)
     return points.new_zeros(points.shape[0]) if out is None else out
 
 

@@ -163,7 +163,7 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
 def cmd_bench_speed(args: argparse.Namespace) -> int:
     from .bench_speed import speed
 
-    print(speed(args.out, quick=args.quick, repeat=args.repeat, recipes=args.recipes))
+    print(speed(args.out, quick=args.quick, repeat=args.repeat, recipes=args.recipes, count=args.count))
     return 0
 
 
@@ -287,6 +287,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--repeat", type=int, default=None, help="runs per figure; the median is reported (default 3, quick 2)")
     s.add_argument("--recipes", nargs="+", default=None, metavar="NAME",
                    help="bundled recipes whose generation is timed (default: every one; quick: clouds, template-clouds)")
+    s.add_argument("--count", type=int, default=None, metavar="N",
+                   help="samples of a generation row's shorter run (default 16, quick 4; compiled rows 4N)")
     s.set_defaults(func=cmd_bench_speed)
     return parser
 

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
@@ -65,6 +64,8 @@ class FbmField:
         self.fused = fastnoise.fbm_value_hashed if params.hash == "arithmetic" else None
         # compiled arithmetic hash: the whole signed field is one kernel (eager: the code below is its twin)
         self.fused_field = compiled and params.hash == "arithmetic"
+        if self.fused_field:
+            self.seeds = fastnoise.mixed_seeds(params.seed, times.device)  # (B,) int32
         self.shift = params.wind * times[:, None]  # (B, 3)
         self.feature_size = noise.finest_period(params.octaves) / params.frequency
 
@@ -74,17 +75,11 @@ class FbmField:
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         p, s = self.p, scene_index
         if self.fused_field:
-            return per_scene(points, s, len(p), partial(self._fused_scene, lod=lod))
+            return fastnoise.fbm_field_hashed(
+                points, s, seeds=self.seeds, octaves=p.octaves, lod=None if lod is None else p.octaves - lod,
+                frequency=p.frequency, shift=self.shift, offset=p.offset, bias=p.bias, amplitude=p.amplitude,
+                radial=p.radial, center=p.center)
         q = take(p.frequency, s)[:, None] * (points - take(self.shift, s)) + take(p.offset, s)
         f = seeded_fbm(self.basis, q, s, p, lod, fused=self.fused)
         falloff = take(p.radial, s) * (points - take(p.center, s)).norm(dim=1)
         return take(p.bias, s) + take(p.amplitude, s) * f - falloff
-
-    def _fused_scene(self, b: int, idx: Tensor | slice, points: Tensor, *, lod: Tensor | None) -> Tensor:
-        """`signed` of scene b's `points` [n, 3] (`idx` into the per-point `lod` [N]) by
-        `fastnoise.fbm_field_hashed` -> [n]."""
-        p = self.p
-        return fastnoise.fbm_field_hashed(
-            points, seed=p.seed[b], octaves=p.octaves, lod=None if lod is None else p.octaves - lod[idx],
-            frequency=p.frequency[b], shift=self.shift[b], offset=p.offset[b], bias=p.bias[b], amplitude=p.amplitude[b],
-            radial=p.radial[b], center=p.center[b])
