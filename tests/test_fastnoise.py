@@ -138,7 +138,8 @@ def test_compiled_render_matches_eager_render():
 def test_compiled_fbm_field_matches_eager_field():
     """`fastnoise.fbm_field_hashed` (the whole signed fbm field as one kernel, what FbmField runs
     under compile) against FbmField's eager code, two scenes of another seed, frequency, offset and
-    falloff in one batch, with and without LOD: within 1e-5 (density values up to ~10)."""
+    falloff in one batch, with and without LOD: within 1e-5 (density values up to ~10); bitwise the
+    values of a scene alone."""
     from torchvol.batch import stack
     from torchvol.fields.fbm import FbmField
     from torchvol.scene import load_scene
@@ -159,6 +160,10 @@ def test_compiled_fbm_field_matches_eager_field():
     for kwargs in ({}, {"lod": lod}):
         assert_close(fast.signed(p, s, **kwargs), eager.signed(p, s, **kwargs), atol=1e-5, what=f"field {kwargs.keys()}")
     assert_close(fast(p, s), eager(p, s), atol=1e-5, what="clamped field")
+    # one kernel call for the batch: a scene's values are those it has rendered alone
+    alone = FbmField(stack(scenes[1:]).volumes[0].density.value, times[1:], compiled=True)
+    mine = s == 1
+    assert torch.equal(alone.signed(p[mine], torch.zeros_like(s[mine])), fast.signed(p, s)[mine])
 
 
 def test_compile_pays_only_for_scenes_of_fused_volumes():

@@ -170,10 +170,11 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
                                  overrides=overrides, progress=False, compile=compile)
                         seconds.append(time.perf_counter() - start)
                         size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
-                steady = n_samples / max(seconds[2] - seconds[1], 1e-9)
+                # the N extra samples must take a measurable share of the 2N run, or the difference is noise
+                steady = n_samples / (seconds[2] - seconds[1]) if seconds[2] - seconds[1] > 0.1 * seconds[2] else None
                 rows.append(dict(recipe=name, workers=n, mode="compiled" if compile else "eager", samples=2 * n_samples,
                                  seconds=seconds[2], samples_per_s=2 * n_samples / seconds[2], steady_per_s=steady,
-                                 first_s=max(seconds[1] - n_samples / steady, 0.0),
+                                 first_s=None if steady is None else max(seconds[1] - n_samples / steady, 0.0),
                                  bytes_per_sample=size_bytes / (2 * n_samples)))
     return rows
 
@@ -259,11 +260,13 @@ def markdown(sections: dict) -> str:
         lines += ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
                   "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
         lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['samples']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
-                  f"{r['steady_per_s']:.2f} | {r['first_s']:.1f} | {r['bytes_per_sample']:,.0f} |" for r in sections["generate"]]
+                  f"{_fmt(r['steady_per_s'], '.2f')} | {_fmt(r['first_s'], '.1f')} | {r['bytes_per_sample']:,.0f} |"
+                  for r in sections["generate"]]
         lines += ["", f"Each row generates one batch a worker (warm-up), then N = {sections.get('count', 16)} and 2N samples (N four times as many compiled; "
                   "samples, seconds and samples/s are the 2N run's): steady samples/s = N / (T₂ − T₁), start-up = what the "
                   "N run took beyond N samples at that rate (worker processes; dynamo tracing the compiled kernels, "
-                  "inductor's on-disk cache being warm). compiled: `torchvol "
+                  "inductor's on-disk cache being warm; blank where the N extra samples took under a tenth of the 2N "
+                  "run: the difference is then noise, not a rate). compiled: `torchvol "
                   "generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the template's "
                   "fused march step); each worker process compiles (traces) on its own.", ""]
     if "loaded" in sections:
