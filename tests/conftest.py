@@ -34,3 +34,19 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def pytest_configure(config):
+    """Under pytest-xdist (`-n auto`), split the CPUs between the workers: each worker's torch
+    threads spinning against the other's would make the suite slower, not faster."""
+    import os
+
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
+
+
+def pytest_collection_modifyitems(items):
+    """Slow tests first: xdist hands them out before the quick ones, so no worker ends the run
+    alone on a long test that started last."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

@@ -27,7 +27,8 @@ def test_speed_quick_logic_on_tiny_sizes(tmp_path):
     assert {r["renderer"] for r in rows} >= {"torchvol eager", "torchvol torch.compile", "arithmetic hash, fused field compiled"}
     floor = bench_speed.floor_rows(points=2048, repeat=1)
     assert all(r["evals_per_s"] > 0 for r in floor)
-    profile = {"cloud-puff 8×8": bench_speed.profile_rows("cloud-puff", size=8, top=3)}
+    # homogeneous-box: a closed form, few ops (turning a march's 2e5 profiler events into rows takes ~10 s)
+    profile = {"homogeneous-box 8×8": bench_speed.profile_rows("homogeneous-box", size=8, top=3)}
     profile["fused"] = bench_speed.profile_rows("cloud-puff", size=8, top=3, hash="arithmetic", compile=True)
     assert all(len(rows) == 3 and all(0 < r["share"] <= 1 for r in rows) for rows in profile.values())
     generation = bench_speed.generation_rows(["clouds"], workers=(1,), count=1, size=8)

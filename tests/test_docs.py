@@ -5,7 +5,8 @@ Each document's Python and shell blocks run in order in a scratch folder that se
 repository's files (outputs of one block, e.g. a generated dataset, are inputs of a later one).
 Shell commands run as written with three adjustments: `pip install` steps are skipped (this suite
 runs in the installed environment), `python -m pytest` is skipped (it is what runs this test), and
-`torchvol` commands get small images through their documented overrides (SMALL). A block that
+`torchvol` commands get small images through their documented overrides (SMALL) and generate at
+most COUNT samples (`--count` given again: the last one counts). A block that
 cannot run here is preceded by `<!-- not run: REASON -->`; it must still name only files the
 repository ships, as must every block."""
 
@@ -27,6 +28,7 @@ SMALL = {  # documented overrides that keep the examples quick
     "sweep": ["--set", "image.width=24", "--set", "image.height=24"],
     "bench": ["--width", "16", "--height", "12", "--repeat", "1"],
 }
+COUNT = 64
 NOT_RUN = re.compile(r"<!-- not run: (.+?) -->\s*$")
 
 
@@ -66,6 +68,8 @@ def shell_commands(code: str) -> list[str]:
                 continue
             if words[0] == "torchvol":
                 part += " " + " ".join(SMALL.get(words[1], []))
+                if "--count" in words and int(words[words.index("--count") + 1]) > COUNT:
+                    part += f" --count {COUNT}"
             kept.append(part)
         if kept:
             commands.append(" && ".join(kept))
