@@ -12,8 +12,10 @@ from torchvol.noise import (
     lattice_hash,
     lattice_values,
     perlin_noise,
+    scene_rows,
     texture_noise,
     value_noise,
+    value_noise_scenes,
     worley_noise,
 )
 
@@ -119,6 +121,21 @@ def test_fbm_lod_equals_fewer_octaves(dtype):
         octaves = min(max(L, 1), 5)
         want = fbm(p[m], _tex_noise, octaves=octaves)
         assert torch.equal(got[m], want), f"lod {L}"
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_value_noise_of_several_scenes_is_bitwise_each_scenes_own(dtype):
+    """One pass over every scene's points (stacked tables), and the same through fbm's compaction."""
+    n, seeds = 4000, [7, 0, 2**40 + 3, 7]
+    p = points(n, dtype, scale=300.0, seed=8)  # past the 256-cell period, negative cells included
+    g = torch.Generator().manual_seed(9)
+    scene, lod = torch.randint(0, len(seeds), (n,), generator=g), torch.randint(1, 6, (n,), generator=g)
+    got = value_noise_scenes(p, scene_rows(scene), seeds)
+    got_fbm = fbm(p, lambda q, rows: value_noise_scenes(q, rows, seeds), lod=lod, rows=scene_rows(scene))
+    for b, seed in enumerate(seeds):
+        m = scene == b
+        assert torch.equal(got[m], value_noise(p[m], seed=seed)), f"scene {b}"
+        assert torch.equal(got_fbm[m], fbm(p[m], lambda q: value_noise(q, seed=seed), lod=lod[m])), f"fbm, scene {b}"
 
 
 def test_fbm_compaction_evaluates_only_needed_points():

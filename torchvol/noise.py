@@ -110,10 +110,45 @@ def corner_hashes(cells: Tensor, seed: int) -> list[Tensor]:
     for 8: 14 gathers of N instead of 24, and the doubled table absorbs the corner's +1 (every
     index stays below 512), so no [N, 8, 3] corner cells are formed. Bitwise `lattice_hash`."""
     perm = _lattice_tables(int(seed), str(cells.device))[0].to(torch.int32)
-    x, y, z = (cells & 255).to(torch.int32).unbind(-1)
+    return _corner_chain(perm, *(cells & 255).to(torch.int32).unbind(-1))
+
+
+def _corner_chain(perm: Tensor, x: Tensor, y: Tensor, z: Tensor) -> list[Tensor]:
+    """Perlin's chain for the 8 corners of cells x, y, z [N] int32 in a doubled table `perm`."""
     px = [take_rows(perm, x + i) for i in (0, 1)]
     pxy = [take_rows(perm, px[i] + (y + j)) for j in (0, 1) for i in (0, 1)]
     return [take_rows(perm, pxy[i] + (z + k)) for k in (0, 1) for i in range(4)]
+
+
+@functools.lru_cache(maxsize=16)
+def _scene_lattice_tables(seeds: tuple[int, ...], device: str) -> tuple[Tensor, Tensor]:
+    """`_lattice_tables` of several seeds stacked in blocks of 512 rows: block b holds seed b's
+    doubled permutation plus 512·b (so a chained lookup never leaves its block, and the final
+    hash is already a row of the block) and, in its first 256 rows, the first value column."""
+    perms, firsts = [], []
+    for b, seed in enumerate(seeds):
+        perm, values = _lattice_tables(int(seed), device)
+        perms.append(perm + 512 * b)
+        firsts.append(torch.cat([values[:, 0], values.new_zeros(256)]))
+    return torch.cat(perms).to(torch.int32), torch.cat(firsts)
+
+
+def scene_rows(scene: Tensor) -> Tensor:
+    """Scene indices [N] -> the first rows [N] int32 of their blocks in `value_noise_scenes`."""
+    return scene.to(torch.int32) * 512
+
+
+def value_noise_scenes(p: Tensor, rows: Tensor, seeds: Sequence[int]) -> Tensor:
+    """`value_noise` of points p [N, 3], each with the seed of its scene (rows [N] from
+    `scene_rows`, seeds: one per scene) -> [N]: one pass over every scene's points instead of one
+    per scene, bitwise ``value_noise(p[i], seed=seeds[scene[i]])``."""
+    _check_points(p)
+    perm, first = _scene_lattice_tables(tuple(int(s) for s in seeds), str(p.device))
+    cell, f = _cell_frac(p)
+    u = f * f * (3.0 - 2.0 * f)
+    x, y, z = (cell & 255).to(torch.int32).unbind(-1)
+    first = first.to(p.dtype)
+    return _trilinear([take_rows(first, h) for h in _corner_chain(perm, x + rows, y, z)], u)
 
 
 def lattice_values(cells: Tensor, seed: int, dtype: torch.dtype) -> Tensor:
@@ -487,6 +522,7 @@ def fbm(
     gain: float = 0.5,
     lod: Tensor | None = None,
     fold: str = "mesa",
+    rows: Tensor | None = None,
 ) -> Tensor:
     """Fractal sum of `noise` octaves, in the seeds' float order.
 
@@ -496,6 +532,9 @@ def fbm(
     octave ``i``; a scalar lacunarity is used for every octave): the GLSL
     ``f = 0.5*n(q); q *= 2.02; f += 0.25*n(q); q *= 2.03; ...``. The sum is accumulated left to
     right (``f = f + w*n``; the weights are powers of two, so ``w*n`` is exact).
+
+    rows: optional per-point data ``[N, ...]`` handed to the noise beside the points, compacted with
+        them under `lod`: ``noise(q, rows)`` (e.g. each point's scene block, `value_noise_scenes`).
 
     fold: how ``q_k`` is rounded (it matters: one ulp of q moves texture noise by up to ~1e-2).
 
@@ -528,8 +567,8 @@ def fbm(
     dtype, dev = p.dtype, p.device
     steps = [lac[i % len(lac)] for i in range(octaves - 1)]
     scales = _mesa_folded_scales(steps, dtype, dev) if fold == "mesa" else None
-    f = noise(p) * 0.5
-    q, pa = p, p  # q: sequential point; pa: the active original points
+    f = (noise(p) if rows is None else noise(p, rows)) * 0.5
+    q, pa, ra = p, p, rows  # q: sequential point; pa, ra: the active original points and their rows
     idx: Tensor | None = None  # indices of the active points (None: all of them)
     for k in range(1, octaves):
         if lod is not None:
@@ -537,12 +576,13 @@ def fbm(
             if not bool(keep.all()):
                 idx = keep.nonzero().squeeze(1) if idx is None else idx[keep]
                 pa, q = pa[keep], q[keep]
+                ra = None if ra is None else ra[keep]
             if pa.shape[0] == 0:
                 break
         if scales is not None:
             q = pa * scales[k - 1]
         else:
             q = q * torch.tensor(steps[k - 1], dtype=dtype, device=dev)
-        term = noise(q) * (0.5 * gain**k)
+        term = (noise(q) if ra is None else noise(q, ra)) * (0.5 * gain**k)
         f = f + term if idx is None else f.index_add(0, idx, term)
     return f

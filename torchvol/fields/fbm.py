@@ -46,6 +46,10 @@ def seeded_fbm(basis, q: Tensor, s: Tensor, params: Stacked, lod: Tensor | None,
     `params.seed` and `params.octaves`, `lod` [N] octaves dropped (None: all) -> [N]. `fused`:
     a whole-fbm function with `fastnoise.fbm_value_hashed`'s signature, used instead of `basis`."""
     octaves = None if lod is None else params.octaves - lod
+    if basis is noise.value_noise and fused is None and len(params) > 1:  # one pass over all scenes' points
+        seeds = [int(x) for x in params.seed]
+        return noise.fbm(q, lambda x, rows: noise.value_noise_scenes(x, rows, seeds), octaves=params.octaves,
+                         lod=octaves, rows=noise.scene_rows(s))
 
     def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
         seed, lod_b = params.seed[b], None if octaves is None else octaves[idx]

@@ -170,8 +170,8 @@ class VoxelGrid:
 
     def to_grid(self, points: Tensor, scene: Tensor) -> Tensor:
         """World points [N, 3] -> grid coordinates [N, 3] (cell units)."""
-        return (points - self.origin[scene]) / self.voxel_size[scene, None]
+        return (points - take_rows(self.origin, scene)) / take_rows(self.voxel_size, scene)[:, None]
 
     def to_world(self, g: Tensor, scene: Tensor) -> Tensor:
-        return self.origin[scene] + g * self.voxel_size[scene, None]
+        return take_rows(self.origin, scene) + g * take_rows(self.voxel_size, scene)[:, None]
 

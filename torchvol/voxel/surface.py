@@ -101,7 +101,7 @@ class VoxelSurface:
         visits = []  # (ray ids [m], scenes [m], cells [m, 3], weights [m]) of the fog's visited empty cells
 
         def visit(ids, cells, t_in, t_out, hit):
-            sc = s[ids]
+            sc = take_rows(s, ids)
             if self.plan.glow:  # the seed's sdSomeShape(vec3(mapPos)): the cell corner, each scene's own SDF
                 corner = g.to_world(cells.to(dt), sc)
                 dist = per_scene(corner, sc, len(p), lambda b, _, q: sdf.evaluate(p.occupancy[b].sdf.shape, q))
@@ -109,13 +109,13 @@ class VoxelSurface:
             if self.plan.fog:
                 e = (~hit).nonzero().squeeze(1)
                 if e.numel():
-                    ie, se, ce = ids[e], sc[e], cells[e]
+                    ie, se, ce = take_rows(ids, e), take_rows(sc, e), take_rows(cells, e)
                     centre = g.to_world(ce.to(dt) + 0.5, se)
                     f = p.fog
                     sigma = take(f.density, se) * torch.exp(-(centre[:, 1] - take(f.base, se)) / take(f.scale_height, se))
-                    tau = sigma * (t_out[e] - t_in[e]).clamp_min(0.0)
+                    tau = sigma * (take_rows(t_out, e) - take_rows(t_in, e)).clamp_min(0.0)
                     acc["fog_tau"].index_add_(0, ie, tau)
-                    visits.append((ie, se, ce, tau * torch.exp(-acc["fog_tau"][ie])))
+                    visits.append((ie, se, ce, tau * torch.exp(-take_rows(acc["fog_tau"], ie))))
 
         def finish():
             for ie, se, light in self._fog_light(visits):
@@ -133,11 +133,11 @@ class VoxelSurface:
         g = self.grid
         scenes, cells = torch.cat([v[1] for v in visits]), torch.cat([v[2] for v in visits])
         extent = (g.hi - g.lo).amax(dim=0)  # a key per (scene, cell) of the padded grids
-        rel = cells - g.lo[scenes]
+        rel = cells - take_rows(g.lo, scenes)
         key = ((scenes * extent[2] + rel[:, 2]) * extent[1] + rel[:, 1]) * extent[0] + rel[:, 0]
         unique, inverse = torch.unique(key, return_inverse=True)
         first = torch.full_like(unique, key.shape[0]).scatter_reduce_(0, inverse, torch.arange(key.shape[0], device=key.device), "amin")
-        light = self._fog_irradiance(cells[first], scenes[first])[inverse]
+        light = take_rows(self._fog_irradiance(take_rows(cells, first), take_rows(scenes, first)), inverse)
         out, start = [], 0
         for ie, se, _, weight in visits:
             out.append((ie, se, weight[:, None] * light[start:start + ie.shape[0]]))
