@@ -81,3 +81,14 @@ def test_help_describes_every_option_and_lists_the_presets(capsys):
         for name in tv.preset_names():
             assert f"  {name} " in text, name
         assert "sigma_t" in text and "noise_texture" in text and "traversal" in text
+
+
+def test_generate_points_large_eager_runs_of_fused_scenes_at_compile():
+    from pathlib import Path
+
+    from torchvol.cli import compile_hint
+
+    datasets = Path(__file__).resolve().parents[1] / "datasets"
+    assert "--compile" in compile_hint(datasets / "clouds.toml", overrides={}, seed=0, count=1000)
+    assert compile_hint(datasets / "clouds.toml", overrides={}, seed=0, count=16) is None  # compiling would not pay
+    assert compile_hint(datasets / "voxel-terrain.toml", overrides={}, seed=0, count=1000) is None  # no fused path
