@@ -54,11 +54,12 @@ class CloudLayer:
             noise.texture_table(torch.as_tensor(tex) if tex is not None else noise.default_noise_texture(seed), times.device)
             for tex, seed in zip(params.texture, params.texture_seed)
         ]
+        self.compiled = compiled
         if compiled:
             self.kernels = [lambda x, table=table: noise.compiled(noise.texture_noise_table)(x, table) for table in self.tables]
-        else:  # the integer filter: bitwise texture_noise_table, ~4× faster eager
-            packed = [noise.packed_table(table) for table in self.tables]
-            self.kernels = [lambda x, pk=pk: noise.texture_noise_coords(*x.unbind(1), pk) for pk in packed]
+        else:  # the integer filter (bitwise texture_noise_table, ~4× faster eager) on the stacked
+            # tables: one pass over every scene's points (`rows`: a point's first table row)
+            self.packed = noise.packed_table(torch.cat(self.tables))
         self.shift = params.wind * times[:, None]  # (B, 3)
         self.feature_size = torch.full_like(times, noise.finest_period(params.octaves))
 
@@ -75,5 +76,10 @@ class CloudLayer:
             return noise.fbm(q_b, lambda x: kernel(x) * 2.0 - 1.0, octaves=p.octaves,
                              lod=None if octaves is None else octaves[idx])
 
-        f = per_scene(q, s, len(p), one_scene)
+        if self.compiled:
+            f = per_scene(q, s, len(p), one_scene)
+        else:
+            rows = s.to(torch.int32 if points.dtype == torch.float32 else torch.int64) * 65536
+            f = noise.fbm(q, lambda x, r: noise.texture_noise_coords(*x.unbind(1), self.packed, r) * 2.0 - 1.0,
+                          octaves=p.octaves, lod=octaves, rows=rows)
         return (take(p.bias, s) - points[:, 1] + take(p.density_scale, s) * f).clamp_max(1.0)
