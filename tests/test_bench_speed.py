@@ -26,7 +26,8 @@ def test_speed_quick_logic_on_tiny_sizes(tmp_path):
     rows = bench_speed.render_rows(((16, 9),), repeat=1, physical_size=(8, 8))
     assert {r["renderer"] for r in rows} >= {"torchvol eager", "torchvol torch.compile", "arithmetic hash, fused field compiled"}
     floor = bench_speed.floor_rows(points=2048, repeat=1)
-    assert all(r["evals_per_s"] > 0 for r in floor)
+    assert all(r["evals_per_s"] > 0 for r in floor) and {r["density"] for r in floor} == {"cloud-puff", "template-clouds"}
+    assert all(f is None or f > 0 for f in bench_speed.floor_ratios(rows, floor))
     # homogeneous-box: a closed form, few ops (turning a march's 2e5 profiler events into rows takes ~10 s)
     profile = {"homogeneous-box 8×8": bench_speed.profile_rows("homogeneous-box", size=8, top=3)}
     profile["fused"] = bench_speed.profile_rows("cloud-puff", size=8, top=3, hash="arithmetic", compile=True)
@@ -51,3 +52,11 @@ def test_openmp_waits_passively_unless_the_user_says_otherwise(preset, expected)
     code = "import torchvol, os, torch; print(os.environ['OMP_WAIT_POLICY'])"
     out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True)
     assert out.stdout.strip() == expected
+
+
+def test_floor_ratio_is_time_over_the_fastest_kernel_of_the_same_density():
+    render = [dict(work="template-clouds 16×9", evals_per_s=None), dict(work="template-clouds 16×9", evals_per_s=10.0),
+              dict(work="cloud-puff 8×8", evals_per_s=50.0)]
+    floor = [dict(density="template-clouds", evals_per_s=40.0), dict(density="template-clouds", evals_per_s=20.0),
+             dict(density="cloud-puff", evals_per_s=100.0)]
+    assert bench_speed.floor_ratios(render, floor) == [None, 4.0, 2.0]

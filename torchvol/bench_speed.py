@@ -9,8 +9,9 @@ any machine (absolute times only on a quiet one):
    torchvol eager and under torch.compile, and a physical cloud (`cloud-puff`) with the table hash,
    the arithmetic hash eager and the arithmetic hash's fused compiled fbm (`torchvol.fastnoise`);
    each row with its density evaluations per second.
-2. The floor: density evaluations per second of the 4-octave value-noise fbm alone on the same
-   points (table hash eager, arithmetic hash eager, fused compiled kernel).
+2. The floor: density evaluations per second of each render's noise alone on the same points
+   (cloud-puff's value-noise fbm: table hash eager, arithmetic hash eager, fused compiled kernel;
+   the template's texture-noise fbm eager and compiled); each render row's time over its floor.
 3. Generation: samples/s of bundled recipes at 128×128 with 1 and 2 workers (`generate`, the
    full path: sampling, batched render, encoding, writes; worker runs include process start-up).
 4. The loaded-machine slowdown: a render in a fresh process alone and while one
@@ -119,26 +120,54 @@ def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", com
 
 
 def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
-    """Density evaluations/s of the value-noise fbm alone on the same `points` random points
-    (interleaved runs): rows {kernel, evals_per_s, first_s}."""
+    """Density evaluations/s of each measured render's noise alone on the same `points` random
+    points (interleaved runs): cloud-puff's `octaves`-octave value-noise fbm and the template's
+    5-octave texture-noise fbm (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel.
+    Rows {kernel, density (the preset whose floor it is), evals_per_s, first_s}."""
+    from .volume.fused import cloud_fbm
+
     g = torch.Generator().manual_seed(0)
     p = torch.rand(points, 3, generator=g) * 20.0 - 10.0
+    x, y, z = (c.contiguous() for c in p.unbind(1))
+    packed = noise.packed_table(noise.texture_table(noise.default_noise_texture(0)))
+    base = torch.zeros(points, dtype=torch.long)
+    scales = noise._mesa_folded_scales([2.02, 2.03, 2.01, 2.02], p.dtype, p.device)
+    template_fbm = torch.compile(cloud_fbm, dynamic=True)
     kernels = {
-        "table hash (noise.fbm over noise.value_noise), eager":
+        ("table hash (noise.fbm over noise.value_noise), eager", "cloud-puff"):
             lambda: noise.fbm(p, lambda q: noise.value_noise(q, seed=7), octaves=octaves),
-        "arithmetic hash, eager twin": lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves),
-        "arithmetic hash, fused compiled kernel": lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves, compiled=True),
+        ("arithmetic hash, eager twin", "cloud-puff"): lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves),
+        ("arithmetic hash, fused compiled kernel", "cloud-puff"):
+            lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves, compiled=True),
+        ("texture noise, 5 octaves (integer filter), eager", "template-clouds"):
+            lambda: cloud_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
+        ("texture noise, 5 octaves, fused compiled kernel", "template-clouds"):
+            lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
     }
     first = {}
     for name, fn in kernels.items():
         start = time.perf_counter()
         fn()
         first[name] = time.perf_counter() - start
-    times: dict[str, list[float]] = {name: [] for name in kernels}
+    times: dict = {name: [] for name in kernels}
     for _ in range(repeat):  # interleaved: a change in the machine's load hits every kernel alike
         for name, fn in kernels.items():
             times[name].append(_median_time(fn, 1))
-    return [dict(kernel=name, evals_per_s=points / statistics.median(t), first_s=first[name]) for name, t in times.items()]
+    return [dict(kernel=kernel, density=density, evals_per_s=points / statistics.median(t), first_s=first[(kernel, density)])
+            for (kernel, density), t in times.items()]
+
+
+def floor_ratios(render: Sequence[dict], floor: Sequence[dict]) -> list[float | None]:
+    """Per render row: its time over its density-evaluation floor, the time its density evaluations
+    take in the fastest kernel for that density (evals / that kernel's evals/s); None for llvmpipe."""
+    best: dict[str, float] = {}
+    for r in floor:
+        best[r["density"]] = max(best.get(r["density"], 0.0), r["evals_per_s"])
+    out = []
+    for r in render:
+        rate = next((v for k, v in best.items() if r["work"].startswith(k)), None)
+        out.append(None if r["evals_per_s"] is None or rate is None else rate / r["evals_per_s"])
+    return out
 
 
 def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
@@ -243,18 +272,24 @@ def markdown(sections: dict) -> str:
                   "the fused density kernels (`Torch-Compiled Region`, dynamo's guard checks in `TorchDynamo Cache Lookup`) "
                   "sit among the march's small eager ops (docs/VOLUMES.md, \"The fused field\").", ""]
     if "render" in sections:
-        lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | first call s |",
-                  "| --- | --- | ---: | ---: | ---: | ---: |"]
+        floors = floor_ratios(sections["render"], sections.get("floor", []))
+        lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | × floor | first call s |",
+                  "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
         lines += [f"| {r['work']} | {r['renderer']} | {r['seconds']:.3f} | {_fmt(r['evals_per_s'], ',.0f')} | "
-                  f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['first_s'], '.1f')} |" for r in sections["render"]]
-        lines += ["", "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
+                  f"{_fmt(r['ratio'], '.2f')} | {_fmt(f, '.1f')} | {_fmt(r['first_s'], '.1f')} |"
+                  for r, f in zip(sections["render"], floors)]
+        lines += ["", "× floor: the render's time over its density-evaluation floor, the time its density evaluations alone "
+                  "take in the fastest kernel for that density (next table): 1 would be a render that costs nothing but "
+                  "its noise. "
+                  "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
                   "`torch.compile` on template-clouds runs the fused march step (torchvol/volume/fused.py: a step is three "
                   "compiled kernels over wavefronts of rays); the arithmetic hash's fbm is one fused kernel, the physical "
                   "march around it eager (docs/VOLUMES.md). Density evals/s count the evaluations the eager march makes; "
                   "the fused step evaluates the cloud at every live ray and again towards the light where lit.", ""]
     if "floor" in sections:
-        lines += ["## The floor: 4-octave value-noise fbm alone", "", "| kernel | evals/s | first call s |", "| --- | ---: | ---: |"]
-        lines += [f"| {r['kernel']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |" for r in sections["floor"]]
+        lines += ["## The floor: each render's noise alone", "", "| density of | kernel | evals/s | first call s |",
+                  "| --- | --- | ---: | ---: |"]
+        lines += [f"| {r['density']} | {r['kernel']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |" for r in sections["floor"]]
         lines += [""]
     if "generate" in sections:
         lines += ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
