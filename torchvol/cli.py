@@ -231,7 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", required=True, help="output folder (a re-run finishes an interrupted one)")
     g.add_argument("--seed", type=int, default=0, help="dataset seed: sample i depends only on (seed, i) (default 0)")
     g.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
-    g.add_argument("--threads", type=int, default=None, help="torch threads per worker (default: cores / workers)")
+    g.add_argument("--threads", type=int, default=None, help="torch threads per worker (default 1: more workers scale better; docs/DATASETS.md, \"Threads on a shared machine\")")
     g.add_argument("--compile", action="store_true", help="render compiled where that is faster (fbm clouds on the "
                    "arithmetic hash, the template's fused march step: within 1e-5 of eager, not bitwise; pays from "
                    "about 8 samples a worker once inductor's cache is warm)")

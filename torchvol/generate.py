@@ -234,14 +234,24 @@ def _execute(tasks: list[Task], *, workers: int, threads: int | None, scheduler:
             for future in as_completed(futures):
                 yield len(future.result())
         return
+    # one intra-op thread a worker unless asked: a render is thousands of small ops, and a second
+    # thread gained at most 1.3x on a quiet 2-core VM but lost 4x where waking a sleeping thread is
+    # slow and 3x beside a busy process; worker processes scale instead (docs/DATASETS.md, "Threads")
+    threads = threads or 1
     if workers == 1:
-        for task in tasks:
-            yield len(run_task(task))
+        import torch
+
+        before = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            for task in tasks:
+                yield len(run_task(task))
+        finally:
+            torch.set_num_threads(before)
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed as done_order
 
-    threads = threads or max(1, (os.cpu_count() or 1) // workers)
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                              initializer=_init_worker, initargs=(threads,)) as pool:
         futures = [pool.submit(run_task, t) for t in tasks]
