@@ -30,11 +30,13 @@ def main() -> None:
     parser.add_argument("--layout", choices=["folder", "webdataset"], default="folder")
     args = parser.parse_args()
     print(f"cores: {os.cpu_count()}  count: {args.count}  batch: {args.batch}  layout: {args.layout}")
-    print(f"{'recipe':<18} {'workers':>7} {'seconds':>8} {'samples/s':>10} {'bytes/sample':>13}")
+    print(f"{'recipe':<18} {'workers':>7} {'mode':>8} {'samples':>7} {'seconds':>8} {'samples/s':>10} {'steady/s':>9} "
+          f"{'bytes/sample':>13}")
     for name in args.recipes:
         for r in generation_rows([name], workers=args.workers, count=args.count, size=None, batch=args.batch, layout=args.layout):
-            print(f"{name:<18} {r['workers']:>7} {r['seconds']:>8.2f} {r['samples_per_s']:>10.3f} {r['bytes_per_sample']:>13,.0f}",
-                  flush=True)
+            steady = "" if r["steady_per_s"] is None else f"{r['steady_per_s']:.2f}"
+            print(f"{name:<18} {r['workers']:>7} {r['mode']:>8} {r['samples']:>7} {r['seconds']:>8.2f} {r['samples_per_s']:>10.3f} "
+                  f"{steady:>9} {r['bytes_per_sample']:>13,.0f}", flush=True)
 
 
 if __name__ == "__main__":

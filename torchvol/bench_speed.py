@@ -256,6 +256,8 @@ def markdown(sections: dict) -> str:
     from .testing.glsl import renderer_name
 
     count_flag = f" --count {sections['count']}" if sections.get("count", 16) != 16 else ""
+    if sections.get("recipes"):
+        count_flag = f" --recipes {' '.join(sections['recipes'])}" + count_flag
     lines = ["# Speed", "", f"`torchvol bench speed{' --quick' if sections['quick'] else ''}{count_flag}`, {time.strftime('%Y-%m-%d')}: "
              f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs, "
              f"{platform.processor() or platform.machine()}; GL: {renderer_name()}. Medians of {sections['repeat']} runs; "
@@ -311,7 +313,9 @@ def markdown(sections: dict) -> str:
                   "| ---: | --- | ---: | ---: | ---: |"]
         lines += [f"| {r['threads']} | {r['policy']} | {r['alone_s']:.3f} | {r['loaded_s']:.3f} | {r['slowdown']:.2f} |"
                   for r in sections["loaded"]]
-        lines += [""]
+        lines += ["", "Where waking a sleeping thread is slow (some VMs), two PASSIVE threads are slower alone than "
+                  "loaded and than one thread; one thread is the setting that is never far off, alone or loaded, so the "
+                  "generator runs one a worker and scales by processes (docs/DATASETS.md, \"Threads on a shared machine\").", ""]
     return "\n".join(lines)
 
 
@@ -336,6 +340,7 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
         sections["floor"] = floor_rows(points=2**16 if quick else 2**20, repeat=repeat)
     if "generate" in parts:
         chosen = recipes or (("clouds", "template-clouds") if quick else RECIPES)
+        sections["recipes"] = list(recipes) if recipes else None
         sections["count"] = count or (4 if quick else 16)
         sections["generate"] = generation_rows(chosen, workers=(1, 2), count=sections["count"], size=32 if quick else 128)
     if "loaded" in parts:
