@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from .. import noise
+from ..mathops import take_rows
 from .march import MarchResult, StepRule
 
 # slots marched at once: big enough that a kernel call's overhead (~0.1 ms) is small against its
@@ -255,21 +256,25 @@ def fused_march(step, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: T
             new = queue[taken:taken + room]
             taken += room
             fresh = t0.new_zeros(_ROWS, room)
-            fresh[_T], fresh[_T_END], fresh[_SPAN], fresh[_TRANS], fresh[_ALIVE] = start[new], t1[new], t1[new] - t0[new], 1.0, 1.0
+            end = take_rows(t1, new)
+            fresh[_T], fresh[_T_END], fresh[_SPAN] = take_rows(start, new), end, end - take_rows(t0, new)
+            fresh[_TRANS], fresh[_ALIVE] = 1.0, 1.0
             slots, state = torch.cat([slots, new]), torch.cat([state, fresh], dim=1)
         if slots.shape[0] == 0:
             break
-        slot_ray, slot_s = ray[:, slots], s[slots]
+        # gathers and scatters by index_select / index_copy_ (`take_rows`: advanced indexing is 3-5x slower)
+        slot_ray, slot_s = ray.index_select(1, slots), take_rows(s, slots)
         for _ in range(refill_every):
             state = step(state, slot_ray, slot_s)
         alive = state[_ALIVE] > 0
         if bool(alive.all()):
             continue
-        final[:, slots[~alive]] = state[:, ~alive]
+        done = (~alive).nonzero().squeeze(1)
+        final.index_copy_(1, take_rows(slots, done), state.index_select(1, done))
         keep = alive.nonzero().squeeze(1)
         if keep.shape[0] == 1:  # a finished slot rides along: one slot would recompile the kernels
-            keep = torch.cat([keep, (~alive).nonzero()[:1, 0]])
-        slots, state = slots[keep], state[:, keep]
+            keep = torch.cat([keep, done[:1]])
+        slots, state = take_rows(slots, keep), state.index_select(1, keep)
     res = MarchResult(radiance=final[_RADIANCE:].T.contiguous(), transmittance=final[_TRANS], weight_sum=final[_WSUM],
                       weighted_t=final[_WT], median_t=final[_MEDIAN], steps=final[_STEPS].long(),
                       truncated=final[_TRUNC] > 0)
