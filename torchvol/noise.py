@@ -143,12 +143,17 @@ def value_noise_scenes(p: Tensor, rows: Tensor, seeds: Sequence[int]) -> Tensor:
     `scene_rows`, seeds: one per scene) -> [N]: one pass over every scene's points instead of one
     per scene, bitwise ``value_noise(p[i], seed=seeds[scene[i]])``."""
     _check_points(p)
-    perm, first = _scene_lattice_tables(tuple(int(s) for s in seeds), str(p.device))
+    return _value(p, *_scene_lattice_tables(tuple(int(s) for s in seeds), str(p.device)), rows)
+
+
+def _value(p: Tensor, perm: Tensor, first: Tensor, rows: Tensor | None) -> Tensor:
+    """Value noise at p [N, 3] from a doubled permutation `perm` (int32) and lattice values
+    `first`, each point's chain starting at its row (rows [N], None: 0) -> [N]."""
     cell, f = _cell_frac(p)
     u = f * f * (3.0 - 2.0 * f)
     x, y, z = (cell & 255).to(torch.int32).unbind(-1)
     first = first.to(p.dtype)
-    return _trilinear([take_rows(first, h) for h in _corner_chain(perm, x + rows, y, z)], u)
+    return _trilinear([take_rows(first, h) for h in _corner_chain(perm, x if rows is None else x + rows, y, z)], u)
 
 
 def lattice_values(cells: Tensor, seed: int, dtype: torch.dtype) -> Tensor:
@@ -200,10 +205,8 @@ def value_noise(p: Tensor, *, seed: int = 0) -> Tensor:
     ``lattice_values(p.long(), seed)[:, 0]``.
     """
     _check_points(p)
-    cell, f = _cell_frac(p)
-    u = f * f * (3.0 - 2.0 * f)
-    first = _lattice_tables(int(seed), str(p.device))[1][:, 0].to(p.dtype)  # lattice_values' first column
-    return _trilinear([take_rows(first, h) for h in corner_hashes(cell, seed)], u)
+    perm, values = _lattice_tables(int(seed), str(p.device))
+    return _value(p, perm.to(torch.int32), values[:, 0], None)  # lattice_values' first column
 
 
 # Ken Perlin's 12 edge gradients (indexed by hash mod 12)

@@ -13,6 +13,8 @@ from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
 
 NOISES = {"value": noise.value_noise, "perlin": noise.perlin_noise, "worley": noise.worley_noise}
+# a noise's twin over several scenes at once (points, their scenes' rows, the seeds), bitwise each scene's own
+SCENE_NOISES = {noise.value_noise: (noise.value_noise_scenes, noise.scene_rows)}
 
 
 class FbmDensity(Strict):
@@ -46,10 +48,11 @@ def seeded_fbm(basis, q: Tensor, s: Tensor, params: Stacked, lod: Tensor | None,
     `params.seed` and `params.octaves`, `lod` [N] octaves dropped (None: all) -> [N]. `fused`:
     a whole-fbm function with `fastnoise.fbm_value_hashed`'s signature, used instead of `basis`."""
     octaves = None if lod is None else params.octaves - lod
-    if basis is noise.value_noise and fused is None and len(params) > 1:  # one pass over all scenes' points
+    if fused is None and len(params) > 1 and basis in SCENE_NOISES:  # one pass over all scenes' points
+        batched, scene_rows = SCENE_NOISES[basis]
         seeds = [int(x) for x in params.seed]
-        return noise.fbm(q, lambda x, rows: noise.value_noise_scenes(x, rows, seeds), octaves=params.octaves,
-                         lod=octaves, rows=noise.scene_rows(s))
+        return noise.fbm(q, lambda x, rows: batched(x, rows, seeds), octaves=params.octaves, lod=octaves,
+                         rows=scene_rows(s))
 
     def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
         seed, lod_b = params.seed[b], None if octaves is None else octaves[idx]

@@ -149,15 +149,29 @@ class VoxelGrid:
             dist = torch.stack([chebyshev_distance(m > 0) for m in mats])
         return cls(mats, lo, hi, origin, size, dist)
 
+    def _flat(self, rel: Tensor, scene: Tensor) -> Tensor:
+        """Cells [N, 3] relative to their scene's `lo` -> their index [N] in the flattened (B, Z, Y, X) grids."""
+        _, Z, Y, X = self.materials.shape
+        return ((scene * Z + rel[:, 2]) * Y + rel[:, 1]) * X + rel[:, 0]
+
+    def cell_index(self, cells: Tensor, scene: Tensor) -> Tensor:
+        """Cells [N, 3] long inside scenes [N]'s ranges -> their index [N] in the flattened grids."""
+        return self._flat(cells - take_rows(self.lo, scene), scene)
+
+    def index_cell(self, index: Tensor) -> tuple[Tensor, Tensor]:
+        """`cell_index`'s inverse: flat indices [N] -> (cells [N, 3] long, scenes [N])."""
+        _, Z, Y, X = self.materials.shape
+        scene = index // (Z * Y * X)
+        rel = torch.stack([index % X, index // X % Y, index // (Y * X) % Z], dim=1)
+        return rel + take_rows(self.lo, scene), scene
+
     def _gather(self, table: Tensor, cells: Tensor, scene: Tensor, outside: int) -> Tensor:
-        B, Z, Y, X = table.shape
         lo, hi = take_rows(self.lo, scene), take_rows(self.hi, scene)
         rel = cells - lo
         within = (cells >= lo) & (cells < hi)
         inside = within[:, 0] & within[:, 1] & within[:, 2]  # not .all(dim=1): 3× slower on CPU
         rel = torch.where(inside[:, None], rel, torch.zeros_like(rel))
-        flat = ((scene * Z + rel[:, 2]) * Y + rel[:, 1]) * X + rel[:, 0]
-        vals = take_rows(table.reshape(-1), flat).to(torch.long)
+        vals = take_rows(table.reshape(-1), self._flat(rel, scene)).to(torch.long)
         return torch.where(inside, vals, torch.full_like(vals, outside))
 
     def lookup(self, cells: Tensor, scene: Tensor) -> Tensor:

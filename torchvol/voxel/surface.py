@@ -131,19 +131,14 @@ class VoxelSurface:
         if not visits:
             return []
         g = self.grid
-        B, Z, Y, X = g.materials.shape
-        scenes, cells = torch.cat([v[1] for v in visits]), torch.cat([v[2] for v in visits])
-        rel = cells - take_rows(g.lo, scenes)
-        key = ((scenes * Z + rel[:, 2]) * Y + rel[:, 1]) * X + rel[:, 0]  # the cell's place in the padded grids
+        key = g.cell_index(torch.cat([v[2] for v in visits]), torch.cat([v[1] for v in visits]))
         # the distinct keys in ascending order and each visit's rank among them, from one mark per
         # grid cell (a table the grid's own size): linear, where sorting the visits (torch.unique) is not
-        seen = torch.zeros(B * Z * Y * X, dtype=torch.bool, device=key.device).index_fill_(0, key, True)
+        seen = torch.zeros(g.materials.numel(), dtype=torch.bool, device=key.device).index_fill_(0, key, True)
         unique = seen.nonzero().squeeze(1)
         rank = torch.empty(seen.shape[0], dtype=torch.long, device=key.device)
         inverse = take_rows(rank.index_copy_(0, unique, torch.arange(unique.shape[0], device=key.device)), key)
-        scene, z, y, x = unique // (Z * Y * X), unique // (Y * X) % Z, unique // X % Y, unique % X
-        distinct = torch.stack([x, y, z], dim=1) + take_rows(g.lo, scene)
-        light = take_rows(self._fog_irradiance(distinct, scene), inverse)
+        light = take_rows(self._fog_irradiance(*g.index_cell(unique)), inverse)
         out, start = [], 0
         for ie, se, _, weight in visits:
             out.append((ie, se, weight[:, None] * light[start:start + ie.shape[0]]))
