@@ -130,7 +130,7 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     p = torch.rand(points, 3, generator=g) * 20.0 - 10.0
     x, y, z = (c.contiguous() for c in p.unbind(1))
     packed = noise.packed_table(noise.texture_table(noise.default_noise_texture(0)))
-    base = torch.zeros(points, dtype=torch.long)
+    base = torch.zeros(points, dtype=noise.texture_index_dtype(p.dtype))
     scales = noise._mesa_folded_scales([2.02, 2.03, 2.01, 2.02], p.dtype, p.device)
     template_fbm = torch.compile(cloud_fbm, dynamic=True)
     kernels = {

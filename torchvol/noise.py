@@ -412,6 +412,11 @@ def packed_table(table: Tensor) -> Tensor:
     return t[:, 0] + t[:, 1] * 256
 
 
+def texture_index_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The integer type of `texture_noise_coords`' steps and table rows for points of `dtype`."""
+    return torch.int32 if dtype == torch.float32 else torch.int64
+
+
 def texture_noise_coords(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: Tensor | None = None, *,
                          filter_bits: int = LLVMPIPE_FILTER_BITS) -> Tensor:
     """`texture_noise_table` with a fixed-point filter, bit for bit, for points given as their
@@ -421,7 +426,7 @@ def texture_noise_coords(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: 
     bits = int(filter_bits)
     if not 1 <= bits <= 15:
         raise ValueError(f"filter_bits: got {filter_bits!r}; an int in 1..15")
-    itype = torch.int32 if x.dtype == torch.float32 else torch.int64
+    itype = texture_index_dtype(x.dtype)
     one, half = 1 << bits, 1 << (bits - 1)
     fx, fy, fz = torch.floor(x), torch.floor(y), torch.floor(z)
     wx_, wy_, wz = x - fx, y - fy, z - fz

@@ -84,13 +84,19 @@ def test_eager_twin_on_a_batch_of_scenes_bitwise(eager_twin, one_thread):
     assert eager_twin and not torch.equal(fast.image[0], fast.image[1])
 
 
-@pytest.mark.parametrize(("wavefront", "refill_every"), [(7, 3), (64, 1), (10_000, 50)])
-def test_wavefront_size_and_refills_do_not_change_the_result(wavefront, refill_every, monkeypatch, eager_twin, one_thread):
+@pytest.mark.parametrize(("wavefront", "refill_every", "compact_below"),
+                         [(7, 3, 0.875), (64, 1, 1.0), (10_000, 50, 0.875), (10_000, 4, 0.0), (10_000, 2, 1.0)])
+def test_wavefront_size_refills_and_compaction_do_not_change_the_result(wavefront, refill_every, compact_below, monkeypatch,
+                                                                        eager_twin, one_thread):
+    """Finished slots ride along until live ones fall below `compact_below` of the wavefront (0:
+    until none is live; 1: dropped at once)."""
     scene = _template(16, 10)
     expected = tv.render(scene)
     monkeypatch.setattr(fused, "WAVEFRONT", wavefront)
     monkeypatch.setattr(fused, "REFILL_EVERY", refill_every)
-    _assert_same(tv.render(scene, compile=True), expected, f"wavefront {wavefront}, refill every {refill_every}")
+    monkeypatch.setattr(fused, "COMPACT_BELOW", compact_below)
+    _assert_same(tv.render(scene, compile=True), expected,
+                 f"wavefront {wavefront}, refill every {refill_every}, compact below {compact_below}")
 
 
 def test_fused_path_runs_only_where_the_scene_is_the_template_technique():

@@ -79,7 +79,7 @@ class CloudLayer:
         if self.compiled:
             f = per_scene(q, s, len(p), one_scene)
         else:
-            rows = s.to(torch.int32 if points.dtype == torch.float32 else torch.int64) * 65536
+            rows = s.to(noise.texture_index_dtype(points.dtype)) * 65536
             f = noise.fbm(q, lambda x, r: noise.texture_noise_coords(*x.unbind(1), self.packed, r) * 2.0 - 1.0,
                           octaves=p.octaves, lod=octaves, rows=rows)
         return (take(p.bias, s) - points[:, 1] + take(p.density_scale, s) * f).clamp_max(1.0)

@@ -12,7 +12,7 @@ slots: every `REFILL_EVERY` steps the finished slots are written out and refille
 not started yet, so the kernels keep seeing full batches (shapes are dynamic: one compilation
 serves every size).
 
-The eager `shader_step` is the reference twin: it renders bitwise what the generic march renders
+The eager `shader_steps` is the reference twin: it renders bitwise what the generic march renders
 (tests/volume/test_fused.py; the LOD's dropped octaves are masked by `where`, which changes no
 value); compiled, it matches the eager twin to ~1e-6, up to 4e-4 at a few pixels (inductor contracts multiply-adds, and
 the texture's 8-bit filter turns an ulp of a coordinate into a 1/255 step at a few points). The
@@ -34,11 +34,15 @@ from .. import noise
 from ..mathops import take_rows
 from .march import MarchResult, StepRule
 
-# slots marched at once: big enough that a kernel call's overhead (~0.1 ms) is small against its
-# work; not 2**16, the texture table's size: dynamo's duck sizing would tie the two and recompile
-WAVEFRONT = 61440
+# slots marched at once: a render's whole chunk (`render.DEFAULT_CHUNK_RAYS`), so no chunk ends
+# with a tail of rays marched in small wavefronts (61,440 left 4,096 rays of each chunk to 80
+# steps of their own: a tenth of a template render)
+WAVEFRONT = 1 << 16
 # steps between refills: a refill gathers and scatters the whole state (a few eager ops)
 REFILL_EVERY = 8
+# with no rays left to start, finished slots are written out and dropped only once live ones fall
+# below this share of the wavefront: a compaction costs about a step's kernel time
+COMPACT_BELOW = 0.875
 # rows of the slot state
 _T, _T_END, _SPAN, _TRANS, _WSUM, _WT, _MEDIAN, _STEPS, _ALIVE, _TRUNC, _EVALS, _RADIANCE = range(12)
 _ROWS = _RADIANCE + 3
@@ -47,7 +51,9 @@ _ROWS = _RADIANCE + 3
 class CloudLook(NamedTuple):
     """Per-scene values of the cloud layer and its look, each (B, ...) in the render's dtype.
 
-    `base` (B,) long: the scene's first row in the stacked texture tables."""
+    `base` (B,) int32 for float32 (int64 for float64): the scene's first row in the stacked
+    texture tables, of the texture noise's integer type (an int64 base would turn every index
+    sum of the noise int64: 20% of the kernel's time)."""
 
     shift: Tensor  # (B, 3) wind · time
     bias: Tensor  # (B,)
@@ -108,8 +114,11 @@ def cloud_look(ctx, vol) -> tuple[CloudLook, Tensor]:
         irradiance=irradiance, light_scale=look.light_scale, ambient=look.ambient,
         ambient_top=look.ambient if look.ambient_top is None else look.ambient_top, heights=heights,
         color_lit=look.color_lit, color_dark=look.color_dark, alpha_scale=look.alpha_scale, fog=look.fog,
-        base=torch.arange(b, device=like.device) * 65536)
-    return cl, noise.packed_table(torch.cat(layer.tables))
+        base=torch.arange(b, device=like.device, dtype=noise.texture_index_dtype(like.dtype)) * 65536)
+    # one row more than the textures: dynamo's duck sizing ties equal sizes, and a table of 2**16
+    # rows (one texture) as long as a full wavefront would specialise the kernels and recompile
+    packed = noise.packed_table(torch.cat(layer.tables))
+    return cl, torch.cat([packed, packed[:1]])
 
 
 def cloud_fbm(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: Tensor, count: Tensor | None, *, octaves: int,
@@ -129,7 +138,7 @@ def _count(t: Tensor, config: StepConfig) -> Tensor | None:
     """Octaves kept at distance `t` [N] (the template's LOD, `march.lod_drop`); None: all."""
     if config.lod_scale is None:
         return None
-    return config.octaves - torch.floor(torch.log2(1.0 + t * config.lod_scale)).long()
+    return config.octaves - torch.floor(torch.log2(1.0 + t * config.lod_scale)).to(torch.int32)  # int64 halves the lanes
 
 
 def _density(x: Tensor, y: Tensor, z: Tensor, t: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor],
@@ -141,32 +150,42 @@ def _density(x: Tensor, y: Tensor, z: Tensor, t: Tensor, s: Tensor, look: CloudL
     return (look.bias[s] - y + look.density_scale[s] * f).clamp_max(1.0).clamp_min(0.0)
 
 
+class Sample(NamedTuple):
+    """`sample_density`'s outputs. Separate tensors, not one stacked [5, N]: inductor computes a
+    stack's rows in loops of their own, and the lit row evaluated the fbm a second time. `lit` is
+    1.0 / 0.0, not bool: inductor's bool stores cost a third of the kernel's time."""
+
+    density: Tensor  # [N]
+    point: Tensor  # [3, N] the sample point, a row per coordinate
+    lit: Tensor  # [N] 1.0: alive and over the density threshold
+
+
 def sample_density(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor], *,
-                   config: StepConfig) -> Tensor:
+                   config: StepConfig) -> Sample:
     """A step's first kernel: each slot's sample point, its density and whether it is lit (alive
-    and over `march.density_threshold`) -> [5, N] (density, x, y, z, lit as 1.0 / 0.0)."""
+    and over `march.density_threshold`)."""
     t = state[_T]
     p = [torch.addcmul(ray[i], t, ray[3 + i]) for i in range(3)]
     density = _density(*p, t, s, look, packed, scales, config)
     lit = (state[_ALIVE] > 0) & (density > config.threshold)
-    return torch.stack([density, *p, lit.to(t.dtype)])
+    return Sample(density, torch.stack(p), torch.where(lit, 1.0, 0.0))
 
 
-def light_density(sample: Tensor, t: Tensor, s: Tensor, lit: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor],
+def light_density(point: Tensor, t: Tensor, s: Tensor, lit: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor],
                   *, config: StepConfig) -> Tensor:
     """The second: the density `light_offset` towards the light from the points of the lit
-    samples `lit` [k] (`sample` [5, N] of `sample_density`; `t`, `s` [N]) -> [N] (0 elsewhere)."""
+    samples `lit` [k] (`point` [3, N] of `sample_density`; `t`, `s` [N]) -> [N] (0 elsewhere)."""
     ts, ss, ls = t[lit], s[lit], look.light_step[s[lit]]
-    ahead = _density(*(sample[1 + c, lit] + ls[:, c] for c in range(3)), ts, ss, look, packed, scales, config)
+    ahead = _density(*(point[c, lit] + ls[:, c] for c in range(3)), ts, ss, look, packed, scales, config)
     return torch.zeros_like(t).index_put((lit,), ahead)
 
 
-def advance(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, sample: Tensor, ahead: Tensor, *,
+def advance(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, sample: Sample, ahead: Tensor, *,
             config: StepConfig) -> Tensor:
     """The third: the look's colour, alpha compositing, the step rule and the end tests -> the
     next state [_ROWS, N]. `ahead` [N]: `light_density` where lit (elsewhere unused)."""
     t, t_end, trans = state[_T], state[_T_END], state[_TRANS]
-    density, py, lit = sample[0], sample[2], sample[4] > 0
+    density, py, lit = sample.density, sample.point[1], sample.lit > 0
     alive = state[_ALIVE] > 0
     ambient = look.ambient[s]
     lin = [ambient[:, c] for c in range(3)]
@@ -203,53 +222,72 @@ def advance(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, sample: Tens
     ])
 
 
+def advance_sample(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor],
+                   sample: Sample, ahead: Tensor, *, config: StepConfig) -> tuple[Tensor, Sample]:
+    """`advance`, then the next step's `sample_density`, as one kernel: one pass over the slots
+    and one compiled call fewer a step (each call costs ~30 µs of dynamo's guards and wrappers)."""
+    state = advance(state, ray, s, look, sample, ahead, config=config)
+    return state, sample_density(state, ray, s, look, packed, scales, config=config)
+
+
 class Kernels(NamedTuple):
-    """A step's three kernels (`sample_density`, `light_density`, `advance`), eager or compiled."""
+    """A step's kernels (`sample_density`, `light_density`, `advance`, `advance_sample`), eager or
+    compiled."""
 
     sample: Callable
     light: Callable
     advance: Callable
+    advance_sample: Callable
 
 
-EAGER = Kernels(sample_density, light_density, advance)
+EAGER = Kernels(sample_density, light_density, advance, advance_sample)
 
 
-def shader_step(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor], *,
-                config: StepConfig, kernels: Kernels = EAGER) -> Tensor:
-    """One step of every slot: `state` [_ROWS, N] (rows `_T` ...) -> the next state. `ray` [9, N]:
-    each slot's origin, direction and the sky behind it, a row per coordinate; `s` [N] its scene.
-    A slot whose `_ALIVE` is 0 keeps its state. Per ray, the ops and their order are those of
-    `march`, `shader_look.shader_medium` and `CloudLayer`. The light's density is taken only at
-    the lit samples (about a tenth of a template's), gathered between the kernels: an eager op
-    whose size depends on the data."""
+def shader_steps(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor], *,
+                 count: int, config: StepConfig, kernels: Kernels = EAGER) -> Tensor:
+    """`count` steps of every slot: `state` [_ROWS, N] (rows `_T` ...) -> the state after them.
+    `ray` [9, N]: each slot's origin, direction and the sky behind it, a row per coordinate; `s`
+    [N] its scene. A slot whose `_ALIVE` is 0 keeps its state. Per ray, the ops and their order
+    are those of `march`, `shader_look.shader_medium` and `CloudLayer`. The light's density is
+    taken only at the lit samples (about a tenth of a template's), gathered between the kernels:
+    an eager op whose size depends on the data."""
     sample = kernels.sample(state, ray, s, look, packed, scales, config=config)
-    ahead = torch.zeros_like(state[_T])  # unused without lit samples
-    if config.light:
-        lit = sample[4].nonzero().squeeze(1)
-        if lit.shape[0]:
-            if lit.shape[0] == 1:  # a compiled kernel would specialise (recompile) on one point
-                lit = lit.repeat(2)
-            ahead = kernels.light(sample, state[_T], s, lit, look, packed, scales, config=config)
-    return kernels.advance(state, ray, s, look, sample, ahead, config=config)
+    for k in range(count):
+        ahead = torch.zeros_like(state[_T])  # unused without lit samples
+        if config.light:
+            lit = sample.lit.nonzero().squeeze(1)
+            if lit.shape[0]:
+                # not a view (dynamo guards a view's base) and not one point (a compiled kernel would
+                # specialise on it): either recompiles the kernel
+                lit = lit.repeat(2) if lit.shape[0] == 1 else lit.clone()
+                ahead = kernels.light(sample.point, state[_T], s, lit, look, packed, scales, config=config)
+        if k + 1 < count:
+            state, sample = kernels.advance_sample(state, ray, s, look, packed, scales, sample, ahead, config=config)
+        else:
+            state = kernels.advance(state, ray, s, look, sample, ahead, config=config)
+    return state
 
 
 @functools.cache
-def compiled_step(config: StepConfig) -> Callable:
-    """`shader_step` with its three kernels under torch.compile (each one graph per `config`, for
+def compiled_steps(config: StepConfig) -> Callable:
+    """`shader_steps` with its kernels under torch.compile (each one graph per `config`, for
     every size)."""
     kernels = Kernels(*(torch.compile(fn, dynamic=True) for fn in EAGER))
-    return functools.partial(shader_step, config=config, kernels=kernels)
+    return functools.partial(shader_steps, config=config, kernels=kernels)
 
 
-def fused_march(step, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Tensor, *,
-                wavefront: int = WAVEFRONT, refill_every: int = REFILL_EVERY) -> tuple[MarchResult, Tensor]:
-    """March the R rays where `hit` with `step(state, ray, s)` (a `shader_step` with the rest
-    bound) in wavefronts. `t0`, `t1`, `start` (the first sample's t) [R]; `hit` [R] bool; `ray`
-    [9, R] as `shader_step` takes it; `s` [R]. -> (the `march` result, density evaluations)."""
+def fused_march(steps, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Tensor, *,
+                wavefront: int = WAVEFRONT, refill_every: int = REFILL_EVERY,
+                compact_below: float = COMPACT_BELOW) -> tuple[MarchResult, Tensor]:
+    """March the R rays where `hit` with `steps(state, ray, s, count)` (`shader_steps` with the
+    rest bound) in wavefronts. `t0`, `t1`, `start` (the first sample's t) [R]; `hit` [R] bool; `ray`
+    [9, R] as `shader_steps` takes it; `s` [R]. -> (the `march` result, density evaluations)."""
     final = t0.new_zeros(_ROWS, t0.shape[0])
     final[_TRANS] = 1.0
     queue = hit.nonzero().squeeze(1)
-    slots, state, taken = queue[:0], final[:, :0], 0
+    # each slot's ray index, state, ray rows and scene; gathers and scatters by index_select /
+    # index_copy_ (`take_rows`: advanced indexing is 3-5x slower)
+    slots, state, slot_ray, slot_s, taken = queue[:0], final[:, :0], ray[:, :0], s[:0], 0
     while True:
         room = min(wavefront - slots.shape[0], queue.shape[0] - taken)
         if room > 0:  # refill: fresh rays at their start
@@ -260,21 +298,21 @@ def fused_march(step, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: T
             fresh[_T], fresh[_T_END], fresh[_SPAN] = take_rows(start, new), end, end - take_rows(t0, new)
             fresh[_TRANS], fresh[_ALIVE] = 1.0, 1.0
             slots, state = torch.cat([slots, new]), torch.cat([state, fresh], dim=1)
+            slot_ray, slot_s = torch.cat([slot_ray, ray.index_select(1, new)], dim=1), torch.cat([slot_s, take_rows(s, new)])
         if slots.shape[0] == 0:
             break
-        # gathers and scatters by index_select / index_copy_ (`take_rows`: advanced indexing is 3-5x slower)
-        slot_ray, slot_s = ray.index_select(1, slots), take_rows(s, slots)
-        for _ in range(refill_every):
-            state = step(state, slot_ray, slot_s)
+        state = steps(state, slot_ray, slot_s, refill_every)
         alive = state[_ALIVE] > 0
-        if bool(alive.all()):
-            continue
+        live = int(alive.sum())
+        if live == slots.shape[0] or (taken == queue.shape[0] and live > compact_below * slots.shape[0]):
+            continue  # nothing to refill and few finished: they ride along (a finished slot keeps its state)
         done = (~alive).nonzero().squeeze(1)
         final.index_copy_(1, take_rows(slots, done), state.index_select(1, done))
         keep = alive.nonzero().squeeze(1)
         if keep.shape[0] == 1:  # a finished slot rides along: one slot would recompile the kernels
             keep = torch.cat([keep, done[:1]])
         slots, state = take_rows(slots, keep), state.index_select(1, keep)
+        slot_ray, slot_s = slot_ray.index_select(1, keep), take_rows(slot_s, keep)
     res = MarchResult(radiance=final[_RADIANCE:].T.contiguous(), transmittance=final[_TRANS], weight_sum=final[_WSUM],
                       weighted_t=final[_WT], median_t=final[_MEDIAN], steps=final[_STEPS].long(),
                       truncated=final[_TRUNC] > 0)
@@ -292,12 +330,12 @@ def march_fused(ctx, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit:
     config = StepConfig(rule=st.rule, octaves=octaves, lod_scale=st.lod_scale, threshold=float(st.density_threshold),
                         min_transmittance=float(st.min_transmittance), max_iterations=st.rule.max_iterations,
                         light=bool(vol.plan.lights), graded=vol.params.shader.ambient_top is not None)
-    kernel = compiled_step(config) if compiled else functools.partial(shader_step, config=config)
+    kernel = compiled_steps(config) if compiled else functools.partial(shader_steps, config=config)
     start = t0
     if dither is not None:  # the template's absolute offset, or a fraction of the first step
         start = t0 + (dither if st.dither == "sin" else dither * st.rule.length(t0, t1 - t0))
     ray = torch.cat([rays.origins.T, rays.directions.T, background.T])
-    res, evals = fused_march(lambda state, r, s: kernel(state, r, s, look, packed, scales), t0, t1, hit, start, ray,
-                             rays.scene_index, wavefront=WAVEFRONT, refill_every=REFILL_EVERY)
+    res, evals = fused_march(lambda state, r, s, n: kernel(state, r, s, look, packed, scales, count=n), t0, t1, hit, start, ray,
+                             rays.scene_index, wavefront=WAVEFRONT, refill_every=REFILL_EVERY, compact_below=COMPACT_BELOW)
     ctx.counts.density_evals += int(evals)
     return res
