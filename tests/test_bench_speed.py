@@ -60,3 +60,8 @@ def test_floor_ratio_is_time_over_the_fastest_kernel_of_the_same_density():
     floor = [dict(density="template-clouds", evals_per_s=40.0), dict(density="template-clouds", evals_per_s=20.0),
              dict(density="cloud-puff", evals_per_s=100.0)]
     assert bench_speed.floor_ratios(render, floor) == [None, 4.0, 2.0]
+    # a one-thread render against the one-thread kernel, not the fastest on any thread count
+    one = [dict(work="template-clouds 16×9", evals_per_s=10.0, threads=1)]
+    floors = [dict(density="template-clouds", evals_per_s=40.0, threads=2),
+              dict(density="template-clouds", evals_per_s=25.0, threads=1)]
+    assert bench_speed.floor_ratios(one, floors) == [2.5]

@@ -81,18 +81,24 @@ def _cloud_puff(width: int, height: int, hash: str) -> dict:
 
 
 def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size: tuple[int, int]) -> list[dict]:
-    """Rows {work, renderer, seconds, evals_per_s, ratio, first_s}: template-clouds per size against
-    llvmpipe, then cloud-puff at `physical_size` against its table-hash eager render."""
-    rows = []
+    """Rows {work, renderer, threads, seconds, evals_per_s, ratio, first_s}: template-clouds per
+    size against llvmpipe (compiled also on one thread, as a generator's worker renders), then
+    cloud-puff at `physical_size` against its table-hash eager render."""
+    from .generate import torch_threads
+
+    rows, threads = [], torch.get_num_threads()
     for width, height in sizes:
         gl = time_llvmpipe(width, height, repeat=repeat)
         work = f"template-clouds {width}×{height}"
         if gl is not None:
-            rows.append(dict(work=work, renderer="llvmpipe (GLSL template)", seconds=gl, evals_per_s=None, ratio=1.0, first_s=None))
+            rows.append(dict(work=work, renderer="llvmpipe (GLSL template)", threads=None, seconds=gl, evals_per_s=None,
+                             ratio=1.0, first_s=None))
         scene = preset("template-clouds", width=width, height=height)
-        for compile, name in ((False, "torchvol eager"), (True, "torchvol torch.compile")):
-            seconds, evals, first = time_render(scene, compile=compile, repeat=repeat)
-            rows.append(dict(work=work, renderer=name, seconds=seconds, evals_per_s=evals / seconds,
+        for compile, n, name in ((False, threads, "torchvol eager"), (True, threads, "torchvol torch.compile"),
+                                 (True, 1, "torchvol torch.compile, 1 thread")):
+            with torch_threads(n):
+                seconds, evals, first = time_render(scene, compile=compile, repeat=repeat)
+            rows.append(dict(work=work, renderer=name, threads=n, seconds=seconds, evals_per_s=evals / seconds,
                              ratio=seconds / gl if gl else None, first_s=first))
     width, height = physical_size
     work, base = f"cloud-puff {width}×{height}", None
@@ -100,7 +106,8 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
                                 ("arithmetic", True, "arithmetic hash, fused field compiled")):
         seconds, evals, first = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat)
         base = base or seconds
-        rows.append(dict(work=work, renderer=name, seconds=seconds, evals_per_s=evals / seconds, ratio=seconds / base, first_s=first))
+        rows.append(dict(work=work, renderer=name, threads=threads, seconds=seconds, evals_per_s=evals / seconds,
+                         ratio=seconds / base, first_s=first))
     return rows
 
 
@@ -122,8 +129,10 @@ def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", com
 def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     """Density evaluations/s of each measured render's noise alone on the same `points` random
     points (interleaved runs): cloud-puff's `octaves`-octave value-noise fbm and the template's
-    5-octave texture-noise fbm (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel.
-    Rows {kernel, density (the preset whose floor it is), evals_per_s, first_s}."""
+    5-octave texture-noise fbm (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel
+    (also on one thread, the floor of the one-thread render rows). Rows {kernel, density (the
+    preset whose floor it is), threads, evals_per_s, first_s}."""
+    from .generate import torch_threads
     from .volume.fused import cloud_fbm
 
     g = torch.Generator().manual_seed(0)
@@ -133,6 +142,14 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     base = torch.zeros(points, dtype=noise.texture_index_dtype(p.dtype))
     scales = noise._mesa_folded_scales([2.02, 2.03, 2.01, 2.02], p.dtype, p.device)
     template_fbm = torch.compile(cloud_fbm, dynamic=True)
+    threads = torch.get_num_threads()
+
+    def one_thread(fn):
+        def run():
+            with torch_threads(1):
+                return fn()
+        return run
+
     kernels = {
         ("table hash (noise.fbm over noise.value_noise), eager", "cloud-puff"):
             lambda: noise.fbm(p, lambda q: noise.value_noise(q, seed=7), octaves=octaves),
@@ -143,6 +160,8 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
             lambda: cloud_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
         ("texture noise, 5 octaves, fused compiled kernel", "template-clouds"):
             lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
+        ("texture noise, 5 octaves, fused compiled kernel, 1 thread", "template-clouds"):
+            one_thread(lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales)),
     }
     first = {}
     for name, fn in kernels.items():
@@ -153,19 +172,21 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     for _ in range(repeat):  # interleaved: a change in the machine's load hits every kernel alike
         for name, fn in kernels.items():
             times[name].append(_median_time(fn, 1))
-    return [dict(kernel=kernel, density=density, evals_per_s=points / statistics.median(t), first_s=first[(kernel, density)])
-            for (kernel, density), t in times.items()]
+    return [dict(kernel=kernel, density=density, threads=1 if kernel.endswith("1 thread") else threads,
+                 evals_per_s=points / statistics.median(t), first_s=first[(kernel, density)]) for (kernel, density), t in times.items()]
 
 
 def floor_ratios(render: Sequence[dict], floor: Sequence[dict]) -> list[float | None]:
     """Per render row: its time over its density-evaluation floor, the time its density evaluations
-    take in the fastest kernel for that density (evals / that kernel's evals/s); None for llvmpipe."""
-    best: dict[str, float] = {}
+    take in the fastest kernel for that density on as many threads (evals / that kernel's
+    evals/s); None for llvmpipe."""
+    best: dict[tuple, float] = {}
     for r in floor:
-        best[r["density"]] = max(best.get(r["density"], 0.0), r["evals_per_s"])
+        key = (r["density"], r.get("threads"))
+        best[key] = max(best.get(key, 0.0), r["evals_per_s"])
     out = []
     for r in render:
-        rate = next((v for k, v in best.items() if r["work"].startswith(k)), None)
+        rate = next((v for (k, n), v in best.items() if r["work"].startswith(k) and n == r.get("threads")), None)
         out.append(None if r["evals_per_s"] is None or rate is None else rate / r["evals_per_s"])
     return out
 
@@ -281,12 +302,16 @@ def markdown(sections: dict) -> str:
                   f"{_fmt(r['ratio'], '.2f')} | {_fmt(f, '.1f')} | {_fmt(r['first_s'], '.1f')} |"
                   for r, f in zip(sections["render"], floors)]
         lines += ["", "× floor: the render's time over its density-evaluation floor, the time its density evaluations alone "
-                  "take in the fastest kernel for that density (next table): 1 would be a render that costs nothing but "
-                  "its noise. "
+                  "take in the fastest kernel for that density on as many threads (next table): 1 would be a render that "
+                  "costs nothing but its noise. "
                   "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
-                  "`torch.compile` on template-clouds runs the fused march step (torchvol/volume/fused.py: a step is three "
-                  "compiled kernels over wavefronts of rays); the arithmetic hash's fbm is one fused kernel, the physical "
-                  "march around it eager (docs/VOLUMES.md). Density evals/s count the evaluations the eager march makes; "
+                  "`torch.compile` on template-clouds runs the fused march step (torchvol/volume/fused.py: a step is two "
+                  "compiled kernels over a chunk's rays, the sample's density with the previous step's compositing, and "
+                  "the light's density at the lit samples); the arithmetic hash's fbm is one fused kernel, the physical "
+                  "march around it eager (docs/VOLUMES.md). \"1 thread\": as a generator's worker renders (one torch "
+                  "thread each, workers scale by processes): the march's eager glue between kernels (gathers, compaction, "
+                  "dynamo's guards: small ops and Python) is mostly serial, so a second thread speeds the kernels and not the rest. "
+                  "Density evals/s count the evaluations the eager march makes; "
                   "the fused step evaluates the cloud at every live ray and again towards the light where lit.", ""]
     if "floor" in sections:
         lines += ["## The floor: each render's noise alone", "", "| density of | kernel | evals/s | first call s |",

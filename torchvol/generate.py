@@ -18,6 +18,7 @@ never on its batch, worker or the run that rendered it.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -109,6 +110,19 @@ def run_task(task: Task) -> list[int]:
             members += [(f"{stem}.{suffix}", data) for suffix, data in encoded.items()]
     atomic_write(path, tar_bytes(members))
     return list(task.indices)
+
+
+@contextlib.contextmanager
+def torch_threads(threads: int):
+    """torch's intra-op thread count set to `threads` inside the block, restored after it."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _init_worker(threads: int) -> None:
@@ -239,15 +253,9 @@ def _execute(tasks: list[Task], *, workers: int, threads: int | None, scheduler:
     # slow and 3x beside a busy process; worker processes scale instead (docs/DATASETS.md, "Threads")
     threads = threads or 1
     if workers == 1:
-        import torch
-
-        before = torch.get_num_threads()
-        torch.set_num_threads(threads)
-        try:
+        with torch_threads(threads):
             for task in tasks:
                 yield len(run_task(task))
-        finally:
-            torch.set_num_threads(before)
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed as done_order
