@@ -5,12 +5,13 @@ The generic `march` calls a medium closure that runs ~100 small eager ops per st
 octave is a dozen, the derivative light evaluates the fbm again, the look and the compositing add
 their own); on a 2-core machine those ops, not the arithmetic, are the render. Here a step — the
 sample point, its LOD, the cloud's fbm there and towards the light, the look's colour and fog,
-alpha compositing, the step rule and the end tests — is three pure functions of plain tensors
-(`sample_density`, `light_density` on the lit samples only, `advance`), which torch.compile turns
-into fused C++ loops over the rays. The rays go through in wavefronts of at most `WAVEFRONT`
-slots: every `REFILL_EVERY` steps the finished slots are written out and refilled from the rays
-not started yet, so the kernels keep seeing full batches (shapes are dynamic: one compilation
-serves every size).
+alpha compositing, the step rule and the end tests — is pure functions of plain tensors
+(`sample_density`, `light_density` on the lit samples only, `advance`, and `advance_sample`: the
+one, then the next step's first, in one kernel), which torch.compile turns into fused C++ loops
+over the rays: two compiled calls a step. The rays go through in wavefronts of at most `WAVEFRONT`
+slots (a render's chunk): every `REFILL_EVERY` steps finished slots are written out and refilled
+from the rays not started yet, or, once none wait, dropped when enough have finished, so the
+kernels keep seeing full batches (shapes are dynamic: one compilation serves every size).
 
 The eager `shader_steps` is the reference twin: it renders bitwise what the generic march renders
 (tests/volume/test_fused.py; the LOD's dropped octaves are masked by `where`, which changes no
