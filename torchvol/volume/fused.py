@@ -253,8 +253,9 @@ def shader_steps(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed:
     taken only at the lit samples (about a tenth of a template's), gathered between the kernels:
     an eager op whose size depends on the data."""
     sample = kernels.sample(state, ray, s, look, packed, scales, config=config)
+    none_lit = torch.zeros_like(state[_T])  # `ahead` of a step without lit samples (then unused)
     for k in range(count):
-        ahead = torch.zeros_like(state[_T])  # unused without lit samples
+        ahead = none_lit
         if config.light:
             lit = sample.lit.nonzero().squeeze(1)
             if lit.shape[0]:
