@@ -30,10 +30,10 @@ def assert_close(actual, expected, *, atol=None, what="value"):
 def one_thread():
     """Run a test with one torch thread (tiny tensors: thread hand-offs cost more than they save,
     badly so on a loaded machine), restoring the count after."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+    from torchvol.generate import torch_threads
+
+    with torch_threads(1):
+        yield
 
 
 def pytest_configure(config):

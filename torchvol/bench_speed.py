@@ -139,41 +139,36 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     p = torch.rand(points, 3, generator=g) * 20.0 - 10.0
     x, y, z = (c.contiguous() for c in p.unbind(1))
     packed = noise.packed_table(noise.texture_table(noise.default_noise_texture(0)))
-    base = torch.zeros(points, dtype=noise.texture_index_dtype(p.dtype))
-    scales = noise._mesa_folded_scales([2.02, 2.03, 2.01, 2.02], p.dtype, p.device)
+    base = noise.texture_rows(torch.zeros(points, dtype=torch.long), p.dtype)
+    scales = noise.folded_scales(5, dtype=p.dtype, device=p.device)
     template_fbm = torch.compile(cloud_fbm, dynamic=True)
-    threads = torch.get_num_threads()
-
-    def one_thread(fn):
-        def run():
-            with torch_threads(1):
-                return fn()
-        return run
-
-    kernels = {
-        ("table hash (noise.fbm over noise.value_noise), eager", "cloud-puff"):
+    n = torch.get_num_threads()
+    kernels = {  # (kernel, the preset whose floor it is, torch threads): fn
+        ("table hash (noise.fbm over noise.value_noise), eager", "cloud-puff", n):
             lambda: noise.fbm(p, lambda q: noise.value_noise(q, seed=7), octaves=octaves),
-        ("arithmetic hash, eager twin", "cloud-puff"): lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves),
-        ("arithmetic hash, fused compiled kernel", "cloud-puff"):
+        ("arithmetic hash, eager twin", "cloud-puff", n): lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves),
+        ("arithmetic hash, fused compiled kernel", "cloud-puff", n):
             lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves, compiled=True),
-        ("texture noise, 5 octaves (integer filter), eager", "template-clouds"):
+        ("texture noise, 5 octaves (integer filter), eager", "template-clouds", n):
             lambda: cloud_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
-        ("texture noise, 5 octaves, fused compiled kernel", "template-clouds"):
+        ("texture noise, 5 octaves, fused compiled kernel", "template-clouds", n):
             lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
-        ("texture noise, 5 octaves, fused compiled kernel, 1 thread", "template-clouds"):
-            one_thread(lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales)),
+        ("texture noise, 5 octaves, fused compiled kernel, 1 thread", "template-clouds", 1):
+            lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
     }
     first = {}
-    for name, fn in kernels.items():
-        start = time.perf_counter()
-        fn()
-        first[name] = time.perf_counter() - start
-    times: dict = {name: [] for name in kernels}
+    for key, fn in kernels.items():
+        with torch_threads(key[2]):
+            start = time.perf_counter()
+            fn()
+            first[key] = time.perf_counter() - start
+    times: dict = {key: [] for key in kernels}
     for _ in range(repeat):  # interleaved: a change in the machine's load hits every kernel alike
-        for name, fn in kernels.items():
-            times[name].append(_median_time(fn, 1))
-    return [dict(kernel=kernel, density=density, threads=1 if kernel.endswith("1 thread") else threads,
-                 evals_per_s=points / statistics.median(t), first_s=first[(kernel, density)]) for (kernel, density), t in times.items()]
+        for key, fn in kernels.items():
+            with torch_threads(key[2]):
+                times[key].append(_median_time(fn, 1))
+    return [dict(kernel=kernel, density=density, threads=threads, evals_per_s=points / statistics.median(t),
+                 first_s=first[(kernel, density, threads)]) for (kernel, density, threads), t in times.items()]
 
 
 def floor_ratios(render: Sequence[dict], floor: Sequence[dict]) -> list[float | None]:

@@ -127,8 +127,7 @@ def _compiled_field(octaves: int, gain: float):
 @functools.cache
 def _scales(octaves: int, lacunarity: tuple[float, ...], dtype: torch.dtype, device: str) -> Tensor:
     """Mesa's folded octave scales as one ``[octaves - 1]`` tensor (cached: the march asks every step)."""
-    steps = [lacunarity[i % len(lacunarity)] for i in range(octaves - 1)]
-    scales = noise._mesa_folded_scales(steps, dtype, device)
+    scales = noise.folded_scales(octaves, lacunarity, dtype=dtype, device=device)
     return torch.stack(scales) if scales else torch.zeros(0, dtype=dtype, device=device)
 
 
@@ -151,7 +150,7 @@ def fbm_value_hashed(
     *,
     seed: int = 0,
     octaves: int = 5,
-    lacunarity: float | Sequence[float] = (2.02, 2.03, 2.01, 2.02),
+    lacunarity: float | Sequence[float] = noise.LACUNARITY,
     gain: float = 0.5,
     lod: Tensor | None = None,
     compiled: bool = False,
@@ -187,7 +186,7 @@ def fbm_field_hashed(
     amplitude: Tensor,
     radial: Tensor,
     center: Tensor,
-    lacunarity: float | Sequence[float] = (2.02, 2.03, 2.01, 2.02),
+    lacunarity: float | Sequence[float] = noise.LACUNARITY,
     gain: float = 0.5,
     lod: Tensor | None = None,
 ) -> Tensor:

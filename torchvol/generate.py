@@ -251,7 +251,7 @@ def _execute(tasks: list[Task], *, workers: int, threads: int | None, scheduler:
     # one intra-op thread a worker unless asked: a render is thousands of small ops, and a second
     # thread gained at most 1.3x on a quiet 2-core VM but lost 4x where waking a sleeping thread is
     # slow and 3x beside a busy process; worker processes scale instead (docs/DATASETS.md, "Threads")
-    threads = threads or 1
+    threads = 1 if threads is None else threads
     if workers == 1:
         with torch_threads(threads):
             for task in tasks:

@@ -417,6 +417,13 @@ def texture_index_dtype(dtype: torch.dtype) -> torch.dtype:
     return torch.int32 if dtype == torch.float32 else torch.int64
 
 
+def texture_rows(scene: Tensor, dtype: torch.dtype) -> Tensor:
+    """Scene indices [N] -> each one's first row [N] in its batch's stacked texture tables (a
+    `texture_table` of 256 × 256 rows per scene, `torch.cat`), the `base` of `texture_noise_coords`
+    for points of `dtype`."""
+    return scene.to(texture_index_dtype(dtype)) * (256 * 256)
+
+
 def texture_noise_coords(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: Tensor | None = None, *,
                          filter_bits: int = LLVMPIPE_FILTER_BITS) -> Tensor:
     """`texture_noise_table` with a fixed-point filter, bit for bit, for points given as their
@@ -511,13 +518,29 @@ def _mesa_folded_scales(steps: Sequence[float], dtype: torch.dtype, device) -> l
     return out
 
 
-def finest_period(octaves: int, lacunarity: float | Sequence[float] = (2.02, 2.03, 2.01, 2.02)) -> float:
+# the seeds' fbm multipliers, cycled: q *= 2.02; q *= 2.03; q *= 2.01; q *= 2.02; ...
+LACUNARITY = (2.02, 2.03, 2.01, 2.02)
+
+
+def octave_steps(octaves: int, lacunarity: float | Sequence[float] = LACUNARITY) -> list[float]:
+    """The multipliers ``[l_0, ..., l_{octaves-2}]`` between `fbm`'s octaves (a sequence cycles)."""
+    lac = [float(lacunarity)] if isinstance(lacunarity, (int, float)) else [float(x) for x in lacunarity]
+    return [lac[k % len(lac)] for k in range(octaves - 1)]
+
+
+def folded_scales(octaves: int, lacunarity: float | Sequence[float] = LACUNARITY, *, dtype: torch.dtype,
+                  device) -> list[Tensor]:
+    """`fbm`'s octave scales ``[C_1, ..., C_{octaves-1}]`` (``q_k = p * C_k``) as Mesa folds them,
+    0-dim tensors in `dtype`: what a kernel that evaluates the octaves itself multiplies by."""
+    return _mesa_folded_scales(octave_steps(octaves, lacunarity), dtype, device)
+
+
+def finest_period(octaves: int, lacunarity: float | Sequence[float] = LACUNARITY) -> float:
     """The lattice period of `fbm`'s last octave, in units of its input: the scale below which
     nothing in the sum varies (the noise bases have period 1 on their lattice)."""
-    lac = [lacunarity] if isinstance(lacunarity, (int, float)) else list(lacunarity)
     scale = 1.0
-    for k in range(octaves - 1):
-        scale *= lac[k % len(lac)]
+    for step in octave_steps(octaves, lacunarity):
+        scale *= step
     return 1.0 / scale
 
 
@@ -526,7 +549,7 @@ def fbm(
     noise: Callable[[Tensor], Tensor],
     *,
     octaves: int = 5,
-    lacunarity: float | Sequence[float] = (2.02, 2.03, 2.01, 2.02),
+    lacunarity: float | Sequence[float] = LACUNARITY,
     gain: float = 0.5,
     lod: Tensor | None = None,
     fold: str = "mesa",
@@ -561,8 +584,7 @@ def fbm(
     _check_points(p)
     if octaves < 1:
         raise ValueError(f"octaves: got {octaves!r}; an integer >= 1")
-    lac = [float(lacunarity)] if isinstance(lacunarity, (int, float)) else [float(x) for x in lacunarity]
-    if not lac:
+    if not isinstance(lacunarity, (int, float)) and len(lacunarity) == 0:
         raise ValueError(f"lacunarity: got {lacunarity!r}; a number or a non-empty sequence")
     if fold not in ("mesa", "sequential"):
         raise ValueError(f"fold: got {fold!r}; 'mesa' or 'sequential'")
@@ -573,7 +595,7 @@ def fbm(
         if lod.shape != p.shape[:1]:
             raise ValueError(f"lod: got shape {tuple(lod.shape)}; [N] with N = {p.shape[0]}")
     dtype, dev = p.dtype, p.device
-    steps = [lac[i % len(lac)] for i in range(octaves - 1)]
+    steps = octave_steps(octaves, lacunarity)
     scales = _mesa_folded_scales(steps, dtype, dev) if fold == "mesa" else None
     f = (noise(p) if rows is None else noise(p, rows)) * 0.5
     q, pa, ra = p, p, rows  # q: sequential point; pa, ra: the active original points and their rows

@@ -55,11 +55,12 @@ class CloudLayer:
             for tex, seed in zip(params.texture, params.texture_seed)
         ]
         self.compiled = compiled
+        # the integer filter's stacked tables (bitwise texture_noise_table, ~4× faster eager): one
+        # pass over every scene's points, each at its scene's rows (`noise.texture_rows`); the
+        # fused march step reads them too (volume/fused.py)
+        self.packed = noise.packed_table(torch.cat(self.tables))
         if compiled:
             self.kernels = [lambda x, table=table: noise.compiled(noise.texture_noise_table)(x, table) for table in self.tables]
-        else:  # the integer filter (bitwise texture_noise_table, ~4× faster eager) on the stacked
-            # tables: one pass over every scene's points (`rows`: a point's first table row)
-            self.packed = noise.packed_table(torch.cat(self.tables))
         self.shift = params.wind * times[:, None]  # (B, 3)
         self.feature_size = torch.full_like(times, noise.finest_period(params.octaves))
 
@@ -79,7 +80,6 @@ class CloudLayer:
         if self.compiled:
             f = per_scene(q, s, len(p), one_scene)
         else:
-            rows = s.to(noise.texture_index_dtype(points.dtype)) * 65536
             f = noise.fbm(q, lambda x, r: noise.texture_noise_coords(*x.unbind(1), self.packed, r) * 2.0 - 1.0,
-                          octaves=p.octaves, lod=octaves, rows=rows)
+                          octaves=p.octaves, lod=octaves, rows=noise.texture_rows(s, points.dtype))
         return (take(p.bias, s) - points[:, 1] + take(p.density_scale, s) * f).clamp_max(1.0)

@@ -99,7 +99,7 @@ def fusable(ctx, vol) -> bool:
 
 
 def cloud_look(ctx, vol) -> tuple[CloudLook, Tensor]:
-    """The per-scene values of `vol` and its stacked texture tables, packed (`noise.packed_table`)."""
+    """The per-scene values of `vol` and its stacked texture tables, packed (`CloudLayer.packed`)."""
     layer, look, params = vol.field.inner, vol.params.shader, vol.params
     b, like = len(params), layer.shift
     zeros3 = like.new_zeros(b, 3)
@@ -115,11 +115,10 @@ def cloud_look(ctx, vol) -> tuple[CloudLook, Tensor]:
         irradiance=irradiance, light_scale=look.light_scale, ambient=look.ambient,
         ambient_top=look.ambient if look.ambient_top is None else look.ambient_top, heights=heights,
         color_lit=look.color_lit, color_dark=look.color_dark, alpha_scale=look.alpha_scale, fog=look.fog,
-        base=torch.arange(b, device=like.device, dtype=noise.texture_index_dtype(like.dtype)) * 65536)
+        base=noise.texture_rows(torch.arange(b, device=like.device), like.dtype))
     # one row more than the textures: dynamo's duck sizing ties equal sizes, and a table of 2**16
     # rows (one texture) as long as a full wavefront would specialise the kernels and recompile
-    packed = noise.packed_table(torch.cat(layer.tables))
-    return cl, torch.cat([packed, packed[:1]])
+    return cl, torch.cat([layer.packed, layer.packed[:1]])
 
 
 def cloud_fbm(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: Tensor, count: Tensor | None, *, octaves: int,
@@ -328,7 +327,7 @@ def march_fused(ctx, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit:
     st = ctx.settings
     look, packed = cloud_look(ctx, vol)
     octaves = int(vol.field.inner.p.octaves)
-    scales = noise._mesa_folded_scales([(2.02, 2.03, 2.01, 2.02)[i % 4] for i in range(octaves - 1)], t0.dtype, t0.device)
+    scales = noise.folded_scales(octaves, dtype=t0.dtype, device=t0.device)
     config = StepConfig(rule=st.rule, octaves=octaves, lod_scale=st.lod_scale, threshold=float(st.density_threshold),
                         min_transmittance=float(st.min_transmittance), max_iterations=st.rule.max_iterations,
                         light=bool(vol.plan.lights), graded=vol.params.shader.ambient_top is not None)
