@@ -274,11 +274,11 @@ def markdown(sections: dict) -> str:
     count_flag = f" --count {sections['count']}" if sections.get("count", 16) != 16 else ""
     if sections.get("recipes"):
         count_flag = f" --recipes {' '.join(sections['recipes'])}" + count_flag
-    lines = ["# Speed", "", f"`torchvol bench speed{' --quick' if sections['quick'] else ''}{count_flag}`, {time.strftime('%Y-%m-%d')}: "
+    lines = ["# Speed", "", (f"`torchvol bench speed{' --quick' if sections['quick'] else ''}{count_flag}`, {time.strftime('%Y-%m-%d')}: "
              f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs, "
              f"{platform.processor() or platform.machine()}; GL: {renderer_name()}. Medians of {sections['repeat']} runs; "
              "compilation (first call) reported apart. Ratios hold on a busy machine; absolute times only on a quiet "
-             "one. `torchvol bench speed --out docs/SPEED.md` writes this page (`--quick`: small sizes, two recipes).", ""]
+             "one. `torchvol bench speed --out docs/SPEED.md` writes this page (`--quick`: small sizes, two recipes)."), ""]
     if "profile" in sections:
         lines += ["## Where the time goes (torch.profiler, self CPU time, one render)", "",
                   "| render | op | share | calls |", "| --- | --- | ---: | ---: |"]
