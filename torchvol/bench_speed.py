@@ -189,13 +189,14 @@ def floor_ratios(render: Sequence[dict], floor: Sequence[dict]) -> list[float | 
 def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
                     layout: str = "folder", compiled: bool = True) -> list[dict]:
     """`generate` of each recipe at size×size (None: the recipe's own size) with each worker count,
-    eager and, where the recipe's scenes take it (`fastnoise.compile_pays`) and `compiled`,
-    compiled: rows {recipe, workers, mode, seconds, samples_per_s, steady_per_s, first_s,
-    bytes_per_sample}. After a warm-up run (one batch a worker: inductor's on-disk cache is then
-    warm for both timed runs), each is run for N and for 2N samples (N = `count`, 4·`count`
-    compiled, whose samples are fast and whose start-up is long): the difference is the steady
-    rate (N / (T₂ − T₁)); what the first run took beyond N samples at that rate is the start-up
-    (worker processes, dynamo's tracing: `first_s`). `samples_per_s`: 2N / T₂."""
+    eager and, with `compiled`, in each compile mode that changes what the recipe's scenes run
+    (`torchvol.compilation`: "exact" for voxel scenes, "all" where `fastnoise.compile_pays`):
+    rows {recipe, workers, mode, seconds, samples_per_s, steady_per_s, first_s, bytes_per_sample}.
+    After a warm-up run (one batch a worker: inductor's on-disk cache is then warm for both timed
+    runs), each is run for N and for 2N samples (N = `count`, 4·`count` compiled, whose samples
+    are fast and whose start-up is long): the difference is the steady rate (N / (T₂ − T₁)); what
+    the first run took beyond N samples at that rate is the start-up (worker processes, dynamo's
+    tracing: `first_s`). `samples_per_s`: 2N / T₂."""
     from .fastnoise import compile_pays
     from .generate import generate
     from .recipe import Recipe
@@ -204,10 +205,15 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
     overrides = {} if size is None else {"image.width": size, "image.height": size}
     for name in recipes:
         path = ROOT / "datasets" / f"{name}.toml"
-        modes = (False, True) if compiled and compile_pays(Recipe.load(path, overrides).sample_with_params(0, 0)[0]) else (False,)
+        scene = Recipe.load(path, overrides).sample_with_params(0, 0)[0]
+        modes = [("off", "eager")]
+        if compiled and scene.voxels is not None:
+            modes.append(("exact", "compiled exact"))
+        if compiled and compile_pays(scene):
+            modes.append(("all", "compiled"))
         for n in workers:
-            for compile in modes:
-                seconds, n_samples = [], count * (4 if compile else 1)
+            for compile, label in modes:
+                seconds, n_samples = [], count * (1 if compile == "off" else 4)
                 for k in (batch * n, n_samples, 2 * n_samples):  # warm-up, N, 2N
                     with tempfile.TemporaryDirectory() as tmp:
                         start = time.perf_counter()
@@ -217,7 +223,7 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
                         size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
                 # the N extra samples must take a measurable share of the 2N run, or the difference is noise
                 steady = n_samples / (seconds[2] - seconds[1]) if seconds[2] - seconds[1] > 0.1 * seconds[2] else None
-                rows.append(dict(recipe=name, workers=n, mode="compiled" if compile else "eager", samples=2 * n_samples,
+                rows.append(dict(recipe=name, workers=n, mode=label, samples=2 * n_samples,
                                  seconds=seconds[2], samples_per_s=2 * n_samples / seconds[2], steady_per_s=steady,
                                  first_s=None if steady is None else max(seconds[1] - n_samples / steady, 0.0),
                                  bytes_per_sample=size_bytes / (2 * n_samples)))

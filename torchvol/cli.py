@@ -124,7 +124,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
     from .generate import generate
 
     overrides = _pairs(args.set, "--set")
-    if not args.compile:
+    if args.compile != "all":
         hint = compile_hint(args.recipe, overrides=overrides, seed=args.seed, count=args.count)
         if hint is not None:
             print(hint, file=sys.stderr)
@@ -219,7 +219,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default="cpu", help="torch device to render on (default cpu)")
     r.add_argument("--chunk-rays", type=int, default=DEFAULT_CHUNK_RAYS,
                    help=f"rays per chunk: bounds peak memory, not the result (default {DEFAULT_CHUNK_RAYS})")
-    r.add_argument("--compile", action="store_true", help="torch.compile the density fields")
+    compiled = r.add_mutually_exclusive_group()
+    compiled.add_argument("--compile", dest="compile", action="store_const", const="all", default="off",
+                          help="run the density, march and voxel-walk kernels under torch.compile (within 1e-5 of "
+                          "eager; --compile-mode all)")
+    compiled.add_argument("--compile-mode", dest="compile", choices=["off", "exact", "all"],
+                          help="off (default), exact (only the voxel walk: bitwise eager) or all")
     _common(r)
     r.set_defaults(func=cmd_render)
 
@@ -232,9 +237,14 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0, help="dataset seed: sample i depends only on (seed, i) (default 0)")
     g.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     g.add_argument("--threads", type=int, default=None, help="torch threads per worker (default 1: more workers scale better; docs/DATASETS.md, \"Threads on a shared machine\")")
-    g.add_argument("--compile", action="store_true", help="render compiled where that is faster (fbm clouds on the "
-                   "arithmetic hash, the template's fused march step: within 1e-5 of eager, not bitwise; pays from "
-                   "about 8 samples a worker once inductor's cache is warm)")
+    modes = g.add_mutually_exclusive_group()
+    modes.add_argument("--compile", dest="compile", action="store_const", const="all", default="auto",
+                       help="also compile the density and march kernels where that is faster (fbm clouds on the "
+                       "arithmetic hash, the template's fused march step): within 1e-5 of eager, not bitwise; pays "
+                       "from about 8 samples a worker once inductor's cache is warm")
+    modes.add_argument("--eager", dest="compile", action="store_const", const="off",
+                       help="compile nothing (by default a worker rendering 256 samples or more compiles the voxel "
+                       "walk, whose output is bitwise eager's)")
     g.add_argument("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)")
     g.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)")
     g.add_argument("--batch", type=int, default=4, help="samples rendered as one batch (default 4)")

@@ -16,13 +16,14 @@ from __future__ import annotations
 import io
 import json
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Literal, Mapping, Sequence
 
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
 from .batch import structure_key
+from .compilation import CompileMode, auto_mode, batch_mode, compile_mode
 from .quality import at_level
 from .recipe import Recipe, mix_seed, render_seed
 from .validate import fail, integer, is_integer
@@ -53,15 +54,16 @@ def epoch_seed(seed: int, epoch: int | None) -> int:
 
 
 def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aovs: Sequence[str] | None = None,
-                   chunk_rays: int | None = None, compile: bool = False) -> list[dict]:
+                   chunk_rays: int | None = None, compile: CompileMode | bool = "off") -> list[dict]:
     """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
     e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch.
-    `compile`: render compiled the batches where that is the fast path (`fastnoise.compile_pays`)."""
-    from .fastnoise import compile_pays
+    `compile` (`torchvol.compilation`): "all" compiles a batch's density and march kernels only
+    where that is the fast path (`fastnoise.compile_pays`), its exact kernels elsewhere."""
     from .render import DEFAULT_CHUNK_RAYS, render
     from .sequence import add_flow, sequence_scenes  # (sequence imports this module)
 
     aovs = recipe.aovs if aovs is None else tuple(aovs)
+    compile = compile_mode(compile)
     if recipe.sequence is not None:  # frames > 1: a sample's frames are rendered like views, then its flow
         scenes, params = sequence_scenes(recipe, indices, seed=seed)
     elif recipe.views > 1:  # each sample's views
@@ -80,7 +82,7 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     for group in groups.values():
         first = scenes[group[0][0]][group[0][1]]
         out = render([scenes[k][v] for k, v in group], seed=[render_seed(int(indices[k]), seed) for k, _ in group],
-                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs, compile=compile and compile_pays(first))
+                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs, compile=batch_mode(compile, first))
         for b, (k, v) in enumerate(group):
             missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
             if missing:
@@ -111,13 +113,16 @@ class SceneDataset(Dataset):
     """Map-style dataset of `length` samples of `recipe` (a Recipe or anything Recipe.load takes).
 
     ds[i] depends only on (seed, epoch, i): the same in any process, DataLoader worker or order.
-    `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`: render
-    compiled where that is the fast path (`fastnoise.compile_pays`), as `torchvol generate
-    --compile` does: the samples of such a dataset, within 1e-5 of eager ones (each worker process
-    compiles once)."""
+    `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`
+    (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
+    eager (the voxel walk) for a dataset of `AUTO_COMPILE_SAMPLES` samples or more, "exact" always,
+    "off" never; "all" (or True) also the density and march kernels where that is the fast path,
+    as `torchvol generate --compile` does: samples within 1e-5 of eager ones, not bitwise (each
+    worker process compiles once)."""
 
     def __init__(self, recipe: Recipe | str | Path | Mapping, length: int, seed: int = 0, epoch: int | None = None, *,
-                 aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None, compile: bool = False):
+                 aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None,
+                 compile: CompileMode | Literal["auto"] | bool = "auto"):
         integer("length", length, low=0)
         integer("seed", seed)
         if epoch is not None and not is_integer(epoch):
@@ -126,7 +131,7 @@ class SceneDataset(Dataset):
         self.length, self.base_seed, self.epoch = length, seed, epoch
         self.seed = epoch_seed(seed, epoch)
         self.aovs = self.recipe.aovs if aovs is None else tuple(aovs)
-        self.compile = bool(compile)
+        self.compile = auto_mode(compile_mode(compile, auto=True), length)
 
     def __len__(self) -> int:
         return self.length

@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
 
+from .compilation import CompileMode, auto_mode, compile_mode
 from .data import CONVENTIONS, render_samples, sample_record
 from .progress import progress as bar
 from .recipe import Recipe
@@ -75,7 +76,7 @@ class Task:
     layout: Layout
     batch: int
     shard: int
-    compile: bool = False  # render compiled where that is the fast path (fastnoise.compile_pays)
+    compile: CompileMode = "off"  # what renders compiled (torchvol.compilation)
 
 
 def run_task(task: Task) -> list[int]:
@@ -171,15 +172,18 @@ def generate(
     scheduler: str | None = None,
     progress: bool | None = None,
     stop_after: int | None = None,
-    compile: bool = False,
+    compile: CompileMode | Literal["auto"] | bool = "auto",
 ) -> dict:
     """Generate (or finish) the dataset in `out`. `workers` local processes (spawned, each with
     `threads` torch threads), or the Dask cluster at `scheduler`. `progress`: a bar of samples
     done on stderr (None: only when stderr is a terminal). `stop_after` (testing: simulates a kill)
-    stops once that many samples were written, leaving the dataset unfinished. `compile`: render
-    compiled where that is the fast path (`fastnoise.compile_pays`: within 1e-5 of eager, not
-    bitwise, so opt-in: a sample's bytes otherwise equal `SceneDataset`'s; recorded in meta.json,
-    so a resumed run renders as the first did).
+    stops once that many samples were written, leaving the dataset unfinished. `compile`
+    (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
+    eager (the voxel walk) when a worker renders `AUTO_COMPILE_SAMPLES` samples or more; "exact"
+    always, "off" never: the bytes are `SceneDataset`'s either way. "all" (or True) also compiles
+    the density and march kernels where that is the fast path (`fastnoise.compile_pays`: within
+    1e-5 of eager, not bitwise, so opt-in; recorded in meta.json, so a resumed run renders as the
+    first did).
     Returns {"written": samples rendered now, "count", "out"}."""
     for name, value in (("count", count), ("workers", workers), ("batch", batch), ("shard_size", shard_size)):
         integer(name, value, low=1)
@@ -188,6 +192,7 @@ def generate(
     integer("seed", seed)
     if layout not in ("folder", "webdataset"):
         fail("layout", layout, "expected folder or webdataset")
+    compile = auto_mode(compile_mode(compile, auto=True), -(-count // workers))
     recipe = Recipe.load(recipe, overrides)
     out = Path(out)
     meta = {
@@ -202,7 +207,8 @@ def generate(
         "conventions": CONVENTIONS,
         **({"frames": recipe.sequence.frames, "sequence": SEQUENCE_CONVENTIONS} if recipe.sequence else {}),
         **dataset_meta(recipe),
-        **({"compiled": True} if compile else {}),  # absent when eager: older datasets keep their meta bytes
+        # only where the bytes differ from eager's; absent otherwise: older datasets keep their meta bytes
+        **({"compiled": True} if compile == "all" else {}),
     }
     meta_bytes = json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
     if (out / "meta.json").is_file():
@@ -218,8 +224,7 @@ def generate(
     atomic_write(out / "meta.json", meta_bytes)
 
     tasks = plan_tasks(recipe, count=count, seed=seed, out=out, layout=layout, batch=batch, shard_size=shard_size)
-    if compile:
-        tasks = [replace(t, compile=True) for t in tasks]
+    tasks = [replace(t, compile=compile) for t in tasks]
     done = sum(_finished(t) for t in tasks)
     pending = [t for t in tasks if _finished(t) < len(t.indices)]
     written = 0

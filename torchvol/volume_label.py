@@ -58,7 +58,7 @@ def extinction_grid(scene, resolution: int) -> tuple[Tensor, Tensor]:
     check_scene(scene, resolution)
     plan = make_plan(stack([scene], dtype=torch.float64))
     dtype = plan.settings.dtype
-    ctx = RenderContext(stack([scene], dtype=dtype), plan, seeds=[0], dtype=dtype, device="cpu", compiled=False)
+    ctx = RenderContext(stack([scene], dtype=dtype), plan, seeds=[0], dtype=dtype, device="cpu", compile="off")
     boxes = torch.stack([torch.cat(vol.bounds.caps["aabb"](vol.params.bounds.value)) for vol in ctx.volumes])  # (volumes, 2, 3)
     box = torch.stack([boxes[:, 0].amin(0), boxes[:, 1].amax(0)])  # the union: (2, 3) min, max
     points = cell_centres(box[0], box[1], resolution)

@@ -105,7 +105,7 @@ def test_fused_path_runs_only_where_the_scene_is_the_template_technique():
     def volume_fusable(scene) -> bool:
         batch = stack([scene])
         plan = make_plan(batch)
-        ctx = RenderContext(batch, plan, seeds=[0], dtype=torch.float32, device=torch.device("cpu"), compiled=True)
+        ctx = RenderContext(batch, plan, seeds=[0], dtype=torch.float32, device=torch.device("cpu"), compile="all")
         return fused.fusable(ctx, ctx.volumes[0])
 
     assert volume_fusable(_template())

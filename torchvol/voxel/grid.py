@@ -158,6 +158,15 @@ class VoxelGrid:
         """Cells [N, 3] long inside scenes [N]'s ranges -> their index [N] in the flattened grids."""
         return self._flat(cells - take_rows(self.lo, scene), scene)
 
+    def flat_base(self, scene: Tensor) -> tuple[Tensor, Tensor]:
+        """(base [N] long, strides [2] long): cell (i, j, k) of scene[n] is at
+        ``base[n] + (k·Y + j)·X + i`` of the flattened grids (`cell_index` as one sum, for kernels
+        that look cells up themselves: `walk.fused_traverse`)."""
+        _, Z, Y, X = self.materials.shape
+        lo = take_rows(self.lo, scene)
+        base = ((scene * Z - lo[:, 2]) * Y - lo[:, 1]) * X - lo[:, 0]
+        return base, torch.tensor([Y, X], dtype=torch.long, device=scene.device)
+
     def index_cell(self, index: Tensor) -> tuple[Tensor, Tensor]:
         """`cell_index`'s inverse: flat indices [N] -> (cells [N, 3] long, scenes [N])."""
         _, Z, Y, X = self.materials.shape

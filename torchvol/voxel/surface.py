@@ -35,6 +35,7 @@ from ..lights import LightSource
 from ..mathops import take_rows
 from .cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
 from .dda import Hits, hybrid_traverse, traverse
+from .walk import fused_traverse
 from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
 from .ggx import f0_of, f_schlick, ggx_reflect
 from .grid import VoxelGrid
@@ -80,6 +81,10 @@ class VoxelSurface:
         if self.plan.traversal == "hybrid" and visit is None and not plain:
             return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, take_rows(s, ids)), lo, hi,
                                    max_steps=max_steps, t_min=t_min, compiled=self.compiled)
+        if self.compiled:
+            base, strides = g.flat_base(s)
+            return fused_traverse(og, dg, g.materials.reshape(-1), base, strides, lo, hi, max_steps=max_steps,
+                                  t_min=t_min, t_max=t_max, visit=visit)
         return traverse(og, dg, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit,
                         compiled=self.compiled)
 

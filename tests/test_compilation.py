@@ -1,0 +1,83 @@
+"""The compile setting (`torchvol.compilation`): its modes at the boundary, "auto" by the samples a
+process renders, and what a generated dataset records."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+import torchvol as tv
+from torchvol import data
+from torchvol.cli import build_parser
+from torchvol.compilation import AUTO_COMPILE_SAMPLES, auto_mode, batch_mode, compile_mode
+from torchvol.generate import generate
+
+DATASETS = Path(__file__).resolve().parents[1] / "datasets"
+TINY = {"image.width": 6, "image.height": 4}
+
+
+@pytest.mark.parametrize("value, mode", [(True, "all"), (False, "off"), ("off", "off"), ("exact", "exact"), ("all", "all")])
+def test_modes_and_bools(value, mode):
+    assert compile_mode(value) == mode
+
+
+@pytest.mark.parametrize("value", ["fast", "auto", 1, None])
+def test_a_bad_mode_names_the_key_and_the_choices(value):
+    with pytest.raises(ValueError, match=r"compile.*off, exact, all"):
+        tv.render(tv.preset("voxel-fog", width=4, height=4), compile=value)
+
+
+def test_auto_compiles_the_exact_kernels_from_the_threshold_on():
+    assert auto_mode("auto", AUTO_COMPILE_SAMPLES - 1) == "off"
+    assert auto_mode("auto", AUTO_COMPILE_SAMPLES) == "exact"
+    assert auto_mode("all", 1) == "all" and auto_mode("off", 10**6) == "off"
+
+
+def test_all_compiles_density_kernels_only_where_they_pay():
+    clouds = tv.preset("template-clouds")
+    assert batch_mode("all", clouds) == "all"
+    assert batch_mode("all", tv.preset("voxel-fog")) == "exact"  # voxels: the exact walk only
+    assert batch_mode("exact", clouds) == "exact"
+
+
+def test_scene_dataset_auto_by_length():
+    recipe = DATASETS / "voxel-terrain.toml"
+    assert data.SceneDataset(recipe, AUTO_COMPILE_SAMPLES, overrides=TINY).compile == "exact"
+    assert data.SceneDataset(recipe, 8, overrides=TINY).compile == "off"
+    assert data.SceneDataset(recipe, 8, overrides=TINY, compile=True).compile == "all"
+    with pytest.raises(ValueError, match="compile"):
+        data.SceneDataset(recipe, 8, compile="sometimes")
+
+
+def test_generate_records_only_the_mode_that_changes_bytes(tmp_path, monkeypatch):
+    """meta.json names "compiled" only for "all"; "exact" (also what "auto" picks) writes eager's bytes."""
+    seen = []
+    real = data.render_samples
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["compile"])
+        return real(*args, **{**kwargs, "compile": "off"})  # the mode reached the renderer; render eagerly
+
+    monkeypatch.setattr("torchvol.generate.render_samples", spy)
+    recipe = DATASETS / "voxel-terrain.toml"
+    for mode, count, expected in (("auto", 2, "off"), ("auto", AUTO_COMPILE_SAMPLES, "exact"), ("exact", 2, "exact"),
+                                  ("all", 2, "all")):
+        seen.clear()
+        out = tmp_path / f"{mode}-{count}"
+        generate(recipe, count=count, out=out, overrides=TINY, progress=False, compile=mode,
+                 stop_after=1 if count > 2 else None)
+        assert set(seen) == {expected}, (mode, count, seen)
+        meta = json.loads((out / "meta.json").read_text())
+        assert meta.get("compiled") is (True if expected == "all" else None)
+
+
+def test_cli_modes():
+    parse = build_parser().parse_args
+    base = ["generate", "r.toml", "--count", "1", "--out", "o"]
+    assert parse(base).compile == "auto"
+    assert parse(base + ["--compile"]).compile == "all"
+    assert parse(base + ["--eager"]).compile == "off"
+    render = ["render", "voxel-fog", "--out", "x.png"]
+    assert parse(render + ["--compile-mode", "exact"]).compile == "exact"
+    assert parse(["render", "--compile", "voxel-fog", "--out", "x.png"]).compile == "all"
+    assert parse(render).compile == "off"

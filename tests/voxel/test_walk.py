@@ -1,0 +1,128 @@
+"""The fused DDA walk (`torchvol.voxel.walk`) against the plain one (`dda.traverse`): the same hits,
+bitwise, and the same visits, eager and compiled; voxel renders under compile "exact" bitwise eager."""
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import torchvol as tv
+from torchvol.voxel import walk
+from torchvol.voxel.dda import traverse
+
+FIELDS = ("hit", "cell", "axis", "t", "material", "steps", "t_exit")
+
+
+def _world(seed: int, n: int, dtype, *, scenes=2, shape=(6, 7, 8), p=0.12):
+    """Random material grids of `scenes` scenes (each its own cell range) and n rays of random
+    scenes, some axis-parallel, from inside and outside: (rays, lookup, table arguments)."""
+    g = torch.Generator().manual_seed(seed)
+    occ = (torch.rand((scenes,) + shape, generator=g) < p) * torch.randint(1, 6, (scenes,) + shape, generator=g)
+    occ = occ.to(torch.uint8)
+    lo = torch.randint(-5, 5, (scenes, 3), generator=g)
+    hi = lo + torch.tensor([shape[2], shape[1], shape[0]])
+    s = torch.randint(0, scenes, (n,), generator=g)
+    span = (hi - lo)[s].to(dtype)
+    o = lo[s] + (torch.rand(n, 3, generator=g, dtype=dtype) * 3 - 1) * span
+    d = lo[s] + torch.rand(n, 3, generator=g, dtype=dtype) * span - o
+    k = n // 8
+    d[:k, 1:], d[k:2 * k, ::2], d[2 * k:3 * k, 2] = 0, 0, 0  # axis-parallel and axis-plane rays
+    d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    d[d.norm(dim=1) == 0] = torch.tensor([1.0, 0.0, 0.0], dtype=dtype)
+    Z, Y, X = shape
+
+    def lookup(c, ids):
+        sc = s[ids]
+        r = c - lo[sc]
+        return occ.reshape(-1)[((sc * Z + r[:, 2]) * Y + r[:, 1]) * X + r[:, 0]].long()
+
+    base = ((s * Z - lo[s, 2]) * Y - lo[s, 1]) * X - lo[s, 0]
+    return (o, d), lookup, (occ.reshape(-1), base, torch.tensor([Y, X])), (lo[s], hi[s])
+
+
+def _recorder(calls):
+    return lambda *args: calls.append([a.clone() for a in args])
+
+
+def _assert_same_walk(seed, n, dtype, *, max_steps, limited, compiled, block=walk.BLOCK):
+    (o, d), lookup, table, (lo, hi) = _world(seed, n, dtype)
+    t_max = torch.rand(n, generator=torch.Generator().manual_seed(seed), dtype=dtype) * 12 if limited else None
+    plain_calls, fused_calls = [], []
+    plain = traverse(o, d, lookup, lo, hi, max_steps=max_steps, t_max=t_max, visit=_recorder(plain_calls))
+    fused = walk.fused_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_max=t_max, visit=_recorder(fused_calls),
+                                compiled=compiled, block=block)
+    for name in FIELDS:
+        a, b = getattr(plain, name), getattr(fused, name)
+        assert a.dtype == b.dtype and torch.equal(a, b), \
+            f"{name}: {int((a != b).sum())} of {n} rays differ (first at ray {int((a != b).nonzero()[0, 0])})"
+    assert len(plain_calls) == len(fused_calls), f"{len(fused_calls)} visit calls, expected {len(plain_calls)}"
+    for k, (a, b) in enumerate(zip(plain_calls, fused_calls)):
+        for name, x, y in zip(("ids", "cells", "t_in", "t_out", "hit"), a, b):
+            assert x.dtype == y.dtype and torch.equal(x, y), f"visit call {k}: {name} differs"
+    return plain
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 200), max_steps=st.integers(1, 40), limited=st.booleans(),
+       block=st.integers(1, 9), double=st.booleans())
+def test_eager_twin_walks_like_traverse(seed, n, max_steps, limited, block, double):
+    _assert_same_walk(seed, n, torch.float64 if double else torch.float32, max_steps=max_steps, limited=limited,
+                      compiled=False, block=block)
+
+
+def test_the_comparison_sees_a_wrong_walk(monkeypatch):
+    """A walk that keeps its rays one step too long is caught (the test above can fail)."""
+    monkeypatch.setattr(walk, "walk_block", _off_by_one(walk.walk_block))
+    with pytest.raises(AssertionError, match="differ"):
+        _assert_same_walk(5, 300, torch.float32, max_steps=6, limited=False, compiled=False)
+
+
+def _off_by_one(block):
+    def wrong(*args, **kwargs):
+        args = list(args)
+        args[-1] = args[-1] + 1  # max_steps
+        return block(*args, **kwargs)
+    return wrong
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("limited, visits", [(False, True), (True, False)])
+def test_compiled_walk_is_bitwise_the_plain_walk(limited, visits):
+    """Compiled, the same bits: the walk is divisions, compares and integer steps, which inductor
+    neither contracts nor reorders. Sizes of 1 (a slot run twice) and odd counts included."""
+    for seed, n in ((1, 1), (2, 2), (3, 777), (4, 3000)):
+        h = _assert_same_walk(seed, n, torch.float32, max_steps=40, limited=limited, compiled=True)
+    assert h.hit.any() and (~h.hit).any()
+
+
+VOXEL_PRESETS = [name for name in tv.preset_names() if name.startswith("voxel-")]
+
+
+@pytest.mark.parametrize("name", VOXEL_PRESETS)
+def test_exact_renders_are_eager_renders(name, monkeypatch):
+    """`render(..., compile="exact")` takes the fused walk (its eager twin here: nothing compiles)
+    and renders every output bitwise as eager does."""
+    taken = []
+
+    def twin():
+        taken.append(1)
+        return walk.walk_block
+
+    monkeypatch.setattr(walk, "compiled_block", twin)
+    scene = tv.preset(name, width=40, height=30)
+    fast, slow = tv.render(scene, compile="exact"), tv.render(scene)
+    assert taken, "the fused walk did not run"
+    for key in ("image", "radiance", "depth", "alpha"):
+        a, b = getattr(fast, key), getattr(slow, key)
+        assert torch.equal(a, b), f"{name}: {key} differs by {float((a - b).abs().max()):.3e}"
+    for key, a in slow.aovs.items():
+        assert torch.equal(fast.aovs[key], a), f"{name}: AOV {key} differs"
+
+
+@pytest.mark.slow
+def test_exact_render_compiled_is_eager(one_thread):
+    scene = tv.preset("voxel-fog", width=48, height=32)
+    fast, slow = tv.render(scene, compile="exact"), tv.render(scene)
+    for key in ("image", "depth", "alpha"):
+        a, b = getattr(fast, key), getattr(slow, key)
+        assert torch.equal(a, b), f"{key} differs by {float((a - b).abs().max()):.3e}"
