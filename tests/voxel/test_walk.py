@@ -80,7 +80,7 @@ def test_the_comparison_sees_a_wrong_walk(monkeypatch):
 def _off_by_one(block):
     def wrong(*args, **kwargs):
         args = list(args)
-        args[-1] = args[-1] + 1  # max_steps
+        args[4] = args[4] + 1  # max_steps
         return block(*args, **kwargs)
     return wrong
 
@@ -117,6 +117,23 @@ def test_exact_renders_are_eager_renders(name, monkeypatch):
         assert torch.equal(a, b), f"{name}: {key} differs by {float((a - b).abs().max()):.3e}"
     for key, a in slow.aovs.items():
         assert torch.equal(fast.aovs[key], a), f"{name}: AOV {key} differs"
+
+
+def test_exact_recipe_batches_are_eager_batches(monkeypatch):
+    """A batch of scenes with their own grids, cell ranges and fog (the fog's per-scene table of
+    cell rows): `compile="exact"` samples, bitwise the eager ones."""
+    from pathlib import Path
+
+    from torchvol.data import render_samples
+    from torchvol.recipe import Recipe
+
+    monkeypatch.setattr(walk, "compiled_block", lambda: walk.walk_block)
+    recipe = Recipe.load(Path(__file__).resolve().parents[2] / "datasets" / "voxel-terrain.toml",
+                         {"image.width": 24, "image.height": 16})
+    fast, slow = render_samples(recipe, [0, 1, 2], compile="exact"), render_samples(recipe, [0, 1, 2])
+    for a, b in zip(fast, slow):
+        for key in ("image", "depth", "alpha"):
+            assert torch.equal(a[key], b[key]), f"sample {a['index']}: {key} differs"
 
 
 @pytest.mark.slow

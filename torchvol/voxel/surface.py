@@ -35,6 +35,7 @@ from ..lights import LightSource
 from ..mathops import take_rows
 from .cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
 from .dda import Hits, hybrid_traverse, traverse
+from .fog import FogWalk, extinction
 from .walk import fused_traverse
 from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
 from .ggx import f0_of, f_schlick, ggx_reflect
@@ -72,7 +73,7 @@ class VoxelSurface:
     # -- helpers ---------------------------------------------------------------------------------
 
     def _traverse(self, o: Tensor, d: Tensor, s: Tensor, *, max_steps: int, t_min=None, t_max=None, visit=None,
-                  plain=False) -> Hits:
+                  fog: FogWalk | None = None, plain=False) -> Hits:
         """World rays [n, 3] of scenes s [n] through their grids (t in world units)."""
         g = self.grid
         og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
@@ -84,7 +85,7 @@ class VoxelSurface:
         if self.compiled:
             base, strides = g.flat_base(s)
             return fused_traverse(og, dg, g.materials.reshape(-1), base, strides, lo, hi, max_steps=max_steps,
-                                  t_min=t_min, t_max=t_max, visit=visit)
+                                  t_min=t_min, t_max=t_max, visit=visit, fog=fog)
         return traverse(og, dg, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit,
                         compiled=self.compiled)
 
@@ -100,10 +101,15 @@ class VoxelSurface:
 
     def _glow_and_fog(self, o: Tensor, s: Tensor):
         """The per-cell callback of the DDA when glow or fog accumulate, its accumulators and, with
-        fog, `finish()`, which adds the fog's in-scattered light after the traversal (`_fog_light`)."""
+        fog, `finish()`, which adds the fog's in-scattered light after the traversal (`_fog_light`).
+        Fog alone on the compiled walk is accumulated inside the walk's kernel instead (the
+        `FogWalk` returned last; the callback is then None)."""
         p, g, n, dt = self.p, self.grid, o.shape[0], o.dtype
         acc = dict(glow=o.new_zeros(n), fog_tau=o.new_zeros(n), fog_light=o.new_zeros(n, 3))
         visits = []  # (ray ids [m], scenes [m], cells [m, 3], weights [m]) of the fog's visited empty cells
+        walked = None
+        if self.compiled and self.plan.fog and not self.plan.glow and self.plan.traversal != "hybrid":
+            walked = self._fog_walk(s)
 
         def visit(ids, cells, t_in, t_out, hit):
             sc = take_rows(s, ids)
@@ -117,16 +123,30 @@ class VoxelSurface:
                     ie, se, ce = take_rows(ids, e), take_rows(sc, e), take_rows(cells, e)
                     centre = g.to_world(ce.to(dt) + 0.5, se)
                     f = p.fog
-                    sigma = take(f.density, se) * torch.exp(-(centre[:, 1] - take(f.base, se)) / take(f.scale_height, se))
+                    sigma = extinction(centre[:, 1], take(f.density, se), take(f.base, se), take(f.scale_height, se))
                     tau = sigma * (take_rows(t_out, e) - take_rows(t_in, e)).clamp_min(0.0)
                     acc["fog_tau"].index_add_(0, ie, tau)
                     visits.append((ie, se, ce, tau * torch.exp(-take_rows(acc["fog_tau"], ie))))
 
         def finish():
+            if walked is not None:
+                acc["fog_tau"] = walked.tau
+                visits.extend((ie, take_rows(s, ie), ce, weight) for ie, ce, weight in walked.visits)
             for ie, se, light in self._fog_light(visits):
                 acc["fog_light"].index_add_(0, ie, light * take(p.fog.color, se))
 
-        return visit, acc, finish
+        return (visit if walked is None else None), acc, finish, walked
+
+    def _fog_walk(self, s: Tensor) -> FogWalk:
+        """The fog of rays of scenes s [n] as the fused walk takes it: σ at the centre of every row
+        of cells of every scene, computed here as the callback computes it at a cell."""
+        g, f = self.grid, self.p.fog
+        B, Y = g.materials.shape[0], g.materials.shape[2]
+        scenes = torch.arange(B, device=s.device)
+        cy = g.lo[:, 1:2] + torch.arange(Y, device=s.device)  # (B, Y)
+        y = g.origin[:, 1:2] + (cy.to(g.origin.dtype) + 0.5) * g.voxel_size[:, None]  # `to_world`'s sum
+        sigma = extinction(y, *(take(v, scenes)[:, None] for v in (f.density, f.base, f.scale_height)))
+        return FogWalk(rows=s * Y - take_rows(g.lo[:, 1], s), table=sigma.reshape(-1))
 
     def _fog_light(self, visits: list) -> list:
         """The light [m, 3] each fog visit (ray ids, scenes, cells, weights as `visit` recorded them)
@@ -172,9 +192,9 @@ class VoxelSurface:
         """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3]; keys [n, 3] long: each
         ray's (sub-pixel column, row, scene seed), the hash cells of its GI paths (needed with `voxels.gi`)."""
         p, n = self.p, o.shape[0]
-        visit, acc, finish = self._glow_and_fog(o, s) if self.plan.glow or self.plan.fog else (None, None, None)
+        visit, acc, finish, walked = self._glow_and_fog(o, s) if self.plan.glow or self.plan.fog else (None,) * 4
         with section("voxels.dda"):
-            hits = self._traverse(o, d, s, max_steps=p.max_steps, visit=visit)
+            hits = self._traverse(o, d, s, max_steps=p.max_steps, visit=visit, fog=walked)
         if self.plan.fog:
             with section("voxels.fog"):
                 finish()

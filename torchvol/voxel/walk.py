@@ -22,6 +22,7 @@ from torch import Tensor
 
 from ..mathops import take_rows
 from .dda import Hits, Visit, _bounds, _entry_axis, _enter, start_cells
+from .fog import FogWalk
 
 __all__ = ["BLOCK", "walk_block", "fused_traverse"]
 
@@ -30,25 +31,28 @@ __all__ = ["BLOCK", "walk_block", "fused_traverse"]
 BLOCK = 8
 
 
-def walk_block(cx: Tensor, cy: Tensor, cz: Tensor, t: Tensor, axis: Tensor, n: Tensor, alive: Tensor,
-               t_exit: Tensor, material: Tensor, o: Tensor, d: Tensor, lo: Tensor, hi: Tensor, base: Tensor,
-               t_max: Tensor, table: Tensor, strides: Tensor, max_steps: Tensor, *, steps: int, limited: bool,
-               record: bool):
+def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: Tensor, max_steps: Tensor,
+               fog_table: Tensor | None = None, *, steps: int, limited: bool, record: bool):
     """`steps` DDA steps of N slots.
 
-    cx, cy, cz [N] int32: the cell to look up next; t [N]: its entry distance; axis [N] int32: its
-    entry axis; n [N] int32: lookups so far; alive [N] bool; t_exit [N], material [N] int32 (0: no
-    hit): the result of finished slots. o, d [N, 3]: the rays (grid coordinates); lo, hi [N, 3]
-    int32: the cell range; base [N] long: the flat index of cell (0, 0, 0) in the ray's scene
-    (`flat = base + (k·Y + j)·X + i`); t_max [N] (read where `limited`); table [M] uint8: the
-    flattened material grids; strides [2] long: (Y, X); max_steps [] int32.
-    -> the state after the block (cx, cy, cz, t, axis, n, alive, t_exit, material), and with
-    `record` the visits (each [steps, N]: visited, cx, cy, cz, t_in, t_out, hit)."""
+    state: cx, cy, cz [N] int32, the cell to look up next; t [N], its entry distance; axis [N]
+    int32, its entry axis; n [N] int32, lookups so far; alive [N] bool; t_exit [N], material [N]
+    int32 (0: no hit), the result of finished slots; with fog, fog_tau [N], the fog's optical
+    depth so far. rays: o, d [N, 3] (grid coordinates); lo, hi [N, 3] int32, the cell range; base
+    [N] long, the flat index of cell (0, 0, 0) in the ray's scene (`flat = base + (k·Y + j)·X +
+    i`); t_max [N] (read where `limited`); with fog, its rows [N] long (`fog.FogWalk`).
+    table [M] uint8: the flattened material grids; strides [2] long: (Y, X); max_steps [] int32;
+    fog_table [B·Y] or None (`fog.FogWalk.table`).
+    -> (the state after the block, records): with `record` each step's visits (each [steps, N]:
+    visited, cx, cy, cz, t_in, t_out, hit), with fog each step's fog visits (empty, cx, cy, cz,
+    tau, fog_tau after it), else None."""
+    cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = state
+    o, d, lo, hi, base, t_max, *fog_rows = rays
     ox, oy, oz = o.unbind(1)
     dx, dy, dz = d.unbind(1)
     lx, ly, lz = lo.unbind(1)
     hx, hy, hz = hi.unbind(1)
-    visits = []
+    records = []
     for _ in range(steps):
         flat = base + (cz.long() * strides[0] + cy.long()) * strides[1] + cx.long()
         mat = take_rows(table, torch.where(alive, flat, torch.zeros_like(flat))).to(torch.int32)
@@ -62,8 +66,15 @@ def walk_block(cx: Tensor, cy: Tensor, cz: Tensor, t: Tensor, axis: Tensor, n: T
         nx = cx + torch.where(ax == 0, torch.sign(dx), 0).to(torch.int32)
         ny = cy + torch.where(ax == 1, torch.sign(dy), 0).to(torch.int32)
         nz = cz + torch.where(ax == 2, torch.sign(dz), 0).to(torch.int32)
+        t_out = torch.where(hit, t, t_next)
         if record:
-            visits.append((alive, cx, cy, cz, t, torch.where(hit, t, t_next), hit))
+            records.append((alive, cx, cy, cz, t, t_out, hit))
+        if fog_table is not None:  # VoxelSurface's fog callback, per slot: the same products, the same order of sums
+            empty = alive & ~hit
+            row = torch.where(alive, fog_rows[0] + cy.long(), torch.zeros_like(fog_rows[0]))
+            tau = take_rows(fog_table, row) * (t_out - t).clamp_min(0.0)
+            fog_tau[0] = torch.where(empty, fog_tau[0] + tau, fog_tau[0])
+            records.append((empty, cx, cy, cz, tau, fog_tau[0]))
         inside = (nx >= lx) & (nx < hx) & (ny >= ly) & (ny < hy) & (nz >= lz) & (nz < hz)
         if limited:
             inside = inside & (t_next <= t_max)
@@ -74,10 +85,8 @@ def walk_block(cx: Tensor, cy: Tensor, cz: Tensor, t: Tensor, axis: Tensor, n: T
         cx, cy, cz = torch.where(keep, nx, cx), torch.where(keep, ny, cy), torch.where(keep, nz, cz)
         t, axis = torch.where(keep, t_next, t), torch.where(keep, ax, axis)
         alive = keep
-    state = (cx, cy, cz, t, axis, n, alive, t_exit, material)
-    if not record:
-        return state
-    return state, tuple(torch.stack(column) for column in zip(*visits))
+    state = [cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau]
+    return state, (tuple(torch.stack(column) for column in zip(*records)) if records else None)
 
 
 def _crossing(cell: Tensor, o: Tensor, d: Tensor) -> Tensor:
@@ -93,7 +102,7 @@ _COMPILED: dict = {}
 
 def compiled_block() -> Callable:
     """`walk_block` under torch.compile (dynamic shapes), built once per process: one graph per
-    (steps, limited, record), each for every size."""
+    (steps, limited, record, fog or not) and dtype, each for every size."""
     if "block" not in _COMPILED:
         _COMPILED["block"] = torch.compile(walk_block, dynamic=True)
     return _COMPILED["block"]
@@ -101,12 +110,14 @@ def compiled_block() -> Callable:
 
 def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
                    max_steps: int, t_min: Optional[Tensor] = None, t_max: Optional[Tensor] = None,
-                   visit: Optional[Visit] = None, compiled: bool = True, block: int = BLOCK) -> Hits:
+                   visit: Optional[Visit] = None, fog: Optional[FogWalk] = None, compiled: bool = True,
+                   block: int = BLOCK) -> Hits:
     """`dda.traverse` with the lookup a gather from `table` [M] uint8 (the flattened material grids:
     cell (i, j, k) of ray r is ``table[base[r] + (k·Y + j)·X + i]``, strides = (Y, X) long, every
     cell of [lo, hi) inside the table) and the steps run `block` at a time by `walk_block`
     (compiled under `compiled`). origins, directions [R, 3]; base [R] long; lo, hi [3] or [R, 3]
-    long. The same `Hits` as `dda.traverse`, bitwise, and the same `visit` calls."""
+    long. The same `Hits` as `dda.traverse`, bitwise, and the same `visit` calls. `fog` (not with
+    `visit`): the voxel fog accumulated inside the kernel, filled in as `FogWalk` says."""
     R, dev = origins.shape[0], origins.device
     lo, hi = _bounds(lo, origins), _bounds(hi, origins)
     ok, t0 = _enter(origins, directions, lo, hi, t_min, t_max)
@@ -121,22 +132,24 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     flags = dict(steps=block, limited=t_max is not None, record=visit is not None)
     idx = ok.nonzero().squeeze(1)
     i32 = torch.int32
-    c = take_rows(cell0, idx).to(i32)
-    state = [*(x.contiguous() for x in c.unbind(1)), take_rows(t0, idx), take_rows(axis0, idx).to(i32), torch.zeros_like(idx, dtype=i32),
-             torch.ones_like(idx, dtype=torch.bool), torch.zeros_like(take_rows(t0, idx)), torch.zeros_like(idx, dtype=i32)]
-    rays = [take_rows(x, idx) for x in (origins, directions, lo.to(i32), hi.to(i32), base)]
-    limit = take_rows(t_max, idx) if t_max is not None else rays[0][:, 0]  # unread when unlimited
-    cap = torch.tensor(max_steps, dtype=i32, device=dev)
+    start = take_rows(t0, idx)
+    state = [*(x.contiguous() for x in take_rows(cell0, idx).to(i32).unbind(1)), start,
+             take_rows(axis0, idx).to(i32), torch.zeros_like(idx, dtype=i32), torch.ones_like(idx, dtype=torch.bool),
+             torch.zeros_like(start), torch.zeros_like(idx, dtype=i32)]
+    # t_max is unread when unlimited: any [N] tensor holds its place
+    rays = [take_rows(x, idx) for x in (origins, directions, lo.to(i32), hi.to(i32), base, t0 if t_max is None else t_max)]
+    if fog is not None:
+        fog.tau = origins.new_zeros(R)
+        state.append(torch.zeros_like(start))
+        rays.append(take_rows(fog.rows, idx))
+    shared = (table, strides, torch.tensor(max_steps, dtype=i32, device=dev), None if fog is None else fog.table)
     while idx.numel():
-        result = _call(run, state, [*rays, limit], (table, strides, cap), flags)
+        result, records = _call(run, state, rays, shared, flags)
         if visit is not None:
-            result, visits = result
-            for alive, vx, vy, vz, t_in, t_out, hit in zip(*visits):
-                rows = alive.nonzero().squeeze(1)
-                if rows.numel():
-                    cells = torch.stack([take_rows(v, rows) for v in (vx, vy, vz)], 1).long()
-                    visit(take_rows(idx, rows), cells, *(take_rows(v, rows) for v in (t_in, t_out, hit)))
-        cx, cy, cz, t, axis, n, alive, t_exit, material = result
+            _replay(visit, idx, records)
+        if fog is not None:
+            fog.visits.append(_fog_visits(idx, records))
+        cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = result
         finished = (~alive).nonzero().squeeze(1)
         if finished.numel():
             g = take_rows(idx, finished)
@@ -144,6 +157,8 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
             out.cell.index_copy_(0, g, cells)
             out.steps.index_copy_(0, g, take_rows(n, finished).long())
             out.t_exit.index_copy_(0, g, take_rows(t_exit, finished))
+            if fog is not None:
+                fog.tau.index_copy_(0, g, take_rows(fog_tau[0], finished))
             m = take_rows(material, finished)
             hit = (m > 0).nonzero().squeeze(1)
             if hit.numel():
@@ -154,23 +169,51 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
                 out.t.index_copy_(0, gh, take_rows(t, fh))
         keep = alive.nonzero().squeeze(1)
         if keep.numel() == idx.numel():
-            state = list(result)
+            state = result
             continue
         idx = take_rows(idx, keep)
         state = [take_rows(v, keep) for v in result]
         rays = [take_rows(v, keep) for v in rays]
-        limit = take_rows(limit, keep)
     return out
 
 
+def _step_rows(idx: Tensor, visited: Tensor) -> tuple[Tensor, Tensor, list[int]]:
+    """The visits of a block in `dda.traverse`'s order (step by step, slots in order): their flat
+    rows in the [steps, N] records, their ray ids, and how many each step has."""
+    rows = visited.reshape(-1).nonzero().squeeze(1)
+    return rows, take_rows(idx, rows % visited.shape[1]), visited.sum(dim=1).tolist()
+
+
+def _replay(visit: Visit, idx: Tensor, records: tuple) -> None:
+    """Call `visit` once per step of a block with that step's visited slots (`walk_block`'s
+    records), as `dda.traverse` calls it: one gather of the whole block's visits, then a view per
+    step (a gather per step and record was a third of a recorded walk)."""
+    visited, *columns = records
+    rows, ids, counts = _step_rows(idx, visited)
+    cx, cy, cz, t_in, t_out, hit = (take_rows(v.reshape(-1), rows) for v in columns)
+    cells = torch.stack([cx, cy, cz], 1).long()
+    first = 0
+    for count in counts:
+        if count:
+            part = slice(first, first + count)
+            visit(ids[part], cells[part], t_in[part], t_out[part], hit[part])
+            first += count
+
+
+def _fog_visits(idx: Tensor, records: tuple) -> tuple[Tensor, Tensor, Tensor]:
+    """A block's fog visits (`FogWalk.visits`' entries) from `walk_block`'s fog records; the
+    weights' exp runs eagerly, as the callback's does."""
+    empty, *columns = records
+    rows, ids, _ = _step_rows(idx, empty)
+    cx, cy, cz, tau, so_far = (take_rows(v.reshape(-1), rows) for v in columns)
+    return ids, torch.stack([cx, cy, cz], 1).long(), tau * torch.exp(-so_far)
+
+
 def _call(run: Callable, state: list, rays: list, shared: tuple, flags: dict):
-    """`run(*state, *rays, *shared, **flags)`; one slot runs as two copies of itself, since a
+    """`run(state, rays, *shared, **flags)`; one slot runs as two copies of itself, since a
     compiled kernel specialises on a size of 1 (it would compile again for a walk's last ray)."""
     if state[0].shape[0] != 1:
-        return run(*state, *rays, *shared, **flags)
-    twice = [x.repeat(2, *[1] * (x.dim() - 1)) for x in (*state, *rays)]
-    result = run(*twice[:len(state)], *twice[len(state):], *shared, **flags)
-    if flags["record"]:
-        state, visits = result
-        return tuple(x[:1] for x in state), tuple(v[:, :1] for v in visits)
-    return tuple(x[:1] for x in result)
+        return run(state, rays, *shared, **flags)
+    state, records = run(*([x.repeat(2, *[1] * (x.dim() - 1)) for x in group] for group in (state, rays)),
+                         *shared, **flags)
+    return [x[:1] for x in state], None if records is None else tuple(v[:, :1] for v in records)

@@ -1,0 +1,34 @@
+"""The voxel fog's extinction: exponential height fog over the cells a primary ray walks through
+(`voxels.fog`), one formula for the eager per-cell callback (`VoxelSurface`) and the table the
+fused walk gathers from (`walk.walk_block`), so the two give the same bits."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+__all__ = ["extinction", "FogWalk"]
+
+
+def extinction(y: Tensor, density: Tensor, base: Tensor, scale_height: Tensor) -> Tensor:
+    """σ [m] at heights y [m]: density · exp(−(y − base) / scale_height); all [m]."""
+    return density * torch.exp(-(y - base) / scale_height)
+
+
+@dataclass
+class FogWalk:
+    """The fog a fused walk accumulates (`walk.fused_traverse(..., fog=)`).
+
+    A cell's σ depends on its scene and its row of cells alone, so the walk gathers it from
+    `table` [B·Y] (σ at the centre of cell row j of scene b at b·Y + j − lo_y) by `rows` [R] long
+    (each ray's b·Y − lo_y): the kernel has no exp of its own, whose last bit inductor's vector
+    code may round otherwise than eager's. Filled by the walk: tau [R], each ray's optical depth
+    to where it ended; visits, one (ray ids [m], cells [m, 3] long, weights [m]) a block: every
+    empty cell visited, in `dda.traverse`'s order, weighted by τ · e^(−τ so far)."""
+
+    rows: Tensor
+    table: Tensor
+    tau: Tensor | None = None
+    visits: list = field(default_factory=list)
