@@ -3,9 +3,10 @@ and `SceneDataset`.
 
 * ``"off"`` (``False``): every kernel eager, the reference.
 * ``"exact"``: only the kernels whose compiled output is bitwise the eager one — the voxel DDA
-  walk (`voxel.walk`, `voxel.dda.dda_step`): divisions, compares and integer steps, which inductor
-  neither contracts nor reorders (its C++ is built with ``-ffp-contract=off`` and without unsafe
-  math). A sample's bytes are the eager sample's, so this mode may be chosen by speed alone.
+  walk with its fog (`voxel.walk`, `voxel.dda.dda_step`): divisions, compares, integer steps and
+  gathers, which inductor emits as eager computes them (its C++ is built with
+  ``-ffp-contract=off`` and without unsafe math; the fog's exp stays eager). A sample's bytes are
+  the eager sample's (tests/voxel/test_walk.py), so this mode may be chosen by speed alone.
 * ``"all"`` (``True``): also the density and march kernels (`fastnoise`, `volume.fused`), where
   inductor's fused float code gives values within ~1e-5 of eager, not bitwise: opt-in, and
   recorded in a generated dataset's meta.json.
