@@ -9,7 +9,12 @@ import pytest
 import torchvol as tv
 from torchvol import data
 from torchvol.cli import build_parser
-from torchvol.compilation import AUTO_COMPILE_SAMPLES, auto_mode, batch_mode, compile_mode
+from torchvol.compilation import (
+    AUTO_COMPILE_SAMPLES,
+    auto_mode,
+    batch_mode,
+    compile_mode,
+)
 from torchvol.generate import generate
 
 DATASETS = Path(__file__).resolve().parents[1] / "datasets"

@@ -1,6 +1,6 @@
 """Benchmark: voxel traversal throughput — the voxel-carved-box preset and a size³ terrain
 (voxel-terrain preset, default 256 cells per side) at 640×360, plain DDA vs hybrid traversal,
-eager vs torch.compile'd DDA steps.
+eager vs compiled (`compile="exact"`: the fused walk, docs/VOXELS.md; the hybrid's compiled DDA step).
 
     python tools/bench_voxels.py [--size 256] [--width 640 --height 360] [--repeat 2] [--threads N]
                                  [--no-compile]
@@ -21,7 +21,7 @@ import torch
 import torchvol as tv
 
 
-def bench(scene, *, compile: bool, repeat: int):
+def bench(scene, *, compile: str, repeat: int):
     tv.render(scene, compile=compile)  # warm-up (and compilation)
     times, out = [], None
     for _ in range(repeat):
@@ -49,15 +49,15 @@ def main(argv=None) -> None:
                                                       overrides={"voxels.traversal": tr})),
               (f"terrain {args.size}³", lambda tr: tv.preset("voxel-terrain", width=args.width, height=args.height,
                                                              size=args.size, traversal=tr))]
-    modes = [False] + ([] if args.no_compile else [True])
+    modes = ["off"] + ([] if args.no_compile else ["exact"])
     for name, make in scenes:
         for traversal in ("dda", "hybrid"):
             scene = make(traversal)
-            for compiled in modes:
-                secs, out = bench(scene, compile=compiled, repeat=args.repeat)
+            for mode in modes:
+                secs, out = bench(scene, compile=mode, repeat=args.repeat)
                 rays, steps = out.stats["rays"], out.stats["voxel_steps"]
                 share = out.stats["time_s"].get("voxels.dda", 0.0) / max(out.stats["total_s"], 1e-12)
-                print(f"| {name} | {traversal} | {'compiled' if compiled else 'eager'} | {secs:.3f} | {rays / secs:,.0f} | "
+                print(f"| {name} | {traversal} | {'eager' if mode == 'off' else 'compiled'} | {secs:.3f} | {rays / secs:,.0f} | "
                       f"{steps:,} | {steps / secs:,.0f} | {share:.0%} |", flush=True)
 
 

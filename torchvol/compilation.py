@@ -21,7 +21,7 @@ from typing import Literal
 
 from .validate import fail
 
-__all__ = ["CompileMode", "AUTO_COMPILE_SAMPLES", "compile_mode", "auto_mode", "batch_mode"]
+__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "auto_mode", "batch_mode", "compile_mode"]
 
 CompileMode = Literal["off", "exact", "all"]
 MODES = ("off", "exact", "all")

@@ -36,7 +36,7 @@ from torch import Tensor
 from ..mathops import take_rows
 from ..rays import intersect_box
 
-__all__ = ["Hits", "Lookup", "traverse", "hybrid_traverse", "reference_traverse", "start_cells"]
+__all__ = ["Hits", "Lookup", "hybrid_traverse", "reference_traverse", "start", "start_cells", "traverse"]
 
 # lookup(cells [N, 3] long, ray_ids [N] long) -> material ids [N] (long, 0 = empty)
 Lookup = Callable[[Tensor, Tensor], Tensor]
@@ -168,10 +168,11 @@ def compiled_dda_step():
     return _COMPILED["step"]
 
 
-def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance=None, switch=2, compiled=False) -> Hits:
-    step_fn = compiled_dda_step() if compiled else dda_step
-    R = o.shape[0]
-    dev = o.device
+def start(o: Tensor, d: Tensor, lo, hi, t_min: Optional[Tensor], t_max: Optional[Tensor]):
+    """Where R rays o, d [R, 3] enter the cell range [lo, hi) ([3] or [R, 3]): (the `Hits` of rays
+    that find nothing, the rays that enter [R] bool, their entry t0 [R], first cell [R, 3] long and
+    entry axis [R], lo and hi as [R, 3] long). The start of every walk (`traverse`, `walk`)."""
+    R, dev = o.shape[0], o.device
     lo, hi = _bounds(lo, o), _bounds(hi, o)
     ok, t0 = _enter(o, d, lo, hi, t_min, t_max)
     cell0 = start_cells(o, d, t0, lo, hi)
@@ -181,6 +182,12 @@ def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance
         t=torch.where(ok, t0, torch.full_like(t0, torch.inf)), material=torch.zeros(R, dtype=torch.long, device=dev),
         steps=torch.zeros(R, dtype=torch.long, device=dev), t_exit=torch.where(ok, t0, torch.zeros_like(t0)),
     )
+    return out, ok, t0, cell0, axis0, lo, hi
+
+
+def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance=None, switch=2, compiled=False) -> Hits:
+    step_fn = compiled_dda_step() if compiled else dda_step
+    out, ok, t0, cell0, axis0, lo, hi = start(o, d, lo, hi, t_min, t_max)
     idx = ok.nonzero().squeeze(1)
     # the active rays' state; `take_rows` (index_select) compacts it, 3–5× faster than x[ids]
     cell, t, axis, oa, da, loa, hia = (take_rows(x, idx) for x in (cell0, t0, axis0, o, d, lo, hi))

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-__all__ = ["extinction", "FogWalk"]
+__all__ = ["FogWalk", "extinction"]
 
 
 def extinction(y: Tensor, density: Tensor, base: Tensor, scale_height: Tensor) -> Tensor:

@@ -10,21 +10,23 @@ blocks finished slots are written out and dropped.
 `walk_block` is pure arithmetic on plain tensors and, eager, the twin of the compiled kernel; both
 give `dda.traverse`'s hits bitwise (the same crossing formula, compares and one division an axis;
 tests/voxel/test_walk.py). A `visit` callback sees the same cells, in the same order and calls,
-as under `dda.traverse`: the block records each step's cells, and the callback runs after it.
+as under `dda.traverse`: the block records each step's cells, and the callback runs after it. The
+voxel fog, the one callback on the primary walk of most voxel scenes, is summed inside the kernel
+instead (`fused_traverse(..., fog=)`, `fog.FogWalk`): the same sums in the same order.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
 from ..mathops import take_rows
-from .dda import Hits, Visit, _bounds, _entry_axis, _enter, start_cells
+from .dda import Hits, Visit, start
 from .fog import FogWalk
 
-__all__ = ["BLOCK", "walk_block", "fused_traverse"]
+__all__ = ["BLOCK", "fused_traverse", "walk_block"]
 
 # steps a block runs before finished slots are dropped: a block costs about 30 µs of call overhead
 # and a compaction about 10 eager gathers, while a finished slot still rides along in the block
@@ -109,8 +111,8 @@ def compiled_block() -> Callable:
 
 
 def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
-                   max_steps: int, t_min: Optional[Tensor] = None, t_max: Optional[Tensor] = None,
-                   visit: Optional[Visit] = None, fog: Optional[FogWalk] = None, compiled: bool = True,
+                   max_steps: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
+                   visit: Visit | None = None, fog: FogWalk | None = None, compiled: bool = True,
                    block: int = BLOCK) -> Hits:
     """`dda.traverse` with the lookup a gather from `table` [M] uint8 (the flattened material grids:
     cell (i, j, k) of ray r is ``table[base[r] + (k·Y + j)·X + i]``, strides = (Y, X) long, every
@@ -118,29 +120,21 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     (compiled under `compiled`). origins, directions [R, 3]; base [R] long; lo, hi [3] or [R, 3]
     long. The same `Hits` as `dda.traverse`, bitwise, and the same `visit` calls. `fog` (not with
     `visit`): the voxel fog accumulated inside the kernel, filled in as `FogWalk` says."""
-    R, dev = origins.shape[0], origins.device
-    lo, hi = _bounds(lo, origins), _bounds(hi, origins)
-    ok, t0 = _enter(origins, directions, lo, hi, t_min, t_max)
-    cell0 = start_cells(origins, directions, t0, lo, hi)
-    axis0 = _entry_axis(origins, directions, lo, hi)
-    out = Hits(
-        hit=torch.zeros(R, dtype=torch.bool, device=dev), cell=cell0.clone(), axis=axis0.clone(),
-        t=torch.where(ok, t0, torch.full_like(t0, torch.inf)), material=torch.zeros(R, dtype=torch.long, device=dev),
-        steps=torch.zeros(R, dtype=torch.long, device=dev), t_exit=torch.where(ok, t0, torch.zeros_like(t0)),
-    )
+    dev = origins.device
+    out, ok, t0, cell0, axis0, lo, hi = start(origins, directions, lo, hi, t_min, t_max)
     run = compiled_block() if compiled else walk_block
-    flags = dict(steps=block, limited=t_max is not None, record=visit is not None)
+    flags = {"steps": block, "limited": t_max is not None, "record": visit is not None}
     idx = ok.nonzero().squeeze(1)
     i32 = torch.int32
-    start = take_rows(t0, idx)
-    state = [*(x.contiguous() for x in take_rows(cell0, idx).to(i32).unbind(1)), start,
+    t_first = take_rows(t0, idx)
+    state = [*(x.contiguous() for x in take_rows(cell0, idx).to(i32).unbind(1)), t_first,
              take_rows(axis0, idx).to(i32), torch.zeros_like(idx, dtype=i32), torch.ones_like(idx, dtype=torch.bool),
-             torch.zeros_like(start), torch.zeros_like(idx, dtype=i32)]
+             torch.zeros_like(t_first), torch.zeros_like(idx, dtype=i32)]
     # t_max is unread when unlimited: any [N] tensor holds its place
     rays = [take_rows(x, idx) for x in (origins, directions, lo.to(i32), hi.to(i32), base, t0 if t_max is None else t_max)]
     if fog is not None:
-        fog.tau = origins.new_zeros(R)
-        state.append(torch.zeros_like(start))
+        fog.tau = origins.new_zeros(origins.shape[0])
+        state.append(torch.zeros_like(t_first))
         rays.append(take_rows(fog.rows, idx))
     shared = (table, strides, torch.tensor(max_steps, dtype=i32, device=dev), None if fog is None else fog.table)
     while idx.numel():
