@@ -330,7 +330,7 @@ def markdown(sections: dict) -> str:
                   "N run took beyond N samples at that rate (worker processes; dynamo tracing the compiled kernels, "
                   "inductor's on-disk cache being warm; blank where the N extra samples took under a tenth of the 2N "
                   "run: the difference is then noise, not a rate). compiled exact: `compile=\"exact\"` for voxel recipes (the "
-                  "fused DDA walk, bitwise eager; what the default `auto` takes from 256 samples a worker); compiled: "
+                  "fused DDA walk, bitwise eager; what the default `auto` takes from 512 samples a worker); compiled: "
                   "`torchvol generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the "
                   "template's fused march step); each worker process compiles (traces) on its own.", ""]
     if "loaded" in sections:

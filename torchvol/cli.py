@@ -243,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "arithmetic hash, the template's fused march step): within 1e-5 of eager, not bitwise; pays "
                        "from about 8 samples a worker once inductor's cache is warm")
     modes.add_argument("--eager", dest="compile", action="store_const", const="off",
-                       help="compile nothing (by default a worker rendering 256 samples or more compiles the voxel "
+                       help="compile nothing (by default a worker rendering 512 samples or more compiles the voxel "
                        "walk, whose output is bitwise eager's)")
     g.add_argument("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)")
     g.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)")

@@ -25,9 +25,10 @@ __all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "auto_mode", "batch_mode", "co
 
 CompileMode = Literal["off", "exact", "all"]
 MODES = ("off", "exact", "all")
-# samples a process renders before "auto" compiles: the voxel walk's kernels take 6–13 s to build
-# in a fresh process (~2 s with inductor's cache warm) and save 0.05–0.15 s a 128² sample
-AUTO_COMPILE_SAMPLES = 256
+# samples a process renders before "auto" compiles: building the walk's kernels took 21-25 s in a
+# fresh process with inductor's cache cold and 5-7 s warm, and saved 0.025 s (voxel-terrain) to
+# 0.19 s (voxel-world) a 128² sample on one thread: from 512 a warm-cache run gains on every voxel recipe
+AUTO_COMPILE_SAMPLES = 512
 
 
 def compile_mode(value, *, path: str = "compile", auto: bool = False) -> str:
