@@ -6,7 +6,8 @@ and `SceneDataset`.
   walk with its fog (`voxel.walk`, `voxel.dda.dda_step`): divisions, compares, integer steps and
   gathers, which inductor emits as eager computes them (its C++ is built with
   ``-ffp-contract=off`` and without unsafe math; the fog's exp stays eager). A sample's bytes are
-  the eager sample's (tests/voxel/test_walk.py), so this mode may be chosen by speed alone.
+  the eager sample's (tests/voxel/test_walk.py), so this mode may be chosen by speed alone; where
+  inductor cannot build them (`exact_kernel`), they run eagerly after one warning.
 * ``"all"`` (``True``): also the density and march kernels (`fastnoise`, `volume.fused`), where
   inductor's fused float code gives values within ~1e-5 of eager, not bitwise: opt-in, and
   recorded in a generated dataset's meta.json.
@@ -17,11 +18,15 @@ and `SceneDataset`.
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Callable
 from typing import Literal
+
+import torch
 
 from .validate import fail
 
-__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "auto_mode", "batch_mode", "compile_mode"]
+__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "auto_mode", "batch_mode", "compile_mode", "exact_kernel"]
 
 CompileMode = Literal["off", "exact", "all"]
 MODES = ("off", "exact", "all")
@@ -58,3 +63,30 @@ def batch_mode(mode: CompileMode, scene) -> CompileMode:
     if mode == "all" and not compile_pays(scene):
         return "exact"
     return mode
+
+
+def exact_kernel(fn: Callable, what: str) -> Callable:
+    """`fn` under torch.compile (dynamic shapes) for the "exact" mode, whose compiled output is
+    `fn`'s own: where it cannot be compiled (no C++ compiler, an unsupported platform) the first
+    call warns once, naming `what`, and every call runs `fn` eagerly, so a default that compiles
+    ("auto") never fails where eager runs. An error eager raises too is raised as it is."""
+    kernel = torch.compile(fn, dynamic=True)
+    failed = []
+
+    def run(*args, **kwargs):
+        if failed:
+            return fn(*args, **kwargs)
+        try:
+            return kernel(*args, **kwargs)
+        except Exception as error:  # inductor's errors have no common base short of Exception
+            try:
+                result = fn(*args, **kwargs)
+            except Exception:
+                raise error from None  # eager fails too: the call's error, not the compiler's
+            failed.append(error)
+            first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            warnings.warn(f"torchvol: {what} could not be compiled ({type(error).__name__}: {first}); it runs "
+                          "eagerly, with the same results", RuntimeWarning, stacklevel=2)
+            return result
+
+    return run

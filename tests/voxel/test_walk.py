@@ -143,3 +143,27 @@ def test_exact_render_compiled_is_eager(one_thread):
     for key in ("image", "depth", "alpha"):
         a, b = getattr(fast, key), getattr(slow, key)
         assert torch.equal(a, b), f"{key} differs by {float((a - b).abs().max()):.3e}"
+
+
+def test_a_walk_that_cannot_compile_walks_eagerly(tmp_path):
+    """No C++ compiler (CXX names none, inductor's cache empty): `compile="exact"` warns once and
+    renders eagerly, the same bits, instead of failing where eager runs."""
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import warnings, torch, torchvol as tv
+scene = tv.preset("voxel-pbr", width=12, height=8)
+with warnings.catch_warnings(record=True) as seen:
+    warnings.simplefilter("always")
+    fast = tv.render(scene, compile="exact")
+slow = tv.render(scene)
+walk = [str(w.message) for w in seen if "voxel walk could not be compiled" in str(w.message)]
+assert len(walk) == 1, [str(w.message) for w in seen]
+assert torch.equal(fast.image, slow.image) and torch.equal(fast.depth, slow.depth)
+print("fell back")
+"""
+    env = {**os.environ, "CXX": str(tmp_path / "no-such-compiler"), "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cache")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and "fell back" in out.stdout, out.stderr[-2000:]

@@ -33,6 +33,7 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
+from ..compilation import exact_kernel
 from ..mathops import take_rows
 from ..rays import intersect_box
 
@@ -162,9 +163,10 @@ _COMPILED: dict = {}
 
 
 def compiled_dda_step():
-    """`dda_step` under torch.compile (dynamic shapes), built once per process."""
+    """`dda_step` under torch.compile (dynamic shapes), built once per process; eager where it
+    cannot be compiled (`compilation.exact_kernel`)."""
     if "step" not in _COMPILED:
-        _COMPILED["step"] = torch.compile(dda_step, dynamic=True)
+        _COMPILED["step"] = exact_kernel(dda_step, "the DDA step")
     return _COMPILED["step"]
 
 

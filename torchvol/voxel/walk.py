@@ -22,6 +22,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from ..compilation import exact_kernel
 from ..mathops import take_rows
 from .dda import Hits, Visit, start
 from .fog import FogWalk
@@ -104,9 +105,10 @@ _COMPILED: dict = {}
 
 def compiled_block() -> Callable:
     """`walk_block` under torch.compile (dynamic shapes), built once per process: one graph per
-    (steps, limited, record, fog or not) and dtype, each for every size."""
+    (steps, limited, record, fog or not) and dtype, each for every size; eager where it cannot
+    be compiled (`compilation.exact_kernel`)."""
     if "block" not in _COMPILED:
-        _COMPILED["block"] = torch.compile(walk_block, dynamic=True)
+        _COMPILED["block"] = exact_kernel(walk_block, "the voxel walk")
     return _COMPILED["block"]
 
 
