@@ -8,14 +8,16 @@ from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol.voxel import walk
-from torchvol.voxel.dda import traverse
+from torchvol.grid_ops import chebyshev_distance
+from torchvol.voxel.dda import hybrid_traverse, traverse
 
 FIELDS = ("hit", "cell", "axis", "t", "material", "steps", "t_exit")
 
 
 def _world(seed: int, n: int, dtype, *, scenes=2, shape=(6, 7, 8), p=0.12):
     """Random material grids of `scenes` scenes (each its own cell range) and n rays of random
-    scenes, some axis-parallel, from inside and outside: (rays, lookup, table arguments)."""
+    scenes, some axis-parallel, from inside and outside: (rays, lookup, table arguments, ranges,
+    (distance lookup, distance table))."""
     g = torch.Generator().manual_seed(seed)
     occ = (torch.rand((scenes,) + shape, generator=g) < p) * torch.randint(1, 6, (scenes,) + shape, generator=g)
     occ = occ.to(torch.uint8)
@@ -37,20 +39,35 @@ def _world(seed: int, n: int, dtype, *, scenes=2, shape=(6, 7, 8), p=0.12):
         return occ.reshape(-1)[((sc * Z + r[:, 2]) * Y + r[:, 1]) * X + r[:, 0]].long()
 
     base = ((s * Z - lo[s, 2]) * Y - lo[s, 1]) * X - lo[s, 0]
-    return (o, d), lookup, (occ.reshape(-1), base, torch.tensor([Y, X])), (lo[s], hi[s])
+    field = torch.stack([chebyshev_distance(g > 0) for g in occ])
+
+    def distance(c, ids):
+        sc = s[ids]
+        r = c - lo[sc]
+        return field.reshape(-1)[((sc * Z + r[:, 2]) * Y + r[:, 1]) * X + r[:, 0]].long()
+
+    return (o, d), lookup, (occ.reshape(-1), base, torch.tensor([Y, X])), (lo[s], hi[s]), (distance, field.reshape(-1))
 
 
 def _recorder(calls):
     return lambda *args: calls.append([a.clone() for a in args])
 
 
-def _assert_same_walk(seed, n, dtype, *, max_steps, limited, compiled, block=walk.BLOCK):
-    (o, d), lookup, table, (lo, hi) = _world(seed, n, dtype)
+def _assert_same_walk(seed, n, dtype, *, max_steps, limited, compiled, block=walk.BLOCK, hybrid=False):
+    """fused_traverse against traverse (with a recording visit) or, `hybrid`, hybrid_traverse (on
+    larger, sparser grids, where rays jump)."""
+    shape, p = ((14, 12, 16), 0.03) if hybrid else ((6, 7, 8), 0.12)
+    (o, d), lookup, table, (lo, hi), (distance, field) = _world(seed, n, dtype, shape=shape, p=p)
     t_max = torch.rand(n, generator=torch.Generator().manual_seed(seed), dtype=dtype) * 12 if limited else None
     plain_calls, fused_calls = [], []
-    plain = traverse(o, d, lookup, lo, hi, max_steps=max_steps, t_max=t_max, visit=_recorder(plain_calls))
-    fused = walk.fused_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_max=t_max, visit=_recorder(fused_calls),
-                                compiled=compiled, block=block)
+    if hybrid:
+        plain = hybrid_traverse(o, d, lookup, distance, lo, hi, max_steps=max_steps, t_max=t_max)
+        fused = walk.fused_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_max=t_max, distance=field,
+                                    compiled=compiled, block=block)
+    else:
+        plain = traverse(o, d, lookup, lo, hi, max_steps=max_steps, t_max=t_max, visit=_recorder(plain_calls))
+        fused = walk.fused_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_max=t_max,
+                                    visit=_recorder(fused_calls), compiled=compiled, block=block)
     for name in FIELDS:
         a, b = getattr(plain, name), getattr(fused, name)
         assert a.dtype == b.dtype and torch.equal(a, b), \
@@ -68,6 +85,15 @@ def _assert_same_walk(seed, n, dtype, *, max_steps, limited, compiled, block=wal
 def test_eager_twin_walks_like_traverse(seed, n, max_steps, limited, block, double):
     _assert_same_walk(seed, n, torch.float64 if double else torch.float32, max_steps=max_steps, limited=limited,
                       compiled=False, block=block)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 200), max_steps=st.integers(1, 60), limited=st.booleans(),
+       block=st.integers(1, 9), double=st.booleans())
+def test_eager_twin_jumps_like_hybrid_traverse(seed, n, max_steps, limited, block, double):
+    """With the distance field: hybrid_traverse's jumps and steps."""
+    _assert_same_walk(seed, n, torch.float64 if double else torch.float32, max_steps=max_steps, limited=limited,
+                      compiled=False, block=block, hybrid=True)
 
 
 def test_the_comparison_sees_a_wrong_walk(monkeypatch):
@@ -93,6 +119,16 @@ def test_compiled_walk_is_bitwise_the_plain_walk(limited, visits):
     for seed, n in ((1, 1), (2, 2), (3, 777), (4, 3000)):
         h = _assert_same_walk(seed, n, torch.float32, max_steps=40, limited=limited, compiled=True)
     assert h.hit.any() and (~h.hit).any()
+
+
+@pytest.mark.slow
+def test_compiled_hybrid_walk_is_bitwise_hybrid_traverse():
+    for seed, n in ((5, 1), (6, 1500)):
+        h = _assert_same_walk(seed, n, torch.float32, max_steps=80, limited=False, compiled=True, hybrid=True)
+    assert h.hit.any() and (~h.hit).any()
+    (o, d), lookup, _, (lo, hi), _ = _world(6, 1500, torch.float32, shape=(14, 12, 16), p=0.03)
+    plain = traverse(o, d, lookup, lo, hi, max_steps=80)
+    assert h.steps.sum() < 0.8 * plain.steps.sum(), "the rays did not jump"
 
 
 VOXEL_PRESETS = [name for name in tv.preset_names() if name.startswith("voxel-")]

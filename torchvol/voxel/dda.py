@@ -33,7 +33,6 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from ..compilation import exact_kernel
 from ..mathops import take_rows
 from ..rays import intersect_box
 
@@ -112,13 +111,12 @@ def traverse(
     t_min: Optional[Tensor] = None,
     t_max: Optional[Tensor] = None,
     visit: Optional[Visit] = None,
-    compiled: bool = False,
 ) -> Hits:
     """Plain DDA. origins, directions [R, 3] (grid coordinates; directions need not be unit);
     lo, hi [3] or [R, 3] long: the cell range [lo, hi); t_min, t_max [R] optional limits.
-    Active rays are compacted every step: finished rays cost nothing. `compiled` runs each step's
-    arithmetic (`dda_step`) under torch.compile."""
-    return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit, compiled=compiled)
+    Active rays are compacted every step: finished rays cost nothing (`walk.fused_traverse` is the
+    same walk as one compiled kernel a block of steps)."""
+    return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit)
 
 
 def hybrid_traverse(
@@ -133,7 +131,6 @@ def hybrid_traverse(
     switch: int = 2,
     t_min: Optional[Tensor] = None,
     t_max: Optional[Tensor] = None,
-    compiled: bool = False,
 ) -> Hits:
     """DDA near surfaces, distance-field jumps in open space; the same hits as `traverse`.
 
@@ -144,7 +141,7 @@ def hybrid_traverse(
     from the cell it lands in. A jump never passes any occupied cell, and the DDA after it uses
     the same per-step crossing formula, so hits (and ties) are the plain DDA's. `steps` counts DDA
     lookups plus jumps; `max_steps` bounds their sum."""
-    return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, distance=distance, switch=switch, compiled=compiled)
+    return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, distance=distance, switch=switch)
 
 
 def dda_step(cell: Tensor, o: Tensor, d: Tensor, step: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -157,17 +154,6 @@ def dda_step(cell: Tensor, o: Tensor, d: Tensor, step: Tensor) -> tuple[Tensor, 
     t_next = torch.minimum(torch.minimum(sx, sy), sz)
     new = cell + (ax[:, None] == torch.arange(3, device=cell.device)) * step
     return ax, t_next, new
-
-
-_COMPILED: dict = {}
-
-
-def compiled_dda_step():
-    """`dda_step` under torch.compile (dynamic shapes), built once per process; eager where it
-    cannot be compiled (`compilation.exact_kernel`)."""
-    if "step" not in _COMPILED:
-        _COMPILED["step"] = exact_kernel(dda_step, "the DDA step")
-    return _COMPILED["step"]
 
 
 def start(o: Tensor, d: Tensor, lo, hi, t_min: Optional[Tensor], t_max: Optional[Tensor]):
@@ -187,8 +173,7 @@ def start(o: Tensor, d: Tensor, lo, hi, t_min: Optional[Tensor], t_max: Optional
     return out, ok, t0, cell0, axis0, lo, hi
 
 
-def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance=None, switch=2, compiled=False) -> Hits:
-    step_fn = compiled_dda_step() if compiled else dda_step
+def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance=None, switch=2) -> Hits:
     out, ok, t0, cell0, axis0, lo, hi = start(o, d, lo, hi, t_min, t_max)
     idx = ok.nonzero().squeeze(1)
     # the active rays' state; `take_rows` (index_select) compacts it, 3–5× faster than x[ids]
@@ -217,7 +202,7 @@ def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance
         mat = lookup(cell, idx).to(torch.long)
         n += 1
         hit = mat > 0
-        ax, t_next, new = step_fn(cell, oa, da, stepv)
+        ax, t_next, new = dda_step(cell, oa, da, stepv)
         if visit is not None:
             visit(idx, cell, t, torch.where(hit, t, t_next), hit)
         if bool(hit.any()):

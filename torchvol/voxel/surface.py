@@ -79,15 +79,16 @@ class VoxelSurface:
         og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
         lookup = lambda c, ids: g.lookup(c, take_rows(s, ids))
         lo, hi = g.lo[s], g.hi[s]
-        if self.plan.traversal == "hybrid" and visit is None and not plain:
-            return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, take_rows(s, ids)), lo, hi,
-                                   max_steps=max_steps, t_min=t_min, compiled=self.compiled)
+        hybrid = self.plan.traversal == "hybrid" and visit is None and fog is None and not plain
         if self.compiled:
             base, strides = g.flat_base(s)
             return fused_traverse(og, dg, g.materials.reshape(-1), base, strides, lo, hi, max_steps=max_steps,
-                                  t_min=t_min, t_max=t_max, visit=visit, fog=fog)
-        return traverse(og, dg, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit,
-                        compiled=self.compiled)
+                                  t_min=t_min, t_max=t_max, visit=visit, fog=fog,
+                                  distance=g.distance.reshape(-1) if hybrid else None)
+        if hybrid:
+            return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, take_rows(s, ids)), lo, hi,
+                                   max_steps=max_steps, t_min=t_min)
+        return traverse(og, dg, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit)
 
     def _visibility(self, p: Tensor, s: Tensor, light: LightSource, steps: int, toward=None) -> Tensor:
         """Visibility [n] (1 lit, 0 occluded) of points p [n, 3] towards `light` (a shadow ray that

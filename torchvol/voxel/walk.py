@@ -35,7 +35,8 @@ BLOCK = 8
 
 
 def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: Tensor, max_steps: Tensor,
-               fog_table: Tensor | None = None, *, steps: int, limited: bool, record: bool):
+               fog_table: Tensor | None = None, distance: Tensor | None = None, *, steps: int, limited: bool,
+               record: bool, switch: int = 2):
     """`steps` DDA steps of N slots.
 
     state: cx, cy, cz [N] int32, the cell to look up next; t [N], its entry distance; axis [N]
@@ -45,7 +46,10 @@ def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: 
     [N] long, the flat index of cell (0, 0, 0) in the ray's scene (`flat = base + (k·Y + j)·X +
     i`); t_max [N] (read where `limited`); with fog, its rows [N] long (`fog.FogWalk`).
     table [M] uint8: the flattened material grids; strides [2] long: (Y, X); max_steps [] int32;
-    fog_table [B·Y] or None (`fog.FogWalk.table`).
+    fog_table [B·Y] or None (`fog.FogWalk.table`); distance [M] uint8 or None: the grids'
+    Chebyshev distance fields, flattened as `table` (`dda.hybrid_traverse`: a slot in a cell k ≥
+    `switch` cells from any occupied one first jumps across the empty cube around it; a jump
+    counts as a step).
     -> (the state after the block, records): with `record` each step's visits (each [steps, N]:
     visited, cx, cy, cz, t_in, t_out, hit), with fog each step's fog visits (empty, cx, cy, cz,
     tau, fog_tau after it), else None."""
@@ -58,6 +62,12 @@ def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: 
     records = []
     for _ in range(steps):
         flat = base + (cz.long() * strides[0] + cy.long()) * strides[1] + cx.long()
+        if distance is not None:
+            k = take_rows(distance, torch.where(alive, flat, torch.zeros_like(flat))).to(torch.int32)
+            jump = alive & (k >= switch)
+            t_new, cx, cy, cz = _jump(jump, k - 1, t, (cx, cy, cz), o, d, lo, hi)
+            t, n = torch.where(jump, t_new, t), n + jump.to(torch.int32)
+            flat = base + (cz.long() * strides[0] + cy.long()) * strides[1] + cx.long()
         mat = take_rows(table, torch.where(alive, flat, torch.zeros_like(flat))).to(torch.int32)
         n = n + alive.to(torch.int32)
         hit = alive & (mat > 0)
@@ -92,6 +102,27 @@ def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: 
     return state, (tuple(torch.stack(column) for column in zip(*records)) if records else None)
 
 
+def _jump(jump: Tensor, r: Tensor, t: Tensor, cells: tuple, o: Tensor, d: Tensor, lo: Tensor, hi: Tensor):
+    """`dda.hybrid_traverse`'s jump, per column: across the empty cube [cell − r, cell + r] to the
+    last cube cell on the ray, where `jump` [N] (elsewhere the cells stay). r, t [N]; cells three
+    [N] int32; o, d [N, 3]; lo, hi [N, 3] int32. -> (the exit distance [N], the three columns)."""
+    exits = []
+    for a, c in enumerate(cells):
+        da = d[:, a]
+        zero = da == 0
+        far = torch.where(da > 0, c + r + 1, c - r).to(d.dtype)
+        exits.append(torch.where(zero, torch.full_like(far, torch.inf), (far - o[:, a]) / torch.where(zero, torch.ones_like(far), da)))
+    t_new = torch.maximum(torch.minimum(torch.minimum(exits[0], exits[1]), exits[2]), t)
+    moved = []
+    for a, c in enumerate(cells):
+        da = d[:, a]
+        p = o[:, a] + t_new * da
+        before = torch.where(da > 0, torch.ceil(p) - 1, torch.floor(p)).to(torch.int32)
+        before = torch.minimum(torch.maximum(before, torch.maximum(c - r, lo[:, a])), torch.minimum(c + r, hi[:, a] - 1))
+        moved.append(torch.where(jump, before, c))
+    return t_new, *moved
+
+
 def _crossing(cell: Tensor, o: Tensor, d: Tensor) -> Tensor:
     """`dda._crossings` for one axis: the distance [N] to the next plane (inf where d = 0)."""
     zero = d == 0
@@ -114,18 +145,21 @@ def compiled_block() -> Callable:
 
 def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
                    max_steps: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
-                   visit: Visit | None = None, fog: FogWalk | None = None, compiled: bool = True,
-                   block: int = BLOCK) -> Hits:
+                   visit: Visit | None = None, fog: FogWalk | None = None, distance: Tensor | None = None,
+                   switch: int = 2, compiled: bool = True, block: int = BLOCK) -> Hits:
     """`dda.traverse` with the lookup a gather from `table` [M] uint8 (the flattened material grids:
     cell (i, j, k) of ray r is ``table[base[r] + (k·Y + j)·X + i]``, strides = (Y, X) long, every
     cell of [lo, hi) inside the table) and the steps run `block` at a time by `walk_block`
     (compiled under `compiled`). origins, directions [R, 3]; base [R] long; lo, hi [3] or [R, 3]
     long. The same `Hits` as `dda.traverse`, bitwise, and the same `visit` calls. `fog` (not with
-    `visit`): the voxel fog accumulated inside the kernel, filled in as `FogWalk` says."""
+    `visit`): the voxel fog accumulated inside the kernel, filled in as `FogWalk` says.
+    `distance` [M] uint8 (the grids' Chebyshev distance fields, flattened as `table`; not with
+    `visit` or `fog`): `dda.hybrid_traverse`'s walk instead, jumping from cells `switch` or more
+    cells from any occupied one, with its hits and steps."""
     dev = origins.device
     out, ok, t0, cell0, axis0, lo, hi = start(origins, directions, lo, hi, t_min, t_max)
     run = compiled_block() if compiled else walk_block
-    flags = {"steps": block, "limited": t_max is not None, "record": visit is not None}
+    flags = {"steps": block, "limited": t_max is not None, "record": visit is not None, "switch": switch}
     idx = ok.nonzero().squeeze(1)
     i32 = torch.int32
     t_first = take_rows(t0, idx)
@@ -138,7 +172,8 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
         fog.tau = origins.new_zeros(origins.shape[0])
         state.append(torch.zeros_like(t_first))
         rays.append(take_rows(fog.rows, idx))
-    shared = (table, strides, torch.tensor(max_steps, dtype=i32, device=dev), None if fog is None else fog.table)
+    shared = (table, strides, torch.tensor(max_steps, dtype=i32, device=dev), None if fog is None else fog.table,
+              distance)
     while idx.numel():
         result, records = _call(run, state, rays, shared, flags)
         if visit is not None:
