@@ -4,10 +4,11 @@ process renders, and what a generated dataset records."""
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import torchvol as tv
-from torchvol import data
+from torchvol import compilation, data
 from torchvol.cli import build_parser
 from torchvol.compilation import (
     AUTO_COMPILE_SAMPLES,
@@ -21,12 +22,13 @@ DATASETS = Path(__file__).resolve().parents[1] / "datasets"
 TINY = {"image.width": 6, "image.height": 4}
 
 
-@pytest.mark.parametrize("value, mode", [(True, "all"), (False, "off"), ("off", "off"), ("exact", "exact"), ("all", "all")])
+@pytest.mark.parametrize("value, mode", [(True, "all"), (False, "off"), (None, "off"), (1, "all"), (0, "off"),
+                                         (np.bool_(True), "all"), ("off", "off"), ("exact", "exact"), ("all", "all")])
 def test_modes_and_bools(value, mode):
     assert compile_mode(value) == mode
 
 
-@pytest.mark.parametrize("value", ["fast", "auto", 1, None])
+@pytest.mark.parametrize("value", ["fast", "auto", 2, 0.5])
 def test_a_bad_mode_names_the_key_and_the_choices(value):
     with pytest.raises(ValueError, match=r"compile.*off, exact, all"):
         tv.render(tv.preset("voxel-fog", width=4, height=4), compile=value)
@@ -45,13 +47,23 @@ def test_all_compiles_density_kernels_only_where_they_pay():
     assert batch_mode("exact", clouds) == "exact"
 
 
-def test_scene_dataset_auto_by_length():
-    recipe = DATASETS / "voxel-terrain.toml"
-    assert data.SceneDataset(recipe, AUTO_COMPILE_SAMPLES, overrides=TINY).compile == "exact"
-    assert data.SceneDataset(recipe, 8, overrides=TINY).compile == "off"
-    assert data.SceneDataset(recipe, 8, overrides=TINY, compile=True).compile == "all"
+def test_scene_dataset_auto_compiles_once_its_process_rendered_enough(monkeypatch):
+    """One `ds[i]` compiles nothing; a process (a DataLoader worker) that has rendered
+    AUTO_COMPILE_SAMPLES samples renders the next ones in "exact"."""
+    seen = []
+    monkeypatch.setattr(data, "render_samples", lambda *a, **k: seen.append(k["compile"]) or [{}])
+    monkeypatch.setattr(compilation, "_RENDERED", [0])
+    ds = data.SceneDataset(DATASETS / "voxel-terrain.toml", 10**6, overrides=TINY)
+    assert ds.compile == "auto"
+    ds[0]
+    assert seen == ["off"]
+    compilation._RENDERED[0] = AUTO_COMPILE_SAMPLES - 1
+    ds.batch([1, 2])
+    ds[3]
+    assert seen == ["off", "off", "exact"]
+    assert data.SceneDataset(DATASETS / "voxel-terrain.toml", 8, compile=True).compile == "all"
     with pytest.raises(ValueError, match="compile"):
-        data.SceneDataset(recipe, 8, compile="sometimes")
+        data.SceneDataset(DATASETS / "voxel-terrain.toml", 8, compile="sometimes")
 
 
 def test_generate_records_only_the_mode_that_changes_bytes(tmp_path, monkeypatch):
@@ -74,6 +86,11 @@ def test_generate_records_only_the_mode_that_changes_bytes(tmp_path, monkeypatch
         assert set(seen) == {expected}, (mode, count, seen)
         meta = json.loads((out / "meta.json").read_text())
         assert meta.get("compiled") is (True if expected == "all" else None)
+    # resumed, "auto" decides from what is left: fewer than the threshold now
+    seen.clear()
+    generate(recipe, count=AUTO_COMPILE_SAMPLES, out=tmp_path / f"auto-{AUTO_COMPILE_SAMPLES}", overrides=TINY,
+             progress=False, stop_after=1)
+    assert set(seen) == {"off"}, seen
 
 
 def test_cli_modes():

@@ -3,7 +3,7 @@ and `SceneDataset`.
 
 * ``"off"`` (``False``): every kernel eager, the reference.
 * ``"exact"``: only the kernels whose compiled output is bitwise the eager one — the voxel DDA
-  walk with its fog (`voxel.walk`, `voxel.dda.dda_step`): divisions, compares, integer steps and
+  walk with its fog and its hybrid jumps (`voxel.walk`): divisions, compares, integer steps and
   gathers, which inductor emits as eager computes them (its C++ is built with
   ``-ffp-contract=off`` and without unsafe math; the fog's exp stays eager). A sample's bytes are
   the eager sample's (tests/voxel/test_walk.py), so this mode may be chosen by speed alone; where
@@ -11,9 +11,12 @@ and `SceneDataset`.
 * ``"all"`` (``True``): also the density and march kernels (`fastnoise`, `volume.fused`), where
   inductor's fused float code gives values within ~1e-5 of eager, not bitwise: opt-in, and
   recorded in a generated dataset's meta.json.
-* ``"auto"`` (`generate` and `SceneDataset` only, their default): ``"exact"`` for a process that
+* ``"auto"`` (`generate` and `SceneDataset` only, their default): ``"exact"`` where a process
   renders at least `AUTO_COMPILE_SAMPLES` samples (compiling costs each worker process seconds
-  once), else ``"off"``. Either gives the same bytes.
+  once), else ``"off"``: `generate` decides from each worker's share of the samples still to
+  render, `SceneDataset` switches once its process has rendered that many. Either gives the
+  same bytes. On CPU: "exact"'s kernels are shown bitwise there; on a GPU, Triton's code and
+  atomic sums are not (render(..., device="cuda", compile="exact") is not promised bitwise).
 """
 
 from __future__ import annotations
@@ -22,11 +25,12 @@ import warnings
 from collections.abc import Callable
 from typing import Literal
 
+import numpy as np
 import torch
 
-from .validate import fail
+from .validate import fail, is_integer
 
-__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "auto_mode", "batch_mode", "compile_mode", "exact_kernel"]
+__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "as_rendered", "auto_mode", "batch_mode", "compile_mode", "exact_kernel"]
 
 CompileMode = Literal["off", "exact", "all"]
 MODES = ("off", "exact", "all")
@@ -37,22 +41,38 @@ AUTO_COMPILE_SAMPLES = 512
 
 
 def compile_mode(value, *, path: str = "compile", auto: bool = False) -> str:
-    """`value` (a mode name, or a bool: True is "all", False "off") as a mode name; "auto" only
-    where `auto`. Raises ValueError naming `path` otherwise."""
-    if isinstance(value, bool):
+    """`value` (a mode name; a bool, numpy's too, or 0 / 1: true is "all", false "off"; None is
+    "off") as a mode name; "auto" only where `auto`. Raises ValueError naming `path` otherwise."""
+    if value is None:
+        return "off"
+    if isinstance(value, (bool, np.bool_)) or (is_integer(value) and value in (0, 1)):
         return "all" if value else "off"
     allowed = MODES + (("auto",) if auto else ())
     if not isinstance(value, str) or value not in allowed:
-        fail(path, value, "expected " + ", ".join(allowed) + " (or True for all, False for off)")
+        fail(path, value, "expected " + ", ".join(allowed) + " (or True for all, False or None for off)")
     return value
 
 
 def auto_mode(mode: str, samples: int) -> CompileMode:
-    """A resolved mode: "auto" becomes "exact" for a process rendering `samples` ≥
-    `AUTO_COMPILE_SAMPLES`, else "off"."""
+    """A resolved mode: "auto" becomes "exact" for a process that will render `samples` ≥
+    `AUTO_COMPILE_SAMPLES`, else "off" (`generate`, which knows each worker's share)."""
     if mode != "auto":
         return mode
     return "exact" if samples >= AUTO_COMPILE_SAMPLES else "off"
+
+
+_RENDERED = [0]  # samples this process rendered under "auto" (`as_rendered`)
+
+
+def as_rendered(mode: str, samples: int) -> CompileMode:
+    """A resolved mode for a batch of `samples`: "auto" becomes "exact" once this process has
+    rendered `AUTO_COMPILE_SAMPLES` samples under "auto", else "off" (`SceneDataset`, which cannot
+    know how many a process, e.g. a DataLoader worker, will render: one `ds[i]` compiles nothing)."""
+    if mode != "auto":
+        return mode
+    resolved = "exact" if _RENDERED[0] >= AUTO_COMPILE_SAMPLES else "off"
+    _RENDERED[0] += samples
+    return resolved
 
 
 def batch_mode(mode: CompileMode, scene) -> CompileMode:
@@ -63,6 +83,9 @@ def batch_mode(mode: CompileMode, scene) -> CompileMode:
     if mode == "all" and not compile_pays(scene):
         return "exact"
     return mode
+
+
+VARIANTS = 64  # graphs an exact kernel may compile: a walk has up to 16 (limit × records or jumps × dtype)
 
 
 def exact_kernel(fn: Callable, what: str) -> Callable:
@@ -77,7 +100,10 @@ def exact_kernel(fn: Callable, what: str) -> Callable:
         if failed:
             return fn(*args, **kwargs)
         try:
-            return kernel(*args, **kwargs)
+            # each flag and dtype is a graph of its own, all counted against one function's budget
+            # (dynamo's default 8; past it the function would silently run eagerly)
+            with torch._dynamo.config.patch(recompile_limit=VARIANTS):
+                return kernel(*args, **kwargs)
         except Exception as error:  # inductor's errors have no common base short of Exception
             try:
                 result = fn(*args, **kwargs)

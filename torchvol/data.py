@@ -23,7 +23,7 @@ import torch
 from torch.utils.data import Dataset
 
 from .batch import structure_key
-from .compilation import CompileMode, auto_mode, batch_mode, compile_mode
+from .compilation import CompileMode, as_rendered, batch_mode, compile_mode
 from .quality import at_level
 from .recipe import Recipe, mix_seed, render_seed
 from .validate import fail, integer, is_integer
@@ -115,8 +115,8 @@ class SceneDataset(Dataset):
     ds[i] depends only on (seed, epoch, i): the same in any process, DataLoader worker or order.
     `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`
     (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
-    eager (the voxel walk) for a dataset of `AUTO_COMPILE_SAMPLES` samples or more, "exact" always,
-    "off" never; "all" (or True) also the density and march kernels where that is the fast path,
+    eager (the voxel walk) once the process (e.g. a DataLoader worker) has rendered
+    `AUTO_COMPILE_SAMPLES` samples, "exact" always, "off" never; "all" (or True) also the density and march kernels where that is the fast path,
     as `torchvol generate --compile` does: samples within 1e-5 of eager ones, not bitwise (each
     worker process compiles once)."""
 
@@ -131,7 +131,7 @@ class SceneDataset(Dataset):
         self.length, self.base_seed, self.epoch = length, seed, epoch
         self.seed = epoch_seed(seed, epoch)
         self.aovs = self.recipe.aovs if aovs is None else tuple(aovs)
-        self.compile = auto_mode(compile_mode(compile, auto=True), length)
+        self.compile = compile_mode(compile, auto=True)
 
     def __len__(self) -> int:
         return self.length
@@ -147,7 +147,7 @@ class SceneDataset(Dataset):
     def batch(self, indices: Sequence[int]) -> list[dict]:
         """Several samples rendered as one batch (the generator's path); same values as ds[i]."""
         return render_samples(self.recipe, [self._check(i) for i in indices], seed=self.seed, aovs=self.aovs,
-                              compile=self.compile)
+                              compile=as_rendered(self.compile, len(indices)))
 
 
 def collate(items: Sequence[dict]) -> dict:

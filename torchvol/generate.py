@@ -179,7 +179,8 @@ def generate(
     done on stderr (None: only when stderr is a terminal). `stop_after` (testing: simulates a kill)
     stops once that many samples were written, leaving the dataset unfinished. `compile`
     (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
-    eager (the voxel walk) when a worker renders `AUTO_COMPILE_SAMPLES` samples or more; "exact"
+    eager (the voxel walk) when a worker's share of the samples still to render is
+    `AUTO_COMPILE_SAMPLES` or more; "exact"
     always, "off" never: the bytes are `SceneDataset`'s either way. "all" (or True) also compiles
     the density and march kernels where that is the fast path (`fastnoise.compile_pays`: within
     1e-5 of eager, not bitwise, so opt-in; recorded in meta.json, so a resumed run renders as the
@@ -192,7 +193,7 @@ def generate(
     integer("seed", seed)
     if layout not in ("folder", "webdataset"):
         fail("layout", layout, "expected folder or webdataset")
-    compile = auto_mode(compile_mode(compile, auto=True), -(-count // workers))
+    compile = compile_mode(compile, auto=True)
     recipe = Recipe.load(recipe, overrides)
     out = Path(out)
     meta = {
@@ -224,8 +225,10 @@ def generate(
     atomic_write(out / "meta.json", meta_bytes)
 
     tasks = plan_tasks(recipe, count=count, seed=seed, out=out, layout=layout, batch=batch, shard_size=shard_size)
-    tasks = [replace(t, compile=compile) for t in tasks]
     done = sum(_finished(t) for t in tasks)
+    # "auto": from each worker's share of what is still to render (a resumed run: of what is left)
+    compile = auto_mode(compile, -(-(count - done) // workers))
+    tasks = [replace(t, compile=compile) for t in tasks]
     pending = [t for t in tasks if _finished(t) < len(t.indices)]
     written = 0
     with bar(count, initial=done, unit="sample", desc=f"generate {out.name}",

@@ -53,20 +53,23 @@ def _recorder(calls):
     return lambda *args: calls.append([a.clone() for a in args])
 
 
-def _assert_same_walk(seed, n, dtype, *, max_steps, limited, compiled, block=walk.BLOCK, hybrid=False):
+def _assert_same_walk(seed, n, dtype, *, max_steps, limited, compiled, block=walk.BLOCK, hybrid=False, late=False):
     """fused_traverse against traverse (with a recording visit) or, `hybrid`, hybrid_traverse (on
     larger, sparser grids, where rays jump)."""
     shape, p = ((14, 12, 16), 0.03) if hybrid else ((6, 7, 8), 0.12)
     (o, d), lookup, table, (lo, hi), (distance, field) = _world(seed, n, dtype, shape=shape, p=p)
-    t_max = torch.rand(n, generator=torch.Generator().manual_seed(seed), dtype=dtype) * 12 if limited else None
+    g = torch.Generator().manual_seed(seed)
+    t_max = torch.rand(n, generator=g, dtype=dtype) * 12 if limited else None
+    t_min = torch.rand(n, generator=g, dtype=dtype) * 6 if late else None  # rays that start part-way
     plain_calls, fused_calls = [], []
     if hybrid:
-        plain = hybrid_traverse(o, d, lookup, distance, lo, hi, max_steps=max_steps, t_max=t_max)
-        fused = walk.fused_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_max=t_max, distance=field,
-                                    compiled=compiled, block=block)
+        plain = hybrid_traverse(o, d, lookup, distance, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max)
+        fused = walk.fused_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max,
+                                    distance=field, compiled=compiled, block=block)
     else:
-        plain = traverse(o, d, lookup, lo, hi, max_steps=max_steps, t_max=t_max, visit=_recorder(plain_calls))
-        fused = walk.fused_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_max=t_max,
+        plain = traverse(o, d, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max,
+                         visit=_recorder(plain_calls))
+        fused = walk.fused_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max,
                                     visit=_recorder(fused_calls), compiled=compiled, block=block)
     for name in FIELDS:
         a, b = getattr(plain, name), getattr(fused, name)
@@ -81,19 +84,19 @@ def _assert_same_walk(seed, n, dtype, *, max_steps, limited, compiled, block=wal
 
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 200), max_steps=st.integers(1, 40), limited=st.booleans(),
-       block=st.integers(1, 9), double=st.booleans())
-def test_eager_twin_walks_like_traverse(seed, n, max_steps, limited, block, double):
+       block=st.integers(1, 9), double=st.booleans(), late=st.booleans())
+def test_eager_twin_walks_like_traverse(seed, n, max_steps, limited, block, double, late):
     _assert_same_walk(seed, n, torch.float64 if double else torch.float32, max_steps=max_steps, limited=limited,
-                      compiled=False, block=block)
+                      compiled=False, block=block, late=late)
 
 
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 200), max_steps=st.integers(1, 60), limited=st.booleans(),
-       block=st.integers(1, 9), double=st.booleans())
-def test_eager_twin_jumps_like_hybrid_traverse(seed, n, max_steps, limited, block, double):
+       block=st.integers(1, 9), double=st.booleans(), late=st.booleans())
+def test_eager_twin_jumps_like_hybrid_traverse(seed, n, max_steps, limited, block, double, late):
     """With the distance field: hybrid_traverse's jumps and steps."""
     _assert_same_walk(seed, n, torch.float64 if double else torch.float32, max_steps=max_steps, limited=limited,
-                      compiled=False, block=block, hybrid=True)
+                      compiled=False, block=block, hybrid=True, late=late)
 
 
 def test_the_comparison_sees_a_wrong_walk(monkeypatch):
@@ -155,9 +158,29 @@ def test_exact_renders_are_eager_renders(name, monkeypatch):
         assert torch.equal(fast.aovs[key], a), f"{name}: AOV {key} differs"
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fog_of_scenes_with_their_own_cell_ranges(monkeypatch, dtype):
+    """The fog's table of cell rows (scene · Y − lo_y + j) over grids padded to one shape: three
+    fog scenes with different cell ranges and fog in one batch, bitwise eager."""
+    monkeypatch.setattr(walk, "compiled_block", lambda: walk.walk_block)
+    base = tv.preset("voxel-fog", width=40, height=30)
+    other = [tv.load_scene(base, overrides=o) for o in (
+        {"voxels.cells": {"min": [-10, -9, -12], "max": [12, 6, 10]}, "voxels.fog.density": 0.09,
+         "voxels.fog.base": 2.0, "voxels.fog.scale_height": 3.0, "camera.eye": [-18.0, 9.0, -15.0]},
+        {"voxels.cells": {"min": [-6, 3, -20], "max": [20, 30, 7]}, "voxels.fog.density": 0.02,
+         "camera.eye": [-25.0, 20.0, -18.0]})]
+    scenes = [base, *other]
+    fast = tv.render(scenes, compile="exact", seed=[0, 1, 2], dtype=dtype)
+    slow = tv.render(scenes, seed=[0, 1, 2], dtype=dtype)
+    for key in ("image", "radiance", "depth", "alpha"):
+        a, b = getattr(fast, key), getattr(slow, key)
+        assert torch.equal(a, b), f"{key} differs by {float((a - b).abs().max()):.3e}"
+    assert slow.alpha.mean() > 0.1  # the voxels and their fog are in view
+
+
 def test_exact_recipe_batches_are_eager_batches(monkeypatch):
-    """A batch of scenes with their own grids, cell ranges and fog (the fog's per-scene table of
-    cell rows): `compile="exact"` samples, bitwise the eager ones."""
+    """Recipe samples (voxel-terrain: its fog, sun shadows and clouds) in one batch:
+    `compile="exact"` samples, bitwise the eager ones."""
     from pathlib import Path
 
     from torchvol.data import render_samples

@@ -123,7 +123,10 @@ class VoxelGrid:
 
     materials (B, Z, Y, X) uint8, zero-padded; lo (B, 3) long: cell (i, j, k) of materials[b, 0, 0, 0];
     hi (B, 3) long: end of each scene's range; origin (B, 3) and voxel_size (B,) float: placement.
-    `distance` (B, Z, Y, X) uint8 Chebyshev distance field (for hybrid traversal) or None."""
+    `distance` (B, Z, Y, X) uint8 Chebyshev distance field (for hybrid traversal) or None.
+    `flat_materials`, `flat_distance` [B·Z·Y·X]: the same grids flattened (the fused walk's
+    tables), each the tensor the 4-D one views, not a view itself: a compiled kernel guards a
+    view's base, whose equal sizes (Y = Z) dynamo would tie and then compile again."""
 
     materials: Tensor
     lo: Tensor
@@ -131,12 +134,15 @@ class VoxelGrid:
     origin: Tensor
     voxel_size: Tensor
     distance: Tensor | None = None
+    flat_materials: Tensor | None = None
+    flat_distance: Tensor | None = None
 
     @classmethod
     def from_specs(cls, specs: Sequence, *, dtype, device, with_distance: bool = False) -> "VoxelGrid":
         grids = [dense_materials(s, dtype=dtype, device=device) for s in specs]
         shape = [max(g.shape[a] for g in grids) for a in range(3)]
-        mats = torch.zeros(len(grids), *shape, dtype=torch.uint8, device=device)
+        flat = torch.zeros(len(grids) * shape[0] * shape[1] * shape[2], dtype=torch.uint8, device=device)
+        mats = flat.view(len(grids), *shape)
         for b, g in enumerate(grids):
             mats[b, : g.shape[0], : g.shape[1], : g.shape[2]] = g
         ranges = [cell_range(s) for s in specs]
@@ -144,10 +150,11 @@ class VoxelGrid:
         hi = torch.tensor([r[1] for r in ranges], dtype=torch.long, device=device)
         origin = torch.tensor([s.origin for s in specs], dtype=dtype, device=device)
         size = torch.tensor([s.voxel_size for s in specs], dtype=dtype, device=device)
-        dist = None
+        dist = flat_dist = None
         if with_distance:
-            dist = torch.stack([chebyshev_distance(m > 0) for m in mats])
-        return cls(mats, lo, hi, origin, size, dist)
+            flat_dist = torch.stack([chebyshev_distance(m > 0) for m in mats]).flatten().clone()
+            dist = flat_dist.view(mats.shape)
+        return cls(mats, lo, hi, origin, size, dist, flat, flat_dist)
 
     def _flat(self, rel: Tensor, scene: Tensor) -> Tensor:
         """Cells [N, 3] relative to their scene's `lo` -> their index [N] in the flattened (B, Z, Y, X) grids."""

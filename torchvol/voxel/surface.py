@@ -82,9 +82,9 @@ class VoxelSurface:
         hybrid = self.plan.traversal == "hybrid" and visit is None and fog is None and not plain
         if self.compiled:
             base, strides = g.flat_base(s)
-            return fused_traverse(og, dg, g.materials.reshape(-1), base, strides, lo, hi, max_steps=max_steps,
+            return fused_traverse(og, dg, g.flat_materials, base, strides, lo, hi, max_steps=max_steps,
                                   t_min=t_min, t_max=t_max, visit=visit, fog=fog,
-                                  distance=g.distance.reshape(-1) if hybrid else None)
+                                  distance=g.flat_distance if hybrid else None)
         if hybrid:
             return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, take_rows(s, ids)), lo, hi,
                                    max_steps=max_steps, t_min=t_min)

@@ -32,6 +32,7 @@ __all__ = ["BLOCK", "fused_traverse", "walk_block"]
 # steps a block runs before finished slots are dropped: a block costs about 30 µs of call overhead
 # and a compaction about 10 eager gathers, while a finished slot still rides along in the block
 BLOCK = 8
+MIN_SLOTS = 4
 
 
 def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: Tensor, max_steps: Tensor,
@@ -136,7 +137,7 @@ _COMPILED: dict = {}
 
 def compiled_block() -> Callable:
     """`walk_block` under torch.compile (dynamic shapes), built once per process: one graph per
-    (steps, limited, record, fog or not) and dtype, each for every size; eager where it cannot
+    (limited, records or jumps) and dtype, up to 16, each for every size; eager where it cannot
     be compiled (`compilation.exact_kernel`)."""
     if "block" not in _COMPILED:
         _COMPILED["block"] = exact_kernel(walk_block, "the voxel walk")
@@ -156,6 +157,8 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     `distance` [M] uint8 (the grids' Chebyshev distance fields, flattened as `table`; not with
     `visit` or `fog`): `dda.hybrid_traverse`'s walk instead, jumping from cells `switch` or more
     cells from any occupied one, with its hits and steps."""
+    if (visit is not None) + (fog is not None) + (distance is not None) > 1:
+        raise ValueError("fused_traverse: visit, fog and distance are exclusive (each its own records or steps)")
     dev = origins.device
     out, ok, t0, cell0, axis0, lo, hi = start(origins, directions, lo, hi, t_min, t_max)
     run = compiled_block() if compiled else walk_block
@@ -241,10 +244,12 @@ def _fog_visits(idx: Tensor, records: tuple) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _call(run: Callable, state: list, rays: list, shared: tuple, flags: dict):
-    """`run(state, rays, *shared, **flags)`; one slot runs as two copies of itself, since a
-    compiled kernel specialises on a size of 1 (it would compile again for a walk's last ray)."""
-    if state[0].shape[0] != 1:
+    """`run(state, rays, *shared, **flags)`; fewer than `MIN_SLOTS` slots run repeated up to that
+    many, since a compiled kernel specialises on sizes 0 and 1, and dynamo ties a first size equal
+    to another input's (2: strides; 3: a ray's coordinates) to it: either compiles again later."""
+    n = state[0].shape[0]
+    if n >= MIN_SLOTS:
         return run(state, rays, *shared, **flags)
-    state, records = run(*([x.repeat(2, *[1] * (x.dim() - 1)) for x in group] for group in (state, rays)),
-                         *shared, **flags)
-    return [x[:1] for x in state], None if records is None else tuple(v[:, :1] for v in records)
+    pad = torch.arange(MIN_SLOTS, device=state[0].device) % n
+    state, records = run(*([x.index_select(0, pad) for x in group] for group in (state, rays)), *shared, **flags)
+    return [x[:n].clone() for x in state], None if records is None else tuple(v[:, :n].clone() for v in records)
