@@ -156,7 +156,7 @@ def dda_step(cell: Tensor, o: Tensor, d: Tensor, step: Tensor) -> tuple[Tensor, 
     return ax, t_next, new
 
 
-def start(o: Tensor, d: Tensor, lo, hi, t_min: Optional[Tensor], t_max: Optional[Tensor]):
+def start(o: Tensor, d: Tensor, lo, hi, t_min: Tensor | None, t_max: Tensor | None):
     """Where R rays o, d [R, 3] enter the cell range [lo, hi) ([3] or [R, 3]): (the `Hits` of rays
     that find nothing, the rays that enter [R] bool, their entry t0 [R], first cell [R, 3] long and
     entry axis [R], lo and hi as [R, 3] long). The start of every walk (`traverse`, `walk`)."""
