@@ -116,9 +116,9 @@ class SceneDataset(Dataset):
     `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`
     (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
     eager (the voxel walk) once the process (e.g. a DataLoader worker) has rendered
-    `AUTO_COMPILE_SAMPLES` samples, "exact" always, "off" never; "all" (or True) also the density and march kernels where that is the fast path,
-    as `torchvol generate --compile` does: samples within 1e-5 of eager ones, not bitwise (each
-    worker process compiles once)."""
+    `AUTO_COMPILE_SAMPLES` samples, "exact" always, "off" never; "all" (or True) also the density
+    and march kernels where that is the fast path, as `torchvol generate --compile` does: samples
+    within 1e-5 of eager ones, not bitwise (each worker process compiles once)."""
 
     def __init__(self, recipe: Recipe | str | Path | Mapping, length: int, seed: int = 0, epoch: int | None = None, *,
                  aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None,

@@ -137,10 +137,12 @@ def test_compiled_hybrid_walk_is_bitwise_hybrid_traverse():
 VOXEL_PRESETS = [name for name in tv.preset_names() if name.startswith("voxel-")]
 
 
-@pytest.mark.parametrize("name", VOXEL_PRESETS)
-def test_exact_renders_are_eager_renders(name, monkeypatch):
+@pytest.mark.parametrize("name, overrides", [(name, {}) for name in VOXEL_PRESETS]
+                         + [("voxel-fog", {"voxels.traversal": "hybrid"}), ("voxel-glow", {"voxels.traversal": "hybrid"})])
+def test_exact_renders_are_eager_renders(name, overrides, monkeypatch):
     """`render(..., compile="exact")` takes the fused walk (its eager twin here: nothing compiles)
-    and renders every output bitwise as eager does."""
+    and renders every output bitwise as eager does; with fog or glow a hybrid scene walks plainly
+    on either path."""
     taken = []
 
     def twin():
@@ -148,7 +150,7 @@ def test_exact_renders_are_eager_renders(name, monkeypatch):
         return walk.walk_block
 
     monkeypatch.setattr(walk, "compiled_block", twin)
-    scene = tv.preset(name, width=40, height=30)
+    scene = tv.load_scene(tv.preset(name, width=40, height=30), overrides=overrides)
     fast, slow = tv.render(scene, compile="exact"), tv.render(scene)
     assert taken, "the fused walk did not run"
     for key in ("image", "radiance", "depth", "alpha"):

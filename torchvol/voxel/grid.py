@@ -169,9 +169,8 @@ class VoxelGrid:
         """(base [N] long, strides [2] long): cell (i, j, k) of scene[n] is at
         ``base[n] + (k·Y + j)·X + i`` of the flattened grids (`cell_index` as one sum, for kernels
         that look cells up themselves: `walk.fused_traverse`)."""
-        _, Z, Y, X = self.materials.shape
-        lo = take_rows(self.lo, scene)
-        base = ((scene * Z - lo[:, 2]) * Y - lo[:, 1]) * X - lo[:, 0]
+        _, _, Y, X = self.materials.shape
+        base = self._flat(-take_rows(self.lo, scene), scene)  # the flat index of cell (0, 0, 0)
         return base, torch.tensor([Y, X], dtype=torch.long, device=scene.device)
 
     def index_cell(self, index: Tensor) -> tuple[Tensor, Tensor]:

@@ -36,12 +36,12 @@ from ..mathops import take_rows
 from .cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
 from .dda import Hits, hybrid_traverse, traverse
 from .fog import FogWalk, extinction
-from .walk import fused_traverse
 from .gi import bounce_uniforms, cosine_directions, lod_counts, lod_keys, path_keys
 from .ggx import f0_of, f_schlick, ggx_reflect
 from .grid import VoxelGrid
 from .materials import VOXEL_MATERIALS, default_material, material_table
 from .shade import atlas_sample, face_normal, face_tone, face_uv, rounded_refine, voxel_ao
+from .walk import fused_traverse
 from .water import beer, fresnel, plane_hit, reflect, refract, wave_normal
 
 __all__ = ["VoxelSurface"]
@@ -109,7 +109,7 @@ class VoxelSurface:
         acc = dict(glow=o.new_zeros(n), fog_tau=o.new_zeros(n), fog_light=o.new_zeros(n, 3))
         visits = []  # (ray ids [m], scenes [m], cells [m, 3], weights [m]) of the fog's visited empty cells
         walked = None
-        if self.compiled and self.plan.fog and not self.plan.glow and self.plan.traversal != "hybrid":
+        if self.compiled and self.plan.fog and not self.plan.glow:
             walked = self._fog_walk(s)
 
         def visit(ids, cells, t_in, t_out, hit):
