@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import torchvol as tv
 from torchvol import compilation, data
@@ -103,3 +104,23 @@ def test_cli_modes():
     assert parse(render + ["--compile-mode", "exact"]).compile == "exact"
     assert parse(["render", "--compile", "voxel-fog", "--out", "x.png"]).compile == "all"
     assert parse(render).compile == "off"
+
+
+@pytest.mark.slow
+def test_a_kernel_first_called_small_still_runs_on_threads():
+    """inductor builds a kernel serial where its first call (the size hint of every later one under
+    dynamic shapes) is small, and its cache then serves that serial kernel to every process: a
+    16×16 render left all later template renders on one thread. `compiled` asks for dynamic
+    threads, so every kernel is a parallel region, whatever the size it was built for."""
+    from torch._inductor.utils import run_and_get_code
+
+    def kernel(x):  # a fresh function: torch.compile and `compiled` cache per function
+        return torch.sin(x) * 2.0 + 1.0
+
+    tiny = torch.arange(8, dtype=torch.float32)
+    with torch._inductor.config.patch(fx_graph_cache=False):
+        _, plain = run_and_get_code(torch.compile(kernel, dynamic=True), tiny)
+        _, ours = run_and_get_code(compilation.compiled(kernel), tiny)
+    assert "omp parallel" not in "".join(plain)  # the trap: without the option a small first call is serial
+    assert "#pragma omp parallel" in "".join(ours)
+    assert "num_threads(" not in "".join(ours)  # the thread count is OpenMP's when the kernel runs

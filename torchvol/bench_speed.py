@@ -36,6 +36,7 @@ from typing import Callable, Sequence
 import torch
 
 from . import fastnoise, noise
+from .compilation import compiled
 from .render import render
 from .scene import preset
 
@@ -141,7 +142,7 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     packed = noise.packed_table(noise.texture_table(noise.default_noise_texture(0)))
     base = noise.texture_rows(torch.zeros(points, dtype=torch.long), p.dtype)
     scales = noise.folded_scales(5, dtype=p.dtype, device=p.device)
-    template_fbm = torch.compile(cloud_fbm, dynamic=True)
+    template_fbm = compiled(cloud_fbm)
     n = torch.get_num_threads()
     kernels = {  # (kernel, the preset whose floor it is, torch threads): fn
         ("table hash (noise.fbm over noise.value_noise), eager", "cloud-puff", n):

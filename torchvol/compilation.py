@@ -21,6 +21,7 @@ and `SceneDataset`.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable
 from typing import Literal
@@ -30,7 +31,7 @@ import torch
 
 from .validate import fail, is_integer
 
-__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "as_rendered", "auto_mode", "batch_mode", "compile_mode", "exact_kernel"]
+__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "as_rendered", "auto_mode", "batch_mode", "compile_mode", "compiled", "exact_kernel"]
 
 CompileMode = Literal["off", "exact", "all"]
 MODES = ("off", "exact", "all")
@@ -85,6 +86,22 @@ def batch_mode(mode: CompileMode, scene) -> CompileMode:
     return mode
 
 
+# inductor decides when it builds a CPU kernel whether its loops run on threads: serially where the
+# first call's size (dynamic shapes: the size hint of every later call) or the thread count was
+# small. Its on-disk cache then serves that serial kernel to every process, whatever the size: one
+# 16×16 render left every later 2-thread template render on one thread (docs/SPEED.md). With
+# dynamic threads each kernel is one parallel region and OpenMP's thread count when it runs decides,
+# and no graph is recompiled or cached per thread count.
+INDUCTOR_OPTIONS = {"cpp.dynamic_threads": True}
+
+
+@functools.cache
+def compiled(fn: Callable) -> Callable:
+    """`fn` under torch.compile: dynamic shapes (a march compacts its batch every step, one graph
+    serves every size) and `INDUCTOR_OPTIONS`. Cached: one compiled function per `fn`."""
+    return torch.compile(fn, dynamic=True, options=INDUCTOR_OPTIONS)
+
+
 VARIANTS = 64  # graphs an exact kernel may compile: a walk has up to 16 (limit × records or jumps × dtype)
 
 
@@ -93,7 +110,7 @@ def exact_kernel(fn: Callable, what: str) -> Callable:
     `fn`'s own: where it cannot be compiled (no C++ compiler, an unsupported platform) the first
     call warns once, naming `what`, and every call runs `fn` eagerly, so a default that compiles
     ("auto") never fails where eager runs. An error eager raises too is raised as it is."""
-    kernel = torch.compile(fn, dynamic=True)
+    kernel = compiled(fn)
     failed = []
 
     def run(*args, **kwargs):

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from . import noise
+from .compilation import compiled
 from .mathops import take_rows
 
 __all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed", "compile_pays"]
@@ -104,7 +105,7 @@ def _compiled_fbm(octaves: int, gain: float):
         return _fbm_sum(x, y, z, seed, scales, lod, octaves, gain)
 
     # dynamic shapes: the march hands over a different number of active points every step
-    return torch.compile(fused, dynamic=True)
+    return compiled(fused)
 
 
 @functools.cache
@@ -121,7 +122,7 @@ def _compiled_field(octaves: int, gain: float):
         dist = torch.sqrt((x - center[0]) ** 2 + (y - center[1]) ** 2 + (z - center[2]) ** 2)
         return bias + amplitude * f - radial * dist
 
-    return torch.compile(fused, dynamic=True)
+    return compiled(fused)
 
 
 @functools.cache

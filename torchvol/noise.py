@@ -468,10 +468,6 @@ def texture_noise_coords(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: 
     return g + wz * (r - g)
 
 
-@functools.cache
-def compiled(fn: Callable) -> Callable:
-    """`fn` under torch.compile (dynamic shapes: the march compacts its batch every step)."""
-    return torch.compile(fn, dynamic=True)
 
 
 # --------------------------------------------------------------------------------------------

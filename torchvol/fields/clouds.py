@@ -15,6 +15,7 @@ from pydantic import Field, field_validator
 from torch import Tensor
 
 from .. import noise
+from .. import compilation
 from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
 
@@ -60,7 +61,7 @@ class CloudLayer:
         # fused march step reads them too (volume/fused.py)
         self.packed = noise.packed_table(torch.cat(self.tables))
         if compiled:
-            self.kernels = [lambda x, table=table: noise.compiled(noise.texture_noise_table)(x, table) for table in self.tables]
+            self.kernels = [lambda x, table=table: compilation.compiled(noise.texture_noise_table)(x, table) for table in self.tables]
         self.shift = params.wind * times[:, None]  # (B, 3)
         self.feature_size = torch.full_like(times, noise.finest_period(params.octaves))
 

@@ -16,6 +16,7 @@ from pydantic import Field
 from torch import Tensor
 
 from .. import noise
+from .. import compilation
 from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
 
@@ -36,7 +37,7 @@ class FurDensity(Strict):
 class FurField:
     def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
         self.p = params
-        self.worley = noise.compiled(noise.worley_noise) if compiled else noise.worley_noise
+        self.worley = compilation.compiled(noise.worley_noise) if compiled else noise.worley_noise
         # a strand's width at its tip, in world units (the finest detail)
         self.feature_size = params.thickness / params.frequency * (params.radius + params.length)
 

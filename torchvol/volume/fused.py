@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from .. import noise
+from ..compilation import compiled
 from ..mathops import take_rows
 from .march import MarchResult, StepRule
 
@@ -174,10 +175,10 @@ def sample_density(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packe
 def light_density(point: Tensor, t: Tensor, s: Tensor, lit: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor],
                   *, config: StepConfig) -> Tensor:
     """The second: the density `light_offset` towards the light from the points of the lit
-    samples `lit` [k] (`point` [3, N] of `sample_density`; `t`, `s` [N]) -> [N] (0 elsewhere)."""
+    samples `lit` [k] (`point` [3, N] of `sample_density`; `t`, `s` [N]) -> [k]. Scattered to
+    the slots outside: inductor runs a scatter (`index_put`) on one thread."""
     ts, ss, ls = t[lit], s[lit], look.light_step[s[lit]]
-    ahead = _density(*(point[c, lit] + ls[:, c] for c in range(3)), ts, ss, look, packed, scales, config)
-    return torch.zeros_like(t).index_put((lit,), ahead)
+    return _density(*(point[c, lit] + ls[:, c] for c in range(3)), ts, ss, look, packed, scales, config)
 
 
 def advance(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, sample: Sample, ahead: Tensor, *,
@@ -261,7 +262,8 @@ def shader_steps(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed:
                 # not a view (dynamo guards a view's base) and not one point (a compiled kernel would
                 # specialise on it): either recompiles the kernel
                 lit = lit.repeat(2) if lit.shape[0] == 1 else lit.clone()
-                ahead = kernels.light(sample.point, state[_T], s, lit, look, packed, scales, config=config)
+                ahead = torch.zeros_like(none_lit).index_copy_(
+                    0, lit, kernels.light(sample.point, state[_T], s, lit, look, packed, scales, config=config))
         if k + 1 < count:
             state, sample = kernels.advance_sample(state, ray, s, look, packed, scales, sample, ahead, config=config)
         else:
@@ -273,7 +275,7 @@ def shader_steps(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed:
 def compiled_steps(config: StepConfig) -> Callable:
     """`shader_steps` with its kernels under torch.compile (each one graph per `config`, for
     every size)."""
-    kernels = Kernels(*(torch.compile(fn, dynamic=True) for fn in EAGER))
+    kernels = Kernels(*(compiled(fn) for fn in EAGER))
     return functools.partial(shader_steps, config=config, kernels=kernels)
 
 
