@@ -85,7 +85,7 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
     """Rows {work, renderer, threads, seconds, evals_per_s, ratio, first_s}: template-clouds per
     size against llvmpipe (compiled also on one thread, as a generator's worker renders), then
     cloud-puff at `physical_size` against its table-hash eager render."""
-    from .generate import torch_threads
+    from .threads import torch_threads
 
     rows, threads = [], torch.get_num_threads()
     for width, height in sizes:
@@ -133,7 +133,7 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     5-octave texture-noise fbm (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel
     (also on one thread, the floor of the one-thread render rows). Rows {kernel, density (the
     preset whose floor it is), threads, evals_per_s, first_s}."""
-    from .generate import torch_threads
+    from .threads import torch_threads
     from .volume.fused import cloud_fbm
 
     g = torch.Generator().manual_seed(0)

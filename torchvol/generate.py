@@ -18,7 +18,6 @@ never on its batch, worker or the run that rendered it.
 
 from __future__ import annotations
 
-import contextlib
 import io
 import json
 import os
@@ -33,6 +32,7 @@ from .data import CONVENTIONS, render_samples, sample_record
 from .progress import progress as bar
 from .recipe import Recipe
 from .sequence import CONVENTIONS as SEQUENCE_CONVENTIONS, encode_item
+from .threads import torch_threads
 from .validate import fail, integer
 from .views import dataset_meta, file_table
 
@@ -111,19 +111,6 @@ def run_task(task: Task) -> list[int]:
             members += [(f"{stem}.{suffix}", data) for suffix, data in encoded.items()]
     atomic_write(path, tar_bytes(members))
     return list(task.indices)
-
-
-@contextlib.contextmanager
-def torch_threads(threads: int):
-    """torch's intra-op thread count set to `threads` inside the block, restored after it."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def _init_worker(threads: int) -> None:

@@ -34,6 +34,7 @@ from torch import Tensor
 from .. import noise
 from ..compilation import compiled
 from ..mathops import take_rows
+from ..threads import on_threads, torch_threads
 from .march import MarchResult, StepRule
 
 # slots marched at once: a render's whole chunk (`render.DEFAULT_CHUNK_RAYS`), so no chunk ends
@@ -272,10 +273,10 @@ def shader_steps(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed:
 
 
 @functools.cache
-def compiled_steps(config: StepConfig) -> Callable:
+def compiled_steps(config: StepConfig, threads: int) -> Callable:
     """`shader_steps` with its kernels under torch.compile (each one graph per `config`, for
-    every size)."""
-    kernels = Kernels(*(compiled(fn) for fn in EAGER))
+    every size) run on `threads` torch threads (the glue around them on the caller's)."""
+    kernels = Kernels(*(on_threads(compiled(fn), threads) for fn in EAGER))
     return functools.partial(shader_steps, config=config, kernels=kernels)
 
 
@@ -333,12 +334,16 @@ def march_fused(ctx, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit:
     config = StepConfig(rule=st.rule, octaves=octaves, lod_scale=st.lod_scale, threshold=float(st.density_threshold),
                         min_transmittance=float(st.min_transmittance), max_iterations=st.rule.max_iterations,
                         light=bool(vol.plan.lights), graded=vol.params.shader.ambient_top is not None)
-    kernel = compiled_steps(config) if compiled else functools.partial(shader_steps, config=config)
+    # compiled: the kernels on the render's threads, the glue between them on one (`threads`)
+    threads = torch.get_num_threads()
+    kernel = compiled_steps(config, threads) if compiled else functools.partial(shader_steps, config=config)
     start = t0
     if dither is not None:  # the template's absolute offset, or a fraction of the first step
         start = t0 + (dither if st.dither == "sin" else dither * st.rule.length(t0, t1 - t0))
     ray = torch.cat([rays.origins.T, rays.directions.T, background.T])
-    res, evals = fused_march(lambda state, r, s, n: kernel(state, r, s, look, packed, scales, count=n), t0, t1, hit, start, ray,
-                             rays.scene_index, wavefront=WAVEFRONT, refill_every=REFILL_EVERY, compact_below=COMPACT_BELOW)
+    with torch_threads(1 if compiled else threads):
+        res, evals = fused_march(lambda state, r, s, n: kernel(state, r, s, look, packed, scales, count=n), t0, t1, hit,
+                                 start, ray, rays.scene_index, wavefront=WAVEFRONT, refill_every=REFILL_EVERY,
+                                 compact_below=COMPACT_BELOW)
     ctx.counts.density_evals += int(evals)
     return res
