@@ -89,20 +89,33 @@ def batch_mode(mode: CompileMode, scene) -> CompileMode:
 # inductor decides when it builds a CPU kernel whether its loops run on threads: serially where the
 # first call's size (dynamic shapes: the size hint of every later call) or the thread count was
 # small. Its on-disk cache then serves that serial kernel to every process, whatever the size: one
-# 16×16 render left every later 2-thread template render on one thread (docs/SPEED.md). With
-# dynamic threads each kernel is one parallel region and OpenMP's thread count when it runs decides,
-# and no graph is recompiled or cached per thread count.
+# 16×16 render left every later 2-thread template render on one thread (docs/VOLUMES.md, "Two
+# threads"). With dynamic threads each kernel is one parallel region and OpenMP's thread count when
+# it runs decides, and no graph is recompiled or cached per thread count.
 INDUCTOR_OPTIONS = {"cpp.dynamic_threads": True}
+VARIANTS = 64  # graphs a kernel may compile: a walk has up to 16 (limit × records or jumps × dtype)
+_DYNAMO = torch._dynamo.config
 
 
 @functools.cache
 def compiled(fn: Callable) -> Callable:
     """`fn` under torch.compile: dynamic shapes (a march compacts its batch every step, one graph
-    serves every size) and `INDUCTOR_OPTIONS`. Cached: one compiled function per `fn`."""
-    return torch.compile(fn, dynamic=True, options=INDUCTOR_OPTIONS)
+    serves every size) and `INDUCTOR_OPTIONS`. Cached: one compiled function per `fn`. During a
+    call dynamo may compile `VARIANTS` graphs of it: each flag and dtype is one, all counted
+    against one function's budget, and past dynamo's default 8 it would silently run eagerly."""
+    kernel = torch.compile(fn, dynamic=True, options=INDUCTOR_OPTIONS)
 
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        # set as an attribute around the call: `config.patch(...)` cost 110 µs a call, this 3
+        limit = _DYNAMO.recompile_limit
+        _DYNAMO.recompile_limit = VARIANTS
+        try:
+            return kernel(*args, **kwargs)
+        finally:
+            _DYNAMO.recompile_limit = limit
 
-VARIANTS = 64  # graphs an exact kernel may compile: a walk has up to 16 (limit × records or jumps × dtype)
+    return run
 
 
 def exact_kernel(fn: Callable, what: str) -> Callable:
@@ -117,10 +130,7 @@ def exact_kernel(fn: Callable, what: str) -> Callable:
         if failed:
             return fn(*args, **kwargs)
         try:
-            # each flag and dtype is a graph of its own, all counted against one function's budget
-            # (dynamo's default 8; past it the function would silently run eagerly)
-            with torch._dynamo.config.patch(recompile_limit=VARIANTS):
-                return kernel(*args, **kwargs)
+            return kernel(*args, **kwargs)
         except Exception as error:  # inductor's errors have no common base short of Exception
             try:
                 result = fn(*args, **kwargs)

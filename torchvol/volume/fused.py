@@ -47,8 +47,12 @@ REFILL_EVERY = 8
 # below this share of the wavefront: a compaction costs about a step's kernel time
 COMPACT_BELOW = 0.875
 # rows of the slot state
-_T, _T_END, _SPAN, _TRANS, _WSUM, _WT, _MEDIAN, _STEPS, _ALIVE, _TRUNC, _EVALS, _RADIANCE = range(12)
+_T, _TRANS, _WSUM, _WT, _MEDIAN, _STEPS, _ALIVE, _TRUNC, _EVALS, _RADIANCE = range(10)
 _ROWS = _RADIANCE + 3
+# rows of a slot's ray after origin, direction and sky (0-8): what stays constant along the march
+# travels with the ray, not the state (the state's rows are written every step: each row passed
+# through unchanged was a copy loop of its own in the kernel)
+_T_END, _SPAN = 9, 10
 
 
 class CloudLook(NamedTuple):
@@ -143,11 +147,12 @@ def _count(t: Tensor, config: StepConfig) -> Tensor | None:
     return config.octaves - torch.floor(torch.log2(1.0 + t * config.lod_scale)).to(torch.int32)  # int64 halves the lanes
 
 
-def _density(x: Tensor, y: Tensor, z: Tensor, t: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor],
-             config: StepConfig) -> Tensor:
-    """`CloudLayer`'s density at points `x`, `y`, `z` [N] sampled at distance `t` [N] of scenes `s` [N]."""
+def _density(x: Tensor, y: Tensor, z: Tensor, count: Tensor | None, s: Tensor, look: CloudLook, packed: Tensor,
+             scales: list[Tensor], config: StepConfig) -> Tensor:
+    """`CloudLayer`'s density at points `x`, `y`, `z` [N] of scenes `s` [N], `count` [N] octaves
+    kept there (`_count`)."""
     shift = look.shift[s]
-    f = cloud_fbm(x - shift[:, 0], y - shift[:, 1], z - shift[:, 2], packed, look.base[s], _count(t, config),
+    f = cloud_fbm(x - shift[:, 0], y - shift[:, 1], z - shift[:, 2], packed, look.base[s], count,
                   octaves=config.octaves, scales=scales)
     return (look.bias[s] - y + look.density_scale[s] * f).clamp_max(1.0).clamp_min(0.0)
 
@@ -160,6 +165,10 @@ class Sample(NamedTuple):
     density: Tensor  # [N]
     point: Tensor  # [3, N] the sample point, a row per coordinate
     lit: Tensor  # [N] 1.0: alive and over the density threshold
+    # [N] int32 octaves kept at the sample (`_count`; None: all), handed on to `light_density`
+    # rather than the sample's t, a row of the state: dynamo ties a view's base's sizes to the
+    # others' (a first call's 12 lit samples to a 12-row state) and recompiled at the next step
+    count: Tensor | None
 
 
 def sample_density(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor], *,
@@ -168,25 +177,27 @@ def sample_density(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packe
     and over `march.density_threshold`)."""
     t = state[_T]
     p = [torch.addcmul(ray[i], t, ray[3 + i]) for i in range(3)]
-    density = _density(*p, t, s, look, packed, scales, config)
+    count = _count(t, config)
+    density = _density(*p, count, s, look, packed, scales, config)
     lit = (state[_ALIVE] > 0) & (density > config.threshold)
-    return Sample(density, torch.stack(p), torch.where(lit, 1.0, 0.0))
+    return Sample(density, torch.stack(p), torch.where(lit, 1.0, 0.0), count)
 
 
-def light_density(point: Tensor, t: Tensor, s: Tensor, lit: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor],
-                  *, config: StepConfig) -> Tensor:
+def light_density(point: Tensor, count: Tensor | None, s: Tensor, lit: Tensor, look: CloudLook, packed: Tensor,
+                  scales: list[Tensor], *, config: StepConfig) -> Tensor:
     """The second: the density `light_offset` towards the light from the points of the lit
-    samples `lit` [k] (`point` [3, N] of `sample_density`; `t`, `s` [N]) -> [k]. Scattered to
-    the slots outside: inductor runs a scatter (`index_put`) on one thread."""
-    ts, ss, ls = t[lit], s[lit], look.light_step[s[lit]]
-    return _density(*(point[c, lit] + ls[:, c] for c in range(3)), ts, ss, look, packed, scales, config)
+    samples `lit` [k] (`point` [3, N] and `count` [N] of `sample_density`; `s` [N]) -> [k].
+    Scattered to the slots outside: inductor runs a scatter (`index_put`) on one thread."""
+    ss, ls = s[lit], look.light_step[s[lit]]
+    return _density(*(point[c, lit] + ls[:, c] for c in range(3)), None if count is None else count[lit], ss, look,
+                    packed, scales, config)
 
 
 def advance(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, sample: Sample, ahead: Tensor, *,
             config: StepConfig) -> Tensor:
     """The third: the look's colour, alpha compositing, the step rule and the end tests -> the
     next state [_ROWS, N]. `ahead` [N]: `light_density` where lit (elsewhere unused)."""
-    t, t_end, trans = state[_T], state[_T_END], state[_TRANS]
+    t, t_end, trans = state[_T], ray[_T_END], state[_TRANS]
     density, py, lit = sample.density, sample.point[1], sample.lit > 0
     alive = state[_ALIVE] > 0
     ambient = look.ambient[s]
@@ -210,13 +221,13 @@ def advance(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, sample: Samp
     new_trans = trans * seg
     crossed = (trans > 0.5) & (new_trans <= 0.5)
     steps = state[_STEPS] + alive
-    t_next = t + config.rule.length(t, state[_SPAN])
+    t_next = t + config.rule.length(t, ray[_SPAN])
     keep = t_next <= t_end
     if config.min_transmittance > 0:
         keep = keep & (new_trans >= config.min_transmittance)
     last = steps >= config.max_iterations
     return torch.stack([
-        torch.where(alive, t_next, t), t_end, state[_SPAN], torch.where(alive, new_trans, trans),
+        torch.where(alive, t_next, t), torch.where(alive, new_trans, trans),
         state[_WSUM] + weight, state[_WT] + weight * t, torch.where(crossed, t, state[_MEDIAN]), steps,
         (alive & keep & ~last).to(t.dtype), torch.where(alive, (keep & last).to(t.dtype), state[_TRUNC]),
         state[_EVALS] + alive + (lit if config.light else 0),
@@ -248,7 +259,8 @@ EAGER = Kernels(sample_density, light_density, advance, advance_sample)
 def shader_steps(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed: Tensor, scales: list[Tensor], *,
                  count: int, config: StepConfig, kernels: Kernels = EAGER) -> Tensor:
     """`count` steps of every slot: `state` [_ROWS, N] (rows `_T` ...) -> the state after them.
-    `ray` [9, N]: each slot's origin, direction and the sky behind it, a row per coordinate; `s`
+    `ray` [11, N]: each slot's origin, direction, the sky behind it (a row per coordinate), the
+    end of its march and its span (t1, t1 - t0: `_T_END`, `_SPAN`); `s`
     [N] its scene. A slot whose `_ALIVE` is 0 keeps its state. Per ray, the ops and their order
     are those of `march`, `shader_look.shader_medium` and `CloudLayer`. The light's density is
     taken only at the lit samples (about a tenth of a template's), gathered between the kernels:
@@ -264,7 +276,7 @@ def shader_steps(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed:
                 # specialise on it): either recompiles the kernel
                 lit = lit.repeat(2) if lit.shape[0] == 1 else lit.clone()
                 ahead = torch.zeros_like(none_lit).index_copy_(
-                    0, lit, kernels.light(sample.point, state[_T], s, lit, look, packed, scales, config=config))
+                    0, lit, kernels.light(sample.point, sample.count, s, lit, look, packed, scales, config=config))
         if k + 1 < count:
             state, sample = kernels.advance_sample(state, ray, s, look, packed, scales, sample, ahead, config=config)
         else:
@@ -285,7 +297,8 @@ def fused_march(steps, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: 
                 compact_below: float = COMPACT_BELOW) -> tuple[MarchResult, Tensor]:
     """March the R rays where `hit` with `steps(state, ray, s, count)` (`shader_steps` with the
     rest bound) in wavefronts. `t0`, `t1`, `start` (the first sample's t) [R]; `hit` [R] bool; `ray`
-    [9, R] as `shader_steps` takes it; `s` [R]. -> (the `march` result, density evaluations)."""
+    [9, R] (origin, direction, sky); `s` [R]. -> (the `march` result, density evaluations)."""
+    ray = torch.cat([ray, t1[None], (t1 - t0)[None]])
     final = t0.new_zeros(_ROWS, t0.shape[0])
     final[_TRANS] = 1.0
     queue = hit.nonzero().squeeze(1)
@@ -298,8 +311,7 @@ def fused_march(steps, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: 
             new = queue[taken:taken + room]
             taken += room
             fresh = t0.new_zeros(_ROWS, room)
-            end = take_rows(t1, new)
-            fresh[_T], fresh[_T_END], fresh[_SPAN] = take_rows(start, new), end, end - take_rows(t0, new)
+            fresh[_T] = take_rows(start, new)
             fresh[_TRANS], fresh[_ALIVE] = 1.0, 1.0
             slots, state = torch.cat([slots, new]), torch.cat([state, fresh], dim=1)
             slot_ray, slot_s = torch.cat([slot_ray, ray.index_select(1, new)], dim=1), torch.cat([slot_s, take_rows(s, new)])
