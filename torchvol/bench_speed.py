@@ -312,7 +312,7 @@ def markdown(sections: dict) -> str:
                   "the light's density at the lit samples); the arithmetic hash's fbm is one fused kernel, the physical "
                   "march around it eager (docs/VOLUMES.md). \"1 thread\": as a generator's worker renders (one torch "
                   "thread each, workers scale by processes): the march's eager glue between kernels (gathers, compaction, "
-                  "dynamo's guards: small ops and Python) is mostly serial, so a second thread speeds the kernels and not the rest. "
+                  "dynamo's guards: small ops and Python) runs on one thread, where waking a second costs more than it saves, so a second thread speeds the kernels only (docs/VOLUMES.md, \"Two threads\"). "
                   "Density evals/s count the evaluations the eager march makes; "
                   "the fused step evaluates the cloud at every live ray and again towards the light where lit.", ""]
     if "floor" in sections:
