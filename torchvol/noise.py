@@ -31,7 +31,6 @@ __all__ = [
     "texture_noise",
     "texture_noise_table",
     "texture_table",
-    "compiled",
     "fbm",
     "finest_period",
     "LLVMPIPE_FILTER_BITS",

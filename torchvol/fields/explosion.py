@@ -18,8 +18,7 @@ from typing import Annotated
 from pydantic import Field
 from torch import Tensor
 
-from .. import noise
-from .. import compilation
+from .. import compilation, noise
 from ..batch import Stacked, take
 from ..schema import EACH, Strict, Vec3
 from .fbm import seeded_fbm

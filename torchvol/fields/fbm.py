@@ -8,8 +8,7 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 from torch import Tensor
 
-from .. import fastnoise, noise
-from .. import compilation
+from .. import compilation, fastnoise, noise
 from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
 

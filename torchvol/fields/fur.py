@@ -15,8 +15,7 @@ import torch
 from pydantic import Field
 from torch import Tensor
 
-from .. import noise
-from .. import compilation
+from .. import compilation, noise
 from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
 

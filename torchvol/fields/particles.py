@@ -18,8 +18,7 @@ import torch
 from pydantic import Field, field_validator, model_validator
 from torch import Tensor
 
-from .. import noise
-from .. import compilation
+from .. import compilation, noise
 from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
 from .fbm import NOISES, seeded_fbm
