@@ -56,3 +56,23 @@ def test_the_fused_march_runs_its_kernels_on_the_renders_threads_and_its_glue_on
         fused.compiled_steps.cache_clear()
     assert kernel_threads and set(kernel_threads) == {2}
     assert glue_threads and set(glue_threads) == {1}
+
+
+def test_small_density_kernels_run_on_one_thread(monkeypatch):
+    """A compiled kernel's parallel region wakes the second thread at every call (~60 µs): below
+    `PARALLEL_POINTS` points that costs more than it saves."""
+    from torchvol import fastnoise
+    from torchvol.threads import PARALLEL_POINTS, threads_for
+
+    seen = []
+
+    def recorder(octaves, gain):
+        return lambda x, *rest: seen.append(torch.get_num_threads()) or torch.zeros_like(x)
+
+    monkeypatch.setattr(fastnoise, "_compiled_fbm", recorder)
+    with torch_threads(2):
+        assert threads_for(PARALLEL_POINTS - 1) == 1 and threads_for(PARALLEL_POINTS) == 2
+        for n in (5, PARALLEL_POINTS):
+            fastnoise.fbm_value_hashed(torch.zeros(n, 3), seed=1, octaves=2, compiled=True)
+        assert torch.get_num_threads() == 2
+    assert seen == [1, 2]

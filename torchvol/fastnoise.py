@@ -30,6 +30,7 @@ from torch import Tensor
 from . import noise
 from .compilation import compiled
 from .mathops import take_rows
+from .threads import threads_for, torch_threads
 
 __all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed", "compile_pays"]
 
@@ -166,7 +167,8 @@ def fbm_value_hashed(
     if not compiled:
         return noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), octaves=octaves, lacunarity=lacunarity,
                          gain=gain, lod=lod)
-    return _compiled_fbm(int(octaves), float(gain))(*_kernel_args(p, seed, octaves, lacunarity, lod))
+    with torch_threads(threads_for(p.shape[0])):
+        return _compiled_fbm(int(octaves), float(gain))(*_kernel_args(p, seed, octaves, lacunarity, lod))
 
 
 def mixed_seeds(seeds: Sequence[int], device) -> Tensor:
@@ -201,8 +203,10 @@ def fbm_field_hashed(
     x, y, z, _, scales, lod = _kernel_args(p, 0, octaves, lacunarity, lod)
     at = lambda v: take_rows(v, scene)  # noqa: E731  per point: [B] -> [N]
     cols = lambda v: [at(v[:, i].contiguous()) for i in range(3)]  # noqa: E731  [B, 3] -> 3 × [N]
-    return _compiled_field(int(octaves), float(gain))(x, y, z, at(seeds), scales, lod, at(frequency), cols(shift),
-                                                      cols(offset), at(bias), at(amplitude), at(radial), cols(center))
+    with torch_threads(threads_for(p.shape[0])):
+        return _compiled_field(int(octaves), float(gain))(x, y, z, at(seeds), scales, lod, at(frequency), cols(shift),
+                                                          cols(offset), at(bias), at(amplitude), at(radial),
+                                                          cols(center))
 
 
 def compile_pays(scene) -> bool:
