@@ -266,17 +266,18 @@ def shader_steps(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed:
     taken only at the lit samples (about a tenth of a template's), gathered between the kernels:
     an eager op whose size depends on the data."""
     sample = kernels.sample(state, ray, s, look, packed, scales, config=config)
-    none_lit = torch.zeros_like(state[_T])  # `ahead` of a step without lit samples (then unused)
+    # `ahead`, one buffer for the block: `advance` reads it only where the step is lit, which each
+    # lit step writes anew (elsewhere it holds an earlier step's density: finite, unused)
+    ahead = torch.zeros_like(state[_T])
     for k in range(count):
-        ahead = none_lit
         if config.light:
             lit = sample.lit.nonzero().squeeze(1)
             if lit.shape[0]:
                 # not a view (dynamo guards a view's base) and not one point (a compiled kernel would
                 # specialise on it): either recompiles the kernel
                 lit = lit.repeat(2) if lit.shape[0] == 1 else lit.clone()
-                ahead = torch.zeros_like(none_lit).index_copy_(
-                    0, lit, kernels.light(sample.point, sample.count, s, lit, look, packed, scales, config=config))
+                ahead.index_copy_(0, lit, kernels.light(sample.point, sample.count, s, lit, look, packed, scales,
+                                                        config=config))
         if k + 1 < count:
             state, sample = kernels.advance_sample(state, ray, s, look, packed, scales, sample, ahead, config=config)
         else:
