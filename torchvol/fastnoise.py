@@ -162,7 +162,7 @@ def fbm_value_hashed(
     p: ``[N, 3]`` points; lod: optional ``[N]`` (or scalar) as in `noise.fbm`. compiled: run the
     fused kernel under torch.compile (compiled once per octave count, dtype and LOD presence, for
     all sizes and seeds; inductor's on-disk cache serves later processes; past dynamo's recompile
-    limit, 8 variants, it runs eagerly: slower, same values). Returns ``[N]``.
+    limit, `compilation.VARIANTS`, it runs eagerly: slower, same values). Returns ``[N]``.
     """
     if not compiled:
         return noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), octaves=octaves, lacunarity=lacunarity,
