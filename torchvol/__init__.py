@@ -8,6 +8,12 @@ import os
 # every process started later (generator and DataLoader workers). A user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from . import heap  # noqa: E402
+
+# freed tensors stay in the heap for the next march step's: no page faults at every step
+# (torchvol/heap.py); in every process that imports torchvol, unless the environment tunes malloc
+heap.keep_freed_memory()
+
 from .camera import Camera, Rays
 from .data import FolderDataset, SceneDataset
 from .recipe import Recipe
