@@ -271,7 +271,8 @@ def shader_steps(state: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed:
     ahead = torch.zeros_like(state[_T])
     for k in range(count):
         if config.light:
-            lit = sample.lit.nonzero().squeeze(1)
+            # a bool's nonzero: half a float's (45 against 100 µs on 65,536 slots, conversion included)
+            lit = sample.lit.bool().nonzero().squeeze(1)
             if lit.shape[0]:
                 # not a view (dynamo guards a view's base) and not one point (a compiled kernel would
                 # specialise on it): either recompiles the kernel
