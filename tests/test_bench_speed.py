@@ -27,7 +27,8 @@ def test_speed_quick_logic_on_tiny_sizes(tmp_path):
     assert {r["renderer"] for r in rows} >= {"torchvol eager", "torchvol torch.compile", "arithmetic hash, fused field compiled"}
     floor = bench_speed.floor_rows(points=2048, repeat=1)
     assert all(r["evals_per_s"] > 0 for r in floor) and {r["density"] for r in floor} == {"cloud-puff", "template-clouds"}
-    assert all(f is None or f > 0 for f in bench_speed.floor_ratios(rows, floor))
+    assert all((r["x_floor"] is None) == (r["evals_per_s"] is None) for r in rows)
+    assert all(r["x_floor"] > 0 for r in rows if r["x_floor"] is not None)
     # homogeneous-box: a closed form, few ops (turning a march's 2e5 profiler events into rows takes ~10 s)
     profile = {"homogeneous-box 8×8": bench_speed.profile_rows("homogeneous-box", size=8, top=3)}
     profile["fused"] = bench_speed.profile_rows("cloud-puff", size=8, top=3, hash="arithmetic", compile=True)
@@ -54,14 +55,17 @@ def test_openmp_waits_passively_unless_the_user_says_otherwise(preset, expected)
     assert out.stdout.strip() == expected
 
 
-def test_floor_ratio_is_time_over_the_fastest_kernel_of_the_same_density():
-    render = [dict(work="template-clouds 16×9", evals_per_s=None), dict(work="template-clouds 16×9", evals_per_s=10.0),
-              dict(work="cloud-puff 8×8", evals_per_s=50.0)]
-    floor = [dict(density="template-clouds", evals_per_s=40.0), dict(density="template-clouds", evals_per_s=20.0),
-             dict(density="cloud-puff", evals_per_s=100.0)]
-    assert bench_speed.floor_ratios(render, floor) == [None, 4.0, 2.0]
-    # a one-thread render against the one-thread kernel, not the fastest on any thread count
-    one = [dict(work="template-clouds 16×9", evals_per_s=10.0, threads=1)]
-    floors = [dict(density="template-clouds", evals_per_s=40.0, threads=2),
-              dict(density="template-clouds", evals_per_s=25.0, threads=1)]
-    assert bench_speed.floor_ratios(one, floors) == [2.5]
+def test_floor_ratio_pairs_each_render_with_the_floor_run_beside_it():
+    # 100 evaluations at 100 points in 0.5 s: the floor takes 0.5 s, a render of 1 s is 2x it
+    assert bench_speed.floor_ratio([1.0], [0.5], evals=100, points=100) == 2.0
+    # run by run, not medians apart: a machine twice as slow in the second run slows both
+    assert bench_speed.floor_ratio([1.0, 2.0, 1.0], [0.5, 1.0, 0.25], evals=100, points=100) == 2.0
+    assert bench_speed.floor_ratio([3.0], [1.0], evals=50, points=100) == 6.0
+
+
+def test_time_render_runs_the_floor_after_each_render():
+    calls = []
+    floor = bench_speed.Floor(kernel=lambda: calls.append(1), points=10, threads=1)
+    timing = bench_speed.time_render("homogeneous-box", compile=False, repeat=3, floor=floor)
+    assert len(calls) == 3 and timing.seconds > 0 and timing.first_s > 0 and timing.evals > 0 and timing.x_floor > 0
+    assert bench_speed.time_render("homogeneous-box", compile=False, repeat=1).x_floor is None  # no floor given

@@ -23,8 +23,8 @@ from torchvol.testing.glsl import renderer_name
 
 
 def time_torchvol(width: int, height: int, *, compile: bool, repeat: int) -> tuple[float, int]:
-    seconds, evals, _ = time_render(preset("template-clouds", width=width, height=height), compile=compile, repeat=repeat)
-    return seconds, evals
+    timing = time_render(preset("template-clouds", width=width, height=height), compile=compile, repeat=repeat)
+    return timing.seconds, timing.evals
 
 
 def main() -> None:

@@ -11,7 +11,8 @@ any machine (absolute times only on a quiet one):
    each row with its density evaluations per second.
 2. The floor: density evaluations per second of each render's noise alone on the same points
    (cloud-puff's value-noise fbm: table hash eager, arithmetic hash eager, fused compiled kernel;
-   the template's texture-noise fbm eager and compiled); each render row's time over its floor.
+   the template's texture-noise fbm eager and compiled); each render row's time over its floor,
+   the fastest of these kernels run beside each of the row's renders.
 3. Generation: samples/s of bundled recipes at 128×128 with 1 and 2 workers (`generate`, the
    full path: sampling, batched render, encoding, writes; worker runs include process start-up).
 4. The loaded-machine slowdown: a render in a fresh process alone and while one
@@ -31,7 +32,7 @@ import tempfile
 import textwrap
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import torch
 
@@ -54,13 +55,45 @@ def _median_time(fn: Callable[[], object], repeat: int) -> float:
     return statistics.median(times)
 
 
-def time_render(scene, *, compile: bool, repeat: int) -> tuple[float, int, float]:
-    """(median seconds, density evaluations, first-call seconds) of `render(scene)`; the first call
-    (compilation under `compile`) is not in the median."""
+class RenderTiming(NamedTuple):
+    seconds: float  # median of the timed renders
+    evals: int  # density evaluations of one render
+    first_s: float  # the first render (compilation under `compile`), not in the median
+    x_floor: float | None  # median over the runs of the render's time over its floor's (None: no floor)
+
+
+class Floor(NamedTuple):
+    """A render's density-evaluation floor: `kernel` evaluates the density at `points` points."""
+
+    kernel: Callable[[], object]
+    points: int
+    threads: int
+
+
+def floor_ratio(render_s: Sequence[float], floor_s: Sequence[float], *, evals: int, points: int) -> float:
+    """Median over paired runs of a render's time over the time its `evals` density evaluations take
+    at the floor kernel's rate in the run beside it (`points` points in `floor_s`)."""
+    return statistics.median(r * points / (evals * f) for r, f in zip(render_s, floor_s, strict=True))
+
+
+def time_render(scene, *, compile: bool, repeat: int, floor: Floor | None = None) -> RenderTiming:
+    """`render(scene)` timed `repeat` times after a first call. With a `floor`, its kernel runs after
+    each render (on its threads), and × floor is taken run by run: on a VM whose speed drifts, a
+    floor measured minutes apart from the render skewed the ratio by up to 2× (docs/SPEED.md)."""
+    from .threads import torch_threads
+
     start = time.perf_counter()
     out = render(scene, compile=compile)
     first = time.perf_counter() - start
-    return _median_time(lambda: render(scene, compile=compile), repeat), out.stats["density_evals"], first
+    render_s, floor_s = [], []
+    for _ in range(repeat):
+        render_s.append(_median_time(lambda: render(scene, compile=compile), 1))
+        if floor is not None:
+            with torch_threads(floor.threads):
+                floor_s.append(_median_time(floor.kernel, 1))
+    evals = out.stats["density_evals"]
+    x_floor = floor_ratio(render_s, floor_s, evals=evals, points=floor.points) if floor is not None and evals else None
+    return RenderTiming(statistics.median(render_s), evals, first, x_floor)
 
 
 def time_llvmpipe(width: int, height: int, *, repeat: int) -> float | None:
@@ -81,34 +114,46 @@ def _cloud_puff(width: int, height: int, hash: str) -> dict:
     return scene
 
 
-def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size: tuple[int, int]) -> list[dict]:
-    """Rows {work, renderer, threads, seconds, evals_per_s, ratio, first_s}: template-clouds per
-    size against llvmpipe (compiled also on one thread, as a generator's worker renders), then
-    cloud-puff at `physical_size` against its table-hash eager render."""
+def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size: tuple[int, int],
+                floor_points: int = 2**20) -> list[dict]:
+    """Rows {work, renderer, threads, seconds, evals_per_s, ratio, x_floor, first_s}: template-clouds
+    per size against llvmpipe (compiled also on one thread, as a generator's worker renders), then
+    cloud-puff at `physical_size` against its table-hash eager render. × floor: against the
+    fastest kernel of the render's density on as many threads (`floor_kernels`' fused compiled
+    kernels), run beside each render on `floor_points` points."""
     from .threads import torch_threads
 
     rows, threads = [], torch.get_num_threads()
+    kernels = floor_kernels(points=floor_points)
+
+    def floor(density: str, n: int) -> Floor:
+        kernel = kernels[(FASTEST[density], density, n)]
+        with torch_threads(n):
+            kernel()  # compiles: not in the timed runs
+        return Floor(kernel, floor_points, n)
+
     for width, height in sizes:
         gl = time_llvmpipe(width, height, repeat=repeat)
         work = f"template-clouds {width}×{height}"
         if gl is not None:
             rows.append(dict(work=work, renderer="llvmpipe (GLSL template)", threads=None, seconds=gl, evals_per_s=None,
-                             ratio=1.0, first_s=None))
+                             ratio=1.0, x_floor=None, first_s=None))
         scene = preset("template-clouds", width=width, height=height)
         for compile, n, name in ((False, threads, "torchvol eager"), (True, threads, "torchvol torch.compile"),
                                  (True, 1, "torchvol torch.compile, 1 thread")):
             with torch_threads(n):
-                seconds, evals, first = time_render(scene, compile=compile, repeat=repeat)
-            rows.append(dict(work=work, renderer=name, threads=n, seconds=seconds, evals_per_s=evals / seconds,
-                             ratio=seconds / gl if gl else None, first_s=first))
+                t = time_render(scene, compile=compile, repeat=repeat, floor=floor("template-clouds", n))
+            rows.append(dict(work=work, renderer=name, threads=n, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
+                             ratio=t.seconds / gl if gl else None, x_floor=t.x_floor, first_s=t.first_s))
     width, height = physical_size
     work, base = f"cloud-puff {width}×{height}", None
     for hash, compile, name in (("table", False, "table hash, eager"), ("arithmetic", False, "arithmetic hash, eager"),
                                 ("arithmetic", True, "arithmetic hash, fused field compiled")):
-        seconds, evals, first = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat)
-        base = base or seconds
-        rows.append(dict(work=work, renderer=name, threads=threads, seconds=seconds, evals_per_s=evals / seconds,
-                         ratio=seconds / base, first_s=first))
+        t = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat,
+                        floor=floor("cloud-puff", threads))
+        base = base or t.seconds
+        rows.append(dict(work=work, renderer=name, threads=threads, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
+                         ratio=t.seconds / base, x_floor=t.x_floor, first_s=t.first_s))
     return rows
 
 
@@ -127,13 +172,17 @@ def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", com
     return [dict(op=e.key, share=e.self_cpu_time_total / total, calls=e.count) for e in events[:top]]
 
 
-def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
-    """Density evaluations/s of each measured render's noise alone on the same `points` random
-    points (interleaved runs): cloud-puff's `octaves`-octave value-noise fbm and the template's
-    5-octave texture-noise fbm (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel
-    (also on one thread, the floor of the one-thread render rows). Rows {kernel, density (the
-    preset whose floor it is), threads, evals_per_s, first_s}."""
-    from .threads import torch_threads
+# each density's fastest kernel (`floor_kernels`), the floor its renders are measured against
+FASTEST = {"cloud-puff": "arithmetic hash, fused compiled kernel",
+           "template-clouds": "texture noise, 5 octaves, fused compiled kernel"}
+
+
+def floor_kernels(*, points: int, octaves: int = 4) -> dict[tuple[str, str, int], Callable[[], object]]:
+    """Each measured render's noise alone on the same `points` random points: cloud-puff's
+    `octaves`-octave value-noise fbm and the template's 5-octave texture-noise fbm
+    (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel (the template's also on one
+    thread, the floor of the one-thread render rows). {(kernel, density (the preset whose floor
+    it is), torch threads): fn}; run each on its threads."""
     from .volume.fused import cloud_fbm
 
     g = torch.Generator().manual_seed(0)
@@ -144,19 +193,25 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     scales = noise.folded_scales(5, dtype=p.dtype, device=p.device)
     template_fbm = compiled(cloud_fbm)
     n = torch.get_num_threads()
-    kernels = {  # (kernel, the preset whose floor it is, torch threads): fn
+    return {
         ("table hash (noise.fbm over noise.value_noise), eager", "cloud-puff", n):
             lambda: noise.fbm(p, lambda q: noise.value_noise(q, seed=7), octaves=octaves),
         ("arithmetic hash, eager twin", "cloud-puff", n): lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves),
-        ("arithmetic hash, fused compiled kernel", "cloud-puff", n):
+        (FASTEST["cloud-puff"], "cloud-puff", n):
             lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves, compiled=True),
         ("texture noise, 5 octaves (integer filter), eager", "template-clouds", n):
             lambda: cloud_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
-        ("texture noise, 5 octaves, fused compiled kernel", "template-clouds", n):
-            lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
-        ("texture noise, 5 octaves, fused compiled kernel, 1 thread", "template-clouds", 1):
-            lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
+        **{(FASTEST["template-clouds"], "template-clouds", k):
+           lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales) for k in sorted({n, 1})},
     }
+
+
+def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
+    """Density evaluations/s of `floor_kernels`, interleaved runs. Rows {kernel, density (the
+    preset whose floor it is), threads, evals_per_s, first_s}."""
+    from .threads import torch_threads
+
+    kernels = floor_kernels(points=points, octaves=octaves)
     first = {}
     for key, fn in kernels.items():
         with torch_threads(key[2]):
@@ -170,21 +225,6 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
                 times[key].append(_median_time(fn, 1))
     return [dict(kernel=kernel, density=density, threads=threads, evals_per_s=points / statistics.median(t),
                  first_s=first[(kernel, density, threads)]) for (kernel, density, threads), t in times.items()]
-
-
-def floor_ratios(render: Sequence[dict], floor: Sequence[dict]) -> list[float | None]:
-    """Per render row: its time over its density-evaluation floor, the time its density evaluations
-    take in the fastest kernel for that density on as many threads (evals / that kernel's
-    evals/s); None for llvmpipe."""
-    best: dict[tuple, float] = {}
-    for r in floor:
-        key = (r["density"], r.get("threads"))
-        best[key] = max(best.get(key, 0.0), r["evals_per_s"])
-    out = []
-    for r in render:
-        rate = next((v for (k, n), v in best.items() if r["work"].startswith(k) and n == r.get("threads")), None)
-        out.append(None if r["evals_per_s"] is None or rate is None else rate / r["evals_per_s"])
-    return out
 
 
 def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
@@ -297,14 +337,14 @@ def markdown(sections: dict) -> str:
                   "the fused density kernels (`Torch-Compiled Region`, dynamo's guard checks in `TorchDynamo Cache Lookup`) "
                   "sit among the march's small eager ops (docs/VOLUMES.md, \"The fused field\").", ""]
     if "render" in sections:
-        floors = floor_ratios(sections["render"], sections.get("floor", []))
         lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | × floor | first call s |",
                   "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
         lines += [f"| {r['work']} | {r['renderer']} | {r['seconds']:.3f} | {_fmt(r['evals_per_s'], ',.0f')} | "
-                  f"{_fmt(r['ratio'], '.2f')} | {_fmt(f, '.1f')} | {_fmt(r['first_s'], '.1f')} |"
-                  for r, f in zip(sections["render"], floors)]
+                  f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['x_floor'], '.1f')} | {_fmt(r['first_s'], '.1f')} |"
+                  for r in sections["render"]]
         lines += ["", "× floor: the render's time over its density-evaluation floor, the time its density evaluations alone "
-                  "take in the fastest kernel for that density on as many threads (next table): 1 would be a render that "
+                  "take in the fastest kernel for that density on as many threads (next table), that kernel run after each "
+                  "render and the ratio taken run by run (the median of the runs' ratios): 1 would be a render that "
                   "costs nothing but its noise. "
                   "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
                   "`torch.compile` on template-clouds runs the fused march step (torchvol/volume/fused.py: a step is two "
@@ -316,9 +356,10 @@ def markdown(sections: dict) -> str:
                   "Density evals/s count the evaluations the eager march makes; "
                   "the fused step evaluates the cloud at every live ray and again towards the light where lit.", ""]
     if "floor" in sections:
-        lines += ["## The floor: each render's noise alone", "", "| density of | kernel | evals/s | first call s |",
-                  "| --- | --- | ---: | ---: |"]
-        lines += [f"| {r['density']} | {r['kernel']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |" for r in sections["floor"]]
+        lines += ["## The floor: each render's noise alone", "", "| density of | kernel | threads | evals/s | first call s |",
+                  "| --- | --- | ---: | ---: | ---: |"]
+        lines += [f"| {r['density']} | {r['kernel']} | {r['threads']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |"
+                  for r in sections["floor"]]
         lines += [""]
     if "generate" in sections:
         lines += ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
@@ -363,7 +404,8 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
         sections["profile"][f"template-clouds compiled {size}×{size}"] = profile_rows("template-clouds", size=size, compile=True)
     if "render" in parts:
         sizes = ((160, 90),) if quick else TEMPLATE_SIZES
-        sections["render"] = render_rows(sizes, repeat=repeat, physical_size=(48, 48) if quick else (128, 128))
+        sections["render"] = render_rows(sizes, repeat=repeat, physical_size=(48, 48) if quick else (128, 128),
+                                         floor_points=2**16 if quick else 2**20)
     if "floor" in parts:
         sections["floor"] = floor_rows(points=2**16 if quick else 2**20, repeat=repeat)
     if "generate" in parts:
