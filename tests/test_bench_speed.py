@@ -9,6 +9,8 @@ from torchvol.cli import build_parser
 def test_cli_parses_bench_speed():
     args = build_parser().parse_args(["bench", "speed", "--quick", "--out", "x.md"])
     assert args.quick and args.out == "x.md" and args.func.__name__ == "cmd_bench_speed"
+    assert args.parts == list(bench_speed.PARTS)
+    assert build_parser().parse_args(["bench", "speed", "--parts", "heap", "render"]).parts == ["heap", "render"]
 
 
 def test_generation_and_loaded_sections_report(tmp_path):
@@ -17,8 +19,12 @@ def test_generation_and_loaded_sections_report(tmp_path):
     assert rows[0]["steady_per_s"] > 0 and rows[0]["first_s"] >= 0
     loaded = bench_speed.loaded_rows(width=8, height=6, repeat=1, configs=[(1, "PASSIVE")])
     assert loaded[0]["slowdown"] > 0
-    text = bench_speed.markdown({"quick": True, "repeat": 1, "generate": rows, "loaded": loaded})
+    heap = bench_speed.heap_rows([("template-clouds", 8, 6, "off", 1)], repeat=1)
+    assert [r["heap"] for r in heap] == ["glibc's defaults", "torchvol"]
+    assert all(r["seconds"] > 0 and r["faults"] >= 0 and r["system_s"] >= 0 for r in heap)
+    text = bench_speed.markdown({"quick": True, "repeat": 1, "generate": rows, "loaded": loaded, "heap": heap})
     assert "| clouds | 1 |" in text and "| 1 | PASSIVE |" in text
+    assert "## The heap" in text and "| template-clouds 8×6 | off | 1 | torchvol |" in text
 
 
 @pytest.mark.slow  # compiles the template's and the fused fbm's kernels (tens of seconds on 2 cores, once)

@@ -17,12 +17,15 @@ any machine (absolute times only on a quiet one):
    full path: sampling, batched render, encoding, writes; worker runs include process start-up).
 4. The loaded-machine slowdown: a render in a fresh process alone and while one
    ``python -c "while True: pass"`` keeps a core busy, per thread count and OpenMP wait policy.
+5. The heap: renders in fresh processes with glibc's malloc as `torchvol.heap` sets it and left
+   alone; seconds, page faults and system time per render.
 
 Compile time is excluded from the steady-state rows and reported on its own (first call).
 """
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import statistics
@@ -44,6 +47,7 @@ from .scene import preset
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
 TEMPLATE_SIZES = ((640, 360), (1280, 720))
+PARTS = ("profile", "render", "floor", "generate", "loaded", "heap")  # the report's sections, in order
 
 
 def _median_time(fn: Callable[[], object], repeat: int) -> float:
@@ -272,24 +276,35 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
 
 
 _RENDER_CHILD = textwrap.dedent("""
-    import statistics, sys, time, torch
-    torch.set_num_threads(int(sys.argv[1]))
+    import json, resource, statistics, sys, time, torch
+    threads, name, width, height, repeat, compile = sys.argv[1:]
+    torch.set_num_threads(int(threads))
     import torchvol as tv
-    scene = tv.preset("template-clouds", width=int(sys.argv[2]), height=int(sys.argv[3]))
-    tv.render(scene)
-    times = []
-    for _ in range(int(sys.argv[4])):
-        start = time.perf_counter(); tv.render(scene); times.append(time.perf_counter() - start)
-    print(statistics.median(times))
+    scene = tv.preset(name, width=int(width), height=int(height))
+    tv.render(scene, compile=compile)
+    times, faults, system = [], [], []
+    for _ in range(int(repeat)):
+        before, start = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        tv.render(scene, compile=compile)
+        after = resource.getrusage(resource.RUSAGE_SELF)
+        times.append(time.perf_counter() - start)
+        faults.append(after.ru_minflt - before.ru_minflt)
+        system.append(after.ru_stime - before.ru_stime)
+    print(json.dumps(dict(seconds=statistics.median(times), faults=statistics.median(faults),
+                          system_s=statistics.median(system))))
 """)
 
 
-def _child_render(threads: int, policy: str, width: int, height: int, repeat: int) -> float:
-    env = {**os.environ, "OMP_WAIT_POLICY": policy, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+def _child_render(threads: int, width: int, height: int, repeat: int, *, name: str = "template-clouds",
+                  compile: str = "off", env: dict[str, str] | None = None) -> dict:
+    """Preset `name` rendered in a fresh process (after one render) -> medians over `repeat` renders
+    {seconds, faults (minor page faults), system_s (system CPU seconds)}; `env` added to ours."""
+    env = {**os.environ, **(env or {}),
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     env.pop("OMP_NUM_THREADS", None)  # the child sets its own thread count
-    out = subprocess.run([sys.executable, "-c", _RENDER_CHILD, str(threads), str(width), str(height), str(repeat)],
-                         env=env, check=True, capture_output=True, text=True)
-    return float(out.stdout.strip().splitlines()[-1])
+    out = subprocess.run([sys.executable, "-c", _RENDER_CHILD, str(threads), name, str(width), str(height), str(repeat),
+                          compile], env=env, check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def loaded_rows(*, width: int, height: int, repeat: int, configs: Sequence[tuple[int, str]] | None = None) -> list[dict]:
@@ -299,14 +314,27 @@ def loaded_rows(*, width: int, height: int, repeat: int, configs: Sequence[tuple
     configs = configs or [(cores, "ACTIVE"), (cores, "PASSIVE"), (max(1, cores - 1), "PASSIVE")]
     rows = []
     for threads, policy in configs:
-        alone = _child_render(threads, policy, width, height, repeat)
+        policy_env = {"OMP_WAIT_POLICY": policy}
+        alone = _child_render(threads, width, height, repeat, env=policy_env)["seconds"]
         busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
         try:
-            loaded = _child_render(threads, policy, width, height, repeat)
+            loaded = _child_render(threads, width, height, repeat, env=policy_env)["seconds"]
         finally:
             busy.kill()
             busy.wait()
         rows.append(dict(threads=threads, policy=policy, alone_s=alone, loaded_s=loaded, slowdown=loaded / alone))
+    return rows
+
+
+def heap_rows(works: Sequence[tuple[str, int, int, str, int]], *, repeat: int) -> list[dict]:
+    """Each (preset, width, height, compile mode, torch threads) in fresh processes, glibc's heap as
+    torchvol sets it (`torchvol.heap`) and left alone (TORCHVOL_HEAP=system), alternately: rows
+    {work, compile, threads, heap, seconds, faults, system_s}."""
+    rows = []
+    for name, width, height, compile, threads in works:
+        for heap, env in (("glibc's defaults", {"TORCHVOL_HEAP": "system"}), ("torchvol", {"TORCHVOL_HEAP": "torchvol"})):
+            run = _child_render(threads, width, height, repeat, name=name, compile=compile, env=env)
+            rows.append(dict(work=f"{name} {width}×{height}", compile=compile, threads=threads, heap=heap, **run))
     return rows
 
 
@@ -385,12 +413,23 @@ def markdown(sections: dict) -> str:
         lines += ["", "Where waking a sleeping thread is slow (some VMs), two PASSIVE threads are slower alone than "
                   "loaded and than one thread; one thread is the setting that is never far off, alone or loaded, so the "
                   "generator runs one a worker and scales by processes (docs/DATASETS.md, \"Threads on a shared machine\").", ""]
+    if "heap" in sections:
+        lines += ["## The heap", "", "Renders in fresh processes with glibc's malloc left alone (`TORCHVOL_HEAP=system`) "
+                  "and as `import torchvol` sets it (torchvol/heap.py: freed blocks up to 32 MiB stay in the heap, whose "
+                  "top is handed back past 64 MiB). Page faults and system CPU seconds per render.", "",
+                  "| work | compile | threads | heap | median s | page faults | system s |",
+                  "| --- | --- | ---: | --- | ---: | ---: | ---: |"]
+        lines += [f"| {r['work']} | {r['compile']} | {r['threads']} | {r['heap']} | {r['seconds']:.3f} | {r['faults']:,.0f} | "
+                  f"{r['system_s']:.3f} |" for r in sections["heap"]]
+        lines += ["", "A march step allocates and frees a wavefront's tensors (a few MB) at every step; glibc's defaults "
+                  "serve them from fresh mappings or hand the heap's top back, and every page of the next step's tensors "
+                  "is faulted in and zeroed by the kernel again: on two threads both wait on it.", ""]
     return "\n".join(lines)
 
 
 def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | None = None,
           recipes: Sequence[str] | None = None, count: int | None = None,
-          parts: Sequence[str] = ("profile", "render", "floor", "generate", "loaded")) -> str:
+          parts: Sequence[str] = PARTS) -> str:
     """Run the benchmark; returns the Markdown (and writes it to `out` where given). `quick`: small
     sizes, two recipes, fewer points (about 2 minutes on 2 cores once inductor's cache is warm)."""
     repeat = repeat or (2 if quick else 3)
@@ -416,6 +455,12 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
     if "loaded" in parts:
         # quick: a small render (2 threads spinning against a competitor run ~20x longer), 3 runs: the ratio is noisy
         sections["loaded"] = loaded_rows(width=64 if quick else 320, height=36 if quick else 180, repeat=3 if quick else repeat)
+    if "heap" in parts:
+        cores = os.cpu_count() or 1
+        works = ([("template-clouds", 64, 36, "all", cores)] if quick else
+                 [("template-clouds", 640, 360, "all", cores), ("template-clouds", 640, 360, "all", 1),
+                  ("voxel-gi", 128, 128, "exact", 1)])
+        sections["heap"] = heap_rows(works, repeat=repeat)
     text = markdown(sections)
     if out is not None:
         Path(out).write_text(text + "\n")

@@ -183,7 +183,7 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
 def cmd_bench_speed(args: argparse.Namespace) -> int:
     from .bench_speed import speed
 
-    print(speed(args.out, quick=args.quick, repeat=args.repeat, recipes=args.recipes, count=args.count))
+    print(speed(args.out, quick=args.quick, repeat=args.repeat, recipes=args.recipes, count=args.count, parts=args.parts))
     return 0
 
 
@@ -309,7 +309,10 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--seed", type=int, default=0, help="render seed (default 0)")
     _common(a)
     a.set_defaults(func=cmd_bench_accuracy)
-    s = b.add_parser("speed", help="llvmpipe vs eager vs fast renders, the fbm floor, generation samples/s, loaded-machine slowdown",
+    from .bench_speed import PARTS as SPEED_PARTS
+
+    s = b.add_parser("speed", help="llvmpipe vs eager vs fast renders, the fbm floor, generation samples/s, loaded-machine "
+                     "slowdown, the heap",
                      description="One run of every speed figure of docs/SPEED.md (torchvol.bench_speed); ratios hold on any "
                                  "machine, absolute times only on a quiet one.")
     s.add_argument("--out", default=None, help="write the Markdown report here (e.g. docs/SPEED.md)")
@@ -319,6 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bundled recipes whose generation is timed (default: every one; quick: clouds, template-clouds)")
     s.add_argument("--count", type=int, default=None, metavar="N",
                    help="samples of a generation row's shorter run (default 16, quick 4; compiled rows 4N)")
+    s.add_argument("--parts", nargs="+", default=list(SPEED_PARTS), choices=SPEED_PARTS, metavar="PART",
+                   help="sections to run: " + ", ".join(SPEED_PARTS) + " (default all)")
     s.set_defaults(func=cmd_bench_speed)
     return parser
 

@@ -23,13 +23,16 @@ MMAP_THRESHOLD = 32 << 20
 TRIM_THRESHOLD = 64 << 20
 # the user's own glibc tuning wins
 ENVIRONMENT = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_")
+# TORCHVOL_HEAP=system leaves glibc's defaults alone
+OPT_OUT = "TORCHVOL_HEAP"
 
 
 def keep_freed_memory() -> bool:
     """Raise glibc's mmap and trim thresholds in this process (`MMAP_THRESHOLD`,
-    `TRIM_THRESHOLD`) unless the environment tunes malloc itself; -> whether they were set (False
-    off Linux or glibc)."""
-    if not sys.platform.startswith("linux") or any(name in os.environ for name in ENVIRONMENT):
+    `TRIM_THRESHOLD`) unless the environment tunes malloc itself or says `TORCHVOL_HEAP=system`;
+    -> whether they were set (False off Linux or glibc)."""
+    if (not sys.platform.startswith("linux") or any(name in os.environ for name in ENVIRONMENT)
+            or os.environ.get(OPT_OUT) == "system"):
         return False
     try:
         libc = ctypes.CDLL(None)
