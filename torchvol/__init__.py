@@ -8,7 +8,7 @@ import os
 # every process started later (generator and DataLoader workers). A user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from . import heap  # noqa: E402
+from . import heap
 
 # freed tensors stay in the heap for the next march step's: no page faults at every step
 # (torchvol/heap.py); in every process that imports torchvol, unless the environment tunes malloc

@@ -414,16 +414,16 @@ def markdown(sections: dict) -> str:
                   "loaded and than one thread; one thread is the setting that is never far off, alone or loaded, so the "
                   "generator runs one a worker and scales by processes (docs/DATASETS.md, \"Threads on a shared machine\").", ""]
     if "heap" in sections:
-        lines += ["## The heap", "", "Renders in fresh processes with glibc's malloc left alone (`TORCHVOL_HEAP=system`) "
+        lines += ["## The heap", "", ("Renders in fresh processes with glibc's malloc left alone (`TORCHVOL_HEAP=system`) "
                   "and as `import torchvol` sets it (torchvol/heap.py: freed blocks up to 32 MiB stay in the heap, whose "
-                  "top is handed back past 64 MiB). Page faults and system CPU seconds per render.", "",
+                  "top is handed back past 64 MiB). Page faults and system CPU seconds per render."), "",
                   "| work | compile | threads | heap | median s | page faults | system s |",
                   "| --- | --- | ---: | --- | ---: | ---: | ---: |"]
         lines += [f"| {r['work']} | {r['compile']} | {r['threads']} | {r['heap']} | {r['seconds']:.3f} | {r['faults']:,.0f} | "
                   f"{r['system_s']:.3f} |" for r in sections["heap"]]
-        lines += ["", "A march step allocates and frees a wavefront's tensors (a few MB) at every step; glibc's defaults "
-                  "serve them from fresh mappings or hand the heap's top back, and every page of the next step's tensors "
-                  "is faulted in and zeroed by the kernel again: on two threads both wait on it.", ""]
+        lines += ["", ("A march step allocates and frees a wavefront's tensors (a few MB) at every step; glibc's defaults "
+                       "serve them from fresh mappings or hand the heap's top back, and every page of the next step's "
+                       "tensors is faulted in and zeroed by the kernel again: on two threads both wait on it."), ""]
     return "\n".join(lines)
 
 
