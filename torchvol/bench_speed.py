@@ -43,6 +43,7 @@ from . import fastnoise, noise
 from .compilation import compiled
 from .render import render
 from .scene import preset
+from .threads import torch_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
@@ -50,13 +51,14 @@ TEMPLATE_SIZES = ((640, 360), (1280, 720))
 PARTS = ("profile", "render", "floor", "generate", "loaded", "heap")  # the report's sections, in order
 
 
+def _seconds(fn: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
 def _median_time(fn: Callable[[], object], repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return statistics.median(_seconds(fn) for _ in range(repeat))
 
 
 class RenderTiming(NamedTuple):
@@ -84,17 +86,14 @@ def time_render(scene, *, compile: bool, repeat: int, floor: Floor | None = None
     """`render(scene)` timed `repeat` times after a first call. With a `floor`, its kernel runs after
     each render (on its threads), and × floor is taken run by run: on a VM whose speed drifts, a
     floor measured minutes apart from the render skewed the ratio by up to 2× (docs/SPEED.md)."""
-    from .threads import torch_threads
-
     start = time.perf_counter()
     out = render(scene, compile=compile)
-    first = time.perf_counter() - start
-    render_s, floor_s = [], []
+    first, render_s, floor_s = time.perf_counter() - start, [], []
     for _ in range(repeat):
-        render_s.append(_median_time(lambda: render(scene, compile=compile), 1))
+        render_s.append(_seconds(lambda: render(scene, compile=compile)))
         if floor is not None:
             with torch_threads(floor.threads):
-                floor_s.append(_median_time(floor.kernel, 1))
+                floor_s.append(_seconds(floor.kernel))
     evals = out.stats["density_evals"]
     x_floor = floor_ratio(render_s, floor_s, evals=evals, points=floor.points) if floor is not None and evals else None
     return RenderTiming(statistics.median(render_s), evals, first, x_floor)
@@ -125,8 +124,6 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
     cloud-puff at `physical_size` against its table-hash eager render. × floor: against the
     fastest kernel of the render's density on as many threads (`floor_kernels`' fused compiled
     kernels), run beside each render on `floor_points` points."""
-    from .threads import torch_threads
-
     rows, threads = [], torch.get_num_threads()
     kernels = floor_kernels(points=floor_points)
 
@@ -213,20 +210,16 @@ def floor_kernels(*, points: int, octaves: int = 4) -> dict[tuple[str, str, int]
 def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
     """Density evaluations/s of `floor_kernels`, interleaved runs. Rows {kernel, density (the
     preset whose floor it is), threads, evals_per_s, first_s}."""
-    from .threads import torch_threads
-
     kernels = floor_kernels(points=points, octaves=octaves)
     first = {}
     for key, fn in kernels.items():
         with torch_threads(key[2]):
-            start = time.perf_counter()
-            fn()
-            first[key] = time.perf_counter() - start
+            first[key] = _seconds(fn)
     times: dict = {key: [] for key in kernels}
     for _ in range(repeat):  # interleaved: a change in the machine's load hits every kernel alike
         for key, fn in kernels.items():
             with torch_threads(key[2]):
-                times[key].append(_median_time(fn, 1))
+                times[key].append(_seconds(fn))
     return [dict(kernel=kernel, density=density, threads=threads, evals_per_s=points / statistics.median(t),
                  first_s=first[(kernel, density, threads)]) for (kernel, density, threads), t in times.items()]
 
