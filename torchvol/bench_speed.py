@@ -269,10 +269,11 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
 
 
 _RENDER_CHILD = textwrap.dedent("""
-    import json, resource, statistics, sys, time, torch
+    import json, resource, statistics, sys, time
+    import torchvol as tv  # first: its OpenMP wait policy and heap settings, as `torchvol` commands get them
+    import torch
     threads, name, width, height, repeat, compile = sys.argv[1:]
     torch.set_num_threads(int(threads))
-    import torchvol as tv
     scene = tv.preset(name, width=int(width), height=int(height))
     tv.render(scene, compile=compile)
     times, faults, system = [], [], []
