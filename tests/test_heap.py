@@ -38,11 +38,13 @@ def faults_per_round(**env) -> float:
 @glibc
 def test_importing_torchvol_keeps_freed_tensors_in_the_heap():
     # glibc's defaults, fixed by the user's setting or left alone (TORCHVOL_HEAP=system): every 4 MB
-    # tensor faults its 1,024 pages; after `import torchvol`, none of them
+    # tensor goes back to the kernel and faults again; after `import torchvol`, none of them does.
+    # With 4 KB pages that is 1,024 faults a tensor; with transparent huge pages set to "always" a
+    # few 2 MB pages fault instead (a CI machine counted 102.4 a round), so the floor is one a tensor
     tuned = faults_per_round()
     for untuned in (faults_per_round(MALLOC_TRIM_THRESHOLD_="131072"), faults_per_round(TORCHVOL_HEAP="system")):
-        assert untuned >= 10 * 1024 * 0.9, untuned
-        assert tuned < 0.05 * untuned, (tuned, untuned)
+        assert untuned >= 10, f"untuned heap faulted {untuned} pages a round: the tensors never left it"
+        assert tuned < 0.05 * untuned, f"{tuned} faults a round after import torchvol, {untuned} without"
 
 
 @glibc
