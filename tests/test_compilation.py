@@ -124,3 +124,29 @@ def test_a_kernel_first_called_small_still_runs_on_threads():
     assert "omp parallel" not in "".join(plain)  # the trap: without the option a small first call is serial
     assert "#pragma omp parallel" in "".join(ours)
     assert "num_threads(" not in "".join(ours)  # the thread count is OpenMP's when the kernel runs
+
+
+@pytest.mark.slow
+def test_sizes_equal_on_a_first_call_are_not_taken_for_one_size():
+    """dynamo's duck sizing builds a first call's equal sizes as one: the template's first light
+    call on 3 lit samples (a light direction has 3 coordinates) was built again at the next call,
+    ~30 s cold. `compiled` turns it off around its calls, and only there."""
+    from torch._dynamo.utils import counters
+
+    # two definitions: dynamo keeps its graphs with a function's code, whichever torch.compile built them
+    def kernel(points, direction):
+        return points * 2.0, direction + 1.0
+
+    def same_kernel(points, direction):
+        return points * 2.0, direction + 1.0
+
+    def graphs(fn) -> int:
+        before = counters["stats"]["unique_graphs"]
+        fn(torch.ones(3), torch.ones(3))
+        fn(torch.ones(7), torch.ones(3))
+        return counters["stats"]["unique_graphs"] - before
+
+    with torch._inductor.config.patch(fx_graph_cache=False):
+        assert graphs(torch.compile(same_kernel, dynamic=True)) == 2  # the trap: built again for 7 points
+        assert graphs(compilation.compiled(kernel)) == 1
+    assert torch.fx.experimental._config.use_duck_shape  # the user's own graphs keep torch's default

@@ -95,25 +95,31 @@ def batch_mode(mode: CompileMode, scene) -> CompileMode:
 INDUCTOR_OPTIONS = {"cpp.dynamic_threads": True}
 VARIANTS = 64  # graphs a kernel may compile: a walk has up to 16 (limit × records or jumps × dtype)
 _DYNAMO = torch._dynamo.config
+# dynamo's "duck sizing" takes sizes equal on a first call for one size: a template's first light
+# kernel call on 3 lit samples was built for exactly as many as a light direction's 3 coordinates
+# and built again at the next call (124 s against 91.5 s for a first 128² render, inductor's cache
+# cold). Read when a call is traced; set around the calls (`compiled`), never for the user's graphs
+_SHAPES = torch.fx.experimental._config
 
 
 @functools.cache
 def compiled(fn: Callable) -> Callable:
     """`fn` under torch.compile: dynamic shapes (a march compacts its batch every step, one graph
-    serves every size) and `INDUCTOR_OPTIONS`. Cached: one compiled function per `fn`. During a
-    call dynamo may compile `VARIANTS` graphs of it: each flag and dtype is one, all counted
-    against one function's budget, and past dynamo's default 8 it would silently run eagerly."""
+    serves every size) and `INDUCTOR_OPTIONS`, without duck sizing (`_SHAPES`). Cached: one
+    compiled function per `fn`. During a call dynamo may compile `VARIANTS` graphs of it: each flag
+    and dtype is one, all counted against one function's budget, and past dynamo's default 8 it
+    would silently run eagerly."""
     kernel = torch.compile(fn, dynamic=True, options=INDUCTOR_OPTIONS)
 
     @functools.wraps(fn)
     def run(*args, **kwargs):
-        # set as an attribute around the call: `config.patch(...)` cost 110 µs a call, this 3
-        limit = _DYNAMO.recompile_limit
-        _DYNAMO.recompile_limit = VARIANTS
+        # set as attributes around the call: `config.patch(...)` cost 110 µs a call, this 3
+        limit, duck = _DYNAMO.recompile_limit, _SHAPES.use_duck_shape
+        _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = VARIANTS, False
         try:
             return kernel(*args, **kwargs)
         finally:
-            _DYNAMO.recompile_limit = limit
+            _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = limit, duck
 
     return run
 
