@@ -417,7 +417,10 @@ def markdown(sections: dict) -> str:
                   f"{r['system_s']:.3f} |" for r in sections["heap"]]
         lines += ["", ("A march step allocates and frees a wavefront's tensors (a few MB) at every step; glibc's defaults "
                        "serve them from fresh mappings or hand the heap's top back, and every page of the next step's "
-                       "tensors is faulted in and zeroed by the kernel again: on two threads both wait on it."), ""]
+                       "tensors is faulted in and zeroed by the kernel again: on two threads both wait on it. glibc's default "
+                       "thresholds move with the largest mapped block a process has freed, so with them whether the heap "
+                       "is handed back varies from process to process, even for one script (12 of 30 fresh processes "
+                       "running tests/test_heap.py's rounds kept their tensors); torchvol's fixed thresholds keep it every time."), ""]
     return "\n".join(lines)
 
 

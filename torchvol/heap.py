@@ -21,8 +21,9 @@ M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
 MMAP_THRESHOLD = 32 << 20
 # free memory at the heap's top handed back only beyond this: a step frees ~5 MB, a chunk tens
 TRIM_THRESHOLD = 64 << 20
-# the user's own glibc tuning wins
+# the user's own glibc tuning wins: the old variables, or any malloc tunable in GLIBC_TUNABLES
 ENVIRONMENT = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_")
+TUNABLES, MALLOC_TUNABLE = "GLIBC_TUNABLES", "glibc.malloc."
 # TORCHVOL_HEAP=system leaves glibc's defaults alone
 OPT_OUT = "TORCHVOL_HEAP"
 
@@ -32,7 +33,7 @@ def keep_freed_memory() -> bool:
     `TRIM_THRESHOLD`) unless the environment tunes malloc itself or says `TORCHVOL_HEAP=system`;
     -> whether they were set (False off Linux or glibc)."""
     if (not sys.platform.startswith("linux") or any(name in os.environ for name in ENVIRONMENT)
-            or os.environ.get(OPT_OUT) == "system"):
+            or MALLOC_TUNABLE in os.environ.get(TUNABLES, "") or os.environ.get(OPT_OUT) == "system"):
         return False
     try:
         libc = ctypes.CDLL(None)
