@@ -396,7 +396,7 @@ def markdown(sections: dict) -> str:
                   "run: the difference is then noise, not a rate). compiled exact: `compile=\"exact\"` for voxel recipes (the "
                   "fused DDA walk, bitwise eager; what the default `auto` takes from 512 samples a worker); compiled: "
                   "`torchvol generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the "
-                  "template's fused march step); each worker process compiles (traces) on its own.", ""]
+                  "template's fused march step, fur); each worker process compiles (traces) on its own.", ""]
     if "loaded" in sections:
         lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
                   "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "

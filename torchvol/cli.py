@@ -240,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     modes = g.add_mutually_exclusive_group()
     modes.add_argument("--compile", dest="compile", action="store_const", const="all", default="auto",
                        help="also compile the density and march kernels where that is faster (fbm clouds on the "
-                       "arithmetic hash, the template's fused march step): within 1e-5 of eager, not bitwise; pays "
+                       "arithmetic hash, the template's fused march step, fur's Worley noise): within 1e-5 of eager, not bitwise; pays "
                        "from about 8 samples a worker once inductor's cache is warm")
     modes.add_argument("--eager", dest="compile", action="store_const", const="off",
                        help="compile nothing (by default a worker rendering 512 samples or more compiles the voxel "

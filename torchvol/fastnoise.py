@@ -211,12 +211,13 @@ def fbm_field_hashed(
 
 def compile_pays(scene) -> bool:
     """Whether `render(scene, compile=True)` is the fast path: the scene has volumes, each with an
-    fbm density on the arithmetic hash (one fused kernel) or the template's cloud layer in the
-    seeds' look (one fused march step, `volume.fused`), and no voxels or terrain (whose compiled
-    kernels are other trade-offs). Compiled renders match eager ones within 1e-5, not bitwise
+    fbm density on the arithmetic hash (one fused kernel), the template's cloud layer in the
+    seeds' look (one fused march step, `volume.fused`) or fur (its Worley noise one kernel,
+    `noise.compiled_noise`), and no voxels or terrain (whose compiled kernels are other
+    trade-offs). Compiled renders match eager ones within 1e-5, not bitwise
     (tests/test_fastnoise.py, tests/volume/test_fused.py)."""
     def fused(v) -> bool:
-        return ((v.density.kind == "fbm" and v.density.value.hash == "arithmetic")
+        return ((v.density.kind == "fbm" and v.density.value.hash == "arithmetic") or v.density.kind == "fur"
                 or (v.density.kind == "clouds" and v.shading == "shader" and v.edge is None))
 
     volumes = scene.volumes

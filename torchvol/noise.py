@@ -11,13 +11,14 @@ bilinear filter bit for bit (see its docstring), so float32 results equal the GL
 
 from __future__ import annotations
 
-import weakref
 import functools
+import weakref
 from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
 
+from .compilation import compiled
 from .mathops import take_rows
 
 __all__ = [
@@ -27,6 +28,7 @@ __all__ = [
     "value_noise",
     "perlin_noise",
     "worley_noise",
+    "compiled_noise",
     "default_noise_texture",
     "texture_noise",
     "texture_noise_table",
@@ -97,18 +99,22 @@ def lattice_hash(cells: Tensor, seed: int) -> Tensor:
 
     Three gathers from a 512-entry table instead of ~20 int64 mixing ops: the lattice noises call
     it 8 to 27 times per point. `hash3` stays the full-period hash for per-ray uses (dither)."""
-    perm, _ = _lattice_tables(int(seed), str(cells.device))
+    return _hash(cells, _lattice_tables(int(seed), str(cells.device))[0])
+
+
+def _hash(cells: Tensor, perm: Tensor) -> Tensor:
+    """`lattice_hash` of cells ``[..., 3]`` in a doubled permutation `perm` [512] (int64)."""
     c = cells & 255
     return take_rows(perm, take_rows(perm, take_rows(perm, c[..., 0]) + c[..., 1]) + c[..., 2])
 
 
-def corner_hashes(cells: Tensor, seed: int) -> list[Tensor]:
-    """`lattice_hash` of the 8 corners (`_CORNERS` order) of cells [N, 3] -> 8 × [N] int32.
+def _corner_hashes(cells: Tensor, perm: Tensor) -> list[Tensor]:
+    """`lattice_hash` of the 8 corners (`_CORNERS` order) of cells [N, 3] in a doubled
+    permutation `perm` [512] int32 -> 8 × [N] int32.
 
     Perlin's chain shares its prefixes: perm[x] for 2 x's, perm[· + y] for 4 (x, y), perm[· + z]
     for 8: 14 gathers of N instead of 24, and the doubled table absorbs the corner's +1 (every
     index stays below 512), so no [N, 8, 3] corner cells are formed. Bitwise `lattice_hash`."""
-    perm = _lattice_tables(int(seed), str(cells.device))[0].to(torch.int32)
     return _corner_chain(perm, *(cells & 255).to(torch.int32).unbind(-1))
 
 
@@ -145,7 +151,7 @@ def value_noise_scenes(p: Tensor, rows: Tensor, seeds: Sequence[int]) -> Tensor:
     return _value(p, *_scene_lattice_tables(tuple(int(s) for s in seeds), str(p.device)), rows)
 
 
-def _value(p: Tensor, perm: Tensor, first: Tensor, rows: Tensor | None) -> Tensor:
+def _value(p: Tensor, perm: Tensor, first: Tensor, rows: Tensor | None = None) -> Tensor:
     """Value noise at p [N, 3] from a doubled permutation `perm` (int32) and lattice values
     `first`, each point's chain starting at its row (rows [N], None: 0) -> [N]."""
     cell, f = _cell_frac(p)
@@ -157,8 +163,13 @@ def _value(p: Tensor, perm: Tensor, first: Tensor, rows: Tensor | None) -> Tenso
 
 def lattice_values(cells: Tensor, seed: int, dtype: torch.dtype) -> Tensor:
     """Three uniform values in [0, 1) per lattice cell: ``[..., 3]`` -> ``[..., 3]``."""
-    _, values = _lattice_tables(int(seed), str(cells.device))
-    return take_rows(values, lattice_hash(cells, seed)).to(dtype)
+    perm, values = _lattice_tables(int(seed), str(cells.device))
+    return _values(cells, perm, values, dtype)
+
+
+def _values(cells: Tensor, perm: Tensor, values: Tensor, dtype: torch.dtype) -> Tensor:
+    """`lattice_values` of cells ``[..., 3]`` from `_lattice_tables`' `perm` [512] and `values` [256, 3]."""
+    return take_rows(values, _hash(cells, perm)).to(dtype)
 
 
 def _u32_to_unit(h: Tensor, dtype: torch.dtype) -> Tensor:
@@ -204,8 +215,13 @@ def value_noise(p: Tensor, *, seed: int = 0) -> Tensor:
     ``lattice_values(p.long(), seed)[:, 0]``.
     """
     _check_points(p)
-    perm, values = _lattice_tables(int(seed), str(p.device))
-    return _value(p, perm.to(torch.int32), values[:, 0], None)  # lattice_values' first column
+    return _value(p, *_value_tables(int(seed), str(p.device)))
+
+
+def _value_tables(seed: int, device: str) -> tuple[Tensor, Tensor]:
+    """`_value`'s tables of `seed`: the doubled permutation (int32) and `lattice_values`' first column."""
+    perm, values = _lattice_tables(seed, device)
+    return perm.to(torch.int32), values[:, 0]
 
 
 # Ken Perlin's 12 edge gradients (indexed by hash mod 12)
@@ -230,11 +246,16 @@ def perlin_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
     period: the lattice repeats every `period` cells along each axis (tileable noise); None: 256.
     """
     _check_points(p)
+    return _perlin(p, _lattice_tables(int(seed), str(p.device))[0], period=period)
+
+
+def _perlin(p: Tensor, perm: Tensor, *, period: int | None = None) -> Tensor:
+    """`perlin_noise` at p [N, 3] from `_lattice_tables`' `perm` [512] (int64)."""
     cell, f = _cell_frac(p)
     corners = torch.tensor(_CORNERS, dtype=torch.int64, device=p.device)  # [8, 3]
     grads = torch.tensor(_GRADS, dtype=p.dtype, device=p.device)  # [12, 3]
-    h = (torch.stack(corner_hashes(cell, seed), dim=1) if period is None
-         else lattice_hash(_wrap(cell[:, None, :] + corners, period), seed))  # [N, 8]
+    h = (torch.stack(_corner_hashes(cell, perm.to(torch.int32)), dim=1)
+         if period is None else _hash(_wrap(cell[:, None, :] + corners, period), perm))  # [N, 8]
     g = take_rows(grads, h % 12)  # [N, 8, 3]
     d = f[:, None, :] - corners.to(p.dtype)  # [N, 8, 3]
     dots = (g * d).sum(-1)  # [N, 8]
@@ -251,6 +272,11 @@ def worley_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
     period: feature points repeat every `period` cells along each axis (tileable noise).
     """
     _check_points(p)
+    return _worley(p, *_lattice_tables(int(seed), str(p.device)), period=period)
+
+
+def _worley(p: Tensor, perm: Tensor, values: Tensor, *, period: int | None = None) -> Tensor:
+    """`worley_noise` at p [N, 3] from `_lattice_tables`' `perm` [512] and `values` [256, 3]."""
     cell, f = _cell_frac(p)
     best = torch.full(p.shape[:1], float("inf"), dtype=p.dtype, device=p.device)
     for dz in (-1, 0, 1):  # loop over the 27 neighbour offsets, vectorised over points
@@ -258,11 +284,37 @@ def worley_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
             for dx in (-1, 0, 1):
                 off = torch.tensor([dx, dy, dz], dtype=torch.int64, device=p.device)
                 c = cell + off
-                feat = lattice_values(_wrap(c, period), seed, p.dtype)
+                feat = _values(_wrap(c, period), perm, values, p.dtype)
                 d = off.to(p.dtype) + feat - f  # [N, 3]
                 best = torch.minimum(best, (d * d).sum(-1))
     return best.sqrt().clamp(0.0, 1.0)
 
+
+
+def _perm_table(seed: int, device: str) -> tuple[Tensor]:
+    """`_perlin`'s table of `seed`: the doubled permutation."""
+    return _lattice_tables(seed, device)[:1]
+
+
+# each lattice noise as its tables (of a seed, on a device) and a kernel over them
+_KERNELS = {value_noise: (_value_tables, _value), perlin_noise: (_perm_table, _perlin), worley_noise: (_lattice_tables, _worley)}
+
+
+@functools.cache
+def compiled_noise(basis: Callable) -> Callable:
+    """`basis` (`value_noise`, `perlin_noise` or `worley_noise`, with its signature) with its kernel
+    under torch.compile (`compilation.compiled`) and its tables looked up outside it. Compiled
+    whole, dynamo traced through the tables' `lru_cache` (which it ignores, with a warning): a graph
+    break at every call, where the tables were drawn again."""
+    tables, kernel = _KERNELS[basis]
+    fast = compiled(kernel)
+
+    @functools.wraps(basis)
+    def run(p: Tensor, *, seed: int = 0, **kwargs) -> Tensor:
+        _check_points(p)
+        return fast(p, *tables(int(seed), str(p.device)), **kwargs)
+
+    return run
 
 # --------------------------------------------------------------------------------------------
 # Texture noise (the seed template's noise(), iChannel0 = 256x256 RGBA8 noise texture)

@@ -18,7 +18,7 @@ from typing import Annotated
 from pydantic import Field
 from torch import Tensor
 
-from .. import compilation, noise
+from .. import noise
 from ..batch import Stacked, take
 from ..schema import EACH, Strict, Vec3
 from .fbm import seeded_fbm
@@ -43,7 +43,7 @@ class ExplosionDensity(Strict):
 class ExplosionField:
     def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
         self.p = params
-        self.basis = compilation.compiled(noise.value_noise) if compiled else noise.value_noise
+        self.basis = noise.compiled_noise(noise.value_noise) if compiled else noise.value_noise
         self.size = params.radius * (1.0 + params.growth * times.clamp_min(0.0))  # (B,) R(t)
         self.shift = params.offset - params.drift * times[:, None]  # (B, 3)
         # the finest octave's lattice period, in world units (R(t) / frequency per noise cell)

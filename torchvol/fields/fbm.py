@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 from torch import Tensor
 
-from .. import compilation, fastnoise, noise
+from .. import fastnoise, noise
 from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
 
@@ -67,7 +67,7 @@ class FbmField:
     def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
         self.p = params
         basis = NOISES[params.noise]
-        self.basis = compilation.compiled(basis) if compiled else basis
+        self.basis = noise.compiled_noise(basis) if compiled else basis
         self.fused = fastnoise.fbm_value_hashed if params.hash == "arithmetic" else None
         # compiled arithmetic hash: the whole signed field is one kernel (eager: the code below is its twin)
         self.fused_field = compiled and params.hash == "arithmetic"

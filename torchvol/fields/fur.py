@@ -15,7 +15,7 @@ import torch
 from pydantic import Field
 from torch import Tensor
 
-from .. import compilation, noise
+from .. import noise
 from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
 
@@ -36,7 +36,7 @@ class FurDensity(Strict):
 class FurField:
     def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
         self.p = params
-        self.worley = compilation.compiled(noise.worley_noise) if compiled else noise.worley_noise
+        self.worley = noise.compiled_noise(noise.worley_noise) if compiled else noise.worley_noise
         # a strand's width at its tip, in world units (the finest detail)
         self.feature_size = params.thickness / params.frequency * (params.radius + params.length)
 

@@ -18,7 +18,7 @@ import torch
 from pydantic import Field, field_validator, model_validator
 from torch import Tensor
 
-from .. import compilation, noise
+from .. import noise
 from ..batch import Stacked, per_scene, take
 from ..schema import EACH, Strict, Vec3
 from .fbm import NOISES, seeded_fbm
@@ -86,7 +86,7 @@ class ParticleField:
     def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
         self.p = params
         basis = NOISES[params.noise]
-        self.basis = compilation.compiled(basis) if compiled else basis
+        self.basis = noise.compiled_noise(basis) if compiled else basis
         dtype, device = times.dtype, times.device
         draws = [particle_draws(seed, params.count, dtype) for seed in params.seed]
         d = {k: torch.stack([x[k] for x in draws]).to(device) for k in draws[0]}  # (B, K, ...)
