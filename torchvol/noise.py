@@ -290,7 +290,6 @@ def _worley(p: Tensor, perm: Tensor, values: Tensor, *, period: int | None = Non
     return best.sqrt().clamp(0.0, 1.0)
 
 
-
 def _perm_table(seed: int, device: str) -> tuple[Tensor]:
     """`_perlin`'s table of `seed`: the doubled permutation."""
     return _lattice_tables(seed, device)[:1]
@@ -315,6 +314,7 @@ def compiled_noise(basis: Callable) -> Callable:
         return fast(p, *tables(int(seed), str(p.device)), **kwargs)
 
     return run
+
 
 # --------------------------------------------------------------------------------------------
 # Texture noise (the seed template's noise(), iChannel0 = 256x256 RGBA8 noise texture)
