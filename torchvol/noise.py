@@ -214,8 +214,7 @@ def value_noise(p: Tensor, *, seed: int = 0) -> Tensor:
     p: ``[N, 3]`` points. Returns ``[N]`` in [0, 1]; at integer points it equals
     ``lattice_values(p.long(), seed)[:, 0]``.
     """
-    _check_points(p)
-    return _value(p, *_value_tables(int(seed), str(p.device)))
+    return _lattice_noise(value_noise, _value, p, seed)
 
 
 def _value_tables(seed: int, device: str) -> tuple[Tensor, Tensor]:
@@ -245,8 +244,7 @@ def perlin_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
     gradient set bounds |value| by ~1.04 in theory; in practice it stays well inside [-1, 1]).
     period: the lattice repeats every `period` cells along each axis (tileable noise); None: 256.
     """
-    _check_points(p)
-    return _perlin(p, _lattice_tables(int(seed), str(p.device))[0], period=period)
+    return _lattice_noise(perlin_noise, _perlin, p, seed, period=period)
 
 
 def _perlin(p: Tensor, perm: Tensor, *, period: int | None = None) -> Tensor:
@@ -271,8 +269,7 @@ def worley_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
     p: ``[N, 3]`` points. Returns ``[N]`` in [0, 1].
     period: feature points repeat every `period` cells along each axis (tileable noise).
     """
-    _check_points(p)
-    return _worley(p, *_lattice_tables(int(seed), str(p.device)), period=period)
+    return _lattice_noise(worley_noise, _worley, p, seed, period=period)
 
 
 def _worley(p: Tensor, perm: Tensor, values: Tensor, *, period: int | None = None) -> Tensor:
@@ -299,19 +296,23 @@ def _perm_table(seed: int, device: str) -> tuple[Tensor]:
 _KERNELS = {value_noise: (_value_tables, _value), perlin_noise: (_perm_table, _perlin), worley_noise: (_lattice_tables, _worley)}
 
 
+def _lattice_noise(basis: Callable, kernel: Callable, p: Tensor, seed: int, **kwargs) -> Tensor:
+    """`basis` at points p [N, 3] as `kernel` (its own, or that compiled) over its tables of `seed`."""
+    _check_points(p)
+    return kernel(p, *_KERNELS[basis][0](int(seed), str(p.device)), **kwargs)
+
+
 @functools.cache
 def compiled_noise(basis: Callable) -> Callable:
     """`basis` (`value_noise`, `perlin_noise` or `worley_noise`, with its signature) with its kernel
     under torch.compile (`compilation.compiled`) and its tables looked up outside it. Compiled
     whole, dynamo traced through the tables' `lru_cache` (which it ignores, with a warning): a graph
     break at every call, where the tables were drawn again."""
-    tables, kernel = _KERNELS[basis]
-    fast = compiled(kernel)
+    fast = compiled(_KERNELS[basis][1])
 
     @functools.wraps(basis)
     def run(p: Tensor, *, seed: int = 0, **kwargs) -> Tensor:
-        _check_points(p)
-        return fast(p, *tables(int(seed), str(p.device)), **kwargs)
+        return _lattice_noise(basis, fast, p, seed, **kwargs)
 
     return run
 
