@@ -150,3 +150,18 @@ def test_sizes_equal_on_a_first_call_are_not_taken_for_one_size():
         assert graphs(torch.compile(same_kernel, dynamic=True)) == 2  # the trap: built again for 7 points
         assert graphs(compilation.compiled(kernel)) == 1
     assert torch.fx.experimental._config.use_duck_shape  # the user's own graphs keep torch's default
+
+
+def test_compile_settings_hold_inside_the_block_only():
+    """A render sets dynamo's settings once around a chunk (`compile_settings`), not at each
+    kernel call; nested blocks and calls inside keep them, and the user's come back after it."""
+    dynamo, shapes = torch._dynamo.config, torch.fx.experimental._config
+    before = (dynamo.recompile_limit, shapes.use_duck_shape)
+    with compilation.compile_settings():
+        inside = (dynamo.recompile_limit, shapes.use_duck_shape)
+        with compilation.compile_settings():
+            compilation.compiled(torch.neg)(torch.ones(4))
+            assert (dynamo.recompile_limit, shapes.use_duck_shape) == inside
+        assert (dynamo.recompile_limit, shapes.use_duck_shape) == inside
+    assert inside == (compilation.VARIANTS, False)
+    assert (dynamo.recompile_limit, shapes.use_duck_shape) == before != inside

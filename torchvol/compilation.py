@@ -21,6 +21,7 @@ and `SceneDataset`.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import warnings
 from collections.abc import Callable
@@ -31,7 +32,7 @@ import torch
 
 from .validate import fail, is_integer
 
-__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "as_rendered", "auto_mode", "batch_mode", "compile_mode", "compiled", "exact_kernel"]
+__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "as_rendered", "auto_mode", "batch_mode", "compile_mode", "compile_settings", "compiled", "exact_kernel"]
 
 CompileMode = Literal["off", "exact", "all"]
 MODES = ("off", "exact", "all")
@@ -98,28 +99,45 @@ _DYNAMO = torch._dynamo.config
 # dynamo's "duck sizing" takes sizes equal on a first call for one size: a template's first light
 # kernel call on 3 lit samples was built for exactly as many as a light direction's 3 coordinates
 # and built again at the next call (124 s against 91.5 s for a first 128² render, inductor's cache
-# cold). Read when a call is traced; set around the calls (`compiled`), never for the user's graphs
+# cold). Read when a call is traced; set around the calls (`compile_settings`), never for the user's graphs
 _SHAPES = torch.fx.experimental._config
+_SETTING = [False]  # inside `compile_settings`
+
+
+@contextlib.contextmanager
+def compile_settings():
+    """dynamo's settings for torchvol's kernels (`VARIANTS`, no duck sizing: `_SHAPES`) inside the
+    block, restored after it; nested blocks keep the outer one's. Set once around a render's
+    chunk (`render`), not at each kernel call: a changed setting makes dynamo hash its whole
+    config again at the next call, ~30-50 µs a call, 5% of a template render's time."""
+    if _SETTING[0]:
+        yield
+        return
+    limit, duck = _DYNAMO.recompile_limit, _SHAPES.use_duck_shape
+    _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = VARIANTS, False
+    _SETTING[0] = True
+    try:
+        yield
+    finally:
+        _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = limit, duck
+        _SETTING[0] = False
 
 
 @functools.cache
 def compiled(fn: Callable) -> Callable:
     """`fn` under torch.compile: dynamic shapes (a march compacts its batch every step, one graph
-    serves every size) and `INDUCTOR_OPTIONS`, without duck sizing (`_SHAPES`). Cached: one
-    compiled function per `fn`. During a call dynamo may compile `VARIANTS` graphs of it: each flag
-    and dtype is one, all counted against one function's budget, and past dynamo's default 8 it
-    would silently run eagerly."""
+    serves every size) and `INDUCTOR_OPTIONS`, in `compile_settings` (entered for the call where
+    the caller has not). Cached: one compiled function per `fn`. During a call dynamo may compile
+    `VARIANTS` graphs of it: each flag and dtype is one, all counted against one function's
+    budget, and past dynamo's default 8 it would silently run eagerly."""
     kernel = torch.compile(fn, dynamic=True, options=INDUCTOR_OPTIONS)
 
     @functools.wraps(fn)
     def run(*args, **kwargs):
-        # set as attributes around the call: `config.patch(...)` cost 110 µs a call, this 3
-        limit, duck = _DYNAMO.recompile_limit, _SHAPES.use_duck_shape
-        _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = VARIANTS, False
-        try:
+        if _SETTING[0]:
             return kernel(*args, **kwargs)
-        finally:
-            _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = limit, duck
+        with compile_settings():
+            return kernel(*args, **kwargs)
 
     return run
 

@@ -21,7 +21,7 @@ from .aovs import RESOLVE
 from .batch import Stacked, check_same_structure, stack, take
 from .bounds import BOUNDS
 from .camera import Camera, Rays
-from .compilation import CompileMode, compile_mode
+from .compilation import CompileMode, compile_mode, compile_settings
 from .fields import DENSITIES
 from .fields.edge import EdgeField
 from .labels import per_ray as label_rays
@@ -295,7 +295,8 @@ def render(
             with ctx.timer.section("rays"):
                 jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp, dtype=dtype)
                 rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
-            values = run_chunk(ctx, rays)
+            with compile_settings():
+                values = run_chunk(ctx, rays)
             with ctx.timer.section("resolve") if spp > 1 else nullcontext():
                 for key in keys:
                     value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)
