@@ -78,7 +78,7 @@ class VoxelSurface:
         g = self.grid
         og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
         lookup = lambda c, ids: g.lookup(c, take_rows(s, ids))
-        lo, hi = g.lo[s], g.hi[s]
+        lo, hi = take_rows(g.lo, s), take_rows(g.hi, s)
         hybrid = self.plan.traversal == "hybrid" and visit is None and fog is None and not plain
         if self.compiled:
             base, strides = g.flat_base(s)
@@ -212,10 +212,10 @@ class VoxelSurface:
         out_color = background.clone()
         aovs = {k: o.new_zeros(n, AOVS[k].channels) for k in self.aov_names}
         if ids.numel():
-            sh = s[ids]
+            sh = take_rows(s, ids)
             with section("voxels.shade"):
-                surface = self._surface(o[ids], d[ids], t[ids], cell[ids], axis[ids], mat[ids], sh,
-                                        None if normal_override is None else normal_override[ids])
+                surface = self._surface(*(take_rows(x, ids) for x in (o, d, t, cell, axis, mat)), sh,
+                                        None if normal_override is None else take_rows(normal_override, ids))
             self._ao(surface, sh, section)
             indirect = None
             if self.plan.cone:
