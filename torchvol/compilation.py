@@ -134,9 +134,7 @@ def compiled(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def run(*args, **kwargs):
-        if _SETTING[0]:
-            return kernel(*args, **kwargs)
-        with compile_settings():
+        with compile_settings():  # inside a render's block: nothing to set
             return kernel(*args, **kwargs)
 
     return run
