@@ -28,7 +28,7 @@ def test_on_threads_runs_the_function_on_its_count():
     assert seen == [2]
 
 
-def test_the_fused_march_runs_its_kernels_on_the_renders_threads_and_its_glue_on_one(monkeypatch):
+def test_the_fused_march_runs_its_kernels_on_the_renders_threads_and_its_glue_on_one(monkeypatch, inductor_march):
     """The glue's small ops over a wavefront would wake a sleeping second thread each (PASSIVE):
     measured, 640×360 on 2 threads went 0.47 -> 0.41 s with it on one (docs/SPEED.md)."""
     kernel_threads, glue_threads = [], []

@@ -146,7 +146,7 @@ def test_integer_texture_noise_is_bitwise_at_any_float32_point(xyz):
 
 
 @pytest.mark.slow  # compiles the step's three kernels (inductor's on-disk cache serves later runs)
-def test_compiled_step_matches_the_eager_twin():
+def test_compiled_step_matches_the_eager_twin(inductor_march):
     """Inductor contracts multiply-adds and vectorises exp/log: an ulp of a texture coordinate
     moves the 8-bit filter by 1/255 at a few points. Measured: image within 7e-7, depth 3e-6."""
     scenes = [_template(40, 24), _template(40, 24, time=2.0, **{"volumes.0.density.clouds.texture_seed": 4})]

@@ -35,6 +35,7 @@ from .. import noise
 from ..compilation import compiled
 from ..mathops import take_rows
 from ..threads import on_threads, torch_threads
+from . import drjit_march
 from .march import MarchResult, StepRule
 
 # slots marched at once: a render's whole chunk (`render.DEFAULT_CHUNK_RAYS`), so no chunk ends
@@ -340,7 +341,8 @@ def fused_march(steps, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: 
 def march_fused(ctx, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit: Tensor, dither: Tensor | None, *,
                 compiled: bool = True) -> MarchResult:
     """The render's fused march of a `fusable` volume over a chunk's rays (`run_march`'s fast
-    path); `compiled` False runs the eager twin."""
+    path): one Dr.Jit kernel where `drjit_march.available`, else the torch.compile kernels;
+    `compiled` False runs the eager twin."""
     st = ctx.settings
     look, packed = cloud_look(ctx, vol)
     octaves = int(vol.field.inner.p.octaves)
@@ -348,16 +350,19 @@ def march_fused(ctx, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit:
     config = StepConfig(rule=st.rule, octaves=octaves, lod_scale=st.lod_scale, threshold=float(st.density_threshold),
                         min_transmittance=float(st.min_transmittance), max_iterations=st.rule.max_iterations,
                         light=bool(vol.plan.lights), graded=vol.params.shader.ambient_top is not None)
-    # compiled: the kernels on the render's threads, the glue between them on one (`threads`)
-    threads = torch.get_num_threads()
-    kernel = compiled_steps(config, threads) if compiled else functools.partial(shader_steps, config=config)
     start = t0
     if dither is not None:  # the template's absolute offset, or a fraction of the first step
         start = t0 + (dither if st.dither == "sin" else dither * st.rule.length(t0, t1 - t0))
     ray = torch.cat([rays.origins.T, rays.directions.T, background.T])
-    with torch_threads(1 if compiled else threads):
-        res, evals = fused_march(lambda state, r, s, n: kernel(state, r, s, look, packed, scales, count=n), t0, t1, hit,
-                                 start, ray, rays.scene_index, wavefront=WAVEFRONT, refill_every=REFILL_EVERY,
-                                 compact_below=COMPACT_BELOW)
+    if compiled and drjit_march.available(t0):
+        res, evals = drjit_march.march(t0, t1, hit, start, ray, rays.scene_index, look, packed, scales, config=config)
+    else:
+        # compiled: the kernels on the render's threads, the glue between them on one (`threads`)
+        threads = torch.get_num_threads()
+        kernel = compiled_steps(config, threads) if compiled else functools.partial(shader_steps, config=config)
+        with torch_threads(1 if compiled else threads):
+            res, evals = fused_march(lambda state, r, s, n: kernel(state, r, s, look, packed, scales, count=n), t0, t1,
+                                     hit, start, ray, rays.scene_index, wavefront=WAVEFRONT, refill_every=REFILL_EVERY,
+                                     compact_below=COMPACT_BELOW)
     ctx.counts.density_evals += int(evals)
     return res

@@ -1,0 +1,246 @@
+"""The template's fused march (`volume.fused`) as one Dr.Jit kernel per chunk: torch tensors in
+and out, the same per-ray ops as the eager twin `fused.shader_steps`.
+
+`fused`'s torch.compile kernels are two calls a step over a wavefront, with eager glue between
+them (the lit samples' `nonzero`, refills, compaction): ~1,700 calls at 1280×720, each a parallel
+region that wakes OpenMP's sleeping threads, and a pass over the wavefront's state in memory at
+every step. Dr.Jit (the LLVM backend, https://drjit.readthedocs.io) traces the whole march, a loop
+per ray (`drjit.while_loop`, symbolic) with the light's fbm under a per-ray branch
+(`drjit.if_stmt`), into one vectorised kernel: a ray's state stays in registers until its march
+ends, and the kernel is one launch on Dr.Jit's own thread pool. Its texture-noise fbm alone is
+1.6-1.9× inductor's fused kernel on the same points, bitwise the eager values
+(tests/volume/test_drjit_march.py); the march takes about half the compiled torch render's time
+(docs/SPEED.md).
+
+The kernel is built once per structure (octaves, light, height-graded ambient, LOD on or off, step
+placement, a transmittance cut-off or not) and cached by Dr.Jit on disk: settings that are
+numbers (threshold, step sizes, LOD scale, the step limit, per-scene values) are the kernel's
+parameters (`drjit.opaque`), not constants baked into it, so a dataset whose scenes draw them at
+random compiles nothing more.
+
+Used by `fused.march_fused` for float32 renders on the CPU where `available`; elsewhere the
+torch.compile kernels run. `TORCHVOL_DRJIT=0` turns it off.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .march import MarchResult
+
+if TYPE_CHECKING:
+    from .fused import CloudLook, StepConfig
+
+OPT_OUT = "TORCHVOL_DRJIT"
+# whether this process may use Dr.Jit: None until the first `available` probes it; False for good
+# in a child forked after the parent started Dr.Jit (its thread pool's threads do not survive a fork)
+_USABLE: dict[str, bool | None] = {"usable": None}
+
+
+def _forked() -> None:
+    _USABLE["usable"] = False
+
+
+def _probe() -> bool:
+    try:
+        import drjit as dr
+    except ImportError:
+        return False
+    os.register_at_fork(after_in_child=_forked)
+    return bool(dr.has_backend(dr.JitBackend.LLVM))
+
+
+def available(like: Tensor) -> bool:
+    """Whether the Dr.Jit march can render with `like` (a tensor of the render's dtype and device):
+    float32 on the CPU, `drjit` importable with its LLVM backend (it needs libLLVM), `TORCHVOL_DRJIT`
+    not "0", and not in a child process forked after its parent started Dr.Jit."""
+    if like.dtype != torch.float32 or like.device.type != "cpu" or os.environ.get(OPT_OUT) == "0":
+        return False
+    if _USABLE["usable"] is None:
+        _USABLE["usable"] = _probe()
+    return bool(_USABLE["usable"])
+
+
+def _texel(c):
+    """`noise.texture_noise_coords`' `texel` on Float `c`: (i0 & 255, i1 & 255, weight), Int32."""
+    import drjit as dr
+    from drjit.llvm import Int32
+
+    s = dr.round((c + 0.5) * 256.0)  # ties to even, as torch.round
+    ok = dr.abs(s) < 2.0**31
+    # x86's float -> int32 overflow (0x80000000, NaN too) minus half: converting an out-of-range
+    # float is undefined in LLVM, so only in-range values are converted
+    shifted = dr.select(ok, Int32(dr.select(ok, s, 0.0)) - 128, Int32(2**31 - 128))
+    i0 = shifted >> 8
+    return i0 & 255, (i0 + 1) & 255, shifted & 255
+
+
+def texture_noise(x, y, z, packed, base):
+    """`noise.texture_noise_coords` (8 filter bits) in Dr.Jit, bitwise: Floats `x`, `y`, `z` [N],
+    `packed` Int32 [M] (`noise.packed_table`), `base` Int32 [N] (rows in stacked tables) -> Float [N]."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32, UInt32
+
+    fx, fy, fz = dr.floor(x), dr.floor(y), dr.floor(z)
+    wx, wy, wz = x - fx, y - fy, z - fz
+    wx, wy, wz = wx * wx * (3.0 - 2.0 * wx), wy * wy * (3.0 - 2.0 * wy), wz * wz * (3.0 - 2.0 * wz)
+    x0, x1, tx = _texel((fx + 37.0 * fz) + wx)
+    y0, y1, ty = _texel((fy + 239.0 * fz) + wy)
+    row0, row1 = y0 * 256 + base, y1 * 256 + base
+    a, b = dr.gather(Int32, packed, UInt32(row0 + x0)), dr.gather(Int32, packed, UInt32(row0 + x1))
+    c, d = dr.gather(Int32, packed, UInt32(row1 + x0)), dr.gather(Int32, packed, UInt32(row1 + x1))
+    sx, sy = 256 - tx, 256 - ty
+    g0, r0 = ((a & 255) * sx + (b & 255) * tx + 128) >> 8, ((a >> 8) * sx + (b >> 8) * tx + 128) >> 8
+    g1, r1 = ((c & 255) * sx + (d & 255) * tx + 128) >> 8, ((c >> 8) * sx + (d >> 8) * tx + 128) >> 8
+    g = Float((g0 * sy + g1 * ty + 128) >> 8) * (1.0 / 255.0)
+    r = Float((r0 * sy + r1 * ty + 128) >> 8) * (1.0 / 255.0)
+    return g + wz * (r - g)
+
+
+def cloud_fbm(x, y, z, packed, base, count, *, octaves: int, scales: list):
+    """`fused.cloud_fbm` in Dr.Jit: octave k ≥ 1 adds where Int32 `count` [N] ≥ k + 1 (None: all);
+    `scales` Floats (`noise.folded_scales`)."""
+    import drjit as dr
+
+    f = (texture_noise(x, y, z, packed, base) * 2.0 - 1.0) * 0.5
+    for k in range(1, octaves):
+        c = scales[k - 1]
+        term = (texture_noise(x * c, y * c, z * c, packed, base) * 2.0 - 1.0) * (0.5 * 0.5**k)
+        f = f + term if count is None else dr.select(count >= k + 1, f + term, f)
+    return f
+
+
+def _lerp(a, b, w):
+    """torch.lerp as its vectorised CPU kernel computes it: a fused multiply-add from the nearer end."""
+    import drjit as dr
+
+    small = dr.abs(w) < 0.5
+    return dr.fma(dr.select(small, w, w - 1.0), b - a, dr.select(small, a, b))
+
+
+def _clamp(x, lo, hi):
+    """clamp_max then clamp_min, NaN passing through as torch's (selects: LLVM 15 cannot lower
+    the min/max intrinsics Dr.Jit emits)."""
+    import drjit as dr
+
+    x = dr.select(x > hi, hi, x)
+    return dr.select(x < lo, lo, x)
+
+
+def _floats(t: Tensor):
+    from drjit.llvm import Float
+
+    return Float(t.detach().to(torch.float32).contiguous().numpy())
+
+
+def march(t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Tensor, look: CloudLook, packed: Tensor,
+          scales: list[Tensor], *, config: StepConfig) -> tuple[MarchResult, Tensor]:
+    """`fused.fused_march` over `fused.shader_steps` as one Dr.Jit kernel: the R rays where `hit`
+    [R] bool, from `start` [R] to `t1` [R] (`t0` [R] the entry); `ray` [9, R] origin, direction,
+    sky (a row per coordinate); `s` [R] scenes; `look`, `packed` [M] and `scales` as
+    `fused.cloud_look` and `noise.folded_scales` give them. -> (the `march` result, density
+    evaluations (0-dim int64))."""
+    import drjit as dr
+    from drjit.llvm import Bool, Float, Int32, UInt32
+
+    r = t0.shape[0]
+    idx = hit.nonzero().squeeze(1)
+    result = MarchResult.empty(t0, 3)
+    if idx.shape[0] == 0:
+        return result, torch.zeros((), dtype=torch.long)
+    threads = torch.get_num_threads()
+    if dr.thread_count() != threads:
+        dr.set_thread_count(threads)
+
+    def rays(x: Tensor):  # [R] -> the hit rays' Float
+        return _floats(x.index_select(0, idx))
+
+    origin, direction, sky = ([rays(ray[row + c]) for c in range(3)] for row in (0, 3, 6))
+    t_end, span = rays(t1), rays(t1 - t0)
+    scene = UInt32(s.index_select(0, idx).to(torch.int32).numpy())
+
+    def per_ray(value: Tensor):  # per scene (B,) or (B, C) -> the rays' Float, or a list of C
+        if value.ndim == 1:
+            return dr.gather(Float, _floats(value), scene)
+        return [dr.gather(Float, _floats(value[:, c]), scene) for c in range(value.shape[1])]
+
+    shift, bias, density_scale = per_ray(look.shift), per_ray(look.bias), per_ray(look.density_scale)
+    light_step, irradiance, light_scale = per_ray(look.light_step), per_ray(look.irradiance), per_ray(look.light_scale)
+    ambient, ambient_top, heights = per_ray(look.ambient), per_ray(look.ambient_top), per_ray(look.heights)
+    color_lit, color_dark = per_ray(look.color_lit), per_ray(look.color_dark)
+    alpha_scale, fog = per_ray(look.alpha_scale), per_ray(look.fog)
+    base = dr.gather(Int32, Int32(look.base.to(torch.int32).numpy()), scene)
+    table = Int32(packed.to(torch.int32).numpy())
+    # numbers as the kernel's parameters, not its constants (one kernel whatever a dataset draws)
+    param = lambda v: dr.opaque(Float, float(v))  # noqa: E731
+    octave_scales = [param(c) for c in scales]
+    rule, threshold, max_iterations = config.rule, param(config.threshold), dr.opaque(Int32, config.max_iterations)
+    lod_scale = None if config.lod_scale is None else param(config.lod_scale)
+    min_transmittance = param(config.min_transmittance)
+    step = param(rule.steps if rule.placement == "count" else rule.step_size)
+    growth = param(rule.step_growth)
+
+    def density(x, y, z, count):
+        f = cloud_fbm(x - shift[0], y - shift[1], z - shift[2], table, base, count, octaves=config.octaves,
+                      scales=octave_scales)
+        return _clamp(bias - y + density_scale * f, 0.0, 1.0)
+
+    def body(t, trans, wsum, wt, median, steps, alive, truncated, evals, red, green, blue):
+        # `fused.sample_density` then `fused.advance` for one ray: the loop runs only alive rays
+        p = [origin[c] + t * direction[c] for c in range(3)]
+        count = None if lod_scale is None else config.octaves - Int32(dr.floor(dr.log2(1.0 + t * lod_scale)))
+        rho = density(*p, count)
+        lit = rho > threshold
+        lin = list(ambient)
+        if config.graded:
+            w = _clamp((p[1] - heights[0]) / (heights[1] - heights[0]), 0.0, 1.0)
+            lin = [_lerp(lin[c], ambient_top[c], w) for c in range(3)]
+        if config.light:
+            ahead = dr.if_stmt((p[0], p[1], p[2], count), lit,
+                               lambda x, y, z, n: density(x + light_step[0], y + light_step[1], z + light_step[2], n),
+                               lambda x, y, z, n: dr.zeros(Float, dr.width(x)))
+            dif = _clamp((rho - ahead) / light_scale, 0.0, 1.0)
+            lin = [irradiance[c] * dif + lin[c] for c in range(3)]
+        haze = 1.0 - dr.exp(-fog * t * t)
+        alpha = dr.select(lit, rho * alpha_scale, 0.0)
+        color = [dr.select(lit, _lerp(_lerp(color_lit[c], color_dark[c], rho) * lin[c], sky[c], haze), 0.0)
+                 for c in range(3)]
+        weight = trans * (1.0 - (1.0 - alpha))
+        new_trans = trans * (1.0 - alpha)
+        crossed = (trans > 0.5) & (new_trans <= 0.5)
+        steps = steps + 1
+        if rule.placement == "count":
+            length = span / step
+        elif rule.placement == "size":
+            length = dr.full(Float, step, dr.width(t))
+        else:
+            grown = growth * t
+            length = dr.select(grown < step, step, grown)  # clamp_min
+        t_next = t + length
+        keep = t_next <= t_end
+        if config.min_transmittance > 0:
+            keep = keep & (new_trans >= min_transmittance)
+        last = steps >= max_iterations
+        radiance = (red, green, blue)
+        return (t_next, new_trans, wsum + weight, wt + weight * t, dr.select(crossed, t, median), steps,
+                keep & ~last, keep & last, evals + 1 + (Int32(lit) if config.light else 0),
+                *(radiance[c] + trans * (color[c] * alpha) for c in range(3)))
+
+    n = dr.width(t_end)
+    zero = dr.zeros(Float, n)
+    state = (rays(start), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
+             dr.full(Bool, False, n), dr.zeros(Int32, n), zero, zero, zero)
+    out = dr.while_loop(state, lambda *st: st[6], body, mode="symbolic")
+    dr.eval(out)
+    dr.sync_thread()
+    _, trans, wsum, wt, median, steps, _, truncated, evals, *radiance = (torch.from_numpy(np.array(v)) for v in out)
+    result.radiance.index_copy_(0, idx, torch.stack(radiance, 1))
+    for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
+                        ("steps", steps.long()), ("truncated", truncated)):
+        getattr(result, name).index_copy_(0, idx, value)
+    return result, evals.long().sum()
