@@ -6,12 +6,13 @@ any machine (absolute times only on a quiet one):
 0. Where a render's time goes: torch.profiler's top ops (self CPU time) of `cloud-puff` (physical,
    table-hash value-noise fbm) and `template-clouds` (texture noise) at 64×64.
 1. `template-clouds` on Mesa llvmpipe (the same GLSL template, `torchvol.testing.glsl`) against
-   torchvol eager and under torch.compile, and a physical cloud (`cloud-puff`) with the table hash,
+   torchvol eager and compiled (its march one Dr.Jit kernel, `volume.drjit_march`, and on
+   torch.compile's kernels, `volume.fused`), and a physical cloud (`cloud-puff`) with the table hash,
    the arithmetic hash eager and the arithmetic hash's fused compiled fbm (`torchvol.fastnoise`);
    each row with its density evaluations per second.
 2. The floor: density evaluations per second of each render's noise alone on the same points
    (cloud-puff's value-noise fbm: table hash eager, arithmetic hash eager, fused compiled kernel;
-   the template's texture-noise fbm eager and compiled); each render row's time over its floor,
+   the template's texture-noise fbm eager, compiled and in Dr.Jit); each render row's time over its floor,
    the fastest of these kernels run beside each of the row's renders.
 3. Generation: samples/s of bundled recipes at 128×128 with 1 and 2 workers (`generate`, the
    full path: sampling, batched render, encoding, writes; worker runs include process start-up).
@@ -25,6 +26,7 @@ Compile time is excluded from the steady-state rows and reported on its own (fir
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -125,13 +127,13 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
     """Rows {work, renderer, threads, seconds, evals_per_s, ratio, x_floor, first_s}: template-clouds
     per size against llvmpipe (compiled also on one thread, as a generator's worker renders), then
     cloud-puff at `physical_size` against its table-hash eager render. × floor: against the
-    fastest kernel of the render's density on as many threads (`floor_kernels`' fused compiled
-    kernels), run beside each render on `floor_points` points."""
+    fastest kernel of the render's density on as many threads (`fastest`), run beside each render
+    on `floor_points` points."""
     rows, threads = [], torch.get_num_threads()
     kernels = floor_kernels(points=floor_points)
 
     def floor(density: str, n: int) -> Floor:
-        kernel = kernels[(FASTEST[density], density, n)]
+        kernel = kernels[(fastest(density), density, n)]
         with torch_threads(n):
             kernel()  # compiles: not in the timed runs
         return Floor(kernel, floor_points, n)
@@ -143,9 +145,12 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
             rows.append(dict(work=work, renderer="llvmpipe (GLSL template)", threads=None, seconds=gl, evals_per_s=None,
                              ratio=1.0, x_floor=None, first_s=None))
         scene = preset("template-clouds", width=width, height=height)
-        for compile, n, name in ((False, threads, "torchvol eager"), (True, threads, "torchvol torch.compile"),
-                                 (True, 1, "torchvol torch.compile, 1 thread")):
-            with torch_threads(n):
+        drjit = fastest("template-clouds") == DRJIT_FBM
+        compiled_name = "torchvol compiled (Dr.Jit march)" if drjit else "torchvol torch.compile"
+        for compile, n, name in ((False, threads, "torchvol eager"), (True, threads, compiled_name),
+                                 (True, 1, f"{compiled_name}, 1 thread"),
+                                 *([(True, threads, "torchvol torch.compile kernels")] if drjit else [])):
+            with torch_threads(n), _drjit_off(name == "torchvol torch.compile kernels"):
                 t = time_render(scene, compile=compile, repeat=repeat, floor=floor("template-clouds", n))
             rows.append(dict(work=work, renderer=name, threads=n, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
                              ratio=t.seconds / gl if gl else None, x_floor=t.x_floor, first_s=t.first_s))
@@ -159,6 +164,23 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
         rows.append(dict(work=work, renderer=name, threads=threads, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
                          ratio=t.seconds / base, x_floor=t.x_floor, first_s=t.first_s))
     return rows
+
+
+@contextlib.contextmanager
+def _drjit_off(off: bool):
+    """The compiled template march on torch.compile's kernels inside the block where `off`."""
+    from .volume import drjit_march
+
+    before = os.environ.get(drjit_march.OPT_OUT)
+    if off:
+        os.environ[drjit_march.OPT_OUT] = "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(drjit_march.OPT_OUT, None)
+        else:
+            os.environ[drjit_march.OPT_OUT] = before
 
 
 def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", compile: bool = False) -> list[dict]:
@@ -177,14 +199,45 @@ def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", com
 
 
 # each density's fastest kernel (`floor_kernels`), the floor its renders are measured against
+# (the template's: Dr.Jit's where it runs, 1.6-1.9x inductor's; `fastest`)
+DRJIT_FBM = "texture noise, 5 octaves, Dr.Jit kernel"
 FASTEST = {"cloud-puff": "arithmetic hash, fused compiled kernel",
            "template-clouds": "texture noise, 5 octaves, fused compiled kernel"}
+
+
+def fastest(density: str) -> str:
+    """The name of `density`'s fastest `floor_kernels` kernel on this machine."""
+    from .volume import drjit_march
+
+    return DRJIT_FBM if density == "template-clouds" and drjit_march.available(torch.zeros(1)) else FASTEST[density]
+
+
+def _drjit_fbm(x, y, z, packed, base, *, scales) -> Callable[[], object]:
+    """The template's fbm as `volume.drjit_march` evaluates it, on Dr.Jit copies of the points (made
+    once): each call traces, launches on torch's thread count and waits for the result."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    from .volume import drjit_march
+
+    points = [Float(c.numpy()) for c in (x, y, z)]
+    table, rows, factors = Int32(packed.numpy()), Int32(base.numpy()), [Float(float(c)) for c in scales]
+
+    def run():
+        dr.set_thread_count(torch.get_num_threads())
+        out = drjit_march.cloud_fbm(*points, table, rows, None, octaves=5, scales=factors)
+        dr.eval(out)
+        dr.sync_thread()
+        return out
+
+    return run
 
 
 def floor_kernels(*, points: int, octaves: int = 4) -> dict[tuple[str, str, int], Callable[[], object]]:
     """Each measured render's noise alone on the same `points` random points: cloud-puff's
     `octaves`-octave value-noise fbm and the template's 5-octave texture-noise fbm
-    (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel (the template's also on one
+    (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel, and the template's in Dr.Jit
+    where it runs (the compiled and Dr.Jit ones also on one
     thread, the floor of the one-thread render rows). {(kernel, density (the preset whose floor
     it is), torch threads): fn}; run each on its threads."""
     from .volume.fused import cloud_fbm
@@ -207,6 +260,8 @@ def floor_kernels(*, points: int, octaves: int = 4) -> dict[tuple[str, str, int]
             lambda: cloud_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
         **{(FASTEST["template-clouds"], "template-clouds", k):
            lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales) for k in sorted({n, 1})},
+        **({(DRJIT_FBM, "template-clouds", k): _drjit_fbm(x, y, z, packed, base, scales=scales) for k in sorted({n, 1})}
+           if fastest("template-clouds") == DRJIT_FBM else {}),
     }
 
 
@@ -372,9 +427,12 @@ def markdown(sections: dict) -> str:
                   "render and the ratio taken run by run (the median of the runs' ratios): 1 would be a render that "
                   "costs nothing but its noise. "
                   "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
-                  "`torch.compile` on template-clouds runs the fused march step (torchvol/volume/fused.py: a step is two "
-                  "compiled kernels over a chunk's rays, the sample's density with the previous step's compositing, and "
-                  "the light's density at the lit samples); the arithmetic hash's fbm is one fused kernel, the physical "
+                  "Compiled, template-clouds runs its march as one Dr.Jit kernel per chunk where Dr.Jit's LLVM backend "
+                  "runs (torchvol/volume/drjit_march.py: a loop per ray, the light's fbm under a per-ray branch, one "
+                  "launch); \"torch.compile kernels\" is the same render with `TORCHVOL_DRJIT=0`: the fused march step "
+                  "(torchvol/volume/fused.py: a step is two compiled kernels over a chunk's rays, the sample's density "
+                  "with the previous step's compositing, and the light's density at the lit samples). The template's "
+                  "floor is the Dr.Jit fbm, the fastest. The arithmetic hash's fbm is one fused kernel, the physical "
                   "march around it eager (docs/VOLUMES.md). \"1 thread\": as a generator's worker renders (one torch "
                   "thread each, workers scale by processes): the march's eager glue between kernels (gathers, compaction, "
                   "dynamo's guards: small ops and Python) runs on one thread, where waking a second costs more than it saves, so a second thread speeds the kernels only (docs/VOLUMES.md, \"Two threads\"). "
