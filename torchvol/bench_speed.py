@@ -359,22 +359,26 @@ def _child_render(threads: int, width: int, height: int, repeat: int, *, name: s
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def loaded_rows(*, width: int, height: int, repeat: int, configs: Sequence[tuple[int, str]] | None = None) -> list[dict]:
+def loaded_rows(*, width: int, height: int, repeat: int,
+                configs: Sequence[tuple[int, str, str]] | None = None) -> list[dict]:
     """template-clouds at width×height in a fresh process, alone and with one busy competitor, per
-    (torch threads, OMP_WAIT_POLICY): rows {threads, policy, alone_s, loaded_s, slowdown}."""
+    (torch threads, OMP_WAIT_POLICY, compile mode): rows {threads, policy, compile, alone_s,
+    loaded_s, slowdown}. Compiled, the march is Dr.Jit's kernel where it runs, on its own threads."""
     cores = os.cpu_count() or 1
-    configs = configs or [(cores, "ACTIVE"), (cores, "PASSIVE"), (max(1, cores - 1), "PASSIVE")]
+    configs = configs or [(cores, "ACTIVE", "off"), (cores, "PASSIVE", "off"), (max(1, cores - 1), "PASSIVE", "off"),
+                          (cores, "PASSIVE", "all")]
     rows = []
-    for threads, policy in configs:
+    for threads, policy, compile in configs:
         policy_env = {"OMP_WAIT_POLICY": policy}
-        alone = _child_render(threads, width, height, repeat, env=policy_env)["seconds"]
+        alone = _child_render(threads, width, height, repeat, compile=compile, env=policy_env)["seconds"]
         busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
         try:
-            loaded = _child_render(threads, width, height, repeat, env=policy_env)["seconds"]
+            loaded = _child_render(threads, width, height, repeat, compile=compile, env=policy_env)["seconds"]
         finally:
             busy.kill()
             busy.wait()
-        rows.append(dict(threads=threads, policy=policy, alone_s=alone, loaded_s=loaded, slowdown=loaded / alone))
+        rows.append(dict(threads=threads, policy=policy, compile=compile, alone_s=alone, loaded_s=loaded,
+                         slowdown=loaded / alone))
     return rows
 
 
@@ -461,9 +465,10 @@ def markdown(sections: dict) -> str:
     if "loaded" in sections:
         lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
                   "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
-                  "(torchvol/__init__.py): spinning OpenMP threads fight the competitor at every one of a render's small ops.", "", "| torch threads | OMP_WAIT_POLICY | alone s | loaded s | slowdown |",
-                  "| ---: | --- | ---: | ---: | ---: |"]
-        lines += [f"| {r['threads']} | {r['policy']} | {r['alone_s']:.3f} | {r['loaded_s']:.3f} | {r['slowdown']:.2f} |"
+                  "(torchvol/__init__.py): spinning OpenMP threads fight the competitor at every one of a render's small ops.", "", "| torch threads | OMP_WAIT_POLICY | compile | alone s | loaded s | slowdown |",
+                  "| ---: | --- | --- | ---: | ---: | ---: |"]
+        lines += [f"| {r['threads']} | {r['policy']} | {r['compile']} | {r['alone_s']:.3f} | {r['loaded_s']:.3f} | "
+                  f"{r['slowdown']:.2f} |"
                   for r in sections["loaded"]]
         lines += ["", "Where waking a sleeping thread is slow (some VMs), two PASSIVE threads are slower alone than "
                   "loaded and than one thread; one thread is the setting that is never far off, alone or loaded, so the "
