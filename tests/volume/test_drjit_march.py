@@ -15,7 +15,7 @@ from torchvol import noise
 from torchvol.volume import drjit_march, fused
 
 from conftest import assert_close
-from volume.test_fused import VARIANTS, _stacked_tables, _template
+from volume.test_fused import VARIANTS, _stacked_tables, _template, assert_same_values, hard_points
 
 pytestmark = pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
 
@@ -42,14 +42,11 @@ def test_texture_noise_is_the_torch_one_bitwise():
     """Every value equal to `noise.texture_noise_coords`, past the float->int32 overflow and at NaN,
     each point on its own texture of a stacked table."""
     _, packed = _stacked_tables([0, 5])
-    g = torch.Generator().manual_seed(1)
-    p = torch.cat([(torch.rand(20000, 3, generator=g) - 0.5) * scale for scale in (4.0, 400.0, 1e5, 1e8)]
-                  + [torch.tensor([[float("nan"), 0, 0], [1e30, 1, 2], [-1e30, 1, 2], [0.5, 0.5, 1e7]])])
+    p = hard_points()
     base = (torch.arange(p.shape[0]) % 2) * 65536
     expected = noise.texture_noise_coords(*p.unbind(1), packed, base.to(torch.int32))
     got = _torch(drjit_march.texture_noise(*(_floats(c.contiguous()) for c in p.unbind(1)), _ints(packed), _ints(base)))
-    same = (got == expected) | (got.isnan() & expected.isnan())
-    assert same.all(), f"{int((~same).sum())} of {len(p)} differ, first at {p[~same][0].tolist()}"
+    assert_same_values(got, expected, p)
 
 
 @settings(max_examples=60, deadline=None)

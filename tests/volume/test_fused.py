@@ -127,12 +127,21 @@ def test_integer_texture_noise_is_the_float64_one_bitwise(dtype):
     `noise.texture_noise_table` (float64 steps): every value equal, also past the float->int32
     overflow and at NaN."""
     tables, packed = _stacked_tables([0, 5])
-    g = torch.Generator().manual_seed(1)
-    p = torch.cat([(torch.rand(20000, 3, generator=g, dtype=dtype) - 0.5) * scale for scale in (4.0, 400.0, 1e5, 1e8)]
-                  + [torch.tensor([[float("nan"), 0, 0], [1e30, 1, 2], [-1e30, 1, 2], [0.5, 0.5, 1e7]], dtype=dtype)])
+    p = hard_points(dtype)
     s = torch.arange(p.shape[0]) % 2
     expected = torch.where(s == 0, noise.texture_noise_table(p, tables[0]), noise.texture_noise_table(p, tables[1]))
-    got = noise.texture_noise_coords(*p.unbind(1), packed, s * 65536)
+    assert_same_values(noise.texture_noise_coords(*p.unbind(1), packed, s * 65536), expected, p)
+
+
+def hard_points(dtype=torch.float32):
+    """[80,004, 3] points from |p| ≤ 2 to 5·10⁷, past the float->int32 overflow, and NaN."""
+    g = torch.Generator().manual_seed(1)
+    return torch.cat([(torch.rand(20000, 3, generator=g, dtype=dtype) - 0.5) * scale for scale in (4.0, 400.0, 1e5, 1e8)]
+                     + [torch.tensor([[float("nan"), 0, 0], [1e30, 1, 2], [-1e30, 1, 2], [0.5, 0.5, 1e7]], dtype=dtype)])
+
+
+def assert_same_values(got, expected, p):
+    """Every value equal (NaN where NaN), else how many differ and the first point."""
     same = (got == expected) | (got.isnan() & expected.isnan())
     assert same.all(), f"{int((~same).sum())} of {len(p)} differ, first at {p[~same][0].tolist()}"
 
