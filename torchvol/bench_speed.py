@@ -424,7 +424,7 @@ def markdown(sections: dict) -> str:
         lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | × floor | first call s |",
                   "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
         lines += [f"| {r['work']} | {r['renderer']} | {r['seconds']:.3f} | {_fmt(r['evals_per_s'], ',.0f')} | "
-                  f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['x_floor'], '.1f')} | {_fmt(r['first_s'], '.1f')} |"
+                  f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['x_floor'], '.2f')} | {_fmt(r['first_s'], '.1f')} |"
                   for r in sections["render"]]
         lines += ["", "× floor: the render's time over its density-evaluation floor, the time its density evaluations alone "
                   "take in the fastest kernel for that density on as many threads (next table), that kernel run after each "
