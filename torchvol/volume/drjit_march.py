@@ -152,7 +152,6 @@ def march(t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Te
     import drjit as dr
     from drjit.llvm import Bool, Float, Int32, UInt32
 
-    r = t0.shape[0]
     idx = hit.nonzero().squeeze(1)
     result = MarchResult.empty(t0, 3)
     if idx.shape[0] == 0:
@@ -181,7 +180,7 @@ def march(t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Te
     base = dr.gather(Int32, Int32(look.base.to(torch.int32).numpy()), scene)
     table = Int32(packed.to(torch.int32).numpy())
     # numbers as the kernel's parameters, not its constants (one kernel whatever a dataset draws)
-    param = lambda v: dr.opaque(Float, float(v))  # noqa: E731
+    param = lambda v: dr.opaque(Float, float(v))
     octave_scales = [param(c) for c in scales]
     rule, threshold, max_iterations = config.rule, param(config.threshold), dr.opaque(Int32, config.max_iterations)
     lod_scale = None if config.lod_scale is None else param(config.lod_scale)
