@@ -76,3 +76,15 @@ def test_small_density_kernels_run_on_one_thread(monkeypatch):
             fastnoise.fbm_value_hashed(torch.zeros(n, 3), seed=1, octaves=2, compiled=True)
         assert torch.get_num_threads() == 2
     assert seen == [1, 2]
+
+
+def test_glue_on_one_thread_hands_kernels_the_callers_count():
+    from torchvol.threads import glue_on_one_thread, kernel_threads
+
+    with torch_threads(2):
+        assert kernel_threads() == 2
+        with glue_on_one_thread():
+            assert torch.get_num_threads() == 1 and kernel_threads() == 2
+            with glue_on_one_thread():  # nested: still the outer caller's
+                assert torch.get_num_threads() == 1 and kernel_threads() == 2
+        assert torch.get_num_threads() == 2 and kernel_threads() == 2

@@ -34,6 +34,7 @@ from .scene import load_scene
 from .sky import SKIES, sun_glow
 from .stats import CountedField, Counts, Timer
 from .terrain import TerrainSurface
+from .threads import glue_on_one_thread
 from .validate import fail, integer, is_integer
 from .volume.atmosphere import aerial_perspective, gather_air
 from .volume.ambient import sky_mean
@@ -41,7 +42,7 @@ from .volume.composite import composite_volumes, finish
 from .volume.phase import PHASES
 from .volume.physical import occluder_transmittance
 from .volume.shading import SHADINGS
-from .volume.strategy import STRATEGIES
+from .volume.strategy import STRATEGIES, marches_on_drjit
 from .voxel.surface import VoxelSurface
 
 DEFAULT_CHUNK_RAYS = 1 << 16
@@ -277,42 +278,46 @@ def render(
     ctx = RenderContext(stack(scenes, dtype=dtype, device=device), plan, seeds=seeds, dtype=dtype, device=device,
                         compile=compile)
     b, h, w, spp = len(scenes), ctx.batch.image.height, ctx.batch.image.width, plan.spp
-    with ctx.timer.section("rays"):
-        camera = camera_for(ctx.batch)
-    pixels = b * h * w
-    if plan.passes > 1 and plan.settings.dither != "hash" and spp == 1:
-        fail("image.passes", plan.passes, "passes differ by their hashed march dither or sub-pixel jitter: set "
-             "march.dither = 'hash' or image.spp > 1")
-    chunk_pixels = max(1, chunk_rays // spp)  # chunks hold whole pixels: sub-samples resolve in place
-    keys = ["radiance", "alpha", "depth"] + [a for a in plan.aovs if a != "radiance"]
-    acc = Accumulator(plan.blend, ctx.batch.image.blend_weight, h * w) if plan.passes > 1 else None
-    scene_seeds = ctx.seeds
-    for k in range(plan.passes):
-        ctx.seeds = pass_seeds(scene_seeds, k)
-        buffers = {}
-        for first in range(0, pixels, chunk_pixels):
-            last = min(pixels, first + chunk_pixels)
-            with ctx.timer.section("rays"):
-                jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp, dtype=dtype)
-                rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
-            with compile_settings():
-                values = run_chunk(ctx, rays)
-            with ctx.timer.section("resolve") if spp > 1 else nullcontext():
-                for key in keys:
-                    value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)
-                    if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
-                        buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
-                    buffers[key][:, first:last] = value.T
-            if progress is not None:
-                progress(last - first)
+    # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
+    glue = (plan.voxels is None and ctx.surface is None and bool(ctx.volumes)
+            and all(marches_on_drjit(ctx, vol) for vol in ctx.volumes))
+    with glue_on_one_thread() if glue else nullcontext():
+        with ctx.timer.section("rays"):
+            camera = camera_for(ctx.batch)
+        pixels = b * h * w
+        if plan.passes > 1 and plan.settings.dither != "hash" and spp == 1:
+            fail("image.passes", plan.passes, "passes differ by their hashed march dither or sub-pixel jitter: set "
+                 "march.dither = 'hash' or image.spp > 1")
+        chunk_pixels = max(1, chunk_rays // spp)  # chunks hold whole pixels: sub-samples resolve in place
+        keys = ["radiance", "alpha", "depth"] + [a for a in plan.aovs if a != "radiance"]
+        acc = Accumulator(plan.blend, ctx.batch.image.blend_weight, h * w) if plan.passes > 1 else None
+        scene_seeds = ctx.seeds
+        for k in range(plan.passes):
+            ctx.seeds = pass_seeds(scene_seeds, k)
+            buffers = {}
+            for first in range(0, pixels, chunk_pixels):
+                last = min(pixels, first + chunk_pixels)
+                with ctx.timer.section("rays"):
+                    jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp, dtype=dtype)
+                    rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
+                with compile_settings():
+                    values = run_chunk(ctx, rays)
+                with ctx.timer.section("resolve") if spp > 1 else nullcontext():
+                    for key in keys:
+                        value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)
+                        if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
+                            buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
+                        buffers[key][:, first:last] = value.T
+                if progress is not None:
+                    progress(last - first)
+            if acc is not None:
+                with ctx.timer.section("accumulate"):
+                    acc.add(buffers)
         if acc is not None:
-            with ctx.timer.section("accumulate"):
-                acc.add(buffers)
-    if acc is not None:
-        buffers = acc.result()
-    images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
-    radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
-    image = post_process(ctx, radiance, images, View(camera=camera, sun=ctx.sun(), alpha=alpha))
+            buffers = acc.result()
+        images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
+        radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
+        image = post_process(ctx, radiance, images, View(camera=camera, sun=ctx.sun(), alpha=alpha))
     stats = {
         "passes": list(ctx.timer.seconds),
         "plan": plan.names(),

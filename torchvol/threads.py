@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import functools
 from collections.abc import Callable
+from contextvars import ContextVar
 
 import torch
 
@@ -43,6 +44,30 @@ def on_threads(fn: Callable, threads: int) -> Callable:
             return fn(*args, **kwargs)
 
     return run
+
+
+# the render's thread count while its torch work runs on one thread (`glue_on_one_thread`)
+_KERNEL_THREADS: ContextVar[int | None] = ContextVar("kernel_threads", default=None)
+
+
+def kernel_threads() -> int:
+    """Threads for a kernel on a pool of its own (Dr.Jit's): the caller's count where its torch
+    work runs on one thread (`glue_on_one_thread`), else torch's current count."""
+    threads = _KERNEL_THREADS.get()
+    return torch.get_num_threads() if threads is None else threads
+
+
+@contextlib.contextmanager
+def glue_on_one_thread():
+    """torch on one thread inside the block, `kernel_threads` the caller's count: for a render
+    whose arithmetic is in kernels on their own pool, torch's ops are glue (rays, compositing,
+    post), which a second sleeping thread slows rather than speeds."""
+    token = _KERNEL_THREADS.set(kernel_threads())
+    try:
+        with torch_threads(1):
+            yield
+    finally:
+        _KERNEL_THREADS.reset(token)
 
 
 def threads_for(points: int) -> int:

@@ -102,6 +102,28 @@ def test_march_runs_where_the_torch_kernels_would(monkeypatch, one_thread):
     assert ran
 
 
+def test_the_render_runs_torch_on_one_thread_and_the_kernel_on_the_callers(monkeypatch):
+    """Every march is the Dr.Jit kernel: torch's ops are glue (rays, compositing, post), run on one
+    thread; the kernel gets the caller's count (`threads.glue_on_one_thread`)."""
+    import drjit as dr
+
+    from torchvol.threads import torch_threads
+
+    seen = []
+    march = drjit_march.march
+
+    def recording(*args, **kwargs):
+        result = march(*args, **kwargs)
+        seen.append((torch.get_num_threads(), dr.thread_count()))
+        return result
+
+    monkeypatch.setattr(drjit_march, "march", recording)
+    with torch_threads(2):
+        tv.render(_template(12, 8), compile=True)
+        assert torch.get_num_threads() == 2
+    assert seen and set(seen) == {(1, 2)}
+
+
 def test_the_same_bytes_on_any_thread_count_and_in_any_batch():
     scenes = [_template(36, 20), _template(36, 20, time=2.0, **{"volumes.0.density.clouds.texture_seed": 4,
                                                                 "camera.eye": [0.3, 0.5, 0.2]})]

@@ -19,7 +19,9 @@ parameters (`drjit.opaque`), not constants baked into it, so a dataset whose sce
 random compiles nothing more.
 
 Used by `fused.march_fused` for float32 renders on the CPU where `available`; elsewhere the
-torch.compile kernels run. `TORCHVOL_DRJIT=0` turns it off.
+torch.compile kernels run. `TORCHVOL_DRJIT=0` turns it off. The kernel runs on
+`threads.kernel_threads`: a render whose every march is this kernel runs its torch work on one
+thread and the kernel on its caller's count (`strategy.marches_on_drjit`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..threads import kernel_threads
 from .march import MarchResult
 
 if TYPE_CHECKING:
@@ -156,7 +159,7 @@ def march(t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Te
     result = MarchResult.empty(t0, 3)
     if idx.shape[0] == 0:
         return result, torch.zeros((), dtype=torch.long)
-    threads = torch.get_num_threads()
+    threads = kernel_threads()
     if dr.thread_count() != threads:
         dr.set_thread_count(threads)
 

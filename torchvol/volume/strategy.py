@@ -14,6 +14,7 @@ from torch import Tensor
 from ..batch import take
 from ..camera import Rays
 from ..rays import clip_to_ray
+from . import drjit_march
 from .fused import fusable, march_fused
 from .march import march, march_adaptive
 from .physical import closed_form
@@ -68,6 +69,12 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
             compact_below=vol.plan.compact_below,
         )
     return _part(ctx, vol, res, t0, hit)
+
+
+def marches_on_drjit(ctx, vol) -> bool:
+    """Whether `run_march` renders `vol` as the Dr.Jit kernel (`volume.drjit_march`)."""
+    return (vol.plan.strategy == "march" and ctx.compiled and fusable(ctx, vol)
+            and drjit_march.available(torch.zeros((), dtype=ctx.dtype, device=ctx.device)))
 
 
 def run_skip(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
