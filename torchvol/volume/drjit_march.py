@@ -216,8 +216,8 @@ def march(t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Te
         alpha = dr.select(lit, rho * alpha_scale, 0.0)
         color = [dr.select(lit, _lerp(_lerp(color_lit[c], color_dark[c], rho) * lin[c], sky[c], haze), 0.0)
                  for c in range(3)]
-        weight = trans * (1.0 - (1.0 - alpha))
-        new_trans = trans * (1.0 - alpha)
+        seg = 1.0 - alpha  # the eager step's alpha_step, op for op
+        weight, new_trans = trans * (1.0 - seg), trans * seg
         crossed = (trans > 0.5) & (new_trans <= 0.5)
         steps = steps + 1
         if rule.placement == "count":

@@ -59,7 +59,7 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
         with ctx.timer.section(vol.plan.skip_pass):
             occupied, marched = skipped_span(vol, rays, t0, t1, hit)
     with ctx.timer.section(vol.plan.step_pass):
-        if ctx.compiled and not skip and fusable(ctx, vol):  # one compiled kernel per step
+        if not skip and _takes_fused(ctx, vol):  # compiled kernels, or one Dr.Jit kernel
             return _part(ctx, vol, march_fused(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays)), t0, hit)
         medium = vol.shading.fn(ctx, vol, rays, background)
         res = march(
@@ -71,9 +71,15 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
     return _part(ctx, vol, res, t0, hit)
 
 
+def _takes_fused(ctx, vol) -> bool:
+    """Whether `run_march` (without skipping) marches `vol` on the fused path (`fused.march_fused`)."""
+    return ctx.compiled and fusable(ctx, vol)
+
+
 def marches_on_drjit(ctx, vol) -> bool:
-    """Whether `run_march` renders `vol` as the Dr.Jit kernel (`volume.drjit_march`)."""
-    return (vol.plan.strategy == "march" and ctx.compiled and fusable(ctx, vol)
+    """Whether `vol` is marched as the Dr.Jit kernel (`volume.drjit_march`): the fused path where
+    Dr.Jit runs."""
+    return (vol.plan.strategy == "march" and _takes_fused(ctx, vol)
             and drjit_march.available(torch.zeros((), dtype=ctx.dtype, device=ctx.device)))
 
 
