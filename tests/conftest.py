@@ -30,7 +30,7 @@ def assert_close(actual, expected, *, atol=None, what="value"):
 def one_thread():
     """Run a test with one torch thread (tiny tensors: thread hand-offs cost more than they save,
     badly so on a loaded machine), restoring the count after."""
-    from torchvol.threads import torch_threads
+    from torchvol.runtime.threads import torch_threads
 
     with torch_threads(1):
         yield

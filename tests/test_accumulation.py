@@ -7,7 +7,7 @@ import torch
 
 import torchvol as tv
 from tests.conftest import assert_close
-from torchvol.accumulate import pass_seeds
+from torchvol.renderer.accumulate import pass_seeds
 
 
 def puff(**keys):

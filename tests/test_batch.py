@@ -16,11 +16,11 @@ import torch
 from pydantic import BaseModel
 
 import torchvol as tv
-from torchvol.batch import check_same_structure, field_role, structure_key
-from torchvol.keypath import lookup, path_str, set_path
-from torchvol.quality import at_level
-from torchvol.scene import Scene
-from torchvol.schema import EACH, SHARED, reachable_models
+from torchvol.schema.batch import check_same_structure, field_role, structure_key
+from torchvol.schema.keypath import lookup, path_str, set_path
+from torchvol.scene.quality import at_level
+from torchvol.scene.model import Scene
+from torchvol.schema.models import EACH, SHARED, reachable_models
 
 pytestmark = pytest.mark.slow
 
@@ -446,7 +446,7 @@ def test_refusal_names_the_key_and_both_values():
 def test_roles_are_declared_where_defaults_would_be_wrong():
     """Seeds and arrays are per scene (handled scene by scene); the march is shared as a whole."""
     from torchvol.fields.fbm import FbmDensity
-    from torchvol.scene import Voxels
+    from torchvol.scene.model import Voxels
 
     assert field_role(FbmDensity, "seed") is EACH and field_role(FbmDensity, "octaves") is SHARED
     assert field_role(Voxels, "occupancy") is EACH and field_role(Scene, "march") is SHARED

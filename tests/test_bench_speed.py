@@ -2,7 +2,7 @@
 
 import pytest
 
-from torchvol import bench_speed
+from torchvol.measure import bench_speed
 from torchvol.cli import build_parser
 
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 from kornia.geometry.depth import depth_to_3d, depth_to_3d_v2
 
-from torchvol.camera import Camera, Rays, strata_shape
+from torchvol.geometry.camera import Camera, Rays, strata_shape
 
 DTYPES = [torch.float32, torch.float64]
 RT_TOL = {torch.float32: 1e-5, torch.float64: 1e-12}

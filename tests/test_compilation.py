@@ -9,15 +9,11 @@ import pytest
 import torch
 
 import torchvol as tv
-from torchvol import compilation, data
+from torchvol.runtime import compilation
+from torchvol.dataset import datasets as data
 from torchvol.cli import build_parser
-from torchvol.compilation import (
-    AUTO_COMPILE_SAMPLES,
-    auto_mode,
-    batch_mode,
-    compile_mode,
-)
-from torchvol.generate import generate
+from torchvol.runtime.compilation import AUTO_COMPILE_SAMPLES, auto_mode, batch_mode, compile_mode
+from torchvol.dataset.generate import generate
 
 DATASETS = Path(__file__).resolve().parents[1] / "datasets"
 TINY = {"image.width": 6, "image.height": 4}
@@ -76,7 +72,7 @@ def test_generate_records_only_the_mode_that_changes_bytes(tmp_path, monkeypatch
         seen.append(kwargs["compile"])
         return real(*args, **{**kwargs, "compile": "off"})  # the mode reached the renderer; render eagerly
 
-    monkeypatch.setattr("torchvol.generate.render_samples", spy)
+    monkeypatch.setattr("torchvol.dataset.generate.render_samples", spy)
     recipe = DATASETS / "voxel-terrain.toml"
     for mode, count, expected in (("auto", 2, "off"), ("auto", AUTO_COMPILE_SAMPLES, "exact"), ("exact", 2, "exact"),
                                   ("all", 2, "all")):

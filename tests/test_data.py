@@ -6,7 +6,7 @@ from pathlib import Path
 import torch
 
 import torchvol as tv
-from torchvol.data import collate
+from torchvol.dataset.datasets import collate
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"image.width": 16, "image.height": 12, "march.steps": 4}

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import torchvol as tv
-from torchvol import fastnoise, noise
+from torchvol.noise import fast as fastnoise, lattice as noise
 
 from conftest import assert_close
 
@@ -140,9 +140,9 @@ def test_compiled_fbm_field_matches_eager_field():
     under compile) against FbmField's eager code, two scenes of another seed, frequency, offset and
     falloff in one batch, with and without LOD: within 1e-5 (density values up to ~10); bitwise the
     values of a scene alone."""
-    from torchvol.batch import stack
+    from torchvol.schema.batch import stack
     from torchvol.fields.fbm import FbmField
-    from torchvol.scene import load_scene
+    from torchvol.scene.model import load_scene
 
     scenes = []
     for seed, freq, radial in ((3, 2.2, 2.4), (77, 1.7, 0.0)):
@@ -170,7 +170,7 @@ def test_compile_pays_only_for_scenes_of_fused_volumes():
     scene = tv.preset("cloud-puff", width=8, height=8).model_dump()
     assert not fastnoise.compile_pays(tv.preset("cloud-puff", width=8, height=8))  # the table hash
     scene["volumes"][0]["density"]["fbm"]["hash"] = "arithmetic"
-    from torchvol.scene import load_scene
+    from torchvol.scene.model import load_scene
     assert fastnoise.compile_pays(load_scene(scene))
     assert fastnoise.compile_pays(tv.preset("template-clouds", width=8, height=8))  # the fused march step
     assert fastnoise.compile_pays(tv.preset("fur-ball", width=8, height=8))  # one Worley kernel
@@ -184,9 +184,9 @@ def test_generated_samples_compiled_match_eager(tmp_path, name):
     against eager: within 1e-5; `generate(compile=True)` writes a finished dataset."""
     from pathlib import Path
 
-    from torchvol.data import render_samples
-    from torchvol.generate import generate
-    from torchvol.recipe import Recipe
+    from torchvol.dataset.datasets import render_samples
+    from torchvol.dataset.generate import generate
+    from torchvol.dataset.recipe import Recipe
 
     path = Path(__file__).resolve().parents[1] / "datasets" / f"{name}.toml"
     recipe = Recipe.load(path, {"image.width": 12, "image.height": 12})

@@ -9,7 +9,7 @@ import torch
 
 import torchvol as tv
 from torchvol.cli import main
-from torchvol.generate import generate
+from torchvol.dataset.generate import generate
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "datasets" / "clouds.toml"

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchvol.noise import default_noise_texture, fbm, texture_noise
-from torchvol.testing.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.noise.lattice import default_noise_texture, fbm, texture_noise
+from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
 
 pytestmark = [
     pytest.mark.gl,
@@ -152,7 +152,7 @@ def test_fbm7_constant_folding_model():
 
 
 def test_time_fragment_returns_positive_median():
-    from torchvol.testing.glsl import time_fragment
+    from torchvol.measure.glsl import time_fragment
 
     body = "void mainImage(out vec4 o, in vec2 fc) { o = vec4(fc / iResolution.xy, 0.0, 1.0); }"
     t = time_fragment(shadertoy_source(body), 32, 32, repeat=3)

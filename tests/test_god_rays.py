@@ -10,8 +10,8 @@ import torch
 from conftest import assert_close
 
 import torchvol as tv
-from torchvol.batch import stack
-from torchvol.camera import Camera
+from torchvol.schema.batch import stack
+from torchvol.geometry.camera import Camera
 from torchvol.post import View, god_rays, sun_on_screen
 
 SCENE = {
@@ -152,7 +152,7 @@ void mainImage(out vec4 fragColor, in vec2 fragCoord) {
 @pytest.mark.parametrize("center", [(9.3, 6.7), (-20.0, 30.5)])
 def test_radial_blur_matches_gpu_gems_glsl_on_llvmpipe(center):
     from torchvol.post import radial_blur
-    from torchvol.testing.glsl import gl_context, run_fragment, shadertoy_source
+    from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
 
     if gl_context() is None:
         pytest.skip("no OpenGL (moderngl/EGL) context")

@@ -10,7 +10,7 @@ import textwrap
 
 import pytest
 
-from torchvol import heap
+from torchvol.runtime import heap
 
 glibc = pytest.mark.skipif(not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc"
                            or not hasattr(ctypes.CDLL(None), "mallinfo2"),

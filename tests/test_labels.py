@@ -24,7 +24,7 @@ from volume.test_analytic import (
 )
 
 import torchvol as tv
-from torchvol.generate import generate
+from torchvol.dataset.generate import generate
 
 LABELS = ["optical_thickness", "alpha_volumes", "instance", "sun_visibility"]
 SUN = [{"kind": "sun", "direction": [0.0, 1.0, 0.0]}]

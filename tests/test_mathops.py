@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchvol.mathops import take_rows
+from torchvol.ops.mathops import take_rows
 
 
 @pytest.mark.parametrize("table_shape", [(512,), (256, 3), (7, 2, 2)])

@@ -7,12 +7,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchvol.batch import structure_key
-from torchvol.data import encode_sample, render_samples
-from torchvol.generate import generate
-from torchvol.mix import MixedRecipe
-from torchvol.quality import at_level
-from torchvol.recipe import Recipe
+from torchvol.schema.batch import structure_key
+from torchvol.dataset.datasets import encode_sample, render_samples
+from torchvol.dataset.generate import generate
+from torchvol.dataset.mix import MixedRecipe
+from torchvol.scene.quality import at_level
+from torchvol.dataset.recipe import Recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 MIXED = ROOT / "datasets" / "mixed.toml"

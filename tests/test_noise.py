@@ -6,8 +6,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from conftest import assert_close
-from torchvol import noise
-from torchvol.noise import (
+from torchvol.noise import lattice as noise
+from torchvol.noise.lattice import (
     compiled_noise,
     default_noise_texture,
     fbm,

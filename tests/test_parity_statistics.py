@@ -4,7 +4,7 @@ whose converged image is known: no Mitsuba needed."""
 import numpy as np
 import pytest
 
-from torchvol.testing.mitsuba import debiased_relative_rmse, relative_rmse
+from torchvol.measure.mitsuba import debiased_relative_rmse, relative_rmse
 
 
 @pytest.mark.parametrize("bias", [0.0, 1e-3, 5e-3])

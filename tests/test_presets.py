@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torchvol as tv
-from torchvol.plan import make_plan
+from torchvol.renderer.plan import make_plan
 
 # DESIGN.md's normative preset names
 NORMATIVE = ["template-clouds", "cloud-puff", "homogeneous-box", "voxel-carved-box", "voxel-terrain", "voxel-fog",

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import torchvol as tv
-from torchvol.recipe import Recipe
+from torchvol.dataset.recipe import Recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"image.width": 16, "image.height": 12, "march.steps": 4}
@@ -138,12 +138,12 @@ def _techniques(scene) -> set[str]:
 def test_every_technique_is_reachable_from_a_bundled_recipe():
     """The registries' kinds (and the voxel and post variants) each appear in some bundled recipe's
     draws: the audit table of docs/DATASETS.md."""
-    from torchvol.bounds import BOUNDS
+    from torchvol.geometry.bounds import BOUNDS
     from torchvol.fields import DENSITIES
-    from torchvol.lights import LIGHTS
-    from torchvol.sky import SKIES
+    from torchvol.light.lights import LIGHTS
+    from torchvol.light.sky import SKIES
     from torchvol.volume.emission import EMISSION_MAPS
-    from torchvol.volume.phase import PHASES
+    from torchvol.light.phase import PHASES
     from torchvol.volume.shading import SHADINGS
 
     seen: set[str] = set()

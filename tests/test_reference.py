@@ -5,9 +5,16 @@ import importlib
 import pytest
 import torch
 
-from torchvol.quality import QUALITY
-from torchvol.presets import preset_dict
-from torchvol.reference import BOUND_FLOOR, FLOAT32_MIN_TOLERANCE, Ladder, image_error, rung_scene, rung_tolerance
+from torchvol.scene.quality import QUALITY
+from torchvol.scene.presets import preset_dict
+from torchvol.measure.reference import (
+    BOUND_FLOOR,
+    FLOAT32_MIN_TOLERANCE,
+    Ladder,
+    image_error,
+    rung_scene,
+    rung_tolerance,
+)
 
 PUFF = preset_dict("cloud-puff", width=16, height=12)
 
@@ -44,7 +51,7 @@ def test_rungs_come_from_the_cache(tmp_path, monkeypatch, one_thread):
         rendered.append(1)
         raise RuntimeError("rendered")
 
-    monkeypatch.setattr(importlib.import_module("torchvol.render"), "render", render)
+    monkeypatch.setattr(importlib.import_module("torchvol.renderer.executor"), "render", render)
     again = Ladder(PUFF, cache=tmp_path).reference()
     assert not rendered and again.rung == 1 and again.bound > 0
     with pytest.raises(RuntimeError, match="rendered"):  # another scene: another hash

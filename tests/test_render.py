@@ -73,7 +73,7 @@ def test_reference_quality_renders_in_float64():
 def test_load_scene_sources_agree(tmp_path):
     import tomllib
 
-    from torchvol.scene import PRESET_DIR
+    from torchvol.scene.model import PRESET_DIR
 
     path = PRESET_DIR / "cloud-puff.toml"
     with open(path, "rb") as f:

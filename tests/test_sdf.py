@@ -5,7 +5,7 @@ import math
 import torch
 
 from conftest import assert_close
-from torchvol import sdf
+from torchvol.geometry import sdf
 
 
 def test_sphere_and_box_distances():

@@ -5,7 +5,7 @@ import torch
 
 import torchvol as tv
 from conftest import assert_close
-from torchvol import sky
+from torchvol.light import sky
 
 
 def test_gradient_sky_and_glow_are_the_templates_formulas():

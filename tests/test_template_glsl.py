@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 
 import torchvol as tv
-from torchvol import noise
-from torchvol.testing.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.noise import lattice as noise
+from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
 
 pytestmark = [
     pytest.mark.gl,
     pytest.mark.skipif(gl_context() is None, reason="no GL context (moderngl/EGL) on this machine"),
 ]
 
-TEMPLATE = shadertoy_source((Path(tv.__file__).parent / "testing" / "template_clouds.glsl").read_text())
+TEMPLATE = shadertoy_source((Path(tv.__file__).parent / "measure" / "template_clouds.glsl").read_text())
 
 
 def glsl_template(width, height, time, mouse, texture):

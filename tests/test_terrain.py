@@ -14,9 +14,9 @@ from kornia.geometry.depth import depth_to_3d_v2
 
 import torchvol as tv
 from torchvol import terrain as T
-from torchvol.batch import stack
+from torchvol.schema.batch import stack
 from torchvol.fields import DENSITIES
-from torchvol.plan import make_plan
+from torchvol.renderer.plan import make_plan
 from torchvol.terrain import Terrain
 
 from conftest import assert_close

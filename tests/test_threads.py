@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import torchvol as tv
-from torchvol.threads import on_threads, torch_threads
+from torchvol.runtime.threads import on_threads, torch_threads
 from torchvol.volume import fused
 
 
@@ -61,8 +61,8 @@ def test_the_fused_march_runs_its_kernels_on_the_renders_threads_and_its_glue_on
 def test_small_density_kernels_run_on_one_thread(monkeypatch):
     """A compiled kernel's parallel region wakes the second thread at every call (~60 µs): below
     `PARALLEL_POINTS` points that costs more than it saves."""
-    from torchvol import fastnoise
-    from torchvol.threads import PARALLEL_POINTS, threads_for
+    from torchvol.noise import fast as fastnoise
+    from torchvol.runtime.threads import PARALLEL_POINTS, threads_for
 
     seen = []
 
@@ -79,7 +79,7 @@ def test_small_density_kernels_run_on_one_thread(monkeypatch):
 
 
 def test_glue_on_one_thread_hands_kernels_the_callers_count():
-    from torchvol.threads import glue_on_one_thread, kernel_threads
+    from torchvol.runtime.threads import glue_on_one_thread, kernel_threads
 
     with torch_threads(2):
         assert kernel_threads() == 2

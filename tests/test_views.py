@@ -12,12 +12,12 @@ import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_3d_v2
 
 import torchvol as tv
-from torchvol.data import collate, render_samples
+from torchvol.dataset.datasets import collate, render_samples
 from torchvol.fields.grid import sample_grid
-from torchvol.generate import generate
-from torchvol.recipe import render_seed
-from torchvol.views import view_params
-from torchvol.volume_label import extinction_grid, grid_scene
+from torchvol.dataset.generate import generate
+from torchvol.dataset.recipe import render_seed
+from torchvol.dataset.views import view_params
+from torchvol.dataset.volume_label import extinction_grid, grid_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 CLOUDS = ROOT / "datasets" / "clouds.toml"
@@ -59,7 +59,7 @@ def test_views_one_keeps_todays_shapes_and_values():
 def test_views_render_as_one_batch_equal_to_each_view_alone(monkeypatch):
     recipe = tv.Recipe.load(CLOUDS, {**TINY, "dataset.views": 4})
     calls = []
-    module = importlib.import_module("torchvol.render")  # tv.render is the function
+    module = importlib.import_module("torchvol.renderer.executor")  # tv.render is the function
     real = module.render
     monkeypatch.setattr(module, "render", lambda scenes, **kw: calls.append(len(scenes)) or real(scenes, **kw))
     items = render_samples(recipe, [1, 3])

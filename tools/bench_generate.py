@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchvol.bench_speed import RECIPES, generation_rows  # noqa: E402
+from torchvol.measure.bench_speed import RECIPES, generation_rows
 
 
 def main() -> None:

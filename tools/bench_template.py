@@ -17,9 +17,9 @@ import platform
 
 import torch
 
-from torchvol.bench_speed import time_llvmpipe, time_render
-from torchvol.scene import preset
-from torchvol.testing.glsl import renderer_name
+from torchvol.measure.bench_speed import time_llvmpipe, time_render
+from torchvol.scene.model import preset
+from torchvol.measure.glsl import renderer_name
 
 
 def time_torchvol(width: int, height: int, *, compile: bool, repeat: int) -> tuple[float, int]:

@@ -42,12 +42,20 @@ import numpy as np
 import torch
 
 import torchvol as tv
-from torchvol.batch import stack
-from torchvol.render import camera_for
-from torchvol.testing.mitsuba import (IRRADIANCE, SUN, debiased_relative_rmse, puff_grid, relative_rmse, render_mitsuba,
-                                     sigma_for, torchvol_scene)
+from torchvol.schema.batch import stack
+from torchvol.renderer.executor import camera_for
+from torchvol.measure.mitsuba import (
+    IRRADIANCE,
+    SUN,
+    debiased_relative_rmse,
+    puff_grid,
+    relative_rmse,
+    render_mitsuba,
+    sigma_for,
+    torchvol_scene,
+)
 from torchvol.volume.exact import grid_single_scatter
-from torchvol.volume.phase import henyey_greenstein
+from torchvol.light.phase import henyey_greenstein
 
 F64 = torch.float64
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import torchvol as tv
-from torchvol.testing.mitsuba import EYE, FOV, IRRADIANCE, SUN, TARGET, relative_rmse
+from torchvol.measure.mitsuba import EYE, FOV, IRRADIANCE, SUN, TARGET, relative_rmse
 
 CASES = [(5.0, 0.9), (10.0, 0.95), (20.0, 0.99)]  # (σ_t·d through the centre, albedo)
 G = 0.8

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 import torchvol as tv
-from torchvol.render import DEFAULT_CHUNK_RAYS
+from torchvol.renderer.executor import DEFAULT_CHUNK_RAYS
 
 ROOT = Path(__file__).resolve().parents[1]
 

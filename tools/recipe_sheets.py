@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import torchvol as tv
-from torchvol.figures import contact_sheet
+from torchvol.measure.figures import contact_sheet
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -14,9 +14,9 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from torchvol import scene
-from torchvol.batch import MODEL, MODELS, field_role
-from torchvol.schema import EACH, SHARED, TENSOR, nested_models
+from torchvol.scene import model as scene
+from torchvol.schema.batch import MODEL, MODELS, field_role
+from torchvol.schema.models import EACH, SHARED, TENSOR, nested_models
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "SCENES.md"
 BATCH = {TENSOR: "per scene", EACH: "per scene", SHARED: "shared", MODEL: "", MODELS: ""}

@@ -8,18 +8,18 @@ import os
 # every process started later (generator and DataLoader workers). A user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from . import heap
+from .runtime import heap
 
 # freed tensors stay in the heap for the next march step's: no page faults at every step
 # (torchvol/heap.py); in every process that imports torchvol, unless the environment tunes malloc
 heap.keep_freed_memory()
 
-from .camera import Camera, Rays
-from .data import FolderDataset, SceneDataset
-from .recipe import Recipe
-from .render import RenderOutput, render
-from .scene import Scene, load_scene, preset, preset_names
-from .validate import SceneError
+from .geometry.camera import Camera, Rays
+from .dataset.datasets import FolderDataset, SceneDataset
+from .dataset.recipe import Recipe
+from .renderer.executor import RenderOutput, render
+from .scene.model import Scene, load_scene, preset, preset_names
+from .schema.validate import SceneError
 
 __version__ = "0.1.0"
 __all__ = ["Camera", "FolderDataset", "Recipe", "SceneDataset", "Rays", "RenderOutput", "Scene", "SceneError", "load_scene", "preset", "preset_names", "render"]

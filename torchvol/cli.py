@@ -12,9 +12,9 @@ from typing import Sequence
 
 import numpy as np
 
-from .keypath import parse_value
-from .scene import load_scene, preset, preset_names
-from .validate import SceneError, fail
+from .schema.keypath import parse_value
+from .scene.model import load_scene, preset, preset_names
+from .schema.validate import SceneError, fail
 
 # library parameters that a command line spells differently
 FLAGS = {"layout": "--format", "overrides": "--set", "params": "--param", "knob_names": "--knobs", "source": "SOURCE"}
@@ -34,7 +34,7 @@ def presets_help() -> str:
     """Each bundled preset: what it is (its file's first comment line), its size and its parameters."""
     import tomllib
 
-    from .presets import HERE, PARAMS
+    from .scene.presets import HERE, PARAMS
 
     lines = ["presets (--preset NAME, --param KEY=VALUE; every preset takes width and height):"]
     for name in preset_names():
@@ -69,8 +69,8 @@ def write_depth_png(path: Path, depth: np.ndarray) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from .progress import progress
-    from .render import render
+    from .runtime.progress import progress
+    from .renderer.executor import render
 
     overrides = _pairs(args.set, "--set")
     if args.preset is not None:
@@ -111,8 +111,8 @@ COMPILE_HINT_COUNT = 64  # past this many samples, compiling (about 10 s a worke
 def compile_hint(recipe, *, overrides, seed: int, count: int) -> str | None:
     """The note `generate` prints when a large eager run's scenes take the compiled fast path
     (opt-in: compiled samples are not bitwise `SceneDataset`'s)."""
-    from .fastnoise import compile_pays
-    from .recipe import Recipe
+    from .noise.fast import compile_pays
+    from .dataset.recipe import Recipe
 
     if count < COMPILE_HINT_COUNT or not compile_pays(Recipe.load(recipe, overrides).sample_with_params(0, seed)[0]):
         return None
@@ -121,7 +121,7 @@ def compile_hint(recipe, *, overrides, seed: int, count: int) -> str | None:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    from .generate import generate
+    from .dataset.generate import generate
 
     overrides = _pairs(args.set, "--set")
     if args.compile != "all":
@@ -137,7 +137,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
-    from .dataset_stats import write_stats
+    from .dataset.stats import write_stats
 
     stats = write_stats(args.dir, out=args.out, empty_alpha=args.empty_alpha, saturated_pixels=args.saturated_pixels,
                         max_share=args.max_share)
@@ -149,7 +149,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from .sweep import split_values, sweep
+    from .measure.sweep import split_values, sweep
 
     params = {}
     for item in args.param:
@@ -167,7 +167,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_accuracy(args: argparse.Namespace) -> int:
-    from .bench import accuracy
+    from .measure.bench_accuracy import accuracy
 
     def names(text: str | None) -> list[str] | None:
         return None if text is None else [v.strip() for v in text.split(",") if v.strip()]
@@ -181,7 +181,7 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_speed(args: argparse.Namespace) -> int:
-    from .bench_speed import speed
+    from .measure.bench_speed import speed
 
     print(speed(args.out, quick=args.quick, repeat=args.repeat, recipes=args.recipes, count=args.count, parts=args.parts))
     return 0
@@ -193,10 +193,10 @@ def _common(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .bench import KNOBS, SCENES, TECHNIQUES
-    from .quality import QUALITY
-    from .render import DEFAULT_CHUNK_RAYS
-    from .sweep import QUANTISATION_RMSE
+    from .measure.bench_accuracy import KNOBS, SCENES, TECHNIQUES
+    from .scene.quality import QUALITY
+    from .renderer.executor import DEFAULT_CHUNK_RAYS
+    from .measure.sweep import QUANTISATION_RMSE
 
     raw = argparse.RawDescriptionHelpFormatter  # keeps the preset list's lines; descriptions are wrapped here
 
@@ -253,7 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     _common(g)
     g.set_defaults(func=cmd_generate)
 
-    from .dataset_stats import EMPTY_ALPHA, MAX_SHARE, SATURATED_PIXELS
+    from .dataset.stats import EMPTY_ALPHA, MAX_SHARE, SATURATED_PIXELS
 
     q = sub.add_parser("stats", help="dataset QA: parameter and image-statistic distributions, degenerate-recipe flags",
                        description=wrap("Read a generated dataset (folder or webdataset) and write DIR/stats.png "
@@ -309,7 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--seed", type=int, default=0, help="render seed (default 0)")
     _common(a)
     a.set_defaults(func=cmd_bench_accuracy)
-    from .bench_speed import PARTS as SPEED_PARTS
+    from .measure.bench_speed import PARTS as SPEED_PARTS
 
     s = b.add_parser("speed", help="llvmpipe vs eager vs fast renders, the fbm floor, generation samples/s, loaded-machine "
                      "slowdown, the heap",

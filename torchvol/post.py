@@ -19,10 +19,10 @@ import torch.nn.functional as F
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from .camera import Camera
-from .mathops import pow_
-from .registry import Registry
-from .schema import Strict, Vec3, nonneg
+from .geometry.camera import Camera
+from .ops.mathops import pow_
+from .schema.registry import Registry
+from .schema.models import Strict, Vec3, nonneg
 
 
 class Fog(Strict):

@@ -20,8 +20,8 @@ import pytest
 import torch
 
 import torchvol as tv
-from torchvol.camera import Camera
-from torchvol.rays import clip_to_ray, intersect_box, intersect_sphere
+from torchvol.geometry.camera import Camera
+from torchvol.geometry.rays import clip_to_ray, intersect_box, intersect_sphere
 from torchvol.volume.march import StepRule, march
 
 from conftest import TOL, assert_close

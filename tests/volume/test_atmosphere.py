@@ -12,11 +12,17 @@ from hypothesis import strategies as st
 
 import torchvol as tv
 from conftest import assert_close
-from torchvol.batch import stack
-from torchvol.plan import make_plan
-from torchvol.testing.glsl import gl_context, run_fragment
-from torchvol.volume.atmosphere import (AtmosphereMedium, aerial_perspective, gather_air, optic_depth, single_scatter,
-                                        sun_path)
+from torchvol.schema.batch import stack
+from torchvol.renderer.plan import make_plan
+from torchvol.measure.glsl import gl_context, run_fragment
+from torchvol.light.atmosphere import (
+    AtmosphereMedium,
+    aerial_perspective,
+    gather_air,
+    optic_depth,
+    single_scatter,
+    sun_path,
+)
 
 F64 = torch.float64
 EARTH = AtmosphereMedium()  # Earth's air in metres
@@ -237,7 +243,7 @@ def test_preset_views_and_quality_steps():
         out = tv.render(tv.preset("atmosphere", width=8, height=8, view=view))
         assert torch.isfinite(out.radiance).all() and out.radiance.max() > 0
         assert out.stats["passes"] == ["rays", "composite", "atmosphere", "post.tonemap.aces"]
-    from torchvol.quality import QUALITY, at_level
+    from torchvol.scene.quality import QUALITY, at_level
     filled = at_level(tv.preset("atmosphere"))
     assert (filled.atmosphere.steps, filled.atmosphere.light_steps) == QUALITY["default"].atmosphere_steps
     with pytest.raises(ValueError, match="view"):

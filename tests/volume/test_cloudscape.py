@@ -12,11 +12,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol import noise, noise_tiles
-from torchvol.batch import stack
+from torchvol.noise import lattice as noise, tiles as noise_tiles
+from torchvol.schema.batch import stack
 from torchvol.fields.cloudscape import CLOUD_TYPES, Cloudscape, CloudscapeDensity, height_gradient
-from torchvol.plan import make_plan
-from torchvol.volume.phase import dual_henyey_greenstein
+from torchvol.renderer.plan import make_plan
+from torchvol.light.phase import dual_henyey_greenstein
 
 from conftest import assert_close
 
@@ -277,7 +277,7 @@ void mainImage(out vec4 fragColor, in vec2 fragCoord) {
 
 @pytest.mark.parametrize("lobes", [(0.8, -0.2, 0.5), (0.6, -0.3, 0.4), (0.95, 0.1, 0.8)])
 def test_dual_hg_matches_the_seeds_glsl(lobes):
-    glsl = pytest.importorskip("torchvol.testing.glsl")
+    glsl = pytest.importorskip("torchvol.measure.glsl")
     if glsl.gl_context() is None:
         pytest.skip("no OpenGL (moderngl/EGL) context")
     out = glsl.run_fragment(glsl.shadertoy_source(_HG_GLSL), 256, 1, uniforms={"lobes": lobes})
@@ -296,7 +296,7 @@ def test_dual_hg_matches_the_seeds_glsl(lobes):
 
 
 def test_shell_bounds_first_stretch_and_the_ground():
-    from torchvol.rays import intersect_shell
+    from torchvol.geometry.rays import intersect_shell
 
     R, lo, hi = 100.0, 2.0, 5.0
     c = torch.tensor([0.0, -R, 0.0], dtype=F64)

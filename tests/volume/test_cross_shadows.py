@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import torchvol as tv
-from torchvol.plan import make_plan
+from torchvol.renderer.plan import make_plan
 
 from conftest import assert_close
 

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol import noise
+from torchvol.noise import lattice as noise
 from torchvol.volume import drjit_march, fused
 
 from conftest import assert_close
@@ -107,7 +107,7 @@ def test_the_render_runs_torch_on_one_thread_and_the_kernel_on_the_callers(monke
     thread; the kernel gets the caller's count (`threads.glue_on_one_thread`)."""
     import drjit as dr
 
-    from torchvol.threads import torch_threads
+    from torchvol.runtime.threads import torch_threads
 
     seen = []
     march = drjit_march.march
@@ -127,7 +127,7 @@ def test_the_render_runs_torch_on_one_thread_and_the_kernel_on_the_callers(monke
 def test_the_same_bytes_on_any_thread_count_and_in_any_batch():
     scenes = [_template(36, 20), _template(36, 20, time=2.0, **{"volumes.0.density.clouds.texture_seed": 4,
                                                                 "camera.eye": [0.3, 0.5, 0.2]})]
-    from torchvol.threads import torch_threads
+    from torchvol.runtime.threads import torch_threads
 
     with torch_threads(1):
         alone = [tv.render(s, compile=True) for s in scenes]

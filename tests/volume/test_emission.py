@@ -18,11 +18,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.batch import stack
+from torchvol.schema.batch import stack
 from torchvol.fields import DENSITIES
-from torchvol.plan import make_plan
-from torchvol.testing.glsl import gl_context, run_fragment, shadertoy_source
-from torchvol.validate import SceneError
+from torchvol.renderer.plan import make_plan
+from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.schema.validate import SceneError
 from torchvol.volume.emission import explosion_color, explosion_emission
 
 from conftest import assert_close

@@ -8,11 +8,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol import noise
-from torchvol.batch import stack
-from torchvol.plan import make_plan
-from torchvol.render import RenderContext
-from torchvol.scene import load_scene
+from torchvol.noise import lattice as noise
+from torchvol.schema.batch import stack
+from torchvol.renderer.plan import make_plan
+from torchvol.renderer.executor import RenderContext
+from torchvol.scene.model import load_scene
 from torchvol.volume import fused, strategy
 
 from conftest import assert_close

@@ -11,15 +11,15 @@ from hypothesis import strategies as st
 
 
 import torchvol as tv
-from torchvol import plan
+from torchvol.renderer import plan
 from conftest import TOL, assert_close
 from torchvol.fields.grid import grid_occupancy, sample_grid
-from torchvol.rays import intersect_box
-from torchvol.batch import stack
-from torchvol.render import camera_for
-from torchvol.testing.mitsuba import IRRADIANCE, SUN, puff_grid, relative_rmse, sigma_for, torchvol_scene
+from torchvol.geometry.rays import intersect_box
+from torchvol.schema.batch import stack
+from torchvol.renderer.executor import camera_for
+from torchvol.measure.mitsuba import IRRADIANCE, SUN, puff_grid, relative_rmse, sigma_for, torchvol_scene
 from torchvol.volume.exact import grid_optical_depth, grid_single_scatter
-from torchvol.volume.phase import henyey_greenstein
+from torchvol.light.phase import henyey_greenstein
 from torchvol.volume.skip import macro_grid, occupied_span
 from torchvol.volume.sun_volume import sun_transmittance_grid
 

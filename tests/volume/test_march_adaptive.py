@@ -94,7 +94,7 @@ def test_tolerance_holds_on_an_fbm_cloud_only_with_the_feature_cap(capped, monke
     cap, at 8 steps per span, islands are stepped over and the error exceeds it."""
     import torchvol as tv
     from torchvol.fields.fbm import FbmField
-    from torchvol.presets import preset_dict
+    from torchvol.scene.presets import preset_dict
 
     scene = preset_dict("cloud-puff", width=24, height=16)
     scene["image"]["spp"] = 1
@@ -117,7 +117,7 @@ def _cloud_puff(**overrides):
     """cloud-puff at 24×16, 1 spp, no early termination (its own error is not the march's), with
     `overrides` (key path -> value): (alpha, radiance) in float64."""
     import torchvol as tv
-    from torchvol.presets import preset_dict
+    from torchvol.scene.presets import preset_dict
 
     scene = preset_dict("cloud-puff", width=24, height=16)
     scene["image"]["spp"] = 1

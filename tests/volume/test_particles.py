@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.batch import stack
+from torchvol.schema.batch import stack
 from torchvol.fields.particles import ParticleField, falloff, particle_draws
 
 F64 = torch.float64

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from conftest import assert_close
-from torchvol.volume import phase, shader_look, shadow
+from torchvol.light import phase
+from torchvol.volume import shader_look, shadow
 
 
 def sphere_integral(phase, n=2_000_001):

@@ -5,7 +5,7 @@ import torch
 
 from conftest import assert_close
 from torchvol.fields.grid import sample_grid
-from torchvol.rays import intersect_box
+from torchvol.geometry.rays import intersect_box
 from torchvol.volume.shadow import shadow_transmittance
 from torchvol.volume.sun_volume import sun_frame, sun_transmittance_grid
 
@@ -67,7 +67,7 @@ def test_grid_cloud_matches_a_fine_shadow_march():
 
 def test_render_with_a_shadow_grid_is_close_to_the_shadow_march_and_cheaper():
     import torchvol as tv
-    from torchvol.testing.mitsuba import puff_grid, relative_rmse, sigma_for, torchvol_scene
+    from torchvol.measure.mitsuba import puff_grid, relative_rmse, sigma_for, torchvol_scene
 
     grid = puff_grid(24)
     sigma = sigma_for(grid)
@@ -93,7 +93,7 @@ def test_shadow_grid_sees_only_the_medium_inside_sphere_bounds():
     """An fbm field is non-zero outside its sphere bounds (in the box's corners): the grid must not
     count that density, as the shadow march (which stops at the sphere) does not."""
     import torchvol as tv
-    from torchvol.testing.mitsuba import relative_rmse
+    from torchvol.measure.mitsuba import relative_rmse
 
     scene = {"image": {"width": 20, "height": 16, "spp": 1}, "camera": {"eye": [0.0, 0.2, -3.0], "fov_y": 40},
              "lights": [{"direction": [0.6, 0.7, -0.4], "intensity": 5.0, "shadow": {"steps": 64}}],

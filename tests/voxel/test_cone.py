@@ -10,8 +10,8 @@ import torch
 from test_gi import room
 
 import torchvol as tv
-from torchvol.plan import make_plan
-from torchvol.presets import preset_dict
+from torchvol.renderer.plan import make_plan
+from torchvol.scene.presets import preset_dict
 from torchvol.voxel.cone import build_mips, cone_directions, default_aperture
 
 CONE_PASSES = ["voxels.gi.mips", "voxels.gi.cones"]

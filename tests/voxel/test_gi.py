@@ -11,7 +11,7 @@ import torch
 from conftest import assert_close
 
 import torchvol as tv
-from torchvol.plan import make_plan
+from torchvol.renderer.plan import make_plan
 from torchvol.voxel.gi import cosine_directions
 
 INNER = {"box": {"box": {"center": [0.0, 0.0, 0.0], "half_size": [3.0, 2.0, 3.0]}},

@@ -9,7 +9,7 @@ import torch
 from conftest import assert_close
 
 import torchvol as tv
-from torchvol.plan import make_plan
+from torchvol.renderer.plan import make_plan
 
 
 def room(materials, **voxels) -> dict:

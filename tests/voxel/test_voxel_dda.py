@@ -10,7 +10,7 @@ import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from torchvol.grid_ops import chebyshev_distance
+from torchvol.ops.grid_ops import chebyshev_distance
 from torchvol.voxel.dda import hybrid_traverse, reference_traverse, traverse
 
 

@@ -11,7 +11,7 @@ import torch
 from kornia.geometry.depth import depth_to_3d
 
 import torchvol as tv
-from torchvol.testing.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
 
 pytestmark = [
     pytest.mark.gl,
@@ -19,7 +19,7 @@ pytestmark = [
     pytest.mark.usefixtures("one_thread"),  # small ops: threads only add overhead
 ]
 
-SOURCE = shadertoy_source((Path(tv.__file__).parent / "testing" / "voxel_carved_box.glsl").read_text())
+SOURCE = shadertoy_source((Path(tv.__file__).parent / "measure" / "voxel_carved_box.glsl").read_text())
 
 
 def glsl(width, height, eye, sun, sky):

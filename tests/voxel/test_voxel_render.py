@@ -99,7 +99,7 @@ def test_batch_equals_single_renders():
 
 
 def test_terrain_layers():
-    from torchvol.scene import TerrainOccupancy
+    from torchvol.scene.model import TerrainOccupancy
 
     spec = TerrainOccupancy(amplitude=6.0, seed=2)
     x, z = torch.meshgrid(torch.arange(-8, 8), torch.arange(-8, 8), indexing="ij")

@@ -69,7 +69,7 @@ def test_fog_in_scatter_adds_sunlight():
 def test_fog_light_per_distinct_cell_is_bitwise_the_per_visit_twin(monkeypatch):
     """voxels.fog traces one shadow ray per distinct visited (scene, cell); the per-visit reference
     gives the same bits: a batch of two scenes (their own densities and suns), a sun and a point light."""
-    from torchvol.presets import preset_dict
+    from torchvol.scene.presets import preset_dict
     from torchvol.voxel.surface import VoxelSurface
 
     def scene(density, sun):

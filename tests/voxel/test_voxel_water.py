@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.plan import make_plan
-from torchvol.testing.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.renderer.plan import make_plan
+from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
 from torchvol.voxel.water import beer, fresnel, plane_hit, reflect, refract, wave_normal
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -213,7 +213,7 @@ def test_waves_tilt_the_normal_with_time():
 def test_seed_water_code_matches_llvmpipe():
     """The seed's wave normal, Schlick Fresnel (0.04 = F0 of ior 1.5), reflect and refract (from
     above, and from below with GLSL's zero vector under TIR) agree with water.py."""
-    src = shadertoy_source((Path(tv.__file__).parent / "testing" / "voxel_water.glsl").read_text())
+    src = shadertoy_source((Path(tv.__file__).parent / "measure" / "voxel_water.glsl").read_text())
     w, h, time = 24, 20, 0.8
     gl = [run_fragment(src, w, h, uniforms={"uMode": m, "iTime": time})[::-1].reshape(-1, 4) for m in range(5)]  # row 0 = y 0
     v, u = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")

@@ -15,8 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.data import render_samples
-from torchvol.scene import Voxels
+from torchvol.dataset.datasets import render_samples
+from torchvol.scene.model import Voxels
 from torchvol.voxel.grid import _cells, cell_range, dense_materials, terrain_height, terrain_materials
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol.voxel import walk
-from torchvol.grid_ops import chebyshev_distance
+from torchvol.ops.grid_ops import chebyshev_distance
 from torchvol.voxel.dda import hybrid_traverse, traverse
 
 FIELDS = ("hit", "cell", "axis", "t", "material", "steps", "t_exit")
@@ -185,8 +185,8 @@ def test_exact_recipe_batches_are_eager_batches(monkeypatch):
     `compile="exact"` samples, bitwise the eager ones."""
     from pathlib import Path
 
-    from torchvol.data import render_samples
-    from torchvol.recipe import Recipe
+    from torchvol.dataset.datasets import render_samples
+    from torchvol.dataset.recipe import Recipe
 
     monkeypatch.setattr(walk, "compiled_block", lambda: walk.walk_block)
     recipe = Recipe.load(Path(__file__).resolve().parents[2] / "datasets" / "voxel-terrain.toml",

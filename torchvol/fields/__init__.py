@@ -16,7 +16,7 @@ functions, so B scenes of one structure evaluate in one call.
 
 from __future__ import annotations
 
-from ..registry import Registry
+from ..schema.registry import Registry
 from .base import Field
 from .clouds import CloudLayer, CloudsDensity
 from .cloudscape import Cloudscape, CloudscapeDensity

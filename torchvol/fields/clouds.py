@@ -14,9 +14,10 @@ import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from .. import compilation, noise
-from ..batch import Stacked, per_scene, take
-from ..schema import EACH, Strict, Vec3
+from ..runtime import compilation
+from ..noise import lattice as noise
+from ..schema.batch import Stacked, per_scene, take
+from ..schema.models import EACH, Strict, Vec3
 
 
 class CloudsDensity(Strict):

@@ -23,10 +23,10 @@ import torch
 from pydantic import Field, model_validator
 from torch import Tensor
 
-from .. import noise_tiles
-from ..batch import Stacked, per_scene, take
+from ..noise import tiles as noise_tiles
+from ..schema.batch import Stacked, per_scene, take
 from ..post import smoothstep
-from ..schema import EACH, Strict, Vec3
+from ..schema.models import EACH, Strict, Vec3
 
 # Height profiles (smoothstep(a, b, h) · (1 − smoothstep(c, d, h)) over the normalised height h) of
 # stratus, stratocumulus, cumulus, cumulonimbus: `type` 0, 1/3, 2/3, 1; between two, the profile's

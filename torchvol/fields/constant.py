@@ -7,7 +7,7 @@ from typing import Annotated
 from pydantic import Field
 from torch import Tensor
 
-from ..batch import take
+from ..schema.batch import take
 
 ConstantDensity = Annotated[float, Field(ge=0.0)]
 

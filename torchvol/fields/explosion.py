@@ -18,9 +18,9 @@ from typing import Annotated
 from pydantic import Field
 from torch import Tensor
 
-from .. import noise
-from ..batch import Stacked, take
-from ..schema import EACH, Strict, Vec3
+from ..noise import lattice as noise
+from ..schema.batch import Stacked, take
+from ..schema.models import EACH, Strict, Vec3
 from .fbm import seeded_fbm
 
 

@@ -7,8 +7,8 @@ import torch
 from pydantic import Field
 from torch import Tensor
 
-from ..batch import Stacked, take
-from ..schema import Strict
+from ..schema.batch import Stacked, take
+from ..schema.models import Strict
 
 
 class ExponentialDensity(Strict):

@@ -8,9 +8,9 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 from torch import Tensor
 
-from .. import fastnoise, noise
-from ..batch import Stacked, per_scene, take
-from ..schema import EACH, Strict, Vec3
+from ..noise import fast as fastnoise, lattice as noise
+from ..schema.batch import Stacked, per_scene, take
+from ..schema.models import EACH, Strict, Vec3
 
 NOISES = {"value": noise.value_noise, "perlin": noise.perlin_noise, "worley": noise.worley_noise}
 # a noise's twin over several scenes at once (points, their scenes' rows, the seeds), bitwise each scene's own

@@ -15,9 +15,9 @@ import torch
 from pydantic import Field
 from torch import Tensor
 
-from .. import noise
-from ..batch import Stacked, per_scene, take
-from ..schema import EACH, Strict, Vec3
+from ..noise import lattice as noise
+from ..schema.batch import Stacked, per_scene, take
+from ..schema.models import EACH, Strict, Vec3
 
 
 class FurDensity(Strict):

@@ -11,9 +11,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..batch import Stacked, per_scene
-from ..grid_ops import dilate
-from ..schema import GridSource
+from ..schema.batch import Stacked, per_scene
+from ..ops.grid_ops import dilate
+from ..schema.models import GridSource
 
 
 class GridDensity(GridSource):

@@ -18,8 +18,8 @@ import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from ..batch import take
-from ..schema import Strict, Vec3, nonneg, nonzero
+from ..schema.batch import take
+from ..schema.models import Strict, Vec3, nonneg, nonzero
 from .shadow import shadow_transmittance
 
 SKY_DIRECTIONS = 64  # the Fibonacci sphere the sky's mean radiance is averaged over

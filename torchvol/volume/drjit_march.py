@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..threads import kernel_threads
+from ..runtime.threads import kernel_threads
 from .march import MarchResult
 
 if TYPE_CHECKING:

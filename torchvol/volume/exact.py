@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from ..fields.grid import sample_grid
-from ..rays import intersect_box
+from ..geometry.rays import intersect_box
 
 GL2 = (-1.0 / math.sqrt(3.0), 1.0 / math.sqrt(3.0))
 

@@ -31,10 +31,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .. import noise
-from ..compilation import compiled
-from ..mathops import take_rows
-from ..threads import on_threads, torch_threads
+from ..noise import lattice as noise
+from ..runtime.compilation import compiled
+from ..ops.mathops import take_rows
+from ..runtime.threads import on_threads, torch_threads
 from . import drjit_march
 from .march import MarchResult, StepRule
 
@@ -96,7 +96,7 @@ class StepConfig:
 def fusable(ctx, vol) -> bool:
     """Whether volume `vol` of the render `ctx` is this technique: the template's cloud layer
     with the seeds' look, lit (if at all) by a sun, no edge falloff."""
-    from ..fields.clouds import CloudLayer  # fields import volume modules; avoid the cycle
+    from ..fields.clouds import CloudLayer
 
     if vol.shading.semantics != "shader" or vol.params.shading != "shader" or vol.params.edge is not None:
         return False

@@ -25,7 +25,7 @@ from typing import Callable, Literal
 import torch
 from torch import Tensor
 
-from ..mathops import pow_, take_rows
+from ..ops.mathops import pow_, take_rows
 from .integrate import alpha_linear_step, alpha_step, frostbite_step, riemann_step
 
 Placement = Literal["count", "size", "adaptive"]

@@ -12,9 +12,9 @@ import torch
 from pydantic import Field, model_validator
 from torch import Tensor
 
-from ..batch import take
-from ..mathops import pow_
-from ..schema import Strict
+from ..schema.batch import take
+from ..ops.mathops import pow_
+from ..schema.models import Strict
 
 
 class MultipleScattering(Strict):

@@ -11,9 +11,9 @@ import math
 import torch
 from torch import Tensor
 
-from ..batch import per_scene, take
-from ..camera import Rays
-from ..rays import clip_to_ray
+from ..schema.batch import per_scene, take
+from ..geometry.camera import Rays
+from ..geometry.rays import clip_to_ray
 from .emission import EMISSION_MAPS, bloom_glow
 from .ambient import ambient_in_scatter
 from .integrate import frostbite_step

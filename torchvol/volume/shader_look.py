@@ -11,9 +11,9 @@ import torch
 from pydantic import Field
 from torch import Tensor
 
-from ..batch import take
-from ..camera import Rays
-from ..schema import Strict, Vec3
+from ..schema.batch import take
+from ..geometry.camera import Rays
+from ..schema.models import Strict, Vec3
 from .march import Medium, gathered, lod_drop
 
 

@@ -11,7 +11,7 @@
 
 from __future__ import annotations
 
-from ..registry import Registry
+from ..schema.registry import Registry
 from .physical import physical_medium
 from .shader_look import shader_medium
 from .surface_look import surface_medium

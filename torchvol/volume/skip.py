@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..grid_ops import dilate
+from ..ops.grid_ops import dilate
 
 MACRO_CELLS = 64  # along the longest axis: finer cells give a tighter span for more samples per ray
 CHUNK_SAMPLES = 1 << 19  # samples per chunk: whole rays, ~2 MB per float32 temporary

@@ -11,9 +11,9 @@ import math
 import torch
 from torch import Tensor
 
-from ..batch import take
-from ..camera import Rays
-from ..rays import clip_to_ray
+from ..schema.batch import take
+from ..geometry.camera import Rays
+from ..geometry.rays import clip_to_ray
 from . import drjit_march
 from .fused import fusable, march_fused
 from .march import march, march_adaptive

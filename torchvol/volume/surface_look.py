@@ -11,10 +11,10 @@ import torch
 from pydantic import Field
 from torch import Tensor
 
-from ..batch import take
-from ..camera import Rays
-from ..mathops import pow_
-from ..schema import Strict, Vec3
+from ..schema.batch import take
+from ..geometry.camera import Rays
+from ..ops.mathops import pow_
+from ..schema.models import Strict, Vec3
 from .march import Medium
 from .shader_look import alpha_look_medium
 

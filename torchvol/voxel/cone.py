@@ -47,8 +47,8 @@ import torch.nn.functional as F
 from pydantic import Discriminator, Field, Tag
 from torch import Tensor
 
-from .. import mathops
-from ..schema import Strict
+from ..ops import mathops
+from ..schema.models import Strict
 from .gi import DistanceLOD, VoxelGI, tangent_frame
 
 __all__ = ["ConeLOD", "VoxelCone", "VoxelGIs", "build_mips", "cone_ao", "cone_directions", "default_aperture", "face_cells",

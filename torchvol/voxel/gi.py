@@ -20,8 +20,8 @@ import torch
 from pydantic import Field, model_validator
 from torch import Tensor
 
-from .. import noise
-from ..schema import Strict
+from ..noise import lattice as noise
+from ..schema.models import Strict
 
 __all__ = ["DistanceLOD", "PathLOD", "VoxelGI", "cosine_directions", "tangent_frame", "lod_counts", "lod_keys", "path_keys"]
 

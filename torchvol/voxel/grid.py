@@ -22,9 +22,10 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from .. import noise, sdf
-from ..grid_ops import chebyshev_distance
-from ..mathops import take_rows
+from ..noise import lattice as noise
+from ..geometry import sdf
+from ..ops.grid_ops import chebyshev_distance
+from ..ops.mathops import take_rows
 
 __all__ = ["VoxelGrid", "cell_range", "dense_materials", "ore_cells", "terrain_height", "terrain_materials", "cell_centres"]
 

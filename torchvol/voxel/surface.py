@@ -28,11 +28,11 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
-from .. import sdf
-from ..aovs import AOVS
-from ..batch import Stacked, per_scene, take
-from ..lights import LightSource
-from ..mathops import take_rows
+from ..geometry import sdf
+from ..renderer.aovs import AOVS
+from ..schema.batch import Stacked, per_scene, take
+from ..light.lights import LightSource
+from ..ops.mathops import take_rows
 from .cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
 from .dda import Hits, hybrid_traverse, traverse
 from .fog import FogWalk, extinction

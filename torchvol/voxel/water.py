@@ -14,7 +14,7 @@ import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from ..schema import Strict, Vec3, nonneg
+from ..schema.models import Strict, Vec3, nonneg
 
 __all__ = ["VoxelWater", "WaterWaves", "beer", "fresnel", "plane_hit", "reflect", "refract", "wave_normal"]
 

@@ -1,0 +1,286 @@
+"""Datasets: SceneDataset renders recipe samples on the fly; FolderDataset reads a generated folder.
+
+One sample is a dict: image (3,H,W) float32 in [0,1], depth (1,H,W) float32 (planar z, 0 = no hit),
+alpha (1,H,W), K (3,3), world_to_camera (4,4), index, seed, params (the drawn values by key path)
+and the recipe's AOVs (C,H,W). With `[dataset] views = V` > 1 the image, depth, alpha, camera and
+AOV tensors gain a leading V axis (`torchvol.views`); with `volume_label` the sample adds
+`extinction` (N,N,N) and `extinction_box` (2,3) (`torchvol.volume_label`). `encode_sample` /
+`decode_file` turn one into named files (PNG for image and alpha, exact float32 .npy for depth,
+compressed .npz for AOVs (`AOV_STORAGE`), a JSON record) and back; the generator and FolderDataset
+share them so the two stay in step. A sequence recipe's samples
+(`[dataset] frames`) gain a leading frame axis and `flow` (torchvol.sequence).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+from typing import Any, Literal, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from ..schema.batch import structure_key
+from ..runtime.compilation import CompileMode, as_rendered, batch_mode, compile_mode
+from ..scene.quality import at_level
+from .recipe import Recipe, mix_seed, render_seed
+from ..schema.validate import fail, integer, is_integer
+from .views import encode_views, sample_params, stack_views, view_count, view_params
+from .volume_label import encode_label, extinction_grid
+
+# The conventions a generated dataset states in meta.json (DESIGN.md, Conventions).
+CONVENTIONS = {
+    "image": "8-bit sRGB-encoded PNG of the display-referred image in [0, 1] (row 0 = top)",
+    "depth": "planar z along the camera's forward axis (not ray distance), float32 .npy of shape (H, W), "
+             "world units; 0 where nothing was hit (invalid)",
+    "alpha": "8-bit PNG of 1 - transmittance of the whole ray",
+    "aovs": "compressed .npz holding one array named after the AOV, shape (C, H, W): float32 (lossless) for "
+            "normal, ao, shadow, distance, depth_median, radiance, optical_thickness, alpha_volumes and "
+            "sun_visibility; uint8 for material ids; uint16 for instance ids; float16 for uv "
+            "(face coordinates in [0, 1], within 2.5e-4)",
+    "units": "world units; angles in degrees; right-handed world, y up",
+    "camera": "OpenCV/kornia: camera axes x right, y down, z forward; K in pixels with pixel centres at "
+              "integer coordinates (centred principal point cx = W/2 - 0.5); world_to_camera maps world "
+              "points to camera coordinates",
+    "invalid_depth": 0.0,
+}
+
+
+def epoch_seed(seed: int, epoch: int | None) -> int:
+    """The seed a dataset draws from: `seed` itself, or mixed with `epoch` for fresh samples."""
+    return seed if epoch is None else mix_seed("torchvol.epoch", int(seed), int(epoch)) % 2**31
+
+
+def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aovs: Sequence[str] | None = None,
+                   chunk_rays: int | None = None, compile: CompileMode | bool = "off") -> list[dict]:
+    """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
+    e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch.
+    `compile` (`torchvol.compilation`): "all" compiles a batch's density and march kernels only
+    where that is the fast path (`fastnoise.compile_pays`), its exact kernels elsewhere."""
+    from ..renderer.executor import DEFAULT_CHUNK_RAYS, render
+    from .sequence import add_flow, sequence_scenes
+
+    aovs = recipe.aovs if aovs is None else tuple(aovs)
+    compile = compile_mode(compile)
+    if recipe.sequence is not None:  # frames > 1: a sample's frames are rendered like views, then its flow
+        scenes, params = sequence_scenes(recipe, indices, seed=seed)
+    elif recipe.views > 1:  # each sample's views
+        drawn = [view_params(recipe, int(i), seed) for i in indices]
+        scenes = [[recipe._scene(p) for p in views] for views in drawn]
+        params = [sample_params(recipe, views) for views in drawn]
+    else:  # (a mixed recipe's samples come from their family's recipe)
+        drawn = [recipe.sample_with_params(int(i), seed) for i in indices]
+        scenes, params = [[scene] for scene, _ in drawn], [p for _, p in drawn]
+    # every view or frame of every sample of one structure goes in one batch
+    groups: dict[tuple, list[tuple[int, int]]] = {}
+    for k, views in enumerate(scenes):
+        for v, scene in enumerate(views):
+            groups.setdefault(structure_key(at_level(scene)), []).append((k, v))
+    rendered: list[list[dict | None]] = [[None] * len(views) for views in scenes]
+    for group in groups.values():
+        first = scenes[group[0][0]][group[0][1]]
+        out = render([scenes[k][v] for k, v in group], seed=[render_seed(int(indices[k]), seed) for k, _ in group],
+                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs, compile=batch_mode(compile, first))
+        for b, (k, v) in enumerate(group):
+            missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
+            if missing:
+                fail("dataset.aovs", missing, f"this scene does not compute them; it gives: {sorted(out.aovs) + ['radiance']}")
+            extra = {a: (out.radiance if a == "radiance" else out.aovs[a])[b].float().contiguous() for a in aovs}
+            rendered[k][v] = {
+                "image": out.image[b].float().contiguous(),
+                "depth": out.depth[b].float().contiguous(),
+                "alpha": out.alpha[b].float().contiguous(),
+                "K": out.camera.K[b].float().contiguous(),
+                "world_to_camera": out.camera.world_to_camera[b].float().contiguous(),
+                **extra,
+            }
+    items = []
+    for k, views in enumerate(rendered):
+        tensors = stack_views(views)
+        item = {key: tensors.pop(key) for key in ("image", "depth", "alpha", "K", "world_to_camera")}
+        item.update(index=int(indices[k]), seed=int(seed), params=params[k], **tensors)
+        if recipe.sequence is not None:
+            add_flow(item)
+        if recipe.volume_label is not None:
+            item["extinction"], item["extinction_box"] = extinction_grid(scenes[k][0], recipe.volume_label)
+        items.append(item)
+    return items
+
+
+class SceneDataset(Dataset):
+    """Map-style dataset of `length` samples of `recipe` (a Recipe or anything Recipe.load takes).
+
+    ds[i] depends only on (seed, epoch, i): the same in any process, DataLoader worker or order.
+    `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`
+    (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
+    eager (the voxel walk) once the process (e.g. a DataLoader worker) has rendered
+    `AUTO_COMPILE_SAMPLES` samples, "exact" always, "off" never; "all" (or True) also the density
+    and march kernels where that is the fast path, as `torchvol generate --compile` does: samples
+    within 1e-5 of eager ones, not bitwise (each worker process compiles once)."""
+
+    def __init__(self, recipe: Recipe | str | Path | Mapping, length: int, seed: int = 0, epoch: int | None = None, *,
+                 aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None,
+                 compile: CompileMode | Literal["auto"] | bool = "auto"):
+        integer("length", length, low=0)
+        integer("seed", seed)
+        if epoch is not None and not is_integer(epoch):
+            fail("epoch", epoch, "expected an integer or None")
+        self.recipe = Recipe.load(recipe, overrides)
+        self.length, self.base_seed, self.epoch = length, seed, epoch
+        self.seed = epoch_seed(seed, epoch)
+        self.aovs = self.recipe.aovs if aovs is None else tuple(aovs)
+        self.compile = compile_mode(compile, auto=True)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def _check(self, index: int) -> int:
+        if not is_integer(index) or not -self.length <= index < self.length:
+            raise IndexError(f"index {index!r} out of range for a dataset of {self.length}")
+        return int(index) % self.length if self.length else int(index)
+
+    def __getitem__(self, index: int) -> dict:
+        return self.batch([index])[0]
+
+    def batch(self, indices: Sequence[int]) -> list[dict]:
+        """Several samples rendered as one batch (the generator's path); same values as ds[i]."""
+        return render_samples(self.recipe, [self._check(i) for i in indices], seed=self.seed, aovs=self.aovs,
+                              compile=as_rendered(self.compile, len(indices)))
+
+
+def collate(items: Sequence[dict]) -> dict:
+    """DataLoader collate: tensors stacked, index/seed as tensors, params kept as a list of dicts
+    (drawn values may be vectors, strings or tables, which the default collate cannot stack)."""
+    out: dict[str, Any] = {}
+    for key in items[0]:
+        values = [item[key] for item in items]
+        if key == "params":
+            out[key] = values
+        elif isinstance(values[0], torch.Tensor):
+            out[key] = torch.stack(values)
+        else:
+            out[key] = torch.tensor(values)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Files of one sample
+
+
+def sample_record(item: Mapping, files: Mapping[str, str]) -> dict:
+    """The manifest record of one sample (JSON-safe)."""
+    return {
+        "index": item["index"],
+        "seed": item["seed"],
+        "files": dict(files),
+        "K": item["K"].tolist(),
+        "world_to_camera": item["world_to_camera"].tolist(),
+        "params": item["params"],
+    }
+
+
+def _png(array: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(array, dtype=np.float32), allow_pickle=False)
+    return buf.getvalue()
+
+
+# How each AOV is stored, in a compressed .npz: lossless float32 (face normals, AO levels and hard
+# shadows take few distinct values: they compress well, docs/DATASETS.md), material ids as bytes
+# (at most 255 materials), and uv in float16: face coordinates in [0, 1] to within 2^-12 of a face.
+# instance ids (torchvol.labels) as uint16: volumes and materials together stay far below 65536
+AOV_STORAGE = {"material": np.uint8, "uv": np.float16, "instance": np.uint16, "flow_valid": np.uint8}
+
+
+def _npz(name: str, array: np.ndarray) -> bytes:
+    """np.savez_compressed's format with a fixed timestamp: the same array gives the same bytes."""
+    import zipfile
+
+    member = io.BytesIO()
+    np.save(member, np.ascontiguousarray(array, dtype=AOV_STORAGE.get(name, np.float32)), allow_pickle=False)
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as archive:
+        info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+        info.compress_type = zipfile.ZIP_DEFLATED
+        archive.writestr(info, member.getvalue())
+    return buf.getvalue()
+
+
+def to_uint8(x: torch.Tensor) -> np.ndarray:
+    return np.round(np.clip(x.numpy(), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
+    """{suffix: bytes}: image.png, depth.npy (H, W), alpha.png, one <aov>.npz each (C, H, W); with
+    several views each view's as image.{v}.png, ... (`torchvol.views`); with the volume label
+    extinction.npy (N, N, N) and extinction_box.npy (2, 3)."""
+    if view_count(item) is not None:
+        return {**encode_views(item, lambda one: encode_sample(one, aovs)), **encode_label(item)}
+    files = {
+        "image.png": _png(to_uint8(item["image"].permute(1, 2, 0))),
+        "depth.npy": _npy(item["depth"][0].numpy()),
+        "alpha.png": _png(to_uint8(item["alpha"][0])),
+    }
+    for name in aovs:
+        files[f"{name}.npz"] = _npz(name, item[name].numpy())
+    return {**files, **encode_label(item)}
+
+
+def decode_file(suffix: str, data: bytes) -> torch.Tensor:
+    """Inverse of encode_sample for one file: image (3,H,W), alpha/depth (1,H,W), AOV (C,H,W)."""
+    if suffix.endswith(".png"):
+        from PIL import Image
+
+        array = np.asarray(Image.open(io.BytesIO(data)))
+        x = torch.from_numpy(array.astype(np.float32) / 255.0)
+        return x.permute(2, 0, 1).contiguous() if x.ndim == 3 else x[None]
+    if suffix.endswith(".npz"):
+        with np.load(io.BytesIO(data), allow_pickle=False) as stored:
+            return torch.from_numpy(stored[suffix.split(".")[0]].astype(np.float32))
+    array = torch.from_numpy(np.load(io.BytesIO(data), allow_pickle=False))
+    return array[None] if suffix.split(".")[0] == "depth" else array  # depth.npy, depth.{v}.npy
+
+
+class FolderDataset(Dataset):
+    """A folder written by `torchvol generate --format folder`, read back with SceneDataset's keys
+    and dtypes (float32). image and alpha are 8-bit (quantised); depth and AOVs are exact, but uv
+    (float16: within 2.4e-4)."""
+
+    def __init__(self, path: str | Path):
+        self.root = Path(path)
+        manifest = self.root / "manifest.jsonl"
+        if not manifest.is_file():
+            fail("path", str(path), "not a generated dataset folder (no manifest.jsonl)")
+        self.meta = json.loads((self.root / "meta.json").read_text()) if (self.root / "meta.json").is_file() else {}
+        if self.meta.get("layout", "folder") != "folder":
+            fail("path", str(path), f"holds a {self.meta.get('layout')!r} dataset; FolderDataset reads the folder layout")
+        self.records = [json.loads(line) for line in manifest.read_text().splitlines() if line.strip()]
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __getitem__(self, index: int) -> dict:
+        rec = self.records[index]
+        item: dict[str, Any] = {}
+        for key, rel in rec["files"].items():
+            if isinstance(rel, list):  # one file per view
+                item[key] = torch.stack([self._read(r) for r in rel])
+            else:
+                item[key] = self._read(rel)
+        item["K"] = torch.tensor(rec["K"], dtype=torch.float32)
+        item["world_to_camera"] = torch.tensor(rec["world_to_camera"], dtype=torch.float32)
+        item["index"], item["seed"], item["params"] = rec["index"], rec["seed"], rec["params"]
+        return item
+
+    def _read(self, rel: str) -> torch.Tensor:
+        return decode_file(Path(rel).name.split(".", 1)[1], (self.root / rel).read_bytes())

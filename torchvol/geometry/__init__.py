@@ -1,0 +1,1 @@
+"""Geometry: the camera and its rays, ray/shape intersections, bounds, SDFs, per-ray sampling."""

@@ -1,0 +1,130 @@
+"""Where a volume's medium lives: box, sphere, horizontal slab or a planet's shell. Each kind gives its entry/exit
+distances along rays (`intersect`), the box around it (`aabb`, finite kinds only: the sun grid
+tabulates over it), its height range (`height_range`: the shader look's height gradient, the ambient
+gradient) and the distance in to its surface (`depth`: the edge fade)."""
+
+from __future__ import annotations
+
+import torch
+from pydantic import Field, model_validator
+from torch import Tensor
+
+from ..schema.batch import Stacked, take
+from .rays import intersect_box, intersect_shell, intersect_slab, intersect_sphere
+from ..schema.registry import Registry
+from ..schema.models import Strict, Vec3
+
+SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
+
+
+class Box(Strict):
+    min: Vec3 = (-0.5, -0.5, -0.5)
+    max: Vec3 = (0.5, 0.5, 0.5)
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if any(hi <= lo for lo, hi in zip(self.min, self.max)):
+            raise ValueError(f"max {self.max} must exceed min {self.min} on every axis")
+        return self
+
+
+class Sphere(Strict):
+    center: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = Field(1.0, gt=0.0)
+
+
+class Slab(Strict):
+    y_min: float = -1.0
+    y_max: float = 1.0
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.y_max <= self.y_min:
+            raise ValueError(f"y_max {self.y_max} must exceed y_min {self.y_min}")
+        return self
+
+
+class Shell(Strict):
+    """A layer between altitudes `bottom` and `top` over an opaque planet of `planet_radius`
+    centred at (0, −planet_radius, 0), so that its ground passes through the origin."""
+
+    planet_radius: float = Field(6000.0, gt=0.0)
+    bottom: float = Field(1.5, ge=0.0)
+    top: float = 4.0
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.top <= self.bottom:
+            raise ValueError(f"top {self.top} must exceed bottom {self.bottom}")
+        return self
+
+
+# Every function takes the bounds of B scenes (`Stacked`): `intersect(b, o [n, 3], d [n, 3], s [n])
+# -> (t_near [n], t_far [n])`; `aabb(b) -> (min (B, 3), max (B, 3))`; `height_range(b) -> (B, 2)`;
+# `depth(b, p [n, 3], s [n]) -> [n]`: distance from p in to the surface (negative outside; `edge`).
+
+def _box_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    return intersect_box(o, d, take(b.min, s), take(b.max, s))
+
+
+def _sphere_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    return intersect_sphere(o, d, take(b.center, s), take(b.radius, s))
+
+
+def _slab_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    return intersect_slab(o, d, take(b.y_min, s), take(b.y_max, s))
+
+
+def _shell_center(b: Stacked) -> Tensor:
+    """(B, 3): the planet's centre, below the origin."""
+    zero = torch.zeros_like(b.planet_radius)
+    return torch.stack([zero, -b.planet_radius, zero], dim=1)
+
+
+def _shell_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    r = take(b.planet_radius, s)
+    return intersect_shell(o, d, take(_shell_center(b), s), r, r + take(b.bottom, s), r + take(b.top, s))
+
+
+def _shell_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
+    reach = (b.planet_radius + b.top)[:, None]
+    return _shell_center(b) - reach, _shell_center(b) + reach
+def _box_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    return torch.minimum(p - take(b.min, s), take(b.max, s) - p).amin(dim=1)
+
+
+def _sphere_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    return take(b.radius, s) - (p - take(b.center, s)).norm(dim=1)
+
+
+def _slab_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    return torch.minimum(p[:, 1] - take(b.y_min, s), take(b.y_max, s) - p[:, 1])
+
+
+def _shell_altitude(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    return (p - take(_shell_center(b), s)).norm(dim=1) - take(b.planet_radius, s)
+
+
+def _shell_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    altitude = _shell_altitude(b, p, s)
+    return torch.minimum(altitude - take(b.bottom, s), take(b.top, s) - altitude)
+
+
+def _sphere_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
+    return b.center - b.radius[:, None], b.center + b.radius[:, None]
+
+
+def _heights(lo: Tensor, hi: Tensor) -> Tensor:
+    return torch.stack([lo, hi], dim=1)
+
+
+BOUNDS = Registry("bounds")
+BOUNDS.register("box", Box, _box_intersect, finite=True, aabb=lambda b: (b.min, b.max),
+                height_range=lambda b: _heights(b.min[:, 1], b.max[:, 1]), depth=_box_depth)
+BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, aabb=_sphere_aabb,
+                height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius), depth=_sphere_depth)
+# a slab's exit is at infinity along its planes: rays stop at SLAB_REACH unless march.max_distance says
+BOUNDS.register("slab", Slab, _slab_intersect, finite=False, aabb=None, height_range=lambda b: _heights(b.y_min, b.y_max),
+                depth=_slab_depth)
+BOUNDS.register("shell", Shell, _shell_intersect, finite=True, aabb=_shell_aabb,
+                height_range=lambda b: _heights(b.bottom, b.top), depth=_shell_depth, altitude=_shell_altitude)

@@ -1,0 +1,1 @@
+"""Light: light sources, skies, phase functions and the Rayleigh + Mie atmosphere."""

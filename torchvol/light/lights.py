@@ -1,0 +1,118 @@
+"""Light sources: the `LIGHTS` registry. Each kind is its schema model (a `[[lights]]` table chosen
+by its ``kind`` key) and its function `fn(light (Stacked), points [n, 3], scene_index [n]) -> Toward`:
+the unit direction towards the light, the irradiance it delivers there (unshadowed) and the
+distance to it (where a shadow ray ends; inf for a sun). Capability ``directional``: the same
+direction and irradiance everywhere (a sun), so a ray sees one phase angle all along (computed once
+per ray), a homogeneous medium has a closed form, and a shadow can be tabulated on a sun grid.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal, NamedTuple
+
+import torch
+from pydantic import Field, field_validator
+from torch import Tensor
+
+from ..schema.batch import Stacked, take
+from ..schema.registry import Registry
+from ..schema.models import SHARED, Strict, Vec3, nonneg, nonzero
+
+# A point light's 1/r² is capped at 1/POINT_RADIUS²: a ray through the light itself stays finite
+# (as if the light were a small sphere); it never changes a sample farther than POINT_RADIUS away.
+POINT_RADIUS = 1e-4
+
+
+class Shadow(Strict):
+    """How a light's transmittance through the volumes is found: `march` (a shadow march from every
+    lit sample to where it leaves the volume, or to the light if that comes first) or `grid` (suns
+    only: optical depth tabulated once per scene on `resolution`² × (resolution/2 + 1) sun-aligned
+    nodes over each volume's bounds (Simpson's rule along the sun), looked up bicubically across
+    the sun plus a trapezoid over the gap to the next plane: far cheaper; box and sphere bounds
+    only; hard surfaces of the medium smear over a grid cell). docs/VOLUMES.md has the measured
+    error and time of both. Shadow settings are accuracy settings, shared by a batch."""
+
+    method: Literal["march", "grid"] = "march"
+    steps: int | None = Field(None, ge=1, le=4096, description="None: the quality level's")
+    growth: Annotated[float, SHARED] = Field(1.0, ge=1.0, le=4.0)
+    first_step: Annotated[float | None, SHARED] = Field(None, gt=0.0)
+    resolution: int = Field(128, ge=4, le=1024)
+
+
+def _color(v: Vec3) -> Vec3:
+    return nonneg(v)
+
+
+class Sun(Strict):
+    """A directional light: irradiance `intensity · color` from `direction` (towards the sun)."""
+
+    kind: Literal["sun"] = "sun"
+    direction: Vec3 = (1.0, 1.0, -0.5)
+    color: Vec3 = (1.0, 1.0, 1.0)
+    intensity: float = Field(1.0, ge=0.0)
+    shadow: Shadow | None = None
+
+    _d = field_validator("direction")(lambda v: nonzero(v, "it points towards the sun"))
+
+    _c = field_validator("color")(lambda v: _color(v))
+
+
+class Point(Strict):
+    """A point light of radiant intensity `intensity · color` at `position`: irradiance
+    `intensity · color / r²` at distance r (r² capped below at POINT_RADIUS²)."""
+
+    kind: Literal["point"] = "point"
+    position: Vec3 = (0.0, 2.0, 0.0)
+    color: Vec3 = (1.0, 1.0, 1.0)
+    intensity: float = Field(1.0, ge=0.0)
+    shadow: Shadow | None = None
+
+    _c = field_validator("color")(lambda v: _color(v))
+
+
+class Toward(NamedTuple):
+    direction: Tensor  # [n, 3] unit, towards the light
+    irradiance: Tensor  # [n, 3] unshadowed
+    distance: Tensor  # [n] to the light (inf: a sun)
+
+
+def radiant(light: Stacked) -> Tensor:
+    """intensity · color (B, 3): a sun's irradiance, a point light's radiant intensity."""
+    return light.color * light.intensity[:, None]
+
+
+def sun_direction(light: Stacked) -> Tensor:
+    """(B, 3) unit, towards the sun."""
+    return torch.nn.functional.normalize(light.direction, dim=-1)
+
+
+def sun_toward(light: Stacked, points: Tensor, s: Tensor) -> Toward:
+    n = points.shape[0]
+    return Toward(take(sun_direction(light), s), take(radiant(light), s), points.new_full((n,), math.inf))
+
+
+def point_toward(light: Stacked, points: Tensor, s: Tensor) -> Toward:
+    v = take(light.position, s) - points
+    r2 = (v * v).sum(dim=1).clamp_min(POINT_RADIUS * POINT_RADIUS)
+    r = r2.sqrt()
+    return Toward(v / r[:, None], take(radiant(light), s) / r2[:, None], r)
+
+
+LIGHTS = Registry("light")
+LIGHTS.register("sun", Sun, sun_toward, directional=True)
+LIGHTS.register("point", Point, point_toward, directional=False)
+
+
+class LightSource:
+    """One light index across a batch: its kind and its `Stacked` parameters."""
+
+    def __init__(self, kind, params: Stacked):
+        self.kind, self.params = kind, params
+        self.directional: bool = kind.caps["directional"]
+        self.radiant = radiant(params)  # (B, 3)
+        self.direction = sun_direction(params) if self.directional else None  # (B, 3)
+
+    def toward(self, points: Tensor, s: Tensor) -> Toward:
+        """Direction, irradiance and distance to the light from `points` [n, 3] of scenes `s` [n]."""
+        return self.kind.fn(self.params, points, s)

@@ -1,0 +1,106 @@
+"""Phase functions: the `PHASES` registry. Each kind is its schema model (the table under
+`phase = { kind = ... }`, or its name alone: `phase = "isotropic"`) and its function
+`fn(params (Stacked), cos_theta [n], scene_index [n]) -> p [n]`.
+
+Physical phase functions are normalised over the sphere (∫ p dω = 1, HG includes 1/4π) and take
+cos θ = dot(ray direction, sun direction) with the sun direction pointing towards the sun, so g > 0
+is bright looking towards the sun. (The seeds' ``HenyeyGreenstein(dot(rd, -sundir))`` uses the
+opposite sign with their sun directions and peaks looking away from the sun.)
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from pydantic import Field, model_validator
+from torch import Tensor
+
+from ..schema.batch import take
+from ..schema.registry import Registry
+from ..schema.models import One, Strict
+
+INV_4PI = 1.0 / (4.0 * math.pi)
+
+
+def isotropic(cos_theta: Tensor) -> Tensor:
+    """1/4π. `cos_theta`: [N]."""
+    return torch.full_like(cos_theta, INV_4PI)
+
+
+def henyey_greenstein(cos_theta: Tensor, g: Tensor | float) -> Tensor:
+    """(1 − g²) / (4π (1 + g² − 2g cos θ)^{3/2}). `cos_theta`: [N]; `g`: [N] or scalar, |g| < 1.
+
+    The denominator is evaluated as `_hg_base`: no cancellation for g → ±1 at either peak."""
+    g = torch.as_tensor(g, dtype=cos_theta.dtype, device=cos_theta.device)
+    denom = _hg_base(cos_theta, g)
+    return INV_4PI * (1.0 - g) * (1.0 + g) / (denom * denom.sqrt())
+
+
+def _hg_base(cos_theta: Tensor, g: Tensor) -> Tensor:
+    """1 + g² − 2g cos θ written (1 − |g|)² + 2|g|(1 − sign(g) cos θ): both terms ≥ 0, so the
+    peak value (1 − |g|)² (cos θ = sign g) has no cancellation for either sign of g."""
+    a = g.abs()
+    base = (1.0 - a) ** 2 + 2.0 * a * (1.0 - torch.copysign(torch.ones_like(g), g) * cos_theta)
+    return base.clamp_min(torch.finfo(cos_theta.dtype).tiny)
+
+
+def dual_henyey_greenstein(cos_theta: Tensor, g_forward, g_backward, weight) -> Tensor:
+    """mix(HG(g_forward), HG(g_backward), weight), the seeds' dual lobe. Arguments: [N] or scalar."""
+    return torch.lerp(
+        henyey_greenstein(cos_theta, g_forward),
+        henyey_greenstein(cos_theta, g_backward),
+        torch.as_tensor(weight, dtype=cos_theta.dtype, device=cos_theta.device),
+    )
+
+
+def rayleigh(cos_theta: Tensor) -> Tensor:
+    """3/(16π) (1 + cos² θ). `cos_theta`: [N]."""
+    return (3.0 / (16.0 * math.pi)) * (1.0 + cos_theta * cos_theta)
+
+
+def mie_cornette_shanks(cos_theta: Tensor, g: Tensor | float) -> Tensor:
+    """Cornette-Shanks Mie approximation 3(1−g²)(1+c²) / (8π(2+g²)(1+g²−2gc)^{3/2}), normalised."""
+    g = torch.as_tensor(g, dtype=cos_theta.dtype, device=cos_theta.device)
+    denom = _hg_base(cos_theta, g)
+    return (3.0 / (8.0 * math.pi)) * (1.0 - g) * (1.0 + g) * (1.0 + cos_theta**2) / ((2.0 + g * g) * denom * denom.sqrt())
+
+
+class HG(Strict):
+    g: float = Field(0.0, gt=-1.0, lt=1.0)
+
+
+class DualHG(Strict):
+    g_forward: float = Field(0.8, gt=-1.0, lt=1.0)
+    g_backward: float = Field(-0.2, gt=-1.0, lt=1.0)
+    weight: float = Field(0.5, ge=0.0, le=1.0)
+
+
+class Empty(Strict):
+    pass
+
+
+class PhaseChoice(One):
+    """A phase table, or a kind's name alone (``phase = "isotropic"``)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _shorthand(cls, data):
+        return {data: {}} if isinstance(data, str) else data
+
+
+# `anisotropic(params, cos, s, k [n])`: the kind with its anisotropy scaled by k (multiple
+# scattering's octaves, `volume/multiple.py`): g·k for the HG lobes and Mie, a blend towards
+# isotropic by k for the kinds without a g
+PHASES = Registry("phase")
+PHASES.register("isotropic", Empty, lambda p, cos, s: isotropic(cos), anisotropic=lambda p, cos, s, k: isotropic(cos))
+PHASES.register("hg", HG, lambda p, cos, s: henyey_greenstein(cos, take(p.g, s)),
+                anisotropic=lambda p, cos, s, k: henyey_greenstein(cos, take(p.g, s) * k))
+PHASES.register("dual_hg", DualHG, lambda p, cos, s: dual_henyey_greenstein(
+    cos, take(p.g_forward, s), take(p.g_backward, s), take(p.weight, s)),
+    anisotropic=lambda p, cos, s, k: dual_henyey_greenstein(cos, take(p.g_forward, s) * k, take(p.g_backward, s) * k,
+                                                            take(p.weight, s)))
+PHASES.register("rayleigh", Empty, lambda p, cos, s: rayleigh(cos),
+                anisotropic=lambda p, cos, s, k: torch.lerp(isotropic(cos), rayleigh(cos), k))
+PHASES.register("mie", HG, lambda p, cos, s: mie_cornette_shanks(cos, take(p.g, s)),
+                anisotropic=lambda p, cos, s, k: mie_cornette_shanks(cos, take(p.g, s) * k))

@@ -1,0 +1,108 @@
+"""Skies: the `SKIES` registry. Each kind is its schema model (the `[sky]` table, chosen by its
+``kind`` key) and its function `fn(sky (Stacked), directions [n, 3], scene_index [n], sun (B, 3)
+| None) -> radiance [n, 3]` (`sun`: the unit direction towards the first light, a sun, where the
+scene has one). Every sky may add the sun's glow lobes: `halo` (seen through volumes) and `flare`
+(added over everything after compositing)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from pydantic import Field, field_validator, model_validator
+from torch import Tensor
+
+from ..schema.batch import Stacked, take
+from ..ops.mathops import pow_
+from ..geometry.rays import intersect_sphere
+from ..schema.registry import Registry
+from ..schema.models import Strict, Vec3, nonneg
+from .atmosphere import Air, AirLayer, gather_air, single_scatter
+
+
+class Glow(Strict):
+    """An additive lobe around the sun: color · clamp(dot(sun, rd), 0, 1)^power."""
+
+    color: Vec3
+    power: float = Field(gt=0.0)
+    _c = field_validator("color")(lambda v: nonneg(v))
+
+
+class Atmosphere(AirLayer):
+    """The sky of a spherical planet's air seen from `eye_height` above its ground (the defaults are
+    Earth's in metres); the sun is the scene's first light, of radiance scale `sun_intensity`."""
+
+    eye_height: float = Field(1.0, ge=0.0)
+    sun_intensity: float = Field(20.0, ge=0.0)
+
+    @model_validator(mode="after")
+    def _eye_inside(self):
+        if self.eye_height >= self.atmosphere_height:
+            raise ValueError("eye_height must be below atmosphere_height")
+        return self
+
+
+class SkyBase(Strict):
+    halo: Glow | None = None  # added to the sky (seen through volumes)
+    flare: Glow | None = None  # added over everything, after compositing
+
+
+class ConstantSky(SkyBase):
+    kind: Literal["constant"] = "constant"
+    radiance: Vec3 = (0.0, 0.0, 0.0)
+    _r = field_validator("radiance")(lambda v: nonneg(v))
+
+
+class GradientSky(SkyBase):
+    """The template's sky: colour = horizon − rd.y · slope."""
+
+    kind: Literal["gradient"] = "gradient"
+    horizon: Vec3 = (0.675, 0.785, 0.825)  # colour at rd.y = 0
+    slope: Vec3 = (0.2, 0.1, 0.2)
+
+
+class AtmosphereSky(SkyBase):
+    kind: Literal["atmosphere"] = "atmosphere"
+    atmosphere: Atmosphere = Field(default_factory=Atmosphere)
+
+
+def gradient_sky(directions: Tensor, horizon: Tensor, slope: Tensor) -> Tensor:
+    """The template's `bgcol = horizon − rd.y · slope`. `directions`: [R, 3]; `horizon`, `slope`:
+    [R, 3] (gathered per ray). -> [R, 3]."""
+    return horizon - directions[:, 1:2] * slope
+
+
+def sun_glow(directions: Tensor, sun_dir: Tensor, color: Tensor, power: Tensor) -> Tensor:
+    """color · clamp(dot(sun, rd), 0, 1)^power: the template's halo (power 8) and flare (power 3).
+    `directions`, `sun_dir`, `color`: [R, 3]; `power`: [R]. -> [R, 3]."""
+    sun = (directions * sun_dir).sum(dim=1).clamp(0.0, 1.0)
+    return color * pow_(sun, power)[:, None]
+
+
+def atmosphere_sky(directions: Tensor, sun_dir: Tensor, air: Air, *, eye_height: Tensor, sun_intensity: Tensor,
+                   steps: int, light_steps: int) -> Tensor:
+    """Single-scattering Rayleigh + Mie sky (seed 000, variant 2) seen from `eye_height` [R] above
+    the planet of `air` (per ray): `volume.atmosphere.single_scatter` up to the top of the
+    atmosphere, or to the ground (black) for rays towards it. `directions`, `sun_dir`: [R, 3] unit
+    (sun towards the sun); `sun_intensity` [R]. Returns radiance [R, 3]."""
+    centre = torch.zeros_like(directions)
+    origin = torch.zeros_like(directions)
+    origin[:, 1] = air.planet_radius + eye_height
+    _, t_top = intersect_sphere(origin, directions, centre, air.top_radius)
+    g_near, _ = intersect_sphere(origin, directions, centre, air.planet_radius)
+    t_end = torch.where(g_near > 0, torch.minimum(g_near, t_top), t_top).clamp_min(0.0)
+    inscatter, _ = single_scatter(origin, directions, torch.zeros_like(t_end), t_end, sun_dir, air, steps=steps,
+                                  light_steps=light_steps)
+    return sun_intensity[:, None] * inscatter
+
+
+def _atmosphere(sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor) -> Tensor:
+    atm = sky.atmosphere
+    return atmosphere_sky(directions, take(sun, s), gather_air(atm, s), eye_height=take(atm.eye_height, s),
+                          sun_intensity=take(atm.sun_intensity, s), steps=atm.steps, light_steps=atm.light_steps)
+
+
+SKIES = Registry("sky")
+SKIES.register("constant", ConstantSky, lambda sky, d, s, sun: take(sky.radiance, s))
+SKIES.register("gradient", GradientSky, lambda sky, d, s, sun: gradient_sky(d, take(sky.horizon, s), take(sky.slope, s)))
+SKIES.register("atmosphere", AtmosphereSky, _atmosphere, needs_sun=True)

@@ -1,0 +1,530 @@
+"""`torchvol bench speed`: where a render's time goes against its peers, in one run (docs/SPEED.md).
+
+A profile, then four tables, every figure a median of `repeat` runs measured in this one run, so ratios hold on
+any machine (absolute times only on a quiet one):
+
+0. Where a render's time goes: torch.profiler's top ops (self CPU time) of `cloud-puff` (physical,
+   table-hash value-noise fbm) and `template-clouds` (texture noise) at 64×64.
+1. `template-clouds` on Mesa llvmpipe (the same GLSL template, `torchvol.testing.glsl`) against
+   torchvol eager and compiled (its march one Dr.Jit kernel, `volume.drjit_march`, and on
+   torch.compile's kernels, `volume.fused`), and a physical cloud (`cloud-puff`) with the table hash,
+   the arithmetic hash eager and the arithmetic hash's fused compiled fbm (`torchvol.fastnoise`);
+   each row with its density evaluations per second.
+2. The floor: density evaluations per second of each render's noise alone on the same points
+   (cloud-puff's value-noise fbm: table hash eager, arithmetic hash eager, fused compiled kernel;
+   the template's texture-noise fbm eager, compiled and in Dr.Jit); each render row's time over its floor,
+   the fastest of these kernels run beside each of the row's renders.
+3. Generation: samples/s of bundled recipes at 128×128 with 1 and 2 workers (`generate`, the
+   full path: sampling, batched render, encoding, writes; worker runs include process start-up).
+4. The loaded-machine slowdown: a render in a fresh process alone and while one
+   ``python -c "while True: pass"`` keeps a core busy, per thread count and OpenMP wait policy.
+5. The heap: renders in fresh processes with glibc's malloc as `torchvol.heap` sets it and left
+   alone; seconds, page faults and system time per render.
+
+Compile time is excluded from the steady-state rows and reported on its own (first call).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+from typing import Callable, NamedTuple, Sequence
+
+import torch
+
+from ..noise import fast as fastnoise, lattice as noise
+from ..runtime.compilation import compile_settings, compiled
+from ..renderer.executor import render
+from ..scene.model import preset
+from ..runtime.threads import torch_threads
+
+ROOT = Path(__file__).resolve().parents[2]
+RECIPES = sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
+TEMPLATE_SIZES = ((640, 360), (1280, 720))
+PARTS = ("profile", "render", "floor", "generate", "loaded", "heap")  # the report's sections, in order
+
+
+def _seconds(fn: Callable[[], object]) -> float:
+    # in dynamo's settings, as a render runs its kernels: a compiled floor kernel called alone
+    # would set them around its call, and pay for it (`compilation.compile_settings`)
+    with compile_settings():
+        start = time.perf_counter()
+        fn()
+        return time.perf_counter() - start
+
+
+def _median_time(fn: Callable[[], object], repeat: int) -> float:
+    return statistics.median(_seconds(fn) for _ in range(repeat))
+
+
+class RenderTiming(NamedTuple):
+    seconds: float  # median of the timed renders
+    evals: int  # density evaluations of one render
+    first_s: float  # the first render (compilation under `compile`), not in the median
+    x_floor: float | None  # median over the runs of the render's time over its floor's (None: no floor)
+
+
+class Floor(NamedTuple):
+    """A render's density-evaluation floor: `kernel` evaluates the density at `points` points."""
+
+    kernel: Callable[[], object]
+    points: int
+    threads: int
+
+
+def floor_ratio(render_s: Sequence[float], floor_s: Sequence[float], *, evals: int, points: int) -> float:
+    """Median over paired runs of a render's time over the time its `evals` density evaluations take
+    at the floor kernel's rate in the run beside it (`points` points in `floor_s`)."""
+    return statistics.median(r * points / (evals * f) for r, f in zip(render_s, floor_s, strict=True))
+
+
+def time_render(scene, *, compile: bool, repeat: int, floor: Floor | None = None) -> RenderTiming:
+    """`render(scene)` timed `repeat` times after a first call. With a `floor`, its kernel runs after
+    each render (on its threads), and × floor is taken run by run: on a VM whose speed drifts, a
+    floor measured minutes apart from the render skewed the ratio by up to 2× (docs/SPEED.md)."""
+    start = time.perf_counter()
+    out = render(scene, compile=compile)
+    first, render_s, floor_s = time.perf_counter() - start, [], []
+    for _ in range(repeat):
+        render_s.append(_seconds(lambda: render(scene, compile=compile)))
+        if floor is not None:
+            with torch_threads(floor.threads):
+                floor_s.append(_seconds(floor.kernel))
+    evals = out.stats["density_evals"]
+    x_floor = floor_ratio(render_s, floor_s, evals=evals, points=floor.points) if floor is not None and evals else None
+    return RenderTiming(statistics.median(render_s), evals, first, x_floor)
+
+
+def time_llvmpipe(width: int, height: int, *, repeat: int) -> float | None:
+    """Median seconds of the template GLSL on llvmpipe at width×height (None: no EGL/GL context)."""
+    from .glsl import gl_context, shadertoy_source, time_fragment
+
+    if gl_context() is None:
+        return None
+    template = (Path(__file__).parent / "template_clouds.glsl").read_text()
+    uniforms = dict(iResolution=(width, height, 1.0), iTime=0.0, iMouse=(0.0, 0.0, 0.0, 0.0))
+    return time_fragment(shadertoy_source(template), width, height, uniforms=uniforms,
+                         textures={"iChannel0": noise.default_noise_texture(0).numpy()}, repeat=repeat)
+
+
+def _cloud_puff(width: int, height: int, hash: str) -> dict:
+    scene = preset("cloud-puff", width=width, height=height).model_dump()
+    scene["volumes"][0]["density"]["fbm"]["hash"] = hash
+    return scene
+
+
+def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size: tuple[int, int],
+                floor_points: int = 2**20) -> list[dict]:
+    """Rows {work, renderer, threads, seconds, evals_per_s, ratio, x_floor, first_s}: template-clouds
+    per size against llvmpipe (compiled also on one thread, as a generator's worker renders), then
+    cloud-puff at `physical_size` against its table-hash eager render. × floor: against the
+    fastest kernel of the render's density on as many threads (`fastest`), run beside each render
+    on `floor_points` points."""
+    rows, threads = [], torch.get_num_threads()
+    kernels = floor_kernels(points=floor_points)
+
+    def floor(density: str, n: int) -> Floor:
+        kernel = kernels[(fastest(density), density, n)]
+        with torch_threads(n):
+            kernel()  # compiles: not in the timed runs
+        return Floor(kernel, floor_points, n)
+
+    for width, height in sizes:
+        gl = time_llvmpipe(width, height, repeat=repeat)
+        work = f"template-clouds {width}×{height}"
+        if gl is not None:
+            rows.append(dict(work=work, renderer="llvmpipe (GLSL template)", threads=None, seconds=gl, evals_per_s=None,
+                             ratio=1.0, x_floor=None, first_s=None))
+        scene = preset("template-clouds", width=width, height=height)
+        drjit = fastest("template-clouds") == DRJIT_FBM
+        compiled_name = "torchvol compiled (Dr.Jit march)" if drjit else "torchvol torch.compile"
+        for compile, n, name in ((False, threads, "torchvol eager"), (True, threads, compiled_name),
+                                 (True, 1, f"{compiled_name}, 1 thread"),
+                                 *([(True, threads, "torchvol torch.compile kernels")] if drjit else [])):
+            with torch_threads(n), _drjit_off(name == "torchvol torch.compile kernels"):
+                t = time_render(scene, compile=compile, repeat=repeat, floor=floor("template-clouds", n))
+            rows.append(dict(work=work, renderer=name, threads=n, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
+                             ratio=t.seconds / gl if gl else None, x_floor=t.x_floor, first_s=t.first_s))
+    width, height = physical_size
+    work, base = f"cloud-puff {width}×{height}", None
+    for hash, compile, name in (("table", False, "table hash, eager"), ("arithmetic", False, "arithmetic hash, eager"),
+                                ("arithmetic", True, "arithmetic hash, fused field compiled")):
+        t = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat,
+                        floor=floor("cloud-puff", threads))
+        base = base or t.seconds
+        rows.append(dict(work=work, renderer=name, threads=threads, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
+                         ratio=t.seconds / base, x_floor=t.x_floor, first_s=t.first_s))
+    return rows
+
+
+@contextlib.contextmanager
+def _drjit_off(off: bool):
+    """The compiled template march on torch.compile's kernels inside the block where `off`."""
+    from ..volume import drjit_march
+
+    before = os.environ.get(drjit_march.OPT_OUT)
+    if off:
+        os.environ[drjit_march.OPT_OUT] = "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(drjit_march.OPT_OUT, None)
+        else:
+            os.environ[drjit_march.OPT_OUT] = before
+
+
+def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", compile: bool = False) -> list[dict]:
+    """torch.profiler's `top` ops by self CPU time of one render of preset `name` at size×size
+    (after a warm-up render, which compiles under `compile`): rows {op, share, calls}; share of the
+    profiled self CPU time."""
+    from torch.profiler import ProfilerActivity, profile
+
+    scene = _cloud_puff(size, size, hash) if name == "cloud-puff" else preset(name, width=size, height=size)
+    render(scene, compile=compile)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        render(scene, compile=compile)
+    events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    total = sum(e.self_cpu_time_total for e in events) or 1.0
+    return [dict(op=e.key, share=e.self_cpu_time_total / total, calls=e.count) for e in events[:top]]
+
+
+# each density's fastest kernel (`floor_kernels`), the floor its renders are measured against
+# (the template's: Dr.Jit's where it runs, 1.6-1.9x inductor's; `fastest`)
+DRJIT_FBM = "texture noise, 5 octaves, Dr.Jit kernel"
+FASTEST = {"cloud-puff": "arithmetic hash, fused compiled kernel",
+           "template-clouds": "texture noise, 5 octaves, fused compiled kernel"}
+
+
+def fastest(density: str) -> str:
+    """The name of `density`'s fastest `floor_kernels` kernel on this machine."""
+    from ..volume import drjit_march
+
+    return DRJIT_FBM if density == "template-clouds" and drjit_march.available(torch.zeros(1)) else FASTEST[density]
+
+
+def _drjit_fbm(x, y, z, packed, base, *, scales) -> Callable[[], object]:
+    """The template's fbm as `volume.drjit_march` evaluates it, on Dr.Jit copies of the points (made
+    once): each call traces, launches on torch's thread count and waits for the result."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    from ..volume import drjit_march
+
+    points = [Float(c.numpy()) for c in (x, y, z)]
+    table, rows, factors = Int32(packed.numpy()), Int32(base.numpy()), [Float(float(c)) for c in scales]
+
+    def run():
+        dr.set_thread_count(torch.get_num_threads())
+        out = drjit_march.cloud_fbm(*points, table, rows, None, octaves=5, scales=factors)
+        dr.eval(out)
+        dr.sync_thread()
+        return out
+
+    return run
+
+
+def floor_kernels(*, points: int, octaves: int = 4) -> dict[tuple[str, str, int], Callable[[], object]]:
+    """Each measured render's noise alone on the same `points` random points: cloud-puff's
+    `octaves`-octave value-noise fbm and the template's 5-octave texture-noise fbm
+    (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel, and the template's in Dr.Jit
+    where it runs (the compiled and Dr.Jit ones also on one
+    thread, the floor of the one-thread render rows). {(kernel, density (the preset whose floor
+    it is), torch threads): fn}; run each on its threads."""
+    from ..volume.fused import cloud_fbm
+
+    g = torch.Generator().manual_seed(0)
+    p = torch.rand(points, 3, generator=g) * 20.0 - 10.0
+    x, y, z = (c.contiguous() for c in p.unbind(1))
+    packed = noise.packed_table(noise.texture_table(noise.default_noise_texture(0)))
+    base = noise.texture_rows(torch.zeros(points, dtype=torch.long), p.dtype)
+    scales = noise.folded_scales(5, dtype=p.dtype, device=p.device)
+    template_fbm = compiled(cloud_fbm)
+    n = torch.get_num_threads()
+    return {
+        ("table hash (noise.fbm over noise.value_noise), eager", "cloud-puff", n):
+            lambda: noise.fbm(p, lambda q: noise.value_noise(q, seed=7), octaves=octaves),
+        ("arithmetic hash, eager twin", "cloud-puff", n): lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves),
+        (FASTEST["cloud-puff"], "cloud-puff", n):
+            lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves, compiled=True),
+        ("texture noise, 5 octaves (integer filter), eager", "template-clouds", n):
+            lambda: cloud_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
+        **{(FASTEST["template-clouds"], "template-clouds", k):
+           lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales) for k in sorted({n, 1})},
+        **({(DRJIT_FBM, "template-clouds", k): _drjit_fbm(x, y, z, packed, base, scales=scales) for k in sorted({n, 1})}
+           if fastest("template-clouds") == DRJIT_FBM else {}),
+    }
+
+
+def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
+    """Density evaluations/s of `floor_kernels`, interleaved runs. Rows {kernel, density (the
+    preset whose floor it is), threads, evals_per_s, first_s}."""
+    kernels = floor_kernels(points=points, octaves=octaves)
+    first = {}
+    for key, fn in kernels.items():
+        with torch_threads(key[2]):
+            first[key] = _seconds(fn)
+    times: dict = {key: [] for key in kernels}
+    for _ in range(repeat):  # interleaved: a change in the machine's load hits every kernel alike
+        for key, fn in kernels.items():
+            with torch_threads(key[2]):
+                times[key].append(_seconds(fn))
+    return [dict(kernel=kernel, density=density, threads=threads, evals_per_s=points / statistics.median(t),
+                 first_s=first[(kernel, density, threads)]) for (kernel, density, threads), t in times.items()]
+
+
+def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
+                    layout: str = "folder", compiled: bool = True) -> list[dict]:
+    """`generate` of each recipe at size×size (None: the recipe's own size) with each worker count,
+    eager and, with `compiled`, in each compile mode that changes what the recipe's scenes run
+    (`torchvol.compilation`: "exact" for voxel scenes, "all" where `fastnoise.compile_pays`):
+    rows {recipe, workers, mode, seconds, samples_per_s, steady_per_s, first_s, bytes_per_sample}.
+    After a warm-up run (one batch a worker: inductor's on-disk cache is then warm for both timed
+    runs), each is run for N and for 2N samples (N = `count`, 4·`count` compiled, whose samples
+    are fast and whose start-up is long): the difference is the steady rate (N / (T₂ − T₁)); what
+    the first run took beyond N samples at that rate is the start-up (worker processes, dynamo's
+    tracing: `first_s`). `samples_per_s`: 2N / T₂."""
+    from ..noise.fast import compile_pays
+    from ..dataset.generate import generate
+    from ..dataset.recipe import Recipe
+
+    rows = []
+    overrides = {} if size is None else {"image.width": size, "image.height": size}
+    for name in recipes:
+        path = ROOT / "datasets" / f"{name}.toml"
+        scene = Recipe.load(path, overrides).sample_with_params(0, 0)[0]
+        modes = [("off", "eager")]
+        if compiled and scene.voxels is not None:
+            modes.append(("exact", "compiled exact"))
+        if compiled and compile_pays(scene):
+            modes.append(("all", "compiled"))
+        for n in workers:
+            for compile, label in modes:
+                seconds, n_samples = [], count * (1 if compile == "off" else 4)
+                for k in (batch * n, n_samples, 2 * n_samples):  # warm-up, N, 2N
+                    with tempfile.TemporaryDirectory() as tmp:
+                        start = time.perf_counter()
+                        generate(path, count=k, out=Path(tmp) / "ds", workers=n, batch=batch, layout=layout,
+                                 overrides=overrides, progress=False, compile=compile)
+                        seconds.append(time.perf_counter() - start)
+                        size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
+                # the N extra samples must take a measurable share of the 2N run, or the difference is noise
+                steady = n_samples / (seconds[2] - seconds[1]) if seconds[2] - seconds[1] > 0.1 * seconds[2] else None
+                rows.append(dict(recipe=name, workers=n, mode=label, samples=2 * n_samples,
+                                 seconds=seconds[2], samples_per_s=2 * n_samples / seconds[2], steady_per_s=steady,
+                                 first_s=None if steady is None else max(seconds[1] - n_samples / steady, 0.0),
+                                 bytes_per_sample=size_bytes / (2 * n_samples)))
+    return rows
+
+
+_RENDER_CHILD = textwrap.dedent("""
+    import json, resource, statistics, sys, time
+    import torchvol as tv  # first: its OpenMP wait policy and heap settings, as `torchvol` commands get them
+    import torch
+    threads, name, width, height, repeat, compile = sys.argv[1:]
+    torch.set_num_threads(int(threads))
+    scene = tv.preset(name, width=int(width), height=int(height))
+    tv.render(scene, compile=compile)
+    times, faults, system = [], [], []
+    for _ in range(int(repeat)):
+        before, start = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        tv.render(scene, compile=compile)
+        after = resource.getrusage(resource.RUSAGE_SELF)
+        times.append(time.perf_counter() - start)
+        faults.append(after.ru_minflt - before.ru_minflt)
+        system.append(after.ru_stime - before.ru_stime)
+    print(json.dumps(dict(seconds=statistics.median(times), faults=statistics.median(faults),
+                          system_s=statistics.median(system))))
+""")
+
+
+def _child_render(threads: int, width: int, height: int, repeat: int, *, name: str = "template-clouds",
+                  compile: str = "off", env: dict[str, str] | None = None) -> dict:
+    """Preset `name` rendered in a fresh process (after one render) -> medians over `repeat` renders
+    {seconds, faults (minor page faults), system_s (system CPU seconds)}; `env` added to ours."""
+    env = {**os.environ, **(env or {}),
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    env.pop("OMP_NUM_THREADS", None)  # the child sets its own thread count
+    out = subprocess.run([sys.executable, "-c", _RENDER_CHILD, str(threads), name, str(width), str(height), str(repeat),
+                          compile], env=env, check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def loaded_rows(*, width: int, height: int, repeat: int,
+                configs: Sequence[tuple[int, str, str]] | None = None) -> list[dict]:
+    """template-clouds at width×height in a fresh process, alone and with one busy competitor, per
+    (torch threads, OMP_WAIT_POLICY, compile mode): rows {threads, policy, compile, alone_s,
+    loaded_s, slowdown}. Compiled, the march is Dr.Jit's kernel where it runs, on its own threads."""
+    cores = os.cpu_count() or 1
+    configs = configs or [(cores, "ACTIVE", "off"), (cores, "PASSIVE", "off"), (max(1, cores - 1), "PASSIVE", "off"),
+                          (cores, "PASSIVE", "all")]
+    rows = []
+    for threads, policy, compile in configs:
+        policy_env = {"OMP_WAIT_POLICY": policy}
+        alone = _child_render(threads, width, height, repeat, compile=compile, env=policy_env)["seconds"]
+        busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        try:
+            loaded = _child_render(threads, width, height, repeat, compile=compile, env=policy_env)["seconds"]
+        finally:
+            busy.kill()
+            busy.wait()
+        rows.append(dict(threads=threads, policy=policy, compile=compile, alone_s=alone, loaded_s=loaded,
+                         slowdown=loaded / alone))
+    return rows
+
+
+def heap_rows(works: Sequence[tuple[str, int, int, str, int]], *, repeat: int) -> list[dict]:
+    """Each (preset, width, height, compile mode, torch threads) in fresh processes, glibc's heap as
+    torchvol sets it (`torchvol.heap`) and left alone (TORCHVOL_HEAP=system), alternately: rows
+    {work, compile, threads, heap, seconds, faults, system_s}."""
+    rows = []
+    for name, width, height, compile, threads in works:
+        for heap, env in (("glibc's defaults", {"TORCHVOL_HEAP": "system"}), ("torchvol", {"TORCHVOL_HEAP": "torchvol"})):
+            run = _child_render(threads, width, height, repeat, name=name, compile=compile, env=env)
+            rows.append(dict(work=f"{name} {width}×{height}", compile=compile, threads=threads, heap=heap, **run))
+    return rows
+
+
+def _fmt(value, spec: str = ".3f") -> str:
+    return "" if value is None else format(value, spec)
+
+
+def markdown(sections: dict) -> str:
+    """The report: machine line, then each measured section as a Markdown table."""
+    from .glsl import renderer_name
+
+    count_flag = f" --count {sections['count']}" if sections.get("count", 16) != 16 else ""
+    if sections.get("recipes"):
+        count_flag = f" --recipes {' '.join(sections['recipes'])}" + count_flag
+    lines = ["# Speed", "", (f"`torchvol bench speed{' --quick' if sections['quick'] else ''}{count_flag}`, {time.strftime('%Y-%m-%d')}: "
+             f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs, "
+             f"{platform.processor() or platform.machine()}; GL: {renderer_name()}. Medians of {sections['repeat']} runs; "
+             "compilation (first call) reported apart. Ratios hold on a busy machine; absolute times only on a quiet "
+             "one. `torchvol bench speed --out docs/SPEED.md` writes this page (`--quick`: small sizes, two recipes)."), ""]
+    if "profile" in sections:
+        lines += ["## Where the time goes (torch.profiler, self CPU time, one render)", "",
+                  "| render | op | share | calls |", "| --- | --- | ---: | ---: |"]
+        lines += [f"| {name} | `{r['op']}` | {r['share']:.0%} | {r['calls']} |" for name, rows in sections["profile"].items() for r in rows]
+        lines += ["", "Gathers (the value noise's permutation chain perm[perm[perm[x] + y] + z], 14 per point and "
+                  "octave; the march's and the DDA's compaction) run as `aten::index_select` (`mathops.take_rows`, 3–5× "
+                  "faster than `x[ids]`'s `aten::index`); `density.fbm.hash = \"arithmetic\"` replaces the permutation "
+                  "with integer arithmetic that inductor fuses (torchvol.fastnoise). In the compiled arithmetic-hash render "
+                  "the fused density kernels (`Torch-Compiled Region`, dynamo's guard checks in `TorchDynamo Cache Lookup`) "
+                  "sit among the march's small eager ops (docs/VOLUMES.md, \"The fused field\").", ""]
+    if "render" in sections:
+        lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | × floor | first call s |",
+                  "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+        lines += [f"| {r['work']} | {r['renderer']} | {r['seconds']:.3f} | {_fmt(r['evals_per_s'], ',.0f')} | "
+                  f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['x_floor'], '.2f')} | {_fmt(r['first_s'], '.1f')} |"
+                  for r in sections["render"]]
+        lines += ["", "× floor: the render's time over its density-evaluation floor, the time its density evaluations alone "
+                  "take in the fastest kernel for that density on as many threads (next table), that kernel run after each "
+                  "render and the ratio taken run by run (the median of the runs' ratios): 1 would be a render that "
+                  "costs nothing but its noise. "
+                  "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
+                  "Compiled, template-clouds runs its march as one Dr.Jit kernel per chunk where Dr.Jit's LLVM backend "
+                  "runs (torchvol/volume/drjit_march.py: a loop per ray, the light's fbm under a per-ray branch, one "
+                  "launch); \"torch.compile kernels\" is the same render with `TORCHVOL_DRJIT=0`: the fused march step "
+                  "(torchvol/volume/fused.py: a step is two compiled kernels over a chunk's rays, the sample's density "
+                  "with the previous step's compositing, and the light's density at the lit samples). The template's "
+                  "floor is the Dr.Jit fbm, the fastest. The arithmetic hash's fbm is one fused kernel, the physical "
+                  "march around it eager (docs/VOLUMES.md). \"1 thread\": as a generator's worker renders (one torch "
+                  "thread each, workers scale by processes): the march's eager glue between kernels (gathers, compaction, "
+                  "dynamo's guards: small ops and Python) runs on one thread, where waking a second costs more than it saves, so a second thread speeds the kernels only (docs/VOLUMES.md, \"Two threads\"). "
+                  "Density evals/s count the evaluations the eager march makes; "
+                  "the fused step evaluates the cloud at every live ray and again towards the light where lit.", ""]
+    if "floor" in sections:
+        lines += ["## The floor: each render's noise alone", "", "| density of | kernel | threads | evals/s | first call s |",
+                  "| --- | --- | ---: | ---: | ---: |"]
+        lines += [f"| {r['density']} | {r['kernel']} | {r['threads']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |"
+                  for r in sections["floor"]]
+        lines += [""]
+    if "generate" in sections:
+        lines += ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
+                  "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['samples']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
+                  f"{_fmt(r['steady_per_s'], '.2f')} | {_fmt(r['first_s'], '.1f')} | {r['bytes_per_sample']:,.0f} |"
+                  for r in sections["generate"]]
+        lines += ["", f"Each row generates one batch a worker (warm-up), then N = {sections.get('count', 16)} and 2N samples (N four times as many compiled; "
+                  "samples, seconds and samples/s are the 2N run's): steady samples/s = N / (T₂ − T₁), start-up = what the "
+                  "N run took beyond N samples at that rate (worker processes; dynamo tracing the compiled kernels, "
+                  "inductor's on-disk cache being warm; blank where the N extra samples took under a tenth of the 2N "
+                  "run: the difference is then noise, not a rate). compiled exact: `compile=\"exact\"` for voxel recipes (the "
+                  "fused DDA walk, bitwise eager; what the default `auto` takes from 512 samples a worker); compiled: "
+                  "`torchvol generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the "
+                  "template's fused march step, fur); each worker process compiles (traces) on its own.", ""]
+    if "loaded" in sections:
+        lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
+                  "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
+                  "(torchvol/__init__.py): spinning OpenMP threads fight the competitor at every one of a render's small ops.", "", "| torch threads | OMP_WAIT_POLICY | compile | alone s | loaded s | slowdown |",
+                  "| ---: | --- | --- | ---: | ---: | ---: |"]
+        lines += [f"| {r['threads']} | {r['policy']} | {r['compile']} | {r['alone_s']:.3f} | {r['loaded_s']:.3f} | "
+                  f"{r['slowdown']:.2f} |"
+                  for r in sections["loaded"]]
+        lines += ["", "Where waking a sleeping thread is slow (some VMs), two PASSIVE threads are slower alone than "
+                  "loaded and than one thread; one thread is the setting that is never far off, alone or loaded, so the "
+                  "generator runs one a worker and scales by processes (docs/DATASETS.md, \"Threads on a shared machine\").", ""]
+    if "heap" in sections:
+        lines += ["## The heap", "", ("Renders in fresh processes with glibc's malloc left alone (`TORCHVOL_HEAP=system`) "
+                  "and as `import torchvol` sets it (torchvol/heap.py: freed blocks up to 32 MiB stay in the heap, whose "
+                  "top is handed back past 64 MiB). Page faults and system CPU seconds per render."), "",
+                  "| work | compile | threads | heap | median s | page faults | system s |",
+                  "| --- | --- | ---: | --- | ---: | ---: | ---: |"]
+        lines += [f"| {r['work']} | {r['compile']} | {r['threads']} | {r['heap']} | {r['seconds']:.3f} | {r['faults']:,.0f} | "
+                  f"{r['system_s']:.3f} |" for r in sections["heap"]]
+        lines += ["", ("A march step allocates and frees a wavefront's tensors (a few MB) at every step; glibc's defaults "
+                       "serve them from fresh mappings or hand the heap's top back, and every page of the next step's "
+                       "tensors is faulted in and zeroed by the kernel again: on two threads both wait on it. glibc's default "
+                       "thresholds move with the largest mapped block a process has freed, so with them whether the heap "
+                       "is handed back varies from process to process, even for one script (12 of 30 fresh processes "
+                       "running tests/test_heap.py's rounds kept their tensors); torchvol's fixed thresholds keep it every time."), ""]
+    return "\n".join(lines)
+
+
+def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | None = None,
+          recipes: Sequence[str] | None = None, count: int | None = None,
+          parts: Sequence[str] = PARTS) -> str:
+    """Run the benchmark; returns the Markdown (and writes it to `out` where given). `quick`: small
+    sizes, two recipes, fewer points (about 2 minutes on 2 cores once inductor's cache is warm)."""
+    repeat = repeat or (2 if quick else 3)
+    sections: dict = {"quick": quick, "repeat": repeat}
+    if "profile" in parts:
+        size = 32 if quick else 64
+        sections["profile"] = {f"{name} {size}×{size}": profile_rows(name, size=size) for name in ("cloud-puff", "template-clouds")}
+        # the fused path: what is left around the compiled density kernel
+        sections["profile"][f"cloud-puff arithmetic compiled {size}×{size}"] = profile_rows(
+            "cloud-puff", size=size, hash="arithmetic", compile=True)
+        sections["profile"][f"template-clouds compiled {size}×{size}"] = profile_rows("template-clouds", size=size, compile=True)
+    if "render" in parts:
+        sizes = ((160, 90),) if quick else TEMPLATE_SIZES
+        sections["render"] = render_rows(sizes, repeat=repeat, physical_size=(48, 48) if quick else (128, 128),
+                                         floor_points=2**16 if quick else 2**20)
+    if "floor" in parts:
+        sections["floor"] = floor_rows(points=2**16 if quick else 2**20, repeat=repeat)
+    if "generate" in parts:
+        chosen = recipes or (("clouds", "template-clouds") if quick else RECIPES)
+        sections["recipes"] = list(recipes) if recipes else None
+        sections["count"] = count or (4 if quick else 16)
+        sections["generate"] = generation_rows(chosen, workers=(1, 2), count=sections["count"], size=32 if quick else 128)
+    if "loaded" in parts:
+        # quick: a small render (2 threads spinning against a competitor run ~20x longer), 3 runs: the ratio is noisy
+        sections["loaded"] = loaded_rows(width=64 if quick else 320, height=36 if quick else 180, repeat=3 if quick else repeat)
+    if "heap" in parts:
+        cores = os.cpu_count() or 1
+        works = ([("template-clouds", 64, 36, "all", cores)] if quick else
+                 [("template-clouds", 640, 360, "all", cores), ("template-clouds", 640, 360, "all", 1),
+                  ("voxel-gi", 128, 128, "exact", 1)])
+        sections["heap"] = heap_rows(works, repeat=repeat)
+    text = markdown(sections)
+    if out is not None:
+        Path(out).write_text(text + "\n")
+    return text

@@ -1,0 +1,224 @@
+"""Value-noise fBm with an arithmetic integer hash: the fast twin of ``noise.fbm`` over
+``noise.value_noise`` (``density.fbm.hash = "arithmetic"``).
+
+`noise.value_noise` hashes lattice corners with Perlin's permutation table: three dependent
+gathers per corner, which neither vectorise nor fuse. Here each corner's value comes from int32
+multiplies, xors and shifts only (``h = mix32(x·P1 ^ y·P2 ^ z·P3 ^ seed)``, lowbias32 finaliser,
+int32 arithmetic wrapping mod 2**32), so inductor turns a whole fBm (all octaves, trilinear blends
+and the weighted sum) into one fused, vectorised loop (`fbm_value_hashed(..., compiled=True)`).
+
+`fbm_value_hashed(..., compiled=False)` is the eager reference twin: ``noise.fbm`` (the seeds'
+float order, Mesa's folded octave scales, LOD compaction) over `value_noise_hashed`. The compiled
+kernel evaluates every octave and masks the ones LOD drops instead of compacting (static shapes),
+which adds exact zeros; tests hold it to the twin. The lattice values are a different random
+field than the table's, with the same distribution (uniform 24-bit values in [0, 1)), so images
+change where a scene switches hash; the statistics do not (tests/test_fastnoise.py).
+
+`fbm_field_hashed` is the fbm field's whole signed density (affine map, fbm, falloff) as one compiled
+kernel, what `fields.fbm.FbmField` runs under compile; `compile_pays` says where a render compiled is
+the fast path (`generate` uses it).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from . import lattice as noise
+from ..runtime.compilation import compiled
+from ..ops.mathops import take_rows
+from ..runtime.threads import threads_for, torch_threads
+
+__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed", "compile_pays"]
+
+# odd multipliers below 2**31 (xxHash's primes and murmur3's c2): Python ints that stay int32 in torch
+_P = (0x1B873593, 0x27D4EB2F, 0x165667B1)
+
+
+def _mix32(h: Tensor) -> Tensor:
+    """lowbias32 on int32 holding uint32 bits: int32 multiplies wrap mod 2**32 like uint32 ones;
+    ``(h >> s) & mask`` is the logical shift (torch's ``>>`` on int32 is arithmetic)."""
+    h = h ^ ((h >> 16) & 0xFFFF)
+    h = h * 0x7FEB352D
+    h = h ^ ((h >> 15) & 0x1FFFF)
+    h = h * 0x1B873593
+    return h ^ ((h >> 16) & 0xFFFF)
+
+
+@functools.lru_cache(maxsize=4096)
+def _seed32(seed: int) -> int:
+    """A mixed 32-bit seed as a signed int32 value (so it fits an int32 tensor)."""
+    h = (int(seed) * 0x9E3779B9 + 0x632BE5AB) & 0xFFFFFFFF
+    h = _mix32(torch.tensor(h - (1 << 32) if h >= 1 << 31 else h, dtype=torch.int32))
+    return int(h)
+
+
+def hash_cells(x: Tensor, y: Tensor, z: Tensor, seed: Tensor | int) -> Tensor:
+    """Uniform values in [0, 1) of integer lattice cells (x, y, z), each ``[N]`` int32 (values
+    taken mod 2**32), and a mixed seed (`_seed32`; int or 0-dim int32 tensor) -> ``[N]`` int32 in
+    [0, 2**24): the hash's top 24 bits."""
+    h = _mix32((x * _P[0]) ^ (y * _P[1]) ^ (z * _P[2]) ^ seed)
+    return (h >> 8) & 0xFFFFFF
+
+
+def _value(p: Sequence[Tensor], seed: Tensor | int) -> Tensor:
+    """Value noise of points given as their three coordinates (each ``[N]``) with a mixed seed
+    -> ``[N]`` in [0, 1) (`value_noise_hashed`). Coordinates, not ``[N, 3]``: contiguous loads
+    let inductor vectorise the fused loop."""
+    fl = [torch.floor(c) for c in p]
+    u = [(c - f) * (c - f) * (3.0 - 2.0 * (c - f)) for c, f in zip(p, fl)]
+    x0, y0, z0 = (f.to(torch.int32) for f in fl)
+    # hash_cells' products per axis once, not per corner (xor is associative: the same bits)
+    hx = [x * _P[0] for x in (x0, x0 + 1)]
+    hxy = [h ^ (y * _P[1]) for y in (y0, y0 + 1) for h in hx]
+    vals = [((_mix32(h ^ hz) >> 8) & 0xFFFFFF).to(p[0].dtype) * 2.0**-24
+            for hz in ((z0 * _P[2]) ^ seed, ((z0 + 1) * _P[2]) ^ seed) for h in hxy]  # noise._CORNERS order
+    return noise._trilinear(vals, u)
+
+
+def value_noise_hashed(p: Tensor, *, seed: int = 0) -> Tensor:
+    """Value noise with the arithmetic hash: `noise.value_noise`'s signature and fade, lattice values
+    from `hash_cells`. p: ``[N, 3]`` float points with |p| < 2**31. Returns ``[N]`` in [0, 1)."""
+    noise._check_points(p)
+    return _value(p.unbind(-1), _seed32(seed))
+
+
+def _fbm_sum(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None, octaves: int,
+             gain: float) -> Tensor:
+    """Every octave of `noise.fbm` in its float order, LOD as a mask: the body of the compiled
+    graphs. x, y, z each ``[N]``; seed 0-dim or ``[N]`` int32; scales ``[octaves - 1]``; lod ``[N]`` or None."""
+    f = _value((x, y, z), seed) * 0.5
+    for k in range(1, octaves):
+        s = scales[k - 1]
+        term = _value((x * s, y * s, z * s), seed) * (0.5 * gain**k)
+        f = f + (term if lod is None else torch.where(lod >= k + 1, term, torch.zeros_like(term)))
+    return f
+
+
+@functools.cache
+def _compiled_fbm(octaves: int, gain: float):
+    """`_fbm_sum` as one compiled graph (octaves and gain are constants of it)."""
+
+    def fused(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None) -> Tensor:
+        return _fbm_sum(x, y, z, seed, scales, lod, octaves, gain)
+
+    # dynamic shapes: the march hands over a different number of active points every step
+    return compiled(fused)
+
+
+@functools.cache
+def _compiled_field(octaves: int, gain: float):
+    """`fbm_field_hashed` as one compiled graph: the fbm with the field's affine map in front and
+    its bias, amplitude and radial falloff after (eagerly these are ~15 small ops per call). The
+    parameters come per point, gathered outside: an indirect load inside the loop costs more."""
+
+    def fused(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None, frequency: Tensor,
+              shift: Sequence[Tensor], offset: Sequence[Tensor], bias: Tensor, amplitude: Tensor, radial: Tensor,
+              center: Sequence[Tensor]) -> Tensor:
+        q = [frequency * (c - shift[i]) + offset[i] for i, c in enumerate((x, y, z))]
+        f = _fbm_sum(*q, seed, scales, lod, octaves, gain)
+        dist = torch.sqrt((x - center[0]) ** 2 + (y - center[1]) ** 2 + (z - center[2]) ** 2)
+        return bias + amplitude * f - radial * dist
+
+    return compiled(fused)
+
+
+@functools.cache
+def _scales(octaves: int, lacunarity: tuple[float, ...], dtype: torch.dtype, device: str) -> Tensor:
+    """Mesa's folded octave scales as one ``[octaves - 1]`` tensor (cached: the march asks every step)."""
+    scales = noise.folded_scales(octaves, lacunarity, dtype=dtype, device=device)
+    return torch.stack(scales) if scales else torch.zeros(0, dtype=dtype, device=device)
+
+
+def _kernel_args(p: Tensor, seed: int, octaves: int, lacunarity: float | Sequence[float], lod: Tensor | None):
+    """The compiled graphs' arguments: x, y, z, seed, scales, lod."""
+    noise._check_points(p)
+    if octaves < 1:
+        raise ValueError(f"octaves: got {octaves!r}; an integer >= 1")
+    lac = (float(lacunarity),) if isinstance(lacunarity, (int, float)) else tuple(float(x) for x in lacunarity)
+    scales = _scales(int(octaves), lac, p.dtype, str(p.device))
+    if lod is not None:
+        lod = torch.as_tensor(lod, device=p.device).expand(p.shape[:1])
+    seed_t = torch.tensor(_seed32(seed), dtype=torch.int32, device=p.device)
+    x, y, z = (c.contiguous() for c in p.unbind(-1))
+    return x, y, z, seed_t, scales, lod
+
+
+def fbm_value_hashed(
+    p: Tensor,
+    *,
+    seed: int = 0,
+    octaves: int = 5,
+    lacunarity: float | Sequence[float] = noise.LACUNARITY,
+    gain: float = 0.5,
+    lod: Tensor | None = None,
+    compiled: bool = False,
+) -> Tensor:
+    """``noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), ...)`` (fold "mesa").
+
+    p: ``[N, 3]`` points; lod: optional ``[N]`` (or scalar) as in `noise.fbm`. compiled: run the
+    fused kernel under torch.compile (compiled once per octave count, dtype and LOD presence, for
+    all sizes and seeds; inductor's on-disk cache serves later processes; past dynamo's recompile
+    limit, `compilation.VARIANTS`, it runs eagerly: slower, same values). Returns ``[N]``.
+    """
+    if not compiled:
+        return noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), octaves=octaves, lacunarity=lacunarity,
+                         gain=gain, lod=lod)
+    with torch_threads(threads_for(p.shape[0])):
+        return _compiled_fbm(int(octaves), float(gain))(*_kernel_args(p, seed, octaves, lacunarity, lod))
+
+
+def mixed_seeds(seeds: Sequence[int], device) -> Tensor:
+    """Scene seeds as the compiled kernels take them: ``[B]`` int32 of `_seed32` values."""
+    return torch.tensor([_seed32(int(x)) for x in seeds], dtype=torch.int32, device=device)
+
+
+def fbm_field_hashed(
+    p: Tensor,
+    scene: Tensor,
+    *,
+    seeds: Tensor,
+    octaves: int,
+    frequency: Tensor,
+    shift: Tensor,
+    offset: Tensor,
+    bias: Tensor,
+    amplitude: Tensor,
+    radial: Tensor,
+    center: Tensor,
+    lacunarity: float | Sequence[float] = noise.LACUNARITY,
+    gain: float = 0.5,
+    lod: Tensor | None = None,
+) -> Tensor:
+    """The fbm field's signed density as one compiled kernel: ``bias + amplitude ·
+    fbm_value_hashed(frequency·(p − shift) + offset) − radial·|p − center|`` (`fields.fbm.FbmField`;
+    its eager code over `fbm_value_hashed` is the reference twin), every point with its own scene's
+    parameters. p: ``[N, 3]``; scene ``[N]`` long: each point's scene b; per scene: seeds ``[B]``
+    int32 (`mixed_seeds`), frequency, bias, amplitude, radial ``[B]``, shift, offset, center
+    ``[B, 3]``; lod ``[N]`` octaves kept or None. One call for a whole batch (dynamo's guards cost
+    ~0.5 ms a call; a call per scene was a fifth of a compiled cloud render). Returns ``[N]``."""
+    x, y, z, _, scales, lod = _kernel_args(p, 0, octaves, lacunarity, lod)
+    at = lambda v: take_rows(v, scene)  # noqa: E731  per point: [B] -> [N]
+    cols = lambda v: [at(v[:, i].contiguous()) for i in range(3)]  # noqa: E731  [B, 3] -> 3 × [N]
+    with torch_threads(threads_for(p.shape[0])):
+        return _compiled_field(int(octaves), float(gain))(x, y, z, at(seeds), scales, lod, at(frequency), cols(shift),
+                                                          cols(offset), at(bias), at(amplitude), at(radial),
+                                                          cols(center))
+
+
+def compile_pays(scene) -> bool:
+    """Whether `render(scene, compile=True)` is the fast path: the scene has volumes, each with an
+    fbm density on the arithmetic hash (one fused kernel), the template's cloud layer in the
+    seeds' look (one fused march step, `volume.fused`) or fur (its Worley noise one kernel,
+    `noise.compiled_noise`), and no voxels or terrain (whose compiled kernels are other
+    trade-offs). Compiled renders match eager ones within 1e-5, not bitwise
+    (tests/test_fastnoise.py, tests/volume/test_fused.py)."""
+    def fused(v) -> bool:
+        return ((v.density.kind == "fbm" and v.density.value.hash == "arithmetic") or v.density.kind == "fur"
+                or (v.density.kind == "clouds" and v.shading == "shader" and v.edge is None))
+
+    volumes = scene.volumes
+    return bool(volumes) and scene.voxels is None and scene.terrain is None and all(fused(v) for v in volumes)

@@ -1,0 +1,1 @@
+"""Tensor helpers below every technique: bitwise-stable powers, row gathers, grid sampling."""

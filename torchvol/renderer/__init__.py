@@ -1,0 +1,1 @@
+"""The renderer: a batch of scenes -> a plan -> passes run in ray chunks -> a RenderOutput."""

@@ -1,0 +1,347 @@
+"""render(): executes a batch's plan over memory-bounded ray chunks and returns a RenderOutput.
+
+The plan (`torchvol.plan`) has made every decision; this module holds a render's state
+(`RenderContext`: the batch's per-scene tensors, its lights and volumes, counters and timer) and
+runs each planned pass by looking it up: skies in `SKIES`, volume strategies in `STRATEGIES`, post
+effects in `POST`. `stats["passes"]` and `stats["time_s"]` record what ran.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from .accumulate import Accumulator, pass_seeds
+from .aovs import RESOLVE
+from ..schema.batch import Stacked, check_same_structure, stack, take
+from ..geometry.bounds import BOUNDS
+from ..geometry.camera import Camera, Rays
+from ..runtime.compilation import CompileMode, compile_mode, compile_settings
+from ..fields import DENSITIES
+from ..fields.edge import EdgeField
+from .labels import per_ray as label_rays
+from ..light.lights import LIGHTS, LightSource
+from .plan import Plan, VolumePass, make_plan
+from ..post import POST, View
+from ..scene.quality import at_level
+from ..geometry.sampling import march_dither, ray_keys, subpixel_jitter
+from ..scene.model import load_scene
+from ..light.sky import SKIES, sun_glow
+from .stats import CountedField, Counts, Timer
+from ..terrain import TerrainSurface
+from ..runtime.threads import glue_on_one_thread
+from ..schema.validate import fail, integer, is_integer
+from ..light.atmosphere import aerial_perspective, gather_air
+from ..volume.ambient import sky_mean
+from ..volume.composite import composite_volumes, finish
+from ..light.phase import PHASES
+from ..volume.physical import occluder_transmittance
+from ..volume.shading import SHADINGS
+from ..volume.strategy import STRATEGIES, marches_on_drjit
+from ..voxel.surface import VoxelSurface
+
+DEFAULT_CHUNK_RAYS = 1 << 16
+
+
+@dataclass
+class RenderOutput:
+    """`image`, `radiance` (B, 3, H, W); `depth`, `alpha` (B, 1, H, W); `aovs` {name: (B, C, H, W)};
+    `camera` the Camera used; `stats` {"passes", "density_evals", "time_s", ...}."""
+
+    image: Tensor
+    radiance: Tensor
+    depth: Tensor
+    alpha: Tensor
+    aovs: dict[str, Tensor]
+    camera: Camera
+    stats: dict
+
+
+@dataclass
+class VolumeState:
+    """One volume index across the batch: its parameters, plan, kinds, field and per-render caches
+    (sun grids per light, skip macro grids per scene)."""
+
+    params: Stacked
+    plan: VolumePass
+    field: CountedField
+    bounds: object  # Kind
+    phase: object  # Kind
+    shading: object  # Kind
+    sun_grids: dict = field(default_factory=dict)
+    macro: dict = field(default_factory=dict)
+    ambient_bottom: Tensor | None = None  # (B, 3) the ambient radiance (at the bottom of the bounds)
+
+    def intersect(self, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+        """Entry/exit distances [n] of rays `o`, `d` [n, 3] of scenes `s` [n]."""
+        return self.bounds.fn(self.params.bounds.value, o, d, s)
+
+
+class RenderContext:
+    """A render's state: the batch (`Stacked` scenes at their quality level), its plan, seeds,
+    lights, volumes and voxel surface, and what the render records (timer, counts)."""
+
+    def __init__(self, batch: Stacked, plan: Plan, *, seeds: Sequence[int], dtype, device, compile: CompileMode):
+        self.batch, self.plan, self.settings = batch, plan, plan.settings
+        self.seeds = torch.tensor([int(x) % 2**32 for x in seeds], dtype=torch.int64, device=device)  # (B,)
+        # the density and march kernels compile only under "all"; the voxel walk under "exact" too
+        self.dtype, self.device, self.compiled = dtype, device, compile == "all"
+        self.timer, self.counts = Timer(), Counts()
+        self.times = batch.time
+        self.lights = [LightSource(LIGHTS[li.kind], li) for li in batch.lights]
+        self.volumes = [self._volume(vp, self.compiled) for vp in plan.volumes]
+        self.surface = self.terrain = None
+        if plan.voxels is not None:
+            self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, plan.aovs, dtype=dtype, device=device,
+                                        compiled=compile != "off", time=self.times,
+                                        sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s))
+        if plan.terrain is not None:  # the scene's one surface (voxels and terrain are refused together)
+            self.terrain = self.surface = TerrainSurface(
+                batch.terrain, self.lights, plan.terrain, plan.aovs,
+                lambda use, p, s, direction, distance: occluder_transmittance(self, use, p, s, direction, distance))
+
+    def _volume(self, vp: VolumePass, compiled: bool) -> VolumeState:
+        params = self.batch.volumes[vp.index]
+        bounds, density = BOUNDS[params.bounds.kind], DENSITIES[params.density.kind]
+        extra = {}
+        if density.caps.get("needs_box"):
+            extra = dict(zip(("box_min", "box_max"), bounds.aabb(params.bounds.value)))
+        inner = density.fn(params.density.value, self.times, compiled=compiled, **extra)
+        if params.edge is not None:
+            inner = EdgeField(inner, bounds.caps["depth"], params.bounds.value, params.edge)
+        state = VolumeState(params, vp, CountedField(inner, self.counts), bounds, PHASES[params.phase.kind],
+                            SHADINGS[vp.shading])
+        if vp.ambient:
+            amb = params.ambient
+            state.ambient_bottom = amb.radiance if amb.radiance is not None else sky_mean(
+                SKIES[self.batch.sky.kind].fn, self.batch.sky, self.sun(), len(params), dtype=self.dtype, device=self.device)
+        return state
+
+    def dither(self, rays: Rays) -> Tensor | None:
+        st, image = self.settings, self.batch.image
+        return march_dither(rays, st.dither, scale=st.dither_scale, seeds=self.seeds, height=image.height, spp=image.spp)
+
+    def radiance_scale(self, scene_index: Tensor) -> Tensor:
+        """What `march.tolerance` is relative to, per ray [R]: the brightest light channel (a point
+        light's at unit distance; 1 if the scene has no light, e.g. pure emission)."""
+        if not self.lights:
+            return torch.ones_like(scene_index, dtype=self.dtype)
+        return torch.stack([li.radiant for li in self.lights]).amax(dim=(0, 2))[scene_index].clamp_min(1e-12)
+
+    def sun(self) -> Tensor | None:
+        """(B, 3) towards the first light where it is a sun (skies, halo and flare need one)."""
+        return self.lights[0].direction if self.lights and self.lights[0].directional else None
+
+
+def sky_radiance(ctx: RenderContext, rays: Rays) -> Tensor:
+    """The sky behind each ray [n, 3], with the sun's halo where the sky has one."""
+    return sky_toward(ctx, rays.directions, rays.scene_index)
+
+
+def sky_toward(ctx: RenderContext, directions: Tensor, s: Tensor) -> Tensor:
+    """The sky [n, 3] seen along unit directions [n, 3] of scenes s [n] (with the halo)."""
+    sky = ctx.batch.sky
+    base = SKIES[ctx.plan.sky].fn(sky, directions, s, ctx.sun())
+    if ctx.plan.halo:
+        base = base + sun_glow(directions, take(ctx.sun(), s), take(sky.halo.color, s), take(sky.halo.power, s))
+    return base
+
+
+def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
+    """Every per-ray pass of the plan on one chunk of rays -> per-ray outputs and AOVs."""
+    plan, n = ctx.plan, len(rays)
+    background = None
+    if plan.sky is not None:
+        with ctx.timer.section("sky"):
+            background = sky_radiance(ctx, rays)
+    surf = None
+    if ctx.surface is not None:
+        sky_bg = background if background is not None else rays.origins.new_zeros(n, 3)
+        args = (rays.origins, rays.directions, rays.scene_index, sky_bg, ctx.timer.section)
+        if plan.voxels is not None and plan.voxels.gi:  # its paths are hashed from (seed, pixel, sample)
+            surf = ctx.surface.run(*args, keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp))
+        else:
+            surf = ctx.surface.run(*args)
+    t_limit = None if surf is None else surf["t"]
+    parts = [STRATEGIES[vol.plan.strategy](ctx, vol, rays, background, t_limit) for vol in ctx.volumes]
+    with ctx.timer.section("composite"):
+        behind = background if surf is None else surf["color"]  # the shaded surface where hit
+        volumes = composite_volumes(parts, rays.origins[:, 0])
+        out = finish(volumes, behind, surf, rays.forward_cos, ctx.settings.depth_threshold)
+    if plan.labels is not None:
+        out.update(label_rays(ctx, rays, parts, volumes, surf))
+    if plan.atmosphere:
+        with ctx.timer.section("atmosphere"):
+            out = through_the_air(ctx, rays, out)
+    if plan.flare:
+        with ctx.timer.section("post.flare"):
+            s, flare = rays.scene_index, ctx.batch.sky.flare
+            out["radiance"] = out["radiance"] + sun_glow(rays.directions, take(ctx.sun(), s), take(flare.color, s),
+                                                         take(flare.power, s))
+    return out
+
+
+def through_the_air(ctx: RenderContext, rays: Rays, out: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The composited scene seen through the `[atmosphere]` medium (aerial perspective, its ground
+    behind); the planet's ground is an opaque surface: alpha 1, and its depth where nothing nearer."""
+    atm, s, sun = ctx.batch.atmosphere, rays.scene_index, ctx.lights[0]
+    radiance, ground_t = aerial_perspective(
+        out["radiance"], out["alpha"], out["distance"], rays.origins, rays.directions, take(sun.direction, s),
+        take(sun.radiant, s), take(atm.ground, s), gather_air(atm, s), steps=atm.steps, light_steps=atm.light_steps)
+    ground = ground_t > 0
+    out = {**out, "radiance": radiance, "alpha": torch.where(ground, torch.ones_like(out["alpha"]), out["alpha"])}
+    for key, t in (("distance", ground_t), ("depth", ground_t * rays.forward_cos),
+                   ("depth_median", ground_t * rays.forward_cos)):
+        out[key] = torch.where(ground & (out[key] == 0), t, out[key])  # the ground where nothing nearer
+    return out
+
+
+def camera_for(batch: Stacked) -> Camera:
+    """The batch's cameras: given matrices, or look-at with a vertical field of view (45° where
+    neither fov_y nor focal is given) or the seeds' focal length."""
+    cam, image = batch.camera, batch.image
+    if cam.matrix is not None:  # given matrices (e.g. the voxel seed's mirrored camera)
+        return Camera(K=cam.matrix.K, world_to_camera=cam.matrix.world_to_camera, width=image.width, height=image.height)
+    fov = torch.full_like(cam.roll, 45.0) if cam.fov_y is None and cam.focal is None else cam.fov_y
+    return Camera.look_at(cam.eye, cam.target, cam.up, width=image.width, height=image.height, fov_y=fov,
+                          focal=cam.focal, roll=cam.roll)
+
+
+def resolve(values: Tensor, key: str, spp: int) -> Tensor:
+    """A pixel's value from its sub-samples: `values` [p, spp, C] -> [p, C] as the output resolves
+    (`aovs.RESOLVE`: mean, the first sub-sample, or the mean over the sub-samples that hit)."""
+    mode = RESOLVE[key]
+    if mode == "first":  # ids do not average
+        return values[:, 0]
+    if mode == "mean" or spp == 1:
+        return values.mean(dim=1)
+    return values.sum(dim=1) / (values > 0).sum(dim=1).clamp_min(1)
+
+
+def _check_arguments(scene, seed, chunk_rays, dtype, device) -> tuple[list, list[int], torch.device]:
+    integer("chunk_rays", chunk_rays, low=1)
+    if dtype not in (None, torch.float32, torch.float64):
+        fail("dtype", dtype, "expected torch.float32, torch.float64 or None (the quality level's)")
+    try:
+        device = torch.device(device)
+        torch.empty(0, device=device)
+    except (RuntimeError, TypeError, AssertionError) as err:
+        fail("device", str(device), f"not a usable torch device here ({str(err).splitlines()[0]})")
+    scenes = [at_level(load_scene(s)) for s in (scene if isinstance(scene, (list, tuple)) else [scene])]
+    if not scenes:
+        fail("scene", scene, "expected at least one scene")
+    check_same_structure(scenes)
+    seeds = list(seed) if isinstance(seed, (list, tuple)) else [seed] * len(scenes)
+    if len(seeds) != len(scenes) or not all(is_integer(x) for x in seeds):
+        fail("seed", seed, f"expected an integer or one integer per scene ({len(scenes)})")
+    return scenes, seeds, device
+
+
+def render(
+    scene,
+    *,
+    seed: int | Sequence[int] = 0,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype | None = None,
+    chunk_rays: int = DEFAULT_CHUNK_RAYS,
+    compile: CompileMode | bool = "off",
+    progress: Callable[[int], None] | None = None,
+    aovs: Sequence[str] = (),
+) -> RenderOutput:
+    """Render a scene (or a list of scenes of one structure, as one batch).
+
+    `scene`: a Scene, a dict, a .toml path or a preset name (or a list of those). `seed` (one int, or
+    one per scene) drives the dither and sub-pixel jitter, hashed per (seed, pixel, sample): a scene
+    renders the same, to the bit, alone or anywhere in a batch and for any chunking. `dtype`
+    defaults to the quality level's (float64 for reference). `chunk_rays` bounds peak memory.
+    `compile` ("off", "exact" or "all"; True is "all", False "off") runs kernels under
+    torch.compile: "exact" only the voxel walk, bitwise eager; "all" also the density and march
+    kernels, within ~1e-5 of eager (`torchvol.compilation`). `progress(pixels)`, where given, is called
+    after each chunk with the pixels it finished (in each of `image.passes` passes). With
+    `image.passes` > 1, `stats["accumulation"]` is the mean |change| of the blended radiance after
+    each pass after the first (`torchvol.accumulate`). `aovs` asks for the AOVs computed only on
+    request (the per-medium labels of `torchvol.labels`: optical_thickness, alpha_volumes,
+    instance, sun_visibility); the others are output wherever the scene computes them."""
+    scenes, seeds, device = _check_arguments(scene, seed, chunk_rays, dtype, device)
+    compile = compile_mode(compile)
+    if isinstance(aovs, str) or any(a not in RESOLVE for a in aovs):
+        fail("aovs", aovs, "expected a list of AOV names from: " + ", ".join(sorted(RESOLVE)))
+    start = time.perf_counter()
+    batch = stack(scenes, dtype=torch.float64, device=device)  # the plan reads shared values only
+    plan = make_plan(batch, tuple(aovs))
+    dtype = dtype or plan.settings.dtype
+    ctx = RenderContext(stack(scenes, dtype=dtype, device=device), plan, seeds=seeds, dtype=dtype, device=device,
+                        compile=compile)
+    b, h, w, spp = len(scenes), ctx.batch.image.height, ctx.batch.image.width, plan.spp
+    # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
+    glue = (plan.voxels is None and ctx.surface is None and bool(ctx.volumes)
+            and all(marches_on_drjit(ctx, vol) for vol in ctx.volumes))
+    with glue_on_one_thread() if glue else nullcontext():
+        with ctx.timer.section("rays"):
+            camera = camera_for(ctx.batch)
+        pixels = b * h * w
+        if plan.passes > 1 and plan.settings.dither != "hash" and spp == 1:
+            fail("image.passes", plan.passes, "passes differ by their hashed march dither or sub-pixel jitter: set "
+                 "march.dither = 'hash' or image.spp > 1")
+        chunk_pixels = max(1, chunk_rays // spp)  # chunks hold whole pixels: sub-samples resolve in place
+        keys = ["radiance", "alpha", "depth"] + [a for a in plan.aovs if a != "radiance"]
+        acc = Accumulator(plan.blend, ctx.batch.image.blend_weight, h * w) if plan.passes > 1 else None
+        scene_seeds = ctx.seeds
+        for k in range(plan.passes):
+            ctx.seeds = pass_seeds(scene_seeds, k)
+            buffers = {}
+            for first in range(0, pixels, chunk_pixels):
+                last = min(pixels, first + chunk_pixels)
+                with ctx.timer.section("rays"):
+                    jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp, dtype=dtype)
+                    rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
+                with compile_settings():
+                    values = run_chunk(ctx, rays)
+                with ctx.timer.section("resolve") if spp > 1 else nullcontext():
+                    for key in keys:
+                        value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)
+                        if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
+                            buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
+                        buffers[key][:, first:last] = value.T
+                if progress is not None:
+                    progress(last - first)
+            if acc is not None:
+                with ctx.timer.section("accumulate"):
+                    acc.add(buffers)
+        if acc is not None:
+            buffers = acc.result()
+        images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
+        radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
+        image = post_process(ctx, radiance, images, View(camera=camera, sun=ctx.sun(), alpha=alpha))
+    stats = {
+        "passes": list(ctx.timer.seconds),
+        "plan": plan.names(),
+        "density_evals": ctx.counts.density_evals,
+        "time_s": dict(ctx.timer.seconds),
+        "total_s": time.perf_counter() - start,
+        "rays": pixels * spp,
+        "march_steps": ctx.counts.march_steps,
+        "truncated_rays": ctx.counts.truncated_rays,
+        **({"error_estimate": ctx.counts.error_estimate} if plan.settings.tolerance is not None else {}),
+        **({"voxel_steps": ctx.surface.steps_total} if plan.voxels is not None else {}),
+        **({"accumulation": acc.changes} if acc is not None else {}),
+        "dtype": str(dtype).removeprefix("torch."),
+    }
+    return RenderOutput(image=image, radiance=radiance, depth=depth, alpha=alpha, aovs=images, camera=camera, stats=stats)
+
+
+def post_process(ctx: RenderContext, radiance: Tensor, aovs: dict[str, Tensor], view: View) -> Tensor:
+    """The plan's post effects on linear radiance (B, 3, H, W), in order -> the image in [0, 1];
+    `view` goes to the effects that need the camera, sun and alpha."""
+    x = radiance
+    post = stack(ctx.batch.post.models, dtype=x.dtype, device=x.device)  # float32 images
+    for kind, name in ctx.plan.post:
+        effect = POST[kind]
+        with ctx.timer.section(name):
+            x = effect.fn(x, post, aovs, view) if effect.caps.get("view") else effect.fn(x, post, aovs)
+    return x.clamp(0.0, 1.0)

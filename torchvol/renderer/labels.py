@@ -1,0 +1,187 @@
+"""Per-medium labels: AOVs computed only when asked for (`render(..., aovs=[...])`, a recipe's
+`[dataset] aovs`), each its own pass `labels.<name>` (a label nobody asks for is not planned and
+costs nothing). Per ray, after the composite (before the `[atmosphere]` air, which is no medium
+here):
+
+- ``optical_thickness`` τ = ∫ σ_t dt along the primary ray through every volume (σ_t = the
+  volume's `sigma_t` × density, whichever its shading), up to the surface hit (voxels, terrain) or
+  as far as the render marches the volume (its bounds' exit, `march.max_distance`). Homogeneous
+  volumes integrated in closed form by the render are exact; the others are a midpoint sum over
+  `march.steps` equal segments of each volume's chord (the march's own step count, no dither, no
+  early termination: τ is unbounded).
+- ``alpha_volumes`` (V channels, scene order): each volume's share of the ray's alpha, from the
+  render's own parts composited as the render composites them, in order of entry: volume v's is
+  T_before · (1 − T_v), T_before the transmittance of the volumes entered before it. Their sum is
+  the ray's alpha where no surface is hit (exactly for any layout, overlaps included: overlapping
+  volumes split as the composite orders them).
+- ``instance``: the id of what contributed most to the pixel's opacity: the largest of the
+  background's remaining transmittance (id 0), each volume's alpha (ids 1..V, scene order) and a
+  hit surface's remaining transmittance (voxels: V + the material id, 1.. as the ``material``
+  AOV; terrain: V + 1). Integer-valued float32 (the render's buffers), a pixel's first sub-sample.
+- ``sun_visibility``: the transmittance towards `lights[0]` (a sun; refused otherwise) from the
+  depth point: where transmittance crosses 0.5 (``depth_median``) or else the surface hit, through
+  every physically shaded volume (marched with the sun's `shadow` settings, or the quality level's
+  shadow steps), times 0 where the terrain or the voxels block it; 1 where neither exists (sky).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..schema.batch import take
+from ..geometry.camera import Rays
+from ..light.lights import LIGHTS, Shadow
+from ..scene.quality import QUALITY
+from ..scene.model import VoxelShadow
+from ..schema.validate import fail
+from ..volume.composite import entry_order
+from ..volume.physical import occluder_transmittance
+from ..volume.strategy import entry_exit
+
+LABELS = ("optical_thickness", "alpha_volumes", "instance", "sun_visibility")
+
+
+@dataclass(frozen=True)
+class LabelPass:
+    """The labels a batch computes (`names`, in `LABELS` order) and, for ``sun_visibility``, its
+    shadow ray's `LightPass` (from lights[0], through every physical volume and the terrain)."""
+
+    names: tuple[str, ...]
+    sun: object | None = None  # plan.LightPass
+    voxel_steps: int = 0  # DDA steps of the sun ray through the voxels (0: no voxels)
+
+    def pass_names(self) -> list[str]:
+        sun = [] if self.sun is None else self.sun.names() + ([f"{self.sun.name}.voxels"] if self.voxel_steps else [])
+        return [n for name in self.names for n in (sun if name == "sun_visibility" else [f"labels.{name}"])]
+
+
+def label_pass(batch, requested) -> LabelPass | None:
+    """The labels `requested` (AOV names) the batch computes, None if none; refuses
+    ``sun_visibility`` without a sun as `lights[0]`."""
+    from .plan import LightPass, shadow_occluders
+
+    names = tuple(n for n in LABELS if n in requested and (n != "alpha_volumes" or batch.volumes))
+    if not names:
+        return None
+    sun = None
+    if "sun_visibility" in names:
+        if not batch.lights or not LIGHTS[batch.lights[0].kind].caps["directional"]:
+            fail("aovs", "sun_visibility", "needs lights[0] to be a sun (a directional light); this scene's lights: "
+                 f"{[li.kind for li in batch.lights]}")
+        shadow = batch.lights[0].shadow or Shadow(steps=QUALITY[batch.march.quality].shadow_steps)
+        sun = LightPass(0, "labels.sun_visibility", shadow, shadow_occluders(batch), batch.terrain is not None)
+    vx = batch.voxels
+    voxel_steps = 0 if vx is None else (vx.shadow.steps if vx.shadow is not None else vx.max_steps)
+    return LabelPass(names, sun, voxel_steps)
+
+
+def optical_thickness(ctx, rays: Rays, t_limit: Tensor | None) -> Tensor:
+    """τ [n] along the chunk's rays through every volume, up to `t_limit` [n] (a surface hit)."""
+    tau = rays.origins.new_zeros(len(rays))
+    steps = ctx.settings.rule.steps
+    for vol in ctx.volumes:
+        t0, t1, hit = entry_exit(vol, rays, t_limit)
+        ids = hit.nonzero().squeeze(1)
+        if ids.numel() == 0:
+            continue
+        s, o, d, a, length = rays.scene_index[ids], rays.origins[ids], rays.directions[ids], t0[ids], t1[ids] - t0[ids]
+        sigma = take(vol.params.sigma_t, s)
+        if vol.plan.strategy == "closed_form":  # homogeneous: σ_t at any point is σ_t everywhere
+            tau[ids] += sigma * vol.field(torch.addcmul(o, (a + 0.5 * length)[:, None], d), s) * length
+            continue
+        dt, acc = length / steps, torch.zeros_like(a)
+        for k in range(steps):  # one sample per segment: [n] at a time, whatever the step count
+            acc = acc + vol.field(torch.addcmul(o, (a + (k + 0.5) * dt)[:, None], d), s)
+        tau[ids] += sigma * acc * dt
+    return tau
+
+
+def volume_alphas(parts: list[dict[str, Tensor]]) -> Tensor:
+    """[V, n]: each volume's alpha share, composited front to back in order of entry (`t0`) as
+    `composite_volumes` does; `parts` the volumes' parts in scene order."""
+    trans = torch.stack([p["transmittance"] for p in parts])  # [V, n]
+    order = entry_order(parts)
+    ordered = trans.gather(0, order)
+    before = torch.cumprod(torch.cat([torch.ones_like(ordered[:1]), ordered[:-1]]), dim=0)
+    return torch.empty_like(trans).scatter_(0, order, before * (1.0 - ordered))
+
+
+def instance(ctx, alphas: Tensor | None, remaining: Tensor, surf: dict | None) -> Tensor:
+    """Ids [n] (float): argmax over background (0), volumes (1..V) and the surface (V + material).
+    `alphas` [V, n] or None (no volumes); `remaining` [n] the transmittance left behind them."""
+    n_vol = 0 if alphas is None else alphas.shape[0]
+    hit = torch.zeros_like(remaining, dtype=torch.bool) if surf is None else surf["hit"]
+    background = torch.where(hit, torch.zeros_like(remaining), remaining)
+    weights = [background] + ([] if alphas is None else list(alphas)) + [torch.where(hit, remaining, torch.zeros_like(remaining))]
+    best = torch.argmax(torch.stack(weights), dim=0)  # ties: the first (background before media)
+    surface_id = torch.ones_like(remaining)
+    if surf is not None and "material" in surf["aovs"]:
+        surface_id = surf["aovs"]["material"][:, 0].to(remaining.dtype)
+    ids = best.to(remaining.dtype)
+    return torch.where(best == n_vol + 1, n_vol + surface_id, ids)
+
+
+def surface_lift(ctx, s: Tensor, t: Tensor) -> Tensor:
+    """How far [n] along its normal a shadow ray from a surface hit at distance `t` [n] of scenes `s`
+    [n] starts, as the surface pass's own: the terrain's `shadow_offset` plus its hit rule's width,
+    the voxels' `shadow.offset` (its default without `voxels.shadow`)."""
+    if ctx.plan.terrain is not None:
+        terrain = ctx.batch.terrain
+        return take(terrain.shadow_offset, s) + 2.0 * take(terrain.epsilon, s) * (1.0 + t)
+    shadow = ctx.batch.voxels.shadow
+    if shadow is None:
+        return torch.full_like(t, VoxelShadow.model_fields["offset"].default)
+    return take(shadow.offset, s)
+
+
+def sun_visibility(ctx, rays: Rays, volumes: dict[str, Tensor], surf: dict | None) -> Tensor:
+    """Transmittance [n] to lights[0] from each ray's depth point (1 where it has none)."""
+    use = ctx.plan.labels.sun
+    s, o, d = rays.scene_index, rays.origins, rays.directions
+    t = volumes["median_t"]
+    on_surface = torch.zeros_like(t, dtype=torch.bool)
+    if surf is not None:
+        on_surface = surf["hit"] & (t == 0)
+        t = torch.where(on_surface, surf["t"], t)
+    out = torch.ones_like(t)
+    ids = (t > 0).nonzero().squeeze(1)
+    if ids.numel() == 0:
+        return out
+    si, ti = s[ids], t[ids]
+    p = torch.addcmul(o[ids], ti[:, None], d[ids])
+    if surf is not None:  # a surface point's ray starts where the surface's own shadow rays do
+        lift = surface_lift(ctx, si, ti) * on_surface[ids].to(t.dtype)
+        p = p + lift[:, None] * surf["aovs"]["normal"][ids]
+    direction = take(ctx.lights[0].direction, si)
+    distance = torch.full_like(ti, torch.inf)
+    vis = occluder_transmittance(ctx, use, p, si, direction, distance)
+    if ctx.plan.voxels is not None:
+        with ctx.timer.section(f"{use.name}.voxels"):
+            vis = vis * ctx.surface._visibility(p, si, ctx.lights[0], ctx.plan.labels.voxel_steps)
+    out[ids] = vis
+    return out
+
+
+def per_ray(ctx, rays: Rays, parts: list[dict[str, Tensor]], volumes: dict[str, Tensor], surf: dict | None) -> dict[str, Tensor]:
+    """The planned labels of a chunk's rays, each [n, C], from the render's volume `parts` (scene
+    order), their composite `volumes` and the surface pass's result `surf`."""
+    names, out = ctx.plan.labels.names, {}
+    if "optical_thickness" in names:
+        with ctx.timer.section("labels.optical_thickness"):
+            out["optical_thickness"] = optical_thickness(ctx, rays, None if surf is None else surf["t"])[:, None]
+    alphas = None
+    if parts and ("alpha_volumes" in names or "instance" in names):
+        with ctx.timer.section("labels.alpha_volumes" if "alpha_volumes" in names else "labels.instance"):
+            alphas = volume_alphas(parts)
+        if "alpha_volumes" in names:
+            out["alpha_volumes"] = alphas.T
+    if "instance" in names:
+        with ctx.timer.section("labels.instance"):
+            out["instance"] = instance(ctx, alphas, volumes["transmittance"], surf)[:, None]
+    if "sun_visibility" in names:
+        with ctx.timer.section("labels.sun_visibility"):
+            out["sun_visibility"] = sun_visibility(ctx, rays, volumes, surf)[:, None]
+    return out

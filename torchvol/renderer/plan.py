@@ -1,0 +1,248 @@
+"""A batch of scenes -> the plan: the passes it calls for, as data, and nothing else.
+
+Every decision is made here, once: which strategy integrates each volume (closed form, fixed march,
+fixed march over the occupied span, error-controlled march), which lights shade it and how their
+shadows are found, which voxel passes run, which post effects apply. `render` executes the plan by
+looking each pass up, and decides nothing again. A term the batch does not ask for is not in the
+plan and costs nothing: no shadow pass without a light with `shadow`, no sky pass without `[sky]`,
+no aerial perspective without `[atmosphere]`, no march without volumes, no post pass at its
+identity setting.
+
+Decisions read only values a batch shares (its structure), or ask whether *any* scene of the batch
+needs a term (an effect at its identity setting gives the scene that does not need it the same
+image, to the bit).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from .aovs import produced
+from ..schema.batch import Stacked, stack
+from ..geometry.bounds import BOUNDS, SLAB_REACH
+from ..fields import DENSITIES
+from .labels import LabelPass, label_pass
+from ..light.lights import LIGHTS
+from ..post import POST
+from ..scene.quality import MarchSettings, at_level, march_settings
+from ..scene.model import Scene
+from ..volume.march import COMPACT_BELOW
+from ..volume.shading import SHADINGS
+from ..voxel.materials import any_ggx
+
+Strategy = Literal["closed_form", "march", "skip", "tolerance"]
+
+
+@dataclass(frozen=True)
+class LightPass:
+    """Light `light` shading a volume, the voxels or the terrain; `name` is its own pass in `stats`
+    (its shadow, or the shader look's derivative light; None: no pass of its own); `shadow` its
+    shadow settings (None: unshadowed). A shadow ray also sees the other volumes `occluders` (each
+    its own pass `{name}.volume{j}`) and, where `terrain`, the terrain (`{name}.terrain`)."""
+
+    light: int
+    name: str | None
+    shadow: object | None
+    occluders: tuple[int, ...] = ()
+    terrain: bool = False
+
+    def names(self) -> list[str]:
+        if self.name is None:
+            return []
+        return [self.name] + [f"{self.name}.volume{j}" for j in self.occluders] + ([f"{self.name}.terrain"] if self.terrain else [])
+
+
+@dataclass(frozen=True)
+class VolumePass:
+    index: int
+    name: str  # "volume0"
+    strategy: Strategy
+    shading: str
+    lights: tuple[LightPass, ...]
+    emissive: bool  # some scene of the batch emits
+    emission_map: str | None  # the emission colour map's kind (volume.emission), None: none
+    bloom: int | None  # the point light the seeds' glow surrounds, None: no glow
+    reach: float  # how far a ray or shadow ray travels in the volume (`march.max_distance`, or its bounds')
+    compact_below: float  # the march drops finished rays below this active fraction (`volume.march.march`)
+    sky_blend: bool = False  # sources blend into the sky with distance (`volumes[i].sky_blend`)
+    ambient: bool = False  # sky light in-scattered (`volumes[i].ambient`)
+    ambient_pass: str | None = None  # its visibility march, a pass of its own ("volume0.ambient")
+    multiple: bool = False  # Wrenninge's octaves on the lights' in-scatter (`volumes[i].multiple_scattering`)
+
+    @property
+    def step_pass(self) -> str:
+        return f"{self.name}.closed_form" if self.strategy == "closed_form" else f"{self.name}.march"
+
+    @property
+    def skip_pass(self) -> str:
+        return f"{self.name}.skip"
+
+    @property
+    def emission_pass(self) -> str:
+        return f"{self.name}.emission_map"
+
+    @property
+    def bloom_pass(self) -> str:
+        return f"{self.name}.bloom"
+
+    def names(self) -> list[str]:
+        own = ([self.emission_pass] if self.emission_map is not None else []) + ([self.bloom_pass] if self.bloom is not None else [])
+        own += [n for li in self.lights for n in li.names()] + ([self.ambient_pass] if self.ambient_pass else [])
+        return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
+
+
+@dataclass(frozen=True)
+class VoxelPass:
+    traversal: str  # "dda" or "hybrid"
+    rounded: bool
+    ao: bool
+    shadows: tuple[LightPass, ...]  # one per light when `voxels.shadow` is set
+    glow: bool  # glow and fog's extinction accumulate per visited cell, inside voxels.dda
+    fog: bool  # its in-scattered light: voxels.fog, one shadow ray per distinct visited cell
+    texture: bool
+    emission: bool = False  # some material of some scene emits (voxels.materials[i].emission)
+    water: bool = False  # the water plane's reflected and refracted rays (voxels.water)
+    gi: bool = False  # voxels.gi: path-traced bounces (or cones) replace the ambient
+    cone: bool = False  # voxels.gi.method = "cone": a mip chain and cones instead of paths
+    ggx: bool = False  # some material of some scene is not Lambert (roughness < 1 or metallic > 0)
+    reflections: int = 0  # bounces of mirror reflection rays (voxels.reflections)
+
+    def names(self) -> list[str]:
+        return (["voxels.dda"] + (["voxels.fog"] if self.fog else []) + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
+                + (["voxels.ao"] if self.ao else [])
+                + (["voxels.gi.mips", "voxels.gi.cones"] if self.cone else ["voxels.gi"] if self.gi else [])
+                + [li.name for li in self.shadows]
+                + (["voxels.reflections"] if self.reflections else []) + (["voxels.water"] if self.water else []))
+
+
+@dataclass(frozen=True)
+class TerrainPass:
+    shadows: tuple[LightPass, ...]  # one per light that casts shadows, seeing the terrain and every volume
+
+    def names(self) -> list[str]:
+        return ["terrain.trace", "terrain.shade"] + [n for li in self.shadows for n in li.names()]
+
+
+@dataclass(frozen=True)
+class Plan:
+    settings: MarchSettings
+    sky: str | None  # the sky kind
+    halo: bool
+    flare: bool
+    voxels: VoxelPass | None
+    terrain: TerrainPass | None
+    volumes: tuple[VolumePass, ...]
+    atmosphere: bool  # the [atmosphere] medium over the composited scene (aerial perspective)
+    spp: int
+    post: tuple[tuple[str, str], ...]  # (POST kind, pass name), in order
+    aovs: tuple[str, ...]  # the AOVs the render outputs
+    passes: int = 1  # `image.passes`: > 1 accumulates (torchvol.accumulate)
+    blend: str = "mean"
+    labels: LabelPass | None = None  # the per-medium labels asked for (torchvol.labels), after the composite
+
+    def names(self) -> list[str]:
+        """Every planned pass, in the order the render runs them."""
+        return (["rays"] + (["sky"] if self.sky else []) + (self.voxels.names() if self.voxels else [])
+                + (self.terrain.names() if self.terrain else [])
+                + [n for v in self.volumes for n in v.names()] + ["composite"]
+                + (self.labels.pass_names() if self.labels else []) + (["atmosphere"] if self.atmosphere else [])
+                + (["post.flare"] if self.flare else [])
+                + (["resolve"] if self.spp > 1 else []) + (["accumulate"] if self.passes > 1 else [])
+                + [name for _, name in self.post])
+
+
+def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
+    shading = SHADINGS[vol.shading]
+    if not shading.caps["physical"]:
+        return "march"
+    lights = [LIGHTS[li.kind] for li in batch.lights]
+    if (settings.closed_form and DENSITIES[vol.density.kind].caps.get("homogeneous") and settings.integrator != "alpha"
+            and all(k.caps["directional"] for k in lights) and not any(li.shadow is not None for li in batch.lights)
+            and all(term is None for term in (vol.sky_blend, vol.emission_map, vol.bloom, vol.edge, vol.ambient))):
+        # (each of those terms varies along a ray)
+        return "closed_form"  # the source is constant along a ray: one exact segment
+    if settings.tolerance is not None:
+        return "tolerance"
+    if DENSITIES[vol.density.kind].caps.get("skippable") and settings.rule.placement in ("count", "size"):
+        return "skip"
+    return "march"
+
+
+def shadow_occluders(batch: Stacked, *, exclude: int | None = None) -> tuple[int, ...]:
+    """The volumes a shadow ray sees besides the one it starts in (`exclude`): every physically
+    shaded one (the shader look has no extinction of its own to cast)."""
+    return tuple(j for j, vol in enumerate(batch.volumes) if j != exclude and SHADINGS[vol.shading].caps["physical"])
+
+
+def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
+    vol, name = batch.volumes[v], f"volume{v}"
+    shading = SHADINGS[vol.shading]
+    lights = list(enumerate(batch.lights))
+    if shading.caps["lights"] == "first":  # the shader look's derivative light
+        uses = tuple(LightPass(l, f"{name}.derivative_light", None) for l, _ in lights[:1] if vol.shader.light == "derivative")
+    elif shading.caps["lights"] == "unshadowed":  # lit inside the march pass, no shadow pass
+        uses = tuple(LightPass(l, None, None) for l, _ in lights)
+    else:
+        occluders = shadow_occluders(batch, exclude=v)
+        uses = tuple(LightPass(l, None, None) if li.shadow is None
+                     else LightPass(l, f"{name}.shadow{l}", li.shadow, occluders, batch.terrain is not None)
+                     for l, li in lights)
+    bounds, density = BOUNDS[vol.bounds.kind], DENSITIES[vol.density.kind]
+    if settings.max_distance is not None:
+        reach = settings.max_distance
+    else:  # a box's or sphere's exit is finite (far volumes stay visible); a slab's is not
+        reach = math.inf if bounds.caps["finite"] else SLAB_REACH
+    # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
+    compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
+    ambient = vol.ambient is not None
+    return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
+                      emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
+                      emission_map=None if vol.emission_map is None else vol.emission_map.kind,
+                      bloom=None if vol.bloom is None else vol.bloom.light,
+                      sky_blend=vol.sky_blend is not None, ambient=ambient,
+                      ambient_pass=f"{name}.ambient" if ambient and vol.ambient.visibility == "march" else None,
+                      multiple=vol.multiple_scattering is not None)
+
+
+def make_plan(batch: Stacked | Scene, aovs=()) -> Plan:
+    """The plan of a batch (a `Stacked` view of scenes at their quality level), or of one scene;
+    `aovs`: AOV names asked for beyond those always output (the labels of `torchvol.labels`)."""
+    if isinstance(batch, Scene):
+        batch = stack([at_level(batch)])
+    settings = march_settings(batch.march)
+    vx = batch.voxels
+    voxels = None
+    if vx is not None:  # the surface pass runs before the volumes (they march up to its depth)
+        shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
+        voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
+                           glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
+                           emission=any(bool((m.emission > 0).any()) for m in vx.materials),
+                           water=vx.water is not None, gi=vx.gi is not None,
+                           cone=vx.gi is not None and vx.gi.method == "cone", ggx=any_ggx(vx.materials),
+                           reflections=vx.reflections.bounces if vx.reflections is not None and any_ggx(vx.materials) else 0)
+    terrain = None
+    if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself
+        terrain = TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)
+                                            for l, li in enumerate(batch.lights) if li.shadow is not None))
+    post = tuple((k.name, k.pass_name(batch.post)) for k in POST if k.active(batch.post))
+    return Plan(
+        settings=settings,
+        sky=None if batch.sky is None else batch.sky.kind,
+        halo=batch.sky is not None and batch.sky.halo is not None,
+        flare=batch.sky is not None and batch.sky.flare is not None,
+        voxels=voxels,
+        terrain=terrain,
+        volumes=tuple(volume_pass(batch, v, settings) for v in range(len(batch.volumes))),
+        atmosphere=batch.atmosphere is not None,
+        spp=batch.image.spp,
+        post=post,
+        aovs=tuple(produced(batch, aovs)),
+        passes=batch.image.passes,
+        blend=batch.image.blend,
+        labels=label_pass(batch, aovs),
+    )
+
+
+__all__ = ["LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "make_plan"]

@@ -1,0 +1,64 @@
+"""What a render records while it runs: wall time per pass, density evaluations, march steps.
+`stats["passes"]` and `stats["time_s"]` come from here: the passes that ran, in the order they
+first ran, each with its own exclusive time."""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Iterator
+
+from torch import Tensor
+
+from ..fields import Field
+
+
+class Timer:
+    """Exclusive wall time per pass: a nested section pauses the one around it. `seconds` keeps
+    the order in which passes first ran."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+        self._stack: list[list] = []
+
+    @contextmanager
+    def section(self, name: str) -> Iterator[None]:
+        now = time.perf_counter()
+        if self._stack:
+            outer = self._stack[-1]
+            self.seconds[outer[0]] = self.seconds.get(outer[0], 0.0) + now - outer[1]
+        self.seconds.setdefault(name, 0.0)
+        self._stack.append([name, now])
+        try:
+            yield
+        finally:
+            end = time.perf_counter()
+            self.seconds[name] += end - self._stack.pop()[1]
+            if self._stack:
+                self._stack[-1][1] = end
+
+
+@dataclass
+class Counts:
+    density_evals: int = 0
+    march_steps: int = 0
+    truncated_rays: int = 0
+    voxel_steps: int = 0
+    error_estimate: float = 0.0
+
+
+class CountedField:
+    """A field that counts the points it evaluates (stats["density_evals"])."""
+
+    def __init__(self, inner: Field, counts: Counts):
+        self.inner, self.counts = inner, counts
+        self.feature_size = inner.feature_size
+
+    def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        self.counts.density_evals += points.shape[0]
+        return self.inner(points, scene_index, lod)
+
+    def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        self.counts.density_evals += points.shape[0]
+        return self.inner.signed(points, scene_index, lod)

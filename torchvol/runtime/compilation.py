@@ -1,0 +1,167 @@
+"""Which kernels a render runs under torch.compile: the `compile` setting of `render`, `generate`
+and `SceneDataset`.
+
+* ``"off"`` (``False``): every kernel eager, the reference.
+* ``"exact"``: only the kernels whose compiled output is bitwise the eager one — the voxel DDA
+  walk with its fog and its hybrid jumps (`voxel.walk`): divisions, compares, integer steps and
+  gathers, which inductor emits as eager computes them (its C++ is built with
+  ``-ffp-contract=off`` and without unsafe math; the fog's exp stays eager). A sample's bytes are
+  the eager sample's (tests/voxel/test_walk.py), so this mode may be chosen by speed alone; where
+  inductor cannot build them (`exact_kernel`), they run eagerly after one warning.
+* ``"all"`` (``True``): also the density and march kernels (`fastnoise`, `volume.fused`), where
+  inductor's fused float code gives values within ~1e-5 of eager, not bitwise: opt-in, and
+  recorded in a generated dataset's meta.json.
+* ``"auto"`` (`generate` and `SceneDataset` only, their default): ``"exact"`` where a process
+  renders at least `AUTO_COMPILE_SAMPLES` samples (compiling costs each worker process seconds
+  once), else ``"off"``: `generate` decides from each worker's share of the samples still to
+  render, `SceneDataset` switches once its process has rendered that many. Either gives the
+  same bytes. On CPU: "exact"'s kernels are shown bitwise there; on a GPU, Triton's code and
+  atomic sums are not (render(..., device="cuda", compile="exact") is not promised bitwise).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import warnings
+from collections.abc import Callable
+from typing import Literal
+
+import numpy as np
+import torch
+
+from ..schema.validate import fail, is_integer
+
+__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "as_rendered", "auto_mode", "batch_mode", "compile_mode", "compile_settings", "compiled", "exact_kernel"]
+
+CompileMode = Literal["off", "exact", "all"]
+MODES = ("off", "exact", "all")
+# samples a process renders before "auto" compiles: building the walk's kernels took 21-25 s in a
+# fresh process with inductor's cache cold and 5-7 s warm, and saved 0.025 s (voxel-terrain) to
+# 0.19 s (voxel-world) a 128² sample on one thread: from 512 a warm-cache run gains on every voxel recipe
+AUTO_COMPILE_SAMPLES = 512
+
+
+def compile_mode(value, *, path: str = "compile", auto: bool = False) -> str:
+    """`value` (a mode name; a bool, numpy's too, or 0 / 1: true is "all", false "off"; None is
+    "off") as a mode name; "auto" only where `auto`. Raises ValueError naming `path` otherwise."""
+    if value is None:
+        return "off"
+    if isinstance(value, (bool, np.bool_)) or (is_integer(value) and value in (0, 1)):
+        return "all" if value else "off"
+    allowed = MODES + (("auto",) if auto else ())
+    if not isinstance(value, str) or value not in allowed:
+        fail(path, value, "expected " + ", ".join(allowed) + " (or True for all, False or None for off)")
+    return value
+
+
+def auto_mode(mode: str, samples: int) -> CompileMode:
+    """A resolved mode: "auto" becomes "exact" for a process that will render `samples` ≥
+    `AUTO_COMPILE_SAMPLES`, else "off" (`generate`, which knows each worker's share)."""
+    if mode != "auto":
+        return mode
+    return "exact" if samples >= AUTO_COMPILE_SAMPLES else "off"
+
+
+_RENDERED = [0]  # samples this process rendered under "auto" (`as_rendered`)
+
+
+def as_rendered(mode: str, samples: int) -> CompileMode:
+    """A resolved mode for a batch of `samples`: "auto" becomes "exact" once this process has
+    rendered `AUTO_COMPILE_SAMPLES` samples under "auto", else "off" (`SceneDataset`, which cannot
+    know how many a process, e.g. a DataLoader worker, will render: one `ds[i]` compiles nothing)."""
+    if mode != "auto":
+        return mode
+    resolved = "exact" if _RENDERED[0] >= AUTO_COMPILE_SAMPLES else "off"
+    _RENDERED[0] += samples
+    return resolved
+
+
+def batch_mode(mode: CompileMode, scene) -> CompileMode:
+    """The mode a batch of `scene`'s structure renders in under `mode`: "all" only where it is the
+    fast path (`fastnoise.compile_pays`), else the exact kernels."""
+    from ..noise.fast import compile_pays
+
+    if mode == "all" and not compile_pays(scene):
+        return "exact"
+    return mode
+
+
+# inductor decides when it builds a CPU kernel whether its loops run on threads: serially where the
+# first call's size (dynamic shapes: the size hint of every later call) or the thread count was
+# small. Its on-disk cache then serves that serial kernel to every process, whatever the size: one
+# 16×16 render left every later 2-thread template render on one thread (docs/VOLUMES.md, "Two
+# threads"). With dynamic threads each kernel is one parallel region and OpenMP's thread count when
+# it runs decides, and no graph is recompiled or cached per thread count.
+INDUCTOR_OPTIONS = {"cpp.dynamic_threads": True}
+VARIANTS = 64  # graphs a kernel may compile: a walk has up to 16 (limit × records or jumps × dtype)
+_DYNAMO = torch._dynamo.config
+# dynamo's "duck sizing" takes sizes equal on a first call for one size: a template's first light
+# kernel call on 3 lit samples was built for exactly as many as a light direction's 3 coordinates
+# and built again at the next call (124 s against 91.5 s for a first 128² render, inductor's cache
+# cold). Read when a call is traced; set around the calls (`compile_settings`), never for the user's graphs
+_SHAPES = torch.fx.experimental._config
+_SETTING = [False]  # inside `compile_settings`
+
+
+@contextlib.contextmanager
+def compile_settings():
+    """dynamo's settings for torchvol's kernels (`VARIANTS`, no duck sizing: `_SHAPES`) inside the
+    block, restored after it; nested blocks keep the outer one's. Set once around a render's
+    chunk (`render`), not at each kernel call: a changed setting makes dynamo hash its whole
+    config again at the next call: ~30-50 µs a call, 2-6% of a compiled template render."""
+    if _SETTING[0]:
+        yield
+        return
+    limit, duck = _DYNAMO.recompile_limit, _SHAPES.use_duck_shape
+    _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = VARIANTS, False
+    _SETTING[0] = True
+    try:
+        yield
+    finally:
+        _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = limit, duck
+        _SETTING[0] = False
+
+
+@functools.cache
+def compiled(fn: Callable) -> Callable:
+    """`fn` under torch.compile: dynamic shapes (a march compacts its batch every step, one graph
+    serves every size) and `INDUCTOR_OPTIONS`, in `compile_settings` (entered for the call where
+    the caller has not). Cached: one compiled function per `fn`. During a call dynamo may compile
+    `VARIANTS` graphs of it: each flag and dtype is one, all counted against one function's
+    budget, and past dynamo's default 8 it would silently run eagerly."""
+    kernel = torch.compile(fn, dynamic=True, options=INDUCTOR_OPTIONS)
+
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        with compile_settings():  # inside a render's block: nothing to set
+            return kernel(*args, **kwargs)
+
+    return run
+
+
+def exact_kernel(fn: Callable, what: str) -> Callable:
+    """`fn` under torch.compile (dynamic shapes) for the "exact" mode, whose compiled output is
+    `fn`'s own: where it cannot be compiled (no C++ compiler, an unsupported platform) the first
+    call warns once, naming `what`, and every call runs `fn` eagerly, so a default that compiles
+    ("auto") never fails where eager runs. An error eager raises too is raised as it is."""
+    kernel = compiled(fn)
+    failed = []
+
+    def run(*args, **kwargs):
+        if failed:
+            return fn(*args, **kwargs)
+        try:
+            return kernel(*args, **kwargs)
+        except Exception as error:  # inductor's errors have no common base short of Exception
+            try:
+                result = fn(*args, **kwargs)
+            except Exception:
+                raise error from None  # eager fails too: the call's error, not the compiler's
+            failed.append(error)
+            first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            warnings.warn(f"torchvol: {what} could not be compiled ({type(error).__name__}: {first}); it runs "
+                          "eagerly, with the same results", RuntimeWarning, stacklevel=2)
+            return result
+
+    return run

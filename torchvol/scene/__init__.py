@@ -1,0 +1,1 @@
+"""The scene: its validated model, quality levels, bundled presets and loading."""
