@@ -12,7 +12,8 @@ import torchvol as tv
 from torchvol.runtime import compilation
 from torchvol.dataset import datasets as data
 from torchvol.cli import build_parser
-from torchvol.runtime.compilation import AUTO_COMPILE_SAMPLES, auto_mode, batch_mode, compile_mode
+from torchvol.runtime.compilation import AUTO_COMPILE_SAMPLES, auto_mode, compile_mode
+from torchvol.renderer.plan import batch_mode
 from torchvol.dataset.generate import generate
 
 DATASETS = Path(__file__).resolve().parents[1] / "datasets"

@@ -6,6 +6,7 @@ import torch
 
 import torchvol as tv
 from torchvol.noise import fast as fastnoise, lattice as noise
+from torchvol.renderer.plan import compile_pays
 
 from conftest import assert_close
 
@@ -168,13 +169,13 @@ def test_compiled_fbm_field_matches_eager_field():
 
 def test_compile_pays_only_for_scenes_of_fused_volumes():
     scene = tv.preset("cloud-puff", width=8, height=8).model_dump()
-    assert not fastnoise.compile_pays(tv.preset("cloud-puff", width=8, height=8))  # the table hash
+    assert not compile_pays(tv.preset("cloud-puff", width=8, height=8))  # the table hash
     scene["volumes"][0]["density"]["fbm"]["hash"] = "arithmetic"
     from torchvol.scene.model import load_scene
-    assert fastnoise.compile_pays(load_scene(scene))
-    assert fastnoise.compile_pays(tv.preset("template-clouds", width=8, height=8))  # the fused march step
-    assert fastnoise.compile_pays(tv.preset("fur-ball", width=8, height=8))  # one Worley kernel
-    assert not fastnoise.compile_pays(tv.preset("voxel-terrain", width=8, height=8))
+    assert compile_pays(load_scene(scene))
+    assert compile_pays(tv.preset("template-clouds", width=8, height=8))  # the fused march step
+    assert compile_pays(tv.preset("fur-ball", width=8, height=8))  # one Worley kernel
+    assert not compile_pays(tv.preset("voxel-terrain", width=8, height=8))
 
 
 @pytest.mark.slow  # compiles the fused field (cached on disk after the first run)

@@ -21,5 +21,5 @@ from .renderer.executor import RenderOutput, render
 from .scene.model import Scene, load_scene, preset, preset_names
 from .schema.validate import SceneError
 
-__version__ = "0.1.0"
+from .version import __version__  # noqa: E402
 __all__ = ["Camera", "FolderDataset", "Recipe", "SceneDataset", "Rays", "RenderOutput", "Scene", "SceneError", "load_scene", "preset", "preset_names", "render"]

@@ -111,7 +111,7 @@ COMPILE_HINT_COUNT = 64  # past this many samples, compiling (about 10 s a worke
 def compile_hint(recipe, *, overrides, seed: int, count: int) -> str | None:
     """The note `generate` prints when a large eager run's scenes take the compiled fast path
     (opt-in: compiled samples are not bitwise `SceneDataset`'s)."""
-    from .noise.fast import compile_pays
+    from .renderer.plan import compile_pays
     from .dataset.recipe import Recipe
 
     if count < COMPILE_HINT_COUNT or not compile_pays(Recipe.load(recipe, overrides).sample_with_params(0, seed)[0]):

@@ -20,7 +20,7 @@ from pydantic import Field, field_validator
 from torch import Tensor
 
 from .geometry.camera import Camera
-from .ops.mathops import pow_
+from .ops.mathops import pow_, smoothstep
 from .schema.registry import Registry
 from .schema.models import Strict, Vec3, nonneg
 
@@ -69,12 +69,6 @@ class Post(Strict):
 def _per_image(v: Tensor) -> Tensor:
     """(B,) -> (B, 1, 1, 1): one value per image."""
     return v[:, None, None, None]
-
-
-def smoothstep(edge0: Tensor | float, edge1: Tensor | float, x: Tensor) -> Tensor:
-    """GLSL smoothstep: t = clamp((x − e0)/(e1 − e0), 0, 1); t²(3 − 2t)."""
-    t = ((x - edge0) / (edge1 - edge0)).clamp(0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
 
 
 def reinhard(x: Tensor) -> Tensor:

@@ -23,7 +23,8 @@ import torch
 from torch.utils.data import Dataset
 
 from ..schema.batch import structure_key
-from ..runtime.compilation import CompileMode, as_rendered, batch_mode, compile_mode
+from ..runtime.compilation import CompileMode, as_rendered, compile_mode
+from ..renderer.plan import batch_mode
 from ..scene.quality import at_level
 from .recipe import Recipe, mix_seed, render_seed
 from ..schema.validate import fail, integer, is_integer
@@ -58,7 +59,7 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
     e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch.
     `compile` (`torchvol.compilation`): "all" compiles a batch's density and march kernels only
-    where that is the fast path (`fastnoise.compile_pays`), its exact kernels elsewhere."""
+    where that is the fast path (`renderer.plan.compile_pays`), its exact kernels elsewhere."""
     from ..renderer.executor import DEFAULT_CHUNK_RAYS, render
     from .sequence import add_flow, sequence_scenes
 

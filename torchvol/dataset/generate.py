@@ -169,7 +169,7 @@ def generate(
     eager (the voxel walk) when a worker's share of the samples still to render is
     `AUTO_COMPILE_SAMPLES` or more; "exact" always, "off" never: the bytes are `SceneDataset`'s
     either way. "all" (or True) also compiles the density and march kernels where that is the
-    fast path (`fastnoise.compile_pays`: within 1e-5 of eager, not bitwise, so opt-in; recorded
+    fast path (`renderer.plan.compile_pays`: within 1e-5 of eager, not bitwise, so opt-in; recorded
     in meta.json, so a resumed run renders as the first did).
     Returns {"written": samples rendered now, "count", "out"}."""
     for name, value in (("count", count), ("workers", workers), ("batch", batch), ("shard_size", shard_size)):

@@ -9,6 +9,9 @@ capabilities:
 - ``cheap``: a sample costs less than compacting the march's batch (the march keeps finished rays
   in the batch longer);
 - ``octaves``: a sum of octaves that `march.lod` may cut short with distance;
+- ``compiles_fast(volume) -> bool``: a render compiled with ``compile="all"`` is this volume's fast
+  path (one fused kernel: the fbm on the arithmetic hash, fur's Worley noise, the template's cloud
+  layer in the seeds' look); absent: it is not (`renderer.plan.compile_pays`).
 
 Each field holds per-scene parameter tensors of shape (B, ...) and calls plain noise / sampling
 functions, so B scenes of one structure evaluate in one call.
@@ -32,11 +35,13 @@ DENSITIES = Registry("density")
 DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True)
 DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True)
 DENSITIES.register("exponential", ExponentialDensity, Exponential)
-DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True)
-DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True)
+DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True,
+                   compiles_fast=lambda volume: volume.density.value.hash == "arithmetic")
+DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True,
+                   compiles_fast=lambda volume: volume.shading == "shader" and volume.edge is None)
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True)
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
 DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True)
-DENSITIES.register("fur", FurDensity, FurField)
+DENSITIES.register("fur", FurDensity, FurField, compiles_fast=lambda volume: True)
 
 __all__ = ["DENSITIES", "Field"]

@@ -286,14 +286,14 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
                     layout: str = "folder", compiled: bool = True) -> list[dict]:
     """`generate` of each recipe at size×size (None: the recipe's own size) with each worker count,
     eager and, with `compiled`, in each compile mode that changes what the recipe's scenes run
-    (`torchvol.compilation`: "exact" for voxel scenes, "all" where `fastnoise.compile_pays`):
+    (`torchvol.compilation`: "exact" for voxel scenes, "all" where `renderer.plan.compile_pays`):
     rows {recipe, workers, mode, seconds, samples_per_s, steady_per_s, first_s, bytes_per_sample}.
     After a warm-up run (one batch a worker: inductor's on-disk cache is then warm for both timed
     runs), each is run for N and for 2N samples (N = `count`, 4·`count` compiled, whose samples
     are fast and whose start-up is long): the difference is the steady rate (N / (T₂ − T₁)); what
     the first run took beyond N samples at that rate is the start-up (worker processes, dynamo's
     tracing: `first_s`). `samples_per_s`: 2N / T₂."""
-    from ..noise.fast import compile_pays
+    from ..renderer.plan import compile_pays
     from ..dataset.generate import generate
     from ..dataset.recipe import Recipe
 

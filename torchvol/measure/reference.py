@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .. import __version__
+from ..version import __version__
 from ..scene.quality import QUALITY, Quality, march_settings
 from ..scene.model import load_scene
 from ..volume.shading import SHADINGS

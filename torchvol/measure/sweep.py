@@ -37,7 +37,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import torch
 
-from .. import __version__
+from ..version import __version__
 from . import figures
 from ..schema.keypath import path_str, set_path
 from ..runtime.progress import progress as bar

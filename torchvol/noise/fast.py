@@ -15,7 +15,7 @@ field than the table's, with the same distribution (uniform 24-bit values in [0,
 change where a scene switches hash; the statistics do not (tests/test_fastnoise.py).
 
 `fbm_field_hashed` is the fbm field's whole signed density (affine map, fbm, falloff) as one compiled
-kernel, what `fields.fbm.FbmField` runs under compile; `compile_pays` says where a render compiled is
+kernel, what `fields.fbm.FbmField` runs under compile; `renderer.plan.compile_pays` says where a render compiled is
 the fast path (`generate` uses it).
 """
 
@@ -32,7 +32,7 @@ from ..runtime.compilation import compiled
 from ..ops.mathops import take_rows
 from ..runtime.threads import threads_for, torch_threads
 
-__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed", "compile_pays"]
+__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed"]
 
 # odd multipliers below 2**31 (xxHash's primes and murmur3's c2): Python ints that stay int32 in torch
 _P = (0x1B873593, 0x27D4EB2F, 0x165667B1)
@@ -207,18 +207,3 @@ def fbm_field_hashed(
         return _compiled_field(int(octaves), float(gain))(x, y, z, at(seeds), scales, lod, at(frequency), cols(shift),
                                                           cols(offset), at(bias), at(amplitude), at(radial),
                                                           cols(center))
-
-
-def compile_pays(scene) -> bool:
-    """Whether `render(scene, compile=True)` is the fast path: the scene has volumes, each with an
-    fbm density on the arithmetic hash (one fused kernel), the template's cloud layer in the
-    seeds' look (one fused march step, `volume.fused`) or fur (its Worley noise one kernel,
-    `noise.compiled_noise`), and no voxels or terrain (whose compiled kernels are other
-    trade-offs). Compiled renders match eager ones within 1e-5, not bitwise
-    (tests/test_fastnoise.py, tests/volume/test_fused.py)."""
-    def fused(v) -> bool:
-        return ((v.density.kind == "fbm" and v.density.value.hash == "arithmetic") or v.density.kind == "fur"
-                or (v.density.kind == "clouds" and v.shading == "shader" and v.edge is None))
-
-    volumes = scene.volumes
-    return bool(volumes) and scene.voxels is None and scene.terrain is None and all(fused(v) for v in volumes)

@@ -25,3 +25,9 @@ def take_rows(table: Tensor, index: Tensor) -> Tensor:
     rows = table.index_select(0, index.reshape(-1))
     # a 1-D index needs no reshape, whose view a compiled kernel taking the rows would guard on
     return rows if index.dim() == 1 else rows.reshape(*index.shape, *table.shape[1:])
+
+
+def smoothstep(edge0: Tensor | float, edge1: Tensor | float, x: Tensor) -> Tensor:
+    """GLSL smoothstep: t = clamp((x − e0)/(e1 − e0), 0, 1); t²(3 − 2t)."""
+    t = ((x - edge0) / (edge1 - edge0)).clamp(0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)

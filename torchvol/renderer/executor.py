@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from .accumulate import Accumulator, pass_seeds
-from .aovs import RESOLVE
+from .aovs import AOVS, RESOLVE
 from ..schema.batch import Stacked, check_same_structure, stack, take
 from ..geometry.bounds import BOUNDS
 from ..geometry.camera import Camera, Rays
@@ -97,7 +97,7 @@ class RenderContext:
         self.volumes = [self._volume(vp, self.compiled) for vp in plan.volumes]
         self.surface = self.terrain = None
         if plan.voxels is not None:
-            self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, plan.aovs, dtype=dtype, device=device,
+            self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs}, dtype=dtype, device=device,
                                         compiled=compile != "off", time=self.times,
                                         sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s))
         if plan.terrain is not None:  # the scene's one surface (voxels and terrain are refused together)

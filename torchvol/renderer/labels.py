@@ -33,50 +33,10 @@ from torch import Tensor
 
 from ..schema.batch import take
 from ..geometry.camera import Rays
-from ..light.lights import LIGHTS, Shadow
-from ..scene.quality import QUALITY
 from ..scene.model import VoxelShadow
-from ..schema.validate import fail
 from ..volume.composite import entry_order
 from ..volume.physical import occluder_transmittance
 from ..volume.strategy import entry_exit
-
-LABELS = ("optical_thickness", "alpha_volumes", "instance", "sun_visibility")
-
-
-@dataclass(frozen=True)
-class LabelPass:
-    """The labels a batch computes (`names`, in `LABELS` order) and, for ``sun_visibility``, its
-    shadow ray's `LightPass` (from lights[0], through every physical volume and the terrain)."""
-
-    names: tuple[str, ...]
-    sun: object | None = None  # plan.LightPass
-    voxel_steps: int = 0  # DDA steps of the sun ray through the voxels (0: no voxels)
-
-    def pass_names(self) -> list[str]:
-        sun = [] if self.sun is None else self.sun.names() + ([f"{self.sun.name}.voxels"] if self.voxel_steps else [])
-        return [n for name in self.names for n in (sun if name == "sun_visibility" else [f"labels.{name}"])]
-
-
-def label_pass(batch, requested) -> LabelPass | None:
-    """The labels `requested` (AOV names) the batch computes, None if none; refuses
-    ``sun_visibility`` without a sun as `lights[0]`."""
-    from .plan import LightPass, shadow_occluders
-
-    names = tuple(n for n in LABELS if n in requested and (n != "alpha_volumes" or batch.volumes))
-    if not names:
-        return None
-    sun = None
-    if "sun_visibility" in names:
-        if not batch.lights or not LIGHTS[batch.lights[0].kind].caps["directional"]:
-            fail("aovs", "sun_visibility", "needs lights[0] to be a sun (a directional light); this scene's lights: "
-                 f"{[li.kind for li in batch.lights]}")
-        shadow = batch.lights[0].shadow or Shadow(steps=QUALITY[batch.march.quality].shadow_steps)
-        sun = LightPass(0, "labels.sun_visibility", shadow, shadow_occluders(batch), batch.terrain is not None)
-    vx = batch.voxels
-    voxel_steps = 0 if vx is None else (vx.shadow.steps if vx.shadow is not None else vx.max_steps)
-    return LabelPass(names, sun, voxel_steps)
-
 
 def optical_thickness(ctx, rays: Rays, t_limit: Tensor | None) -> Tensor:
     """τ [n] along the chunk's rays through every volume, up to `t_limit` [n] (a surface hit)."""

@@ -23,14 +23,15 @@ from .aovs import produced
 from ..schema.batch import Stacked, stack
 from ..geometry.bounds import BOUNDS, SLAB_REACH
 from ..fields import DENSITIES
-from .labels import LabelPass, label_pass
-from ..light.lights import LIGHTS
+from ..light.lights import LIGHTS, Shadow
 from ..post import POST
-from ..scene.quality import MarchSettings, at_level, march_settings
+from ..scene.quality import QUALITY, MarchSettings, at_level, march_settings
 from ..scene.model import Scene
 from ..volume.march import COMPACT_BELOW
 from ..volume.shading import SHADINGS
 from ..voxel.materials import any_ggx
+from ..schema.validate import fail
+from ..runtime.compilation import CompileMode
 
 Strategy = Literal["closed_form", "march", "skip", "tolerance"]
 
@@ -123,6 +124,41 @@ class TerrainPass:
 
     def names(self) -> list[str]:
         return ["terrain.trace", "terrain.shade"] + [n for li in self.shadows for n in li.names()]
+
+
+LABELS = ("optical_thickness", "alpha_volumes", "instance", "sun_visibility")
+
+
+@dataclass(frozen=True)
+class LabelPass:
+    """The labels a batch computes (`names`, in `LABELS` order) and, for ``sun_visibility``, its
+    shadow ray's `LightPass` (from lights[0], through every physical volume and the terrain)."""
+
+    names: tuple[str, ...]
+    sun: LightPass | None = None
+    voxel_steps: int = 0  # DDA steps of the sun ray through the voxels (0: no voxels)
+
+    def pass_names(self) -> list[str]:
+        sun = [] if self.sun is None else self.sun.names() + ([f"{self.sun.name}.voxels"] if self.voxel_steps else [])
+        return [n for name in self.names for n in (sun if name == "sun_visibility" else [f"labels.{name}"])]
+
+
+def label_pass(batch, requested) -> LabelPass | None:
+    """The labels `requested` (AOV names) the batch computes, None if none; refuses
+    ``sun_visibility`` without a sun as `lights[0]`."""
+    names = tuple(n for n in LABELS if n in requested and (n != "alpha_volumes" or batch.volumes))
+    if not names:
+        return None
+    sun = None
+    if "sun_visibility" in names:
+        if not batch.lights or not LIGHTS[batch.lights[0].kind].caps["directional"]:
+            fail("aovs", "sun_visibility", "needs lights[0] to be a sun (a directional light); this scene's lights: "
+                 f"{[li.kind for li in batch.lights]}")
+        shadow = batch.lights[0].shadow or Shadow(steps=QUALITY[batch.march.quality].shadow_steps)
+        sun = LightPass(0, "labels.sun_visibility", shadow, shadow_occluders(batch), batch.terrain is not None)
+    vx = batch.voxels
+    voxel_steps = 0 if vx is None else (vx.shadow.steps if vx.shadow is not None else vx.max_steps)
+    return LabelPass(names, sun, voxel_steps)
 
 
 @dataclass(frozen=True)
@@ -245,4 +281,25 @@ def make_plan(batch: Stacked | Scene, aovs=()) -> Plan:
     )
 
 
-__all__ = ["LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "make_plan"]
+
+def compile_pays(scene: Scene) -> bool:
+    """Whether `render(scene, compile=True)` is the fast path: the scene has volumes, each with a
+    density whose compiled form is one fused kernel (the registry's ``compiles_fast``), and no
+    voxels or terrain (whose compiled kernels are other trade-offs). Compiled renders match eager
+    ones within 1e-5, not bitwise (tests/test_fastnoise.py, tests/volume/test_fused.py)."""
+    def fast(volume) -> bool:
+        return DENSITIES[volume.density.kind].caps.get("compiles_fast", lambda v: False)(volume)
+
+    volumes = scene.volumes
+    return bool(volumes) and scene.voxels is None and scene.terrain is None and all(fast(v) for v in volumes)
+
+
+def batch_mode(mode: CompileMode, scene: Scene) -> CompileMode:
+    """The mode a batch of `scene`'s structure renders in under `mode`: "all" only where it is the
+    fast path (`compile_pays`), else the exact kernels."""
+    if mode == "all" and not compile_pays(scene):
+        return "exact"
+    return mode
+
+
+__all__ = ["LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "batch_mode", "compile_pays", "make_plan"]

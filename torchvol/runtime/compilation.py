@@ -32,7 +32,7 @@ import torch
 
 from ..schema.validate import fail, is_integer
 
-__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "as_rendered", "auto_mode", "batch_mode", "compile_mode", "compile_settings", "compiled", "exact_kernel"]
+__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "as_rendered", "auto_mode", "compile_mode", "compile_settings", "compiled", "exact_kernel"]
 
 CompileMode = Literal["off", "exact", "all"]
 MODES = ("off", "exact", "all")
@@ -75,16 +75,6 @@ def as_rendered(mode: str, samples: int) -> CompileMode:
     resolved = "exact" if _RENDERED[0] >= AUTO_COMPILE_SAMPLES else "off"
     _RENDERED[0] += samples
     return resolved
-
-
-def batch_mode(mode: CompileMode, scene) -> CompileMode:
-    """The mode a batch of `scene`'s structure renders in under `mode`: "all" only where it is the
-    fast path (`fastnoise.compile_pays`), else the exact kernels."""
-    from ..noise.fast import compile_pays
-
-    if mode == "all" and not compile_pays(scene):
-        return "exact"
-    return mode
 
 
 # inductor decides when it builds a CPU kernel whether its loops run on threads: serially where the

@@ -37,7 +37,7 @@ from ..runtime.threads import kernel_threads
 from .march import MarchResult
 
 if TYPE_CHECKING:
-    from .fused import CloudLook, StepConfig
+    from .march_spec import CloudLook, StepConfig
 
 OPT_OUT = "TORCHVOL_DRJIT"
 # whether this process may use Dr.Jit: None until the first `available` probes it; False for good

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -36,7 +35,8 @@ from ..runtime.compilation import compiled
 from ..ops.mathops import take_rows
 from ..runtime.threads import on_threads, torch_threads
 from . import drjit_march
-from .march import MarchResult, StepRule
+from .march import MarchResult
+from .march_spec import CloudLook, StepConfig
 
 # slots marched at once: a render's whole chunk (`render.DEFAULT_CHUNK_RAYS`), so no chunk ends
 # with a tail of rays marched in small wavefronts (61,440 left 4,096 rays of each chunk to 80
@@ -54,43 +54,6 @@ _ROWS = _RADIANCE + 3
 # travels with the ray, not the state (the state's rows are written every step: each row passed
 # through unchanged was a copy loop of its own in the kernel)
 _T_END, _SPAN = 9, 10
-
-
-class CloudLook(NamedTuple):
-    """Per-scene values of the cloud layer and its look, each (B, ...) in the render's dtype.
-
-    `base` (B,) int32 for float32 (int64 for float64): the scene's first row in the stacked
-    texture tables, of the texture noise's integer type (an int64 base would turn every index
-    sum of the noise int64: 20% of the kernel's time)."""
-
-    shift: Tensor  # (B, 3) wind · time
-    bias: Tensor  # (B,)
-    density_scale: Tensor  # (B,)
-    light_step: Tensor  # (B, 3) light_offset · direction to the first light (zeros: no light)
-    irradiance: Tensor  # (B, 3)
-    light_scale: Tensor  # (B,)
-    ambient: Tensor  # (B, 3)
-    ambient_top: Tensor  # (B, 3) (= ambient: no height gradient)
-    heights: Tensor  # (B, 2) the bounds' height range
-    color_lit: Tensor  # (B, 3)
-    color_dark: Tensor  # (B, 3)
-    alpha_scale: Tensor  # (B,)
-    fog: Tensor  # (B,)
-    base: Tensor  # (B,)
-
-
-@dataclass(frozen=True)
-class StepConfig:
-    """What a compiled step is specialised on (constants of its graph)."""
-
-    rule: StepRule
-    octaves: int
-    lod_scale: float | None
-    threshold: float
-    min_transmittance: float
-    max_iterations: int
-    light: bool  # the derivative light is on
-    graded: bool  # the ambient has a height gradient
 
 
 def fusable(ctx, vol) -> bool:

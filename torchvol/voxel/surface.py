@@ -23,13 +23,12 @@ scene by scene (occupancy, texture atlas, the glow's SDF).
 from __future__ import annotations
 
 from contextlib import nullcontext
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import torch
 from torch import Tensor
 
 from ..geometry import sdf
-from ..renderer.aovs import AOVS
 from ..schema.batch import Stacked, per_scene, take
 from ..light.lights import LightSource
 from ..ops.mathops import take_rows
@@ -52,17 +51,17 @@ REFLECTION_OFFSET = 1e-3  # the seed's hitPos + normal · 0.001, in voxels
 
 class VoxelSurface:
     """One batch's voxel grids and shading parameters (`voxels`: the batch's `Stacked` voxels),
-    lit by `lights`; `plan` the batch's `VoxelPass`; `aovs` the AOV names to output; `time` (B,) the
+    lit by `lights`; `plan` the batch's `VoxelPass`; `aovs` the AOVs to output, name -> channels; `time` (B,) the
     scenes' times (water waves); `sky(directions [n, 3], s [n]) -> [n, 3]` what secondary rays that
     leave the grid see (None: black)."""
 
-    def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Sequence[str], *, dtype, device,
+    def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Mapping[str, int], *, dtype, device,
                  compiled: bool = False, time: Tensor | None = None, sky: Callable[[Tensor, Tensor], Tensor] | None = None):
         # sky(directions [n, 3], scenes [n]) -> radiance [n, 3]: what secondary rays (water, GI paths) that leave the grid see
         self.p, self.lights, self.plan, self.compiled = voxels, list(lights), plan, compiled
         self.time, self.sky = time, sky
         self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=plan.traversal == "hybrid")
-        self.aov_names = [a for a in aovs if a in SURFACE_AOVS]
+        self.aov_channels = {a: c for a, c in aovs.items() if a in SURFACE_AOVS}
         self.material = VOXEL_MATERIALS["diffuse"]
         self.materials = material_table(voxels.materials)  # (B, M, ...)
         if plan.texture:
@@ -210,7 +209,7 @@ class VoxelSurface:
 
         ids = hit.nonzero().squeeze(1)
         out_color = background.clone()
-        aovs = {k: o.new_zeros(n, AOVS[k].channels) for k in self.aov_names}
+        aovs = {k: o.new_zeros(n, c) for k, c in self.aov_channels.items()}
         if ids.numel():
             sh = take_rows(s, ids)
             with section("voxels.shade"):
@@ -227,7 +226,7 @@ class VoxelSurface:
             if self.plan.reflections:
                 with section("voxels.reflections"):
                     self._reflect(out_color, ids, surface, d[ids], sh, self.plan.reflections, section)
-            for k in self.aov_names:
+            for k in self.aov_channels:
                 if k in surface:  # the water's AOVs come from _water
                     aovs[k][ids] = surface[k]
         if self.plan.fog:
