@@ -33,7 +33,7 @@ def with_rays(**changes) -> dict:
 
 def test_off_is_not_planned_and_exposure_zero_changes_nothing(one_thread):
     off = tv.render(SCENE)
-    assert "post.god_rays" not in off.stats["plan"] and "post.god_rays" not in off.stats["passes"]
+    assert "post.god_rays" not in off.stats["plan"]["passes"] and "post.god_rays" not in off.stats["passes"]
     zero = tv.render(with_rays(exposure=0.0))
     assert "post.god_rays" in zero.stats["passes"] and torch.equal(zero.image, off.image)
     on = tv.render(with_rays())

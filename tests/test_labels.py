@@ -157,10 +157,10 @@ def test_sun_visibility_needs_a_sun():
 def test_a_label_nobody_asks_for_costs_nothing(one_thread):
     s = scene([sphere((-0.3, 0, 0), 0.6, 2.0, density={"fbm": {"octaves": 2}}), sphere((0.5, 0, 0.5), 0.5, 1.0)])
     plain, labelled = tv.render(s), tv.render(s, aovs=LABELS)
-    assert not any(p.startswith("labels") for p in plain.stats["passes"] + plain.stats["plan"])
+    assert not any(p.startswith("labels") for p in plain.stats["passes"] + plain.stats["plan"]["passes"])
     assert not set(LABELS) & set(plain.aovs)
     assert [p for p in labelled.stats["passes"] if not p.startswith("labels")] == plain.stats["passes"]
-    assert set(labelled.stats["passes"]) <= set(labelled.stats["plan"])
+    assert set(labelled.stats["passes"]) <= set(labelled.stats["plan"]["passes"])
     for key in ("image", "radiance", "depth", "alpha"):
         assert torch.equal(getattr(plain, key), getattr(labelled, key)), key
     assert plain.stats["density_evals"] < labelled.stats["density_evals"]

@@ -164,7 +164,7 @@ def test_finite_at_odd_sizes_and_in_a_batch(width, height, one_thread):
 def test_passes_are_those_that_ran(one_thread):
     scene = tv.load_scene(_hilly(9, 7))
     out = tv.render(scene)
-    assert make_plan(scene).names() == out.stats["plan"] == out.stats["passes"]
+    assert make_plan(scene).names() == out.stats["plan"]["passes"] == out.stats["passes"]
     assert out.stats["passes"][:5] == ["rays", "sky", "terrain.trace", "terrain.shade", "terrain.shadow0"]
     plain = tv.render({**_hilly(9, 7), "lights": [{"kind": "sun", "direction": [0.4, 0.8, 0.3]}]}).stats["passes"]
     assert not any("shadow" in p for p in plain), plain

@@ -218,7 +218,7 @@ def test_presets_at_odd_sizes(name, one_thread):
     assert out.image.shape == (1, 3, 9, 17) and 0 <= out.image.min() and out.image.max() <= 1
     assert out.radiance.max() > 1.0, "HDR radiance reaches the tonemap"
     passes = out.stats["passes"]
-    assert set(passes) <= set(out.stats["plan"])
+    assert set(passes) <= set(out.stats["plan"]["passes"])
     assert not any("shadow" in p for p in passes)
     assert ("sky" in passes) == (name == "fire")
     assert {"volume0.emission_map", "volume0.bloom", "post.tonemap.aces"} <= set(passes)

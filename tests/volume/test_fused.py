@@ -10,8 +10,7 @@ from hypothesis import strategies as st
 import torchvol as tv
 from torchvol.noise import lattice as noise
 from torchvol.schema.batch import stack
-from torchvol.renderer.plan import make_plan
-from torchvol.renderer.executor import RenderContext
+from torchvol.renderer.plan import fused_march, make_plan
 from torchvol.scene.model import load_scene
 from torchvol.volume import fused, strategy
 
@@ -100,13 +99,12 @@ def test_wavefront_size_refills_and_compaction_do_not_change_the_result(wavefron
 
 
 def test_fused_path_runs_only_where_the_scene_is_the_template_technique():
-    """`fusable`: the shader look over the cloud layer, lit by suns; not the physical clouds, not
-    a cloud layer with an edge falloff or lit by a point light."""
+    """`plan.fused_march`: the shader look over the cloud layer, lit by suns; not the physical
+    clouds, not a cloud layer with an edge falloff or lit by a point light."""
     def volume_fusable(scene) -> bool:
         batch = stack([scene])
-        plan = make_plan(batch)
-        ctx = RenderContext(batch, plan, seeds=[0], dtype=torch.float32, device=torch.device("cpu"), compile="all")
-        return fused.fusable(ctx, ctx.volumes[0])
+        plan = make_plan(batch, compile="all")
+        return fused_march(batch, batch.volumes[0], plan.volumes[0].lights)
 
     assert volume_fusable(_template())
     assert not volume_fusable(tv.preset("cloud-puff", width=8, height=8))

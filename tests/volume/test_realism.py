@@ -59,7 +59,7 @@ def centre(out) -> torch.Tensor:
 
 def test_absent_terms_are_not_in_the_plan():
     out = tv.render(puff())
-    assert not any("ambient" in p for p in out.stats["passes"] + out.stats["plan"])
+    assert not any("ambient" in p for p in out.stats["passes"] + out.stats["plan"]["passes"])
     vp = make_plan(tv.load_scene(puff())).volumes[0]
     assert (vp.ambient, vp.ambient_pass, vp.multiple) == (False, None, False)
 
@@ -82,7 +82,7 @@ def test_black_unoccluded_ambient_adds_nothing_to_the_bit(one_thread):
 def test_terms_are_planned_and_run():
     scene = puff(ambient={}, multiple_scattering={}, edge={"width": 0.3})
     out = tv.render(scene)
-    assert "volume0.ambient" in out.stats["passes"] and out.stats["passes"] == out.stats["plan"]
+    assert "volume0.ambient" in out.stats["passes"] and out.stats["passes"] == out.stats["plan"]["passes"]
     single = tv.render(puff())
     assert out.radiance.mean() > single.radiance.mean()  # sky light and higher orders only add light
     assert torch.isfinite(out.radiance).all()

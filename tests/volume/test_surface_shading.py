@@ -158,7 +158,7 @@ def test_plan_and_passes_show_only_the_march():
     assert plan.volumes[0].shading == "surface" and plan.volumes[0].strategy == "march"
     assert all(li.name is None and li.shadow is None for li in plan.volumes[0].lights)
     out = tv.render(scene)
-    assert out.stats["passes"] == ["rays", "sky", "volume0.march", "composite"] == out.stats["plan"]
+    assert out.stats["passes"] == ["rays", "sky", "volume0.march", "composite"] == out.stats["plan"]["passes"]
     assert out.image.isfinite().all() and out.alpha.max() > 0.9
 
 

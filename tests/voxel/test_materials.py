@@ -25,7 +25,7 @@ def room(materials, **voxels) -> dict:
 def test_the_colour_form_is_a_table_of_that_colour():
     colour = tv.render(room([[0.2, 0.3, 0.4], [0.8, 0.6, 0.5]]))
     table = tv.render(room([{"color": [0.2, 0.3, 0.4]}, {"color": [0.8, 0.6, 0.5], "emission": [0.0, 0.0, 0.0]}]))
-    assert torch.equal(colour.image, table.image) and "voxels.emission" not in colour.stats["plan"]
+    assert torch.equal(colour.image, table.image) and "voxels.emission" not in colour.stats["plan"]["passes"]
     assert not make_plan(tv.load_scene(room([[0.2, 0.3, 0.4]]))).voxels.emission
 
 

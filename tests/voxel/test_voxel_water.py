@@ -237,5 +237,5 @@ def test_seed_water_code_matches_llvmpipe():
 
 def test_water_no_ray_meets_is_not_a_pass_that_ran():
     out = tv.render(water_scene(2, eye=(0.0, 5.0, 0.0), target=(0.0, 10.0, 3.0), size=8))  # every ray rises
-    assert "voxels.water" in out.stats["plan"] and "voxels.water" not in out.stats["passes"]
+    assert "voxels.water" in out.stats["plan"]["passes"] and "voxels.water" not in out.stats["passes"]
     assert (out.aovs["water"] == 0).all()

@@ -11,7 +11,9 @@ capabilities:
 - ``octaves``: a sum of octaves that `march.lod` may cut short with distance;
 - ``compiles_fast(volume) -> bool``: a render compiled with ``compile="all"`` is this volume's fast
   path (one fused kernel: the fbm on the arithmetic hash, fur's Worley noise, the template's cloud
-  layer in the seeds' look); absent: it is not (`renderer.plan.compile_pays`).
+  layer in the seeds' look); absent: it is not (`renderer.plan.compile_pays`);
+- ``fused_march``: the template's cloud layer, whose whole march in the seeds' look has a fused
+  form (`volume.fused`, `volume.drjit_march`; `renderer.plan.fused_march` decides where it runs).
 
 Each field holds per-scene parameter tensors of shape (B, ...) and calls plain noise / sampling
 functions, so B scenes of one structure evaluate in one call.
@@ -37,7 +39,7 @@ DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, ch
 DENSITIES.register("exponential", ExponentialDensity, Exponential)
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True,
                    compiles_fast=lambda volume: volume.density.value.hash == "arithmetic")
-DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True,
+DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, fused_march=True,
                    compiles_fast=lambda volume: volume.shading == "shader" and volume.edge is None)
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True)
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)

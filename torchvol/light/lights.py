@@ -9,7 +9,7 @@ per ray), a homogeneous medium has a closed form, and a shadow can be tabulated 
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal, NamedTuple
+from typing import Annotated, Literal, NamedTuple, Sequence
 
 import torch
 from pydantic import Field, field_validator
@@ -102,6 +102,14 @@ def point_toward(light: Stacked, points: Tensor, s: Tensor) -> Toward:
 LIGHTS = Registry("light")
 LIGHTS.register("sun", Sun, sun_toward, directional=True)
 LIGHTS.register("point", Point, point_toward, directional=False)
+
+
+def sun_index(lights: Sequence) -> int | None:
+    """The index of the scene's sun among `lights` (a scene's or a batch's `[[lights]]`, each with
+    a `kind`): lights[0] where it is directional, as in the seeds, else None. Skies, their halo and
+    flare, the atmosphere, god rays and the ``sun_visibility`` label are lit by it; the rule is
+    written here once and the plan records its answer (`Plan.sun`)."""
+    return 0 if lights and LIGHTS[lights[0].kind].caps["directional"] else None
 
 
 class LightSource:

@@ -25,7 +25,7 @@ from ..runtime.compilation import CompileMode, compile_mode, compile_settings
 from ..fields import DENSITIES
 from ..fields.edge import EdgeField
 from .labels import per_ray as label_rays
-from ..light.lights import LIGHTS, LightSource
+from ..light.lights import LIGHTS, LightSource, sun_index
 from .plan import Plan, VolumePass, make_plan
 from ..post import POST, View
 from ..scene.quality import at_level
@@ -42,7 +42,7 @@ from ..volume.composite import composite_volumes, finish
 from ..light.phase import PHASES
 from ..volume.physical import occluder_transmittance
 from ..volume.shading import SHADINGS
-from ..volume.strategy import STRATEGIES, marches_on_drjit
+from ..volume.strategy import STRATEGIES
 from ..voxel.surface import VoxelSurface
 
 DEFAULT_CHUNK_RAYS = 1 << 16
@@ -134,8 +134,8 @@ class RenderContext:
         return torch.stack([li.radiant for li in self.lights]).amax(dim=(0, 2))[scene_index].clamp_min(1e-12)
 
     def sun(self) -> Tensor | None:
-        """(B, 3) towards the first light where it is a sun (skies, halo and flare need one)."""
-        return self.lights[0].direction if self.lights and self.lights[0].directional else None
+        """(B, 3) towards the scene's sun (`Plan.sun`; skies, halo and flare need one), None: no sun."""
+        return None if self.plan.sun is None else self.lights[self.plan.sun].direction
 
 
 def sky_radiance(ctx: RenderContext, rays: Rays) -> Tensor:
@@ -167,10 +167,10 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
             surf = ctx.surface.run(*args, keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp))
         else:
             surf = ctx.surface.run(*args)
-    t_limit = None if surf is None else surf["t"]
+    t_limit = None if surf is None else surf.t
     parts = [STRATEGIES[vol.plan.strategy](ctx, vol, rays, background, t_limit) for vol in ctx.volumes]
     with ctx.timer.section("composite"):
-        behind = background if surf is None else surf["color"]  # the shaded surface where hit
+        behind = background if surf is None else surf.color  # the shaded surface where hit
         volumes = composite_volumes(parts, rays.origins[:, 0])
         out = finish(volumes, behind, surf, rays.forward_cos, ctx.settings.depth_threshold)
     if plan.labels is not None:
@@ -189,7 +189,7 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
 def through_the_air(ctx: RenderContext, rays: Rays, out: dict[str, Tensor]) -> dict[str, Tensor]:
     """The composited scene seen through the `[atmosphere]` medium (aerial perspective, its ground
     behind); the planet's ground is an opaque surface: alpha 1, and its depth where nothing nearer."""
-    atm, s, sun = ctx.batch.atmosphere, rays.scene_index, ctx.lights[0]
+    atm, s, sun = ctx.batch.atmosphere, rays.scene_index, ctx.lights[ctx.plan.sun]
     radiance, ground_t = aerial_perspective(
         out["radiance"], out["alpha"], out["distance"], rays.origins, rays.directions, take(sun.direction, s),
         take(sun.radiant, s), take(atm.ground, s), gather_air(atm, s), steps=atm.steps, light_steps=atm.light_steps)
@@ -242,6 +242,16 @@ def _check_arguments(scene, seed, chunk_rays, dtype, device) -> tuple[list, list
     return scenes, seeds, device
 
 
+def check_aovs(aovs: Sequence[str], scene) -> None:
+    """Refuses `aovs` (render's argument) unless it is a list of AOV names that `scene` (a batch's
+    first, levelled) can compute: ``sun_visibility`` needs the scene's sun."""
+    if isinstance(aovs, str) or any(a not in RESOLVE for a in aovs):
+        fail("aovs", aovs, "expected a list of AOV names from: " + ", ".join(sorted(RESOLVE)))
+    if "sun_visibility" in aovs and sun_index(scene.lights) is None:
+        fail("aovs", "sun_visibility", "needs lights[0] to be a sun (a directional light); this scene's lights: "
+             f"{[li.kind for li in scene.lights]}")
+
+
 def render(
     scene,
     *,
@@ -269,19 +279,15 @@ def render(
     instance, sun_visibility); the others are output wherever the scene computes them."""
     scenes, seeds, device = _check_arguments(scene, seed, chunk_rays, dtype, device)
     compile = compile_mode(compile)
-    if isinstance(aovs, str) or any(a not in RESOLVE for a in aovs):
-        fail("aovs", aovs, "expected a list of AOV names from: " + ", ".join(sorted(RESOLVE)))
+    check_aovs(aovs, scenes[0])
     start = time.perf_counter()
     batch = stack(scenes, dtype=torch.float64, device=device)  # the plan reads shared values only
-    plan = make_plan(batch, tuple(aovs))
-    dtype = dtype or plan.settings.dtype
+    plan = make_plan(batch, tuple(aovs), compile=compile, dtype=dtype, device=device)
+    dtype = plan.dtype
     ctx = RenderContext(stack(scenes, dtype=dtype, device=device), plan, seeds=seeds, dtype=dtype, device=device,
                         compile=compile)
     b, h, w, spp = len(scenes), ctx.batch.image.height, ctx.batch.image.width, plan.spp
-    # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
-    glue = (plan.voxels is None and ctx.surface is None and bool(ctx.volumes)
-            and all(marches_on_drjit(ctx, vol) for vol in ctx.volumes))
-    with glue_on_one_thread() if glue else nullcontext():
+    with glue_on_one_thread() if plan.threads == "glue_on_one_thread" else nullcontext():
         with ctx.timer.section("rays"):
             camera = camera_for(ctx.batch)
         pixels = b * h * w
@@ -320,7 +326,7 @@ def render(
         image = post_process(ctx, radiance, images, View(camera=camera, sun=ctx.sun(), alpha=alpha))
     stats = {
         "passes": list(ctx.timer.seconds),
-        "plan": plan.names(),
+        "plan": plan.summary(),
         "density_evals": ctx.counts.density_evals,
         "time_s": dict(ctx.timer.seconds),
         "total_s": time.perf_counter() - start,

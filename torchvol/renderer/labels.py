@@ -18,7 +18,7 @@ here):
   background's remaining transmittance (id 0), each volume's alpha (ids 1..V, scene order) and a
   hit surface's remaining transmittance (voxels: V + the material id, 1.. as the ``material``
   AOV; terrain: V + 1). Integer-valued float32 (the render's buffers), a pixel's first sub-sample.
-- ``sun_visibility``: the transmittance towards `lights[0]` (a sun; refused otherwise) from the
+- ``sun_visibility``: the transmittance towards the scene's sun (`Plan.sun`; refused without one) from the
   depth point: where transmittance crosses 0.5 (``depth_median``) or else the surface hit, through
   every physically shaded volume (marched with the sun's `shadow` settings, or the quality level's
   shadow steps), times 0 where the terrain or the voxels block it; 1 where neither exists (sky).
@@ -33,6 +33,7 @@ from torch import Tensor
 
 from ..schema.batch import take
 from ..geometry.camera import Rays
+from ..geometry.surface_hit import SurfaceHit
 from ..scene.model import VoxelShadow
 from ..volume.composite import entry_order
 from ..volume.physical import occluder_transmittance
@@ -69,17 +70,17 @@ def volume_alphas(parts: list[dict[str, Tensor]]) -> Tensor:
     return torch.empty_like(trans).scatter_(0, order, before * (1.0 - ordered))
 
 
-def instance(ctx, alphas: Tensor | None, remaining: Tensor, surf: dict | None) -> Tensor:
+def instance(ctx, alphas: Tensor | None, remaining: Tensor, surf: SurfaceHit | None) -> Tensor:
     """Ids [n] (float): argmax over background (0), volumes (1..V) and the surface (V + material).
     `alphas` [V, n] or None (no volumes); `remaining` [n] the transmittance left behind them."""
     n_vol = 0 if alphas is None else alphas.shape[0]
-    hit = torch.zeros_like(remaining, dtype=torch.bool) if surf is None else surf["hit"]
+    hit = torch.zeros_like(remaining, dtype=torch.bool) if surf is None else surf.hit
     background = torch.where(hit, torch.zeros_like(remaining), remaining)
     weights = [background] + ([] if alphas is None else list(alphas)) + [torch.where(hit, remaining, torch.zeros_like(remaining))]
     best = torch.argmax(torch.stack(weights), dim=0)  # ties: the first (background before media)
     surface_id = torch.ones_like(remaining)
-    if surf is not None and "material" in surf["aovs"]:
-        surface_id = surf["aovs"]["material"][:, 0].to(remaining.dtype)
+    if surf is not None and "material" in surf.aovs:
+        surface_id = surf.aovs["material"][:, 0].to(remaining.dtype)
     ids = best.to(remaining.dtype)
     return torch.where(best == n_vol + 1, n_vol + surface_id, ids)
 
@@ -97,15 +98,15 @@ def surface_lift(ctx, s: Tensor, t: Tensor) -> Tensor:
     return take(shadow.offset, s)
 
 
-def sun_visibility(ctx, rays: Rays, volumes: dict[str, Tensor], surf: dict | None) -> Tensor:
-    """Transmittance [n] to lights[0] from each ray's depth point (1 where it has none)."""
+def sun_visibility(ctx, rays: Rays, volumes: dict[str, Tensor], surf: SurfaceHit | None) -> Tensor:
+    """Transmittance [n] to the scene's sun (`Plan.sun`) from each ray's depth point (1 where it has none)."""
     use = ctx.plan.labels.sun
     s, o, d = rays.scene_index, rays.origins, rays.directions
     t = volumes["median_t"]
     on_surface = torch.zeros_like(t, dtype=torch.bool)
     if surf is not None:
-        on_surface = surf["hit"] & (t == 0)
-        t = torch.where(on_surface, surf["t"], t)
+        on_surface = surf.hit & (t == 0)
+        t = torch.where(on_surface, surf.t, t)
     out = torch.ones_like(t)
     ids = (t > 0).nonzero().squeeze(1)
     if ids.numel() == 0:
@@ -114,24 +115,24 @@ def sun_visibility(ctx, rays: Rays, volumes: dict[str, Tensor], surf: dict | Non
     p = torch.addcmul(o[ids], ti[:, None], d[ids])
     if surf is not None:  # a surface point's ray starts where the surface's own shadow rays do
         lift = surface_lift(ctx, si, ti) * on_surface[ids].to(t.dtype)
-        p = p + lift[:, None] * surf["aovs"]["normal"][ids]
-    direction = take(ctx.lights[0].direction, si)
+        p = p + lift[:, None] * surf.aovs["normal"][ids]
+    direction = take(ctx.lights[ctx.plan.sun].direction, si)
     distance = torch.full_like(ti, torch.inf)
     vis = occluder_transmittance(ctx, use, p, si, direction, distance)
     if ctx.plan.voxels is not None:
         with ctx.timer.section(f"{use.name}.voxels"):
-            vis = vis * ctx.surface._visibility(p, si, ctx.lights[0], ctx.plan.labels.voxel_steps)
+            vis = vis * ctx.surface.visibility(p, si, ctx.lights[ctx.plan.sun], ctx.plan.labels.voxel_steps)
     out[ids] = vis
     return out
 
 
-def per_ray(ctx, rays: Rays, parts: list[dict[str, Tensor]], volumes: dict[str, Tensor], surf: dict | None) -> dict[str, Tensor]:
+def per_ray(ctx, rays: Rays, parts: list[dict[str, Tensor]], volumes: dict[str, Tensor], surf: SurfaceHit | None) -> dict[str, Tensor]:
     """The planned labels of a chunk's rays, each [n, C], from the render's volume `parts` (scene
     order), their composite `volumes` and the surface pass's result `surf`."""
     names, out = ctx.plan.labels.names, {}
     if "optical_thickness" in names:
         with ctx.timer.section("labels.optical_thickness"):
-            out["optical_thickness"] = optical_thickness(ctx, rays, None if surf is None else surf["t"])[:, None]
+            out["optical_thickness"] = optical_thickness(ctx, rays, None if surf is None else surf.t)[:, None]
     alphas = None
     if parts and ("alpha_volumes" in names or "instance" in names):
         with ctx.timer.section("labels.alpha_volumes" if "alpha_volumes" in names else "labels.instance"):

@@ -19,21 +19,29 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+import torch
+
 from .aovs import produced
 from ..schema.batch import Stacked, stack
 from ..geometry.bounds import BOUNDS, SLAB_REACH
 from ..fields import DENSITIES
-from ..light.lights import LIGHTS, Shadow
+from ..light.lights import LIGHTS, Shadow, sun_index
 from ..post import POST
 from ..scene.quality import QUALITY, MarchSettings, at_level, march_settings
 from ..scene.model import Scene
+from ..volume import drjit_march
 from ..volume.march import COMPACT_BELOW
 from ..volume.shading import SHADINGS
 from ..voxel.materials import any_ggx
-from ..schema.validate import fail
 from ..runtime.compilation import CompileMode
 
 Strategy = Literal["closed_form", "march", "skip", "tolerance"]
+# what a volume's march runs on: no march (its closed form), eager torch, the template's fused
+# march as torch.compile kernels, or as one Dr.Jit kernel (`volume.fused`, `volume.drjit_march`)
+Backend = Literal["closed_form", "eager", "inductor", "drjit"]
+# torch's threads during a render: the caller's, or one for torch's ops while the Dr.Jit kernel
+# runs on the caller's count (`runtime.threads.glue_on_one_thread`)
+Threads = Literal["caller", "glue_on_one_thread"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +79,7 @@ class VolumePass:
     ambient: bool = False  # sky light in-scattered (`volumes[i].ambient`)
     ambient_pass: str | None = None  # its visibility march, a pass of its own ("volume0.ambient")
     multiple: bool = False  # Wrenninge's octaves on the lights' in-scatter (`volumes[i].multiple_scattering`)
+    backend: Backend = "eager"  # what its march runs on
 
     @property
     def step_pass(self) -> str:
@@ -139,23 +148,22 @@ class LabelPass:
     voxel_steps: int = 0  # DDA steps of the sun ray through the voxels (0: no voxels)
 
     def pass_names(self) -> list[str]:
+        """The labels' passes in `stats`, in order (the sun ray's shadow passes for ``sun_visibility``)."""
         sun = [] if self.sun is None else self.sun.names() + ([f"{self.sun.name}.voxels"] if self.voxel_steps else [])
         return [n for name in self.names for n in (sun if name == "sun_visibility" else [f"labels.{name}"])]
 
 
 def label_pass(batch, requested) -> LabelPass | None:
-    """The labels `requested` (AOV names) the batch computes, None if none; refuses
-    ``sun_visibility`` without a sun as `lights[0]`."""
+    """The labels `requested` (AOV names) the batch computes, None if none (``sun_visibility``
+    needs the scene's sun: `render` refuses it otherwise, `check_labels`)."""
     names = tuple(n for n in LABELS if n in requested and (n != "alpha_volumes" or batch.volumes))
     if not names:
         return None
     sun = None
     if "sun_visibility" in names:
-        if not batch.lights or not LIGHTS[batch.lights[0].kind].caps["directional"]:
-            fail("aovs", "sun_visibility", "needs lights[0] to be a sun (a directional light); this scene's lights: "
-                 f"{[li.kind for li in batch.lights]}")
-        shadow = batch.lights[0].shadow or Shadow(steps=QUALITY[batch.march.quality].shadow_steps)
-        sun = LightPass(0, "labels.sun_visibility", shadow, shadow_occluders(batch), batch.terrain is not None)
+        index = sun_index(batch.lights)
+        shadow = batch.lights[index].shadow or Shadow(steps=QUALITY[batch.march.quality].shadow_steps)
+        sun = LightPass(index, "labels.sun_visibility", shadow, shadow_occluders(batch), batch.terrain is not None)
     vx = batch.voxels
     voxel_steps = 0 if vx is None else (vx.shadow.steps if vx.shadow is not None else vx.max_steps)
     return LabelPass(names, sun, voxel_steps)
@@ -177,6 +185,16 @@ class Plan:
     passes: int = 1  # `image.passes`: > 1 accumulates (torchvol.accumulate)
     blend: str = "mean"
     labels: LabelPass | None = None  # the per-medium labels asked for (torchvol.labels), after the composite
+    sun: int | None = None  # the index of the light that is the scene's sun (`lights.sun_index`), None: none
+    compile: str = "off"  # the compile mode the render runs in (`runtime.compilation`)
+    dtype: torch.dtype = torch.float32  # the render's float type (the quality level's unless given)
+    threads: Threads = "caller"  # torch's thread policy during the render
+
+    def summary(self) -> dict:
+        """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
+        march's backend, the thread policy, the compile mode and the dtype."""
+        return {"passes": self.names(), "sun": self.sun, "marches": {v.name: v.backend for v in self.volumes},
+                "threads": self.threads, "compile": self.compile, "dtype": str(self.dtype).removeprefix("torch.")}
 
     def names(self) -> list[str]:
         """Every planned pass, in the order the render runs them."""
@@ -190,6 +208,10 @@ class Plan:
 
 
 def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
+    """How volume `vol` (its `Stacked` parameters) of `batch` is integrated: in closed form (a
+    homogeneous medium lit only by unshadowed suns, no term that varies along a ray), by the
+    error-controlled march (`march.tolerance`), by a march over its occupied span only (a
+    skippable density), or by the fixed march."""
     shading = SHADINGS[vol.shading]
     if not shading.caps["physical"]:
         return "march"
@@ -212,7 +234,31 @@ def shadow_occluders(batch: Stacked, *, exclude: int | None = None) -> tuple[int
     return tuple(j for j, vol in enumerate(batch.volumes) if j != exclude and SHADINGS[vol.shading].caps["physical"])
 
 
-def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
+def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bool:
+    """Whether volume `vol` (its `Stacked` parameters) is the technique the fused march renders:
+    a density with the ``fused_march`` capability (the template's cloud layer) in the seeds' look,
+    no edge falloff, lit (if at all) by suns (`uses`: its lights)."""
+    return (bool(DENSITIES[vol.density.kind].caps.get("fused_march")) and vol.shading == "shader"
+            and SHADINGS[vol.shading].caps["semantics"] == "shader" and vol.edge is None
+            and all(LIGHTS[batch.lights[use.light].kind].caps["directional"] for use in uses))
+
+
+def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: str,
+                  dtype: torch.dtype, device: torch.device | str) -> Backend:
+    """What volume `vol`'s march runs on: the fused march under ``compile="all"`` where it is that
+    technique (`fused_march`), as one Dr.Jit kernel where Dr.Jit runs for `dtype` on `device`
+    (`drjit_march.available`), else as torch.compile kernels; everything else eagerly."""
+    if strategy == "closed_form":
+        return "closed_form"
+    if strategy != "march" or compile != "all" or not fused_march(batch, vol, uses):
+        return "eager"
+    return "drjit" if drjit_march.available(torch.zeros((), dtype=dtype, device=device)) else "inductor"
+
+
+def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str = "off",
+                dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> VolumePass:
+    """The pass of volume `v` of `batch`: its strategy and backend, the lights it sees and their
+    shadow passes, and the terms its source adds."""
     vol, name = batch.volumes[v], f"volume{v}"
     shading = SHADINGS[vol.shading]
     lights = list(enumerate(batch.lights))
@@ -233,7 +279,9 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
     ambient = vol.ambient is not None
-    return VolumePass(index=v, name=name, strategy=strategy(batch, vol, settings), shading=vol.shading, lights=uses,
+    how = strategy(batch, vol, settings)
+    return VolumePass(index=v, name=name, strategy=how, shading=vol.shading, lights=uses,
+                      backend=march_backend(batch, vol, how, uses, compile=compile, dtype=dtype, device=device),
                       emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
                       emission_map=None if vol.emission_map is None else vol.emission_map.kind,
                       bloom=None if vol.bloom is None else vol.bloom.light,
@@ -242,27 +290,45 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings) -> VolumePass:
                       multiple=vol.multiple_scattering is not None)
 
 
-def make_plan(batch: Stacked | Scene, aovs=()) -> Plan:
+def voxel_pass(batch: Stacked) -> VoxelPass | None:
+    """The voxel surface's pass (None: no voxels): its traversal, the effects its scenes turn on and
+    one shadow pass per light where `voxels.shadow` is set."""
+    vx = batch.voxels
+    if vx is None:
+        return None
+    shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
+    return VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
+                     glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
+                     emission=any(bool((m.emission > 0).any()) for m in vx.materials),
+                     water=vx.water is not None, gi=vx.gi is not None,
+                     cone=vx.gi is not None and vx.gi.method == "cone", ggx=any_ggx(vx.materials),
+                     reflections=vx.reflections.bounces if vx.reflections is not None and any_ggx(vx.materials) else 0)
+
+
+def terrain_pass(batch: Stacked) -> TerrainPass | None:
+    """The terrain's pass (None: no terrain), with a shadow pass per shadowed light that sees the
+    terrain and every physical volume."""
+    if batch.terrain is None:
+        return None
+    return TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)
+                                     for l, li in enumerate(batch.lights) if li.shadow is not None))
+
+
+def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: torch.dtype | None = None,
+              device: torch.device | str = "cpu") -> Plan:
     """The plan of a batch (a `Stacked` view of scenes at their quality level), or of one scene;
-    `aovs`: AOV names asked for beyond those always output (the labels of `torchvol.labels`)."""
+    `aovs`: AOV names asked for beyond those always output (the labels of `torchvol.labels`);
+    `compile` (a resolved mode), `dtype` (None: the quality level's) and `device` decide which
+    backend each march runs on and the thread policy."""
     if isinstance(batch, Scene):
         batch = stack([at_level(batch)])
     settings = march_settings(batch.march)
-    vx = batch.voxels
-    voxels = None
-    if vx is not None:  # the surface pass runs before the volumes (they march up to its depth)
-        shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
-        voxels = VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
-                           glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
-                           emission=any(bool((m.emission > 0).any()) for m in vx.materials),
-                           water=vx.water is not None, gi=vx.gi is not None,
-                           cone=vx.gi is not None and vx.gi.method == "cone", ggx=any_ggx(vx.materials),
-                           reflections=vx.reflections.bounces if vx.reflections is not None and any_ggx(vx.materials) else 0)
-    terrain = None
-    if batch.terrain is not None:  # also before the volumes; its shadow rays see them and itself
-        terrain = TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)
-                                            for l, li in enumerate(batch.lights) if li.shadow is not None))
-    post = tuple((k.name, k.pass_name(batch.post)) for k in POST if k.active(batch.post))
+    dtype = dtype or settings.dtype
+    voxels, terrain = voxel_pass(batch), terrain_pass(batch)  # both run before the volumes, which march up to them
+    volumes = tuple(volume_pass(batch, v, settings, compile=compile, dtype=dtype, device=device)
+                    for v in range(len(batch.volumes)))
+    # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
+    glue = voxels is None and terrain is None and bool(volumes) and all(v.backend == "drjit" for v in volumes)
     return Plan(
         settings=settings,
         sky=None if batch.sky is None else batch.sky.kind,
@@ -270,14 +336,18 @@ def make_plan(batch: Stacked | Scene, aovs=()) -> Plan:
         flare=batch.sky is not None and batch.sky.flare is not None,
         voxels=voxels,
         terrain=terrain,
-        volumes=tuple(volume_pass(batch, v, settings) for v in range(len(batch.volumes))),
+        volumes=volumes,
         atmosphere=batch.atmosphere is not None,
         spp=batch.image.spp,
-        post=post,
+        post=tuple((k.name, k.pass_name(batch.post)) for k in POST if k.active(batch.post)),
         aovs=tuple(produced(batch, aovs)),
         passes=batch.image.passes,
         blend=batch.image.blend,
         labels=label_pass(batch, aovs),
+        sun=sun_index(batch.lights),
+        compile=compile,
+        dtype=dtype,
+        threads="glue_on_one_thread" if glue else "caller",
     )
 
 

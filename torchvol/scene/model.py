@@ -22,7 +22,7 @@ from pydantic import BaseModel, Field, ValidationError, field_validator, model_v
 from ..geometry.bounds import BOUNDS, Box
 from ..fields import DENSITIES
 from ..schema.keypath import lookup, path_str, set_path
-from ..light.lights import LIGHTS
+from ..light.lights import LIGHTS, sun_index
 from ..post import Post
 from ..schema.models import EACH, SHARED, GridSource, One, Strict, Vec3, nonneg, reachable_models, refuse
 from ..light.sky import SKIES
@@ -432,7 +432,7 @@ class Scene(Strict):
     def _sky_lit_by_a_sun(self):
         if self.sky is None:
             return self
-        sun = bool(self.lights) and LIGHTS[self.lights[0].kind].caps["directional"]
+        sun = sun_index(self.lights) is not None
         if SKIES[self.sky.kind].caps.get("needs_sun") and not sun:
             refuse("sky.kind", self.sky.kind, "the atmosphere is lit by the first light: make lights[0] a sun")
         if self.atmosphere is not None:
@@ -458,7 +458,7 @@ class Scene(Strict):
 
     @model_validator(mode="after")
     def _atmosphere_lit_by_a_sun(self):
-        if self.atmosphere is not None and not (self.lights and LIGHTS[self.lights[0].kind].caps["directional"]):
+        if self.atmosphere is not None and sun_index(self.lights) is None:
             refuse("atmosphere", "<atmosphere>", "the atmosphere is lit by the first light: make lights[0] a sun")
         return self
 
@@ -485,7 +485,7 @@ class Scene(Strict):
 
     @model_validator(mode="after")
     def _god_rays_need_a_sun(self):
-        if self.post.god_rays is not None and not (self.lights and LIGHTS[self.lights[0].kind].caps["directional"]):
+        if self.post.god_rays is not None and sun_index(self.lights) is None:
             kind = self.lights[0].kind if self.lights else None
             refuse("post.god_rays", "<god_rays>", f"screen-space god rays radiate from the sun: make lights[0] a sun "
                    f"(lights[0] is {kind or 'absent'})")

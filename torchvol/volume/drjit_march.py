@@ -18,15 +18,17 @@ numbers (threshold, step sizes, LOD scale, the step limit, per-scene values) are
 parameters (`drjit.opaque`), not constants baked into it, so a dataset whose scenes draw them at
 random compiles nothing more.
 
-Used by `fused.march_fused` for float32 renders on the CPU where `available`; elsewhere the
+Chosen by the plan (`renderer.plan.march_backend`) for float32 renders on the CPU where `available`; elsewhere the
 torch.compile kernels run. `TORCHVOL_DRJIT=0` turns it off. The kernel runs on
 `threads.kernel_threads`: a render whose every march is this kernel runs its torch work on one
-thread and the kernel on its caller's count (`strategy.marches_on_drjit`).
+thread and the kernel on its caller's count (the plan's `threads`, "glue_on_one_thread").
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from types import SimpleNamespace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -167,81 +169,15 @@ def march(t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Te
         return _floats(x.index_select(0, idx))
 
     origin, direction, sky = ([rays(ray[row + c]) for c in range(3)] for row in (0, 3, 6))
-    t_end, span = rays(t1), rays(t1 - t0)
-    scene = UInt32(s.index_select(0, idx).to(torch.int32).numpy())
-
-    def per_ray(value: Tensor):  # per scene (B,) or (B, C) -> the rays' Float, or a list of C
-        if value.ndim == 1:
-            return dr.gather(Float, _floats(value), scene)
-        return [dr.gather(Float, _floats(value[:, c]), scene) for c in range(value.shape[1])]
-
-    shift, bias, density_scale = per_ray(look.shift), per_ray(look.bias), per_ray(look.density_scale)
-    light_step, irradiance, light_scale = per_ray(look.light_step), per_ray(look.irradiance), per_ray(look.light_scale)
-    ambient, ambient_top, heights = per_ray(look.ambient), per_ray(look.ambient_top), per_ray(look.heights)
-    color_lit, color_dark = per_ray(look.color_lit), per_ray(look.color_dark)
-    alpha_scale, fog = per_ray(look.alpha_scale), per_ray(look.fog)
-    base = dr.gather(Int32, Int32(look.base.to(torch.int32).numpy()), scene)
-    table = Int32(packed.to(torch.int32).numpy())
-    # numbers as the kernel's parameters, not its constants (one kernel whatever a dataset draws)
-    param = lambda v: dr.opaque(Float, float(v))
-    octave_scales = [param(c) for c in scales]
-    rule, threshold, max_iterations = config.rule, param(config.threshold), dr.opaque(Int32, config.max_iterations)
-    lod_scale = None if config.lod_scale is None else param(config.lod_scale)
-    min_transmittance = param(config.min_transmittance)
-    step = param(rule.steps if rule.placement == "count" else rule.step_size)
-    growth = param(rule.step_growth)
-
-    def density(x, y, z, count):
-        f = cloud_fbm(x - shift[0], y - shift[1], z - shift[2], table, base, count, octaves=config.octaves,
-                      scales=octave_scales)
-        return _clamp(bias - y + density_scale * f, 0.0, 1.0)
-
-    def body(t, trans, wsum, wt, median, steps, alive, truncated, evals, red, green, blue):
-        # `fused.sample_density` then `fused.advance` for one ray: the loop runs only alive rays
-        p = [origin[c] + t * direction[c] for c in range(3)]
-        count = None if lod_scale is None else config.octaves - Int32(dr.floor(dr.log2(1.0 + t * lod_scale)))
-        rho = density(*p, count)
-        lit = rho > threshold
-        lin = list(ambient)
-        if config.graded:
-            w = _clamp((p[1] - heights[0]) / (heights[1] - heights[0]), 0.0, 1.0)
-            lin = [_lerp(lin[c], ambient_top[c], w) for c in range(3)]
-        if config.light:
-            ahead = dr.if_stmt((p[0], p[1], p[2], count), lit,
-                               lambda x, y, z, n: density(x + light_step[0], y + light_step[1], z + light_step[2], n),
-                               lambda x, y, z, n: dr.zeros(Float, dr.width(x)))
-            dif = _clamp((rho - ahead) / light_scale, 0.0, 1.0)
-            lin = [irradiance[c] * dif + lin[c] for c in range(3)]
-        haze = 1.0 - dr.exp(-fog * t * t)
-        alpha = dr.select(lit, rho * alpha_scale, 0.0)
-        color = [dr.select(lit, _lerp(_lerp(color_lit[c], color_dark[c], rho) * lin[c], sky[c], haze), 0.0)
-                 for c in range(3)]
-        seg = 1.0 - alpha  # the eager step's alpha_step, op for op
-        weight, new_trans = trans * (1.0 - seg), trans * seg
-        crossed = (trans > 0.5) & (new_trans <= 0.5)
-        steps = steps + 1
-        if rule.placement == "count":
-            length = span / step
-        elif rule.placement == "size":
-            length = dr.full(Float, step, dr.width(t))
-        else:
-            grown = growth * t
-            length = dr.select(grown < step, step, grown)  # clamp_min
-        t_next = t + length
-        keep = t_next <= t_end
-        if config.min_transmittance > 0:
-            keep = keep & (new_trans >= min_transmittance)
-        last = steps >= max_iterations
-        radiance = (red, green, blue)
-        return (t_next, new_trans, wsum + weight, wt + weight * t, dr.select(crossed, t, median), steps,
-                keep & ~last, keep & last, evals + 1 + (Int32(lit) if config.light else 0),
-                *(radiance[c] + trans * (color[c] * alpha) for c in range(3)))
-
-    n = dr.width(t_end)
+    k = SimpleNamespace(origin=origin, direction=direction, sky=sky, t_end=rays(t1), span=rays(t1 - t0))
+    k.__dict__.update(_per_ray_look(look, UInt32(s.index_select(0, idx).to(torch.int32).numpy())))
+    k.table = Int32(packed.to(torch.int32).numpy())
+    k.__dict__.update(_kernel_parameters(config, scales))
+    n = dr.width(k.t_end)
     zero = dr.zeros(Float, n)
     state = (rays(start), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
              dr.full(Bool, False, n), dr.zeros(Int32, n), zero, zero, zero)
-    out = dr.while_loop(state, lambda *st: st[6], body, mode="symbolic")
+    out = dr.while_loop(state, lambda *st: st[6], _march_body(k, config), mode="symbolic")
     dr.eval(out)
     dr.sync_thread()
     _, trans, wsum, wt, median, steps, _, truncated, evals, *radiance = (torch.from_numpy(np.array(v)) for v in out)
@@ -250,3 +186,109 @@ def march(t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Te
                         ("steps", steps.long()), ("truncated", truncated)):
         getattr(result, name).index_copy_(0, idx, value)
     return result, evals.long().sum()
+
+
+def _per_ray_look(look: CloudLook, scene) -> dict:
+    """Each field of `look` (per scene, (B,) or (B, C)) gathered to the rays of UInt32 `scene`
+    [n]: a Float, or a list of C Floats; `base` an Int32."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    def per_ray(value: Tensor):  # per scene (B,) or (B, C) -> the rays' Float, or a list of C
+        if value.ndim == 1:
+            return dr.gather(Float, _floats(value), scene)
+        return [dr.gather(Float, _floats(value[:, c]), scene) for c in range(value.shape[1])]
+
+    values = {name: per_ray(getattr(look, name)) for name in look._fields if name != "base"}
+    values["base"] = dr.gather(Int32, Int32(look.base.to(torch.int32).numpy()), scene)
+    return values
+
+
+def _kernel_parameters(config: StepConfig, scales: list[Tensor]) -> dict:
+    """The numbers of `config` and the octave `scales` as the kernel's parameters, not its
+    constants (one kernel whatever a dataset draws)."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    param = lambda v: dr.opaque(Float, float(v))
+    rule = config.rule
+    values = {"octave_scales": [param(c) for c in scales], "threshold": param(config.threshold),
+              "max_iterations": dr.opaque(Int32, config.max_iterations)}
+    values["lod_scale"] = None if config.lod_scale is None else param(config.lod_scale)
+    values["min_transmittance"] = param(config.min_transmittance)
+    values["step"] = param(rule.steps if rule.placement == "count" else rule.step_size)
+    values["growth"] = param(rule.step_growth)
+    return values
+
+
+def _march_body(k: SimpleNamespace, config: StepConfig) -> Callable:
+    """The loop body of the Dr.Jit march over the kernel's inputs `k` (`march`'s rays, per-ray
+    look and parameters): `fused.sample_density` then `fused.advance` for one ray."""
+    import drjit as dr
+    from drjit.llvm import Int32
+
+    def density(x, y, z, count):
+        f = cloud_fbm(x - k.shift[0], y - k.shift[1], z - k.shift[2], k.table, k.base, count, octaves=config.octaves,
+                      scales=k.octave_scales)
+        return _clamp(k.bias - y + k.density_scale * f, 0.0, 1.0)
+
+    def body(t, trans, wsum, wt, median, steps, alive, truncated, evals, red, green, blue):
+        # the loop runs only alive rays
+        p = [k.origin[c] + t * k.direction[c] for c in range(3)]
+        count = None if k.lod_scale is None else config.octaves - Int32(dr.floor(dr.log2(1.0 + t * k.lod_scale)))
+        rho = density(*p, count)
+        lit = rho > k.threshold
+        lin = _sample_light(k, config, density, p, count, rho, lit)
+        haze = 1.0 - dr.exp(-k.fog * t * t)
+        alpha = dr.select(lit, rho * k.alpha_scale, 0.0)
+        color = [dr.select(lit, _lerp(_lerp(k.color_lit[c], k.color_dark[c], rho) * lin[c], k.sky[c], haze), 0.0)
+                 for c in range(3)]
+        seg = 1.0 - alpha  # the eager step's alpha_step, op for op
+        weight, new_trans = trans * (1.0 - seg), trans * seg
+        crossed = (trans > 0.5) & (new_trans <= 0.5)
+        steps = steps + 1
+        t_next = t + _step_length(k, config.rule, t)
+        keep = t_next <= k.t_end
+        if config.min_transmittance > 0:
+            keep = keep & (new_trans >= k.min_transmittance)
+        last = steps >= k.max_iterations
+        radiance = (red, green, blue)
+        return (t_next, new_trans, wsum + weight, wt + weight * t, dr.select(crossed, t, median), steps,
+                keep & ~last, keep & last, evals + 1 + (Int32(lit) if config.light else 0),
+                *(radiance[c] + trans * (color[c] * alpha) for c in range(3)))
+
+    return body
+
+
+def _sample_light(k: SimpleNamespace, config: StepConfig, density: Callable, p: list, count, rho, lit) -> list:
+    """The light at points `p` (three Floats) of density `rho`: the ambient, height-graded where
+    `config.graded`, plus the derivative light where `config.light` (its density looked up only
+    where `lit`). -> three Floats."""
+    import drjit as dr
+    from drjit.llvm import Float
+
+    lin = list(k.ambient)
+    if config.graded:
+        w = _clamp((p[1] - k.heights[0]) / (k.heights[1] - k.heights[0]), 0.0, 1.0)
+        lin = [_lerp(lin[c], k.ambient_top[c], w) for c in range(3)]
+    if config.light:
+        step = k.light_step
+        ahead = dr.if_stmt((p[0], p[1], p[2], count), lit,
+                           lambda x, y, z, n: density(x + step[0], y + step[1], z + step[2], n),
+                           lambda x, y, z, n: dr.zeros(Float, dr.width(x)))
+        dif = _clamp((rho - ahead) / k.light_scale, 0.0, 1.0)
+        lin = [k.irradiance[c] * dif + lin[c] for c in range(3)]
+    return lin
+
+
+def _step_length(k: SimpleNamespace, rule, t):
+    """The next step's length at Float `t`, as `StepRule.length` (count, size or adaptive placement)."""
+    import drjit as dr
+    from drjit.llvm import Float
+
+    if rule.placement == "count":
+        return k.span / k.step
+    if rule.placement == "size":
+        return dr.full(Float, k.step, dr.width(t))
+    grown = k.growth * t
+    return dr.select(grown < k.step, k.step, grown)  # clamp_min

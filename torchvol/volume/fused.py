@@ -17,7 +17,7 @@ The eager `shader_steps` is the reference twin: it renders bitwise what the gene
 (tests/volume/test_fused.py; the LOD's dropped octaves are masked by `where`, which changes no
 value); compiled, it matches the eager twin to ~1e-6, up to 4e-4 at a few pixels (inductor contracts multiply-adds, and
 the texture's 8-bit filter turns an ulp of a coordinate into a 1/255 step at a few points). The
-render takes this path under `render(..., compile=True)` where `fusable` says the volume is this
+render takes this path under `render(..., compile=True)` where the plan says the volume is this
 technique (docs/VOLUMES.md, "The fused march step"; figures in docs/SPEED.md).
 """
 
@@ -54,18 +54,6 @@ _ROWS = _RADIANCE + 3
 # travels with the ray, not the state (the state's rows are written every step: each row passed
 # through unchanged was a copy loop of its own in the kernel)
 _T_END, _SPAN = 9, 10
-
-
-def fusable(ctx, vol) -> bool:
-    """Whether volume `vol` of the render `ctx` is this technique: the template's cloud layer
-    with the seeds' look, lit (if at all) by a sun, no edge falloff."""
-    from ..fields.clouds import CloudLayer
-
-    if vol.shading.semantics != "shader" or vol.params.shading != "shader" or vol.params.edge is not None:
-        return False
-    if not isinstance(vol.field.inner, CloudLayer):
-        return False
-    return all(ctx.lights[use.light].directional for use in vol.plan.lights)
 
 
 def cloud_look(ctx, vol) -> tuple[CloudLook, Tensor]:
@@ -302,10 +290,10 @@ def fused_march(steps, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: 
 
 
 def march_fused(ctx, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit: Tensor, dither: Tensor | None, *,
-                compiled: bool = True) -> MarchResult:
-    """The render's fused march of a `fusable` volume over a chunk's rays (`run_march`'s fast
-    path): one Dr.Jit kernel where `drjit_march.available`, else the torch.compile kernels;
-    `compiled` False runs the eager twin."""
+                compiled: bool = True, drjit: bool = False) -> MarchResult:
+    """The render's fused march of a volume the plan gave this backend (`plan.fused_march`) over a
+    chunk's rays [n] (`run_march`'s fast path): one Dr.Jit kernel where `drjit` (the plan's
+    backend), else the torch.compile kernels; `compiled` False runs the eager twin."""
     st = ctx.settings
     look, packed = cloud_look(ctx, vol)
     octaves = int(vol.field.inner.p.octaves)
@@ -317,7 +305,7 @@ def march_fused(ctx, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit:
     if dither is not None:  # the template's absolute offset, or a fraction of the first step
         start = t0 + (dither if st.dither == "sin" else dither * st.rule.length(t0, t1 - t0))
     ray = torch.cat([rays.origins.T, rays.directions.T, background.T])
-    if compiled and drjit_march.available(t0):
+    if compiled and drjit:
         res, evals = drjit_march.march(t0, t1, hit, start, ray, rays.scene_index, look, packed, scales, config=config)
     else:
         # compiled: the kernels on the render's threads, the glue between them on one (`threads`)

@@ -14,8 +14,7 @@ from torch import Tensor
 from ..schema.batch import take
 from ..geometry.camera import Rays
 from ..geometry.rays import clip_to_ray
-from . import drjit_march
-from .fused import fusable, march_fused
+from .fused import march_fused
 from .march import march, march_adaptive
 from .physical import closed_form
 from .skip import macro_grid, occupied_span
@@ -59,8 +58,9 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
         with ctx.timer.section(vol.plan.skip_pass):
             occupied, marched = skipped_span(vol, rays, t0, t1, hit)
     with ctx.timer.section(vol.plan.step_pass):
-        if not skip and _takes_fused(ctx, vol):  # compiled kernels, or one Dr.Jit kernel
-            return _part(ctx, vol, march_fused(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays)), t0, hit)
+        if not skip and vol.plan.backend in ("inductor", "drjit"):  # compiled kernels, or one Dr.Jit kernel
+            res = march_fused(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays), drjit=vol.plan.backend == "drjit")
+            return _part(ctx, vol, res, t0, hit)
         medium = vol.shading.fn(ctx, vol, rays, background)
         res = march(
             t0, t1, marched, medium, rule=st.rule, integrator=st.integrator, semantics=vol.shading.semantics,
@@ -69,18 +69,6 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
             compact_below=vol.plan.compact_below,
         )
     return _part(ctx, vol, res, t0, hit)
-
-
-def _takes_fused(ctx, vol) -> bool:
-    """Whether `run_march` (without skipping) marches `vol` on the fused path (`fused.march_fused`)."""
-    return ctx.compiled and fusable(ctx, vol)
-
-
-def marches_on_drjit(ctx, vol) -> bool:
-    """Whether `vol` is marched as the Dr.Jit kernel (`volume.drjit_march`): the fused path where
-    Dr.Jit runs."""
-    return (vol.plan.strategy == "march" and _takes_fused(ctx, vol)
-            and drjit_march.available(torch.zeros((), dtype=ctx.dtype, device=ctx.device)))
 
 
 def run_skip(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
