@@ -48,14 +48,17 @@ class Rays:
 
     @property
     def num_rays(self) -> int:
+        """R, the number of rays."""
         return int(self.origins.shape[0])
 
     @property
     def dtype(self) -> torch.dtype:
+        """The rays' floating dtype."""
         return self.origins.dtype
 
     @property
     def device(self) -> torch.device:
+        """The rays' device."""
         return self.origins.device
 
     def slice(self, start: int, stop: int) -> "Rays":
@@ -133,6 +136,48 @@ def _per_scene(x, B: int, dtype, device) -> Tensor:
     return t.expand(B)
 
 
+def _look_at_rotation(eye: Tensor, target: Tensor, up: Tensor, roll) -> Tensor:
+    """`Camera.look_at`'s world -> camera rotation from `eye`, `target`, `up` [B, 3] and `roll`
+    (degrees, scalar or [B]): (B, 3, 3), rows (u', -v', w). Raises ValueError where the basis is undefined."""
+    fwd = target - eye
+    fwd_len = torch.linalg.vector_norm(fwd, dim=-1)
+    if (fwd_len == 0).any():
+        raise ValueError("Camera.look_at: eye and target coincide; the view direction is undefined")
+    w = fwd / fwd_len[:, None]
+    up_len = torch.linalg.vector_norm(up, dim=-1)
+    if (up_len == 0).any():
+        raise ValueError("Camera.look_at: up vector is zero")
+    right = torch.linalg.cross(w, up, dim=-1)
+    right_len = torch.linalg.vector_norm(right, dim=-1)
+    # |cross(w, up)| / |up| = sin(angle between view and up).
+    if (right_len <= 16 * torch.finfo(eye.dtype).eps * up_len).any():
+        raise ValueError("Camera.look_at: up vector is parallel to the view direction")
+    u = right / right_len[:, None]
+    v = torch.linalg.cross(u, w, dim=-1)
+
+    r = torch.deg2rad(_per_scene(roll, eye.shape[0], eye.dtype, eye.device))
+    cr, sr = torch.cos(r)[:, None], torch.sin(r)[:, None]
+    u, v = cr * u + sr * v, cr * v - sr * u
+    return torch.stack([u, -v, w], dim=-2)  # (B, 3, 3) rows: camera x, y, z in world
+
+
+def _intrinsics(B: int, width: int, height: int, *, fov_y, focal, dtype, device) -> Tensor:
+    """`Camera.look_at`'s K (B, 3, 3) from `fov_y` (degrees) or the shader `focal` (scalar or [B]):
+    fx = fy, the principal point at the image centre."""
+    if fov_y is not None:
+        half = torch.deg2rad(_per_scene(fov_y, B, dtype, device)) / 2
+        fy = height / (2 * torch.tan(half))
+    else:
+        fy = _per_scene(focal, B, dtype, device) * (height / 2)
+    K = torch.zeros(B, 3, 3, dtype=dtype, device=device)
+    K[:, 0, 0] = fy
+    K[:, 1, 1] = fy
+    K[:, 0, 2] = width / 2 - 0.5
+    K[:, 1, 2] = height / 2 - 0.5
+    K[:, 2, 2] = 1
+    return K
+
+
 @dataclass(frozen=True)
 class Camera:
     """Pinhole cameras for a batch of B scenes (OpenCV axes: x right, y down, z forward).
@@ -150,14 +195,17 @@ class Camera:
     # ------------------------------------------------------------------ properties
     @property
     def batch_size(self) -> int:
+        """B, the number of cameras (one a scene)."""
         return int(self.K.shape[0])
 
     @property
     def dtype(self) -> torch.dtype:
+        """The cameras' floating dtype."""
         return self.K.dtype
 
     @property
     def device(self) -> torch.device:
+        """The cameras' device."""
         return self.K.device
 
     @property
@@ -238,43 +286,12 @@ class Camera:
             if not torch.isfinite(v).all():
                 raise ValueError(f"Camera.look_at: {name} must be finite, got {v.tolist()}")
 
-        fwd = target_t - eye_t
-        fwd_len = torch.linalg.vector_norm(fwd, dim=-1)
-        if (fwd_len == 0).any():
-            raise ValueError("Camera.look_at: eye and target coincide; the view direction is undefined")
-        w = fwd / fwd_len[:, None]
-        up_len = torch.linalg.vector_norm(up_t, dim=-1)
-        if (up_len == 0).any():
-            raise ValueError("Camera.look_at: up vector is zero")
-        right = torch.linalg.cross(w, up_t, dim=-1)
-        right_len = torch.linalg.vector_norm(right, dim=-1)
-        # |cross(w, up)| / |up| = sin(angle between view and up).
-        if (right_len <= 16 * torch.finfo(dtype).eps * up_len).any():
-            raise ValueError("Camera.look_at: up vector is parallel to the view direction")
-        u = right / right_len[:, None]
-        v = torch.linalg.cross(u, w, dim=-1)
-
-        r = torch.deg2rad(_per_scene(roll, B, dtype, device))
-        cr, sr = torch.cos(r)[:, None], torch.sin(r)[:, None]
-        u, v = cr * u + sr * v, cr * v - sr * u
-
-        R = torch.stack([u, -v, w], dim=-2)  # (B, 3, 3) rows: camera x, y, z in world
+        R = _look_at_rotation(eye_t, target_t, up_t, roll)
         w2c = torch.zeros(B, 4, 4, dtype=dtype, device=device)
         w2c[:, :3, :3] = R
         w2c[:, :3, 3] = -(R @ eye_t[..., None])[..., 0]
         w2c[:, 3, 3] = 1
-
-        if fov_y is not None:
-            half = torch.deg2rad(_per_scene(fov_y, B, dtype, device)) / 2
-            fy = height / (2 * torch.tan(half))
-        else:
-            fy = _per_scene(focal, B, dtype, device) * (height / 2)
-        K = torch.zeros(B, 3, 3, dtype=dtype, device=device)
-        K[:, 0, 0] = fy
-        K[:, 1, 1] = fy
-        K[:, 0, 2] = width / 2 - 0.5
-        K[:, 1, 2] = height / 2 - 0.5
-        K[:, 2, 2] = 1
+        K = _intrinsics(B, width, height, fov_y=fov_y, focal=focal, dtype=dtype, device=device)
         return cls(K=K, world_to_camera=w2c, width=width, height=height)
 
     # ------------------------------------------------------------------ rays

@@ -592,6 +592,25 @@ def finest_period(octaves: int, lacunarity: float | Sequence[float] = LACUNARITY
     return 1.0 / scale
 
 
+def _check_fbm(p: Tensor, *, octaves: int, lacunarity: float | Sequence[float], fold: str,
+               lod: Tensor | None) -> Tensor | None:
+    """`fbm`'s arguments checked (ValueError); -> `lod` as an [N] tensor (a scalar broadcast), or None."""
+    _check_points(p)
+    if octaves < 1:
+        raise ValueError(f"octaves: got {octaves!r}; an integer >= 1")
+    if not isinstance(lacunarity, (int, float)) and len(lacunarity) == 0:
+        raise ValueError(f"lacunarity: got {lacunarity!r}; a number or a non-empty sequence")
+    if fold not in ("mesa", "sequential"):
+        raise ValueError(f"fold: got {fold!r}; 'mesa' or 'sequential'")
+    if lod is not None:
+        lod = torch.as_tensor(lod, device=p.device)
+        if lod.ndim == 0:
+            lod = lod.expand(p.shape[:1])
+        if lod.shape != p.shape[:1]:
+            raise ValueError(f"lod: got shape {tuple(lod.shape)}; [N] with N = {p.shape[0]}")
+    return lod
+
+
 def fbm(
     p: Tensor,
     noise: Callable[[Tensor], Tensor],
@@ -629,19 +648,7 @@ def fbm(
         on the points that need it (active points are compacted, so low LOD saves evaluations).
     Returns ``[N]`` in ``p``'s dtype.
     """
-    _check_points(p)
-    if octaves < 1:
-        raise ValueError(f"octaves: got {octaves!r}; an integer >= 1")
-    if not isinstance(lacunarity, (int, float)) and len(lacunarity) == 0:
-        raise ValueError(f"lacunarity: got {lacunarity!r}; a number or a non-empty sequence")
-    if fold not in ("mesa", "sequential"):
-        raise ValueError(f"fold: got {fold!r}; 'mesa' or 'sequential'")
-    if lod is not None:
-        lod = torch.as_tensor(lod, device=p.device)
-        if lod.ndim == 0:
-            lod = lod.expand(p.shape[:1])
-        if lod.shape != p.shape[:1]:
-            raise ValueError(f"lod: got shape {tuple(lod.shape)}; [N] with N = {p.shape[0]}")
+    lod = _check_fbm(p, octaves=octaves, lacunarity=lacunarity, fold=fold, lod=lod)
     dtype, dev = p.dtype, p.device
     steps = octave_steps(octaves, lacunarity)
     scales = _mesa_folded_scales(steps, dtype, dev) if fold == "mesa" else None
@@ -657,10 +664,7 @@ def fbm(
                 ra = None if ra is None else ra[keep]
             if pa.shape[0] == 0:
                 break
-        if scales is not None:
-            q = pa * scales[k - 1]
-        else:
-            q = q * torch.tensor(steps[k - 1], dtype=dtype, device=dev)
+        q = pa * scales[k - 1] if scales is not None else q * torch.tensor(steps[k - 1], dtype=dtype, device=dev)
         term = (noise(q) if ra is None else noise(q, ra)) * (0.5 * gain**k)
         f = f + term if idx is None else f.index_add(0, idx, term)
     return f

@@ -85,7 +85,8 @@ class StepRule:
 
     @property
     def max_iterations(self) -> int:
-        # a dithered first segment adds one partial step to a fixed count
+        """The step limit of the loop: `steps`, plus one for count placement (a dithered first
+        segment adds one partial step to a fixed count)."""
         return self.steps + 1 if self.placement == "count" else self.steps
 
 
@@ -148,6 +149,45 @@ def march(
     ids = hit.nonzero().squeeze(1)
     if ids.numel() == 0:
         return MarchResult.empty(t0, channels)
+    state, first, frac = _march_start(t0, t1, ids, rule=rule, semantics=semantics, dither=dither,
+                                      dither_unit=dither_unit, occupied=occupied, channels=channels)
+    final = t0.new_zeros(_RADIANCE + channels, t0.shape[0])
+    final[_TRANS] = 1.0
+    truncated = torch.zeros_like(hit)
+    step_fn = {"riemann": riemann_step, "frostbite": frostbite_step, "alpha": alpha_linear_step}[integrator]
+    active = None  # None: every row is active; else [n] 1.0 / 0.0 (a float mask: it scales), rows finished but not compacted away yet
+
+    for step in range(rule.max_iterations):
+        keep = _march_step(state, ids, medium, step, rule=rule, semantics=semantics, step_fn=step_fn,
+                           first=first, frac=frac, active=active, min_transmittance=min_transmittance)
+        if step == rule.max_iterations - 1:
+            truncated[ids] = keep
+            break
+        kept = int(keep.sum())
+        if kept == 0:
+            break
+        if kept < compact_below * keep.shape[0]:
+            (state, ids), active = _compact(final, state, ids, keep), None
+        else:
+            active = keep.to(state.dtype)
+    final.index_copy_(1, ids, state)
+    return MarchResult(radiance=final[_RADIANCE:].T.contiguous(), transmittance=final[_TRANS], weight_sum=final[_WSUM],
+                       weighted_t=final[_WT], median_t=final[_MEDIAN], steps=final[_STEPS].long(), truncated=truncated)
+
+
+def _compact(final: Tensor, state: Tensor, ids: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
+    """Writes the rows of `state` (K, n) not in `keep` [n] bool to their rays' columns of `final`
+    (K, R); -> (the kept rows' state (K, m), their ray ids [m])."""
+    done = (~keep).nonzero().squeeze(1)
+    final.index_copy_(1, take_rows(ids, done), state.index_select(1, done))
+    keep_idx = keep.nonzero().squeeze(1)
+    return state.index_select(1, keep_idx), take_rows(ids, keep_idx)
+
+
+def _march_start(t0: Tensor, t1: Tensor, ids: Tensor, *, rule: StepRule, semantics: str, dither: Tensor | None,
+                 dither_unit: str, occupied: tuple[Tensor, Tensor] | None, channels: int):
+    """`march`'s state for the rays `ids` [n]: (state (K, n), one row per quantity; `first` [n] bool,
+    the rays whose first segment is dithered, or None; `frac` [n], that segment's fraction, or None)."""
     t_start, t_end = t0[ids], t1[ids]
     span = t_end - t_start
     first = frac = None
@@ -163,78 +203,79 @@ def march(
     if occupied is not None:
         if semantics != "segments" or rule.placement == "adaptive":
             raise ValueError("march(occupied=...) needs segments with count or size placement")
-        delta = rule.length(t, span).clamp_min(torch.finfo(t.dtype).tiny)  # uniform: boundaries t0, b1 = t0 + frac·Δ, b1 + Δ, ...
-        b1 = t_start + (delta * frac if dither is not None else delta)
-        j = torch.floor((occupied[0][ids] - b1) / delta)
-        later = j >= 0  # t_first lies past b1: start at the boundary b1 + jΔ just before it
-        t = torch.where(later, b1 + j.clamp_min(0) * delta, t)
-        if first is not None:
-            first = ~later
-        t_stop = torch.minimum(occupied[1][ids], t_end)
+        t, t_stop, first = _occupied_start(t, t_start, t_end, span, occupied[0][ids], occupied[1][ids], rule=rule,
+                                           first=first, frac=frac)
     # the active rays' state, one row per quantity: compacting it is one gather
     state = t.new_zeros(_RADIANCE + channels, t.shape[0])
     state[_T], state[_T_END], state[_T_STOP], state[_SPAN], state[_TRANS] = t, t_end, t_stop, span, 1.0
-    final = t0.new_zeros(_RADIANCE + channels, t0.shape[0])
-    final[_TRANS] = 1.0
-    truncated = torch.zeros_like(hit)
-    step_fn = {"riemann": riemann_step, "frostbite": frostbite_step, "alpha": alpha_linear_step}[integrator]
-    active = None  # None: every row is active; else [n] 1.0 / 0.0 (a float mask: it scales), rows finished but not compacted away yet
+    return state, first, frac
 
-    for step in range(rule.max_iterations):
-        t, t_end, t_stop, span, trans = state[_T], state[_T_END], state[_T_STOP], state[_SPAN], state[_TRANS]
-        dt = rule.length(t, span)
-        if semantics == "segments":
-            if first is not None and step == 0:  # only a ray's first segment is dithered
-                dt = torch.where(first, dt * frac, dt)
-            dt = torch.minimum(dt, t_end - t)
-            if active is not None:  # a finished row takes a zero-length segment: no contribution, T × 1
-                dt = dt * active
-            t_sample = t + 0.5 * dt
-        else:
-            t_sample = t
-        value, color = medium(ids, t_sample, dt)
-        if semantics == "shader":  # the medium gives opacities directly
-            contrib, seg_trans = alpha_step(color, value)
-            if active is not None:
-                contrib, seg_trans = contrib * active[:, None], 1.0 - active * (1.0 - seg_trans)
-        else:
-            contrib, seg_trans = step_fn(color, value, dt)
-        weight = trans * (1.0 - seg_trans)
-        state[_RADIANCE:] += trans * contrib.T
-        state[_WSUM] += weight
-        state[_WT] += weight * t_sample
-        new_trans = trans * seg_trans
-        crossed = (trans > 0.5) & (new_trans <= 0.5)
-        if crossed.any():
-            if semantics == "shader":
-                t_cross = t_sample
-            else:  # exponential inside the segment: T(s) = T·e^{−σ s}
-                sigma = value.clamp_min(torch.finfo(t.dtype).tiny)
-                t_cross = t + torch.minimum(torch.log(trans / 0.5) / sigma, dt)
-            state[_MEDIAN] = torch.where(crossed, t_cross, state[_MEDIAN])
-        state[_STEPS] += 1.0 if active is None else active
-        trans.copy_(new_trans)
-        t += dt
-        inside = t < t_stop if semantics == "segments" else t <= t_end
-        keep = inside & (trans >= min_transmittance) if min_transmittance > 0 else inside
+
+def _occupied_start(t: Tensor, t_start: Tensor, t_end: Tensor, span: Tensor, t_first: Tensor, t_last: Tensor, *,
+                    rule: StepRule, first: Tensor | None, frac: Tensor | None):
+    """Where a ray whose σ_t is 0 outside [t_first, t_last] (each [n]) starts and stops: the last
+    segment boundary before t_first, and t_last. -> (t [n], t_stop [n], first [n] bool or None)."""
+    delta = rule.length(t, span).clamp_min(torch.finfo(t.dtype).tiny)  # uniform: boundaries t0, b1 = t0 + frac·Δ, b1 + Δ, ...
+    b1 = t_start + (delta * frac if frac is not None else delta)
+    j = torch.floor((t_first - b1) / delta)
+    later = j >= 0  # t_first lies past b1: start at the boundary b1 + jΔ just before it
+    t = torch.where(later, b1 + j.clamp_min(0) * delta, t)
+    if first is not None:
+        first = ~later
+    return t, torch.minimum(t_last, t_end), first
+
+
+def _march_step(state: Tensor, ids: Tensor, medium: Medium, step: int, *, rule: StepRule, semantics: str,
+                step_fn: Callable, first: Tensor | None, frac: Tensor | None, active: Tensor | None,
+                min_transmittance: float) -> Tensor:
+    """One step of `march` for every row of `state` (K, n), in place. -> keep [n] bool: the rows still going."""
+    t, t_end, t_stop, span, trans = state[_T], state[_T_END], state[_T_STOP], state[_SPAN], state[_TRANS]
+    dt = rule.length(t, span)
+    if semantics == "segments":
+        if first is not None and step == 0:  # only a ray's first segment is dithered
+            dt = torch.where(first, dt * frac, dt)
+        dt = torch.minimum(dt, t_end - t)
+        if active is not None:  # a finished row takes a zero-length segment: no contribution, T × 1
+            dt = dt * active
+        t_sample = t + 0.5 * dt
+    else:
+        t_sample = t
+    value, color = medium(ids, t_sample, dt)
+    if semantics == "shader":  # the medium gives opacities directly
+        contrib, seg_trans = alpha_step(color, value)
         if active is not None:
-            keep = keep & (active > 0)
-        if step == rule.max_iterations - 1:
-            truncated[ids] = keep
-            break
-        kept = int(keep.sum())
-        if kept == 0:
-            break
-        if kept < compact_below * keep.shape[0]:
-            done = (~keep).nonzero().squeeze(1)
-            final.index_copy_(1, take_rows(ids, done), state.index_select(1, done))
-            keep_idx = keep.nonzero().squeeze(1)
-            state, ids, active = state.index_select(1, keep_idx), take_rows(ids, keep_idx), None
-        else:
-            active = keep.to(t.dtype)
-    final.index_copy_(1, ids, state)
-    return MarchResult(radiance=final[_RADIANCE:].T.contiguous(), transmittance=final[_TRANS], weight_sum=final[_WSUM],
-                       weighted_t=final[_WT], median_t=final[_MEDIAN], steps=final[_STEPS].long(), truncated=truncated)
+            contrib, seg_trans = contrib * active[:, None], 1.0 - active * (1.0 - seg_trans)
+    else:
+        contrib, seg_trans = step_fn(color, value, dt)
+    _composite(state, contrib, seg_trans, value, t_sample, dt, shader=semantics == "shader", active=active)
+    t += dt
+    inside = t < t_stop if semantics == "segments" else t <= t_end
+    keep = inside & (trans >= min_transmittance) if min_transmittance > 0 else inside
+    if active is not None:
+        keep = keep & (active > 0)
+    return keep
+
+
+def _composite(state: Tensor, contrib: Tensor, seg_trans: Tensor, value: Tensor, t_sample: Tensor, dt: Tensor, *,
+               shader: bool, active: Tensor | None) -> None:
+    """Adds a step's samples to `state` (K, n), in place: radiance from `contrib` [n, C], the
+    weights, the median crossing and the step count; the transmittance times `seg_trans` [n]."""
+    t, trans = state[_T], state[_TRANS]
+    weight = trans * (1.0 - seg_trans)
+    state[_RADIANCE:] += trans * contrib.T
+    state[_WSUM] += weight
+    state[_WT] += weight * t_sample
+    new_trans = trans * seg_trans
+    crossed = (trans > 0.5) & (new_trans <= 0.5)
+    if crossed.any():
+        if shader:
+            t_cross = t_sample
+        else:  # exponential inside the segment: T(s) = T·e^{−σ s}
+            sigma = value.clamp_min(torch.finfo(t.dtype).tiny)
+            t_cross = t + torch.minimum(torch.log(trans / 0.5) / sigma, dt)
+        state[_MEDIAN] = torch.where(crossed, t_cross, state[_MEDIAN])
+    state[_STEPS] += 1.0 if active is None else active
+    trans.copy_(new_trans)
 
 
 def expected_depth_fraction(x: Tensor) -> Tensor:
@@ -291,6 +332,13 @@ class AdaptiveResult(MarchResult):
     error: Tensor = None
     evaluations: Tensor = None
 
+    @classmethod
+    def empty(cls, like: Tensor, channels: int):
+        """Rays that met nothing, with no error and no evaluations. `like`: [R], for size/dtype/device."""
+        out = super().empty(like, channels)
+        out.error, out.evaluations = torch.zeros_like(like), torch.zeros_like(out.steps)
+        return out
+
 
 def march_adaptive(
     t0: Tensor,
@@ -333,94 +381,154 @@ def march_adaptive(
 
     `t0`, `t1`, `hit`: [R]; `medium(ids, t, dt) -> (signed σ_t [n], source [n, C])`; σ_t is
     integrated clamped at 0, so a medium with no clamp of its own returns σ_t itself."""
-    r = t0.shape[0]
     step_fn = {"riemann": riemann_step, "frostbite": frostbite_step}[integrator]
     out = AdaptiveResult.empty(t0, channels)
-    out.error, out.evaluations = torch.zeros_like(t0), torch.zeros_like(out.steps)
     ids = hit.nonzero().squeeze(1)
     if ids.numel() == 0:
         return out
-    scale = torch.as_tensor(radiance_scale, dtype=t0.dtype, device=t0.device).expand(r)[ids].clamp_min(1e-30)
-    t, t_end = t0[ids].clone(), t1[ids]
-    span = (t_end - t).clamp_min(1e-30)
-    max_dt = span / max_steps_per_span if max_steps_per_span is not None else span
-    if max_step is not None:
-        max_dt = torch.minimum(max_dt, max_step[ids])
-    dt = span / 8 if first_step is None else torch.full_like(t, first_step)
-    trans = torch.ones_like(t)
-    radiance = t.new_zeros(t.shape[0], channels)
-    wsum, wt, median, err = (torch.zeros_like(t) for _ in range(4))
-    steps = torch.zeros_like(ids)
-    evals = torch.zeros_like(ids)
-    # the light per unit σ_t at the last accepted step's second half, and where (NaN: none yet)
-    light_prev, at_prev = t.new_zeros(t.shape[0], channels), torch.full_like(t, math.nan)
-    samples = ids.repeat(3)  # the ray of each sample: whole step, first half, second half
-
-    def results() -> dict[str, Tensor]:  # the active rays' results, as they stand
-        return {"radiance": radiance, "transmittance": trans, "weight_sum": wsum, "weighted_t": wt,
-                "median_t": median, "error": err, "steps": steps, "evaluations": evals}
-
+    rays = _AdaptiveRays.start(t0, t1, ids, radiance_scale=radiance_scale, first_step=first_step,
+                               max_steps_per_span=max_steps_per_span, max_step=max_step, channels=channels)
     for _ in range(max_iterations):
-        dt = torch.minimum(torch.minimum(torch.maximum(dt, torch.full_like(dt, min_step)), max_dt), t_end - t)
-        n = t.shape[0]
-        quarter = 0.25 * dt
-        where = torch.cat([t + 2 * quarter, t + quarter, t + 3 * quarter])
-        lengths = torch.cat([dt, 2 * quarter, 2 * quarter])
-        # the whole step's sample asks for σ_t alone (dt = 0): its source is its σ_t times the
-        # halves' light per unit σ_t, averaged (in-scattered light is σ_t times a slowly varying light)
-        signed, source = medium(samples, where, torch.cat([torch.zeros_like(dt), lengths[n:]]))
-        sigma = signed.clamp_min(0.0)
-        halves_sigma = sigma[n:].view(2, n)
-        lit = halves_sigma > 0
-        light = torch.where(lit[..., None], source[n:].view(2, n, -1) / halves_sigma.clamp_min(1e-30)[..., None], 0.0)
-        source = torch.cat([sigma[:n, None] * light.sum(0) / lit.sum(0).clamp_min(1)[:, None], source[n:]])
-        contrib, seg = step_fn(source, sigma, lengths)
-        c_full, c_a, c_b = contrib[:n], contrib[n:2 * n], contrib[2 * n:]
-        s_full, s_a, s_b = seg[:n], seg[n:2 * n], seg[2 * n:]
-        c_half, s_half = c_a + s_a[:, None] * c_b, s_a * s_b
-        # the halves' error is about a third of their difference from the whole step (2nd order);
-        # that difference no longer sees the light's curvature, which the halves' error has:
-        # σ_t·dt³·|L''|/96, L'' from the second divided difference of the light at the last
-        # accepted step's second half and this step's halves
-        previous = (light[0] - light_prev) / (where[n:2 * n] - at_prev)[:, None]
-        curvature = 2.0 * ((light[1] - light[0]) / (2 * quarter)[:, None] - previous) / (where[2 * n:] - at_prev)[:, None]
-        curvature = torch.where((lit.all(0) & at_prev.isfinite())[:, None], curvature, 0.0)
-        light_error = halves_sigma.mean(0) * dt**3 * curvature.abs().amax(dim=1) / (96.0 * scale)
-        local = trans * torch.maximum((s_full - s_half).abs() / 3.0, (c_full - c_half).abs().amax(dim=1) / (3.0 * scale) + light_error)
-        local = torch.maximum(local, trans * missed_depth(signed[n:2 * n], signed[:n], signed[2 * n:], dt))
-        allowed = tolerance * dt / span
-        accept = (local <= allowed) | (dt <= min_step * 1.0001)
-        evals += 3
-        # accepted rays advance with the two-halves result
-        weight = torch.where(accept, trans * (1.0 - s_half), torch.zeros_like(t))
-        t_mid = t + 0.5 * dt
-        new_trans = torch.where(accept, trans * s_half, trans)
-        crossed = accept & (trans > 0.5) & (new_trans <= 0.5)
-        median = torch.where(crossed, t_mid, median)
-        radiance = radiance + torch.where(accept[:, None], trans[:, None] * c_half, torch.zeros_like(c_half))
-        wsum, wt = wsum + weight, wt + weight * t_mid
-        err = err + torch.where(accept, local, torch.zeros_like(local))
-        trans = new_trans
-        t = torch.where(accept, t + dt, t)
-        light_prev = torch.where(accept[:, None], light[1], light_prev)
-        at_prev = torch.where(accept, torch.where(lit[1], where[2 * n:], math.nan), at_prev)
-        steps += accept.long()
-        factor = (0.9 * pow_(allowed / local.clamp_min(1e-300), 1.0 / 3.0)).clamp(0.2, 4.0)
-        dt = dt * factor
-        keep = (t < t_end) & (trans >= min_transmittance)
+        keep = _adaptive_step(rays, medium, step_fn, tolerance=tolerance, min_step=min_step,
+                              min_transmittance=min_transmittance)
         if bool(keep.all()):  # nothing finished: the batch, and the ids the medium has gathered for, stay
             continue
-        done = ~keep
-        for name, value in results().items():
-            getattr(out, name)[ids[done]] = value[done]
+        rays.write(out, ~keep)
         if not keep.any():
             return out
-        k = keep.nonzero().squeeze(1)
-        ids, t, t_end, span, dt, trans, radiance, scale = ids[k], t[k], t_end[k], span[k], dt[k], trans[k], radiance[k], scale[k]
-        max_dt, light_prev, at_prev = max_dt[k], light_prev[k], at_prev[k]
-        wsum, wt, median, err, steps, evals = wsum[k], wt[k], median[k], err[k], steps[k], evals[k]
-        samples = ids.repeat(3)
-    for name, value in results().items():
-        getattr(out, name)[ids] = value
-    out.truncated[ids] = True
+        rays.keep(keep.nonzero().squeeze(1))
+    rays.write(out)
+    out.truncated[rays.ids] = True
     return out
+
+
+@dataclass
+class _AdaptiveRays:
+    """`march_adaptive`'s active rays, each field [n] (`radiance`, `light_prev` [n, C]; `samples`
+    [3n], the ray of each sample: whole step, first half, second half). The fields named in
+    `RESULTS` are the `AdaptiveResult` fields as they stand."""
+
+    RESULTS = ("radiance", "transmittance", "weight_sum", "weighted_t", "median_t", "error", "steps", "evaluations")
+    ids: Tensor
+    samples: Tensor
+    t: Tensor
+    t_end: Tensor
+    span: Tensor
+    max_dt: Tensor
+    dt: Tensor
+    scale: Tensor
+    light_prev: Tensor  # the light per unit σ_t at the last accepted step's second half,
+    at_prev: Tensor  # and where (NaN: none yet)
+    radiance: Tensor
+    transmittance: Tensor
+    weight_sum: Tensor
+    weighted_t: Tensor
+    median_t: Tensor
+    error: Tensor
+    steps: Tensor
+    evaluations: Tensor
+
+    @classmethod
+    def start(cls, t0: Tensor, t1: Tensor, ids: Tensor, *, radiance_scale: Tensor | float, first_step: float | None,
+              max_steps_per_span: int | None, max_step: Tensor | None, channels: int) -> _AdaptiveRays:
+        """The rays `ids` [n] of `t0`, `t1` [R] at their entry, nothing marched yet."""
+        r = t0.shape[0]
+        scale = torch.as_tensor(radiance_scale, dtype=t0.dtype, device=t0.device).expand(r)[ids].clamp_min(1e-30)
+        t, t_end = t0[ids].clone(), t1[ids]
+        span = (t_end - t).clamp_min(1e-30)
+        max_dt = span / max_steps_per_span if max_steps_per_span is not None else span
+        if max_step is not None:
+            max_dt = torch.minimum(max_dt, max_step[ids])
+        dt = span / 8 if first_step is None else torch.full_like(t, first_step)
+        trans = torch.ones_like(t)
+        radiance = t.new_zeros(t.shape[0], channels)
+        wsum, wt, median, err = (torch.zeros_like(t) for _ in range(4))
+        return cls(ids=ids, samples=ids.repeat(3), t=t, t_end=t_end, span=span, max_dt=max_dt, dt=dt, scale=scale,
+                   light_prev=t.new_zeros(t.shape[0], channels), at_prev=torch.full_like(t, math.nan),
+                   radiance=radiance, transmittance=trans, weight_sum=wsum, weighted_t=wt, median_t=median, error=err,
+                   steps=torch.zeros_like(ids), evaluations=torch.zeros_like(ids))
+
+    def write(self, out: AdaptiveResult, rows: Tensor | None = None) -> None:
+        """Writes the results of the rays at `rows` [n] bool (None: all) to their rays in `out`."""
+        for name in self.RESULTS:
+            if rows is None:
+                getattr(out, name)[self.ids] = getattr(self, name)
+            else:
+                getattr(out, name)[self.ids[rows]] = getattr(self, name)[rows]
+
+    def keep(self, k: Tensor) -> None:
+        """Keeps the rays at rows `k` [m] only."""
+        for name in ("ids", "t", "t_end", "span", "dt", "scale", "max_dt", "light_prev", "at_prev", *self.RESULTS):
+            setattr(self, name, getattr(self, name)[k])
+        self.samples = self.ids.repeat(3)
+
+
+def _adaptive_step(rays: _AdaptiveRays, medium: Medium, step_fn: Callable, *, tolerance: float, min_step: float,
+                   min_transmittance: float) -> Tensor:
+    """One step-doubled step of every ray in `rays`, in place: accepted rays advance, every ray's
+    next step length is chosen. -> keep [n] bool: the rays still going."""
+    a = rays
+    dt = torch.minimum(torch.minimum(torch.maximum(a.dt, torch.full_like(a.dt, min_step)), a.max_dt), a.t_end - a.t)
+    n = a.t.shape[0]
+    quarter = 0.25 * dt
+    where = torch.cat([a.t + 2 * quarter, a.t + quarter, a.t + 3 * quarter])
+    signed, halves_sigma, light, lit, contrib, seg = _doubled_samples(medium, step_fn, a.samples, where, dt, quarter, n)
+    c_full, c_a, c_b = contrib[:n], contrib[n:2 * n], contrib[2 * n:]
+    s_full, s_a, s_b = seg[:n], seg[n:2 * n], seg[2 * n:]
+    c_half, s_half = c_a + s_a[:, None] * c_b, s_a * s_b
+    # the halves' error is about a third of their difference from the whole step (2nd order);
+    # that difference no longer sees the light's curvature, which the halves' error has:
+    # σ_t·dt³·|L''|/96, L'' from the second divided difference of the light at the last
+    # accepted step's second half and this step's halves
+    previous = (light[0] - a.light_prev) / (where[n:2 * n] - a.at_prev)[:, None]
+    curvature = 2.0 * ((light[1] - light[0]) / (2 * quarter)[:, None] - previous) / (where[2 * n:] - a.at_prev)[:, None]
+    curvature = torch.where((lit.all(0) & a.at_prev.isfinite())[:, None], curvature, 0.0)
+    light_error = halves_sigma.mean(0) * dt**3 * curvature.abs().amax(dim=1) / (96.0 * a.scale)
+    trans = a.transmittance
+    local = trans * torch.maximum((s_full - s_half).abs() / 3.0, (c_full - c_half).abs().amax(dim=1) / (3.0 * a.scale) + light_error)
+    local = torch.maximum(local, trans * missed_depth(signed[n:2 * n], signed[:n], signed[2 * n:], dt))
+    allowed = tolerance * dt / a.span
+    accept = (local <= allowed) | (dt <= min_step * 1.0001)
+    a.evaluations += 3
+    _accept_halves(a, accept, dt, c_half, s_half, local)
+    a.light_prev = torch.where(accept[:, None], light[1], a.light_prev)
+    a.at_prev = torch.where(accept, torch.where(lit[1], where[2 * n:], math.nan), a.at_prev)
+    a.steps += accept.long()
+    factor = (0.9 * pow_(allowed / local.clamp_min(1e-300), 1.0 / 3.0)).clamp(0.2, 4.0)
+    a.dt = dt * factor
+    return (a.t < a.t_end) & (a.transmittance >= min_transmittance)
+
+
+def _doubled_samples(medium: Medium, step_fn: Callable, samples: Tensor, where: Tensor, dt: Tensor, quarter: Tensor,
+                     n: int):
+    """The n steps [t, t + dt] sampled whole and as two halves at `where` [3n] (rays `samples`
+    [3n]). -> (signed σ_t [3n]; the halves' σ_t [2, n], their light per unit σ_t [2, n, C] and
+    where it is lit [2, n] bool; the contributions [3n, C] and transmittances [3n] of the three
+    segments)."""
+    lengths = torch.cat([dt, 2 * quarter, 2 * quarter])
+    # the whole step's sample asks for σ_t alone (dt = 0): its source is its σ_t times the
+    # halves' light per unit σ_t, averaged (in-scattered light is σ_t times a slowly varying light)
+    signed, source = medium(samples, where, torch.cat([torch.zeros_like(dt), lengths[n:]]))
+    sigma = signed.clamp_min(0.0)
+    halves_sigma = sigma[n:].view(2, n)
+    lit = halves_sigma > 0
+    light = torch.where(lit[..., None], source[n:].view(2, n, -1) / halves_sigma.clamp_min(1e-30)[..., None], 0.0)
+    source = torch.cat([sigma[:n, None] * light.sum(0) / lit.sum(0).clamp_min(1)[:, None], source[n:]])
+    contrib, seg = step_fn(source, sigma, lengths)
+    return signed, halves_sigma, light, lit, contrib, seg
+
+
+def _accept_halves(a: _AdaptiveRays, accept: Tensor, dt: Tensor, c_half: Tensor, s_half: Tensor, local: Tensor) -> None:
+    """The rays where `accept` [n] advance by `dt` [n] with the two halves' result (`c_half`
+    [n, C], `s_half` [n]) and add their error `local` [n]; in place."""
+    trans = a.transmittance
+    weight = torch.where(accept, trans * (1.0 - s_half), torch.zeros_like(a.t))
+    t_mid = a.t + 0.5 * dt
+    new_trans = torch.where(accept, trans * s_half, trans)
+    crossed = accept & (trans > 0.5) & (new_trans <= 0.5)
+    a.median_t = torch.where(crossed, t_mid, a.median_t)
+    a.radiance = a.radiance + torch.where(accept[:, None], trans[:, None] * c_half, torch.zeros_like(c_half))
+    a.weight_sum, a.weighted_t = a.weight_sum + weight, a.weighted_t + weight * t_mid
+    a.error = a.error + torch.where(accept, local, torch.zeros_like(local))
+    a.transmittance = new_trans
+    a.t = torch.where(accept, a.t + dt, a.t)

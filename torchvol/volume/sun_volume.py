@@ -124,7 +124,15 @@ def sun_transmittance_grid(
     nodes = torch.addcmul(base[column], (k * spacing)[:, None], frame[2])
     # in chunks: a 384 grid has ~28 M nodes in a sphere, whose density intermediates took 5 GB at once
     sigma[k, column] = torch.cat([extinction(nodes[i:i + NODE_CHUNK]) for i in range(0, nodes.shape[0], NODE_CHUNK)])
-    sigma = sigma.reshape(steps + 1, n, n)
+    return _sun_grid(sigma.reshape(steps + 1, n, n), spacing, frame=frame, origin=origin, size=size, like=box_min)
+
+
+def _sun_grid(sigma: Tensor, spacing: Tensor, *, frame: Tensor, origin: Tensor, size: Tensor, like: Tensor) -> SunGrid:
+    """The `SunGrid` of σ_t on the integration sub-planes `sigma` (2·(planes − 1) + 1, n, n),
+    `spacing` apart along the sun, in the box at `origin` [3] of `size` [3] in the sun `frame` (3, 3);
+    its constants in the dtype and on the device of `like`."""
+    n, planes = sigma.shape[-1], (sigma.shape[0] - 1) // 2 + 1
+    kw = dict(dtype=like.dtype, device=like.device)
     # optical depth from stored plane k to the sun-side face: Simpson's rule on each pair of
     # sub-planes (k, k + ½, k + 1), summed from the sun side: more accurate than the trapezoid rule
     # for the same evaluations

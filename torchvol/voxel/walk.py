@@ -72,22 +72,12 @@ def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: 
         mat = take_rows(table, torch.where(alive, flat, torch.zeros_like(flat))).to(torch.int32)
         n = n + alive.to(torch.int32)
         hit = alive & (mat > 0)
-        # dda.dda_step's crossings and tie rule, per column
-        sx, sy, sz = (_crossing(c, oc, dc) for c, oc, dc in ((cx, ox, dx), (cy, oy, dy), (cz, oz, dz)))
-        x_first, y_before_z = (sx <= sy) & (sx <= sz), sy <= sz
-        ax = torch.where(x_first, 0, torch.where(y_before_z, 1, 2)).to(torch.int32)
-        t_next = torch.minimum(torch.minimum(sx, sy), sz)
-        nx = cx + torch.where(ax == 0, torch.sign(dx), 0).to(torch.int32)
-        ny = cy + torch.where(ax == 1, torch.sign(dy), 0).to(torch.int32)
-        nz = cz + torch.where(ax == 2, torch.sign(dz), 0).to(torch.int32)
+        ax, t_next, nx, ny, nz = _next_cell((cx, cy, cz), (ox, oy, oz), (dx, dy, dz))
         t_out = torch.where(hit, t, t_next)
         if record:
             records.append((alive, cx, cy, cz, t, t_out, hit))
-        if fog_table is not None:  # VoxelSurface's fog callback, per slot: the same products, the same order of sums
-            empty = alive & ~hit
-            row = torch.where(alive, fog_rows[0] + cy.long(), torch.zeros_like(fog_rows[0]))
-            tau = take_rows(fog_table, row) * (t_out - t).clamp_min(0.0)
-            fog_tau[0] = torch.where(empty, fog_tau[0] + tau, fog_tau[0])
+        if fog_table is not None:
+            empty, tau, fog_tau[0] = _fog_step(alive, hit, cy, t, t_out, fog_rows[0], fog_table, fog_tau[0])
             records.append((empty, cx, cy, cz, tau, fog_tau[0]))
         inside = (nx >= lx) & (nx < hx) & (ny >= ly) & (ny < hy) & (nz >= lz) & (nz < hz)
         if limited:
@@ -101,6 +91,33 @@ def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: 
         alive = keep
     state = [cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau]
     return state, (tuple(torch.stack(column) for column in zip(*records)) if records else None)
+
+
+def _next_cell(cells: tuple, o: tuple, d: tuple):
+    """`dda.dda_step`'s crossings and tie rule, per column: cells, o, d three [N] columns (int32,
+    float, float). -> (the axis crossed [N] int32, the distance to it [N], the next cell's three
+    [N] int32 columns)."""
+    (cx, cy, cz), (ox, oy, oz), (dx, dy, dz) = cells, o, d
+    sx, sy, sz = (_crossing(c, oc, dc) for c, oc, dc in ((cx, ox, dx), (cy, oy, dy), (cz, oz, dz)))
+    x_first, y_before_z = (sx <= sy) & (sx <= sz), sy <= sz
+    ax = torch.where(x_first, 0, torch.where(y_before_z, 1, 2)).to(torch.int32)
+    t_next = torch.minimum(torch.minimum(sx, sy), sz)
+    nx = cx + torch.where(ax == 0, torch.sign(dx), 0).to(torch.int32)
+    ny = cy + torch.where(ax == 1, torch.sign(dy), 0).to(torch.int32)
+    nz = cz + torch.where(ax == 2, torch.sign(dz), 0).to(torch.int32)
+    return ax, t_next, nx, ny, nz
+
+
+def _fog_step(alive: Tensor, hit: Tensor, cy: Tensor, t: Tensor, t_out: Tensor, row0: Tensor, fog_table: Tensor,
+              fog_tau: Tensor):
+    """The fog's eager callback (passes/fog.py), per slot: the same products, the same order of
+    sums. The fog over [t, t_out] [N] in the empty cells (alive [N] bool and not hit) at height
+    `cy` [N] int32; `row0` [N] long, the ray's first row of `fog_table`. -> (empty [N] bool, τ
+    [N], fog_tau [N] after it)."""
+    empty = alive & ~hit
+    row = torch.where(alive, row0 + cy.long(), torch.zeros_like(row0))
+    tau = take_rows(fog_table, row) * (t_out - t).clamp_min(0.0)
+    return empty, tau, torch.where(empty, fog_tau + tau, fog_tau)
 
 
 def _jump(jump: Tensor, r: Tensor, t: Tensor, cells: tuple, o: Tensor, d: Tensor, lo: Tensor, hi: Tensor):
@@ -183,24 +200,10 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
             _replay(visit, idx, records)
         if fog is not None:
             fog.visits.append(_fog_visits(idx, records))
-        cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = result
+        alive = result[6]
         finished = (~alive).nonzero().squeeze(1)
         if finished.numel():
-            g = take_rows(idx, finished)
-            cells = torch.stack([take_rows(v, finished) for v in (cx, cy, cz)], 1).long()
-            out.cell.index_copy_(0, g, cells)
-            out.steps.index_copy_(0, g, take_rows(n, finished).long())
-            out.t_exit.index_copy_(0, g, take_rows(t_exit, finished))
-            if fog is not None:
-                fog.tau.index_copy_(0, g, take_rows(fog_tau[0], finished))
-            m = take_rows(material, finished)
-            hit = (m > 0).nonzero().squeeze(1)
-            if hit.numel():
-                gh, fh = take_rows(g, hit), take_rows(finished, hit)
-                out.hit.index_fill_(0, gh, True)
-                out.material.index_copy_(0, gh, take_rows(m, hit).long())
-                out.axis.index_copy_(0, gh, take_rows(axis, fh).long())
-                out.t.index_copy_(0, gh, take_rows(t, fh))
+            _write_finished(out, fog, take_rows(idx, finished), finished, result)
         keep = alive.nonzero().squeeze(1)
         if keep.numel() == idx.numel():
             state = result
@@ -209,6 +212,26 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
         state = [take_rows(v, keep) for v in result]
         rays = [take_rows(v, keep) for v in rays]
     return out
+
+
+def _write_finished(out: Hits, fog: FogWalk | None, g: Tensor, finished: Tensor, result: list[Tensor]) -> None:
+    """Writes the slots `finished` [F] of a block's `result` state (`walk_block`'s) to their rays
+    `g` [F] in `out` (and the fog's τ in `fog`)."""
+    cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = result
+    cells = torch.stack([take_rows(v, finished) for v in (cx, cy, cz)], 1).long()
+    out.cell.index_copy_(0, g, cells)
+    out.steps.index_copy_(0, g, take_rows(n, finished).long())
+    out.t_exit.index_copy_(0, g, take_rows(t_exit, finished))
+    if fog is not None:
+        fog.tau.index_copy_(0, g, take_rows(fog_tau[0], finished))
+    m = take_rows(material, finished)
+    hit = (m > 0).nonzero().squeeze(1)
+    if hit.numel():
+        gh, fh = take_rows(g, hit), take_rows(finished, hit)
+        out.hit.index_fill_(0, gh, True)
+        out.material.index_copy_(0, gh, take_rows(m, hit).long())
+        out.axis.index_copy_(0, gh, take_rows(axis, fh).long())
+        out.t.index_copy_(0, gh, take_rows(t, fh))
 
 
 def _step_rows(idx: Tensor, visited: Tensor) -> tuple[Tensor, Tensor, list[int]]:
