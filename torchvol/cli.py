@@ -7,8 +7,9 @@ import argparse
 import json
 import sys
 import textwrap
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -69,6 +70,8 @@ def write_depth_png(path: Path, depth: np.ndarray) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    """`torchvol render`: one scene to FILE.png, FILE_depth.png and with --npy its arrays;
+    prints what it wrote as JSON. -> 0."""
     from .runtime.progress import progress
     from .renderer.executor import render
 
@@ -121,6 +124,8 @@ def compile_hint(recipe, *, overrides, seed: int, count: int) -> str | None:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
+    """`torchvol generate`: a recipe's samples into a dataset; prints the generator's report as
+    JSON. -> 0."""
     from .dataset.generate import generate
 
     overrides = _pairs(args.set, "--set")
@@ -137,6 +142,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
+    """`torchvol stats`: a dataset's QA plot and tables; prints the table and warnings. -> 1
+    when --strict and degenerate, else 0."""
     from .dataset.stats import write_stats
 
     stats = write_stats(args.dir, out=args.out, empty_alpha=args.empty_alpha, saturated_pixels=args.saturated_pixels,
@@ -149,6 +156,8 @@ def cmd_stats(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
+    """`torchvol sweep`: every combination of the swept values, measured; prints what it wrote
+    and the verdict. -> 0."""
     from .measure.sweep import split_values, sweep
 
     params = {}
@@ -167,6 +176,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_accuracy(args: argparse.Namespace) -> int:
+    """`torchvol bench accuracy`: error against time per knob and level; prints what it wrote as
+    JSON. -> 0."""
     from .measure.bench_accuracy import accuracy
 
     def names(text: str | None) -> list[str] | None:
@@ -181,151 +192,218 @@ def cmd_bench_accuracy(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_speed(args: argparse.Namespace) -> int:
+    """`torchvol bench speed`: the speed report, printed (and written to --out). -> 0."""
     from .measure.bench_speed import speed
 
     print(speed(args.out, quick=args.quick, repeat=args.repeat, recipes=args.recipes, count=args.count, parts=args.parts))
     return 0
 
 
-def _common(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--no-progress", dest="progress", action="store_false",
-                        help="no progress bar on stderr (by default a live bar on a terminal, a line every few seconds otherwise)")
+@dataclass(frozen=True)
+class Command:
+    """One command of the CLI as data: its `path` under `torchvol` (("bench", "speed")), the
+    function it runs, its texts and its `options`: each `option(...)`, or a tuple of them (a
+    mutually exclusive group). `raw`: keep the description's and epilog's lines as written
+    (they are wrapped here); `progress`: add --no-progress."""
+
+    path: tuple[str, ...]
+    func: Callable[[argparse.Namespace], int]
+    help: str
+    options: tuple
+    description: str | None = None
+    epilog: str | None = None
+    raw: bool = False
+    progress: bool = True
+
+
+# commands that only group others: their help
+GROUPS = {"bench": "benchmarks"}
+
+
+class Option(NamedTuple):
+    """One option of a `Command`: `add_argument`'s names and keywords."""
+
+    names: tuple[str, ...]
+    kwargs: dict
+
+
+def option(*names: str, **kwargs) -> Option:
+    """`Option(names, kwargs)`, written as the `add_argument` call it stands for."""
+    return Option(names, kwargs)
+
+
+def _wrap(text: str) -> str:
+    return textwrap.fill(text, 100)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .measure.bench_accuracy import KNOBS, SCENES, TECHNIQUES
-    from .scene.quality import QUALITY
-    from .renderer.executor import DEFAULT_CHUNK_RAYS
-    from .measure.sweep import QUANTISATION_RMSE
-
-    raw = argparse.RawDescriptionHelpFormatter  # keeps the preset list's lines; descriptions are wrapped here
-
-    def wrap(text: str) -> str:
-        return textwrap.fill(text, 100)
-
+    """The `torchvol` parser: every `Command` of `commands()` added as a subcommand."""
     parser = argparse.ArgumentParser(prog="torchvol", description="Batched PyTorch renderer of volumes and voxels.")
-    sub = parser.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("render", help="render one scene to PNG (+ 16-bit depth PNG, + float arrays with --npy)",
-                       description=wrap("Render one scene: FILE.png (8-bit image), FILE_depth.png (16-bit: depth = "
-                                        "value / 65535 * depth_scale, from the PNG's depth_scale text), and with --npy the "
-                                        "exact float32 arrays and the camera."), epilog=presets_help(), formatter_class=raw)
-    r.add_argument("scene", nargs="?", help="scene .toml path or preset name")
-    r.add_argument("--preset", help="bundled preset name (listed below; its parameters via --param)")
-    r.add_argument("--param", action="append", default=[], metavar="K=V", help="a preset parameter (listed below), e.g. width=640")
-    r.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a scene key (docs/SCENES.md), e.g. march.quality=high")
-    r.add_argument("--out", required=True, help="output PNG path; FILE_depth.png and FILE_*.npy are written beside it")
-    r.add_argument("--npy", action="store_true", help="also write float32 .npy arrays (radiance, depth, alpha, AOVs) and the camera (K, world_to_camera)")
-    r.add_argument("--seed", type=int, default=0, help="render seed: march dither and sub-pixel jitter (default 0)")
-    r.add_argument("--device", default="cpu", help="torch device to render on (default cpu)")
-    r.add_argument("--chunk-rays", type=int, default=DEFAULT_CHUNK_RAYS,
-                   help=f"rays per chunk: bounds peak memory, not the result (default {DEFAULT_CHUNK_RAYS})")
-    compiled = r.add_mutually_exclusive_group()
-    compiled.add_argument("--compile", dest="compile", action="store_const", const="all", default="off",
-                          help="run the density, march and voxel-walk kernels under torch.compile (within 1e-5 of "
-                          "eager; --compile-mode all)")
-    compiled.add_argument("--compile-mode", dest="compile", choices=["off", "exact", "all"],
-                          help="off (default), exact (only the voxel walk: bitwise eager) or all")
-    _common(r)
-    r.set_defaults(func=cmd_render)
+    subs = {(): parser.add_subparsers(dest="command", required=True)}
+    for command in commands():
+        *group, name = command.path
+        if tuple(group) not in subs:
+            subs[tuple(group)] = subs[()].add_parser(group[0], help=GROUPS[group[0]]).add_subparsers(dest=group[0], required=True)
+        kw = {"formatter_class": argparse.RawDescriptionHelpFormatter} if command.raw else {}
+        p = subs[tuple(group)].add_parser(name, help=command.help, description=command.description,
+                                          epilog=command.epilog, **kw)
+        for entry in command.options:
+            if isinstance(entry, Option):
+                p.add_argument(*entry.names, **entry.kwargs)
+            else:  # a mutually exclusive group
+                exclusive = p.add_mutually_exclusive_group()
+                for names, kwargs in entry:
+                    exclusive.add_argument(*names, **kwargs)
+        if command.progress:
+            p.add_argument("--no-progress", dest="progress", action="store_false",
+                           help="no progress bar on stderr (by default a live bar on a terminal, a line every few seconds otherwise)")
+        p.set_defaults(func=command.func)
+    return parser
 
-    g = sub.add_parser("generate", help="render recipe samples into a dataset folder or webdataset shards (resumable)",
-                       description="Render COUNT samples of a recipe (datasets/*.toml) into OUT: atomic and resumable "
-                                   "(a re-run finishes an interrupted dataset byte-identically). docs/DATASETS.md.")
-    g.add_argument("recipe", help="recipe .toml path (see datasets/), or a scene or preset name")
-    g.add_argument("--count", type=int, required=True, help="number of samples")
-    g.add_argument("--out", required=True, help="output folder (a re-run finishes an interrupted one)")
-    g.add_argument("--seed", type=int, default=0, help="dataset seed: sample i depends only on (seed, i) (default 0)")
-    g.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
-    g.add_argument("--threads", type=int, default=None, help="torch threads per worker (default 1: more workers scale better; docs/DATASETS.md, \"Threads on a shared machine\")")
-    modes = g.add_mutually_exclusive_group()
-    modes.add_argument("--compile", dest="compile", action="store_const", const="all", default="auto",
-                       help="also compile the density and march kernels where that is faster (fbm clouds on the "
-                       "arithmetic hash, the template's fused march step, fur's Worley noise): within 1e-5 of eager, not bitwise; pays "
-                       "from about 8 samples a worker once inductor's cache is warm")
-    modes.add_argument("--eager", dest="compile", action="store_const", const="off",
-                       help="compile nothing (by default a worker rendering 512 samples or more compiles the voxel "
-                       "walk, whose output is bitwise eager's)")
-    g.add_argument("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)")
-    g.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)")
-    g.add_argument("--batch", type=int, default=4, help="samples rendered as one batch (default 4)")
-    g.add_argument("--shard-size", type=int, default=64, help="samples per webdataset shard (default 64)")
-    g.add_argument("--scheduler", default=None, metavar="ADDRESS", help="run the tasks on this Dask cluster")
-    _common(g)
-    g.set_defaults(func=cmd_generate)
 
+def commands() -> list[Command]:
+    """Every command of the CLI, in the order `torchvol --help` lists them."""
+    return [_render_command(), _generate_command(), _stats_command(), _sweep_command(), _accuracy_command(),
+            _speed_command()]
+
+
+def _render_command() -> Command:
+    from .renderer.executor import DEFAULT_CHUNK_RAYS
+
+    return Command(("render",), cmd_render, raw=True, epilog=presets_help(),
+                   help="render one scene to PNG (+ 16-bit depth PNG, + float arrays with --npy)",
+                   description=_wrap("Render one scene: FILE.png (8-bit image), FILE_depth.png (16-bit: depth = "
+                                     "value / 65535 * depth_scale, from the PNG's depth_scale text), and with --npy the "
+                                     "exact float32 arrays and the camera."), options=(
+        option("scene", nargs="?", help="scene .toml path or preset name"),
+        option("--preset", help="bundled preset name (listed below; its parameters via --param)"),
+        option("--param", action="append", default=[], metavar="K=V", help="a preset parameter (listed below), e.g. width=640"),
+        option("--set", action="append", default=[], metavar="A.B=V", help="override a scene key (docs/SCENES.md), e.g. march.quality=high"),
+        option("--out", required=True, help="output PNG path; FILE_depth.png and FILE_*.npy are written beside it"),
+        option("--npy", action="store_true", help="also write float32 .npy arrays (radiance, depth, alpha, AOVs) and the camera (K, world_to_camera)"),
+        option("--seed", type=int, default=0, help="render seed: march dither and sub-pixel jitter (default 0)"),
+        option("--device", default="cpu", help="torch device to render on (default cpu)"),
+        option("--chunk-rays", type=int, default=DEFAULT_CHUNK_RAYS,
+               help=f"rays per chunk: bounds peak memory, not the result (default {DEFAULT_CHUNK_RAYS})"),
+        (option("--compile", dest="compile", action="store_const", const="all", default="off",
+                help="run the density, march and voxel-walk kernels under torch.compile (within 1e-5 of "
+                "eager; --compile-mode all)"),
+         option("--compile-mode", dest="compile", choices=["off", "exact", "all"],
+                help="off (default), exact (only the voxel walk: bitwise eager) or all")),
+    ))
+
+
+def _generate_command() -> Command:
+    return Command(("generate",), cmd_generate,
+                   help="render recipe samples into a dataset folder or webdataset shards (resumable)",
+                   description="Render COUNT samples of a recipe (datasets/*.toml) into OUT: atomic and resumable "
+                               "(a re-run finishes an interrupted dataset byte-identically). docs/DATASETS.md.", options=(
+        option("recipe", help="recipe .toml path (see datasets/), or a scene or preset name"),
+        option("--count", type=int, required=True, help="number of samples"),
+        option("--out", required=True, help="output folder (a re-run finishes an interrupted one)"),
+        option("--seed", type=int, default=0, help="dataset seed: sample i depends only on (seed, i) (default 0)"),
+        option("--workers", type=int, default=1, help="local worker processes (default 1)"),
+        option("--threads", type=int, default=None, help="torch threads per worker (default 1: more workers scale better; docs/DATASETS.md, \"Threads on a shared machine\")"),
+        (option("--compile", dest="compile", action="store_const", const="all", default="auto",
+                help="also compile the density and march kernels where that is faster (fbm clouds on the "
+                "arithmetic hash, the template's fused march step, fur's Worley noise): within 1e-5 of eager, not bitwise; pays "
+                "from about 8 samples a worker once inductor's cache is warm"),
+         option("--eager", dest="compile", action="store_const", const="off",
+                help="compile nothing (by default a worker rendering 512 samples or more compiles the voxel "
+                "walk, whose output is bitwise eager's)")),
+        option("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)"),
+        option("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)"),
+        option("--batch", type=int, default=4, help="samples rendered as one batch (default 4)"),
+        option("--shard-size", type=int, default=64, help="samples per webdataset shard (default 64)"),
+        option("--scheduler", default=None, metavar="ADDRESS", help="run the tasks on this Dask cluster"),
+    ))
+
+
+def _stats_command() -> Command:
     from .dataset.stats import EMPTY_ALPHA, MAX_SHARE, SATURATED_PIXELS
 
-    q = sub.add_parser("stats", help="dataset QA: parameter and image-statistic distributions, degenerate-recipe flags",
-                       description=wrap("Read a generated dataset (folder or webdataset) and write DIR/stats.png "
-                                        "(distributions of the drawn parameters and of mean radiance, alpha coverage, "
-                                        "clipped share and depth), DIR/stats.json and DIR/stats.md; warn when more than "
-                                        "--max-share of the images are empty or saturated (docs/DATASETS.md, QA)."))
-    q.add_argument("dir", metavar="DIR", help="a folder written by `torchvol generate`")
-    q.add_argument("--out", default=None, help="plot path (default DIR/stats.png)")
-    q.add_argument("--empty-alpha", type=float, default=EMPTY_ALPHA,
-                   help=f"an image whose alpha coverage and hit share are both under this is empty (default {EMPTY_ALPHA})")
-    q.add_argument("--saturated-pixels", type=float, default=SATURATED_PIXELS,
-                   help=f"an image with more than this share of pixels at 1.0 is saturated (default {SATURATED_PIXELS})")
-    q.add_argument("--max-share", type=float, default=MAX_SHARE,
-                   help=f"a recipe with more than this share of empty or of saturated images is degenerate (default {MAX_SHARE})")
-    q.add_argument("--strict", action="store_true", help="exit 1 when the recipe is degenerate")
-    q.set_defaults(func=cmd_stats)
+    return Command(("stats",), cmd_stats, progress=False,
+                   help="dataset QA: parameter and image-statistic distributions, degenerate-recipe flags",
+                   description=_wrap("Read a generated dataset (folder or webdataset) and write DIR/stats.png "
+                                     "(distributions of the drawn parameters and of mean radiance, alpha coverage, "
+                                     "clipped share and depth), DIR/stats.json and DIR/stats.md; warn when more than "
+                                     "--max-share of the images are empty or saturated (docs/DATASETS.md, QA)."), options=(
+        option("dir", metavar="DIR", help="a folder written by `torchvol generate`"),
+        option("--out", default=None, help="plot path (default DIR/stats.png)"),
+        option("--empty-alpha", type=float, default=EMPTY_ALPHA,
+               help=f"an image whose alpha coverage and hit share are both under this is empty (default {EMPTY_ALPHA})"),
+        option("--saturated-pixels", type=float, default=SATURATED_PIXELS,
+               help=f"an image with more than this share of pixels at 1.0 is saturated (default {SATURATED_PIXELS})"),
+        option("--max-share", type=float, default=MAX_SHARE,
+               help=f"a recipe with more than this share of empty or of saturated images is degenerate (default {MAX_SHARE})"),
+        option("--strict", action="store_true", help="exit 1 when the recipe is degenerate"),
+    ))
 
-    w = sub.add_parser("sweep", help="time and error of every combination of swept values; results.csv, verdict, plots",
-                       description=wrap("Render every combination of the swept values and measure each against a "
-                                        "reference whose own error bound is --factor times under it. SOURCE is a scene, a "
-                                        "preset or a recipe (with --samples: the same N draws for every setting). Writes "
-                                        "OUT/results.csv (row by row: a re-run resumes), summary.csv, pareto.png, "
-                                        "contact_sheet.png, difference.png, plot_<key>.png, and prints a verdict."),
-                       epilog=presets_help(), formatter_class=raw)
-    w.add_argument("source", metavar="SOURCE", help="scene .toml path, preset name or recipe .toml path")
-    w.add_argument("--param", action="append", default=[], metavar="A.B=V1,V2,...", help="a swept key and its values (repeatable)")
-    w.add_argument("--set", action="append", default=[], metavar="A.B=V", help="override a scene (or recipe) key for every setting")
-    w.add_argument("--out", required=True, help="output folder (a re-run of the same sweep resumes there)")
-    w.add_argument("--samples", type=int, default=None, help="recipe samples per setting (required for a recipe)")
-    w.add_argument("--levels", default=None, metavar="L1,L2",
-                   help=f"also measure these quality levels, each deciding every approximation ({', '.join(QUALITY)})")
-    w.add_argument("--max-error", type=float, default=None,
-                   help=f"the RMSE the verdict's setting must stay within (default {QUANTISATION_RMSE:.2g}: 8-bit quantisation)")
-    w.add_argument("--factor", type=float, default=10.0, help="how far under each error the reference's bound must be (default 10)")
-    w.add_argument("--cache", default=None, help="folder of cached references (default OUT/references)")
-    w.add_argument("--seed", type=int, default=0, help="render seed (a recipe: the dataset seed of its samples) (default 0)")
-    _common(w)
-    w.set_defaults(func=cmd_sweep)
 
-    b = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="bench", required=True)
-    a = b.add_parser("accuracy", help="error against time per knob and quality level: DIR/accuracy.md, DIR/accuracy.png",
-                     description="Error against time on the bundled scenes, per knob and per quality level, against the "
-                                 "same references as `torchvol sweep` (each with its own error bound). docs/QUALITY.md.")
-    a.add_argument("--out", required=True, help="output folder (its references/ are reused by a re-run)")
-    a.add_argument("--width", type=int, default=64, help="image width (default 64)")
-    a.add_argument("--height", type=int, default=36, help="image height (default 36)")
-    a.add_argument("--repeat", type=int, default=3, help="renders per point; time is their median (default 3)")
-    a.add_argument("--scenes", default=None, help="comma-separated presets (default: " + ", ".join(SCENES.values())
-                   + "; also " + ", ".join(TECHNIQUES) + ", whose cost every report states)")
-    a.add_argument("--knobs", default=None, help="comma-separated subset of " + ", ".join(KNOBS) + " (default all)")
-    a.add_argument("--factor", type=float, default=10.0, help="how far under each error the reference's bound must be (default 10)")
-    a.add_argument("--cache", default=None, help="folder of cached references (default OUT/references)")
-    a.add_argument("--seed", type=int, default=0, help="render seed (default 0)")
-    _common(a)
-    a.set_defaults(func=cmd_bench_accuracy)
-    from .measure.bench_speed import PARTS as SPEED_PARTS
+def _sweep_command() -> Command:
+    from .measure.sweep import QUANTISATION_RMSE
+    from .scene.quality import QUALITY
 
-    s = b.add_parser("speed", help="llvmpipe vs eager vs fast renders, the fbm floor, generation samples/s, loaded-machine "
-                     "slowdown, the heap",
-                     description="One run of every speed figure of docs/SPEED.md (torchvol.bench_speed); ratios hold on any "
-                                 "machine, absolute times only on a quiet one.")
-    s.add_argument("--out", default=None, help="write the Markdown report here (e.g. docs/SPEED.md)")
-    s.add_argument("--quick", action="store_true", help="small sizes, two recipes (about 2 minutes on 2 cores)")
-    s.add_argument("--repeat", type=int, default=None, help="runs per figure; the median is reported (default 3, quick 2)")
-    s.add_argument("--recipes", nargs="+", default=None, metavar="NAME",
-                   help="bundled recipes whose generation is timed (default: every one; quick: clouds, template-clouds)")
-    s.add_argument("--count", type=int, default=None, metavar="N",
-                   help="samples of a generation row's shorter run (default 16, quick 4; compiled rows 4N)")
-    s.add_argument("--parts", nargs="+", default=list(SPEED_PARTS), choices=SPEED_PARTS, metavar="PART",
-                   help="sections to run: " + ", ".join(SPEED_PARTS) + " (default all)")
-    s.set_defaults(func=cmd_bench_speed)
-    return parser
+    return Command(("sweep",), cmd_sweep, raw=True, epilog=presets_help(),
+                   help="time and error of every combination of swept values; results.csv, verdict, plots",
+                   description=_wrap("Render every combination of the swept values and measure each against a "
+                                     "reference whose own error bound is --factor times under it. SOURCE is a scene, a "
+                                     "preset or a recipe (with --samples: the same N draws for every setting). Writes "
+                                     "OUT/results.csv (row by row: a re-run resumes), summary.csv, pareto.png, "
+                                     "contact_sheet.png, difference.png, plot_<key>.png, and prints a verdict."), options=(
+        option("source", metavar="SOURCE", help="scene .toml path, preset name or recipe .toml path"),
+        option("--param", action="append", default=[], metavar="A.B=V1,V2,...", help="a swept key and its values (repeatable)"),
+        option("--set", action="append", default=[], metavar="A.B=V", help="override a scene (or recipe) key for every setting"),
+        option("--out", required=True, help="output folder (a re-run of the same sweep resumes there)"),
+        option("--samples", type=int, default=None, help="recipe samples per setting (required for a recipe)"),
+        option("--levels", default=None, metavar="L1,L2",
+               help=f"also measure these quality levels, each deciding every approximation ({', '.join(QUALITY)})"),
+        option("--max-error", type=float, default=None,
+               help=f"the RMSE the verdict's setting must stay within (default {QUANTISATION_RMSE:.2g}: 8-bit quantisation)"),
+        option("--factor", type=float, default=10.0, help="how far under each error the reference's bound must be (default 10)"),
+        option("--cache", default=None, help="folder of cached references (default OUT/references)"),
+        option("--seed", type=int, default=0, help="render seed (a recipe: the dataset seed of its samples) (default 0)"),
+    ))
+
+
+def _accuracy_command() -> Command:
+    from .measure.bench_accuracy import KNOBS, SCENES, TECHNIQUES
+
+    return Command(("bench", "accuracy"), cmd_bench_accuracy,
+                   help="error against time per knob and quality level: DIR/accuracy.md, DIR/accuracy.png",
+                   description="Error against time on the bundled scenes, per knob and per quality level, against the "
+                               "same references as `torchvol sweep` (each with its own error bound). docs/QUALITY.md.", options=(
+        option("--out", required=True, help="output folder (its references/ are reused by a re-run)"),
+        option("--width", type=int, default=64, help="image width (default 64)"),
+        option("--height", type=int, default=36, help="image height (default 36)"),
+        option("--repeat", type=int, default=3, help="renders per point; time is their median (default 3)"),
+        option("--scenes", default=None, help="comma-separated presets (default: " + ", ".join(SCENES.values())
+               + "; also " + ", ".join(TECHNIQUES) + ", whose cost every report states)"),
+        option("--knobs", default=None, help="comma-separated subset of " + ", ".join(KNOBS) + " (default all)"),
+        option("--factor", type=float, default=10.0, help="how far under each error the reference's bound must be (default 10)"),
+        option("--cache", default=None, help="folder of cached references (default OUT/references)"),
+        option("--seed", type=int, default=0, help="render seed (default 0)"),
+    ))
+
+
+def _speed_command() -> Command:
+    from .measure.bench_speed import PARTS
+
+    return Command(("bench", "speed"), cmd_bench_speed, progress=False,
+                   help="llvmpipe vs eager vs fast renders, the fbm floor, generation samples/s, loaded-machine "
+                   "slowdown, the heap",
+                   description="One run of every speed figure of docs/SPEED.md (torchvol.bench_speed); ratios hold on any "
+                               "machine, absolute times only on a quiet one.", options=(
+        option("--out", default=None, help="write the Markdown report here (e.g. docs/SPEED.md)"),
+        option("--quick", action="store_true", help="small sizes, two recipes (about 2 minutes on 2 cores)"),
+        option("--repeat", type=int, default=None, help="runs per figure; the median is reported (default 3, quick 2)"),
+        option("--recipes", nargs="+", default=None, metavar="NAME",
+               help="bundled recipes whose generation is timed (default: every one; quick: clouds, template-clouds)"),
+        option("--count", type=int, default=None, metavar="N",
+               help="samples of a generation row's shorter run (default 16, quick 4; compiled rows 4N)"),
+        option("--parts", nargs="+", default=list(PARTS), choices=PARTS, metavar="PART",
+               help="sections to run: " + ", ".join(PARTS) + " (default all)"),
+    ))
 
 
 def _flag(path: str, args: argparse.Namespace) -> str:

@@ -27,6 +27,7 @@ from torch import Tensor
 from .noise import lattice as noise
 from .schema.batch import Stacked, per_scene, take
 from .geometry.rays import clip_to_ray, intersect_slab
+from .geometry.surface_hit import SurfaceHit
 from .schema.models import EACH, Strict, Vec3, nonneg
 
 
@@ -162,10 +163,12 @@ class TerrainSurface:
         self.aov_names = [a for a in aovs if a in TERRAIN_AOVS]
 
     def visibility(self, p: Tensor, direction: Tensor, s: Tensor, distance: Tensor) -> Tensor:
+        """`visibility` [n] of points p [n, 3] of scenes s [n] along `direction` [n, 3] up to
+        `distance` [n], with the terrain's own step count."""
         return visibility(self.p, p, direction, s, distance, steps=self.p.steps)
 
     def run(self, o: Tensor, d: Tensor, s: Tensor, background: Tensor,
-            section: Callable[[str], object] = lambda name: nullcontext()) -> dict[str, Tensor]:
+            section: Callable[[str], object] = lambda name: nullcontext()) -> SurfaceHit:
         """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3] -> hit, t (inf: miss)
         [n], color [n, 3] (the background where missed) and the AOVs."""
         p, n = self.p, o.shape[0]
@@ -196,7 +199,7 @@ class TerrainSurface:
             color[ids] = albedo * light
             for k in self.aov_names:
                 aovs[k][ids] = nrm
-        return dict(hit=hit, t=torch.where(hit, t, torch.full_like(t, torch.inf)), color=color, aovs=aovs)
+        return SurfaceHit(hit=hit, t=torch.where(hit, t, torch.full_like(t, torch.inf)), color=color, aovs=aovs)
 
 
 __all__ = ["Terrain", "TerrainSurface", "gap", "height", "normal", "trace", "visibility"]

@@ -70,7 +70,7 @@ def test_fog_light_per_distinct_cell_is_bitwise_the_per_visit_twin(monkeypatch):
     """voxels.fog traces one shadow ray per distinct visited (scene, cell); the per-visit reference
     gives the same bits: a batch of two scenes (their own densities and suns), a sun and a point light."""
     from torchvol.scene.presets import preset_dict
-    from torchvol.voxel.surface import VoxelSurface
+    from torchvol.voxel.passes.fog import FogGlow
 
     def scene(density, sun):
         s = preset_dict("voxel-fog", width=48, height=32, density=density)
@@ -81,8 +81,8 @@ def test_fog_light_per_distinct_cell_is_bitwise_the_per_visit_twin(monkeypatch):
     scenes = [scene(0.04, [-0.4, 0.5, 0.6]), scene(0.1, [0.5, 0.3, -0.2])]
     fast = tv.render(scenes)
     calls = []
-    reference = VoxelSurface.fog_light_reference
-    monkeypatch.setattr(VoxelSurface, "_fog_light", lambda self, visits: calls.append(1) or reference(self, visits))
+    reference = FogGlow.fog_light_reference
+    monkeypatch.setattr(FogGlow, "_fog_light", lambda self, visits: calls.append(1) or reference(self, visits))
     slow = tv.render(scenes)
     assert calls and fast.stats["voxel_steps"] == slow.stats["voxel_steps"]
     diff = (fast.radiance - slow.radiance).abs()

@@ -400,6 +400,15 @@ def _fmt(value, spec: str = ".3f") -> str:
 
 def markdown(sections: dict) -> str:
     """The report: machine line, then each measured section as a Markdown table."""
+    lines = _header(sections)
+    for name, section in _SECTIONS.items():
+        if name in sections:
+            lines += section(sections)
+    return "\n".join(lines)
+
+
+def _header(sections: dict) -> list[str]:
+    """The report's title and machine line: how it was run, on what, with what."""
     from .glsl import renderer_name
 
     count_flag = f" --count {sections['count']}" if sections.get("count", 16) != 16 else ""
@@ -410,84 +419,115 @@ def markdown(sections: dict) -> str:
              f"{platform.processor() or platform.machine()}; GL: {renderer_name()}. Medians of {sections['repeat']} runs; "
              "compilation (first call) reported apart. Ratios hold on a busy machine; absolute times only on a quiet "
              "one. `torchvol bench speed --out docs/SPEED.md` writes this page (`--quick`: small sizes, two recipes)."), ""]
-    if "profile" in sections:
-        lines += ["## Where the time goes (torch.profiler, self CPU time, one render)", "",
-                  "| render | op | share | calls |", "| --- | --- | ---: | ---: |"]
-        lines += [f"| {name} | `{r['op']}` | {r['share']:.0%} | {r['calls']} |" for name, rows in sections["profile"].items() for r in rows]
-        lines += ["", "Gathers (the value noise's permutation chain perm[perm[perm[x] + y] + z], 14 per point and "
-                  "octave; the march's and the DDA's compaction) run as `aten::index_select` (`mathops.take_rows`, 3–5× "
-                  "faster than `x[ids]`'s `aten::index`); `density.fbm.hash = \"arithmetic\"` replaces the permutation "
-                  "with integer arithmetic that inductor fuses (torchvol.fastnoise). In the compiled arithmetic-hash render "
-                  "the fused density kernels (`Torch-Compiled Region`, dynamo's guard checks in `TorchDynamo Cache Lookup`) "
-                  "sit among the march's small eager ops (docs/VOLUMES.md, \"The fused field\").", ""]
-    if "render" in sections:
-        lines += ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | × floor | first call s |",
-                  "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
-        lines += [f"| {r['work']} | {r['renderer']} | {r['seconds']:.3f} | {_fmt(r['evals_per_s'], ',.0f')} | "
-                  f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['x_floor'], '.2f')} | {_fmt(r['first_s'], '.1f')} |"
-                  for r in sections["render"]]
-        lines += ["", "× floor: the render's time over its density-evaluation floor, the time its density evaluations alone "
-                  "take in the fastest kernel for that density on as many threads (next table), that kernel run after each "
-                  "render and the ratio taken run by run (the median of the runs' ratios): 1 would be a render that "
-                  "costs nothing but its noise. "
-                  "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
-                  "Compiled, template-clouds runs its march as one Dr.Jit kernel per chunk where Dr.Jit's LLVM backend "
-                  "runs (torchvol/volume/drjit_march.py: a loop per ray, the light's fbm under a per-ray branch, one "
-                  "launch); \"torch.compile kernels\" is the same render with `TORCHVOL_DRJIT=0`: the fused march step "
-                  "(torchvol/volume/fused.py: a step is two compiled kernels over a chunk's rays, the sample's density "
-                  "with the previous step's compositing, and the light's density at the lit samples). The template's "
-                  "floor is the Dr.Jit fbm, the fastest. The arithmetic hash's fbm is one fused kernel, the physical "
-                  "march around it eager (docs/VOLUMES.md). \"1 thread\": as a generator's worker renders (one torch "
-                  "thread each, workers scale by processes): the march's eager glue between kernels (gathers, compaction, "
-                  "dynamo's guards: small ops and Python) runs on one thread, where waking a second costs more than it saves, so a second thread speeds the kernels only (docs/VOLUMES.md, \"Two threads\"). "
-                  "Density evals/s count the evaluations the eager march makes; "
-                  "the fused step evaluates the cloud at every live ray and again towards the light where lit.", ""]
-    if "floor" in sections:
-        lines += ["## The floor: each render's noise alone", "", "| density of | kernel | threads | evals/s | first call s |",
-                  "| --- | --- | ---: | ---: | ---: |"]
-        lines += [f"| {r['density']} | {r['kernel']} | {r['threads']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |"
-                  for r in sections["floor"]]
-        lines += [""]
-    if "generate" in sections:
-        lines += ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
-                  "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
-        lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['samples']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
-                  f"{_fmt(r['steady_per_s'], '.2f')} | {_fmt(r['first_s'], '.1f')} | {r['bytes_per_sample']:,.0f} |"
-                  for r in sections["generate"]]
-        lines += ["", f"Each row generates one batch a worker (warm-up), then N = {sections.get('count', 16)} and 2N samples (N four times as many compiled; "
-                  "samples, seconds and samples/s are the 2N run's): steady samples/s = N / (T₂ − T₁), start-up = what the "
-                  "N run took beyond N samples at that rate (worker processes; dynamo tracing the compiled kernels, "
-                  "inductor's on-disk cache being warm; blank where the N extra samples took under a tenth of the 2N "
-                  "run: the difference is then noise, not a rate). compiled exact: `compile=\"exact\"` for voxel recipes (the "
-                  "fused DDA walk, bitwise eager; what the default `auto` takes from 512 samples a worker); compiled: "
-                  "`torchvol generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the "
-                  "template's fused march step, fur); each worker process compiles (traces) on its own.", ""]
-    if "loaded" in sections:
-        lines += ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
-                  "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
-                  "(torchvol/__init__.py): spinning OpenMP threads fight the competitor at every one of a render's small ops.", "", "| torch threads | OMP_WAIT_POLICY | compile | alone s | loaded s | slowdown |",
-                  "| ---: | --- | --- | ---: | ---: | ---: |"]
-        lines += [f"| {r['threads']} | {r['policy']} | {r['compile']} | {r['alone_s']:.3f} | {r['loaded_s']:.3f} | "
-                  f"{r['slowdown']:.2f} |"
-                  for r in sections["loaded"]]
-        lines += ["", "Where waking a sleeping thread is slow (some VMs), two PASSIVE threads are slower alone than "
-                  "loaded and than one thread; one thread is the setting that is never far off, alone or loaded, so the "
-                  "generator runs one a worker and scales by processes (docs/DATASETS.md, \"Threads on a shared machine\").", ""]
-    if "heap" in sections:
-        lines += ["## The heap", "", ("Renders in fresh processes with glibc's malloc left alone (`TORCHVOL_HEAP=system`) "
-                  "and as `import torchvol` sets it (torchvol/heap.py: freed blocks up to 32 MiB stay in the heap, whose "
-                  "top is handed back past 64 MiB). Page faults and system CPU seconds per render."), "",
-                  "| work | compile | threads | heap | median s | page faults | system s |",
-                  "| --- | --- | ---: | --- | ---: | ---: | ---: |"]
-        lines += [f"| {r['work']} | {r['compile']} | {r['threads']} | {r['heap']} | {r['seconds']:.3f} | {r['faults']:,.0f} | "
-                  f"{r['system_s']:.3f} |" for r in sections["heap"]]
-        lines += ["", ("A march step allocates and frees a wavefront's tensors (a few MB) at every step; glibc's defaults "
-                       "serve them from fresh mappings or hand the heap's top back, and every page of the next step's "
-                       "tensors is faulted in and zeroed by the kernel again: on two threads both wait on it. glibc's default "
-                       "thresholds move with the largest mapped block a process has freed, so with them whether the heap "
-                       "is handed back varies from process to process, even for one script (12 of 30 fresh processes "
-                       "running tests/test_heap.py's rounds kept their tensors); torchvol's fixed thresholds keep it every time."), ""]
-    return "\n".join(lines)
+    return lines
+
+
+def _profile_section(sections: dict) -> list[str]:
+    """The report's section on where the time goes (torch.profiler's top ops, one render each):
+    its Markdown lines."""
+    lines = ["## Where the time goes (torch.profiler, self CPU time, one render)", "",
+             "| render | op | share | calls |", "| --- | --- | ---: | ---: |"]
+    lines += [f"| {name} | `{r['op']}` | {r['share']:.0%} | {r['calls']} |" for name, rows in sections["profile"].items() for r in rows]
+    lines += ["", "Gathers (the value noise's permutation chain perm[perm[perm[x] + y] + z], 14 per point and "
+              "octave; the march's and the DDA's compaction) run as `aten::index_select` (`mathops.take_rows`, 3–5× "
+              "faster than `x[ids]`'s `aten::index`); `density.fbm.hash = \"arithmetic\"` replaces the permutation "
+              "with integer arithmetic that inductor fuses (torchvol.fastnoise). In the compiled arithmetic-hash render "
+              "the fused density kernels (`Torch-Compiled Region`, dynamo's guard checks in `TorchDynamo Cache Lookup`) "
+              "sit among the march's small eager ops (docs/VOLUMES.md, \"The fused field\").", ""]
+    return lines
+
+
+def _render_section(sections: dict) -> list[str]:
+    """The report's section on the renders' times, ratios and floors: its Markdown lines."""
+    lines = ["## Renders", "", "| work | renderer | median s | density evals/s | ratio | × floor | first call s |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    lines += [f"| {r['work']} | {r['renderer']} | {r['seconds']:.3f} | {_fmt(r['evals_per_s'], ',.0f')} | "
+              f"{_fmt(r['ratio'], '.2f')} | {_fmt(r['x_floor'], '.2f')} | {_fmt(r['first_s'], '.1f')} |"
+              for r in sections["render"]]
+    lines += ["", "× floor: the render's time over its density-evaluation floor, the time its density evaluations alone "
+              "take in the fastest kernel for that density on as many threads (next table), that kernel run after each "
+              "render and the ratio taken run by run (the median of the runs' ratios): 1 would be a render that "
+              "costs nothing but its noise. "
+              "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
+              "Compiled, template-clouds runs its march as one Dr.Jit kernel per chunk where Dr.Jit's LLVM backend "
+              "runs (torchvol/volume/drjit_march.py: a loop per ray, the light's fbm under a per-ray branch, one "
+              "launch); \"torch.compile kernels\" is the same render with `TORCHVOL_DRJIT=0`: the fused march step "
+              "(torchvol/volume/fused.py: a step is two compiled kernels over a chunk's rays, the sample's density "
+              "with the previous step's compositing, and the light's density at the lit samples). The template's "
+              "floor is the Dr.Jit fbm, the fastest. The arithmetic hash's fbm is one fused kernel, the physical "
+              "march around it eager (docs/VOLUMES.md). \"1 thread\": as a generator's worker renders (one torch "
+              "thread each, workers scale by processes): the march's eager glue between kernels (gathers, compaction, "
+              "dynamo's guards: small ops and Python) runs on one thread, where waking a second costs more than it saves, so a second thread speeds the kernels only (docs/VOLUMES.md, \"Two threads\"). "
+              "Density evals/s count the evaluations the eager march makes; "
+              "the fused step evaluates the cloud at every live ray and again towards the light where lit.", ""]
+    return lines
+
+
+def _floor_section(sections: dict) -> list[str]:
+    """The report's section on each render's density noise alone: its Markdown lines."""
+    lines = ["## The floor: each render's noise alone", "", "| density of | kernel | threads | evals/s | first call s |",
+             "| --- | --- | ---: | ---: | ---: |"]
+    lines += [f"| {r['density']} | {r['kernel']} | {r['threads']} | {r['evals_per_s']:,.0f} | {r['first_s']:.1f} |"
+              for r in sections["floor"]]
+    lines += [""]
+    return lines
+
+
+def _generate_section(sections: dict) -> list[str]:
+    """The report's section on the generator's throughput: its Markdown lines."""
+    lines = ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
+             "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['samples']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
+              f"{_fmt(r['steady_per_s'], '.2f')} | {_fmt(r['first_s'], '.1f')} | {r['bytes_per_sample']:,.0f} |"
+              for r in sections["generate"]]
+    lines += ["", f"Each row generates one batch a worker (warm-up), then N = {sections.get('count', 16)} and 2N samples (N four times as many compiled; "
+              "samples, seconds and samples/s are the 2N run's): steady samples/s = N / (T₂ − T₁), start-up = what the "
+              "N run took beyond N samples at that rate (worker processes; dynamo tracing the compiled kernels, "
+              "inductor's on-disk cache being warm; blank where the N extra samples took under a tenth of the 2N "
+              "run: the difference is then noise, not a rate). compiled exact: `compile=\"exact\"` for voxel recipes (the "
+              "fused DDA walk, bitwise eager; what the default `auto` takes from 512 samples a worker); compiled: "
+              "`torchvol generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the "
+              "template's fused march step, fur); each worker process compiles (traces) on its own.", ""]
+    return lines
+
+
+def _loaded_section(sections: dict) -> list[str]:
+    """The report's section on renders alone and beside one busy competitor: its Markdown lines."""
+    lines = ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
+             "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
+             "(torchvol/__init__.py): spinning OpenMP threads fight the competitor at every one of a render's small ops.", "", "| torch threads | OMP_WAIT_POLICY | compile | alone s | loaded s | slowdown |",
+             "| ---: | --- | --- | ---: | ---: | ---: |"]
+    lines += [f"| {r['threads']} | {r['policy']} | {r['compile']} | {r['alone_s']:.3f} | {r['loaded_s']:.3f} | "
+              f"{r['slowdown']:.2f} |"
+              for r in sections["loaded"]]
+    lines += ["", "Where waking a sleeping thread is slow (some VMs), two PASSIVE threads are slower alone than "
+              "loaded and than one thread; one thread is the setting that is never far off, alone or loaded, so the "
+              "generator runs one a worker and scales by processes (docs/DATASETS.md, \"Threads on a shared machine\").", ""]
+    return lines
+
+
+def _heap_section(sections: dict) -> list[str]:
+    """The report's section on renders with glibc's heap as torchvol sets it and left alone: its
+    Markdown lines."""
+    lines = ["## The heap", "", ("Renders in fresh processes with glibc's malloc left alone (`TORCHVOL_HEAP=system`) "
+             "and as `import torchvol` sets it (torchvol/heap.py: freed blocks up to 32 MiB stay in the heap, whose "
+             "top is handed back past 64 MiB). Page faults and system CPU seconds per render."), "",
+             "| work | compile | threads | heap | median s | page faults | system s |",
+             "| --- | --- | ---: | --- | ---: | ---: | ---: |"]
+    lines += [f"| {r['work']} | {r['compile']} | {r['threads']} | {r['heap']} | {r['seconds']:.3f} | {r['faults']:,.0f} | "
+              f"{r['system_s']:.3f} |" for r in sections["heap"]]
+    lines += ["", ("A march step allocates and frees a wavefront's tensors (a few MB) at every step; glibc's defaults "
+                   "serve them from fresh mappings or hand the heap's top back, and every page of the next step's "
+                   "tensors is faulted in and zeroed by the kernel again: on two threads both wait on it. glibc's default "
+                   "thresholds move with the largest mapped block a process has freed, so with them whether the heap "
+                   "is handed back varies from process to process, even for one script (12 of 30 fresh processes "
+                   "running tests/test_heap.py's rounds kept their tensors); torchvol's fixed thresholds keep it every time."), ""]
+    return lines
+
+
+# the report's sections, in their order on the page
+_SECTIONS = {"profile": _profile_section, "render": _render_section, "floor": _floor_section,
+             "generate": _generate_section, "loaded": _loaded_section, "heap": _heap_section}
 
 
 def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | None = None,

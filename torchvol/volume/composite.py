@@ -7,6 +7,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..geometry.surface_hit import SurfaceHit
+
 PART_KEYS = ("radiance", "transmittance", "weight_sum", "weighted_t", "median_t")
 
 
@@ -40,7 +42,7 @@ def composite_volumes(parts: list[dict[str, Tensor]], like: Tensor) -> dict[str,
     return dict(radiance=radiance, transmittance=trans, weight_sum=wsum, weighted_t=wt, median_t=median)
 
 
-def finish(volumes: dict[str, Tensor], behind: Tensor | None, surface: dict | None, forward_cos: Tensor,
+def finish(volumes: dict[str, Tensor], behind: Tensor | None, surface: SurfaceHit | None, forward_cos: Tensor,
            depth_threshold: float) -> dict[str, Tensor]:
     """The ray's outputs from its composited volumes, what lies behind them (`behind` [n, 3]: the
     shaded surface where one was hit, else the sky; None: black) and the surface pass's result
@@ -56,11 +58,11 @@ def finish(volumes: dict[str, Tensor], behind: Tensor | None, surface: dict | No
     distance = torch.where(valid, distance, torch.zeros_like(distance))
     extra = {}
     if surface is not None:
-        hit, ts = surface["hit"], torch.where(surface["hit"], surface["t"], torch.zeros_like(trans))
+        hit, ts = surface.hit, torch.where(surface.hit, surface.t, torch.zeros_like(trans))
         denom = (wsum + trans).clamp_min(tiny)
         distance = torch.where(hit, (wt + trans * ts) / denom, distance)
         median = torch.where(hit & (median == 0), ts, median)
         alpha = torch.where(hit, torch.ones_like(alpha), alpha)
-        extra = surface["aovs"]
+        extra = surface.aovs
     return dict(radiance=radiance, alpha=alpha, depth=distance * forward_cos, distance=distance,
                 depth_median=median * forward_cos, **extra)

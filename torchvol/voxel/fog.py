@@ -1,5 +1,5 @@
 """The voxel fog's extinction: exponential height fog over the cells a primary ray walks through
-(`voxels.fog`), one formula for the eager per-cell callback (`VoxelSurface`) and the table the
+(`voxels.fog`), one formula for the eager per-cell callback (`passes/fog.py`) and the table the
 fused walk gathers from (`walk.walk_block`), so the two give the same bits."""
 
 from __future__ import annotations

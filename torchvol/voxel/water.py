@@ -3,7 +3,7 @@ animated wave normals; a ray that reaches it splits into a reflected and a refra
 traced through the voxel DDA once, no further water), mixed by Fresnel; light travelling under
 water is attenuated by Beer-Lambert, exp(−absorption · length).
 
-The functions are plain tensor maths; `VoxelSurface` (surface.py) runs them on its rays.
+The functions are plain tensor maths; `passes/water.py` runs them on the voxel surface's rays.
 """
 
 from __future__ import annotations

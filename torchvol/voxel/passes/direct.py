@@ -1,0 +1,52 @@
+"""The direct light at voxel hits: each light's Lambert irradiance (the `diffuse` voxel material)
+and, for GGX materials, its reflected radiance, each shadowed by a DDA ray towards the light
+where the plan traces the light's shadows (`voxels.shadow`)."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from ...light.lights import LightSource
+from ...schema.batch import Stacked, take
+from ..ggx import ggx_reflect
+from ..materials import VOXEL_MATERIALS
+from ..tracer import VoxelTracer
+from .point import ShadingPoint
+
+__all__ = ["DirectLight"]
+
+
+class DirectLight:
+    """`lights` at the hits of the batch's voxels (`voxels`: its `Stacked` voxels; `plan` its
+    `VoxelPass`), shadow rays traced by `tracer`."""
+
+    def __init__(self, voxels: Stacked, plan, lights: Sequence[LightSource], tracer: VoxelTracer):
+        self.p, self.plan, self.lights, self.tracer = voxels, plan, list(lights), tracer
+        self.material = VOXEL_MATERIALS["diffuse"]
+
+    def __call__(self, point: ShadingPoint, s: Tensor, section, light: Tensor) -> tuple[Tensor, Tensor | int]:
+        """`light` [n, 3] plus the lights' Lambert irradiance per unit albedo at the points of
+        scenes s [n] (summed in this order: renders without GI are bitwise as before), and the
+        lights' GGX reflected radiance [n, 3] (0 without GGX). The first shadowed light's
+        visibility becomes the point's `shadow`."""
+        p, specular = self.p, 0
+        shadows = {use.light: use for use in self.plan.shadows}
+        for l, source in enumerate(self.lights):
+            toward = source.toward(point.x, s)
+            vis = torch.ones_like(point.x[:, 0])
+            if l in shadows:
+                with section(shadows[l].name):
+                    start = point.x + take(p.shadow.offset, s)[:, None] * point.face_normal
+                    vis = self.tracer.visibility(start, s, source, p.shadow.steps,
+                                                 None if source.directional else source.toward(start, s))
+                if point.shadow is None:
+                    point.shadow = vis[:, None]
+            light = light + self.material.fn(point.normal, toward.direction, toward.irradiance, vis)
+            if self.plan.ggx:
+                specular = specular + (ggx_reflect(point.normal, point.view, toward.direction, point.albedo,
+                                                   point.roughness[:, 0], point.metallic[:, 0])
+                                       * toward.irradiance * vis[:, None])
+        return light, specular

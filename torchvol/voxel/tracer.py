@@ -1,0 +1,60 @@
+"""World rays through a batch's voxel grids: the DDA the plan picked (the compiled walk, the
+hybrid distance-field skip or the eager walk), shadow rays, and the render's count of DDA steps.
+Every voxel pass traces through one `VoxelTracer`."""
+
+from __future__ import annotations
+
+from torch import Tensor
+
+from ..light.lights import LightSource
+from ..ops.mathops import take_rows
+from .dda import Hits, hybrid_traverse, traverse
+from .fog import FogWalk
+from .grid import VoxelGrid
+from .walk import fused_traverse
+
+__all__ = ["VoxelTracer"]
+
+
+class VoxelTracer:
+    """Traces rays through `grid` (the batch's `VoxelGrid`) by `traversal` ("dda" or "hybrid",
+    the plan's) on the compiled walk where `compiled`; `steps_total` the DDA steps counted so far."""
+
+    def __init__(self, grid: VoxelGrid, traversal: str, compiled: bool):
+        self.grid, self.traversal, self.compiled = grid, traversal, compiled
+        self.steps_total = 0
+
+    def traverse(self, o: Tensor, d: Tensor, s: Tensor, *, max_steps: int, t_min=None, t_max=None, visit=None,
+                 fog: FogWalk | None = None, plain=False) -> Hits:
+        """World rays o, d [n, 3] of scenes s [n] through their grids (t in world units); `visit`
+        the eager walk's per-cell callback, `fog` the compiled walk's fog; `plain`: no hybrid skip."""
+        g = self.grid
+        og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
+        lookup = lambda c, ids: g.lookup(c, take_rows(s, ids))
+        lo, hi = take_rows(g.lo, s), take_rows(g.hi, s)
+        hybrid = self.traversal == "hybrid" and visit is None and fog is None and not plain
+        if self.compiled:
+            base, strides = g.flat_base(s)
+            return fused_traverse(og, dg, g.flat_materials, base, strides, lo, hi, max_steps=max_steps,
+                                  t_min=t_min, t_max=t_max, visit=visit, fog=fog,
+                                  distance=g.flat_distance if hybrid else None)
+        if hybrid:
+            return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, take_rows(s, ids)), lo, hi,
+                                   max_steps=max_steps, t_min=t_min)
+        return traverse(og, dg, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit)
+
+    def visibility(self, p: Tensor, s: Tensor, light: LightSource, steps: int, toward=None) -> Tensor:
+        """Visibility [n] (1 lit, 0 occluded) of points p [n, 3] of scenes s [n] towards `light` (a
+        shadow ray of at most `steps` cells that ends at the light; `toward` its `light.toward(p, s)`
+        where the caller has it)."""
+        if p.shape[0] == 0:
+            return p.new_zeros(0)
+        toward = light.toward(p, s) if toward is None else toward
+        t_max = None if light.directional else toward.distance
+        h = self.traverse(p, toward.direction, s, max_steps=steps, t_max=t_max, plain=True)
+        return (~h.hit).to(p.dtype)
+
+    def count(self, steps: Tensor) -> None:
+        """Adds rays' DDA steps [n] to `steps_total` (primary, secondary and GI rays; shadow rays
+        are not counted)."""
+        self.steps_total += int(steps.sum())
