@@ -60,7 +60,7 @@ def test_openmp_waits_passively_unless_the_user_says_otherwise(preset, expected)
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     if preset:
         env["OMP_WAIT_POLICY"] = preset
-    code = "import torchvol, os, torch; print(os.environ['OMP_WAIT_POLICY'])"
+    code = "import torchvol, os; torchvol.tune_process(); import torch; print(os.environ['OMP_WAIT_POLICY'])"
     out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True)
     assert out.stdout.strip() == expected
 

@@ -1,5 +1,5 @@
 """The compile setting (`torchvol.compilation`): its modes at the boundary, "auto" by the samples a
-process renders, and what a generated dataset records."""
+process will render (never by what it rendered before), and what a generated dataset records."""
 
 import json
 from pathlib import Path
@@ -45,19 +45,23 @@ def test_all_compiles_density_kernels_only_where_they_pay():
     assert batch_mode("exact", clouds) == "exact"
 
 
-def test_scene_dataset_auto_compiles_once_its_process_rendered_enough(monkeypatch):
-    """One `ds[i]` compiles nothing; a process (a DataLoader worker) that has rendered
-    AUTO_COMPILE_SAMPLES samples renders the next ones in "exact"."""
+def test_scene_dataset_auto_resolves_from_its_length_whatever_the_process_rendered_before(monkeypatch):
+    """ds[i] runs the same whatever the process rendered before: "auto" is "exact" for a dataset
+    of AUTO_COMPILE_SAMPLES samples or more, "off" below, at its first sample as at its thousandth."""
     seen = []
     monkeypatch.setattr(data, "render_samples", lambda *a, **k: seen.append(k["compile"]) or [{}])
-    monkeypatch.setattr(compilation, "_RENDERED", [0])
-    ds = data.SceneDataset(DATASETS / "voxel-terrain.toml", 10**6, overrides=TINY)
-    assert ds.compile == "auto"
-    ds[0]
-    assert seen == ["off"]
-    compilation._RENDERED[0] = AUTO_COMPILE_SAMPLES - 1
-    ds.batch([1, 2])
-    ds[3]
+    small = data.SceneDataset(DATASETS / "voxel-terrain.toml", AUTO_COMPILE_SAMPLES - 1, overrides=TINY)
+    large = data.SceneDataset(DATASETS / "voxel-terrain.toml", AUTO_COMPILE_SAMPLES, overrides=TINY)
+    assert small.compile == large.compile == "auto"
+    small[0]
+    large[0]
+    assert seen == ["off", "exact"]
+    for k in range(AUTO_COMPILE_SAMPLES):  # a process that has rendered many samples since
+        large[k]
+    seen.clear()
+    small[0]
+    small.batch([1, 2])
+    large[0]
     assert seen == ["off", "off", "exact"]
     assert data.SceneDataset(DATASETS / "voxel-terrain.toml", 8, compile=True).compile == "all"
     with pytest.raises(ValueError, match="compile"):

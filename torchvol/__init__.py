@@ -1,25 +1,40 @@
-"""torchvol: batched PyTorch renderer of volumes and voxels for synthetic training data."""
+"""torchvol: batched PyTorch renderer of volumes and voxels for synthetic training data.
 
-import os
+Importing the package imports no torch and changes nothing in the process (no environment
+variable, allocator or thread setting): each public name loads its module on first use (PEP 562).
+The tuning that helps a rendering process is one call, `tune_process` (torchvol.runtime.process).
+"""
 
-# OpenMP threads sleep between parallel regions instead of spinning: a render's thousands of small
-# ops otherwise spin against any other busy process (docs/SPEED.md, "One busy competitor"). libgomp
-# reads this once, when torch loads: it holds where torchvol is imported first (the CLI) and in
-# every process started later (generator and DataLoader workers). A user's own setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import importlib
 
-from .runtime import heap
+from .version import __version__
 
-# freed tensors stay in the heap for the next march step's: no page faults at every step
-# (torchvol/heap.py); in every process that imports torchvol, unless the environment tunes malloc
-heap.keep_freed_memory()
+# each public name -> the module that defines it, imported on first access
+PUBLIC = {
+    "Camera": "geometry.camera",
+    "Rays": "geometry.camera",
+    "FolderDataset": "dataset.datasets",
+    "SceneDataset": "dataset.datasets",
+    "Recipe": "dataset.recipe",
+    "RenderOutput": "renderer.executor",
+    "render": "renderer.executor",
+    "Scene": "scene.model",
+    "load_scene": "scene.model",
+    "preset": "scene.model",
+    "preset_names": "scene.model",
+    "SceneError": "schema.validate",
+    "tune_process": "runtime.process",
+}
+__all__ = sorted(PUBLIC)
 
-from .geometry.camera import Camera, Rays
-from .dataset.datasets import FolderDataset, SceneDataset
-from .dataset.recipe import Recipe
-from .renderer.executor import RenderOutput, render
-from .scene.model import Scene, load_scene, preset, preset_names
-from .schema.validate import SceneError
 
-from .version import __version__  # noqa: E402
-__all__ = ["Camera", "FolderDataset", "Recipe", "SceneDataset", "Rays", "RenderOutput", "Scene", "SceneError", "load_scene", "preset", "preset_names", "render"]
+def __getattr__(name: str):
+    if name not in PUBLIC:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{PUBLIC[name]}", __name__), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(PUBLIC))

@@ -13,8 +13,9 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
+# no torch at module level: `main` tunes the process (`tune_process`) before anything imports torch
+from .runtime.process import tune_process
 from .schema.keypath import parse_value
-from .scene.model import load_scene, preset, preset_names
 from .schema.validate import SceneError, fail
 
 # library parameters that a command line spells differently
@@ -35,6 +36,7 @@ def presets_help() -> str:
     """Each bundled preset: what it is (its file's first comment line), its size and its parameters."""
     import tomllib
 
+    from .scene.model import preset_names
     from .scene.presets import HERE, PARAMS
 
     lines = ["presets (--preset NAME, --param KEY=VALUE; every preset takes width and height):"]
@@ -74,6 +76,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     prints what it wrote as JSON. -> 0."""
     from .runtime.progress import progress
     from .renderer.executor import render
+    from .scene.model import load_scene, preset
 
     overrides = _pairs(args.set, "--set")
     if args.preset is not None:
@@ -417,6 +420,9 @@ def _flag(path: str, args: argparse.Namespace) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The `torchvol` command: run `argv` (default: the process's arguments) -> the exit code; an
+    input error prints one line and returns 2."""
+    tune_process()  # torchvol's own process: before any command imports torch
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -23,7 +23,8 @@ import torch
 from torch.utils.data import Dataset
 
 from ..schema.batch import structure_key
-from ..runtime.compilation import CompileMode, as_rendered, compile_mode
+from ..runtime.compilation import CompileMode, auto_mode, compile_mode
+from ..runtime.process import tune_process
 from ..renderer.plan import batch_mode
 from ..scene.quality import at_level
 from .recipe import Recipe, mix_seed, render_seed
@@ -116,10 +117,12 @@ class SceneDataset(Dataset):
     ds[i] depends only on (seed, epoch, i): the same in any process, DataLoader worker or order.
     `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`
     (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
-    eager (the voxel walk) once the process (e.g. a DataLoader worker) has rendered
-    `AUTO_COMPILE_SAMPLES` samples, "exact" always, "off" never; "all" (or True) also the density
-    and march kernels where that is the fast path, as `torchvol generate --compile` does: samples
-    within 1e-5 of eager ones, not bitwise (each worker process compiles once)."""
+    eager (the voxel walk) where the dataset holds `AUTO_COMPILE_SAMPLES` samples or more (its
+    length, never what the process rendered before), "exact" always, "off" never; "all" (or True)
+    also the density and march kernels where that is the fast path, as `torchvol generate
+    --compile` does: samples within 1e-5 of eager ones, not bitwise (each worker process compiles
+    once). A DataLoader's workers: `worker_init_fn=SceneDataset.worker_init_fn` tunes each
+    (`tune_process`)."""
 
     def __init__(self, recipe: Recipe | str | Path | Mapping, length: int, seed: int = 0, epoch: int | None = None, *,
                  aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None,
@@ -148,7 +151,14 @@ class SceneDataset(Dataset):
     def batch(self, indices: Sequence[int]) -> list[dict]:
         """Several samples rendered as one batch (the generator's path); same values as ds[i]."""
         return render_samples(self.recipe, [self._check(i) for i in indices], seed=self.seed, aovs=self.aovs,
-                              compile=as_rendered(self.compile, len(indices)))
+                              compile=auto_mode(self.compile, self.length))
+
+    @staticmethod
+    def worker_init_fn(worker_id: int) -> None:
+        """A DataLoader `worker_init_fn`: `tv.tune_process()` in each worker (its heap: spawned
+        workers do not inherit it; OpenMP's wait policy is the parent's, set before torch loads)."""
+        tune_process()
+
 
 
 def collate(items: Sequence[dict]) -> dict:

@@ -29,6 +29,7 @@ from typing import Any, Literal, Mapping, Sequence
 
 from ..runtime.compilation import CompileMode, auto_mode, compile_mode
 from .datasets import CONVENTIONS, render_samples, sample_record
+from ..runtime.process import init_worker, tune_process
 from ..runtime.progress import progress as bar
 from .recipe import Recipe
 from .sequence import CONVENTIONS as SEQUENCE_CONVENTIONS, encode_item
@@ -113,12 +114,6 @@ def run_task(task: Task) -> list[int]:
     return list(task.indices)
 
 
-def _init_worker(threads: int) -> None:
-    import torch
-
-    torch.set_num_threads(threads)
-
-
 def plan_tasks(recipe: Recipe, *, count: int, seed: int, out: Path, layout: Layout, batch: int, shard_size: int) -> list[Task]:
     size = shard_size if layout == "webdataset" else batch
     return [Task(recipe, seed, tuple(range(s, min(count, s + size))), str(out), layout, batch, k)
@@ -162,7 +157,8 @@ def generate(
     compile: CompileMode | Literal["auto"] | bool = "auto",
 ) -> dict:
     """Generate (or finish) the dataset in `out`. `workers` local processes (spawned, each with
-    `threads` torch threads), or the Dask cluster at `scheduler`. `progress`: a bar of samples
+    `threads` torch threads, tuned by `tune_process`; `workers=1` renders in this process and
+    leaves it as it is), or the Dask cluster at `scheduler` (its workers tuned too). `progress`: a bar of samples
     done on stderr (None: only when stderr is a terminal). `stop_after` (testing: simulates a kill)
     stops once that many samples were written, leaving the dataset unfinished. `compile`
     (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
@@ -238,6 +234,7 @@ def _execute(tasks: list[Task], *, workers: int, threads: int | None, scheduler:
         except ImportError:
             fail("scheduler", scheduler, "needs the dask distributed package (pip install distributed)")
         with Client(scheduler) as client:
+            client.run(tune_process)  # each worker's heap; its wait policy where torch is not loaded there yet
             futures = client.map(run_task, tasks, pure=False)
             for future in as_completed(futures):
                 yield len(future.result())
@@ -254,8 +251,9 @@ def _execute(tasks: list[Task], *, workers: int, threads: int | None, scheduler:
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed as done_order
 
+    # the initializer lives in a module without torch: it tunes the worker before the tasks import torch
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_init_worker, initargs=(threads,)) as pool:
+                             initializer=init_worker, initargs=(threads,)) as pool:
         futures = [pool.submit(run_task, t) for t in tasks]
         try:
             for future in done_order(futures):

@@ -328,7 +328,8 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
 
 _RENDER_CHILD = textwrap.dedent("""
     import json, resource, statistics, sys, time
-    import torchvol as tv  # first: its OpenMP wait policy and heap settings, as `torchvol` commands get them
+    import torchvol as tv
+    tv.tune_process()  # before torch loads: its OpenMP wait policy and heap settings, as `torchvol` commands get them
     import torch
     threads, name, width, height, repeat, compile = sys.argv[1:]
     torch.set_num_threads(int(threads))
@@ -494,8 +495,8 @@ def _generate_section(sections: dict) -> list[str]:
 def _loaded_section(sections: dict) -> list[str]:
     """The report's section on renders alone and beside one busy competitor: its Markdown lines."""
     lines = ["## One busy competitor", "", "template-clouds in a fresh process, alone and while `python -c \"while True: "
-             "pass\"` keeps a core busy. torchvol sets OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
-             "(torchvol/__init__.py): spinning OpenMP threads fight the competitor at every one of a render's small ops.", "", "| torch threads | OMP_WAIT_POLICY | compile | alone s | loaded s | slowdown |",
+             "pass\"` keeps a core busy. torchvol's processes set OMP_WAIT_POLICY=PASSIVE unless the environment says otherwise "
+             "(`tv.tune_process()`): spinning OpenMP threads fight the competitor at every one of a render's small ops.", "", "| torch threads | OMP_WAIT_POLICY | compile | alone s | loaded s | slowdown |",
              "| ---: | --- | --- | ---: | ---: | ---: |"]
     lines += [f"| {r['threads']} | {r['policy']} | {r['compile']} | {r['alone_s']:.3f} | {r['loaded_s']:.3f} | "
               f"{r['slowdown']:.2f} |"
@@ -510,7 +511,7 @@ def _heap_section(sections: dict) -> list[str]:
     """The report's section on renders with glibc's heap as torchvol sets it and left alone: its
     Markdown lines."""
     lines = ["## The heap", "", ("Renders in fresh processes with glibc's malloc left alone (`TORCHVOL_HEAP=system`) "
-             "and as `import torchvol` sets it (torchvol/heap.py: freed blocks up to 32 MiB stay in the heap, whose "
+             "and as `tv.tune_process()` sets it (torchvol/runtime/heap.py: freed blocks up to 32 MiB stay in the heap, whose "
              "top is handed back past 64 MiB). Page faults and system CPU seconds per render."), "",
              "| work | compile | threads | heap | median s | page faults | system s |",
              "| --- | --- | ---: | --- | ---: | ---: | ---: |"]

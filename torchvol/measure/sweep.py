@@ -133,6 +133,7 @@ def _text(value: Any) -> str:
 
 
 def label(values: Mapping[str, Any]) -> str:
+    """A setting as text: "key=value, ..." in the order of `values`."""
     return ", ".join(f"{k}={_text(v)}" for k, v in values.items())
 
 
@@ -201,8 +202,6 @@ def sweep(source: Any, params: Mapping[str, Sequence[Any]], *, out: str | Path, 
     verdict's setting must stay within (default: 8-bit quantisation's). `cache`: the reference
     rungs' folder (default DIR/references). `progress`: a bar on stderr (None: on a terminal only).
     Returns {"rows", "summary", "verdict", "written"}; see the module docstring for the files."""
-    from ..renderer.executor import render
-
     levels = list(levels)
     _check(params, samples, levels, factor, max_error)
     recipe = Recipe.load(source, overrides)
@@ -221,13 +220,34 @@ def sweep(source: Any, params: Mapping[str, Sequence[Any]], *, out: str | Path, 
     done = _resume(out, meta, columns)
     cache = out / "references" if cache is None else Path(cache)
     (out / "images").mkdir(exist_ok=True)
-
-    def row_key(index: int, values: Mapping) -> tuple:
-        return index, tuple(_text(values[k]) if k in values else "" for k in keys)
-
     groups: dict[str, list[dict]] = {}  # settings by their swept scene values: one reference each
     for values in settings:
         groups.setdefault(repr({k: v for k, v in values.items() if not is_approximation(k)}), []).append(values)
+    rows = _measure_all(recipe, settings, groups, keys, columns, done, first=first, count=count, seed=seed,
+                        samples=samples, out=out, cache=cache, factor=factor, progress=progress)
+    ordered = [rows[_row_key(keys, i, v)] for i in range(count) for v in settings]
+    summary = summarise(ordered, settings, keys)
+    _write_csv(out / "summary.csv", summary)
+    verdict_text = verdict(summary, keys, max_error=max_error)
+    written = [out / "results.csv", out / "summary.csv"]
+    written += _figures(out, settings, keys, summary, ordered, groups, first, seed if samples is None else render_seed(0, seed),
+                        cache, max_error)
+    return {"rows": ordered, "summary": summary, "verdict": verdict_text, "written": [str(p) for p in written]}
+
+
+def _row_key(keys: Sequence[str], index: int, values: Mapping) -> tuple:
+    """A results row's key: (sample, the swept values as text, "" for a key the setting lacks)."""
+    return index, tuple(_text(values[k]) if k in values else "" for k in keys)
+
+
+def _measure_all(recipe: Recipe, settings: list[dict], groups: dict[str, list[dict]], keys: list[str], columns: list[str],
+                 done: dict[tuple, dict], *, first: dict, count: int, seed: int, samples: int | None, out: Path,
+                 cache: Path, factor: float, progress: bool | None) -> dict[tuple, dict]:
+    """Renders each of `count` samples at every setting not `done`, against one reference ladder
+    per group of `groups`, appending each row to results.csv (sample 0's images to images/).
+    -> every row, `done`'s too, by `_row_key`."""
+    from ..renderer.executor import render
+
     rows = dict(done)
     enabled = sys.stderr.isatty() if progress is None else progress
     with bar(len(settings) * count, initial=len(done), desc="sweep", unit="render", enabled=enabled) as shown:
@@ -236,7 +256,7 @@ def sweep(source: Any, params: Mapping[str, Sequence[Any]], *, out: str | Path, 
             data = sample_data(recipe, index, seed) if index else first
             seed_of_sample = seed if samples is None else render_seed(index, seed)
             for group in groups.values():
-                todo = [v for v in group if row_key(index, v) not in done]
+                todo = [v for v in group if _row_key(keys, index, v) not in done]
                 if not todo:
                     continue
                 scene_values = {k: v for k, v in group[0].items() if not is_approximation(k)}
@@ -249,26 +269,29 @@ def sweep(source: Any, params: Mapping[str, Sequence[Any]], *, out: str | Path, 
                         render(load_scene(scene.model_dump(), {"image.width": 8, "image.height": 8}), seed=seed_of_sample)
                         warmed = True
                     shown.set_postfix_str(f"sample {index}: {label(values)}")
-                    result = render(scene, seed=seed_of_sample)
-                    ref = ladder.settle([result.image], factor=factor)
-                    error = image_error(result.image, ref.image)
-                    row = {"sample": index, **{k: _cell(values[k]) if k in values else "" for k in keys},
-                           "time_s": result.stats["total_s"], "density_evals": result.stats["density_evals"],
-                           **error, "reference_bound": ref.bound, "reference_rung": ref.rung,
-                           "reference_tolerance": ref.tolerance, "reference_dtype": ref.dtype}
+                    row, image = _measure(scene, values, index, keys, seed=seed_of_sample, ladder=ladder, factor=factor)
                     if index == 0:
-                        np.save(out / "images" / f"{settings.index(values):03d}.npy", result.image[0].numpy())
+                        np.save(out / "images" / f"{settings.index(values):03d}.npy", image.numpy())
                     _append(out / "results.csv", row, columns)
-                    rows[row_key(index, values)] = row
+                    rows[_row_key(keys, index, values)] = row
                     shown.update(1)
-    ordered = [rows[row_key(i, v)] for i in range(count) for v in settings]
-    summary = summarise(ordered, settings, keys)
-    _write_csv(out / "summary.csv", summary)
-    verdict_text = verdict(summary, keys, max_error=max_error)
-    written = [out / "results.csv", out / "summary.csv"]
-    written += _figures(out, settings, keys, summary, ordered, groups, first, seed if samples is None else render_seed(0, seed),
-                        cache, max_error)
-    return {"rows": ordered, "summary": summary, "verdict": verdict_text, "written": [str(p) for p in written]}
+    return rows
+
+
+def _measure(scene, values: Mapping, index: int, keys: Sequence[str], *, seed: int, ladder: Ladder,
+             factor: float) -> tuple[dict, torch.Tensor]:
+    """Renders `scene` (sample `index` at the setting `values`) and measures it against `ladder`'s
+    reference. -> (its results row, its image (3, H, W))."""
+    from ..renderer.executor import render
+
+    result = render(scene, seed=seed)
+    ref = ladder.settle([result.image], factor=factor)
+    error = image_error(result.image, ref.image)
+    row = {"sample": index, **{k: _cell(values[k]) if k in values else "" for k in keys},
+           "time_s": result.stats["total_s"], "density_evals": result.stats["density_evals"],
+           **error, "reference_bound": ref.bound, "reference_rung": ref.rung,
+           "reference_tolerance": ref.tolerance, "reference_dtype": ref.dtype}
+    return row, result.image[0]
 
 
 def summarise(rows: Sequence[dict], settings: Sequence[dict], keys: Sequence[str]) -> list[dict]:

@@ -14,8 +14,8 @@ and `SceneDataset`.
 * ``"auto"`` (`generate` and `SceneDataset` only, their default): ``"exact"`` where a process
   renders at least `AUTO_COMPILE_SAMPLES` samples (compiling costs each worker process seconds
   once), else ``"off"``: `generate` decides from each worker's share of the samples still to
-  render, `SceneDataset` switches once its process has rendered that many. Either gives the
-  same bytes. On CPU: "exact"'s kernels are shown bitwise there; on a GPU, Triton's code and
+  render, `SceneDataset` from its length; never from what a process rendered before. Either
+  gives the same bytes. On CPU: "exact"'s kernels are shown bitwise there; on a GPU, Triton's code and
   atomic sums are not (render(..., device="cuda", compile="exact") is not promised bitwise).
 """
 
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import sys
 import warnings
 from collections.abc import Callable
 from typing import Literal
@@ -32,7 +33,7 @@ import torch
 
 from ..schema.validate import fail, is_integer
 
-__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "as_rendered", "auto_mode", "compile_mode", "compile_settings", "compiled", "exact_kernel"]
+__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "auto_mode", "compile_mode", "compile_settings", "compiled", "exact_kernel"]
 
 CompileMode = Literal["off", "exact", "all"]
 MODES = ("off", "exact", "all")
@@ -57,24 +58,10 @@ def compile_mode(value, *, path: str = "compile", auto: bool = False) -> str:
 
 def auto_mode(mode: str, samples: int) -> CompileMode:
     """A resolved mode: "auto" becomes "exact" for a process that will render `samples` ≥
-    `AUTO_COMPILE_SAMPLES`, else "off" (`generate`, which knows each worker's share)."""
+    `AUTO_COMPILE_SAMPLES`, else "off" (`generate`: each worker's share; `SceneDataset`: its length)."""
     if mode != "auto":
         return mode
     return "exact" if samples >= AUTO_COMPILE_SAMPLES else "off"
-
-
-_RENDERED = [0]  # samples this process rendered under "auto" (`as_rendered`)
-
-
-def as_rendered(mode: str, samples: int) -> CompileMode:
-    """A resolved mode for a batch of `samples`: "auto" becomes "exact" once this process has
-    rendered `AUTO_COMPILE_SAMPLES` samples under "auto", else "off" (`SceneDataset`, which cannot
-    know how many a process, e.g. a DataLoader worker, will render: one `ds[i]` compiles nothing)."""
-    if mode != "auto":
-        return mode
-    resolved = "exact" if _RENDERED[0] >= AUTO_COMPILE_SAMPLES else "off"
-    _RENDERED[0] += samples
-    return resolved
 
 
 # inductor decides when it builds a CPU kernel whether its loops run on threads: serially where the
@@ -85,32 +72,50 @@ def as_rendered(mode: str, samples: int) -> CompileMode:
 # it runs decides, and no graph is recompiled or cached per thread count.
 INDUCTOR_OPTIONS = {"cpp.dynamic_threads": True}
 VARIANTS = 64  # graphs a kernel may compile: a walk has up to 16 (limit × records or jumps × dtype)
-_DYNAMO = torch._dynamo.config
 # dynamo's "duck sizing" takes sizes equal on a first call for one size: a template's first light
 # kernel call on 3 lit samples was built for exactly as many as a light direction's 3 coordinates
 # and built again at the next call (124 s against 91.5 s for a first 128² render, inductor's cache
 # cold). Read when a call is traced; set around the calls (`compile_settings`), never for the user's graphs
-_SHAPES = torch.fx.experimental._config
 _SETTING = [False]  # inside `compile_settings`
+# dynamo's settings from before the block's, once a kernel inside it has set them (`_set_for_block`):
+# importing dynamo takes over a second, and a block around eager work never needs it
+_BEFORE: list[tuple[int, bool]] = []
 
 
 @contextlib.contextmanager
 def compile_settings():
-    """dynamo's settings for torchvol's kernels (`VARIANTS`, no duck sizing: `_SHAPES`) inside the
-    block, restored after it; nested blocks keep the outer one's. Set once around a render's
-    chunk (`render`), not at each kernel call: a changed setting makes dynamo hash its whole
-    config again at the next call: ~30-50 µs a call, 2-6% of a compiled template render."""
+    """dynamo's settings for torchvol's kernels (`VARIANTS`, no duck sizing) inside the block,
+    restored after it; nested blocks keep the outer one's. Set once around a render's chunk
+    (`render`), not at each kernel call: a changed setting makes dynamo hash its whole config
+    again at the next call: ~30-50 µs a call, 2-6% of a compiled template render. Where dynamo
+    is not loaded yet, set at the block's first compiled call (`compiled`) instead: a block
+    around eager work imports no dynamo."""
     if _SETTING[0]:
         yield
         return
-    limit, duck = _DYNAMO.recompile_limit, _SHAPES.use_duck_shape
-    _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = VARIANTS, False
     _SETTING[0] = True
     try:
+        if "torch._dynamo" in sys.modules:
+            _set_for_block()
         yield
     finally:
-        _DYNAMO.recompile_limit, _SHAPES.use_duck_shape = limit, duck
         _SETTING[0] = False
+        if _BEFORE:
+            import torch._dynamo.config as dynamo
+            import torch.fx.experimental._config as shapes
+
+            dynamo.recompile_limit, shapes.use_duck_shape = _BEFORE.pop()
+
+
+def _set_for_block() -> None:
+    """dynamo's settings for the enclosing `compile_settings` block, once per block."""
+    if _BEFORE:
+        return
+    import torch._dynamo.config as dynamo
+    import torch.fx.experimental._config as shapes
+
+    _BEFORE.append((dynamo.recompile_limit, shapes.use_duck_shape))
+    dynamo.recompile_limit, shapes.use_duck_shape = VARIANTS, False
 
 
 @functools.cache
@@ -124,7 +129,8 @@ def compiled(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def run(*args, **kwargs):
-        with compile_settings():  # inside a render's block: nothing to set
+        with compile_settings():  # inside a render's block: set at its first compiled call only
+            _set_for_block()
             return kernel(*args, **kwargs)
 
     return run

@@ -1,8 +1,8 @@
 """torch's intra-op thread count around a block or a kernel.
 
-With OpenMP's threads asleep between parallel regions (``OMP_WAIT_POLICY=PASSIVE``, torchvol's
-default: docs/SPEED.md, "One busy competitor"), each parallel region wakes them, which on some VMs
-costs more than a small op's work. A march's eager glue between its compiled kernels (compaction,
+With OpenMP's threads asleep between parallel regions (``OMP_WAIT_POLICY=PASSIVE``, as torchvol's
+processes run: `process.tune_process`; docs/SPEED.md, "One busy competitor"), each parallel region
+wakes them, which on some VMs costs more than a small op's work. A march's eager glue between its compiled kernels (compaction,
 gathers, counts over a wavefront) is such small ops; the kernels are where the arithmetic is. So
 the glue runs on one thread (`torch_threads`) and each kernel on the caller's threads (`on_threads`),
 unless it is small (`threads_for`).
