@@ -69,6 +69,8 @@ class CloudLayer:
         return self.signed(points, scene_index, lod).clamp_min(0.0)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        """The cloud layer's density before its clamp at 0 (negative: how far from having any):
+        points [n, 3], scene_index [n], lod [n] octaves dropped or None -> [n]."""
         p, s = self.p, scene_index
         q = points - take(self.shift, s)
         octaves = None if lod is None else p.octaves - lod

@@ -23,6 +23,8 @@ class Edge(Strict):
 
 
 def smoothstep01(x: Tensor) -> Tensor:
+    """3x² − 2x³ of `x` clamped to [0, 1]: 0 at 0, 1 at 1, flat at both. Any shape -> the same
+    shape."""
     x = x.clamp(0.0, 1.0)
     return x * x * (3.0 - 2.0 * x)
 
@@ -37,6 +39,8 @@ class EdgeField:
         self.feature_size = inner.feature_size
 
     def fade(self, points: Tensor, s: Tensor) -> Tensor:
+        """The fade towards the bounds (and the base, where the edge has one) at `points` [n, 3] of
+        scenes `s` [n]: [n] in [0, 1]."""
         depth = self.depth(self.bounds, points, s)
         if self.edge.base is not None:
             depth = torch.minimum(depth, points[:, 1] - take(self.edge.base, s))
@@ -46,6 +50,8 @@ class EdgeField:
         return self.inner(points, scene_index, lod) * self.fade(points, scene_index)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        """The inner field's signed density [n] at `points` [n, 3] of scenes `scene_index` [n]
+        (`lod` [n] or None), faded where it is positive."""
         raw = self.inner.signed(points, scene_index, lod)
         return raw.where(raw <= 0.0, raw * self.fade(points, scene_index))  # empty stays as far from density
 

@@ -80,6 +80,8 @@ class FbmField:
         return self.signed(points, scene_index, lod).clamp_min(0.0)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        """The fbm field's density before its clamp at 0 (negative: how far from having any): points
+        [n, 3], scene_index [n], lod [n] octaves dropped or None -> [n]."""
         p, s = self.p, scene_index
         if self.fused_field:
             return fastnoise.fbm_field_hashed(

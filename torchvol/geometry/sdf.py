@@ -51,6 +51,7 @@ def sd_rounded_box(p: Tensor, half_size, radius) -> Tensor:
 
 
 def union(*ds: Tensor) -> Tensor:
+    """The union of signed distances `ds` (each [n]): their minimum [n]."""
     out = ds[0]
     for d in ds[1:]:
         out = torch.minimum(out, d)
@@ -58,6 +59,7 @@ def union(*ds: Tensor) -> Tensor:
 
 
 def intersection(*ds: Tensor) -> Tensor:
+    """The intersection of signed distances `ds` (each [n]): their maximum [n]."""
     out = ds[0]
     for d in ds[1:]:
         out = torch.maximum(out, d)

@@ -88,11 +88,16 @@ def sun_direction(light: Stacked) -> Tensor:
 
 
 def sun_toward(light: Stacked, points: Tensor, s: Tensor) -> Toward:
+    """A sun as seen from `points` [n, 3] of scenes `s` [n]: its unit direction [n, 3], its
+    irradiance [n, 3] and an infinite distance [n]."""
     n = points.shape[0]
     return Toward(take(sun_direction(light), s), take(radiant(light), s), points.new_full((n,), math.inf))
 
 
 def point_toward(light: Stacked, points: Tensor, s: Tensor) -> Toward:
+    """A point light as seen from `points` [n, 3] of scenes `s` [n]: the unit direction to it
+    [n, 3], its irradiance there [n, 3] (falling off as 1/r², r no less than POINT_RADIUS) and
+    the distance [n]."""
     v = take(light.position, s) - points
     r2 = (v * v).sum(dim=1).clamp_min(POINT_RADIUS * POINT_RADIUS)
     r = r2.sqrt()

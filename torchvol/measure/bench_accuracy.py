@@ -298,6 +298,8 @@ def cone_rows(*, width: int, height: int, repeat: int, seed: int = 0, shown=None
 
 
 def cone_table(rows: Sequence[dict], *, width: int, height: int) -> str:
+    """The GI cone comparison as a Markdown table: a row per (method, setting) of `rows`, its time
+    against the path-traced reference's and its relative RMSE, at `width`×`height`."""
     lines = [f"| GI | setting | time (s) at {width}×{height} | × reference time | rel. RMSE vs {REF_PATHS} paths |",
              "| --- | --- | ---: | ---: | ---: |"]
     for r in rows:

@@ -39,6 +39,9 @@ def sigma_for(grid: np.ndarray, max_optical_depth: float = 10.0) -> float:
 
 
 def torchvol_scene(grid: np.ndarray, sigma: float, *, size: int, spp: int = 16, **march) -> dict:
+    """The comparison's scene as a torchvol scene dict: `grid` (n, n, n) density times `sigma` in
+    the box [-1, 1]³, a sun, a `size`² image at `spp`; `march` the scene's march keys
+    (`shadow_steps` the light's shadow steps)."""
     return {
         "image": {"width": size, "height": size, "spp": spp},
         "camera": {"eye": list(EYE), "target": list(TARGET), "fov_y": FOV},
@@ -76,6 +79,8 @@ def render_mitsuba(grid: np.ndarray, sigma: float, *, size: int, spp: int, varia
 
 
 def relative_rmse(image: np.ndarray, reference: np.ndarray) -> float:
+    """RMSE of `image` against `reference` (same shape, e.g. (H, W, C)) over the reference's root
+    mean square."""
     return float(np.sqrt(((image - reference) ** 2).mean()) / np.sqrt((reference**2).mean()))
 
 

@@ -113,6 +113,7 @@ def image_error(image: Tensor, reference: Tensor) -> dict[str, float]:
 
 
 def rung_tolerance(k: int) -> float:
+    """The error-controlled march's tolerance on rung `k`: 1e-2 / 4^k."""
     return 1e-2 / 4**k
 
 
@@ -216,6 +217,8 @@ class Ladder:
         self._rungs: dict[int, dict[str, Any]] = {}
 
     def rung(self, k: int) -> dict[str, Any]:
+        """Rung `k`'s render (`cached_render`'s dict: image, radiance, alpha (1, C, H, W), ...) plus
+        its dtype's name, rendered once (or read from the cache)."""
         if k not in self._rungs:
             data, dtype = rung_scene(self.data, k, spp=self.spp)
             path = None if self.cache is None else Path(self.cache) / f"render-{scene_key(data, seed=self.seed, dtype=dtype)}.pt"

@@ -73,6 +73,7 @@ class Accumulator:
         return total / self.passes
 
     def result(self) -> dict[str, Tensor]:
+        """Every accumulated key's blend so far: {key: [C, P]}."""
         return {key: self.value(key) for key in self.sums}
 
 

@@ -24,6 +24,7 @@ class Timer:
 
     @contextmanager
     def section(self, name: str) -> Iterator[None]:
+        """Times the `with` block as pass `name`, pausing the section around it."""
         now = time.perf_counter()
         if self._stack:
             outer = self._stack[-1]
@@ -60,5 +61,7 @@ class CountedField:
         return self.inner(points, scene_index, lod)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
+        """The inner field's signed density [n] at `points` [n, 3] of scenes `scene_index` [n]
+        (`lod` [n] or None), its evaluations counted."""
         self.counts.density_evals += points.shape[0]
         return self.inner.signed(points, scene_index, lod)

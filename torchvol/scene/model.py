@@ -101,6 +101,8 @@ class CameraSpec(Strict):
 
     @property
     def resolved_fov_y(self) -> float | None:
+        """The vertical field of view in degrees: `fov_y`, 45 where neither it nor `focal` is given,
+        None where `focal` is."""
         return 45.0 if self.fov_y is None and self.focal is None else self.fov_y
 
 
@@ -562,6 +564,8 @@ def read_source(source: str | Path | Mapping) -> dict:
 
 
 def validate_scene(data: Mapping) -> Scene:
+    """A Scene from the dict `data`; a validation error is raised as one SceneError naming the key
+    path."""
     try:
         return Scene.model_validate(data)
     except ValidationError as err:
@@ -587,6 +591,7 @@ def schema_keys() -> frozenset[str]:
 
 
 def preset_names() -> list[str]:
+    """The bundled presets' names, sorted."""
     return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
 
 

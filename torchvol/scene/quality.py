@@ -103,6 +103,8 @@ def _atmosphere_steps(layer, level: Level):
 
 
 def march_settings(march: March) -> MarchSettings:
+    """The march settings a scene's `march` table comes to: its explicit keys, the rest from its
+    quality level."""
     level = QUALITY[march.quality]
     steps, min_t, dtype = level.steps, level.min_transmittance, level.dtype
     reference = march.quality == "reference"

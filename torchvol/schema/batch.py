@@ -136,6 +136,8 @@ class Stacked:
 
 
 def stack(models: Sequence[BaseModel], *, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> Stacked:
+    """The `models` (one a scene, of one type) as a `Stacked` batch: each numeric field a (B, ...)
+    tensor of `dtype` on `device`."""
     return Stacked(models, dtype=dtype, device=torch.device(device))
 
 

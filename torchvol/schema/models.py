@@ -73,10 +73,12 @@ class One(Strict):
 
     @property
     def kind(self) -> str:
+        """The name of the one key that is set."""
         return next(k for k in type(self).model_fields if getattr(self, k) is not None)
 
     @property
     def value(self) -> Any:
+        """The value of the one key that is set (its model)."""
         return getattr(self, self.kind)
 
 
@@ -86,6 +88,8 @@ def refuse(path: str, value: Any, allowed: str):
 
 
 def nonneg(v: Vec3, what: str = "components") -> Vec3:
+    """`v` unchanged; a ValueError where a component is negative (`what`: the components' name in
+    the message)."""
     if min(v) < 0:
         raise ValueError(f"{what} must be >= 0")
     return v

@@ -41,6 +41,8 @@ class Registry:
         self._kinds: dict[str, Kind] = {}
 
     def register(self, name: str, model: Any, fn: Callable | None = None, **caps: Any) -> Kind:
+        """Adds the kind `name`: its schema `model`, its function `fn` and its capabilities `caps`;
+        -> the `Kind`. A name registered twice is a ValueError."""
         if name in self._kinds:
             raise ValueError(f"{self.family}: {name!r} registered twice")
         kind = Kind(name, model, fn, caps)
@@ -57,6 +59,7 @@ class Registry:
         return iter(self._kinds.values())
 
     def names(self) -> tuple[str, ...]:
+        """The registered kinds' names, in the order they were registered."""
         return tuple(self._kinds)
 
     def one_of(self, model_name: str, doc: str, *, base: type[One] = One) -> type[One]:

@@ -18,10 +18,14 @@ class SceneError(ValueError):
 
 
 def fail(path: str, value: Any, allowed: str) -> NoReturn:
+    """Refuses user input: raises SceneError naming the key `path`, the `value` given and what is
+    `allowed`."""
     raise SceneError(path, value, allowed)
 
 
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """The hint " (did you mean 'x'?)" for the closest of `choices` to `word`, or "" where none is
+    close."""
     close = difflib.get_close_matches(word, list(choices), n=1)
     return f" (did you mean {close[0]!r}?)" if close else ""
 

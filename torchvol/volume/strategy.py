@@ -45,12 +45,18 @@ def _part(ctx, vol, res, t0: Tensor, hit: Tensor) -> dict[str, Tensor]:
 
 
 def run_closed_form(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+    """The volume's part for a chunk's `rays` [n] (the sky behind them `background` [n, 3] or
+    None, surfaces at `t_limit` [n] or None) in closed form. -> the part: radiance [n, 3],
+    transmittance, weight sums, median t and entry t [n]."""
     t0, t1, hit = entry_exit(vol, rays, t_limit)
     with ctx.timer.section(vol.plan.step_pass):
         return closed_form(ctx, vol, rays, t0, t1, hit)
 
 
 def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None, *, skip: bool = False) -> dict[str, Tensor]:
+    """The volume's part for a chunk's `rays` [n] (`background` [n, 3] or None, `t_limit` [n] or
+    None) by the fixed march, on the backend the plan chose; `skip`: over the occupied span only.
+    -> the part: radiance [n, 3], transmittance, weight sums, median t and entry t [n]."""
     st = ctx.settings
     t0, t1, hit = entry_exit(vol, rays, t_limit)
     occupied, marched = None, hit
@@ -72,10 +78,15 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
 
 
 def run_skip(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+    """`run_march` over the occupied span only (empty space skipped): the same part, radiance
+    [n, 3] and the rest [n]."""
     return run_march(ctx, vol, rays, background, t_limit, skip=True)
 
 
 def run_tolerance(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+    """The volume's part for a chunk's `rays` [n] (`background` [n, 3] or None, `t_limit` [n] or
+    None) by the error-controlled march at `march.tolerance`. -> the part: radiance [n, 3],
+    transmittance, weight sums, median t and entry t [n]."""
     st = ctx.settings
     t0, t1, hit = entry_exit(vol, rays, t_limit)
     feature = vol.field.feature_size

@@ -140,6 +140,9 @@ class VoxelGrid:
 
     @classmethod
     def from_specs(cls, specs: Sequence, *, dtype, device, with_distance: bool = False) -> "VoxelGrid":
+        """The grids of B voxel `specs` (one a scene) zero-padded to one (B, Z, Y, X) shape, with
+        their placement in `dtype` on `device`; `with_distance`: their Chebyshev distance fields
+        too."""
         grids = [dense_materials(s, dtype=dtype, device=device) for s in specs]
         shape = [max(g.shape[a] for g in grids) for a in range(3)]
         flat = torch.zeros(len(grids) * shape[0] * shape[1] * shape[2], dtype=torch.uint8, device=device)
@@ -203,5 +206,6 @@ class VoxelGrid:
         return (points - take_rows(self.origin, scene)) / take_rows(self.voxel_size, scene)[:, None]
 
     def to_world(self, g: Tensor, scene: Tensor) -> Tensor:
+        """Grid coordinates `g` [n, 3] of scenes `scene` [n] -> world points [n, 3]."""
         return take_rows(self.origin, scene) + g * take_rows(self.voxel_size, scene)[:, None]
 
