@@ -1,8 +1,9 @@
 """Documentation that is generated from code stays in step with it, and every example in README.md
 and docs/*.md runs as written.
 
-Each document's Python and shell blocks run in order in a scratch folder that sees the
-repository's files (outputs of one block, e.g. a generated dataset, are inputs of a later one).
+Each document's Python and shell blocks run in order in a scratch folder that holds a copy of the
+files git tracks (outputs of one block, e.g. a generated dataset, are inputs of a later one; nothing
+a user generated in the clone, such as the README's `data/clouds`, leaks in).
 Shell commands run as written with three adjustments: `pip install` steps are skipped (this suite
 runs in the installed environment), `python -m pytest` is skipped (it is what runs this test), and
 `torchvol` commands get small images through their documented overrides (SMALL) and generate at
@@ -13,6 +14,7 @@ repository ships, as must every block."""
 import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -81,11 +83,39 @@ def named_files(code: str) -> list[str]:
     return [m for m in re.findall(r"[\w./-]+\.(?:toml|py)\b", code) if not m.startswith(("torchvol.", "tv."))]
 
 
-def scratch(tmp_path: Path) -> Path:
-    """A folder that sees the repository's top-level files and folders (links), for outputs."""
-    for entry in ROOT.iterdir():
-        if entry.name not in (".git", ".ci"):
-            (tmp_path / entry.name).symlink_to(entry)
+# What the documents' commands read: the shipped files outside the package. The package itself is the
+# installed one (the code under test, untracked new modules included), never a second copy in the scratch.
+SHIPPED = ("README.md", "pyproject.toml", "datasets", "docs", "examples", "tools", "tests")
+NOT_INPUTS = (".ci/", "torchvol/")
+
+
+def tracked_files(root: Path = ROOT) -> list[str]:
+    """Paths, relative to root, of the files git tracks there outside NOT_INPUTS; outside a git
+    checkout (an unpacked archive), the files of the SHIPPED entries, without caches."""
+    if in_git_checkout(root):
+        listed = subprocess.run(["git", "-C", str(root), "ls-files", "-z"], capture_output=True, text=True, check=True)
+        paths = [p for p in listed.stdout.split("\0") if p and (root / p).is_file()]  # a deleted file is no input
+    else:
+        entries = [root / name for name in SHIPPED]
+        files = [e for e in entries if e.is_file()] + [f for e in entries if e.is_dir() for f in sorted(e.rglob("*"))]
+        paths = [str(f.relative_to(root)) for f in files if f.is_file() and "__pycache__" not in f.parts]
+    return [p for p in paths if not p.startswith(NOT_INPUTS)]
+
+
+def in_git_checkout(root: Path) -> bool:
+    """Whether root is the top of a git work tree (not a folder inside some other repository)."""
+    if shutil.which("git") is None:
+        return False
+    done = subprocess.run(["git", "-C", str(root), "rev-parse", "--show-toplevel"], capture_output=True, text=True)
+    return done.returncode == 0 and Path(done.stdout.strip()).resolve() == root.resolve()
+
+
+def scratch(tmp_path: Path, root: Path = ROOT) -> Path:
+    """tmp_path filled with a copy of root's tracked files, for the documents' outputs: copies, not
+    links, so a command that writes a shipped file (`tools/scene_keys.py`) leaves the repository alone."""
+    for name in tracked_files(root):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(root / name, tmp_path / name)
     return tmp_path
 
 
