@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from torchvol.schema.batch import structure_key
-from torchvol.dataset.datasets import encode_sample, render_samples
+from torchvol.dataset.codec import encode_sample
+from torchvol.dataset.datasets import render_samples
 from torchvol.dataset.generate import generate
 from torchvol.dataset.mix import MixedRecipe
 from torchvol.scene.quality import at_level

@@ -44,7 +44,7 @@ def test_samples_are_deterministic_and_independent_across_indices():
 
 
 def test_draws_are_the_same_in_another_process():
-    code = ("import json; from torchvol.recipe import Recipe; import tests.test_recipe as t; "
+    code = ("import json; from torchvol.dataset.recipe import Recipe; import tests.test_recipe as t; "
             "print(json.dumps([t.recipe().sample_params(i, seed=5) for i in (9, 2)]))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     r = recipe()

@@ -207,7 +207,7 @@ def test_generated_sequences_read_back(tmp_path, layout):
     assert {"000000.json", "000000.depth.1.npy", "000000.flow.npz", "000000.flow_valid.npz"} <= set(names)
     wds = pytest.importorskip("webdataset")
     s = next(iter(wds.WebDataset([str(tmp_path / "ds" / "shards" / "shard-000000.tar")], shardshuffle=False)))
-    from torchvol.dataset.datasets import decode_file
+    from torchvol.dataset.codec import decode_file
 
     assert torch.equal(decode_file("flow.npz", s["flow.npz"]), live["flow"])
     assert torch.equal(decode_file("depth.npy", s["depth.1.npy"]), live["depth"][1])

@@ -3,22 +3,18 @@
 One sample is a dict: image (3,H,W) float32 in [0,1], depth (1,H,W) float32 (planar z, 0 = no hit),
 alpha (1,H,W), K (3,3), world_to_camera (4,4), index, seed, params (the drawn values by key path)
 and the recipe's AOVs (C,H,W). With `[dataset] views = V` > 1 the image, depth, alpha, camera and
-AOV tensors gain a leading V axis (`torchvol.views`); with `volume_label` the sample adds
-`extinction` (N,N,N) and `extinction_box` (2,3) (`torchvol.volume_label`). `encode_sample` /
-`decode_file` turn one into named files (PNG for image and alpha, exact float32 .npy for depth,
-compressed .npz for AOVs (`AOV_STORAGE`), a JSON record) and back; the generator and FolderDataset
-share them so the two stay in step. A sequence recipe's samples
-(`[dataset] frames`) gain a leading frame axis and `flow` (torchvol.sequence).
+AOV tensors gain a leading V axis (`views.py`); with `volume_label` the sample adds
+`extinction` (N,N,N) and `extinction_box` (2,3) (`volume_label.py`). `codec.py` turns one into
+named files and back. A sequence recipe's samples (`[dataset] frames`) gain a leading frame axis
+and `flow` (`sequence.py`).
 """
 
 from __future__ import annotations
 
-import io
 import json
 from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
 
-import numpy as np
 import torch
 from torch.utils.data import Dataset
 
@@ -27,27 +23,12 @@ from ..runtime.compilation import CompileMode, auto_mode, compile_mode
 from ..runtime.process import tune_process
 from ..renderer.plan import batch_mode
 from ..scene.quality import at_level
-from .recipe import Recipe, mix_seed, render_seed
 from ..schema.validate import fail, integer, is_integer
-from .views import encode_views, sample_params, stack_views, view_count, view_params
-from .volume_label import encode_label, extinction_grid
-
-# The conventions a generated dataset states in meta.json (DESIGN.md, Conventions).
-CONVENTIONS = {
-    "image": "8-bit sRGB-encoded PNG of the display-referred image in [0, 1] (row 0 = top)",
-    "depth": "planar z along the camera's forward axis (not ray distance), float32 .npy of shape (H, W), "
-             "world units; 0 where nothing was hit (invalid)",
-    "alpha": "8-bit PNG of 1 - transmittance of the whole ray",
-    "aovs": "compressed .npz holding one array named after the AOV, shape (C, H, W): float32 (lossless) for "
-            "normal, ao, shadow, distance, depth_median, radiance, optical_thickness, alpha_volumes and "
-            "sun_visibility; uint8 for material ids; uint16 for instance ids; float16 for uv "
-            "(face coordinates in [0, 1], within 2.5e-4)",
-    "units": "world units; angles in degrees; right-handed world, y up",
-    "camera": "OpenCV/kornia: camera axes x right, y down, z forward; K in pixels with pixel centres at "
-              "integer coordinates (centred principal point cx = W/2 - 0.5); world_to_camera maps world "
-              "points to camera coordinates",
-    "invalid_depth": 0.0,
-}
+from .codec import decode_file
+from .distributions import mix_seed
+from .recipe import Recipe, render_seed
+from .views import sample_params, stack_views, view_params
+from .volume_label import extinction_grid
 
 
 def epoch_seed(seed: int, epoch: int | None) -> int:
@@ -62,7 +43,7 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     `compile` (`torchvol.compilation`): "all" compiles a batch's density and march kernels only
     where that is the fast path (`renderer.plan.compile_pays`), its exact kernels elsewhere."""
     from ..renderer.executor import DEFAULT_CHUNK_RAYS, render
-    from .sequence import add_flow, sequence_scenes
+    from .sequence import add_flow, sequence_scenes  # its flow loads kornia: only when a recipe has frames
 
     aovs = recipe.aovs if aovs is None else tuple(aovs)
     compile = compile_mode(compile)
@@ -160,7 +141,6 @@ class SceneDataset(Dataset):
         tune_process()
 
 
-
 def collate(items: Sequence[dict]) -> dict:
     """DataLoader collate: tensors stacked, index/seed as tensors, params kept as a list of dicts
     (drawn values may be vectors, strings or tables, which the default collate cannot stack)."""
@@ -174,92 +154,6 @@ def collate(items: Sequence[dict]) -> dict:
         else:
             out[key] = torch.tensor(values)
     return out
-
-
-# ---------------------------------------------------------------------------------------------
-# Files of one sample
-
-
-def sample_record(item: Mapping, files: Mapping[str, str]) -> dict:
-    """The manifest record of one sample (JSON-safe)."""
-    return {
-        "index": item["index"],
-        "seed": item["seed"],
-        "files": dict(files),
-        "K": item["K"].tolist(),
-        "world_to_camera": item["world_to_camera"].tolist(),
-        "params": item["params"],
-    }
-
-
-def _png(array: np.ndarray) -> bytes:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(array).save(buf, format="PNG")
-    return buf.getvalue()
-
-
-def _npy(array: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(array, dtype=np.float32), allow_pickle=False)
-    return buf.getvalue()
-
-
-# How each AOV is stored, in a compressed .npz: lossless float32 (face normals, AO levels and hard
-# shadows take few distinct values: they compress well, docs/DATASETS.md), material ids as bytes
-# (at most 255 materials), and uv in float16: face coordinates in [0, 1] to within 2^-12 of a face.
-# instance ids (torchvol.labels) as uint16: volumes and materials together stay far below 65536
-AOV_STORAGE = {"material": np.uint8, "uv": np.float16, "instance": np.uint16, "flow_valid": np.uint8}
-
-
-def _npz(name: str, array: np.ndarray) -> bytes:
-    """np.savez_compressed's format with a fixed timestamp: the same array gives the same bytes."""
-    import zipfile
-
-    member = io.BytesIO()
-    np.save(member, np.ascontiguousarray(array, dtype=AOV_STORAGE.get(name, np.float32)), allow_pickle=False)
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as archive:
-        info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-        info.compress_type = zipfile.ZIP_DEFLATED
-        archive.writestr(info, member.getvalue())
-    return buf.getvalue()
-
-
-def to_uint8(x: torch.Tensor) -> np.ndarray:
-    return np.round(np.clip(x.numpy(), 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
-def encode_sample(item: Mapping, aovs: Sequence[str]) -> dict[str, bytes]:
-    """{suffix: bytes}: image.png, depth.npy (H, W), alpha.png, one <aov>.npz each (C, H, W); with
-    several views each view's as image.{v}.png, ... (`torchvol.views`); with the volume label
-    extinction.npy (N, N, N) and extinction_box.npy (2, 3)."""
-    if view_count(item) is not None:
-        return {**encode_views(item, lambda one: encode_sample(one, aovs)), **encode_label(item)}
-    files = {
-        "image.png": _png(to_uint8(item["image"].permute(1, 2, 0))),
-        "depth.npy": _npy(item["depth"][0].numpy()),
-        "alpha.png": _png(to_uint8(item["alpha"][0])),
-    }
-    for name in aovs:
-        files[f"{name}.npz"] = _npz(name, item[name].numpy())
-    return {**files, **encode_label(item)}
-
-
-def decode_file(suffix: str, data: bytes) -> torch.Tensor:
-    """Inverse of encode_sample for one file: image (3,H,W), alpha/depth (1,H,W), AOV (C,H,W)."""
-    if suffix.endswith(".png"):
-        from PIL import Image
-
-        array = np.asarray(Image.open(io.BytesIO(data)))
-        x = torch.from_numpy(array.astype(np.float32) / 255.0)
-        return x.permute(2, 0, 1).contiguous() if x.ndim == 3 else x[None]
-    if suffix.endswith(".npz"):
-        with np.load(io.BytesIO(data), allow_pickle=False) as stored:
-            return torch.from_numpy(stored[suffix.split(".")[0]].astype(np.float32))
-    array = torch.from_numpy(np.load(io.BytesIO(data), allow_pickle=False))
-    return array[None] if suffix.split(".")[0] == "depth" else array  # depth.npy, depth.{v}.npy
 
 
 class FolderDataset(Dataset):

@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
 
 from ..runtime.compilation import CompileMode, auto_mode, compile_mode
-from .datasets import CONVENTIONS, render_samples, sample_record
+from .codec import CONVENTIONS, sample_record
+from .datasets import render_samples
 from ..runtime.process import init_worker, tune_process
 from ..runtime.progress import progress as bar
 from .recipe import Recipe

@@ -15,7 +15,7 @@
 
 Sample `index` draws its family from a generator seeded by (seed, index, "family"), then is that
 family's sample `index` (its own draws, by its own key paths); `params` holds `"family"` and the
-family's draws. Samples of different families differ in structure: `data.render_samples` renders
+family's draws. Samples of different families differ in structure: `datasets.render_samples` renders
 each structure as its own batch, so a sample's bytes do not depend on the others in its batch.
 """
 
@@ -26,8 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from .recipe import DIST_KINDS, Dist, Recipe, _check_index
 from ..schema.validate import SceneError, did_you_mean, fail, finite, known_keys
+from .distributions import DIST_KINDS, Dist, check_index
+from .recipe import RECIPE_FORMS, Recipe
 
 BUNDLED = Path(__file__).resolve().parents[2] / "datasets"
 FAMILY_KEYS = ("recipe", "weight", "name", "set")
@@ -64,9 +65,13 @@ class MixedRecipe(Recipe):
     base: Path = BUNDLED  # where family recipe names are looked up first
 
     @classmethod
-    def build(cls, data: dict, *, raw: dict, aovs: tuple[str, ...], name: str, source: Any) -> "MixedRecipe":
-        """`data`: the recipe's tables without [dataset]; `raw` its source (for meta.json); `source`
-        what Recipe.load was given (a file: families are looked up beside it)."""
+    def build(cls, data: dict, meta: Mapping, *, raw: dict, aovs: tuple[str, ...], name: str,
+              source: Any) -> "MixedRecipe":
+        """`data`: the recipe's tables without [dataset], `meta` its [dataset]; `raw` its source (for
+        meta.json); `source` what Recipe.load was given (a file: families are looked up beside it)."""
+        for key in meta:
+            if key != "aovs":
+                fail(f"dataset.{key}", meta[key], "a mixed recipe ([[families]]) takes only dataset.aovs")
         if isinstance(source, MixedRecipe):
             base = source.base
         elif isinstance(source, (str, Path)) and Path(source).is_file():
@@ -110,7 +115,7 @@ class MixedRecipe(Recipe):
                    members=members, base=base)
 
     def sample_params(self, index: int, seed: int = 0) -> dict[str, Any]:
-        _check_index(index, seed)
+        check_index(index, seed)
         family = self.dists["family"].draw(seed, index)
         return {"family": family, **self.members[family].sample_params(index, seed)}
 
@@ -124,3 +129,6 @@ class MixedRecipe(Recipe):
         out = super().describe()
         out["family_recipes"] = {label: json.loads(json.dumps(m.describe())) for label, m in self.members.items()}
         return out
+
+
+RECIPE_FORMS["families"] = MixedRecipe.build

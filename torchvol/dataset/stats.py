@@ -30,7 +30,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .datasets import decode_file
+from .codec import decode_file
 from ..schema.validate import fail
 
 EMPTY_ALPHA = 0.01  # alpha coverage and hit share under which an image shows nothing but the sky

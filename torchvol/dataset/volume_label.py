@@ -73,16 +73,6 @@ def extinction_grid(scene, resolution: int) -> tuple[Tensor, Tensor]:
     return sigma.reshape(resolution, resolution, resolution).float(), box.float()
 
 
-def encode_label(item) -> dict[str, bytes]:
-    """A sample's volume-label files: extinction.npy (N, N, N), extinction_box.npy (2, 3); none
-    without the label."""
-    from .datasets import _npy
-
-    if "extinction" not in item:
-        return {}
-    return {"extinction.npy": _npy(item["extinction"].numpy()), "extinction_box.npy": _npy(item["extinction_box"].numpy())}
-
-
 def grid_scene(scene, extinction: Tensor, box: Tensor):
     """`scene` with its volumes replaced by the label rendered back: one grid medium of density
     `extinction` (N, N, N) [k, j, i] over the box `box` (2, 3), σ_t = 1, with volumes[0]'s albedo,
