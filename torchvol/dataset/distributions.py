@@ -76,6 +76,7 @@ class Dist:
     spec: Any
 
     def sample(self, g: torch.Generator) -> Any:
+        """One value drawn from `g`: a number, a vector (list), an int or a choice's value."""
         k, s = self.kind, self.spec
         if k == "uniform":
             lo, hi, _ = s
@@ -202,47 +203,61 @@ def parse_dist(path: str, table: Mapping) -> Dist:
             fail(where, spec, "loguniform bounds must be > 0")
         return Dist(path, kind, (lo, hi, vector))
     if kind == "normal":
-        if not isinstance(spec, Mapping):
-            fail(where, spec, "expected a table { mean = m, std = s, min = lo, max = hi } (min/max optional)")
-        known_keys(where, spec, ("mean", "std", "min", "max"))
-        if "mean" not in spec or "std" not in spec:
-            fail(where, spec, "normal needs mean and std")
-        mean, std = _number(f"{where}.mean", spec["mean"]), _number(f"{where}.std", spec["std"])
-        if std < 0:
-            fail(f"{where}.std", spec["std"], "expected std >= 0")
-        lo = _number(f"{where}.min", spec["min"]) if "min" in spec else -math.inf
-        hi = _number(f"{where}.max", spec["max"]) if "max" in spec else math.inf
-        if hi < lo:
-            fail(where, spec, "expected min <= max")
-        return Dist(path, kind, (mean, std, lo, hi))
+        return Dist(path, kind, _normal(where, spec))
     if kind == "integer":
         if (not isinstance(spec, (list, tuple)) or len(spec) != 2
                 or not all(is_integer(x) for x in spec) or spec[1] < spec[0]):
             fail(where, spec, "expected [low, high] integers, low <= high (inclusive)")
         return Dist(path, kind, (int(spec[0]), int(spec[1])))
     if kind == "choice":
-        values, weights = spec, None
-        if isinstance(spec, Mapping):
-            known_keys(where, spec, ("values", "weights"))
-            values, weights = spec.get("values"), spec.get("weights")
-        if not isinstance(values, (list, tuple)) or not values:
-            fail(where, spec, "expected a non-empty list of values (or { values = [...], weights = [...] })")
-        if weights is None:
-            weights = [1.0] * len(values)
-        if (not isinstance(weights, (list, tuple)) or len(weights) != len(values)
-                or any(isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0 for w in weights)
-                or sum(weights) <= 0):
-            fail(f"{where}.weights", weights, f"expected {len(values)} finite weights >= 0, not all 0")
-        inners = []
-        for i, value in enumerate(values):
-            found: dict[str, Dist] = {}
-            find_dists(value, (f"{where}[{i}]",), found)  # full paths: errors and seeds name them
-            inners.append({full[len(where) + len(f"[{i}]"):].lstrip("."): d for full, d in found.items()})
-        return Dist(path, kind, (list(values), [float(w) for w in weights], inners))
+        return Dist(path, kind, _choice(where, spec))
     if kind == "hemisphere":
         known_keys(where, spec if isinstance(spec, Mapping) else {}, ("elevation", "azimuth"))
         return Dist(path, kind, _band(where, spec))
-    # orbit
+    return Dist(path, kind, _orbit(where, spec))
+
+
+def _normal(where: str, spec: Any) -> tuple[float, float, float, float]:
+    """A normal distribution's (mean, std, min, max), validated (min/max infinite when not given)."""
+    if not isinstance(spec, Mapping):
+        fail(where, spec, "expected a table { mean = m, std = s, min = lo, max = hi } (min/max optional)")
+    known_keys(where, spec, ("mean", "std", "min", "max"))
+    if "mean" not in spec or "std" not in spec:
+        fail(where, spec, "normal needs mean and std")
+    mean, std = _number(f"{where}.mean", spec["mean"]), _number(f"{where}.std", spec["std"])
+    if std < 0:
+        fail(f"{where}.std", spec["std"], "expected std >= 0")
+    lo = _number(f"{where}.min", spec["min"]) if "min" in spec else -math.inf
+    hi = _number(f"{where}.max", spec["max"]) if "max" in spec else math.inf
+    if hi < lo:
+        fail(where, spec, "expected min <= max")
+    return mean, std, lo, hi
+
+
+def _choice(where: str, spec: Any) -> tuple[list, list[float], list[dict[str, Dist]]]:
+    """A choice's (values, weights, the distributions inside each value by their path in it)."""
+    values, weights = spec, None
+    if isinstance(spec, Mapping):
+        known_keys(where, spec, ("values", "weights"))
+        values, weights = spec.get("values"), spec.get("weights")
+    if not isinstance(values, (list, tuple)) or not values:
+        fail(where, spec, "expected a non-empty list of values (or { values = [...], weights = [...] })")
+    if weights is None:
+        weights = [1.0] * len(values)
+    if (not isinstance(weights, (list, tuple)) or len(weights) != len(values)
+            or any(isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0 for w in weights)
+            or sum(weights) <= 0):
+        fail(f"{where}.weights", weights, f"expected {len(values)} finite weights >= 0, not all 0")
+    inners = []
+    for i, value in enumerate(values):
+        found: dict[str, Dist] = {}
+        find_dists(value, (f"{where}[{i}]",), found)  # full paths: errors and seeds name them
+        inners.append({full[len(where) + len(f"[{i}]"):].lstrip("."): d for full, d in found.items()})
+    return list(values), [float(w) for w in weights], inners
+
+
+def _orbit(where: str, spec: Any) -> tuple[list[float], tuple[float, float], tuple]:
+    """An orbit's (center [3], distance range, direction band), validated."""
     if not isinstance(spec, Mapping):
         fail(where, spec, "expected a table { center, distance, elevation, azimuth }")
     known_keys(where, spec, ("center", "distance", "elevation", "azimuth"))
@@ -255,7 +270,7 @@ def parse_dist(path: str, table: Mapping) -> Dist:
     distance = _range(f"{where}.distance", spec["distance"])
     if distance[0] <= 0:
         fail(f"{where}.distance", spec["distance"], "expected distances > 0")
-    return Dist(path, kind, (center, distance, _band(where, spec)))
+    return center, distance, _band(where, spec)
 
 
 def _is_dist(node: Any) -> bool:

@@ -115,11 +115,13 @@ class MixedRecipe(Recipe):
                    members=members, base=base)
 
     def sample_params(self, index: int, seed: int = 0) -> dict[str, Any]:
+        """Sample `index`'s `family` and that family's drawn values {key path: value}."""
         check_index(index, seed)
         family = self.dists["family"].draw(seed, index)
         return {"family": family, **self.members[family].sample_params(index, seed)}
 
     def sample_with_params(self, index: int, seed: int = 0):
+        """The scene of sample `index` (its family's) and its `sample_params`."""
         params = self.sample_params(index, seed)
         drawn = {k: v for k, v in params.items() if k != "family"}
         return self.members[params["family"]]._scene(drawn), params
