@@ -18,7 +18,7 @@ from torch import Tensor
 
 from .accumulate import Accumulator, pass_seeds
 from .aovs import AOVS, RESOLVE
-from ..schema.batch import Stacked, check_same_structure, stack, take
+from ..schema.batch import Stacked, stack, take
 from ..geometry.bounds import BOUNDS
 from ..geometry.camera import Camera, Rays
 from ..runtime.compilation import CompileMode, compile_mode, compile_settings
@@ -27,10 +27,9 @@ from ..fields.edge import EdgeField
 from .labels import per_ray as label_rays
 from ..light.lights import LIGHTS, LightSource, sun_index
 from .plan import Plan, VolumePass, make_plan
+from .prepare import prepare
 from ..post import POST, View
-from ..scene.quality import at_level
 from ..geometry.sampling import march_dither, ray_keys, subpixel_jitter
-from ..scene.model import load_scene
 from ..light.sky import SKIES, sun_glow
 from .stats import CountedField, Counts, Timer
 from ..terrain import TerrainSurface
@@ -51,7 +50,8 @@ DEFAULT_CHUNK_RAYS = 1 << 16
 @dataclass
 class RenderOutput:
     """`image`, `radiance` (B, 3, H, W); `depth`, `alpha` (B, 1, H, W); `aovs` {name: (B, C, H, W)};
-    `camera` the Camera used; `stats` {"passes", "density_evals", "time_s", ...}."""
+    `camera` the Camera used; `stats` {"passes", "density_evals", "time_s", "plan", ...};
+    `context` the render's `RenderContext` where `render(..., keep_context=True)`, else None."""
 
     image: Tensor
     radiance: Tensor
@@ -60,6 +60,7 @@ class RenderOutput:
     aovs: dict[str, Tensor]
     camera: Camera
     stats: dict
+    context: RenderContext | None = field(default=None, repr=False)  # with render(..., keep_context=True)
 
 
 @dataclass
@@ -123,6 +124,8 @@ class RenderContext:
         return state
 
     def dither(self, rays: Rays) -> Tensor | None:
+        """The march's start offset per ray [R] (`march.dither`: hashed from the seed and pixel, the
+        seeds' sin hash, or None: none)."""
         st, image = self.settings, self.batch.image
         return march_dither(rays, st.dither, scale=st.dither_scale, seeds=self.seeds, height=image.height, spp=image.spp)
 
@@ -223,7 +226,9 @@ def resolve(values: Tensor, key: str, spp: int) -> Tensor:
     return values.sum(dim=1) / (values > 0).sum(dim=1).clamp_min(1)
 
 
-def _check_arguments(scene, seed, chunk_rays, dtype, device) -> tuple[list, list[int], torch.device]:
+def check_options(*, seed, scenes: int, chunk_rays, dtype, device) -> tuple[list[int], torch.device]:
+    """Refuses render's options unless valid for a batch of `scenes` scenes -> (one seed per
+    scene, the torch device)."""
     integer("chunk_rays", chunk_rays, low=1)
     if dtype not in (None, torch.float32, torch.float64):
         fail("dtype", dtype, "expected torch.float32, torch.float64 or None (the quality level's)")
@@ -232,14 +237,10 @@ def _check_arguments(scene, seed, chunk_rays, dtype, device) -> tuple[list, list
         torch.empty(0, device=device)
     except (RuntimeError, TypeError, AssertionError) as err:
         fail("device", str(device), f"not a usable torch device here ({str(err).splitlines()[0]})")
-    scenes = [at_level(load_scene(s)) for s in (scene if isinstance(scene, (list, tuple)) else [scene])]
-    if not scenes:
-        fail("scene", scene, "expected at least one scene")
-    check_same_structure(scenes)
-    seeds = list(seed) if isinstance(seed, (list, tuple)) else [seed] * len(scenes)
-    if len(seeds) != len(scenes) or not all(is_integer(x) for x in seeds):
-        fail("seed", seed, f"expected an integer or one integer per scene ({len(scenes)})")
-    return scenes, seeds, device
+    seeds = list(seed) if isinstance(seed, (list, tuple)) else [seed] * scenes
+    if len(seeds) != scenes or not all(is_integer(x) for x in seeds):
+        fail("seed", seed, f"expected an integer or one integer per scene ({scenes})")
+    return seeds, device
 
 
 def check_aovs(aovs: Sequence[str], scene) -> None:
@@ -262,83 +263,103 @@ def render(
     compile: CompileMode | bool = "off",
     progress: Callable[[int], None] | None = None,
     aovs: Sequence[str] = (),
+    keep_context: bool = False,
 ) -> RenderOutput:
     """Render a scene (or a list of scenes of one structure, as one batch).
 
-    `scene`: a Scene, a dict, a .toml path or a preset name (or a list of those). `seed` (one int, or
-    one per scene) drives the dither and sub-pixel jitter, hashed per (seed, pixel, sample): a scene
-    renders the same, to the bit, alone or anywhere in a batch and for any chunking. `dtype`
-    defaults to the quality level's (float64 for reference). `chunk_rays` bounds peak memory.
-    `compile` ("off", "exact" or "all"; True is "all", False "off") runs kernels under
-    torch.compile: "exact" only the voxel walk, bitwise eager; "all" also the density and march
-    kernels, within ~1e-5 of eager (`torchvol.compilation`). `progress(pixels)`, where given, is called
-    after each chunk with the pixels it finished (in each of `image.passes` passes). With
-    `image.passes` > 1, `stats["accumulation"]` is the mean |change| of the blended radiance after
-    each pass after the first (`torchvol.accumulate`). `aovs` asks for the AOVs computed only on
-    request (the per-medium labels of `torchvol.labels`: optical_thickness, alpha_volumes,
-    instance, sun_visibility); the others are output wherever the scene computes them."""
-    scenes, seeds, device = _check_arguments(scene, seed, chunk_rays, dtype, device)
+    `scene`: a Scene, a dict, a .toml path or a preset name (or a list of those), or a prepared
+    `renderer.prepare.Batch` (taken as it is). `seed` (one int, or one per scene) drives the dither
+    and sub-pixel jitter, hashed per (seed, pixel, sample): a scene renders the same, to the bit,
+    alone or anywhere in a batch and for any chunking. `dtype` defaults to the quality level's
+    (float64 for reference). `chunk_rays` bounds peak memory. `compile` ("off", "exact" or "all";
+    True is "all", False "off") runs kernels under torch.compile: "exact" only the voxel walk,
+    bitwise eager; "all" also the density and march kernels, within ~1e-5 of eager
+    (`runtime.compilation`). `progress(pixels)`, where given, is called after each chunk with the
+    pixels it finished (in each of `image.passes` passes). With `image.passes` > 1,
+    `stats["accumulation"]` is the mean |change| of the blended radiance after each pass after the
+    first (`renderer.accumulate`). `aovs` asks for the AOVs computed only on request (the
+    per-medium labels of `renderer.labels`: optical_thickness, alpha_volumes, instance,
+    sun_visibility); the others are output wherever the scene computes them. `keep_context`:
+    `RenderOutput.context` holds the render's `RenderContext` (its fields and lights), for code
+    that evaluates the same scenes further (the dataset's volume labels). Every input is checked
+    here, before anything renders."""
+    batch = prepare(scene)
+    seeds, device = check_options(seed=seed, scenes=len(batch), chunk_rays=chunk_rays, dtype=dtype, device=device)
     compile = compile_mode(compile)
-    check_aovs(aovs, scenes[0])
+    check_aovs(aovs, batch.scenes[0])
     start = time.perf_counter()
-    batch = stack(scenes, dtype=torch.float64, device=device)  # the plan reads shared values only
-    plan = make_plan(batch, tuple(aovs), compile=compile, dtype=dtype, device=device)
-    dtype = plan.dtype
-    ctx = RenderContext(stack(scenes, dtype=dtype, device=device), plan, seeds=seeds, dtype=dtype, device=device,
-                        compile=compile)
-    b, h, w, spp = len(scenes), ctx.batch.image.height, ctx.batch.image.width, plan.spp
+    # the plan reads shared values only
+    plan = make_plan(stack(batch.scenes, dtype=torch.float64, device=device), tuple(aovs), compile=compile,
+                     dtype=dtype, device=device)
+    ctx = RenderContext(stack(batch.scenes, dtype=plan.dtype, device=device), plan, seeds=seeds, dtype=plan.dtype,
+                        device=device, compile=compile)
     with glue_on_one_thread() if plan.threads == "glue_on_one_thread" else nullcontext():
         with ctx.timer.section("rays"):
             camera = camera_for(ctx.batch)
-        pixels = b * h * w
-        if plan.passes > 1 and plan.settings.dither != "hash" and spp == 1:
-            fail("image.passes", plan.passes, "passes differ by their hashed march dither or sub-pixel jitter: set "
-                 "march.dither = 'hash' or image.spp > 1")
-        chunk_pixels = max(1, chunk_rays // spp)  # chunks hold whole pixels: sub-samples resolve in place
-        keys = ["radiance", "alpha", "depth"] + [a for a in plan.aovs if a != "radiance"]
-        acc = Accumulator(plan.blend, ctx.batch.image.blend_weight, h * w) if plan.passes > 1 else None
-        scene_seeds = ctx.seeds
-        for k in range(plan.passes):
-            ctx.seeds = pass_seeds(scene_seeds, k)
-            buffers = {}
-            for first in range(0, pixels, chunk_pixels):
-                last = min(pixels, first + chunk_pixels)
-                with ctx.timer.section("rays"):
-                    jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp, dtype=dtype)
-                    rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
-                with compile_settings():
-                    values = run_chunk(ctx, rays)
-                with ctx.timer.section("resolve") if spp > 1 else nullcontext():
-                    for key in keys:
-                        value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)
-                        if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
-                            buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
-                        buffers[key][:, first:last] = value.T
-                if progress is not None:
-                    progress(last - first)
-            if acc is not None:
-                with ctx.timer.section("accumulate"):
-                    acc.add(buffers)
-        if acc is not None:
-            buffers = acc.result()
+        buffers, acc = run_passes(ctx, camera, chunk_rays=chunk_rays, progress=progress)
+        b, h, w = len(batch), ctx.batch.image.height, ctx.batch.image.width
         images = {k: v.view(-1, b, h, w).transpose(0, 1).contiguous() for k, v in buffers.items()}  # no copy when b = 1
         radiance, alpha, depth = images.pop("radiance"), images.pop("alpha"), images.pop("depth")
         image = post_process(ctx, radiance, images, View(camera=camera, sun=ctx.sun(), alpha=alpha))
-    stats = {
+    stats = render_stats(ctx, acc, rays=b * h * w * plan.spp, total_s=time.perf_counter() - start)
+    return RenderOutput(image=image, radiance=radiance, depth=depth, alpha=alpha, aovs=images, camera=camera, stats=stats,
+                        context=ctx if keep_context else None)
+
+
+def run_passes(ctx: RenderContext, camera: Camera, *, chunk_rays: int,
+               progress: Callable[[int], None] | None) -> tuple[dict[str, Tensor], Accumulator | None]:
+    """Every chunk of the batch's pixels through `run_chunk`, once per accumulation pass ->
+    ({output: (C, B·H·W) float32, channel-major}, the accumulator or None)."""
+    plan = ctx.plan
+    b, h, w, spp = len(ctx.batch), ctx.batch.image.height, ctx.batch.image.width, plan.spp
+    pixels = b * h * w
+    chunk_pixels = max(1, chunk_rays // spp)  # chunks hold whole pixels: sub-samples resolve in place
+    keys = ["radiance", "alpha", "depth"] + [a for a in plan.aovs if a != "radiance"]
+    acc = Accumulator(plan.blend, ctx.batch.image.blend_weight, h * w) if plan.passes > 1 else None
+    scene_seeds = ctx.seeds
+    for k in range(plan.passes):
+        ctx.seeds = pass_seeds(scene_seeds, k)
+        buffers: dict[str, Tensor] = {}
+        for first in range(0, pixels, chunk_pixels):
+            last = min(pixels, first + chunk_pixels)
+            with ctx.timer.section("rays"):
+                jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp,
+                                         dtype=ctx.dtype)
+                rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
+            with compile_settings():
+                values = run_chunk(ctx, rays)
+            with ctx.timer.section("resolve") if spp > 1 else nullcontext():
+                for key in keys:
+                    value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)
+                    if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
+                        buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
+                    buffers[key][:, first:last] = value.T
+            if progress is not None:
+                progress(last - first)
+        if acc is not None:
+            with ctx.timer.section("accumulate"):
+                acc.add(buffers)
+    return (acc.result() if acc is not None else buffers), acc
+
+
+def render_stats(ctx: RenderContext, acc: Accumulator | None, *, rays: int, total_s: float) -> dict:
+    """What the render records (`RenderOutput.stats`): the passes that ran and their times, the
+    plan's decisions (`Plan.summary`), density evaluations, march steps and the render's counts."""
+    plan = ctx.plan
+    return {
         "passes": list(ctx.timer.seconds),
         "plan": plan.summary(),
         "density_evals": ctx.counts.density_evals,
         "time_s": dict(ctx.timer.seconds),
-        "total_s": time.perf_counter() - start,
-        "rays": pixels * spp,
+        "total_s": total_s,
+        "rays": rays,
         "march_steps": ctx.counts.march_steps,
         "truncated_rays": ctx.counts.truncated_rays,
         **({"error_estimate": ctx.counts.error_estimate} if plan.settings.tolerance is not None else {}),
         **({"voxel_steps": ctx.surface.steps_total} if plan.voxels is not None else {}),
         **({"accumulation": acc.changes} if acc is not None else {}),
-        "dtype": str(dtype).removeprefix("torch."),
+        "dtype": str(ctx.dtype).removeprefix("torch."),
     }
-    return RenderOutput(image=image, radiance=radiance, depth=depth, alpha=alpha, aovs=images, camera=camera, stats=stats)
 
 
 def post_process(ctx: RenderContext, radiance: Tensor, aovs: dict[str, Tensor], view: View) -> Tensor:

@@ -58,6 +58,7 @@ class LightPass:
     terrain: bool = False
 
     def names(self) -> list[str]:
+        """Its passes in `stats`: its own, then one per occluding volume and the terrain."""
         if self.name is None:
             return []
         return [self.name] + [f"{self.name}.volume{j}" for j in self.occluders] + ([f"{self.name}.terrain"] if self.terrain else [])
@@ -83,21 +84,26 @@ class VolumePass:
 
     @property
     def step_pass(self) -> str:
+        """The name of its integration pass: `volume{i}.closed_form` or `volume{i}.march`."""
         return f"{self.name}.closed_form" if self.strategy == "closed_form" else f"{self.name}.march"
 
     @property
     def skip_pass(self) -> str:
+        """The name of its empty-space skipping pass."""
         return f"{self.name}.skip"
 
     @property
     def emission_pass(self) -> str:
+        """The name of its emission colour map's pass."""
         return f"{self.name}.emission_map"
 
     @property
     def bloom_pass(self) -> str:
+        """The name of its bloom (the glow around a point light) pass."""
         return f"{self.name}.bloom"
 
     def names(self) -> list[str]:
+        """Its passes in `stats`, in the order they first run."""
         own = ([self.emission_pass] if self.emission_map is not None else []) + ([self.bloom_pass] if self.bloom is not None else [])
         own += [n for li in self.lights for n in li.names()] + ([self.ambient_pass] if self.ambient_pass else [])
         return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
@@ -120,6 +126,7 @@ class VoxelPass:
     reflections: int = 0  # bounces of mirror reflection rays (voxels.reflections)
 
     def names(self) -> list[str]:
+        """The voxel surface's passes in `stats`, in the order they first run."""
         return (["voxels.dda"] + (["voxels.fog"] if self.fog else []) + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
                 + (["voxels.ao"] if self.ao else [])
                 + (["voxels.gi.mips", "voxels.gi.cones"] if self.cone else ["voxels.gi"] if self.gi else [])
@@ -132,6 +139,7 @@ class TerrainPass:
     shadows: tuple[LightPass, ...]  # one per light that casts shadows, seeing the terrain and every volume
 
     def names(self) -> list[str]:
+        """The terrain's passes in `stats`: trace, shade, then each light's shadow."""
         return ["terrain.trace", "terrain.shade"] + [n for li in self.shadows for n in li.names()]
 
 
