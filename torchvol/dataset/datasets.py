@@ -18,17 +18,16 @@ from typing import Any, Literal, Mapping, Sequence
 import torch
 from torch.utils.data import Dataset
 
-from ..schema.batch import structure_key
 from ..runtime.compilation import CompileMode, auto_mode, compile_mode
 from ..runtime.process import tune_process
 from ..renderer.plan import batch_mode
-from ..scene.quality import at_level
+from ..renderer.prepare import group
 from ..schema.validate import fail, integer, is_integer
 from .codec import decode_file
 from .distributions import mix_seed
 from .recipe import Recipe, render_seed
 from .views import sample_params, stack_views, view_params
-from .volume_label import extinction_grid
+from .volume_label import check_scene, extinction_of
 
 
 def epoch_seed(seed: int, epoch: int | None) -> int:
@@ -56,29 +55,25 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     else:  # (a mixed recipe's samples come from their family's recipe)
         drawn = [recipe.sample_with_params(int(i), seed) for i in indices]
         scenes, params = [[scene] for scene, _ in drawn], [p for _, p in drawn]
-    # every view or frame of every sample of one structure goes in one batch
-    groups: dict[tuple, list[tuple[int, int]]] = {}
-    for k, views in enumerate(scenes):
-        for v, scene in enumerate(views):
-            groups.setdefault(structure_key(at_level(scene)), []).append((k, v))
+    if recipe.volume_label is not None:  # refused before anything renders
+        for views in scenes:
+            check_scene(views[0], recipe.volume_label)
+    # every view or frame of every sample of one structure goes in one batch, levelled and keyed once
+    flat = [(k, v) for k, views in enumerate(scenes) for v in range(len(views))]
     rendered: list[list[dict | None]] = [[None] * len(views) for views in scenes]
-    for group in groups.values():
-        first = scenes[group[0][0]][group[0][1]]
-        out = render([scenes[k][v] for k, v in group], seed=[render_seed(int(indices[k]), seed) for k, _ in group],
-                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs, compile=batch_mode(compile, first))
-        for b, (k, v) in enumerate(group):
-            missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
-            if missing:
-                fail("dataset.aovs", missing, f"this scene does not compute them; it gives: {sorted(out.aovs) + ['radiance']}")
-            extra = {a: (out.radiance if a == "radiance" else out.aovs[a])[b].float().contiguous() for a in aovs}
-            rendered[k][v] = {
-                "image": out.image[b].float().contiguous(),
-                "depth": out.depth[b].float().contiguous(),
-                "alpha": out.alpha[b].float().contiguous(),
-                "K": out.camera.K[b].float().contiguous(),
-                "world_to_camera": out.camera.world_to_camera[b].float().contiguous(),
-                **extra,
-            }
+    labels: list[tuple | None] = [None] * len(scenes)
+    for positions, batch in group([scenes[k][v] for k, v in flat]):
+        members = [flat[i] for i in positions]
+        out = render(batch, seed=[render_seed(int(indices[k]), seed) for k, _ in members],
+                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs, compile=batch_mode(compile, batch.scenes[0]),
+                     keep_context=recipe.volume_label is not None)
+        missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
+        if missing:
+            fail("dataset.aovs", missing, f"this scene does not compute them; it gives: {sorted(out.aovs) + ['radiance']}")
+        for b, (k, v) in enumerate(members):
+            rendered[k][v] = sample_tensors(out, b, aovs)
+            if v == 0 and recipe.volume_label is not None:  # from the render's own fields
+                labels[k] = extinction_of(out.context, b, recipe.volume_label)
     items = []
     for k, views in enumerate(rendered):
         tensors = stack_views(views)
@@ -86,10 +81,24 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
         item.update(index=int(indices[k]), seed=int(seed), params=params[k], **tensors)
         if recipe.sequence is not None:
             add_flow(item)
-        if recipe.volume_label is not None:
-            item["extinction"], item["extinction_box"] = extinction_grid(scenes[k][0], recipe.volume_label)
+        if labels[k] is not None:
+            item["extinction"], item["extinction_box"] = labels[k]
         items.append(item)
     return items
+
+
+def sample_tensors(out, b: int, aovs: Sequence[str]) -> dict[str, torch.Tensor]:
+    """Scene `b` of a render's output `out` as a sample's tensors: image (3, H, W), depth and alpha
+    (1, H, W), K (3, 3), world_to_camera (4, 4) and the AOVs `aovs` (C, H, W), float32, contiguous."""
+    extra = {a: (out.radiance if a == "radiance" else out.aovs[a])[b].float().contiguous() for a in aovs}
+    return {
+        "image": out.image[b].float().contiguous(),
+        "depth": out.depth[b].float().contiguous(),
+        "alpha": out.alpha[b].float().contiguous(),
+        "K": out.camera.K[b].float().contiguous(),
+        "world_to_camera": out.camera.world_to_camera[b].float().contiguous(),
+        **extra,
+    }
 
 
 class SceneDataset(Dataset):

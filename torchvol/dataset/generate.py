@@ -116,6 +116,8 @@ def run_task(task: Task) -> list[int]:
 
 
 def plan_tasks(recipe: Recipe, *, count: int, seed: int, out: Path, layout: Layout, batch: int, shard_size: int) -> list[Task]:
+    """The dataset's work as tasks in index order: a batch of `batch` samples each (folder), or a
+    shard of `shard_size` samples each (webdataset)."""
     size = shard_size if layout == "webdataset" else batch
     return [Task(recipe, seed, tuple(range(s, min(count, s + size))), str(out), layout, batch, k)
             for k, s in enumerate(range(0, count, size))]
@@ -179,34 +181,8 @@ def generate(
     compile = compile_mode(compile, auto=True)
     recipe = Recipe.load(recipe, overrides)
     out = Path(out)
-    meta = {
-        "format": "torchvol-dataset",
-        "version": 2,  # 2: AOVs in compressed .npz (1: float32 .npy)
-        "layout": layout,
-        "count": count,
-        "seed": seed,
-        "shard_size": shard_size if layout == "webdataset" else None,
-        "aovs": list(recipe.aovs),
-        "recipe": recipe.describe(),
-        "conventions": CONVENTIONS,
-        **({"frames": recipe.sequence.frames, "sequence": SEQUENCE_CONVENTIONS} if recipe.sequence else {}),
-        **dataset_meta(recipe),
-        # only where the bytes differ from eager's; absent otherwise: older datasets keep their meta bytes
-        **({"compiled": True} if compile == "all" else {}),
-    }
-    meta_bytes = json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
-    if (out / "meta.json").is_file():
-        if (out / "meta.json").read_bytes() != meta_bytes:
-            fail("out", str(out), "holds a dataset made with other settings (recipe, seed, count, layout, "
-                 "shard size or compile); use a new folder")
-    elif out.exists() and any(out.iterdir()):
-        fail("out", str(out), "exists and is not a torchvol dataset; use a new or empty folder")
-    sub = out / ("samples" if layout == "folder" else "shards")
-    sub.mkdir(parents=True, exist_ok=True)
-    for stale in list(sub.glob(".*.tmp")) + list(out.glob(".*.tmp")):
-        stale.unlink()  # temporaries of a killed run: never visible as data, removed before resuming
-    atomic_write(out / "meta.json", meta_bytes)
-
+    open_dataset(out, dataset_meta_bytes(recipe, count=count, seed=seed, layout=layout, shard_size=shard_size,
+                                         compile=compile), layout)
     tasks = plan_tasks(recipe, count=count, seed=seed, out=out, layout=layout, batch=batch, shard_size=shard_size)
     done = sum(_finished(t) for t in tasks)
     # "auto": from each worker's share of what is still to render (a resumed run: of what is left)
@@ -223,6 +199,44 @@ def generate(
                 return {"written": written, "count": count, "out": str(out), "finished": False}
     atomic_write(out / "manifest.jsonl", _manifest(out, layout, count))
     return {"written": written, "count": count, "out": str(out), "finished": True}
+
+
+def dataset_meta_bytes(recipe: Recipe, *, count: int, seed: int, layout: Layout, shard_size: int, compile: str) -> bytes:
+    """meta.json's bytes for a dataset of `count` samples of `recipe`: what a resumed run must
+    match exactly (recipe, seed, count, layout, shard size, conventions, compile where it changes bytes)."""
+    meta = {
+        "format": "torchvol-dataset",
+        "version": 2,  # 2: AOVs in compressed .npz (1: float32 .npy)
+        "layout": layout,
+        "count": count,
+        "seed": seed,
+        "shard_size": shard_size if layout == "webdataset" else None,
+        "aovs": list(recipe.aovs),
+        "recipe": recipe.describe(),
+        "conventions": CONVENTIONS,
+        **({"frames": recipe.sequence.frames, "sequence": SEQUENCE_CONVENTIONS} if recipe.sequence else {}),
+        **dataset_meta(recipe),
+        # only where the bytes differ from eager's; absent otherwise: older datasets keep their meta bytes
+        **({"compiled": True} if compile == "all" else {}),
+    }
+    return json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
+
+
+def open_dataset(out: Path, meta_bytes: bytes, layout: Layout) -> None:
+    """Makes `out` ready to (re)write: a new dataset's folders and meta.json, or the same dataset
+    resumed (its meta.json byte-equal to `meta_bytes`, a killed run's temporaries removed); refuses
+    a folder that holds something else."""
+    if (out / "meta.json").is_file():
+        if (out / "meta.json").read_bytes() != meta_bytes:
+            fail("out", str(out), "holds a dataset made with other settings (recipe, seed, count, layout, "
+                 "shard size or compile); use a new folder")
+    elif out.exists() and any(out.iterdir()):
+        fail("out", str(out), "exists and is not a torchvol dataset; use a new or empty folder")
+    sub = out / ("samples" if layout == "folder" else "shards")
+    sub.mkdir(parents=True, exist_ok=True)
+    for stale in list(sub.glob(".*.tmp")) + list(out.glob(".*.tmp")):
+        stale.unlink()  # temporaries of a killed run: never visible as data, removed before resuming
+    atomic_write(out / "meta.json", meta_bytes)
 
 
 def _execute(tasks: list[Task], *, workers: int, threads: int | None, scheduler: str | None):

@@ -180,11 +180,13 @@ def markdown(stats: dict) -> str:
 
 
 def table_header() -> str:
+    """The header of `table`'s Markdown table (two lines)."""
     return ("| recipe | images | empty % | saturated % | mean radiance | alpha coverage | hit share | flagged |\n"
             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
 
 
 def table_row(stats: dict) -> str:
+    """One dataset's row of `table`, from its `stats` (`dataset_stats`'s summary and warnings)."""
     s = stats["summary"]
     return (f"| {stats['recipe']} | {s['images']} | {100 * s['empty_share']:.1f} | {100 * s['saturated_share']:.1f} | "
             f"{s['mean_radiance']:.3f} | {s['alpha_coverage']:.3f} | {s['hit_share']:.3f} | "

@@ -6,7 +6,7 @@ volumes' bounding boxes). Index [k, j, i] is the centre of cell (i, j, k), i alo
 along z: the convention of grid media (`fields/grid.py`), so the label renders back as
 `density = { grid = { data = extinction } }` with `sigma_t = 1` over `bounds = { box = ... }`.
 
-The densities come from the renderer's own fields (`render.RenderContext`: the field classes, the
+The densities come from the renderer's own fields (`renderer.executor.RenderContext`: the field classes, the
 `edge` fade, the scene's `time`, the quality level's dtype), evaluated at full detail (no `march.lod`)
 and masked to each volume's bounds, as the march sees them. A volume with unbounded bounds (a slab)
 has no box: refused.
@@ -47,25 +47,34 @@ def check_scene(scene, resolution: int) -> None:
 
 def extinction_grid(scene, resolution: int) -> tuple[Tensor, Tensor]:
     """(`extinction` (N, N, N) float32 [k, j, i], `extinction_box` (2, 3) float32) of one scene
-    (a Scene, dict, path or preset name) at its `time`."""
-    from ..schema.batch import stack, take
-    from ..renderer.plan import make_plan
-    from ..scene.quality import at_level
+    (a Scene, dict, path or preset name) at its `time`, from a render context of its own (the
+    dataset takes the label from its render's context instead: `extinction_of`)."""
     from ..renderer.executor import RenderContext
-    from ..scene.model import load_scene
+    from ..renderer.plan import make_plan
+    from ..renderer.prepare import prepare
+    from ..schema.batch import stack
 
-    scene = at_level(load_scene(scene))
-    check_scene(scene, resolution)
-    plan = make_plan(stack([scene], dtype=torch.float64))
-    dtype = plan.settings.dtype
-    ctx = RenderContext(stack([scene], dtype=dtype), plan, seeds=[0], dtype=dtype, device="cpu", compile="off")
-    boxes = torch.stack([torch.cat(vol.bounds.caps["aabb"](vol.params.bounds.value)) for vol in ctx.volumes])  # (volumes, 2, 3)
+    batch = prepare(scene)
+    check_scene(batch.scenes[0], resolution)
+    plan = make_plan(stack(batch.scenes, dtype=torch.float64))
+    ctx = RenderContext(stack(batch.scenes, dtype=plan.dtype), plan, seeds=[0], dtype=plan.dtype, device="cpu",
+                        compile="off")
+    return extinction_of(ctx, 0, resolution)
+
+
+def extinction_of(ctx, b: int, resolution: int) -> tuple[Tensor, Tensor]:
+    """`extinction_grid` of scene `b` of a render's context `ctx` (`RenderContext`: its volumes'
+    fields, bounds and σ_t, in its dtype): (N, N, N) float32 [k, j, i] and its box (2, 3) float32."""
+    from ..schema.batch import take
+
+    boxes = torch.stack([torch.cat([c[b:b + 1] for c in vol.bounds.caps["aabb"](vol.params.bounds.value)])
+                         for vol in ctx.volumes])  # (volumes, 2, 3)
     box = torch.stack([boxes[:, 0].amin(0), boxes[:, 1].amax(0)])  # the union: (2, 3) min, max
     points = cell_centres(box[0], box[1], resolution)
-    sigma = torch.zeros(points.shape[0], dtype=dtype)
+    sigma = torch.zeros(points.shape[0], dtype=ctx.dtype)
     for first in range(0, points.shape[0], CHUNK_POINTS):
         p = points[first:first + CHUNK_POINTS]
-        s = torch.zeros(p.shape[0], dtype=torch.long)
+        s = torch.full((p.shape[0],), b, dtype=torch.long)
         for vol in ctx.volumes:
             inside = vol.bounds.caps["depth"](vol.params.bounds.value, p, s) >= 0
             value = take(vol.params.sigma_t, s) * vol.field(p, s)
