@@ -16,10 +16,10 @@ import torch
 from pydantic import BaseModel
 
 import torchvol as tv
+from torchvol.scene.model import Scene
+from torchvol.scene.quality import at_level
 from torchvol.schema.batch import check_same_structure, field_role, structure_key
 from torchvol.schema.keypath import lookup, path_str, set_path
-from torchvol.scene.quality import at_level
-from torchvol.scene.model import Scene
 from torchvol.schema.models import EACH, SHARED, reachable_models
 
 pytestmark = pytest.mark.slow

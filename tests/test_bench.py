@@ -7,10 +7,10 @@ import torch
 from PIL import Image
 
 import torchvol as tv
-from torchvol.measure.bench_accuracy import FIXED_STEPS, TECHNIQUES, accuracy
 from torchvol.cli import main
-from torchvol.scene.quality import QUALITY, at_level, march_settings
+from torchvol.measure.bench_accuracy import FIXED_STEPS, TECHNIQUES, accuracy
 from torchvol.measure.reference import BOUND_FLOOR, at_quality, image_error
+from torchvol.scene.quality import QUALITY, at_level, march_settings
 
 PHYSICAL = {  # a shadowed fbm cloud filling the frame (no silhouette: level errors are march errors)
     "image": {"width": 6, "height": 4},

@@ -2,8 +2,8 @@
 
 import pytest
 
-from torchvol.measure import bench_speed
 from torchvol.cli import build_parser
+from torchvol.measure import bench_speed
 
 
 def test_cli_parses_bench_speed():

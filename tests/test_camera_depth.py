@@ -12,11 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import assert_close
 from kornia.geometry.depth import depth_to_3d, depth_to_3d_v2
 
 import torchvol as tv
-
-from conftest import assert_close
 
 SIGMA = 1e4
 

@@ -9,12 +9,12 @@ import pytest
 import torch
 
 import torchvol as tv
-from torchvol.runtime import compilation
-from torchvol.dataset import datasets as data
 from torchvol.cli import build_parser
-from torchvol.runtime.compilation import AUTO_COMPILE_SAMPLES, auto_mode, compile_mode
-from torchvol.renderer.plan import batch_mode
+from torchvol.dataset import datasets as data
 from torchvol.dataset.generate import generate
+from torchvol.renderer.plan import batch_mode
+from torchvol.runtime import compilation
+from torchvol.runtime.compilation import AUTO_COMPILE_SAMPLES, auto_mode, compile_mode
 
 DATASETS = Path(__file__).resolve().parents[1] / "datasets"
 TINY = {"image.width": 6, "image.height": 4}

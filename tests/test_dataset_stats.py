@@ -11,8 +11,8 @@ import pytest
 from PIL import Image
 
 from torchvol.cli import main
-from torchvol.dataset.stats import dataset_stats, image_stats, param_distributions
 from torchvol.dataset.generate import generate
+from torchvol.dataset.stats import dataset_stats, image_stats, param_distributions
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "datasets" / "clouds.toml"

@@ -3,12 +3,12 @@ its statistics against the table hash's, the compiled kernel against its eager t
 
 import pytest
 import torch
+from conftest import assert_close
 
 import torchvol as tv
-from torchvol.noise import fast as fastnoise, lattice as noise
+from torchvol.noise import fast as fastnoise
+from torchvol.noise import lattice as noise
 from torchvol.renderer.plan import compile_pays
-
-from conftest import assert_close
 
 
 def _points(n: int, seed: int = 0, dtype=torch.float32) -> torch.Tensor:
@@ -141,9 +141,9 @@ def test_compiled_fbm_field_matches_eager_field():
     under compile) against FbmField's eager code, two scenes of another seed, frequency, offset and
     falloff in one batch, with and without LOD: within 1e-5 (density values up to ~10); bitwise the
     values of a scene alone."""
-    from torchvol.schema.batch import stack
     from torchvol.fields.fbm import FbmField
     from torchvol.scene.model import load_scene
+    from torchvol.schema.batch import stack
 
     scenes = []
     for seed, freq, radial in ((3, 2.2, 2.4), (77, 1.7, 0.0)):

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchvol.noise.lattice import default_noise_texture, fbm, texture_noise
 from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.noise.lattice import default_noise_texture, fbm, texture_noise
 
 pytestmark = [
     pytest.mark.gl,

@@ -10,9 +10,9 @@ import torch
 from conftest import assert_close
 
 import torchvol as tv
-from torchvol.schema.batch import stack
 from torchvol.geometry.camera import Camera
 from torchvol.post import View, god_rays, sun_on_screen
+from torchvol.schema.batch import stack
 
 SCENE = {
     "image": {"width": 15, "height": 11},
@@ -151,8 +151,8 @@ void mainImage(out vec4 fragColor, in vec2 fragCoord) {
 
 @pytest.mark.parametrize("center", [(9.3, 6.7), (-20.0, 30.5)])
 def test_radial_blur_matches_gpu_gems_glsl_on_llvmpipe(center):
-    from torchvol.post import radial_blur
     from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
+    from torchvol.post import radial_blur
 
     if gl_context() is None:
         pytest.skip("no OpenGL (moderngl/EGL) context")

@@ -12,8 +12,8 @@ import torch
 
 import torchvol as tv
 from torchvol.light.lights import POINT_RADIUS, Point, point_toward
-from torchvol.schema.batch import stack
 from torchvol.light.phase import henyey_greenstein
+from torchvol.schema.batch import stack
 
 F64 = torch.float64
 SIGMA, ALBEDO, G, INTENSITY = 1.5, 0.8, 0.4, 2.0

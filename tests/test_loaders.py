@@ -10,8 +10,8 @@ import pytest
 import torch
 
 import torchvol as tv
-from torchvol.renderer.aovs import AOVS
 from torchvol.dataset.generate import generate
+from torchvol.renderer.aovs import AOVS
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "datasets" / "clouds.toml"

@@ -6,7 +6,13 @@ reference must sit at its own noise level (measured ~2.8% at 32×32) and its mea
 import pytest
 
 import torchvol as tv
-from torchvol.measure.mitsuba import puff_grid, relative_rmse, render_mitsuba, sigma_for, torchvol_scene
+from torchvol.measure.mitsuba import (
+    puff_grid,
+    relative_rmse,
+    render_mitsuba,
+    sigma_for,
+    torchvol_scene,
+)
 
 mi = pytest.importorskip("mitsuba")
 

@@ -7,13 +7,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchvol.schema.batch import structure_key
 from torchvol.dataset.codec import encode_sample
 from torchvol.dataset.datasets import render_samples
 from torchvol.dataset.generate import generate
 from torchvol.dataset.mix import MixedRecipe
-from torchvol.scene.quality import at_level
 from torchvol.dataset.recipe import Recipe
+from torchvol.scene.quality import at_level
+from torchvol.schema.batch import structure_key
 
 ROOT = Path(__file__).resolve().parents[1]
 MIXED = ROOT / "datasets" / "mixed.toml"

@@ -2,10 +2,10 @@
 
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import assert_close
 from torchvol.noise import lattice as noise
 from torchvol.noise.lattice import (
     compiled_noise,

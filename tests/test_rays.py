@@ -7,7 +7,12 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from torchvol.geometry.rays import clip_to_ray, intersect_box, intersect_slab, intersect_sphere
+from torchvol.geometry.rays import (
+    clip_to_ray,
+    intersect_box,
+    intersect_slab,
+    intersect_sphere,
+)
 
 DTYPES = [torch.float32, torch.float64]
 INF = float("inf")

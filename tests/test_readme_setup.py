@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from test_docs import ROOT, SHELL, blocks, scratch
 
 NESTED = "TORCHVOL_README_SETUP"  # set in the clone's test run: the test never runs itself again

@@ -138,12 +138,12 @@ def _techniques(scene) -> set[str]:
 def test_every_technique_is_reachable_from_a_bundled_recipe():
     """The registries' kinds (and the voxel and post variants) each appear in some bundled recipe's
     draws: the audit table of docs/DATASETS.md."""
-    from torchvol.geometry.bounds import BOUNDS
     from torchvol.fields import DENSITIES
+    from torchvol.geometry.bounds import BOUNDS
     from torchvol.light.lights import LIGHTS
+    from torchvol.light.phase import PHASES
     from torchvol.light.sky import SKIES
     from torchvol.volume.emission import EMISSION_MAPS
-    from torchvol.light.phase import PHASES
     from torchvol.volume.shading import SHADINGS
 
     seen: set[str] = set()

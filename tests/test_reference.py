@@ -5,8 +5,6 @@ import importlib
 import pytest
 import torch
 
-from torchvol.scene.quality import QUALITY
-from torchvol.scene.presets import preset_dict
 from torchvol.measure.reference import (
     BOUND_FLOOR,
     FLOAT32_MIN_TOLERANCE,
@@ -15,6 +13,8 @@ from torchvol.measure.reference import (
     rung_scene,
     rung_tolerance,
 )
+from torchvol.scene.presets import preset_dict
+from torchvol.scene.quality import QUALITY
 
 PUFF = preset_dict("cloud-puff", width=16, height=12)
 

@@ -3,8 +3,8 @@
 import math
 
 import torch
-
 from conftest import assert_close
+
 from torchvol.geometry import sdf
 
 

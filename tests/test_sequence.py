@@ -12,16 +12,16 @@ from pathlib import Path
 
 import pytest
 import torch
-from hypothesis import given, settings, strategies as st
+from conftest import assert_close
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from kornia.geometry.transform import remap
 
 import torchvol as tv
-from torchvol.geometry.camera import Camera
 from torchvol.dataset.datasets import render_samples
 from torchvol.dataset.flow import flow_from_depth
 from torchvol.dataset.generate import generate
-
-from conftest import assert_close
+from torchvol.geometry.camera import Camera
 
 ROOT = Path(__file__).resolve().parents[1]
 CLOUDS = ROOT / "datasets" / "cloud-sequence.toml"

@@ -2,9 +2,9 @@
 
 import pytest
 import torch
+from conftest import assert_close
 
 import torchvol as tv
-from conftest import assert_close
 from torchvol.light import sky
 
 

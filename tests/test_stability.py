@@ -9,13 +9,12 @@ import math
 
 import pytest
 import torch
+from conftest import TOL, assert_close
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol.volume.march import StepRule, march
-
-from conftest import TOL, assert_close
 
 SIGMAS = [0.0, 1e-12, 1e-3, 1e3, 1e7]
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)

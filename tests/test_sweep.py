@@ -10,7 +10,13 @@ from PIL import Image
 
 from torchvol.cli import main
 from torchvol.measure.reference import BOUND_FLOOR, reference_overrides
-from torchvol.measure.sweep import MEASURED, is_approximation, split_values, sweep, verdict
+from torchvol.measure.sweep import (
+    MEASURED,
+    is_approximation,
+    split_values,
+    sweep,
+    verdict,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--set", "image.width=16", "--set", "image.height=12"]

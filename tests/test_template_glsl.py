@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import torchvol as tv
-from torchvol.noise import lattice as noise
 from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.noise import lattice as noise
 
 pytestmark = [
     pytest.mark.gl,

@@ -8,18 +8,17 @@ import math
 
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from kornia.geometry.depth import depth_to_3d_v2
 
 import torchvol as tv
 from torchvol import terrain as T
-from torchvol.schema.batch import stack
 from torchvol.fields import DENSITIES
 from torchvol.renderer.plan import make_plan
+from torchvol.schema.batch import stack
 from torchvol.terrain import Terrain
-
-from conftest import assert_close
 
 
 def _stacked(dtype=torch.float64, **terrain) -> object:

@@ -13,11 +13,11 @@ from kornia.geometry.depth import depth_to_3d_v2
 
 import torchvol as tv
 from torchvol.dataset.datasets import collate, render_samples
-from torchvol.fields.grid import sample_grid
 from torchvol.dataset.generate import generate
 from torchvol.dataset.recipe import render_seed
 from torchvol.dataset.views import view_params
 from torchvol.dataset.volume_label import extinction_grid, grid_scene
+from torchvol.fields.grid import sample_grid
 
 ROOT = Path(__file__).resolve().parents[1]
 CLOUDS = ROOT / "datasets" / "clouds.toml"

@@ -20,8 +20,8 @@ from pathlib import Path
 import torch
 
 import torchvol as tv
-from torchvol.scene.presets import preset_dict
 from torchvol.measure.reference import Ladder, image_error
+from torchvol.scene.presets import preset_dict
 
 
 def timed(data: dict, overrides: dict, repeat: int):

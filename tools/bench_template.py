@@ -18,8 +18,8 @@ import platform
 import torch
 
 from torchvol.measure.bench_speed import time_llvmpipe, time_render
-from torchvol.scene.model import preset
 from torchvol.measure.glsl import renderer_name
+from torchvol.scene.model import preset
 
 
 def time_torchvol(width: int, height: int, *, compile: bool, repeat: int) -> tuple[float, int]:

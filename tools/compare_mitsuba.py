@@ -42,8 +42,7 @@ import numpy as np
 import torch
 
 import torchvol as tv
-from torchvol.schema.batch import stack
-from torchvol.renderer.executor import camera_for
+from torchvol.light.phase import henyey_greenstein
 from torchvol.measure.mitsuba import (
     IRRADIANCE,
     SUN,
@@ -54,8 +53,9 @@ from torchvol.measure.mitsuba import (
     sigma_for,
     torchvol_scene,
 )
+from torchvol.renderer.executor import camera_for
+from torchvol.schema.batch import stack
 from torchvol.volume.exact import grid_single_scatter
-from torchvol.light.phase import henyey_greenstein
 
 F64 = torch.float64
 

@@ -7,7 +7,7 @@ The tuning that helps a rendering process is one call, `tune_process` (torchvol.
 
 import importlib
 
-from .version import __version__
+from .version import __version__ as __version__  # the one version, below every layer
 
 # each public name -> the module that defines it, imported on first access
 PUBLIC = {

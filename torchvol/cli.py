@@ -74,8 +74,8 @@ def write_depth_png(path: Path, depth: np.ndarray) -> None:
 def cmd_render(args: argparse.Namespace) -> int:
     """`torchvol render`: one scene to FILE.png, FILE_depth.png and with --npy its arrays;
     prints what it wrote as JSON. -> 0."""
-    from .runtime.progress import progress
     from .renderer.executor import render
+    from .runtime.progress import progress
     from .scene.model import load_scene, preset
 
     overrides = _pairs(args.set, "--set")
@@ -117,8 +117,8 @@ COMPILE_HINT_COUNT = 64  # past this many samples, compiling (about 10 s a worke
 def compile_hint(recipe, *, overrides, seed: int, count: int) -> str | None:
     """The note `generate` prints when a large eager run's scenes take the compiled fast path
     (opt-in: compiled samples are not bitwise `SceneDataset`'s)."""
-    from .renderer.plan import compile_pays
     from .dataset.recipe import Recipe
+    from .renderer.plan import compile_pays
 
     if count < COMPILE_HINT_COUNT or not compile_pays(Recipe.load(recipe, overrides).sample_with_params(0, seed)[0]):
         return None

@@ -21,8 +21,8 @@ from torch import Tensor
 
 from .geometry.camera import Camera
 from .ops.mathops import pow_, smoothstep
-from .schema.registry import Registry
 from .schema.models import Strict, Vec3, nonneg
+from .schema.registry import Registry
 
 
 class Fog(Strict):

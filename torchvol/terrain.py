@@ -24,10 +24,10 @@ import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from .noise import lattice as noise
-from .schema.batch import Stacked, per_scene, take
 from .geometry.rays import clip_to_ray, intersect_slab
 from .geometry.surface_hit import SurfaceHit
+from .noise import lattice as noise
+from .schema.batch import Stacked, per_scene, take
 from .schema.models import EACH, Strict, Vec3, nonneg
 
 

@@ -18,13 +18,12 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import TOL, assert_close
 
 import torchvol as tv
 from torchvol.geometry.camera import Camera
 from torchvol.geometry.rays import clip_to_ray, intersect_box, intersect_sphere
 from torchvol.volume.march import StepRule, march
-
-from conftest import TOL, assert_close
 
 F32, F64 = torch.float32, torch.float64
 LN2 = math.log(2.0)

@@ -7,14 +7,11 @@ import math
 
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from conftest import assert_close
-from torchvol.schema.batch import stack
-from torchvol.renderer.plan import make_plan
-from torchvol.measure.glsl import gl_context, run_fragment
 from torchvol.light.atmosphere import (
     AtmosphereMedium,
     aerial_perspective,
@@ -23,6 +20,9 @@ from torchvol.light.atmosphere import (
     single_scatter,
     sun_path,
 )
+from torchvol.measure.glsl import gl_context, run_fragment
+from torchvol.renderer.plan import make_plan
+from torchvol.schema.batch import stack
 
 F64 = torch.float64
 EARTH = AtmosphereMedium()  # Earth's air in metres

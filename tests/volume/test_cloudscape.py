@@ -8,17 +8,22 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.noise import lattice as noise, tiles as noise_tiles
-from torchvol.schema.batch import stack
-from torchvol.fields.cloudscape import CLOUD_TYPES, Cloudscape, CloudscapeDensity, height_gradient
-from torchvol.renderer.plan import make_plan
+from torchvol.fields.cloudscape import (
+    CLOUD_TYPES,
+    Cloudscape,
+    CloudscapeDensity,
+    height_gradient,
+)
 from torchvol.light.phase import dual_henyey_greenstein
-
-from conftest import assert_close
+from torchvol.noise import lattice as noise
+from torchvol.noise import tiles as noise_tiles
+from torchvol.renderer.plan import make_plan
+from torchvol.schema.batch import stack
 
 F64 = torch.float64
 

@@ -12,11 +12,10 @@ import math
 
 import pytest
 import torch
+from conftest import assert_close
 
 import torchvol as tv
 from torchvol.renderer.plan import make_plan
-
-from conftest import assert_close
 
 
 def _sun(direction, intensity=2.0, steps=4):

@@ -7,15 +7,20 @@ import os
 
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from volume.test_fused import (
+    VARIANTS,
+    _stacked_tables,
+    _template,
+    assert_same_values,
+    hard_points,
+)
 
 import torchvol as tv
 from torchvol.noise import lattice as noise
 from torchvol.volume import drjit_march, fused
-
-from conftest import assert_close
-from volume.test_fused import VARIANTS, _stacked_tables, _template, assert_same_values, hard_points
 
 pytestmark = pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
 

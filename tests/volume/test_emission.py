@@ -14,19 +14,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_analytic import camera_rays, sphere_interval
 
 import torchvol as tv
-from torchvol.schema.batch import stack
 from torchvol.fields import DENSITIES
-from torchvol.renderer.plan import make_plan
 from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.renderer.plan import make_plan
+from torchvol.schema.batch import stack
 from torchvol.schema.validate import SceneError
 from torchvol.volume.emission import explosion_color, explosion_emission
-
-from conftest import assert_close
-from test_analytic import camera_rays, sphere_interval
 
 F64 = torch.float64
 SEED_MAP = dict(thin=(1.0, 0.9, 0.8), dense=(0.4, 0.15, 0.1), core=(5.6, 7.0, 7.0), edge=(0.72, 0.795, 0.75),

@@ -4,17 +4,16 @@ the float64 one (bitwise), and the compiled kernels against the eager twin (a st
 
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol.noise import lattice as noise
-from torchvol.schema.batch import stack
 from torchvol.renderer.plan import fused_march, make_plan
 from torchvol.scene.model import load_scene
+from torchvol.schema.batch import stack
 from torchvol.volume import fused, strategy
-
-from conftest import assert_close
 
 
 def _template(width=24, height=14, **changes):

@@ -6,20 +6,26 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import TOL, assert_close
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-
 import torchvol as tv
-from torchvol.renderer import plan
-from conftest import TOL, assert_close
 from torchvol.fields.grid import grid_occupancy, sample_grid
 from torchvol.geometry.rays import intersect_box
-from torchvol.schema.batch import stack
-from torchvol.renderer.executor import camera_for
-from torchvol.measure.mitsuba import IRRADIANCE, SUN, puff_grid, relative_rmse, sigma_for, torchvol_scene
-from torchvol.volume.exact import grid_optical_depth, grid_single_scatter
 from torchvol.light.phase import henyey_greenstein
+from torchvol.measure.mitsuba import (
+    IRRADIANCE,
+    SUN,
+    puff_grid,
+    relative_rmse,
+    sigma_for,
+    torchvol_scene,
+)
+from torchvol.renderer import plan
+from torchvol.renderer.executor import camera_for
+from torchvol.schema.batch import stack
+from torchvol.volume.exact import grid_optical_depth, grid_single_scatter
 from torchvol.volume.skip import macro_grid, occupied_span
 from torchvol.volume.sun_volume import sun_transmittance_grid
 

@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.schema.batch import stack
 from torchvol.fields.particles import ParticleField, falloff, particle_draws
+from torchvol.schema.batch import stack
 
 F64 = torch.float64
 

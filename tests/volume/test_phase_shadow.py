@@ -5,8 +5,8 @@ import math
 
 import pytest
 import torch
-
 from conftest import assert_close
+
 from torchvol.light import phase
 from torchvol.volume import shader_look, shadow
 

@@ -9,14 +9,13 @@ import math
 
 import pytest
 import torch
+from conftest import assert_close
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol.renderer.plan import make_plan
 from torchvol.volume.ambient import fibonacci_sphere
-
-from conftest import assert_close
 
 SUN = {"kind": "sun", "direction": [0.3, 0.8, -0.5], "color": [1.0, 0.9, 0.8], "intensity": 2.0}
 POINT = {"kind": "point", "position": [0.4, 1.2, -0.9], "color": [1.0, 1.0, 1.0], "intensity": 3.0, "shadow": {"steps": 4}}
@@ -191,8 +190,8 @@ def test_octaves_never_exceed_the_albedo_bound(octaves, a, b_extra, c, albedo, s
                                     {"slab": {"y_min": -1.0, "y_max": 1.0}}])
 def test_edge_fades_to_zero_at_the_bounds(bounds):
     """Through the bounds' surface the density is 0; a width inside, the field's own."""
-    from torchvol.schema.batch import stack
     from torchvol.renderer.executor import RenderContext
+    from torchvol.schema.batch import stack
 
     scene = tv.load_scene({"volumes": [{"bounds": bounds, "density": {"constant": 2.0}, "edge": {"width": 0.25}}]})
     batch = stack([scene])
@@ -206,8 +205,8 @@ def test_edge_fades_to_zero_at_the_bounds(bounds):
 
 
 def test_edge_base_is_a_flat_floor():
-    from torchvol.schema.batch import stack
     from torchvol.renderer.executor import RenderContext
+    from torchvol.schema.batch import stack
 
     scene = tv.load_scene({"volumes": [{"bounds": {"sphere": {"radius": 1.0}}, "density": {"constant": 1.0},
                                         "edge": {"width": 0.2, "base": -0.3}}]})

@@ -2,8 +2,8 @@
 
 import pytest
 import torch
-
 from conftest import assert_close
+
 from torchvol.fields.grid import sample_grid
 from torchvol.geometry.rays import intersect_box
 from torchvol.volume.shadow import shadow_transmittance
@@ -67,7 +67,12 @@ def test_grid_cloud_matches_a_fine_shadow_march():
 
 def test_render_with_a_shadow_grid_is_close_to_the_shadow_march_and_cheaper():
     import torchvol as tv
-    from torchvol.measure.mitsuba import puff_grid, relative_rmse, sigma_for, torchvol_scene
+    from torchvol.measure.mitsuba import (
+        puff_grid,
+        relative_rmse,
+        sigma_for,
+        torchvol_scene,
+    )
 
     grid = puff_grid(24)
     sigma = sigma_for(grid)

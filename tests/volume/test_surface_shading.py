@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 
 import torchvol as tv
 from tests.conftest import assert_close
-from torchvol.renderer.plan import make_plan
 from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.renderer.plan import make_plan
 from torchvol.volume.surface_look import density_normal, surface_light
 
 W, H = 24, 16
@@ -131,8 +131,8 @@ def test_flat_or_extreme_inputs_stay_finite(point, eps, shininess):
 
 def test_fur_density_core_strands_and_tips():
     scene = tv.load_scene({"volumes": [{"bounds": {"sphere": {"radius": 1.0}}, "density": {"fur": {"radius": 0.5, "length": 0.4}}}]})
-    from torchvol.schema.batch import stack
     from torchvol.fields import DENSITIES
+    from torchvol.schema.batch import stack
 
     params = stack([scene]).volumes[0].density.value
     field = DENSITIES["fur"].fn(params, torch.zeros(1))

@@ -16,8 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.renderer.plan import make_plan
 from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.renderer.plan import make_plan
 from torchvol.voxel.ggx import alpha_of, d_ggx, f_schlick, ggx_reflect, v_smith
 
 pytestmark = pytest.mark.usefixtures("one_thread")

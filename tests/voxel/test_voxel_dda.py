@@ -8,7 +8,8 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from torchvol.ops.grid_ops import chebyshev_distance
 from torchvol.voxel.dda import hybrid_traverse, reference_traverse, traverse

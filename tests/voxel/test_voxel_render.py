@@ -4,15 +4,13 @@ validation messages name the key path."""
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import torch
+from conftest import assert_close
 
 import torchvol as tv
-from conftest import assert_close
 from torchvol.voxel.grid import terrain_height, terrain_materials
-
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # small ops: threads only add overhead
 

@@ -3,13 +3,11 @@ DDA — each against a limit with a known answer."""
 
 from __future__ import annotations
 
-
 import pytest
 import torch
-
-import torchvol as tv
 from conftest import assert_close
 
+import torchvol as tv
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # small ops: threads only add overhead
 

@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.renderer.plan import make_plan
 from torchvol.measure.glsl import gl_context, run_fragment, shadertoy_source
+from torchvol.renderer.plan import make_plan
 from torchvol.voxel.water import beer, fresnel, plane_hit, reflect, refract, wave_normal
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -17,7 +17,13 @@ from hypothesis import strategies as st
 import torchvol as tv
 from torchvol.dataset.datasets import render_samples
 from torchvol.scene.model import Voxels
-from torchvol.voxel.grid import _cells, cell_range, dense_materials, terrain_height, terrain_materials
+from torchvol.voxel.grid import (
+    _cells,
+    cell_range,
+    dense_materials,
+    terrain_height,
+    terrain_materials,
+)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64

@@ -7,8 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.voxel import walk
 from torchvol.ops.grid_ops import chebyshev_distance
+from torchvol.voxel import walk
 from torchvol.voxel.dda import hybrid_traverse, traverse
 
 FIELDS = ("hit", "cell", "axis", "t", "material", "steps", "t_exit")

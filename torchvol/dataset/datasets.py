@@ -18,10 +18,10 @@ from typing import Any, Literal, Mapping, Sequence
 import torch
 from torch.utils.data import Dataset
 
-from ..runtime.compilation import CompileMode, auto_mode, compile_mode
-from ..runtime.process import tune_process
 from ..renderer.plan import batch_mode
 from ..renderer.prepare import group
+from ..runtime.compilation import CompileMode, auto_mode, compile_mode
+from ..runtime.process import tune_process
 from ..schema.validate import fail, integer, is_integer
 from .codec import decode_file
 from .distributions import mix_seed
@@ -42,7 +42,10 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     `compile` (`torchvol.compilation`): "all" compiles a batch's density and march kernels only
     where that is the fast path (`renderer.plan.compile_pays`), its exact kernels elsewhere."""
     from ..renderer.executor import DEFAULT_CHUNK_RAYS, render
-    from .sequence import add_flow, sequence_scenes  # its flow loads kornia: only when a recipe has frames
+    from .sequence import (  # its flow loads kornia: only when a recipe has frames
+        add_flow,
+        sequence_scenes,
+    )
 
     aovs = recipe.aovs if aovs is None else tuple(aovs)
     compile = compile_mode(compile)

@@ -35,7 +35,14 @@ import torch
 
 from ..scene.model import schema_keys
 from ..schema.keypath import path_str, set_path
-from ..schema.validate import did_you_mean, fail, finite, integer, is_integer, known_keys
+from ..schema.validate import (
+    did_you_mean,
+    fail,
+    finite,
+    integer,
+    is_integer,
+    known_keys,
+)
 
 DIST_KINDS = ("uniform", "loguniform", "normal", "integer", "choice", "hemisphere", "orbit")
 

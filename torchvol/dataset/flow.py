@@ -15,7 +15,11 @@ from __future__ import annotations
 import torch
 from kornia.geometry.camera import project_points
 from kornia.geometry.depth import depth_to_3d_v2
-from kornia.geometry.linalg import compose_transformations, inverse_transformation, transform_points
+from kornia.geometry.linalg import (
+    compose_transformations,
+    inverse_transformation,
+    transform_points,
+)
 from torch import Tensor
 
 __all__ = ["flow_from_depth"]

@@ -28,14 +28,15 @@ from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
 
 from ..runtime.compilation import CompileMode, auto_mode, compile_mode
-from .codec import CONVENTIONS, sample_record
-from .datasets import render_samples
 from ..runtime.process import init_worker, tune_process
 from ..runtime.progress import progress as bar
-from .recipe import Recipe
-from .sequence import CONVENTIONS as SEQUENCE_CONVENTIONS, encode_item
 from ..runtime.threads import torch_threads
 from ..schema.validate import fail, integer
+from .codec import CONVENTIONS, sample_record
+from .datasets import render_samples
+from .recipe import Recipe
+from .sequence import CONVENTIONS as SEQUENCE_CONVENTIONS
+from .sequence import encode_item
 from .views import dataset_meta, file_table
 
 Layout = Literal["folder", "webdataset"]
@@ -264,7 +265,8 @@ def _execute(tasks: list[Task], *, workers: int, threads: int | None, scheduler:
                 yield len(run_task(task))
         return
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed as done_order
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures import as_completed as done_order
 
     # the initializer lives in a module without torch: it tunes the worker before the tasks import torch
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),

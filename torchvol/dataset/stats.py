@@ -30,8 +30,8 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .codec import decode_file
 from ..schema.validate import fail
+from .codec import decode_file
 
 EMPTY_ALPHA = 0.01  # alpha coverage and hit share under which an image shows nothing but the sky
 CONSTANT_STD = 1.0 / 255.0  # a channel whose pixels vary less than one 8-bit step is constant

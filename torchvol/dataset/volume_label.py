@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from ..schema.validate import fail
+from ..volume.context import VolumeContext
 
 # Grid points evaluated per field call: bounds the memory of large resolutions.
 CHUNK_POINTS = 1 << 16
@@ -62,7 +63,7 @@ def extinction_grid(scene, resolution: int) -> tuple[Tensor, Tensor]:
     return extinction_of(ctx, 0, resolution)
 
 
-def extinction_of(ctx, b: int, resolution: int) -> tuple[Tensor, Tensor]:
+def extinction_of(ctx: VolumeContext, b: int, resolution: int) -> tuple[Tensor, Tensor]:
     """`extinction_grid` of scene `b` of a render's context `ctx` (`RenderContext`: its volumes'
     fields, bounds and σ_t, in its dtype): (N, N, N) float32 [k, j, i] and its box (2, 3) float32."""
     from ..schema.batch import take

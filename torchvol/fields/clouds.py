@@ -14,8 +14,8 @@ import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from ..runtime import compilation
 from ..noise import lattice as noise
+from ..runtime import compilation
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
 

@@ -24,8 +24,8 @@ from pydantic import Field, model_validator
 from torch import Tensor
 
 from ..noise import tiles as noise_tiles
-from ..schema.batch import Stacked, per_scene, take
 from ..ops.mathops import smoothstep
+from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
 
 # Height profiles (smoothstep(a, b, h) · (1 − smoothstep(c, d, h)) over the normalised height h) of

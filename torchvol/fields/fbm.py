@@ -8,7 +8,8 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 from torch import Tensor
 
-from ..noise import fast as fastnoise, lattice as noise
+from ..noise import fast as fastnoise
+from ..noise import lattice as noise
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
 

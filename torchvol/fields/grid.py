@@ -11,8 +11,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..schema.batch import Stacked, per_scene
 from ..ops.grid_ops import dilate
+from ..schema.batch import Stacked, per_scene
 from ..schema.models import GridSource
 
 

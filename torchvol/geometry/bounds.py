@@ -10,9 +10,9 @@ from pydantic import Field, model_validator
 from torch import Tensor
 
 from ..schema.batch import Stacked, take
-from .rays import intersect_box, intersect_shell, intersect_slab, intersect_sphere
-from ..schema.registry import Registry
 from ..schema.models import Strict, Vec3
+from ..schema.registry import Registry
+from .rays import intersect_box, intersect_shell, intersect_slab, intersect_sphere
 
 SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
 

@@ -23,10 +23,11 @@ import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from ..schema.batch import Stacked, take
 from ..geometry.rays import intersect_sphere
+from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
-from .phase import mie_cornette_shanks, rayleigh as rayleigh_phase
+from .phase import mie_cornette_shanks
+from .phase import rayleigh as rayleigh_phase
 
 MIE_EXTINCTION = 1.1  # Mie extinction / Mie scattering
 

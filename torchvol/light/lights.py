@@ -16,8 +16,8 @@ from pydantic import Field, field_validator
 from torch import Tensor
 
 from ..schema.batch import Stacked, take
-from ..schema.registry import Registry
 from ..schema.models import SHARED, Strict, Vec3, nonneg, nonzero
+from ..schema.registry import Registry
 
 # A point light's 1/r² is capped at 1/POINT_RADIUS²: a ray through the light itself stays finite
 # (as if the light were a small sphere); it never changes a sample farther than POINT_RADIUS away.

@@ -17,8 +17,8 @@ from pydantic import Field, model_validator
 from torch import Tensor
 
 from ..schema.batch import take
-from ..schema.registry import Registry
 from ..schema.models import One, Strict
+from ..schema.registry import Registry
 
 INV_4PI = 1.0 / (4.0 * math.pi)
 

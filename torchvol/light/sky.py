@@ -12,11 +12,11 @@ import torch
 from pydantic import Field, field_validator, model_validator
 from torch import Tensor
 
-from ..schema.batch import Stacked, take
-from ..ops.mathops import pow_
 from ..geometry.rays import intersect_sphere
-from ..schema.registry import Registry
+from ..ops.mathops import pow_
+from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
+from ..schema.registry import Registry
 from .atmosphere import Air, AirLayer, gather_air, single_scatter
 
 

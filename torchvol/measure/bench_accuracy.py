@@ -32,14 +32,14 @@ from typing import Any, Sequence
 import torch
 
 from ..fields import DENSITIES
-from ..scene.quality import QUALITY, Quality, at_level
-from ..scene.presets import preset_dict
-from ..runtime.progress import progress as bar
-from .reference import Ladder, at_quality, cached_render, image_error
 from ..renderer.executor import render
+from ..runtime.progress import progress as bar
 from ..scene.model import load_scene
+from ..scene.presets import preset_dict
+from ..scene.quality import QUALITY, Quality, at_level
 from ..schema.validate import did_you_mean, fail, finite, integer
 from ..volume.shading import SHADINGS
+from .reference import Ladder, at_quality, cached_render, image_error
 
 # report name -> bundled preset: the scenes of a default report
 SCENES = {"template clouds": "template-clouds", "physical clouds": "cloud-puff", "voxel terrain": "voxel-terrain"}

@@ -41,11 +41,12 @@ from typing import Callable, NamedTuple, Sequence
 
 import torch
 
-from ..noise import fast as fastnoise, lattice as noise
-from ..runtime.compilation import compile_settings, compiled
+from ..noise import fast as fastnoise
+from ..noise import lattice as noise
 from ..renderer.executor import render
-from ..scene.model import preset
+from ..runtime.compilation import compile_settings, compiled
 from ..runtime.threads import torch_threads
+from ..scene.model import preset
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
@@ -293,9 +294,9 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
     are fast and whose start-up is long): the difference is the steady rate (N / (T₂ − T₁)); what
     the first run took beyond N samples at that rate is the start-up (worker processes, dynamo's
     tracing: `first_s`). `samples_per_s`: 2N / T₂."""
-    from ..renderer.plan import compile_pays
     from ..dataset.generate import generate
     from ..dataset.recipe import Recipe
+    from ..renderer.plan import compile_pays
 
     rows = []
     overrides = {} if size is None else {"image.width": size, "image.height": size}

@@ -47,9 +47,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..version import __version__
-from ..scene.quality import QUALITY, Quality, march_settings
 from ..scene.model import load_scene
+from ..scene.quality import QUALITY, Quality, march_settings
+from ..version import __version__
 from ..volume.shading import SHADINGS
 
 # march keys that only set the approximation: the reference replaces them with its own

@@ -37,15 +37,15 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import torch
 
+from ..dataset.recipe import Recipe, render_seed
+from ..runtime.progress import progress as bar
+from ..scene.model import load_scene
+from ..scene.quality import QUALITY, at_level
+from ..schema.keypath import path_str, set_path
+from ..schema.validate import fail, finite, integer
 from ..version import __version__
 from . import figures
-from ..schema.keypath import path_str, set_path
-from ..runtime.progress import progress as bar
-from ..scene.quality import QUALITY, at_level
-from ..dataset.recipe import Recipe, render_seed
 from .reference import Ladder, at_quality, image_error
-from ..scene.model import load_scene
-from ..schema.validate import fail, finite, integer
 
 QUANTISATION_RMSE = 1.0 / (255.0 * math.sqrt(12.0))  # 8-bit rounding's RMSE: smaller errors vanish in a stored PNG
 MEASURED = ("time_s", "density_evals", "rmse", "rel_rmse", "psnr", "reference_bound", "reference_rung",

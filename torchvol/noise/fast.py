@@ -27,10 +27,10 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from . import lattice as noise
-from ..runtime.compilation import compiled
 from ..ops.mathops import take_rows
+from ..runtime.compilation import compiled
 from ..runtime.threads import threads_for, torch_threads
+from . import lattice as noise
 
 __all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed"]
 

@@ -18,8 +18,8 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from ..runtime.compilation import compiled
 from ..ops.mathops import take_rows
+from ..runtime.compilation import compiled
 
 __all__ = [
     "hash3",

@@ -16,33 +16,33 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
-from .accumulate import Accumulator, pass_seeds
-from .aovs import AOVS, RESOLVE
-from ..schema.batch import Stacked, stack, take
-from ..geometry.bounds import BOUNDS
-from ..geometry.camera import Camera, Rays
-from ..runtime.compilation import CompileMode, compile_mode, compile_settings
 from ..fields import DENSITIES
 from ..fields.edge import EdgeField
-from .labels import per_ray as label_rays
-from ..light.lights import LIGHTS, LightSource, sun_index
-from .plan import Plan, VolumePass, make_plan
-from .prepare import prepare
-from ..post import POST, View
+from ..geometry.bounds import BOUNDS
+from ..geometry.camera import Camera, Rays
 from ..geometry.sampling import march_dither, ray_keys, subpixel_jitter
-from ..light.sky import SKIES, sun_glow
-from .stats import CountedField, Counts, Timer
-from ..terrain import TerrainSurface
-from ..runtime.threads import glue_on_one_thread
-from ..schema.validate import fail, integer, is_integer
 from ..light.atmosphere import aerial_perspective, gather_air
+from ..light.lights import LIGHTS, LightSource, sun_index
+from ..light.phase import PHASES
+from ..light.sky import SKIES, sun_glow
+from ..post import POST, View
+from ..runtime.compilation import CompileMode, compile_mode, compile_settings
+from ..runtime.threads import glue_on_one_thread
+from ..schema.batch import Stacked, stack, take
+from ..schema.validate import fail, integer, is_integer
+from ..terrain import TerrainSurface
 from ..volume.ambient import sky_mean
 from ..volume.composite import composite_volumes, finish
-from ..light.phase import PHASES
 from ..volume.physical import occluder_transmittance
 from ..volume.shading import SHADINGS
 from ..volume.strategy import STRATEGIES
 from ..voxel.surface import VoxelSurface
+from .accumulate import Accumulator, pass_seeds
+from .aovs import AOVS, RESOLVE
+from .labels import per_ray as label_rays
+from .plan import Plan, VolumePass, make_plan
+from .prepare import prepare
+from .stats import CountedField, Counts, Timer
 
 DEFAULT_CHUNK_RAYS = 1 << 16
 

@@ -26,20 +26,30 @@ here):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from torch import Tensor
 
-from ..schema.batch import take
 from ..geometry.camera import Rays
 from ..geometry.surface_hit import SurfaceHit
 from ..scene.model import VoxelShadow
+from ..schema.batch import take
 from ..volume.composite import entry_order
+from ..volume.context import Occluder, VolumeContext
 from ..volume.physical import occluder_transmittance
 from ..volume.strategy import entry_exit
+from .plan import Plan
 
-def optical_thickness(ctx, rays: Rays, t_limit: Tensor | None) -> Tensor:
+
+class LabelContext(VolumeContext, Protocol):
+    """A render as the labels see it: a `VolumeContext` with its plan and its surface (the voxels'
+    or the terrain's), the sun's shadow ray meets."""
+
+    plan: Plan
+    surface: Occluder | None
+
+def optical_thickness(ctx: LabelContext, rays: Rays, t_limit: Tensor | None) -> Tensor:
     """τ [n] along the chunk's rays through every volume, up to `t_limit` [n] (a surface hit)."""
     tau = rays.origins.new_zeros(len(rays))
     steps = ctx.settings.rule.steps
@@ -70,7 +80,7 @@ def volume_alphas(parts: list[dict[str, Tensor]]) -> Tensor:
     return torch.empty_like(trans).scatter_(0, order, before * (1.0 - ordered))
 
 
-def instance(ctx, alphas: Tensor | None, remaining: Tensor, surf: SurfaceHit | None) -> Tensor:
+def instance(ctx: LabelContext, alphas: Tensor | None, remaining: Tensor, surf: SurfaceHit | None) -> Tensor:
     """Ids [n] (float): argmax over background (0), volumes (1..V) and the surface (V + material).
     `alphas` [V, n] or None (no volumes); `remaining` [n] the transmittance left behind them."""
     n_vol = 0 if alphas is None else alphas.shape[0]
@@ -85,7 +95,7 @@ def instance(ctx, alphas: Tensor | None, remaining: Tensor, surf: SurfaceHit | N
     return torch.where(best == n_vol + 1, n_vol + surface_id, ids)
 
 
-def surface_lift(ctx, s: Tensor, t: Tensor) -> Tensor:
+def surface_lift(ctx: LabelContext, s: Tensor, t: Tensor) -> Tensor:
     """How far [n] along its normal a shadow ray from a surface hit at distance `t` [n] of scenes `s`
     [n] starts, as the surface pass's own: the terrain's `shadow_offset` plus its hit rule's width,
     the voxels' `shadow.offset` (its default without `voxels.shadow`)."""
@@ -98,7 +108,7 @@ def surface_lift(ctx, s: Tensor, t: Tensor) -> Tensor:
     return take(shadow.offset, s)
 
 
-def sun_visibility(ctx, rays: Rays, volumes: dict[str, Tensor], surf: SurfaceHit | None) -> Tensor:
+def sun_visibility(ctx: LabelContext, rays: Rays, volumes: dict[str, Tensor], surf: SurfaceHit | None) -> Tensor:
     """Transmittance [n] to the scene's sun (`Plan.sun`) from each ray's depth point (1 where it has none)."""
     use = ctx.plan.labels.sun
     s, o, d = rays.scene_index, rays.origins, rays.directions
@@ -126,7 +136,7 @@ def sun_visibility(ctx, rays: Rays, volumes: dict[str, Tensor], surf: SurfaceHit
     return out
 
 
-def per_ray(ctx, rays: Rays, parts: list[dict[str, Tensor]], volumes: dict[str, Tensor], surf: SurfaceHit | None) -> dict[str, Tensor]:
+def per_ray(ctx: LabelContext, rays: Rays, parts: list[dict[str, Tensor]], volumes: dict[str, Tensor], surf: SurfaceHit | None) -> dict[str, Tensor]:
     """The planned labels of a chunk's rays, each [n, C], from the render's volume `parts` (scene
     order), their composite `volumes` and the surface pass's result `surf`."""
     names, out = ctx.plan.labels.names, {}

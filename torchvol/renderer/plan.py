@@ -21,19 +21,19 @@ from typing import Literal
 
 import torch
 
-from .aovs import produced
-from ..schema.batch import Stacked, stack
-from ..geometry.bounds import BOUNDS, SLAB_REACH
 from ..fields import DENSITIES
+from ..geometry.bounds import BOUNDS, SLAB_REACH
 from ..light.lights import LIGHTS, Shadow, sun_index
 from ..post import POST
-from ..scene.quality import QUALITY, MarchSettings, at_level, march_settings
+from ..runtime.compilation import CompileMode
 from ..scene.model import Scene
+from ..scene.quality import QUALITY, MarchSettings, at_level, march_settings
+from ..schema.batch import Stacked, stack
 from ..volume import drjit_march
 from ..volume.march import COMPACT_BELOW
 from ..volume.shading import SHADINGS
 from ..voxel.materials import any_ggx
-from ..runtime.compilation import CompileMode
+from .aovs import produced
 
 Strategy = Literal["closed_form", "march", "skip", "tolerance"]
 # what a volume's march runs on: no march (its closed form), eager torch, the template's fused

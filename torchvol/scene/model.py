@@ -11,35 +11,45 @@ from __future__ import annotations
 
 import copy
 import math
-import tomllib
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal, Mapping
 
 import numpy as np
+import tomllib
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
-from ..geometry.bounds import BOUNDS, Box
 from ..fields import DENSITIES
-from ..schema.keypath import lookup, path_str, set_path
-from ..light.lights import LIGHTS, sun_index
-from ..post import Post
-from ..schema.models import EACH, SHARED, GridSource, One, Strict, Vec3, nonneg, reachable_models, refuse
-from ..light.sky import SKIES
-from ..terrain import Terrain
-from ..schema.validate import SceneError, did_you_mean, fail
-from ..voxel.water import VoxelWater
-from ..volume.emission import Bloom, EmissionMap
-from ..light.atmosphere import AtmosphereMedium
 from ..fields.edge import Edge
-from ..volume.ambient import Ambient
-from ..volume.multiple import MultipleScattering
+from ..geometry.bounds import BOUNDS, Box
+from ..light.atmosphere import AtmosphereMedium
+from ..light.lights import LIGHTS, sun_index
 from ..light.phase import PHASES, Empty, PhaseChoice
+from ..light.sky import SKIES
+from ..post import Post
+from ..schema.keypath import lookup, path_str, set_path
+from ..schema.models import (
+    EACH,
+    SHARED,
+    GridSource,
+    One,
+    Strict,
+    Vec3,
+    nonneg,
+    reachable_models,
+    refuse,
+)
+from ..schema.validate import SceneError, did_you_mean, fail
+from ..terrain import Terrain
+from ..volume.ambient import Ambient
+from ..volume.emission import Bloom, EmissionMap
+from ..volume.multiple import MultipleScattering
 from ..volume.shader_look import ShaderLook
 from ..volume.shading import SHADINGS
 from ..volume.surface_look import SurfaceLook
 from ..voxel.cone import VoxelGIs
 from ..voxel.materials import Material
+from ..voxel.water import VoxelWater
 
 PRESET_DIR = Path(__file__).parent / "presets"
 

@@ -8,26 +8,10 @@ from typing import Literal
 
 import torch
 
+from ..volume.march import MarchSettings, StepRule
 from .model import March, Scene
-from ..volume.march import StepRule
 
 Quality = Literal["draft", "default", "high", "reference"]
-
-
-@dataclass(frozen=True)
-class MarchSettings:
-    rule: StepRule
-    integrator: Literal["riemann", "frostbite", "alpha"]
-    dither: Literal["none", "hash", "sin"]
-    dither_scale: float
-    max_distance: float | None  # None: boxes and spheres unbounded, slabs SLAB_REACH
-    min_transmittance: float
-    density_threshold: float
-    lod_scale: float | None
-    closed_form: bool
-    depth_threshold: float
-    dtype: torch.dtype
-    tolerance: float | None
 
 
 @dataclass(frozen=True)

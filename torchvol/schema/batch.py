@@ -22,8 +22,8 @@ import torch
 from pydantic import BaseModel
 from torch import Tensor
 
-from .keypath import path_str
 from ..ops.mathops import take_rows
+from .keypath import path_str
 from .models import EACH, SHARED, TENSOR, One, Role
 from .validate import fail
 

@@ -20,6 +20,7 @@ from torch import Tensor
 
 from ..schema.batch import take
 from ..schema.models import Strict, Vec3, nonneg, nonzero
+from .context import VolumeContext
 from .shadow import shadow_transmittance
 
 SKY_DIRECTIONS = 64  # the Fibonacci sphere the sky's mean radiance is averaged over
@@ -67,7 +68,7 @@ def ambient_radiance(vol, p: Tensor, s: Tensor) -> Tensor:
     return torch.lerp(bottom, take(vol.params.ambient.top, s), h[:, None])
 
 
-def ambient_in_scatter(ctx, vol, p: Tensor, s: Tensor, sigma_s: Tensor) -> Tensor:
+def ambient_in_scatter(ctx: VolumeContext, vol, p: Tensor, s: Tensor, sigma_s: Tensor) -> Tensor:
     """σs · L_amb · V [n, 3] at points `p` [n, 3] of scenes `s` [n], scattering `sigma_s` [n]."""
     amb = vol.params.ambient
     out = ambient_radiance(vol, p, s) * sigma_s[:, None]

@@ -30,10 +30,10 @@ from __future__ import annotations
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from ..schema.batch import Stacked, take
 from ..light.lights import radiant
-from ..schema.registry import Registry
+from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
+from ..schema.registry import Registry
 
 SEED_STEP = 0.05  # the seeds' STEP_SIZE: their glow is 1/30 per step of this length
 

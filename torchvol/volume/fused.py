@@ -31,10 +31,11 @@ import torch
 from torch import Tensor
 
 from ..noise import lattice as noise
-from ..runtime.compilation import compiled
 from ..ops.mathops import take_rows
+from ..runtime.compilation import compiled
 from ..runtime.threads import on_threads, torch_threads
 from . import drjit_march
+from .context import VolumeContext
 from .march import MarchResult
 from .march_spec import CloudLook, StepConfig
 
@@ -56,7 +57,7 @@ _ROWS = _RADIANCE + 3
 _T_END, _SPAN = 9, 10
 
 
-def cloud_look(ctx, vol) -> tuple[CloudLook, Tensor]:
+def cloud_look(ctx: VolumeContext, vol) -> tuple[CloudLook, Tensor]:
     """The per-scene values of `vol` and its stacked texture tables, packed (`CloudLayer.packed`)."""
     layer, look, params = vol.field.inner, vol.params.shader, vol.params
     b, like = len(params), layer.shift
@@ -289,7 +290,7 @@ def fused_march(steps, t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: 
     return res, final[_EVALS].sum()
 
 
-def march_fused(ctx, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit: Tensor, dither: Tensor | None, *,
+def march_fused(ctx: VolumeContext, vol, rays, background: Tensor, t0: Tensor, t1: Tensor, hit: Tensor, dither: Tensor | None, *,
                 compiled: bool = True, drjit: bool = False) -> MarchResult:
     """The render's fused march of a volume the plan gave this backend (`plan.fused_march`) over a
     chunk's rays [n] (`run_march`'s fast path): one Dr.Jit kernel where `drjit` (the plan's

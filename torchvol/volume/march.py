@@ -90,6 +90,25 @@ class StepRule:
         return self.steps + 1 if self.placement == "count" else self.steps
 
 
+@dataclass(frozen=True)
+class MarchSettings:
+    """A render's march settings, every key decided (`scene.quality.march_settings`: the scene's
+    `march` table, the rest from its quality level)."""
+
+    rule: StepRule
+    integrator: Literal["riemann", "frostbite", "alpha"]
+    dither: Literal["none", "hash", "sin"]
+    dither_scale: float
+    max_distance: float | None  # None: boxes and spheres unbounded, slabs SLAB_REACH
+    min_transmittance: float
+    density_threshold: float
+    lod_scale: float | None
+    closed_form: bool
+    depth_threshold: float
+    dtype: torch.dtype
+    tolerance: float | None
+
+
 @dataclass
 class MarchResult:
     """Per ray, for R rays: `radiance` [R, C]; `transmittance` [R]; `weight_sum` [R] = Σ wᵢ and

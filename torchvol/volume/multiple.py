@@ -12,8 +12,8 @@ import torch
 from pydantic import Field, model_validator
 from torch import Tensor
 
-from ..schema.batch import take
 from ..ops.mathops import pow_
+from ..schema.batch import take
 from ..schema.models import Strict
 
 

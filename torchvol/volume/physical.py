@@ -11,11 +11,12 @@ import math
 import torch
 from torch import Tensor
 
-from ..schema.batch import per_scene, take
 from ..geometry.camera import Rays
 from ..geometry.rays import clip_to_ray
-from .emission import EMISSION_MAPS, bloom_glow
+from ..schema.batch import per_scene, take
 from .ambient import ambient_in_scatter
+from .context import VolumeContext
+from .emission import EMISSION_MAPS, bloom_glow
 from .integrate import frostbite_step
 from .march import LN2, Medium, expected_depth_fraction, gathered, lod_drop
 from .multiple import octave_response, octave_sum
@@ -36,7 +37,7 @@ def response(vol, irradiance: Tensor, cos: Tensor, s: Tensor) -> Tensor:
     return irradiance * phase(vol, cos, s)[:, None]
 
 
-def light_responses(ctx, vol, d: Tensor, s: Tensor) -> list[Tensor | None]:
+def light_responses(ctx: VolumeContext, vol, d: Tensor, s: Tensor) -> list[Tensor | None]:
     """`response` of each directional light along directions `d` [n, 3] of scenes `s` [n]; None
     for a light that is not directional. A sun's θ is the same all along a ray: a march computes
     this once per ray."""
@@ -50,7 +51,7 @@ def light_responses(ctx, vol, d: Tensor, s: Tensor) -> list[Tensor | None]:
     return out
 
 
-def in_scatter(ctx, vol, p: Tensor, d: Tensor | None, s: Tensor, sigma_t: Tensor, responses: list[Tensor | None]) -> Tensor:
+def in_scatter(ctx: VolumeContext, vol, p: Tensor, d: Tensor | None, s: Tensor, sigma_t: Tensor, responses: list[Tensor | None]) -> Tensor:
     """Σ over the volume's lights of σs · p(θ) · E · T_light at points `p` [n, 3] seen along `d`
     [n, 3], of extinction `sigma_t` [n] (summed over octaves with multiple scattering), plus the
     ambient's σs · L_amb · V; `responses`: `light_responses` at these samples (`d` is needed only
@@ -79,7 +80,7 @@ def in_scatter(ctx, vol, p: Tensor, d: Tensor | None, s: Tensor, sigma_t: Tensor
     return out
 
 
-def light_transmittance(ctx, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, toward) -> Tensor:
+def light_transmittance(ctx: VolumeContext, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, toward) -> Tensor:
     """Transmittance [n] from `p` [n, 3] towards light `use.light` through this volume, ending where
     the ray leaves the bounds or reaches the light; `sigma_t` [n] the extinction at `p`. Times what
     the plan's other occluders let through (other volumes, the terrain), where it names any."""
@@ -101,7 +102,7 @@ def light_transmittance(ctx, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, to
     return own
 
 
-def occluder_transmittance(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
+def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
     """What a shadow ray of LightPass `use` from `p` [n, 3] along `direction` [n, 3], up to
     `distance` [n] (inf: a sun), lets through besides its own volume: each volume `use.occluders`
     names, marched over its chord in `use.shadow.steps` equal steps (exact for homogeneous media)
@@ -131,7 +132,7 @@ def occluder_transmittance(ctx, use, p: Tensor, s: Tensor, direction: Tensor, di
     return out
 
 
-def sun_grids(ctx, vol, light: int) -> list[SunGrid]:
+def sun_grids(ctx: VolumeContext, vol, light: int) -> list[SunGrid]:
     """Transmittance to sun `light` through the volume, one grid per scene, built on first use and
     kept for every chunk of the render."""
     if light not in vol.sun_grids:
@@ -152,7 +153,7 @@ def sun_grids(ctx, vol, light: int) -> list[SunGrid]:
     return vol.sun_grids[light]
 
 
-def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
+def physical_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
     """The medium of a physically shaded volume: (σ_t [n], in-scattered + emitted source [n, 3]).
     `signed`: σ_t is the field's signed value times its σ_t, negative where there is no density
     (what `march_adaptive` interpolates between samples); the source is that of the density."""
@@ -194,7 +195,7 @@ def physical_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: 
     return medium
 
 
-def closed_form(ctx, vol, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> dict[str, Tensor]:
+def closed_form(ctx: VolumeContext, vol, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> dict[str, Tensor]:
     """Homogeneous medium, unshadowed directional lights: one exact frostbite segment over the
     whole chord, evaluated on the rays that hit only."""
     n = len(rays)

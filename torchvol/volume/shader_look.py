@@ -11,9 +11,10 @@ import torch
 from pydantic import Field
 from torch import Tensor
 
-from ..schema.batch import take
 from ..geometry.camera import Rays
+from ..schema.batch import take
 from ..schema.models import Strict, Vec3
+from .context import VolumeContext
 from .march import Medium, gathered, lod_drop
 
 
@@ -52,7 +53,7 @@ def ambient(vol, p: Tensor, s: Tensor) -> Tensor:
     return torch.lerp(take(look.ambient, s), take(look.ambient_top, s), height[:, None])
 
 
-def alpha_look_medium(ctx, vol, rays: Rays, shade: Callable[..., tuple[Tensor, Tensor]]) -> Medium:
+def alpha_look_medium(ctx: VolumeContext, vol, rays: Rays, shade: Callable[..., tuple[Tensor, Tensor]]) -> Medium:
     """The medium of an alpha look (the seeds' loop): the density at each sample, and where it is
     over `march.density_threshold`, `shade(ids, keep, s, p, t, d, density, lod)` of those samples
     (`ids` the march's rays, `keep` [k] the samples shaded, the rest [k]/[k, 3]) -> (alpha [k],
@@ -77,7 +78,7 @@ def alpha_look_medium(ctx, vol, rays: Rays, shade: Callable[..., tuple[Tensor, T
     return medium
 
 
-def shader_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
+def shader_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
     """(alpha [n], colour [n, 3]) of the look at each sample (`signed` does not apply)."""
     look = vol.params.shader
 

@@ -11,9 +11,10 @@ import math
 import torch
 from torch import Tensor
 
-from ..schema.batch import take
 from ..geometry.camera import Rays
 from ..geometry.rays import clip_to_ray
+from ..schema.batch import take
+from .context import VolumeContext
 from .fused import march_fused
 from .march import march, march_adaptive
 from .physical import closed_form
@@ -34,7 +35,7 @@ def entry_exit(vol, rays: Rays, t_limit: Tensor | None) -> tuple[Tensor, Tensor,
     return t0, t1, hit
 
 
-def _part(ctx, vol, res, t0: Tensor, hit: Tensor) -> dict[str, Tensor]:
+def _part(ctx: VolumeContext, vol, res, t0: Tensor, hit: Tensor) -> dict[str, Tensor]:
     ctx.counts.march_steps += int(res.steps.sum())
     ctx.counts.truncated_rays += int(res.truncated.sum())
     radiance, trans = res.radiance, res.transmittance
@@ -44,7 +45,7 @@ def _part(ctx, vol, res, t0: Tensor, hit: Tensor) -> dict[str, Tensor]:
                 median_t=res.median_t, t0=torch.where(hit, t0, torch.full_like(t0, math.inf)))
 
 
-def run_closed_form(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+def run_closed_form(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
     """The volume's part for a chunk's `rays` [n] (the sky behind them `background` [n, 3] or
     None, surfaces at `t_limit` [n] or None) in closed form. -> the part: radiance [n, 3],
     transmittance, weight sums, median t and entry t [n]."""
@@ -53,7 +54,7 @@ def run_closed_form(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Te
         return closed_form(ctx, vol, rays, t0, t1, hit)
 
 
-def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None, *, skip: bool = False) -> dict[str, Tensor]:
+def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None, *, skip: bool = False) -> dict[str, Tensor]:
     """The volume's part for a chunk's `rays` [n] (`background` [n, 3] or None, `t_limit` [n] or
     None) by the fixed march, on the backend the plan chose; `skip`: over the occupied span only.
     -> the part: radiance [n, 3], transmittance, weight sums, median t and entry t [n]."""
@@ -77,13 +78,13 @@ def run_march(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor |
     return _part(ctx, vol, res, t0, hit)
 
 
-def run_skip(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+def run_skip(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
     """`run_march` over the occupied span only (empty space skipped): the same part, radiance
     [n, 3] and the rest [n]."""
     return run_march(ctx, vol, rays, background, t_limit, skip=True)
 
 
-def run_tolerance(ctx, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+def run_tolerance(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
     """The volume's part for a chunk's `rays` [n] (`background` [n, 3] or None, `t_limit` [n] or
     None) by the error-controlled march at `march.tolerance`. -> the part: radiance [n, 3],
     transmittance, weight sums, median t and entry t [n]."""

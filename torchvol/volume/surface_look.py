@@ -11,10 +11,11 @@ import torch
 from pydantic import Field
 from torch import Tensor
 
-from ..schema.batch import take
 from ..geometry.camera import Rays
 from ..ops.mathops import pow_
+from ..schema.batch import take
 from ..schema.models import Strict, Vec3
+from .context import VolumeContext
 from .march import Medium
 from .shader_look import alpha_look_medium
 
@@ -68,7 +69,7 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
-def surface_medium(ctx, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
+def surface_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
     """(alpha [n], colour [n, 3]) of the surface look at each sample (`background` and `signed`
     do not apply)."""
     look = vol.params.surface

@@ -33,8 +33,8 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from ..ops.mathops import take_rows
 from ..geometry.rays import intersect_box
+from ..ops.mathops import take_rows
 
 __all__ = ["Hits", "Lookup", "hybrid_traverse", "reference_traverse", "start", "start_cells", "traverse"]
 

@@ -22,8 +22,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ..noise import lattice as noise
 from ..geometry import sdf
+from ..noise import lattice as noise
 from ..ops.grid_ops import chebyshev_distance
 from ..ops.mathops import take_rows
 

@@ -19,8 +19,8 @@ import torch
 from pydantic import Field, field_validator, model_validator
 from torch import Tensor
 
-from ..schema.registry import Registry
 from ..schema.models import Strict, Vec3, nonneg
+from ..schema.registry import Registry
 from .shade import lambert
 
 

@@ -8,9 +8,9 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from ..geometry.sdf import sd_rounded_box
 from ..noise import lattice as noise
 from ..ops.mathops import pow_
-from ..geometry.sdf import sd_rounded_box
 
 __all__ = ["face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_refine"]
 

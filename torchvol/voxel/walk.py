@@ -22,8 +22,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from ..runtime.compilation import exact_kernel
 from ..ops.mathops import take_rows
+from ..runtime.compilation import exact_kernel
 from .dda import Hits, Visit, start
 from .fog import FogWalk
 

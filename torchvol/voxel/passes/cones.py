@@ -11,7 +11,14 @@ import torch
 from torch import Tensor
 
 from ...schema.batch import Stacked, take
-from ..cone import OFFSET, build_mips, cone_directions, default_aperture, face_cells, trace_cones
+from ..cone import (
+    OFFSET,
+    build_mips,
+    cone_directions,
+    default_aperture,
+    face_cells,
+    trace_cones,
+)
 from ..grid import VoxelGrid
 from .direct import DirectLight
 from .point import ShadingPoint
