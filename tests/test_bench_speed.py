@@ -1,4 +1,4 @@
-"""`torchvol bench speed` (torchvol.bench_speed): each section runs and reports, on tiny sizes."""
+"""`torchvol bench speed` (torchvol.measure.bench_speed): each section runs and reports, on tiny sizes."""
 
 import pytest
 

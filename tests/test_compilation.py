@@ -1,4 +1,4 @@
-"""The compile setting (`torchvol.compilation`): its modes at the boundary, "auto" by the samples a
+"""The compile setting (`torchvol.runtime.compilation`): its modes at the boundary, "auto" by the samples a
 process will render (never by what it rendered before), and what a generated dataset records."""
 
 import json

@@ -156,4 +156,4 @@ def test_exemptions_are_few_and_say_why():
 
 def test_scene_key_reference_is_current():
     done = subprocess.run([sys.executable, str(ROOT / "tools" / "scene_keys.py"), "--check"], cwd=ROOT)
-    assert done.returncode == 0, "docs/SCENES.md is stale: run `python tools/scene_keys.py` after changing torchvol/scene.py"
+    assert done.returncode == 0, "docs/SCENES.md is stale: run `python tools/scene_keys.py` after changing torchvol/scene/model.py"

@@ -1,4 +1,4 @@
-"""The arithmetic-hash value-noise fBm (`torchvol.fastnoise`): its hash against a uint32 reference,
+"""The arithmetic-hash value-noise fBm (`torchvol.noise.fast`): its hash against a uint32 reference,
 its statistics against the table hash's, the compiled kernel against its eager twin."""
 
 import pytest

@@ -1,4 +1,4 @@
-"""Per-medium labels (torchvol.labels): optical thickness, per-volume alpha, instance ids and sun
+"""Per-medium labels (torchvol.renderer.labels): optical thickness, per-volume alpha, instance ids and sun
 visibility against closed forms, computed only when asked for, batched as alone, and carried by
 SceneDataset, generate and FolderDataset.
 

@@ -1,4 +1,4 @@
-"""Sequences (`[dataset] frames`, `dt`, `camera_path`) and their flow (`torchvol.flow.flow_from_depth`).
+"""Sequences (`[dataset] frames`, `dt`, `camera_path`) and their flow (`torchvol.dataset.flow.flow_from_depth`).
 
 Flow against closed forms (a fronto-parallel plane under sideways and forward camera motion), NaN-free
 on hard depths, and against the renders themselves: frame f+1 warped back along the flow matches

@@ -1,4 +1,4 @@
-"""Thread counts around blocks and kernels (`torchvol.threads`), and the fused march's use of them:
+"""Thread counts around blocks and kernels (`torchvol.runtime.threads`), and the fused march's use of them:
 its compiled kernels on the render's threads, the eager glue between them on one."""
 
 import pytest

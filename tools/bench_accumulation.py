@@ -1,6 +1,6 @@
 """Progressive accumulation at equal time: N passes of k steps (`image.passes = N`, each pass with
 its own hashed march dither) against one pass of N·k steps, on cloud-puff, both measured against a
-reference from `torchvol.reference.Ladder` (the error-controlled march, with its bound).
+reference from `torchvol.measure.reference.Ladder` (the error-controlled march, with its bound).
 
     python tools/bench_accumulation.py [--size 128] [--steps 4,8,16] [--passes 1,4,16] [--repeat 1]
                                        [--cache DIR] [--threads 1]

@@ -1,5 +1,5 @@
 """Generation throughput and output size: samples/s and bytes per sample of each bundled recipe at
-its default size, 1 and 2 workers (`torchvol.bench_speed.generation_rows`; `torchvol bench speed`
+its default size, 1 and 2 workers (`torchvol.measure.bench_speed.generation_rows`; `torchvol bench speed`
 runs it at 128×128).
 
     python tools/bench_generate.py [--count 8] [--batch 4] [--workers 1 2] [--layout folder]

@@ -6,7 +6,7 @@ template on Mesa llvmpipe, at 640×360 and 1280×720.
 Prints a Markdown table: median wall time of `repeat` renders (after one warm-up render, which also
 pays torch.compile's compilation), density evaluations per second, and the ratio to llvmpipe
 measured in the same run. llvmpipe uses all CPU threads it finds (LP_NUM_THREADS to change).
-`torchvol bench speed` runs the same comparison (torchvol.bench_speed) with the rest of docs/SPEED.md.
+`torchvol bench speed` runs the same comparison (torchvol.measure.bench_speed) with the rest of docs/SPEED.md.
 """
 
 from __future__ import annotations

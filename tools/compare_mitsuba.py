@@ -7,7 +7,7 @@
     # llvm_ad_rgb needs an LLVM newer than Debian 12's 15 (which crashes it):
     apt-get install libllvm19 && export DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so
 
-The scene is `torchvol.testing.mitsuba` (64³ cloud puff, max optical depth 10, albedo 0.9, HG 0.8,
+The scene is `torchvol.measure.mitsuba` (64³ cloud puff, max optical depth 10, albedo 0.9, HG 0.8,
 one sun, no sky, fov 40°). Three tables:
 
 1. Parity (`--size`², pixel-area averages as Mitsuba's box-filtered film gives them): Mitsuba's

@@ -74,7 +74,7 @@ def document(model: type[BaseModel], prefix: str, seen: set, lines: list[str], i
 
 
 def render_doc() -> str:
-    lines = ["# Scene keys", "", "Generated from the schema (`torchvol/scene.py` and the technique modules it assembles) by",
+    lines = ["# Scene keys", "", "Generated from the schema (`torchvol/scene/model.py` and the technique modules it assembles) by",
              "`python tools/scene_keys.py`; do not edit.",
              "Tables with exactly one of several keys (bounds, density, phase) take one key only; lights and skies",
              "are chosen by their `kind` key. *batch*: a `per scene` value may differ between the scenes of one",

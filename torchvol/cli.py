@@ -395,7 +395,7 @@ def _speed_command() -> Command:
     return Command(("bench", "speed"), cmd_bench_speed, progress=False,
                    help="llvmpipe vs eager vs fast renders, the fbm floor, generation samples/s, loaded-machine "
                    "slowdown, the heap",
-                   description="One run of every speed figure of docs/SPEED.md (torchvol.bench_speed); ratios hold on any "
+                   description="One run of every speed figure of docs/SPEED.md (torchvol.measure.bench_speed); ratios hold on any "
                                "machine, absolute times only on a quiet one.", options=(
         option("--out", default=None, help="write the Markdown report here (e.g. docs/SPEED.md)"),
         option("--quick", action="store_true", help="small sizes, two recipes (about 2 minutes on 2 cores)"),

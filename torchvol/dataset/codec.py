@@ -67,7 +67,7 @@ def npy_bytes(array: np.ndarray) -> bytes:
 # How each AOV is stored, in a compressed .npz: lossless float32 (face normals, AO levels and hard
 # shadows take few distinct values: they compress well, docs/DATASETS.md), material ids as bytes
 # (at most 255 materials), and uv in float16: face coordinates in [0, 1] to within 2^-12 of a face.
-# instance ids (torchvol.labels) as uint16: volumes and materials together stay far below 65536
+# instance ids (torchvol.renderer.labels) as uint16: volumes and materials together stay far below 65536
 AOV_STORAGE = {"material": np.uint8, "uv": np.float16, "instance": np.uint16, "flow_valid": np.uint8}
 
 

@@ -39,7 +39,7 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
                    chunk_rays: int | None = None, compile: CompileMode | bool = "off") -> list[dict]:
     """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
     e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch.
-    `compile` (`torchvol.compilation`): "all" compiles a batch's density and march kernels only
+    `compile` (`torchvol.runtime.compilation`): "all" compiles a batch's density and march kernels only
     where that is the fast path (`renderer.plan.compile_pays`), its exact kernels elsewhere."""
     from ..renderer.executor import DEFAULT_CHUNK_RAYS, render
     from .sequence import (  # its flow loads kornia: only when a recipe has frames
@@ -109,7 +109,7 @@ class SceneDataset(Dataset):
 
     ds[i] depends only on (seed, epoch, i): the same in any process, DataLoader worker or order.
     `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`
-    (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
+    (`torchvol.runtime.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
     eager (the voxel walk) where the dataset holds `AUTO_COMPILE_SAMPLES` samples or more (its
     length, never what the process rendered before), "exact" always, "off" never; "all" (or True)
     also the density and march kernels where that is the fast path, as `torchvol generate

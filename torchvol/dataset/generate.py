@@ -6,8 +6,8 @@ Layout (DIR):
   folder:      samples/{index:06d}.{image.png, depth.npy, alpha.png, <aov>.npz, json}
   webdataset:  shards/shard-{k:06d}.tar holding {index:06d}.{json, image.png, depth.npy, alpha.png, <aov>.npz}
   (`[dataset] views = V` > 1 or `frames = F` > 1: image.{v}.png, depth.{v}.npy, ... per view or frame,
-  `torchvol.views`; sequences add flow.npz, flow_valid.npz, `torchvol.sequence`; `volume_label`:
-  extinction.npy, extinction_box.npy, `torchvol.volume_label`)
+  `torchvol.dataset.views`; sequences add flow.npz, flow_valid.npz, `torchvol.dataset.sequence`; `volume_label`:
+  extinction.npy, extinction_box.npy, `torchvol.dataset.volume_label`)
 
 Every file is written to a hidden temporary name and renamed into place, so a reader never sees a
 partial file. A folder sample is finished when its .json record exists (written after its other
@@ -79,7 +79,7 @@ class Task:
     layout: Layout
     batch: int
     shard: int
-    compile: CompileMode = "off"  # what renders compiled (torchvol.compilation)
+    compile: CompileMode = "off"  # what renders compiled (torchvol.runtime.compilation)
 
 
 def run_task(task: Task) -> list[int]:
@@ -165,7 +165,7 @@ def generate(
     leaves it as it is), or the Dask cluster at `scheduler` (its workers tuned too). `progress`: a bar of samples
     done on stderr (None: only when stderr is a terminal). `stop_after` (testing: simulates a kill)
     stops once that many samples were written, leaving the dataset unfinished. `compile`
-    (`torchvol.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
+    (`torchvol.runtime.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
     eager (the voxel walk) when a worker's share of the samples still to render is
     `AUTO_COMPILE_SAMPLES` or more; "exact" always, "off" never: the bytes are `SceneDataset`'s
     either way. "all" (or True) also compiles the density and march kernels where that is the

@@ -23,7 +23,7 @@ from ..schema.validate import fail, is_integer
 # Views in one sample: each is a full render, so a typo (views = 4000) should not start one.
 MAX_VIEWS = 256
 MAX_RESOLUTION = 512
-# Per-sample labels that have no view axis (the volume label, `torchvol.volume_label`).
+# Per-sample labels that have no view axis (the volume label, `torchvol.dataset.volume_label`).
 VOLUME_KEYS = ("extinction", "extinction_box")
 
 

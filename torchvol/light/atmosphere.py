@@ -1,7 +1,7 @@
 """The atmosphere (seed 000, variant 2): a planet-scale spherical shell of exponential Rayleigh and
 Mie densities, each with its own scale height, single scattering of the sun with the seeds' nested
 optical-depth march towards it. One function, `single_scatter`, serves both the `atmosphere` sky
-(`torchvol.sky`: the shell seen from a fixed height, as a background) and the top-level
+(`torchvol.light.sky`: the shell seen from a fixed height, as a background) and the top-level
 `[atmosphere]` medium (`aerial_perspective`: the scene inside the shell, whose ground y = 0 is the
 planet's surface, centre (0, −R, 0), with the camera anywhere: on the ground, in the air, in space).
 

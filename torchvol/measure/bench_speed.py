@@ -5,10 +5,10 @@ any machine (absolute times only on a quiet one):
 
 0. Where a render's time goes: torch.profiler's top ops (self CPU time) of `cloud-puff` (physical,
    table-hash value-noise fbm) and `template-clouds` (texture noise) at 64×64.
-1. `template-clouds` on Mesa llvmpipe (the same GLSL template, `torchvol.testing.glsl`) against
+1. `template-clouds` on Mesa llvmpipe (the same GLSL template, `torchvol.measure.glsl`) against
    torchvol eager and compiled (its march one Dr.Jit kernel, `volume.drjit_march`, and on
    torch.compile's kernels, `volume.fused`), and a physical cloud (`cloud-puff`) with the table hash,
-   the arithmetic hash eager and the arithmetic hash's fused compiled fbm (`torchvol.fastnoise`);
+   the arithmetic hash eager and the arithmetic hash's fused compiled fbm (`torchvol.noise.fast`);
    each row with its density evaluations per second.
 2. The floor: density evaluations per second of each render's noise alone on the same points
    (cloud-puff's value-noise fbm: table hash eager, arithmetic hash eager, fused compiled kernel;
@@ -18,7 +18,7 @@ any machine (absolute times only on a quiet one):
    full path: sampling, batched render, encoding, writes; worker runs include process start-up).
 4. The loaded-machine slowdown: a render in a fresh process alone and while one
    ``python -c "while True: pass"`` keeps a core busy, per thread count and OpenMP wait policy.
-5. The heap: renders in fresh processes with glibc's malloc as `torchvol.heap` sets it and left
+5. The heap: renders in fresh processes with glibc's malloc as `torchvol.runtime.heap` sets it and left
    alone; seconds, page faults and system time per render.
 
 Compile time is excluded from the steady-state rows and reported on its own (first call).
@@ -287,7 +287,7 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
                     layout: str = "folder", compiled: bool = True) -> list[dict]:
     """`generate` of each recipe at size×size (None: the recipe's own size) with each worker count,
     eager and, with `compiled`, in each compile mode that changes what the recipe's scenes run
-    (`torchvol.compilation`: "exact" for voxel scenes, "all" where `renderer.plan.compile_pays`):
+    (`torchvol.runtime.compilation`: "exact" for voxel scenes, "all" where `renderer.plan.compile_pays`):
     rows {recipe, workers, mode, seconds, samples_per_s, steady_per_s, first_s, bytes_per_sample}.
     After a warm-up run (one batch a worker: inductor's on-disk cache is then warm for both timed
     runs), each is run for N and for 2N samples (N = `count`, 4·`count` compiled, whose samples
@@ -386,7 +386,7 @@ def loaded_rows(*, width: int, height: int, repeat: int,
 
 def heap_rows(works: Sequence[tuple[str, int, int, str, int]], *, repeat: int) -> list[dict]:
     """Each (preset, width, height, compile mode, torch threads) in fresh processes, glibc's heap as
-    torchvol sets it (`torchvol.heap`) and left alone (TORCHVOL_HEAP=system), alternately: rows
+    torchvol sets it (`torchvol.runtime.heap`) and left alone (TORCHVOL_HEAP=system), alternately: rows
     {work, compile, threads, heap, seconds, faults, system_s}."""
     rows = []
     for name, width, height, compile, threads in works:
@@ -433,7 +433,7 @@ def _profile_section(sections: dict) -> list[str]:
     lines += ["", "Gathers (the value noise's permutation chain perm[perm[perm[x] + y] + z], 14 per point and "
               "octave; the march's and the DDA's compaction) run as `aten::index_select` (`mathops.take_rows`, 3–5× "
               "faster than `x[ids]`'s `aten::index`); `density.fbm.hash = \"arithmetic\"` replaces the permutation "
-              "with integer arithmetic that inductor fuses (torchvol.fastnoise). In the compiled arithmetic-hash render "
+              "with integer arithmetic that inductor fuses (torchvol.noise.fast). In the compiled arithmetic-hash render "
               "the fused density kernels (`Torch-Compiled Region`, dynamo's guard checks in `TorchDynamo Cache Lookup`) "
               "sit among the march's small eager ops (docs/VOLUMES.md, \"The fused field\").", ""]
     return lines

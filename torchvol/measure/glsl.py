@@ -9,7 +9,7 @@ ShaderToy-style code (``void mainImage(out vec4, in vec2)``) runs through `shade
 declares ``iResolution``, ``iTime``, ``iMouse`` and ``iChannel0..3``; `run_fragment` sets
 ``iResolution`` to ``(W, H, 1)`` when the program uses it and the caller did not.
 
-moderngl is imported inside the functions, so ``import torchvol.testing.glsl`` works without it;
+moderngl is imported inside the functions, so ``import torchvol.measure.glsl`` works without it;
 `gl_context` returns None (never raises) when no context can be made, and tests skip on None.
 """
 

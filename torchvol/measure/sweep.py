@@ -4,7 +4,7 @@ Every combination of the swept values (`params`: {key path: [values]}) is a sett
 the named quality levels, each deciding every approximation itself (`at_quality`), and so does a
 swept `march.quality`. A setting renders each sample once (a scene is one sample; a recipe gives
 samples 0..N−1, the same draws for every setting) and is measured against a reference of that
-sample (`torchvol.reference`): the converged image, refined until its own error bound is `factor`
+sample (`torchvol.measure.reference`): the converged image, refined until its own error bound is `factor`
 times under the setting's error. Swept keys that only set an approximation (`is_approximation`:
 march keys, spp, shadow steps, step limits) share their sample's reference; other swept keys
 (σ_t, ...) change the scene and get references of their own.
@@ -18,7 +18,7 @@ Writes to DIR, as it goes (an interrupted sweep keeps what it measured; a re-run
   references/        the reference rungs (a cache keyed by a hash of each rung's scene)
 and at the end:
   summary.csv        per setting: samples, mean and spread of time and error, worst error and bound
-  pareto.png, contact_sheet.png, difference.png, plot_<key>.png (`torchvol.figures`)
+  pareto.png, contact_sheet.png, difference.png, plot_<key>.png (`torchvol.measure.figures`)
 """
 
 from __future__ import annotations

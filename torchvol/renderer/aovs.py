@@ -3,7 +3,7 @@
 computed is output) and its capabilities: ``channels`` (0: one per volume), ``resolve`` (how a pixel's sub-samples
 combine: ``mean``, ``hit_mean`` (the mean over the sub-samples that hit something: depths) or
 ``first`` (ids, which do not average)), ``doc`` and ``on_request`` (computed only when asked for:
-the per-medium labels of `torchvol.labels`)."""
+the per-medium labels of `torchvol.renderer.labels`)."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ _aov("roughness", 1, "mean", lambda batch: batch.voxels is not None and any_ggx(
      "voxel material GGX roughness (0: no hit)")
 _aov("metallic", 1, "mean", lambda batch: batch.voxels is not None and any_ggx(batch.voxels.materials),
      "voxel material metallic (0: no hit)")
-# per-medium labels (torchvol.labels), computed only when asked for (render(aovs=...), [dataset] aovs)
+# per-medium labels (torchvol.renderer.labels), computed only when asked for (render(aovs=...), [dataset] aovs)
 _aov("optical_thickness", 1, "mean", lambda batch: True,
      "optical thickness τ = ∫σ_t dt along the ray through every volume, to the surface hit (unbounded)", True)
 _aov("alpha_volumes", 0, "mean", lambda batch: bool(batch.volumes),

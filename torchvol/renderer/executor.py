@@ -1,6 +1,6 @@
 """render(): executes a batch's plan over memory-bounded ray chunks and returns a RenderOutput.
 
-The plan (`torchvol.plan`) has made every decision; this module holds a render's state
+The plan (`torchvol.renderer.plan`) has made every decision; this module holds a render's state
 (`RenderContext`: the batch's per-scene tensors, its lights and volumes, counters and timer) and
 runs each planned pass by looking it up: skies in `SKIES`, volume strategies in `STRATEGIES`, post
 effects in `POST`. `stats["passes"]` and `stats["time_s"]` record what ran.

@@ -190,9 +190,9 @@ class Plan:
     spp: int
     post: tuple[tuple[str, str], ...]  # (POST kind, pass name), in order
     aovs: tuple[str, ...]  # the AOVs the render outputs
-    passes: int = 1  # `image.passes`: > 1 accumulates (torchvol.accumulate)
+    passes: int = 1  # `image.passes`: > 1 accumulates (torchvol.renderer.accumulate)
     blend: str = "mean"
-    labels: LabelPass | None = None  # the per-medium labels asked for (torchvol.labels), after the composite
+    labels: LabelPass | None = None  # the per-medium labels asked for (torchvol.renderer.labels), after the composite
     sun: int | None = None  # the index of the light that is the scene's sun (`lights.sun_index`), None: none
     compile: str = "off"  # the compile mode the render runs in (`runtime.compilation`)
     dtype: torch.dtype = torch.float32  # the render's float type (the quality level's unless given)
@@ -325,7 +325,7 @@ def terrain_pass(batch: Stacked) -> TerrainPass | None:
 def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: torch.dtype | None = None,
               device: torch.device | str = "cpu") -> Plan:
     """The plan of a batch (a `Stacked` view of scenes at their quality level), or of one scene;
-    `aovs`: AOV names asked for beyond those always output (the labels of `torchvol.labels`);
+    `aovs`: AOV names asked for beyond those always output (the labels of `torchvol.renderer.labels`);
     `compile` (a resolved mode), `dtype` (None: the quality level's) and `device` decide which
     backend each march runs on and the thread policy."""
     if isinstance(batch, Scene):

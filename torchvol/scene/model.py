@@ -58,7 +58,7 @@ class Image(Strict):
     width: int = Field(256, ge=1, le=16384)
     height: int = Field(256, ge=1, le=16384)
     spp: int | None = Field(None, ge=1, le=1024, description="samples per pixel; None: the quality level's")
-    # progressive accumulation (torchvol.accumulate): passes with their own dither and jitter, blended
+    # progressive accumulation (torchvol.renderer.accumulate): passes with their own dither and jitter, blended
     passes: int = Field(1, ge=1, le=4096, description="passes blended into the image (1: a single render)")
     blend: Literal["mean", "exponential"] = "mean"  # running mean, or the seeds' mix(old, new, blend_weight)
     blend_weight: float = Field(0.05, gt=0.0, le=1.0)
@@ -323,7 +323,7 @@ class VoxelShadow(Strict):
 
 class VoxelReflections(Strict):
     """Mirror reflection rays from each hit through the same DDA (seed 001 Variant 5), added with
-    the Fresnel weight F · (1 − roughness)² (`voxel/surface.py`)."""
+    the Fresnel weight F · (1 − roughness)² (`voxel/passes/secondary.py`)."""
 
     bounces: int = Field(1, ge=1, le=4)
     steps: int = Field(64, ge=1, le=100_000)  # the seed's 64: fewer than the primary ray's
@@ -606,7 +606,7 @@ def preset_names() -> list[str]:
 
 
 def preset(name: str, **params: Any) -> Scene:
-    """A bundled scene with its documented parameters (see `torchvol.presets`)."""
+    """A bundled scene with its documented parameters (see `torchvol.scene.presets`)."""
     from .presets import preset_dict
 
     if name not in preset_names():

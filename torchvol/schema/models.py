@@ -2,7 +2,7 @@
 batches.
 
 Every model forbids unknown keys and non-finite numbers. Every field has a batch role, declared
-once, here in the schema, and read by `torchvol.batch` both to build a batch's tensors and to
+once, here in the schema, and read by `torchvol.schema.batch` both to build a batch's tensors and to
 decide which scenes may share a batch:
 
 - ``TENSOR`` (per-scene number): scenes of one batch may differ; the renderer sees a (B, ...)
