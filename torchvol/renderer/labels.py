@@ -35,7 +35,7 @@ from ..geometry.camera import Rays
 from ..geometry.surface_hit import SurfaceHit
 from ..scene.model import VoxelShadow
 from ..schema.batch import take
-from ..volume.composite import entry_order
+from ..volume.composite import Composited, VolumePart, entry_order
 from ..volume.context import Occluder, VolumeContext
 from ..volume.physical import occluder_transmittance
 from ..volume.strategy import entry_exit
@@ -70,10 +70,10 @@ def optical_thickness(ctx: LabelContext, rays: Rays, t_limit: Tensor | None) -> 
     return tau
 
 
-def volume_alphas(parts: list[dict[str, Tensor]]) -> Tensor:
+def volume_alphas(parts: list[VolumePart]) -> Tensor:
     """[V, n]: each volume's alpha share, composited front to back in order of entry (`t0`) as
     `composite_volumes` does; `parts` the volumes' parts in scene order."""
-    trans = torch.stack([p["transmittance"] for p in parts])  # [V, n]
+    trans = torch.stack([p.transmittance for p in parts])  # [V, n]
     order = entry_order(parts)
     ordered = trans.gather(0, order)
     before = torch.cumprod(torch.cat([torch.ones_like(ordered[:1]), ordered[:-1]]), dim=0)
@@ -108,11 +108,11 @@ def surface_lift(ctx: LabelContext, s: Tensor, t: Tensor) -> Tensor:
     return take(shadow.offset, s)
 
 
-def sun_visibility(ctx: LabelContext, rays: Rays, volumes: dict[str, Tensor], surf: SurfaceHit | None) -> Tensor:
+def sun_visibility(ctx: LabelContext, rays: Rays, volumes: Composited, surf: SurfaceHit | None) -> Tensor:
     """Transmittance [n] to the scene's sun (`Plan.sun`) from each ray's depth point (1 where it has none)."""
     use = ctx.plan.labels.sun
     s, o, d = rays.scene_index, rays.origins, rays.directions
-    t = volumes["median_t"]
+    t = volumes.median_t
     on_surface = torch.zeros_like(t, dtype=torch.bool)
     if surf is not None:
         on_surface = surf.hit & (t == 0)
@@ -136,7 +136,7 @@ def sun_visibility(ctx: LabelContext, rays: Rays, volumes: dict[str, Tensor], su
     return out
 
 
-def per_ray(ctx: LabelContext, rays: Rays, parts: list[dict[str, Tensor]], volumes: dict[str, Tensor], surf: SurfaceHit | None) -> dict[str, Tensor]:
+def per_ray(ctx: LabelContext, rays: Rays, parts: list[VolumePart], volumes: Composited, surf: SurfaceHit | None) -> dict[str, Tensor]:
     """The planned labels of a chunk's rays, each [n, C], from the render's volume `parts` (scene
     order), their composite `volumes` and the surface pass's result `surf`."""
     names, out = ctx.plan.labels.names, {}
@@ -151,7 +151,7 @@ def per_ray(ctx: LabelContext, rays: Rays, parts: list[dict[str, Tensor]], volum
             out["alpha_volumes"] = alphas.T
     if "instance" in names:
         with ctx.timer.section("labels.instance"):
-            out["instance"] = instance(ctx, alphas, volumes["transmittance"], surf)[:, None]
+            out["instance"] = instance(ctx, alphas, volumes.transmittance, surf)[:, None]
     if "sun_visibility" in names:
         with ctx.timer.section("labels.sun_visibility"):
             out["sun_visibility"] = sun_visibility(ctx, rays, volumes, surf)[:, None]

@@ -4,20 +4,43 @@ labels. Plain functions of per-ray tensors [n]."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+
 import torch
 from torch import Tensor
 
 from ..geometry.surface_hit import SurfaceHit
 
-PART_KEYS = ("radiance", "transmittance", "weight_sum", "weighted_t", "median_t")
+
+@dataclass(frozen=True)
+class Composited:
+    """Volumes along a chunk's rays [n], composited: radiance [n, 3], transmittance, the depth
+    weights' sum Σwᵢ and Σwᵢtᵢ, and the median depth t (0: transmittance never crossed 0.5), [n]."""
+
+    radiance: Tensor
+    transmittance: Tensor
+    weight_sum: Tensor
+    weighted_t: Tensor
+    median_t: Tensor
 
 
-def entry_order(parts: list[dict[str, Tensor]]) -> Tensor:
+@dataclass(frozen=True)
+class VolumePart(Composited):
+    """One volume's part of a chunk's rays (what a strategy returns), with the distance `t0` [n]
+    where each ray enters it (inf: it does not)."""
+
+    t0: Tensor
+
+
+PART_KEYS = tuple(f.name for f in fields(Composited))
+
+
+def entry_order(parts: list[VolumePart]) -> Tensor:
     """[V, n]: per ray, the parts' indices front to back by entry `t0` (the composite's order)."""
-    return torch.argsort(torch.stack([p["t0"] for p in parts]), dim=0)
+    return torch.argsort(torch.stack([p.t0 for p in parts]), dim=0)
 
 
-def composite_volumes(parts: list[dict[str, Tensor]], like: Tensor) -> dict[str, Tensor]:
+def composite_volumes(parts: list[VolumePart], like: Tensor) -> Composited:
     """Front-to-back composite of volume parts (each: radiance [n, 3], transmittance, weight_sum,
     weighted_t, median_t and entry t0 [n]), ordered per ray by entry. `like`: [n] (dtype, device).
     -> radiance [n, 3], transmittance, weight_sum, weighted_t and median_t [n] of the whole ray."""
@@ -28,7 +51,7 @@ def composite_volumes(parts: list[dict[str, Tensor]], like: Tensor) -> dict[str,
         order = entry_order(parts)
         ordered = {}
         for key in PART_KEYS:
-            stacked = torch.stack([p[key] for p in parts])  # [V, n] or [V, n, 3]
+            stacked = torch.stack([getattr(p, key) for p in parts])  # [V, n] or [V, n, 3]
             index = order.view(*order.shape, *([1] * (stacked.dim() - 2))).expand_as(stacked)
             ordered[key] = stacked.gather(0, index)
         for k in range(len(parts)):
@@ -39,18 +62,18 @@ def composite_volumes(parts: list[dict[str, Tensor]], like: Tensor) -> dict[str,
             crossed = (median == 0) & (trans > 0.5) & (trans * part_trans <= 0.5)
             median = torch.where(crossed, ordered["median_t"][k], median)
             trans = trans * part_trans
-    return dict(radiance=radiance, transmittance=trans, weight_sum=wsum, weighted_t=wt, median_t=median)
+    return Composited(radiance=radiance, transmittance=trans, weight_sum=wsum, weighted_t=wt, median_t=median)
 
 
-def finish(volumes: dict[str, Tensor], behind: Tensor | None, surface: SurfaceHit | None, forward_cos: Tensor,
+def finish(volumes: Composited, behind: Tensor | None, surface: SurfaceHit | None, forward_cos: Tensor,
            depth_threshold: float) -> dict[str, Tensor]:
     """The ray's outputs from its composited volumes, what lies behind them (`behind` [n, 3]: the
     shaded surface where one was hit, else the sky; None: black) and the surface pass's result
     (hit, t [n] and its AOVs; None without voxels). Depth is planar (distance × `forward_cos` [n]);
     volume depth is the expected termination depth where alpha ≥ `depth_threshold`, and a surface
     is an opaque terminal weight T at its distance."""
-    trans, wsum, wt, median = (volumes[k] for k in ("transmittance", "weight_sum", "weighted_t", "median_t"))
-    radiance = volumes["radiance"] if behind is None else volumes["radiance"] + trans[:, None] * behind
+    trans, wsum, wt, median = volumes.transmittance, volumes.weight_sum, volumes.weighted_t, volumes.median_t
+    radiance = volumes.radiance if behind is None else volumes.radiance + trans[:, None] * behind
     alpha = 1.0 - trans
     tiny = torch.finfo(wsum.dtype).tiny
     distance = torch.where(wsum > 0, wt / wsum.clamp_min(tiny), torch.zeros_like(wsum))

@@ -15,6 +15,7 @@ from ..geometry.camera import Rays
 from ..geometry.rays import clip_to_ray
 from ..schema.batch import per_scene, take
 from .ambient import ambient_in_scatter
+from .composite import VolumePart
 from .context import VolumeContext
 from .emission import EMISSION_MAPS, bloom_glow
 from .integrate import frostbite_step
@@ -195,7 +196,7 @@ def physical_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | No
     return medium
 
 
-def closed_form(ctx: VolumeContext, vol, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> dict[str, Tensor]:
+def closed_form(ctx: VolumeContext, vol, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> VolumePart:
     """Homogeneous medium, unshadowed directional lights: one exact frostbite segment over the
     whole chord, evaluated on the rays that hit only."""
     n = len(rays)
@@ -203,7 +204,7 @@ def closed_form(ctx: VolumeContext, vol, rays: Rays, t0: Tensor, t1: Tensor, hit
                weighted_t=torch.zeros_like(t0), median_t=torch.zeros_like(t0), t0=torch.full_like(t0, math.inf))
     ids = hit.nonzero().squeeze(1)
     if ids.numel() == 0:
-        return out
+        return VolumePart(**out)
     s, d, a, b = rays.scene_index[ids], rays.directions[ids], t0[ids], t1[ids]
     length = b - a
     mid = rays.origins[ids] + (0.5 * (a + b))[:, None] * d
@@ -219,4 +220,4 @@ def closed_form(ctx: VolumeContext, vol, rays: Rays, t0: Tensor, t1: Tensor, hit
     for key, value in dict(radiance=radiance, transmittance=trans, weight_sum=alpha, weighted_t=alpha * t_mean,
                            median_t=median, t0=a).items():
         out[key][ids] = value
-    return out
+    return VolumePart(**out)

@@ -14,6 +14,7 @@ from torch import Tensor
 from ..geometry.camera import Rays
 from ..geometry.rays import clip_to_ray
 from ..schema.batch import take
+from .composite import VolumePart
 from .context import VolumeContext
 from .fused import march_fused
 from .march import march, march_adaptive
@@ -35,17 +36,17 @@ def entry_exit(vol, rays: Rays, t_limit: Tensor | None) -> tuple[Tensor, Tensor,
     return t0, t1, hit
 
 
-def _part(ctx: VolumeContext, vol, res, t0: Tensor, hit: Tensor) -> dict[str, Tensor]:
+def _part(ctx: VolumeContext, vol, res, t0: Tensor, hit: Tensor) -> VolumePart:
     ctx.counts.march_steps += int(res.steps.sum())
     ctx.counts.truncated_rays += int(res.truncated.sum())
     radiance, trans = res.radiance, res.transmittance
     if vol.shading.semantics == "shader":  # the template's clamp(sum, 0, 1)
         radiance, trans = radiance.clamp(0.0, 1.0), 1.0 - (1.0 - trans).clamp(0.0, 1.0)
-    return dict(radiance=radiance, transmittance=trans, weight_sum=res.weight_sum, weighted_t=res.weighted_t,
-                median_t=res.median_t, t0=torch.where(hit, t0, torch.full_like(t0, math.inf)))
+    return VolumePart(radiance=radiance, transmittance=trans, weight_sum=res.weight_sum, weighted_t=res.weighted_t,
+                      median_t=res.median_t, t0=torch.where(hit, t0, torch.full_like(t0, math.inf)))
 
 
-def run_closed_form(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+def run_closed_form(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> VolumePart:
     """The volume's part for a chunk's `rays` [n] (the sky behind them `background` [n, 3] or
     None, surfaces at `t_limit` [n] or None) in closed form. -> the part: radiance [n, 3],
     transmittance, weight sums, median t and entry t [n]."""
@@ -54,7 +55,7 @@ def run_closed_form(ctx: VolumeContext, vol, rays: Rays, background: Tensor | No
         return closed_form(ctx, vol, rays, t0, t1, hit)
 
 
-def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None, *, skip: bool = False) -> dict[str, Tensor]:
+def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None, *, skip: bool = False) -> VolumePart:
     """The volume's part for a chunk's `rays` [n] (`background` [n, 3] or None, `t_limit` [n] or
     None) by the fixed march, on the backend the plan chose; `skip`: over the occupied span only.
     -> the part: radiance [n, 3], transmittance, weight sums, median t and entry t [n]."""
@@ -78,13 +79,13 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
     return _part(ctx, vol, res, t0, hit)
 
 
-def run_skip(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+def run_skip(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> VolumePart:
     """`run_march` over the occupied span only (empty space skipped): the same part, radiance
     [n, 3] and the rest [n]."""
     return run_march(ctx, vol, rays, background, t_limit, skip=True)
 
 
-def run_tolerance(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> dict[str, Tensor]:
+def run_tolerance(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> VolumePart:
     """The volume's part for a chunk's `rays` [n] (`background` [n, 3] or None, `t_limit` [n] or
     None) by the error-controlled march at `march.tolerance`. -> the part: radiance [n, 3],
     transmittance, weight sums, median t and entry t [n]."""
