@@ -198,3 +198,30 @@ def test_lod_keeps_the_fields_own_octaves():
     assert not torch.equal(tv.render(five).alpha, full.alpha)
     with pytest.raises(ValueError, match=r"^march\.lod"):  # nothing to drop: refused, not ignored
         tv.load_scene({**s, "volumes": [{"density": {"constant": 1.0}}], "march": {"lod": {"scale": 0.5}}})
+
+
+def test_the_plan_records_the_sun_each_marchs_backend_the_walk_and_the_thread_policy():
+    """Every decision is the plan's, made once (not per chunk) and reported in stats["plan"]."""
+    import json
+
+    from torchvol.volume import drjit_march
+
+    template = tv.preset("template-clouds", width=8, height=8)
+    drjit = drjit_march.available(torch.zeros((), dtype=torch.float32))
+    fast = make_plan(template, compile="all")
+    assert fast.sun == 0 and fast.volumes[0].backend == ("drjit" if drjit else "inductor")
+    assert fast.threads == ("glue_on_one_thread" if drjit else "caller")
+    assert make_plan(template, compile="all", dtype=torch.float64).volumes[0].backend == "inductor"  # Dr.Jit: float32
+    eager = make_plan(template)
+    assert eager.volumes[0].backend == "eager" and eager.threads == "caller" and eager.walk is None
+    assert make_plan(tv.preset("homogeneous-box", width=8, height=8)).volumes[0].backend == "closed_form"
+    assert make_plan(tv.preset("cloud-puff", width=8, height=8), compile="all").volumes[0].backend == "eager"
+    assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="exact").walk == "inductor"
+    point_first = {"image": {"width": 8, "height": 8}, "volumes": [{"density": {"constant": 1.0}}],
+                   "lights": [{"kind": "point", "position": [0.0, 3.0, 0.0]}, {"kind": "sun", "direction": [0, 1, 0]}]}
+    assert make_plan(tv.load_scene(point_first)).sun is None  # lights[0] is not directional: no sun
+    assert make_plan(tv.load_scene({**point_first, "lights": point_first["lights"][::-1]})).sun == 0
+    out = tv.render(tv.preset("cloud-puff", width=8, height=8))
+    assert out.stats["plan"] == make_plan(tv.preset("cloud-puff", width=8, height=8)).summary()
+    assert json.loads(json.dumps(out.stats["plan"])) == out.stats["plan"]
+    assert set(out.stats["plan"]) == {"passes", "sun", "marches", "threads", "compile", "dtype"}

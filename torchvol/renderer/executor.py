@@ -99,7 +99,7 @@ class RenderContext:
         self.surface = self.terrain = None
         if plan.voxels is not None:
             self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs}, dtype=dtype, device=device,
-                                        compiled=compile != "off", time=self.times,
+                                        compiled=plan.walk == "inductor", time=self.times,
                                         sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s))
         if plan.terrain is not None:  # the scene's one surface (voxels and terrain are refused together)
             self.terrain = self.surface = TerrainSurface(

@@ -197,11 +197,13 @@ class Plan:
     compile: str = "off"  # the compile mode the render runs in (`runtime.compilation`)
     dtype: torch.dtype = torch.float32  # the render's float type (the quality level's unless given)
     threads: Threads = "caller"  # torch's thread policy during the render
+    walk: Backend | None = None  # what the voxel DDA walk runs on (inductor: its exact kernels), None: no voxels
 
     def summary(self) -> dict:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
         march's backend, the thread policy, the compile mode and the dtype."""
         return {"passes": self.names(), "sun": self.sun, "marches": {v.name: v.backend for v in self.volumes},
+                **({"walk": self.walk} if self.walk is not None else {}),
                 "threads": self.threads, "compile": self.compile, "dtype": str(self.dtype).removeprefix("torch.")}
 
     def names(self) -> list[str]:
@@ -356,6 +358,8 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
         compile=compile,
         dtype=dtype,
         threads="glue_on_one_thread" if glue else "caller",
+        # the walk's kernels are bitwise eager's: compiled under "exact" and "all"
+        walk=None if voxels is None else ("eager" if compile == "off" else "inductor"),
     )
 
 
