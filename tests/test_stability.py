@@ -369,3 +369,56 @@ def test_when_the_march_compacts_does_not_change_its_result(bumps, compact_below
     for name in ("radiance", "transmittance", "weight_sum", "weighted_t", "median_t"):
         assert_close(getattr(runs[1], name), getattr(runs[0], name), atol=1e-12, what=name)
     assert torch.equal(runs[1].steps, runs[0].steps) and torch.equal(runs[1].truncated, runs[0].truncated)
+
+
+# -- the wave-2 techniques' hard cases, each over its whole parameter range -----------------------
+
+SUN = {"kind": "sun", "direction": [0.3, 1.0, -0.2], "shadow": {"steps": 4}}
+
+
+def _small(**extra):
+    return {"image": {"width": 7, "height": 5}, "march": {"steps": 8}, **extra}
+
+
+@FAST
+@given(value=st.one_of(st.just(0.0), st.floats(1e-6, 1e12)), base=st.floats(-50.0, 50.0),
+       scale_height=st.floats(1e-6, 1e3), sigma_t=st.one_of(st.just(0.0), st.floats(1e-6, 1e12)),
+       bounds=st.sampled_from(sorted(BOUNDS)), eye_y=st.floats(-3.0, 3.0), dtype=st.sampled_from([torch.float32, torch.float64]))
+def test_exponential_densities_never_overflow(value, base, scale_height, sigma_t, bounds, eye_y, dtype):
+    """Far below its base a small scale height would give e^{1000} (inf, and inf × 0 NaN): the
+    density is capped, so images, alpha and depth stay finite and in range, cameras inside too."""
+    scene = _small(camera={"eye": [0.0, eye_y, -2.0], "target": [0.0, 0.0, 0.0]}, lights=[SUN],
+                   sky={"kind": "constant", "radiance": [0.2, 0.3, 0.4]},
+                   volumes=[{"bounds": BOUNDS[bounds], "sigma_t": sigma_t, "albedo": 0.8,
+                             "density": {"exponential": {"value": value, "base": base, "scale_height": scale_height}}}])
+    check_output(tv.render(scene, dtype=dtype), what=f"{dtype} {scene}")
+
+
+@FAST
+@given(shading=st.sampled_from(["physical", "shader", "surface"]), fog=st.floats(0.0, 10.0),
+       bounds=st.sampled_from(sorted(BOUNDS)), compile=st.sampled_from(["off", "all"]))
+def test_every_shading_renders_without_a_sky(shading, fog, bounds, compile):
+    """No [sky]: black behind, for every shading (the shader look's fog blends towards it)."""
+    volume = {"bounds": BOUNDS[bounds], "density": {"clouds": {}}, "shading": shading}
+    if shading == "shader":
+        volume["shader"] = {"fog": fog}
+    scene = _small(camera={"eye": [0.0, 0.2, -2.0], "target": [0.0, 0.0, 0.0]}, lights=[SUN], volumes=[volume])
+    check_output(tv.render(scene, compile=compile), what=str(scene))
+
+
+@FAST
+@given(eye_y=st.floats(-5.0, 5.0), base=st.floats(-2.0, 2.0), amplitude=st.floats(0.0, 3.0),
+       pitch=st.floats(-1.0, 1.0))
+def test_cameras_under_the_terrain_see_the_ground_at_zero(eye_y, base, amplitude, pitch):
+    """The ground is solid: a camera under the surface meets it at once (alpha 1, depth 0, never
+    negative); above it, depth is positive where the terrain is hit."""
+    scene = _small(camera={"eye": [0.0, eye_y, -3.0], "target": [0.0, eye_y + pitch, 3.0]}, lights=[SUN],
+                   terrain={"base": base, "amplitude": amplitude, "steps": 32})
+    out = tv.render(scene)
+    for name, x in [("image", out.image), ("depth", out.depth), ("alpha", out.alpha), *out.aovs.items()]:
+        assert torch.isfinite(x).all(), f"{scene}: {name} has non-finite values"
+    assert (out.depth >= 0).all(), f"{scene}: negative depth {out.depth.min().item()}"
+    assert (out.alpha >= 0).all() and (out.alpha <= 1).all() and (out.image >= 0).all() and (out.image <= 1).all()
+    under = eye_y < base - amplitude - 1e-3
+    if under:
+        assert (out.alpha == 1).all() and (out.depth == 0).all(), f"{scene}: a camera in the ground sees past it"

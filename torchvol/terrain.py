@@ -85,6 +85,16 @@ def span(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor) -> tuple[Te
     return clip_to_ray(t_near, t_far, torch.minimum(t_max, take(t.max_distance, s)))
 
 
+def underground(t: Stacked, o: Tensor, s: Tensor) -> Tensor:
+    """[n] bool: where points `o` [n, 3] of scenes `s` [n] lie below the terrain (only points
+    under the highest reachable height are looked up)."""
+    below = torch.zeros(o.shape[0], dtype=torch.bool, device=o.device)
+    low = (o[:, 1] < take(t.base, s) + take(t.amplitude, s)).nonzero().squeeze(1)
+    if low.numel():
+        below[low] = gap(t, o[low], s[low]) < 0
+    return below
+
+
 def trace(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, *, steps: int,
           refine: bool = False) -> tuple[Tensor, Tensor]:
     """Sphere-trace rays `o`, `d` [n, 3] (d unit) of scenes `s` [n] to the terrain, no farther than
@@ -93,8 +103,9 @@ def trace(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, *, steps: 
     depth labels belong on the surface; exact on a plane)."""
     t0, t1, live = span(t, o, d, s, t_max)
     dist = torch.where(live, t0, torch.zeros_like(t0))
-    hit = torch.zeros_like(live)
-    ids = live.nonzero().squeeze(1)
+    hit = underground(t, o, s)  # the ground is solid: a ray that starts in it meets it at 0
+    dist = torch.where(hit, torch.zeros_like(dist), dist)
+    ids = (live & ~hit).nonzero().squeeze(1)
     last_t, last_g = dist[ids], None  # the previous point of each live ray (for the overshoot secant)
     safety, eps = take(t.safety, s), take(t.epsilon, s)
     for _ in range(steps):
@@ -130,7 +141,8 @@ def _onto_surface(t: Stacked, o: Tensor, d: Tensor, s: Tensor, hit: Tensor, dist
     fall = g[1] - g[0]  # > 0 where the gap shrinks along the ray
     step = torch.where(fall > 0, back * g[0] / fall.clamp_min(torch.finfo(ti.dtype).tiny), torch.zeros_like(ti))
     out = dist.clone()
-    out[ids] = ti + step.clamp(-back, 2.0 * back)
+    # never behind the ray's origin: a camera under the surface is in the ground, which it meets at 0
+    out[ids] = (ti + step.clamp(-back, 2.0 * back)).clamp_min(0.0)
     return out
 
 

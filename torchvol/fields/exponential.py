@@ -3,6 +3,8 @@ atmosphere (there radially; here along y)."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 from pydantic import Field
 from torch import Tensor
@@ -11,10 +13,17 @@ from ..schema.batch import Stacked, take
 from ..schema.models import Strict
 
 
-class ExponentialDensity(Strict):
-    """density = value · e^{−(y − base)/scale_height}."""
+# the largest density the field returns: far below its base a small scale height overflows
+# e^{(base − y)/H} (e^{1000} is inf, and inf × 0 NaN); 1e12 × `sigma_t` (≤ 1e12) is opaque over any
+# step and still finite in float32, as is every optical depth summed from it
+DENSITY_MAX = 1e12
+LOG_DENSITY_MAX = math.log(DENSITY_MAX)
 
-    value: float = Field(1.0, ge=0.0)
+
+class ExponentialDensity(Strict):
+    """density = value · e^{−(y − base)/scale_height}, at most 1e12 (`DENSITY_MAX`)."""
+
+    value: float = Field(1.0, ge=0.0, le=DENSITY_MAX)
     base: float = 0.0
     scale_height: float = Field(1.0, gt=0.0)
 
@@ -28,6 +37,7 @@ class Exponential:
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         p, s = self.p, scene_index
         h = (points[:, 1] - take(p.base, s)) / take(p.scale_height, s)
-        return take(p.value, s) * torch.exp(-h)
+        # the exponent capped before exp (no inf, so value 0 gives 0), the product capped after
+        return (take(p.value, s) * torch.exp((-h).clamp_max(LOG_DENSITY_MAX))).clamp_max(DENSITY_MAX)
 
     signed = __call__  # never clamped: the density is its own signed value

@@ -92,7 +92,8 @@ def shader_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None
                 lin = toward.irradiance * dif[:, None] + lin
         col = torch.lerp(take(look.color_lit, s), take(look.color_dark, s), density[:, None]) * lin
         fog = take(look.fog, s)
-        col = torch.lerp(col, background[ids][keep], (1.0 - torch.exp(-fog * t * t))[:, None])
+        behind = background[ids][keep] if background is not None else torch.zeros_like(col)  # no [sky]: black
+        col = torch.lerp(col, behind, (1.0 - torch.exp(-fog * t * t))[:, None])
         return density * take(look.alpha_scale, s), col
 
     return alpha_look_medium(ctx, vol, rays, shade)

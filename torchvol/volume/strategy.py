@@ -67,7 +67,8 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
             occupied, marched = skipped_span(vol, rays, t0, t1, hit)
     with ctx.timer.section(vol.plan.step_pass):
         if not skip and vol.plan.backend in ("inductor", "drjit"):  # compiled kernels, or one Dr.Jit kernel
-            res = march_fused(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays), drjit=vol.plan.backend == "drjit")
+            behind = background if background is not None else rays.origins.new_zeros(len(rays), 3)  # no [sky]: black
+            res = march_fused(ctx, vol, rays, behind, t0, t1, hit, ctx.dither(rays), drjit=vol.plan.backend == "drjit")
             return _part(ctx, vol, res, t0, hit)
         medium = vol.shading.fn(ctx, vol, rays, background)
         res = march(
