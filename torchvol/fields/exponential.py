@@ -12,7 +12,6 @@ from torch import Tensor
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict
 
-
 # the largest density the field returns: far below its base a small scale height overflows
 # e^{(base − y)/H} (e^{1000} is inf, and inf × 0 NaN); 1e12 × `sigma_t` (≤ 1e12) is opaque over any
 # step and still finite in float32, as is every optical depth summed from it
