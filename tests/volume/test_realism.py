@@ -195,7 +195,7 @@ def test_edge_fades_to_zero_at_the_bounds(bounds):
 
     scene = tv.load_scene({"volumes": [{"bounds": bounds, "density": {"constant": 2.0}, "edge": {"width": 0.25}}]})
     batch = stack([scene])
-    ctx = RenderContext(batch, make_plan(scene), seeds=[0], dtype=torch.float32, device="cpu", compile="off")
+    ctx = RenderContext(batch, make_plan(scene), seeds=[0], device="cpu")
     field = ctx.volumes[0].field
     top = 0.8 if "box" in bounds else 1.0
     p = torch.tensor([[0.0, top, 0.0], [0.0, top - 0.125, 0.0], [0.0, top - 0.25, 0.0], [0.0, 0.0, 0.0], [0, top + 1, 0]])
@@ -210,7 +210,7 @@ def test_edge_base_is_a_flat_floor():
 
     scene = tv.load_scene({"volumes": [{"bounds": {"sphere": {"radius": 1.0}}, "density": {"constant": 1.0},
                                         "edge": {"width": 0.2, "base": -0.3}}]})
-    ctx = RenderContext(stack([scene]), make_plan(scene), seeds=[0], dtype=torch.float32, device="cpu", compile="off")
+    ctx = RenderContext(stack([scene]), make_plan(scene), seeds=[0], device="cpu")
     p = torch.tensor([[0.5, -0.35, 0.0], [0.5, -0.3, 0.0], [0.5, -0.2, 0.0], [0.5, -0.1, 0.0], [0.0, 0.5, 0.0]])
     got = ctx.volumes[0].field(p, torch.zeros(5, dtype=torch.long))
     assert_close(got, torch.tensor([0.0, 0.0, 0.5, 1.0, 1.0]), atol=1e-5, what="density over the base")

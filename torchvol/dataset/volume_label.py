@@ -58,8 +58,7 @@ def extinction_grid(scene, resolution: int) -> tuple[Tensor, Tensor]:
     batch = prepare(scene)
     check_scene(batch.scenes[0], resolution)
     plan = make_plan(stack(batch.scenes, dtype=torch.float64))
-    ctx = RenderContext(stack(batch.scenes, dtype=plan.dtype), plan, seeds=[0], dtype=plan.dtype, device="cpu",
-                        compile="off")
+    ctx = RenderContext(stack(batch.scenes, dtype=plan.dtype), plan, seeds=[0], device="cpu")
     return extinction_of(ctx, 0, resolution)
 
 

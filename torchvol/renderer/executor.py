@@ -87,19 +87,20 @@ class RenderContext:
     """A render's state: the batch (`Stacked` scenes at their quality level), its plan, seeds,
     lights, volumes and voxel surface, and what the render records (timer, counts)."""
 
-    def __init__(self, batch: Stacked, plan: Plan, *, seeds: Sequence[int], dtype, device, compile: CompileMode):
+    def __init__(self, batch: Stacked, plan: Plan, *, seeds: Sequence[int], device):
+        # `batch` stacked in the plan's dtype; the plan decided the dtype and what compiles
         self.batch, self.plan, self.settings = batch, plan, plan.settings
         self.seeds = torch.tensor([int(x) % 2**32 for x in seeds], dtype=torch.int64, device=device)  # (B,)
         # the density and march kernels compile only under "all"; the voxel walk under "exact" too
-        self.dtype, self.device, self.compiled = dtype, device, compile == "all"
+        self.dtype, self.device, self.compiled = plan.dtype, device, plan.compile == "all"
         self.timer, self.counts = Timer(), Counts()
         self.times = batch.time
         self.lights = [LightSource(LIGHTS[li.kind], li) for li in batch.lights]
         self.volumes = [self._volume(vp, self.compiled) for vp in plan.volumes]
         self.surface = self.terrain = None
         if plan.voxels is not None:
-            self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs}, dtype=dtype, device=device,
-                                        compiled=plan.walk == "inductor", time=self.times,
+            self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs},
+                                        dtype=plan.dtype, device=device, compiled=plan.walk == "inductor", time=self.times,
                                         sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s))
         if plan.terrain is not None:  # the scene's one surface (voxels and terrain are refused together)
             self.terrain = self.surface = TerrainSurface(
@@ -291,8 +292,7 @@ def render(
     # the plan reads shared values only
     plan = make_plan(stack(batch.scenes, dtype=torch.float64, device=device), tuple(aovs), compile=compile,
                      dtype=dtype, device=device)
-    ctx = RenderContext(stack(batch.scenes, dtype=plan.dtype, device=device), plan, seeds=seeds, dtype=plan.dtype,
-                        device=device, compile=compile)
+    ctx = RenderContext(stack(batch.scenes, dtype=plan.dtype, device=device), plan, seeds=seeds, device=device)
     with glue_on_one_thread() if plan.threads == "glue_on_one_thread" else nullcontext():
         with ctx.timer.section("rays"):
             camera = camera_for(ctx.batch)
