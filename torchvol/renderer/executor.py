@@ -32,7 +32,8 @@ from ..schema.batch import Stacked, stack, take
 from ..schema.validate import fail, integer, is_integer
 from ..terrain import TerrainSurface
 from ..volume.ambient import sky_mean
-from ..volume.composite import composite_volumes, finish
+from ..volume.composite import Media, composite_volumes, finish
+from ..volume.joint import march_joint
 from ..volume.physical import occluder_transmittance
 from ..volume.shading import SHADINGS
 from ..volume.strategy import STRATEGIES
@@ -171,14 +172,13 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
             surf = ctx.surface.run(*args, keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp))
         else:
             surf = ctx.surface.run(*args)
-    t_limit = None if surf is None else surf.t
-    parts = [STRATEGIES[vol.plan.strategy](ctx, vol, rays, background, t_limit) for vol in ctx.volumes]
+    media = march_media(ctx, rays, background, None if surf is None else surf.t)
     with ctx.timer.section("composite"):
         behind = background if surf is None else surf.color  # the shaded surface where hit
-        volumes = composite_volumes(parts, rays.origins[:, 0])
+        volumes = composite_volumes(media.parts, rays.origins[:, 0])
         out = finish(volumes, behind, surf, rays.forward_cos, ctx.settings.depth_threshold)
     if plan.labels is not None:
-        out.update(label_rays(ctx, rays, parts, volumes, surf))
+        out.update(label_rays(ctx, rays, media, volumes, surf))
     if plan.atmosphere:
         with ctx.timer.section("atmosphere"):
             out = through_the_air(ctx, rays, out)
@@ -188,6 +188,23 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
             out["radiance"] = out["radiance"] + sun_glow(rays.directions, take(ctx.sun(), s), take(flare.color, s),
                                                          take(flare.power, s))
     return out
+
+
+def march_media(ctx: RenderContext, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> Media:
+    """The chunk's volumes as the plan marches them: the joint march of the physically shaded ones
+    (`Plan.joint`), then each other volume by its strategy (`STRATEGIES`); `background` [n, 3] (the
+    sky) or None, `t_limit` [n] (a surface hit) or None."""
+    joint, parts, members, shares = ctx.plan.joint, [], [], None
+    if joint is not None:
+        with ctx.timer.section(joint.name):
+            together = march_joint(ctx, [ctx.volumes[v] for v in joint.volumes], rays, background, t_limit,
+                                   shares=joint.shares)
+        parts, members, shares = [together.part], [joint.volumes], together.shares
+    for v, vol in enumerate(ctx.volumes):
+        if not vol.plan.joint:
+            parts.append(STRATEGIES[vol.plan.strategy](ctx, vol, rays, background, t_limit))
+            members.append((v,))
+    return Media(parts, members, shares)
 
 
 def through_the_air(ctx: RenderContext, rays: Rays, out: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -350,6 +367,7 @@ def render_stats(ctx: RenderContext, acc: Accumulator | None, *, rays: int, tota
         "passes": list(ctx.timer.seconds),
         "plan": plan.summary(),
         "density_evals": ctx.counts.density_evals,
+        "density_evals_by_volume": {vol.plan.name: vol.field.evals for vol in ctx.volumes},
         "time_s": dict(ctx.timer.seconds),
         "total_s": total_s,
         "rays": rays,

@@ -35,7 +35,7 @@ from ..geometry.camera import Rays
 from ..geometry.surface_hit import SurfaceHit
 from ..scene.model import VoxelShadow
 from ..schema.batch import take
-from ..volume.composite import Composited, VolumePart, entry_order
+from ..volume.composite import Composited, Media, entry_order
 from ..volume.context import Occluder, VolumeContext
 from ..volume.physical import occluder_transmittance
 from ..volume.strategy import entry_exit
@@ -70,14 +70,22 @@ def optical_thickness(ctx: LabelContext, rays: Rays, t_limit: Tensor | None) -> 
     return tau
 
 
-def volume_alphas(parts: list[VolumePart]) -> Tensor:
-    """[V, n]: each volume's alpha share, composited front to back in order of entry (`t0`) as
-    `composite_volumes` does; `parts` the volumes' parts in scene order."""
-    trans = torch.stack([p.transmittance for p in parts])  # [V, n]
-    order = entry_order(parts)
+def volume_alphas(media: Media, volumes: int) -> Tensor:
+    """[V, n]: each of the `volumes` volumes' share of the alpha, its parts composited front to back
+    in order of entry (`t0`) as `composite_volumes` does: T_before · (1 − T_part) for a part of one
+    volume, T_before · its share of the joint march's alpha for a medium marched jointly."""
+    trans = torch.stack([p.transmittance for p in media.parts])  # [P, n]
+    order = entry_order(media.parts)
     ordered = trans.gather(0, order)
     before = torch.cumprod(torch.cat([torch.ones_like(ordered[:1]), ordered[:-1]]), dim=0)
-    return torch.empty_like(trans).scatter_(0, order, before * (1.0 - ordered))
+    before = torch.empty_like(trans).scatter_(0, order, before)
+    out = trans.new_zeros(volumes, trans.shape[1])
+    for k, members in enumerate(media.members):
+        if len(members) == 1:
+            out[members[0]] = before[k] * (1.0 - trans[k])
+        else:
+            out[list(members)] = before[k] * media.shares
+    return out
 
 
 def instance(ctx: LabelContext, alphas: Tensor | None, remaining: Tensor, surf: SurfaceHit | None) -> Tensor:
@@ -136,17 +144,17 @@ def sun_visibility(ctx: LabelContext, rays: Rays, volumes: Composited, surf: Sur
     return out
 
 
-def per_ray(ctx: LabelContext, rays: Rays, parts: list[VolumePart], volumes: Composited, surf: SurfaceHit | None) -> dict[str, Tensor]:
-    """The planned labels of a chunk's rays, each [n, C], from the render's volume `parts` (scene
-    order), their composite `volumes` and the surface pass's result `surf`."""
+def per_ray(ctx: LabelContext, rays: Rays, media: Media, volumes: Composited, surf: SurfaceHit | None) -> dict[str, Tensor]:
+    """The planned labels of a chunk's rays, each [n, C], from the render's volume parts `media`,
+    their composite `volumes` and the surface pass's result `surf`."""
     names, out = ctx.plan.labels.names, {}
     if "optical_thickness" in names:
         with ctx.timer.section("labels.optical_thickness"):
             out["optical_thickness"] = optical_thickness(ctx, rays, None if surf is None else surf.t)[:, None]
     alphas = None
-    if parts and ("alpha_volumes" in names or "instance" in names):
+    if media.parts and ("alpha_volumes" in names or "instance" in names):
         with ctx.timer.section("labels.alpha_volumes" if "alpha_volumes" in names else "labels.instance"):
-            alphas = volume_alphas(parts)
+            alphas = volume_alphas(media, len(ctx.volumes))
         if "alpha_volumes" in names:
             out["alpha_volumes"] = alphas.T
     if "instance" in names:

@@ -16,7 +16,7 @@ image, to the bit).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import torch
@@ -81,6 +81,7 @@ class VolumePass:
     ambient_pass: str | None = None  # its visibility march, a pass of its own ("volume0.ambient")
     multiple: bool = False  # Wrenninge's octaves on the lights' in-scatter (`volumes[i].multiple_scattering`)
     backend: Backend = "eager"  # what its march runs on
+    joint: bool = False  # marched with the other media in the scene's joint pass (`JointPass`), not on its own
 
     @property
     def step_pass(self) -> str:
@@ -106,7 +107,30 @@ class VolumePass:
         """Its passes in `stats`, in the order they first run."""
         own = ([self.emission_pass] if self.emission_map is not None else []) + ([self.bloom_pass] if self.bloom is not None else [])
         own += [n for li in self.lights for n in li.names()] + ([self.ambient_pass] if self.ambient_pass else [])
-        return ([self.skip_pass] if self.strategy == "skip" else []) + [self.step_pass] + own
+        return ([self.skip_pass] if self.strategy == "skip" else []) + ([] if self.joint else [self.step_pass]) + own
+
+
+@dataclass(frozen=True)
+class JointPass:
+    """The physically shaded volumes (`volumes`, their indices) marched together, one march through
+    every medium of a ray (`volume.joint`): its pass `name` (``media.closed_form`` where every one
+    has a closed form, else ``media.march``) and whether the labels need each medium's share of
+    the alpha (`shares`)."""
+
+    volumes: tuple[int, ...]
+    name: str
+    shares: bool = False
+
+
+def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None) -> JointPass | None:
+    """The joint march of the physically shaded volumes, where there are two or more (None: each
+    volume is its own pass)."""
+    members = tuple(v for v in volumes if SHADINGS[v.shading].caps["physical"])
+    if len(members) < 2:
+        return None
+    closed = all(v.strategy == "closed_form" for v in members)
+    shares = labels is not None and bool({"alpha_volumes", "instance"} & set(labels.names))
+    return JointPass(tuple(v.index for v in members), "media.closed_form" if closed else "media.march", shares)
 
 
 @dataclass(frozen=True)
@@ -186,6 +210,7 @@ class Plan:
     voxels: VoxelPass | None
     terrain: TerrainPass | None
     volumes: tuple[VolumePass, ...]
+    joint: JointPass | None  # the volumes marched together (None: each on its own)
     atmosphere: bool  # the [atmosphere] medium over the composited scene (aerial perspective)
     spp: int
     post: tuple[tuple[str, str], ...]  # (POST kind, pass name), in order
@@ -203,14 +228,22 @@ class Plan:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
         march's backend, the thread policy, the compile mode and the dtype."""
         return {"passes": self.names(), "sun": self.sun, "marches": {v.name: v.backend for v in self.volumes},
+                **({"joint": [self.volumes[v].name for v in self.joint.volumes]} if self.joint is not None else {}),
                 **({"walk": self.walk} if self.walk is not None else {}),
                 "threads": self.threads, "compile": self.compile, "dtype": str(self.dtype).removeprefix("torch.")}
+
+    def volume_names(self) -> list[str]:
+        """The volumes' passes in the order they run: the joint march with its members' passes,
+        then each other volume's."""
+        joint = [] if self.joint is None else [self.joint.name] + [n for v in self.joint.volumes for n in self.volumes[v].names()]
+        alone = [n for v in self.volumes if not v.joint for n in v.names()]
+        return joint + alone
 
     def names(self) -> list[str]:
         """Every planned pass, in the order the render runs them."""
         return (["rays"] + (["sky"] if self.sky else []) + (self.voxels.names() if self.voxels else [])
                 + (self.terrain.names() if self.terrain else [])
-                + [n for v in self.volumes for n in v.names()] + ["composite"]
+                + self.volume_names() + ["composite"]
                 + (self.labels.pass_names() if self.labels else []) + (["atmosphere"] if self.atmosphere else [])
                 + (["post.flare"] if self.flare else [])
                 + (["resolve"] if self.spp > 1 else []) + (["accumulate"] if self.passes > 1 else [])
@@ -337,6 +370,10 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
     voxels, terrain = voxel_pass(batch), terrain_pass(batch)  # both run before the volumes, which march up to them
     volumes = tuple(volume_pass(batch, v, settings, compile=compile, dtype=dtype, device=device)
                     for v in range(len(batch.volumes)))
+    labels = label_pass(batch, aovs)
+    joint = joint_pass(volumes, labels)
+    if joint is not None:
+        volumes = tuple(replace(v, joint=v.index in joint.volumes) for v in volumes)
     # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
     glue = voxels is None and terrain is None and bool(volumes) and all(v.backend == "drjit" for v in volumes)
     return Plan(
@@ -347,13 +384,14 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
         voxels=voxels,
         terrain=terrain,
         volumes=volumes,
+        joint=joint,
         atmosphere=batch.atmosphere is not None,
         spp=batch.image.spp,
         post=tuple((k.name, k.pass_name(batch.post)) for k in POST if k.active(batch.post)),
         aovs=tuple(produced(batch, aovs)),
         passes=batch.image.passes,
         blend=batch.image.blend,
-        labels=label_pass(batch, aovs),
+        labels=labels,
         sun=sun_index(batch.lights),
         compile=compile,
         dtype=dtype,
@@ -384,4 +422,4 @@ def batch_mode(mode: CompileMode, scene: Scene) -> CompileMode:
     return mode
 
 
-__all__ = ["LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "batch_mode", "compile_pays", "make_plan"]
+__all__ = ["JointPass", "LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "batch_mode", "compile_pays", "make_plan"]

@@ -50,18 +50,21 @@ class Counts:
 
 
 class CountedField:
-    """A field that counts the points it evaluates (stats["density_evals"])."""
+    """A field that counts the points it evaluates: the render's `stats["density_evals"]`, and its
+    own `evals` (`stats["density_evals_by_volume"]`)."""
 
     def __init__(self, inner: Field, counts: Counts):
-        self.inner, self.counts = inner, counts
+        self.inner, self.counts, self.evals = inner, counts, 0
         self.feature_size = inner.feature_size
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         self.counts.density_evals += points.shape[0]
+        self.evals += points.shape[0]
         return self.inner(points, scene_index, lod)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         """The inner field's signed density [n] at `points` [n, 3] of scenes `scene_index` [n]
         (`lod` [n] or None), its evaluations counted."""
         self.counts.density_evals += points.shape[0]
+        self.evals += points.shape[0]
         return self.inner.signed(points, scene_index, lod)

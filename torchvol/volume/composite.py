@@ -32,6 +32,18 @@ class VolumePart(Composited):
     t0: Tensor
 
 
+@dataclass(frozen=True)
+class Media:
+    """The parts of a chunk's rays that the volumes were marched into: `parts` (any order; the
+    composite orders them per ray by entry), `members` the volumes each holds (scene indices: one,
+    or the joint march's), and `shares` [M, n], the joint part's alpha split among its M members
+    (None: no joint part, or its shares not asked for)."""
+
+    parts: list[VolumePart]
+    members: list[tuple[int, ...]]
+    shares: Tensor | None = None
+
+
 PART_KEYS = tuple(f.name for f in fields(Composited))
 
 
@@ -43,8 +55,9 @@ def entry_order(parts: list[VolumePart]) -> Tensor:
 def composite_volumes(parts: list[VolumePart], like: Tensor) -> Composited:
     """Front-to-back composite of volume parts (each: radiance [n, 3], transmittance, weight_sum,
     weighted_t, median_t and entry t0 [n]), ordered per ray by entry. `like`: [n] (dtype, device).
-    -> radiance [n, 3], transmittance, weight_sum, weighted_t and median_t [n] of the whole ray."""
-    radiance = like.new_zeros(like.shape[0], 3)
+    -> radiance [n, 3] (or the parts' [n, C]), transmittance, weight_sum, weighted_t and median_t
+    [n] of the whole ray."""
+    radiance = like.new_zeros(like.shape[0], parts[0].radiance.shape[1] if parts else 3)
     trans = torch.ones_like(like)
     wsum, wt, median = torch.zeros_like(trans), torch.zeros_like(trans), torch.zeros_like(trans)
     if parts:

@@ -317,4 +317,5 @@ def march_fused(ctx: VolumeContext, vol, rays, background: Tensor, t0: Tensor, t
                                      hit, start, ray, rays.scene_index, wavefront=WAVEFRONT, refill_every=REFILL_EVERY,
                                      compact_below=COMPACT_BELOW)
     ctx.counts.density_evals += int(evals)
+    vol.field.evals += int(evals)
     return res

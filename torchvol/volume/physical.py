@@ -196,6 +196,17 @@ def physical_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | No
     return medium
 
 
+def exact_segment(source: Tensor, sigma_t: Tensor, a: Tensor, length: Tensor) -> dict[str, Tensor]:
+    """One homogeneous segment [a, a + length] (each [n]) of extinction `sigma_t` [n] and source
+    `source` [n, C], integrated exactly: its radiance [n, C], transmittance, weight sums Σw and
+    Σwt (at the expected termination depth) and median t (0: T stays above 0.5), each [n]."""
+    radiance, trans = frostbite_step(source, sigma_t, length)
+    alpha = 1.0 - trans
+    t_mean = a + length * expected_depth_fraction(sigma_t * length)
+    median = torch.where(trans <= 0.5, a + LN2 / sigma_t.clamp_min(torch.finfo(a.dtype).tiny), torch.zeros_like(a))
+    return dict(radiance=radiance, transmittance=trans, weight_sum=alpha, weighted_t=alpha * t_mean, median_t=median)
+
+
 def closed_form(ctx: VolumeContext, vol, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor) -> VolumePart:
     """Homogeneous medium, unshadowed directional lights: one exact frostbite segment over the
     whole chord, evaluated on the rays that hit only."""
@@ -213,11 +224,6 @@ def closed_form(ctx: VolumeContext, vol, rays: Rays, t0: Tensor, t1: Tensor, hit
     source = take(vol.params.emission, s) * density[:, None]
     if vol.plan.lights:
         source = source + in_scatter(ctx, vol, mid, d, s, sigma_t, light_responses(ctx, vol, d, s))
-    radiance, trans = frostbite_step(source, sigma_t, length)
-    alpha = 1.0 - trans
-    t_mean = a + length * expected_depth_fraction(sigma_t * length)
-    median = torch.where(trans <= 0.5, a + LN2 / sigma_t.clamp_min(torch.finfo(a.dtype).tiny), torch.zeros_like(a))
-    for key, value in dict(radiance=radiance, transmittance=trans, weight_sum=alpha, weighted_t=alpha * t_mean,
-                           median_t=median, t0=a).items():
+    for key, value in dict(exact_segment(source, sigma_t, a, length), t0=a).items():
         out[key][ids] = value
     return VolumePart(**out)

@@ -1,0 +1,185 @@
+"""One march through every medium of a ray: the physically shaded volumes of a scene are marched
+together, not one by one and composited whole (exact only where they do not overlap).
+
+A ray's span is cut at every medium's entry and exit (its bounds, or with empty-space skipping its
+occupied span); in each piece the media present are summed: σ_t = Σ σ_t,i and source =
+Σ (σ_s,i p_i E T_light,i + σ_e,i), each medium's in-scatter with its own phase and shadow rays. A
+piece where every medium present has a closed form (homogeneous, lit by unshadowed suns) is one
+exact segment; the others are marched (`march.steps` per piece, or the error-controlled march).
+The pieces do not overlap, so their front-to-back composite is exact, and the image does not
+depend on the order of `[[volumes]]`. Where media do not overlap, each piece is one medium's
+chord, marched as that medium alone would be.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from ..geometry.camera import Rays
+from ..schema.batch import take
+from .composite import VolumePart, composite_volumes
+from .context import VolumeContext
+from .march import Medium, gathered, march, march_adaptive
+from .physical import exact_segment
+from .strategy import entry_exit, skipped_span
+
+
+@dataclass(frozen=True)
+class Joint:
+    """The media's part of a chunk's rays [n] (`part`: radiance [n, 3], transmittance, weight
+    sums, median t and first entry t0), and where asked each medium's share of its alpha
+    (`shares` [V, n], Σ = 1 − transmittance; None: not asked)."""
+
+    part: VolumePart
+    shares: Tensor | None
+
+
+def spans(ctx: VolumeContext, vols: Sequence, rays: Rays, t_limit: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """(t0, t1, hit) [V, n]: where each of the volumes `vols` holds medium along the chunk's rays:
+    its bounds up to `t_limit` [n] (a surface), or its occupied span where it skips empty space."""
+    out = []
+    for vol in vols:
+        t0, t1, hit = entry_exit(vol, rays, t_limit)
+        if vol.plan.strategy == "skip":
+            with ctx.timer.section(vol.plan.skip_pass):
+                (t0, t1), hit = skipped_span(vol, rays, t0, t1, hit)
+        out.append((t0, t1, hit))
+    return tuple(torch.stack(x) for x in zip(*out))
+
+
+def pieces(t0: Tensor, t1: Tensor, hit: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """A ray's span cut at every entry and exit of its media (`t0`, `t1`, `hit` [V, n]) -> (start,
+    end [P, n], active [P, V, n]: medium v fills piece p of the ray), P = 2V − 1, in order along
+    the ray; a piece of no length, or past the last exit, has no medium active."""
+    far = torch.full_like(t0, math.inf)
+    cuts = torch.cat([torch.where(hit, t0, far), torch.where(hit, t1, far)]).sort(dim=0).values  # [2V, n]
+    start, end = cuts[:-1], cuts[1:]
+    present = torch.isfinite(end) & (end > start)
+    active = hit[None] & (t0[None] <= start[:, None]) & (t1[None] >= end[:, None]) & present[:, None]
+    return start, end, active
+
+
+def summed_medium(media: Sequence[Medium], active: Tensor, *, shares: bool, signed: bool) -> Medium:
+    """The media of one piece as one: at each sample the σ_t and sources of the media `active` [V, R]
+    on its ray summed. `shares`: the source has V channels more, σ_t,v each (integrated like a
+    source, they give each medium's share of the alpha). `signed`: the media return signed σ_t
+    (`march_adaptive`); the sum is the positive parts' where any is positive, else the largest."""
+    # per medium, the rows of a sample batch on its rays: memoised on the march's ids, so a
+    # medium's own gathers (`gathered`) see the same sub-ids object until the march compacts
+    subsets = [gathered(lambda ids, a=a: _rows(a[ids], ids)) for a in active]
+
+    def medium(ids: Tensor, t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+        n = ids.shape[0]
+        sigma = t.new_zeros(n)
+        largest = torch.full_like(sigma, -math.inf)
+        source = t.new_zeros(n, 3 + (len(media) if shares else 0))
+        for v, med in enumerate(media):
+            rows, sub = subsets[v](ids)
+            if sub is None:
+                continue
+            sig, src = med(sub, t, dt) if rows is None else med(sub, t[rows], dt[rows])
+            positive = sig.clamp_min(0.0)
+            if rows is None:
+                sigma, largest = sigma + positive, torch.maximum(largest, sig)
+                source[:, :3] += src
+                if shares:
+                    source[:, 3 + v] = positive
+            else:
+                sigma.index_add_(0, rows, positive)
+                largest[rows] = torch.maximum(largest[rows], sig)
+                source[rows, :3] += src
+                if shares:
+                    source[rows, 3 + v] = positive
+        return (torch.where(sigma > 0, sigma, largest) if signed else sigma), source
+
+    return medium
+
+
+def _rows(on: Tensor, ids: Tensor) -> tuple[Tensor | None, Tensor | None]:
+    """Of a sample batch's rays `ids` [n], those where a medium is present (`on` [n] bool) ->
+    (their rows [m] or None: all, their ids [m] or None: none)."""
+    if bool(on.all()):
+        return None, ids
+    rows = on.nonzero().squeeze(1)
+    return (rows, ids[rows]) if rows.numel() else (None, None)
+
+
+def march_piece(ctx: VolumeContext, medium: Medium, rays: Rays, start: Tensor, end: Tensor, rows: Tensor,
+                exact: Tensor, *, channels: int, dither: Tensor | None, features: Tensor | None,
+                compact_below: float) -> VolumePart:
+    """One piece [start, end] [n] of the rays `rows` [n] bool through `medium`: one exact segment
+    where `exact` [n] bool (every medium there has a closed form), else the march the settings ask
+    for (`dither` [n] or None: the march's start offsets; `features` [n]: the finest feature size
+    of the media there, inf where none, or None)."""
+    st, marched = ctx.settings, rows & ~exact
+    if st.tolerance is not None:
+        res = march_adaptive(
+            start, end, marched, medium, tolerance=st.tolerance, integrator=st.integrator, channels=channels,
+            radiance_scale=ctx.radiance_scale(rays.scene_index), min_transmittance=st.min_transmittance,
+            max_steps_per_span=st.rule.steps if st.rule.placement == "count" and features is None else None,
+            max_step=None if features is None else 0.5 * features)
+        ctx.counts.error_estimate = max(ctx.counts.error_estimate, float(res.error.max()) if len(res.error) else 0.0)
+    else:
+        res = march(start, end, marched, medium, rule=st.rule, integrator=st.integrator, channels=channels,
+                    dither=dither, dither_unit="absolute" if st.dither == "sin" else "step",
+                    min_transmittance=st.min_transmittance, compact_below=compact_below)
+    ctx.counts.march_steps += int(res.steps.sum())
+    ctx.counts.truncated_rays += int(res.truncated.sum())
+    out = dict(radiance=res.radiance, transmittance=res.transmittance, weight_sum=res.weight_sum,
+               weighted_t=res.weighted_t, median_t=res.median_t)
+    ids = exact.nonzero().squeeze(1)
+    if ids.numel():
+        a, length = start[ids], end[ids] - start[ids]
+        sigma, source = medium(ids, a + 0.5 * length, length)
+        for key, value in exact_segment(source, sigma.clamp_min(0.0), a, length).items():
+            out[key][ids] = value
+    return VolumePart(**out, t0=torch.where(rows, start, torch.full_like(start, math.inf)))
+
+
+def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tensor | None, t_limit: Tensor | None,
+                *, shares: bool = False) -> Joint:
+    """The volumes `vols` (physically shaded) marched together along a chunk's `rays` [n] (the sky
+    behind them `background` [n, 3] or None, surfaces at `t_limit` [n] or None). `shares`: also
+    each medium's share of the alpha (the labels). -> `Joint`."""
+    t0, t1, hit = spans(ctx, vols, rays, t_limit)
+    start, end, active = pieces(t0, t1, hit)
+    signed = ctx.settings.tolerance is not None
+    media = [vol.shading.fn(ctx, vol, rays, background, signed=signed) for vol in vols]
+    closed = torch.tensor([vol.plan.strategy == "closed_form" for vol in vols], device=t0.device)
+    feature = [vol.field.feature_size for vol in vols]
+    compact_below = max(vol.plan.compact_below for vol in vols)
+    channels = 3 + (len(vols) if shares else 0)
+    parts, front, floor = [], torch.ones_like(start[0]), ctx.settings.min_transmittance
+    dither = ctx.dither(rays)
+    for p in range(start.shape[0]):
+        rows = active[p].any(dim=0) & (front >= floor) if floor > 0 else active[p].any(dim=0)
+        if not bool(rows.any()):
+            continue
+        exact = rows & ~(active[p] & ~closed[:, None]).any(dim=0)
+        features = None
+        if any(f is not None for f in feature) and ctx.settings.tolerance is not None:
+            features = torch.stack([torch.where(active[p, v], take(f, rays.scene_index), math.inf)
+                                    for v, f in enumerate(feature) if f is not None]).amin(dim=0)
+        medium = summed_medium(media, active[p], shares=shares, signed=signed)
+        part = march_piece(ctx, medium, rays, start[p], end[p], rows, exact, channels=channels, dither=dither, features=features,
+                           compact_below=compact_below)
+        front = front * part.transmittance
+        parts.append(part)
+    whole = composite_volumes(parts, start[0])
+    first = torch.where(hit, t0, torch.full_like(t0, math.inf)).amin(dim=0)
+    part = VolumePart(radiance=whole.radiance[:, :3], transmittance=whole.transmittance, weight_sum=whole.weight_sum,
+                      weighted_t=whole.weighted_t, median_t=whole.median_t, t0=first)
+    return Joint(part, _alpha_shares(whole.radiance[:, 3:].T, whole.transmittance) if shares else None)
+
+
+def _alpha_shares(raw: Tensor, trans: Tensor) -> Tensor:
+    """Each medium's integrated σ_t share `raw` [V, n] scaled to sum to the alpha 1 − `trans` [n]
+    (they do exactly for exact segments; a march's first-order sum is rescaled). -> [V, n]."""
+    total = raw.sum(dim=0)
+    scale = torch.where(total > 0, (1.0 - trans) / total.clamp_min(torch.finfo(trans.dtype).tiny), torch.zeros_like(total))
+    return raw * scale
