@@ -170,11 +170,11 @@ def test_passes_are_those_that_ran(one_thread):
     assert not any("terrain" in p for p in make_plan(tv.preset("cloud-puff")).names())
 
 
-def test_terrain_and_voxels_are_refused_together():
+def test_terrain_and_voxels_load_together():
+    """No longer refused: both surfaces render as one (tests/test_surfaces_together.py)."""
     scene = tv.preset("voxel-terrain", width=8, height=8).model_dump()
     scene["terrain"] = {}
-    with pytest.raises(ValueError, match=r"^terrain: .*voxels or a terrain"):
-        tv.load_scene(scene)
+    assert tv.load_scene(scene).terrain is not None
 
 
 def test_bad_terrain_values_name_the_key():

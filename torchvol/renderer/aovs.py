@@ -46,7 +46,8 @@ _aov("optical_thickness", 1, "mean", lambda batch: True,
 _aov("alpha_volumes", 0, "mean", lambda batch: bool(batch.volumes),
      "each volume's share of alpha, one channel per volume in scene order (V channels)", True)
 _aov("instance", 1, "first", lambda batch: True,
-     "id of what contributed most: 0 background, 1..V volumes, V + material id (terrain: V + 1) surfaces", True)
+     "id of what contributed most: 0 background, 1..V volumes, V + material id (terrain: V + 1, beside M voxel "
+     "materials V + M + 1) surfaces", True)
 _aov("sun_visibility", 1, "mean", lambda batch: True,
      "transmittance to lights[0] (a sun) from the depth point (median depth, else surface hit); 1: none", True)
 

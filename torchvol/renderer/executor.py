@@ -44,6 +44,7 @@ from .labels import per_ray as label_rays
 from .plan import Plan, VolumePass, make_plan
 from .prepare import prepare
 from .stats import CountedField, Counts, Timer
+from .surfaces import VoxelOccluder, surface_pass, terrain_id, voxel_shadow_steps
 
 DEFAULT_CHUNK_RAYS = 1 << 16
 
@@ -86,7 +87,9 @@ class VolumeState:
 
 class RenderContext:
     """A render's state: the batch (`Stacked` scenes at their quality level), its plan, seeds,
-    lights, volumes and voxel surface, and what the render records (timer, counts)."""
+    lights, volumes and surfaces (`surface` the pass that runs: the voxel surface, the terrain or
+    both; `terrain` and `voxels` the occluders shadow rays meet), and what the render records
+    (timer, counts)."""
 
     def __init__(self, batch: Stacked, plan: Plan, *, seeds: Sequence[int], device):
         # `batch` stacked in the plan's dtype; the plan decided the dtype and what compiles
@@ -98,15 +101,19 @@ class RenderContext:
         self.times = batch.time
         self.lights = [LightSource(LIGHTS[li.kind], li) for li in batch.lights]
         self.volumes = [self._volume(vp, self.compiled) for vp in plan.volumes]
-        self.surface = self.terrain = None
+        # what a surface's shadow ray sees besides that surface (volumes, the other surface), as the plan says
+        shadow_rays = lambda use, p, s, direction, distance: occluder_transmittance(self, use, p, s, direction, distance)
+        self.voxel_surface = self.voxels = self.terrain = None
         if plan.voxels is not None:
-            self.surface = VoxelSurface(batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs},
-                                        dtype=plan.dtype, device=device, compiled=plan.walk == "inductor", time=self.times,
-                                        sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s))
-        if plan.terrain is not None:  # the scene's one surface (voxels and terrain are refused together)
-            self.terrain = self.surface = TerrainSurface(
-                batch.terrain, self.lights, plan.terrain, plan.aovs,
-                lambda use, p, s, direction, distance: occluder_transmittance(self, use, p, s, direction, distance))
+            self.voxel_surface = VoxelSurface(
+                batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs}, dtype=plan.dtype,
+                device=device, compiled=plan.walk == "inductor", time=self.times,
+                sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s), transmittance=shadow_rays)
+            self.voxels = VoxelOccluder(self.voxel_surface.tracer, voxel_shadow_steps(batch.voxels))
+        if plan.terrain is not None:
+            self.terrain = TerrainSurface(batch.terrain, self.lights, plan.terrain, plan.aovs, shadow_rays)
+        # the one the scene has, or both as one: each ray the nearer hit (renderer/surfaces.py)
+        self.surface = surface_pass(self.voxel_surface, self.terrain, terrain_id(batch))
 
     def _volume(self, vp: VolumePass, compiled: bool) -> VolumeState:
         params = self.batch.volumes[vp.index]
@@ -374,7 +381,7 @@ def render_stats(ctx: RenderContext, acc: Accumulator | None, *, rays: int, tota
         "march_steps": ctx.counts.march_steps,
         "truncated_rays": ctx.counts.truncated_rays,
         **({"error_estimate": ctx.counts.error_estimate} if plan.settings.tolerance is not None else {}),
-        **({"voxel_steps": ctx.surface.steps_total} if plan.voxels is not None else {}),
+        **({"voxel_steps": ctx.voxel_surface.steps_total} if plan.voxels is not None else {}),
         **({"accumulation": acc.changes} if acc is not None else {}),
         "dtype": str(ctx.dtype).removeprefix("torch."),
     }

@@ -17,11 +17,14 @@ here):
 - ``instance``: the id of what contributed most to the pixel's opacity: the largest of the
   background's remaining transmittance (id 0), each volume's alpha (ids 1..V, scene order) and a
   hit surface's remaining transmittance (voxels: V + the material id, 1.. as the ``material``
-  AOV; terrain: V + 1). Integer-valued float32 (the render's buffers), a pixel's first sub-sample.
+  AOV; terrain: V + 1, or V + M + 1 beside voxels of M materials, `surfaces.terrain_id`: the
+  surface the ray met first). Integer-valued float32 (the render's buffers), a pixel's first
+  sub-sample.
 - ``sun_visibility``: the transmittance towards the scene's sun (`Plan.sun`; refused without one) from the
   depth point: where transmittance crosses 0.5 (``depth_median``) or else the surface hit, through
   every physically shaded volume (marched with the sun's `shadow` settings, or the quality level's
-  shadow steps), times 0 where the terrain or the voxels block it; 1 where neither exists (sky).
+  shadow steps), times 0 where the terrain or the voxels block it (from a surface hit the ray
+  starts where that surface's own shadow rays do); 1 where neither exists (sky).
 """
 
 from __future__ import annotations
@@ -36,18 +39,19 @@ from ..geometry.surface_hit import SurfaceHit
 from ..scene.model import VoxelShadow
 from ..schema.batch import take
 from ..volume.composite import Composited, Media, entry_order
-from ..volume.context import Occluder, VolumeContext
+from ..volume.context import VolumeContext
 from ..volume.physical import occluder_transmittance
 from ..volume.strategy import entry_exit
 from .plan import Plan
+from .surfaces import SurfacesHit, terrain_id
 
 
 class LabelContext(VolumeContext, Protocol):
-    """A render as the labels see it: a `VolumeContext` with its plan and its surface (the voxels'
-    or the terrain's), the sun's shadow ray meets."""
+    """A render as the labels see it: a `VolumeContext` (whose `terrain` and `voxels` the sun's
+    shadow ray meets) with its plan."""
 
     plan: Plan
-    surface: Occluder | None
+
 
 def optical_thickness(ctx: LabelContext, rays: Rays, t_limit: Tensor | None) -> Tensor:
     """τ [n] along the chunk's rays through every volume, up to `t_limit` [n] (a surface hit)."""
@@ -99,21 +103,28 @@ def instance(ctx: LabelContext, alphas: Tensor | None, remaining: Tensor, surf: 
     surface_id = torch.ones_like(remaining)
     if surf is not None and "material" in surf.aovs:
         surface_id = surf.aovs["material"][:, 0].to(remaining.dtype)
+    if isinstance(surf, SurfacesHit):  # voxels and a terrain: the terrain's id where it was met first
+        surface_id = torch.where(surf.terrain, torch.full_like(surface_id, terrain_id(ctx.batch)), surface_id)
     ids = best.to(remaining.dtype)
     return torch.where(best == n_vol + 1, n_vol + surface_id, ids)
 
 
-def surface_lift(ctx: LabelContext, s: Tensor, t: Tensor) -> Tensor:
+def surface_lift(ctx: LabelContext, s: Tensor, t: Tensor, on_terrain: Tensor | None = None) -> Tensor:
     """How far [n] along its normal a shadow ray from a surface hit at distance `t` [n] of scenes `s`
     [n] starts, as the surface pass's own: the terrain's `shadow_offset` plus its hit rule's width,
-    the voxels' `shadow.offset` (its default without `voxels.shadow`)."""
+    the voxels' `shadow.offset` (its default without `voxels.shadow`); with both surfaces, the
+    terrain's where `on_terrain` [n] (the terrain was met first), else the voxels'."""
+    ground = blocks = None
     if ctx.plan.terrain is not None:
         terrain = ctx.batch.terrain
-        return take(terrain.shadow_offset, s) + 2.0 * take(terrain.epsilon, s) * (1.0 + t)
-    shadow = ctx.batch.voxels.shadow
-    if shadow is None:
-        return torch.full_like(t, VoxelShadow.model_fields["offset"].default)
-    return take(shadow.offset, s)
+        ground = take(terrain.shadow_offset, s) + 2.0 * take(terrain.epsilon, s) * (1.0 + t)
+    if ctx.plan.voxels is not None:
+        shadow = ctx.batch.voxels.shadow
+        blocks = (torch.full_like(t, VoxelShadow.model_fields["offset"].default) if shadow is None
+                  else take(shadow.offset, s))
+    if ground is None or blocks is None:
+        return blocks if ground is None else ground
+    return torch.where(on_terrain, ground, blocks)
 
 
 def sun_visibility(ctx: LabelContext, rays: Rays, volumes: Composited, surf: SurfaceHit | None) -> Tensor:
@@ -132,15 +143,13 @@ def sun_visibility(ctx: LabelContext, rays: Rays, volumes: Composited, surf: Sur
     si, ti = s[ids], t[ids]
     p = torch.addcmul(o[ids], ti[:, None], d[ids])
     if surf is not None:  # a surface point's ray starts where the surface's own shadow rays do
-        lift = surface_lift(ctx, si, ti) * on_surface[ids].to(t.dtype)
+        on_terrain = surf.terrain[ids] if isinstance(surf, SurfacesHit) else None
+        lift = surface_lift(ctx, si, ti, on_terrain) * on_surface[ids].to(t.dtype)
         p = p + lift[:, None] * surf.aovs["normal"][ids]
     direction = take(ctx.lights[ctx.plan.sun].direction, si)
     distance = torch.full_like(ti, torch.inf)
-    vis = occluder_transmittance(ctx, use, p, si, direction, distance)
-    if ctx.plan.voxels is not None:
-        with ctx.timer.section(f"{use.name}.voxels"):
-            vis = vis * ctx.surface.visibility(p, si, ctx.lights[ctx.plan.sun], ctx.plan.labels.voxel_steps)
-    out[ids] = vis
+    # the volumes, the terrain (`use.terrain`) and the voxels (`use.voxels`, ctx.voxels: the same DDA shadow ray)
+    out[ids] = occluder_transmittance(ctx, use, p, si, direction, distance)
     return out
 
 

@@ -49,19 +49,22 @@ class LightPass:
     """Light `light` shading a volume, the voxels or the terrain; `name` is its own pass in `stats`
     (its shadow, or the shader look's derivative light; None: no pass of its own); `shadow` its
     shadow settings (None: unshadowed). A shadow ray also sees the other volumes `occluders` (each
-    its own pass `{name}.volume{j}`) and, where `terrain`, the terrain (`{name}.terrain`)."""
+    its own pass `{name}.volume{j}`), where `terrain`, the terrain (`{name}.terrain`) and, where
+    `voxels`, the voxels (`{name}.voxels`)."""
 
     light: int
     name: str | None
     shadow: object | None
     occluders: tuple[int, ...] = ()
     terrain: bool = False
+    voxels: bool = False
 
     def names(self) -> list[str]:
-        """Its passes in `stats`: its own, then one per occluding volume and the terrain."""
+        """Its passes in `stats`: its own, then one per occluding volume, the terrain and the voxels."""
         if self.name is None:
             return []
-        return [self.name] + [f"{self.name}.volume{j}" for j in self.occluders] + ([f"{self.name}.terrain"] if self.terrain else [])
+        return ([self.name] + [f"{self.name}.volume{j}" for j in self.occluders]
+                + ([f"{self.name}.terrain"] if self.terrain else []) + ([f"{self.name}.voxels"] if self.voxels else []))
 
 
 @dataclass(frozen=True)
@@ -154,7 +157,7 @@ class VoxelPass:
         return (["voxels.dda"] + (["voxels.fog"] if self.fog else []) + (["voxels.rounded"] if self.rounded else []) + ["voxels.shade"]
                 + (["voxels.ao"] if self.ao else [])
                 + (["voxels.gi.mips", "voxels.gi.cones"] if self.cone else ["voxels.gi"] if self.gi else [])
-                + [li.name for li in self.shadows]
+                + [n for li in self.shadows for n in li.names()]
                 + (["voxels.reflections"] if self.reflections else []) + (["voxels.water"] if self.water else []))
 
 
@@ -173,15 +176,14 @@ LABELS = ("optical_thickness", "alpha_volumes", "instance", "sun_visibility")
 @dataclass(frozen=True)
 class LabelPass:
     """The labels a batch computes (`names`, in `LABELS` order) and, for ``sun_visibility``, its
-    shadow ray's `LightPass` (from lights[0], through every physical volume and the terrain)."""
+    shadow ray's `LightPass` (from lights[0], through every physical volume, the terrain and the voxels)."""
 
     names: tuple[str, ...]
     sun: LightPass | None = None
-    voxel_steps: int = 0  # DDA steps of the sun ray through the voxels (0: no voxels)
 
     def pass_names(self) -> list[str]:
         """The labels' passes in `stats`, in order (the sun ray's shadow passes for ``sun_visibility``)."""
-        sun = [] if self.sun is None else self.sun.names() + ([f"{self.sun.name}.voxels"] if self.voxel_steps else [])
+        sun = [] if self.sun is None else self.sun.names()
         return [n for name in self.names for n in (sun if name == "sun_visibility" else [f"labels.{name}"])]
 
 
@@ -195,10 +197,9 @@ def label_pass(batch, requested) -> LabelPass | None:
     if "sun_visibility" in names:
         index = sun_index(batch.lights)
         shadow = batch.lights[index].shadow or Shadow(steps=QUALITY[batch.march.quality].shadow_steps)
-        sun = LightPass(index, "labels.sun_visibility", shadow, shadow_occluders(batch), batch.terrain is not None)
-    vx = batch.voxels
-    voxel_steps = 0 if vx is None else (vx.shadow.steps if vx.shadow is not None else vx.max_steps)
-    return LabelPass(names, sun, voxel_steps)
+        sun = LightPass(index, "labels.sun_visibility", shadow, shadow_occluders(batch), batch.terrain is not None,
+                        batch.voxels is not None)
+    return LabelPass(names, sun)
 
 
 @dataclass(frozen=True)
@@ -240,9 +241,10 @@ class Plan:
         return joint + alone
 
     def names(self) -> list[str]:
-        """Every planned pass, in the order the render runs them."""
-        return (["rays"] + (["sky"] if self.sky else []) + (self.voxels.names() if self.voxels else [])
-                + (self.terrain.names() if self.terrain else [])
+        """Every planned pass, in the order the render runs them (with both surfaces the terrain's
+        first: the voxels see it behind them, `renderer.surfaces`)."""
+        voxels, terrain = (self.voxels.names() if self.voxels else []), (self.terrain.names() if self.terrain else [])
+        return (["rays"] + (["sky"] if self.sky else []) + (terrain + voxels if voxels and terrain else voxels + terrain)
                 + self.volume_names() + ["composite"]
                 + (self.labels.pass_names() if self.labels else []) + (["atmosphere"] if self.atmosphere else [])
                 + (["post.flare"] if self.flare else [])
@@ -275,6 +277,12 @@ def shadow_occluders(batch: Stacked, *, exclude: int | None = None) -> tuple[int
     """The volumes a shadow ray sees besides the one it starts in (`exclude`): every physically
     shaded one (the shader look has no extinction of its own to cast)."""
     return tuple(j for j, vol in enumerate(batch.volumes) if j != exclude and SHADINGS[vol.shading].caps["physical"])
+
+
+def both_surfaces(batch: Stacked) -> bool:
+    """Whether the batch has both surfaces, voxels and a terrain: then the volumes' shadow rays see
+    the voxels too (`LightPass.voxels`; with one surface they see the terrain alone, as before)."""
+    return batch.voxels is not None and batch.terrain is not None
 
 
 def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bool:
@@ -312,7 +320,8 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
     else:
         occluders = shadow_occluders(batch, exclude=v)
         uses = tuple(LightPass(l, None, None) if li.shadow is None
-                     else LightPass(l, f"{name}.shadow{l}", li.shadow, occluders, batch.terrain is not None)
+                     else LightPass(l, f"{name}.shadow{l}", li.shadow, occluders, batch.terrain is not None,
+                                    both_surfaces(batch))
                      for l, li in lights)
     bounds, density = BOUNDS[vol.bounds.kind], DENSITIES[vol.density.kind]
     if settings.max_distance is not None:
@@ -339,7 +348,9 @@ def voxel_pass(batch: Stacked) -> VoxelPass | None:
     vx = batch.voxels
     if vx is None:
         return None
-    shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow) for l in range(len(batch.lights))) if vx.shadow is not None else ()
+    # with a terrain too, each shadow ray also meets the terrain (`voxels.shadow{l}.terrain`)
+    shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow, terrain=batch.terrain is not None)
+                    for l in range(len(batch.lights))) if vx.shadow is not None else ()
     return VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
                      glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
                      emission=any(bool((m.emission > 0).any()) for m in vx.materials),
@@ -350,10 +361,11 @@ def voxel_pass(batch: Stacked) -> VoxelPass | None:
 
 def terrain_pass(batch: Stacked) -> TerrainPass | None:
     """The terrain's pass (None: no terrain), with a shadow pass per shadowed light that sees the
-    terrain and every physical volume."""
+    terrain, every physical volume and the voxels (where the scene has them)."""
     if batch.terrain is None:
         return None
-    return TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True)
+    return TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True,
+                                               batch.voxels is not None)
                                      for l, li in enumerate(batch.lights) if li.shadow is not None))
 
 

@@ -507,8 +507,6 @@ class Scene(Strict):
     def _keys_that_need_something_to_act_on(self):
         if self.post.fog is not None and not self.volumes and self.voxels is None and self.terrain is None:
             refuse("post.fog", "<fog>", "distance fog needs something to fog: add volumes, voxels or a terrain")
-        if self.terrain is not None and self.voxels is not None:
-            refuse("terrain", "<terrain>", "a scene has one surface: voxels or a terrain, not both")
         if self.march.lod is not None and not any(DENSITIES[v.density.kind].caps.get("octaves") for v in self.volumes):
             refuse("march.lod", "<lod>", "no volume has a density with octaves to drop (fbm, clouds, explosion)")
         return self

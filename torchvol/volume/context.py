@@ -45,12 +45,14 @@ class Occluder(Protocol):
 class VolumeContext(Protocol):
     """A render as the volume passes see it: its march settings, lights and volumes (each a
     `renderer.executor.VolumeState`: parameters, plan, field, bounds, phase, shading, caches),
-    the surfaces shadow rays meet, its timer and counters, its float type and device."""
+    the surfaces shadow rays meet (`terrain`, `voxels`: where a `LightPass` names them), its timer
+    and counters, its float type and device."""
 
     settings: MarchSettings
     lights: Sequence[LightSource]
     volumes: Sequence[Any]
     terrain: Occluder | None
+    voxels: Occluder | None
     timer: Timer
     counts: Counts
     dtype: torch.dtype

@@ -84,7 +84,7 @@ def in_scatter(ctx: VolumeContext, vol, p: Tensor, d: Tensor | None, s: Tensor, 
 def light_transmittance(ctx: VolumeContext, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, toward) -> Tensor:
     """Transmittance [n] from `p` [n, 3] towards light `use.light` through this volume, ending where
     the ray leaves the bounds or reaches the light; `sigma_t` [n] the extinction at `p`. Times what
-    the plan's other occluders let through (other volumes, the terrain), where it names any."""
+    the plan's other occluders let through (other volumes, the terrain, the voxels), where it names any."""
     shadow = use.shadow
     light = ctx.lights[use.light]
     direction = take(light.direction, s) if toward is None else toward.direction
@@ -98,7 +98,7 @@ def light_transmittance(ctx: VolumeContext, vol, use, p: Tensor, s: Tensor, sigm
             p, direction, exit_t, lambda q, owner: take(vol.params.sigma_t, s[owner]) * vol.field(q, s[owner]),
             steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step,
         )
-    if use.occluders or use.terrain:
+    if use.occluders or use.terrain or use.voxels:
         own = own * occluder_transmittance(ctx, use, p, s, direction, distance)
     return own
 
@@ -108,8 +108,8 @@ def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direct
     `distance` [n] (inf: a sun), lets through besides its own volume: each volume `use.occluders`
     names, marched over its chord in `use.shadow.steps` equal steps (exact for homogeneous media)
     or, with `shadow.method = "grid"`, looked up in that volume's sun grid where the ray enters
-    it, times 0 where the terrain blocks it (`use.terrain`) -> [n]. Each is its own pass, reported
-    only where some shadow ray crosses it."""
+    it, times 0 where the terrain blocks it (`use.terrain`) and where the voxels do (`use.voxels`)
+    -> [n]. Each is its own pass, reported only where some shadow ray crosses it."""
     out = p.new_ones(p.shape[0])
     for j in use.occluders:
         other = ctx.volumes[j]
@@ -130,6 +130,9 @@ def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direct
     if use.terrain:
         with ctx.timer.section(f"{use.name}.terrain"):
             out = out * ctx.terrain.visibility(p, direction, s, distance)
+    if use.voxels:
+        with ctx.timer.section(f"{use.name}.voxels"):
+            out = out * ctx.voxels.visibility(p, direction, s, distance)
     return out
 
 

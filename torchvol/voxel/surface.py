@@ -54,15 +54,17 @@ class VoxelSurface:
     """One batch's voxel grids and shading parameters (`voxels`: the batch's `Stacked` voxels),
     lit by `lights`; `plan` the batch's `VoxelPass`; `aovs` the AOVs to output, name -> channels; `time` (B,) the
     scenes' times (water waves); `sky(directions [n, 3], s [n]) -> [n, 3]` what secondary rays that
-    leave the grid see (None: black)."""
+    leave the grid see (None: black); `transmittance(use, p, s, direction, distance) -> [n]` what a
+    shadow ray of LightPass `use` sees besides the voxels (the terrain beside them, where `use.terrain`)."""
 
     def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Mapping[str, int], *, dtype, device,
-                 compiled: bool = False, time: Tensor | None = None, sky: Callable[[Tensor, Tensor], Tensor] | None = None):
+                 compiled: bool = False, time: Tensor | None = None, sky: Callable[[Tensor, Tensor], Tensor] | None = None,
+                 transmittance: Callable[..., Tensor] | None = None):
         self.p, self.lights, self.plan = voxels, list(lights), plan
         self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=plan.traversal == "hybrid")
         self.aov_channels = {a: c for a, c in aovs.items() if a in SURFACE_AOVS}
         self.tracer = VoxelTracer(self.grid, plan.traversal, compiled)
-        direct = DirectLight(voxels, plan, self.lights, self.tracer)
+        direct = DirectLight(voxels, plan, self.lights, self.tracer, transmittance)
         self.shading = Shading(voxels, plan, self.grid, direct, device=device)
         self.secondary = SecondaryRays(voxels, self.tracer, self.shading, sky)
         self.fog = FogGlow(voxels, plan, self.lights, self.tracer)

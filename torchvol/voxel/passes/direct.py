@@ -1,10 +1,11 @@
 """The direct light at voxel hits: each light's Lambert irradiance (the `diffuse` voxel material)
 and, for GGX materials, its reflected radiance, each shadowed by a DDA ray towards the light
-where the plan traces the light's shadows (`voxels.shadow`)."""
+where the plan traces the light's shadows (`voxels.shadow`); with a terrain in the scene too, the
+shadow ray also meets it (`LightPass.terrain`, through the render's `transmittance`)."""
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -21,10 +22,13 @@ __all__ = ["DirectLight"]
 
 class DirectLight:
     """`lights` at the hits of the batch's voxels (`voxels`: its `Stacked` voxels; `plan` its
-    `VoxelPass`), shadow rays traced by `tracer`."""
+    `VoxelPass`), shadow rays traced by `tracer`; `transmittance(use, p, s, direction, distance) -> [n]`
+    what a shadow ray of LightPass `use` sees besides the voxels (the terrain, where `use.terrain`)."""
 
-    def __init__(self, voxels: Stacked, plan, lights: Sequence[LightSource], tracer: VoxelTracer):
+    def __init__(self, voxels: Stacked, plan, lights: Sequence[LightSource], tracer: VoxelTracer,
+                 transmittance: Callable[..., Tensor] | None = None):
         self.p, self.plan, self.lights, self.tracer = voxels, plan, list(lights), tracer
+        self.transmittance = transmittance
         self.material = VOXEL_MATERIALS["diffuse"]
 
     def __call__(self, point: ShadingPoint, s: Tensor, section, light: Tensor) -> tuple[Tensor, Tensor | int]:
@@ -38,10 +42,14 @@ class DirectLight:
             toward = source.toward(point.x, s)
             vis = torch.ones_like(point.x[:, 0])
             if l in shadows:
-                with section(shadows[l].name):
+                use = shadows[l]
+                with section(use.name):
                     start = point.x + take(p.shadow.offset, s)[:, None] * point.face_normal
-                    vis = self.tracer.visibility(start, s, source, p.shadow.steps,
-                                                 None if source.directional else source.toward(start, s))
+                    at_start = None if source.directional else source.toward(start, s)
+                    vis = self.tracer.visibility(start, s, source, p.shadow.steps, at_start)
+                if use.terrain:  # the terrain beside the voxels blocks it too (its own pass)
+                    at_start = source.toward(start, s) if at_start is None else at_start
+                    vis = vis * self.transmittance(use, start, s, at_start.direction, at_start.distance)
                 if point.shadow is None:
                     point.shadow = vis[:, None]
             light = light + self.material.fn(point.normal, toward.direction, toward.irradiance, vis)
