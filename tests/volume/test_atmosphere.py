@@ -14,9 +14,11 @@ from hypothesis import strategies as st
 import torchvol as tv
 from torchvol.light.atmosphere import (
     AtmosphereMedium,
-    aerial_perspective,
+    air_path,
     gather_air,
+    ground_radiance,
     optic_depth,
+    rows_of,
     single_scatter,
     sun_path,
 )
@@ -127,25 +129,18 @@ def test_the_ray_splits_at_the_scenes_depth():
     back, t_back = single_scatter(o + cut[:, None] * d, d, zero, end - cut, sun, air, steps=2 * steps, light_steps=8)
     assert_close(t_front * t_back / t_whole, torch.ones_like(t_whole), atol=1e-12, what="transmittance")
     assert_close((front + t_front * back) / whole, torch.ones_like(whole), atol=1e-9, what="in-scatter")
-    # the same split inside aerial_perspective: an empty scene whose "depth" is the cut sees the whole ray
+    # the air as a medium of the render's march (`AirPath`): its tabulated transmittance from the
+    # camera to any t is the march's over [0, t] (the midpoint rule on both sides: to its error)
     world = o - torch.tensor([0.0, EARTH.planet_radius, 0.0], dtype=F64)
-    kw = dict(sun_dir=sun, sun=torch.ones(n, 3, dtype=F64), ground=torch.zeros(n, 3, dtype=F64), air=air, steps=4 * steps,
-              light_steps=4)
-    black = torch.zeros(n, 3, dtype=F64)
-    at_cut, _ = aerial_perspective(black, zero, cut, world, d, **kw)
-    at_zero, _ = aerial_perspective(black, zero, zero, world, d, **kw)
-    # (with as many samples on the whole ray as on each part: the seeds' march counts a sample's whole
-    # step in the optical depth to it, an error first order in σ·dt, 0.1 per step in blue along the
-    # 900 km of a level ray, hence the tolerance; the exact composition is checked above)
-    assert_close(at_cut / at_zero, torch.ones_like(at_cut), atol=5e-2, what="depth of an empty scene")
-    # an opaque scene at the cut hides what is behind it: only the air in front and its transmittance
-    grey = torch.full((n, 3), 0.5, dtype=F64)
-    opaque, _ = aerial_perspective(grey, torch.ones(n, dtype=F64), cut, world, d, **kw)
-    near, t_near = single_scatter(o, d, zero, cut, sun, air, steps=4 * steps, light_steps=4)
-    assert_close(opaque[:3], (near + t_near * grey)[:3], atol=1e-12, what="an opaque scene at the cut")
-    # the last ray reaches the ground (10 km) before the cut: the scene's depth is the ground's
-    assert_close(opaque[3], aerial_perspective(grey, torch.ones(n, dtype=F64), 2 * cut, world, d, **kw)[0][3],
-                 atol=1e-12, what="a scene behind the ground")
+    path = air_path(world, d, sun, torch.ones(n, 3, dtype=F64), air, steps=4096, light_steps=8)
+    rows = torch.arange(n)
+    before = path.ground > cut  # the last ray reaches the ground (10 km) before the cut
+    _, to_cut = single_scatter(o, d, zero, cut, sun, air, steps=4096, light_steps=8)
+    assert before.tolist() == [True, True, True, False]
+    assert_close(path.transmittance(rows, cut)[before] / to_cut[before], torch.ones(3, 3, dtype=F64), atol=1e-4,
+                 what="tabulated / marched transmittance to the cut")
+    # past the ground the table holds its value there: nothing beyond the ground is seen through air
+    assert torch.equal(path.transmittance(rows[3:], cut[3:]), path.transmittance(rows[3:], path.ground[3:]))
 
 
 def test_the_sun_is_blocked_only_by_the_planet_in_front():
@@ -169,7 +164,7 @@ def test_without_air_the_ground_from_space_is_lambertian_at_its_depth():
     h, albedo = 4.0e5, (0.2, 0.4, 0.6)
     out = tv.render(scene((0.0, h, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), rayleigh=[0.0, 0.0, 0.0], mie=0.0,
                           ground=list(albedo)))
-    assert out.stats["passes"] == ["rays", "composite", "atmosphere"]
+    assert out.stats["passes"] == ["rays", "atmosphere", "media.march", "composite"]
     centre = out.radiance[0, :, 4, 4].double()
     assert_close(centre, 20.0 * torch.tensor(albedo, dtype=F64) / math.pi, atol=1e-5, what="sunlit ground")
     assert_close(out.depth[0, 0, 4, 4].double() / h, torch.tensor(1.0, dtype=F64), atol=1e-6, what="depth / altitude")
@@ -185,12 +180,13 @@ def test_the_air_leaves_a_scene_without_air_unchanged_and_costs_nothing_when_abs
     # looking up: every ray leaves through the top of the air, none reaches the ground
     base = {"image": {"width": 8, "height": 6}, "camera": {"eye": [0.0, 1.0, -3.0], "target": [0.0, 3.0, 0.0]},
             "lights": [{"direction": [0.3, 0.6, -0.4]}],
-            "volumes": [{"bounds": {"sphere": {"center": [0.0, 3.0, 0.0], "radius": 1.0}}, "sigma_t": 3.0, "albedo": 0.8}]}
+            "volumes": [{"bounds": {"sphere": {"center": [0.0, 3.0, 0.0], "radius": 1.0}}, "sigma_t": 3.0, "albedo": 0.8}],
+            "march": {"closed_form": False}}  # (the air varies along a ray: a volume in it is marched)
     alone = tv.render(base)
     assert "atmosphere" not in alone.stats["passes"] and "atmosphere" not in make_plan(tv.load_scene(base)).names()
     clear = tv.render({**base, "atmosphere": {"rayleigh": [0.0, 0.0, 0.0], "mie": 0.0, "steps": 2, "light_steps": 1}})
     assert torch.equal(clear.radiance, alone.radiance) and torch.equal(clear.depth, alone.depth)
-    assert clear.stats["passes"][-1] == "atmosphere"
+    assert clear.stats["passes"] == ["rays", "atmosphere", "media.march", "composite"]
     # thick air: the volume fades into the air's colour, its depth and alpha are kept
     hazy = tv.render({**base, "atmosphere": {"rayleigh": [0.05, 0.1, 0.2], "mie": 0.05, "steps": 8, "light_steps": 2}})
     assert torch.equal(hazy.depth, alone.depth) and torch.equal(hazy.alpha, alone.alpha)
@@ -214,10 +210,18 @@ def test_hard_cases_are_finite_and_non_negative(height, elevation, sun_elevation
     se = math.radians(sun_elevation)
     sun = torch.tensor([[math.cos(se), math.sin(se), 0.0]] * n)
     world = torch.tensor([[0.0, height, 0.0]] * n)
-    radiance, ground_t = aerial_perspective(torch.zeros(n, 3), torch.zeros(n), torch.zeros(n), world, d, sun,
-                                            torch.full((n, 3), 20.0), torch.full((n, 3), 0.3), air, steps=8, light_steps=4)
-    assert torch.isfinite(radiance).all() and (radiance >= 0).all(), radiance
-    assert torch.isfinite(ground_t).all() and (ground_t >= 0).all()
+    path = air_path(world, d, sun, torch.full((n, 3), 20.0), air, steps=8, light_steps=4)
+    rows = torch.arange(n)
+    assert (path.leave >= path.enter).all() and ((path.ground > 0) | path.ground.isinf()).all()
+    for t in (path.enter, 0.5 * (path.enter + path.leave), path.leave):
+        trans, source = path.transmittance(rows, t), path.source(rows, t)
+        assert torch.isfinite(trans).all() and (trans >= 0).all() and (trans <= 1).all(), trans
+        assert torch.isfinite(source).all() and (source >= 0).all(), source
+    met = path.ground.isfinite()
+    if met.any():
+        floor = ground_radiance(path.origins[met] + path.ground[met, None] * d[met], sun[met], path.sun[met],
+                                torch.full((int(met.sum()), 3), 0.3), rows_of(air, met.nonzero().squeeze(1)), 4)
+        assert torch.isfinite(floor).all() and (floor >= 0).all()
 
 
 def test_sun_below_the_horizon_darkens_the_ground_and_sky():
@@ -242,7 +246,7 @@ def test_preset_views_and_quality_steps():
     for view in ("space", "ground", "air"):
         out = tv.render(tv.preset("atmosphere", width=8, height=8, view=view))
         assert torch.isfinite(out.radiance).all() and out.radiance.max() > 0
-        assert out.stats["passes"] == ["rays", "composite", "atmosphere", "post.tonemap.aces"]
+        assert out.stats["passes"] == ["rays", "atmosphere", "media.march", "composite", "post.tonemap.aces"]
     from torchvol.scene.quality import QUALITY, at_level
     filled = at_level(tv.preset("atmosphere"))
     assert (filled.atmosphere.steps, filled.atmosphere.light_steps) == QUALITY["default"].atmosphere_steps
@@ -259,4 +263,4 @@ def test_the_recipe_samples_and_renders_as_one_batch():
     assert len({s.model_dump_json() for s in scenes}) == 3
     out = tv.render(scenes, seed=[1, 2, 3])
     assert torch.isfinite(out.radiance).all() and (out.radiance >= 0).all() and out.radiance.amax(dim=(1, 2, 3)).min() > 0
-    assert out.stats["passes"] == ["rays", "composite", "atmosphere", "post.tonemap.aces"]
+    assert out.stats["passes"] == ["rays", "atmosphere", "media.march", "composite", "post.tonemap.aces"]

@@ -199,3 +199,50 @@ def test_stats_name_the_joint_pass_and_count_each_medium(one_thread):
     evals = out.stats["density_evals_by_volume"]
     assert set(evals) == {"volume0", "volume1"} and all(n > 0 for n in evals.values())
     assert sum(evals.values()) == out.stats["density_evals"]
+
+
+def air_scene(volumes, rayleigh, *, steps=1024):
+    """The axis ray 1 above the ground of a small planet (R 1000, its air 3 deep, homogeneous: scale
+    heights far above it), lit by an overhead sun of 3: the air is a medium of the march."""
+    s = axis_scene(volumes, lights=[SUN], march={"steps": 64})
+    s["camera"] = {"eye": [0.0, 1.0, -5.0], "target": [0.0, 1.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_y": 10.0}
+    s["atmosphere"] = {"planet_radius": 1000.0, "atmosphere_height": 3.0, "rayleigh": list(rayleigh), "mie": 0.0,
+                       "rayleigh_height": 1e12, "mie_height": 1e12, "steps": steps, "light_steps": 1}
+    return s
+
+
+def air_quadrature(rayleigh, box, n=400_000, *, reddened=True):
+    """The axis ray of `air_scene` by the midpoint rule (float64): Rayleigh air of coefficients
+    `rayleigh` everywhere in the shell, the sun through it to each point (its path to the shell's
+    top: exact for homogeneous air), and `box` = (z0, z1, σ_t, albedo, emission) in it; not
+    `reddened`: the sun reaches the box as it left the sun (what the old post pass did)."""
+    r, top, eye_z = 1000.0, 1003.0, -5.0
+    length = math.sqrt(top**2 - (r + 1.0) ** 2) - eye_z  # where the level ray leaves the shell
+    t = (np.arange(n) + 0.5) * (length / n)
+    z = eye_z + t
+    beta = np.asarray(rayleigh)[:, None]
+    up = np.sqrt(top**2 - z**2) - (r + 1.0)  # from the ray's point straight up to the top
+    sun = 3.0 * np.exp(-beta * up)  # [3, n]
+    rayleigh_phase = 3.0 / (16.0 * math.pi) * (1.0 + 0.0**2)  # the sun overhead: θ = 90°
+    inside = (z >= box[0]) & (z <= box[1])
+    sigma = beta + box[2] * inside
+    source = beta * rayleigh_phase * sun + inside * (box[2] * box[3] * ISOTROPIC * (sun if reddened else 3.0) + box[4])
+    dt = length / n
+    tau = np.cumsum(sigma * dt, axis=1) - 0.5 * sigma * dt
+    return (np.exp(-tau) * source * dt).sum(axis=1)
+
+
+def test_a_volume_inside_the_air_and_the_sun_reddened_on_its_way(one_thread):
+    rayleigh, box = (0.02, 0.05, 0.1), (0.0, 2.0, 1.0, 0.8, 0.05)
+    vol = slab_box(box[0], box[1], box[2], albedo=box[3], emission=[box[4]] * 3)
+    vol["bounds"]["box"]["min"][1], vol["bounds"]["box"]["max"][1] = 0.5, 1.5
+    out = tv.render(air_scene([vol], rayleigh), dtype=torch.float64)
+    assert out.stats["passes"] == ["rays", "atmosphere", "media.march", "composite"]
+    expected = torch.from_numpy(air_quadrature(rayleigh, box))
+    assert_close(out.radiance[0, :, 0, 0] / expected, torch.ones(3, dtype=torch.float64), atol=5e-5,
+                 what="radiance / quadrature of the air with the box in it")
+    # the test sees both: the box's share of the radiance, and the air on the sun's way to it
+    clear = torch.from_numpy(air_quadrature(rayleigh, (0.0, 0.0, 0.0, 0.0, 0.0)))
+    unreddened = torch.from_numpy(air_quadrature(rayleigh, box, reddened=False))
+    assert (expected - clear).min() > 0.1 * clear.min()
+    assert ((unreddened - expected).abs() / expected).max() > 50 * 2e-4

@@ -5,10 +5,12 @@ optical-depth march towards it. One function, `single_scatter`, serves both the 
 `[atmosphere]` medium (`aerial_perspective`: the scene inside the shell, whose ground y = 0 is the
 planet's surface, centre (0, −R, 0), with the camera anywhere: on the ground, in the air, in space).
 
-The medium is a pass after compositing: along each camera ray, what the scene's volumes and voxels
-composited (at their depth) is attenuated by the air in front of it and the air's in-scatter is
-added; behind what is not opaque lie the air beyond and the planet's ground (Lambertian, lit by
-the sun through the air, opaque).
+The medium is one of the media of the camera rays' march (`AirPath`, marched with the volumes by
+`volume.joint`): every sample's light reaches the camera through the air in front of it, the
+air's in-scatter is summed in every piece of the ray inside the shell, and behind everything lie
+the planet's ground (Lambertian, lit by the sun through the air, opaque) or space. The sun that
+reaches any point of the scene (a volume's sample, a voxel face, the terrain) comes through the
+air (`sun_transmittance`, the lights' `through`).
 
 Lengths are world units (the defaults are Earth's in metres); coefficients are per world unit at
 the ground. Mie extinction is 1.1 × its scattering (the seeds' aerosol absorption).
@@ -159,39 +161,91 @@ def ground_distance(origins: Tensor, directions: Tensor, planet_radius: Tensor) 
     return torch.where(hit, c / q, torch.full_like(b, math.inf))
 
 
-def aerial_perspective(radiance: Tensor, alpha: Tensor, distance: Tensor, origins: Tensor, directions: Tensor,
-                       sun_dir: Tensor, sun: Tensor, ground: Tensor, air: Air, *, steps: int,
-                       light_steps: int) -> tuple[Tensor, Tensor]:
-    """The scene seen through the atmosphere medium.
-
-    `radiance` [n, 3], `alpha`, `distance` [n]: what the scene composited along each ray and at
-    which distance (0: nothing there); `origins`, `directions` [n, 3] world rays; `sun_dir` [n, 3]
-    towards the sun, `sun` [n, 3] its irradiance; `ground` [n, 3] the planet's albedo. The air in
-    front of the scene's depth attenuates it and adds its in-scatter; where the scene is not
-    opaque (1 − alpha) the air behind it and the planet's ground show through.
-    -> (radiance [n, 3], distance to the ground [n], 0 where the ray does not reach it)."""
+def shell_span(origins: Tensor, directions: Tensor, air: Air) -> tuple[Tensor, Tensor, Tensor]:
+    """Where world rays `origins`, `directions` [n, 3] (unit) are in the air: (enter, leave [n]:
+    both 0 for a ray that misses the shell; leave is the ground where the ray meets it first,
+    ground [n]: the distance to the planet's surface, inf where the ray does not reach it)."""
     o = planet_frame(origins, air)
-    centre = torch.zeros_like(o)
-    top_near, top_far = intersect_sphere(o, directions, centre, air.top_radius)
+    top_near, top_far = intersect_sphere(o, directions, torch.zeros_like(o), air.top_radius)
     inside = top_far > 0  # a miss is (inf, -inf)
     enter = torch.where(inside, top_near.clamp_min(0.0), torch.zeros_like(top_far))
     leave = torch.where(inside, top_far, torch.zeros_like(top_far))
     g_near = ground_distance(origins, directions, air.planet_radius)
-    hits_ground = inside & (g_near < leave)
-    leave = torch.where(hits_ground, g_near, leave)
-    depth = torch.minimum(torch.maximum(distance, enter), leave)  # the scene's depth, inside the air
-    # an empty segment scatters nothing and transmits all: march only the rays with air in front of
-    # the scene's depth, and behind it only where the scene is not opaque
-    front, t_front = _segments(depth > enter, o, directions, enter, depth, sun_dir, air, steps, light_steps)
-    back, t_back = _segments((leave > depth) & (alpha < 1.0), o, directions, depth, leave, sun_dir, air, steps,
-                             light_steps)
-    # the ground: Lambertian, lit by the sun through the air above it
-    p = o + leave[:, None] * directions
-    normal = p / p.norm(dim=1, keepdim=True)
-    length, _ = sun_path(p, sun_dir, air)
-    lit = torch.exp(-extinction(optic_depth(p, sun_dir, length, air, light_steps), air))
-    cos = (normal * sun_dir).sum(dim=1).clamp_min(0.0) * hits_ground
-    floor = ground / math.pi * sun * lit * cos[:, None]
-    behind = sun * back + t_back * floor
-    out = sun * front + t_front * (radiance + (1.0 - alpha)[:, None] * behind)
-    return out, torch.where(hits_ground, g_near, torch.zeros_like(leave))
+    ground = torch.where(inside & (g_near < leave), g_near, torch.full_like(g_near, math.inf))
+    return enter, torch.minimum(leave, ground), ground
+
+
+def sun_transmittance(points: Tensor, sun_dir: Tensor, air: Air, light_steps: int) -> Tensor:
+    """The air's transmittance [n, 3] from `points` [n, 3] (planet frame) to the sun `sun_dir`
+    [n, 3] (unit): the nested optical-depth march, 0 where the planet is in the way."""
+    length, blocked = sun_path(points, sun_dir, air)
+    return torch.exp(-extinction(optic_depth(points, sun_dir, length, air, light_steps), air)) * ~blocked[:, None]
+
+
+def ground_radiance(points: Tensor, sun_dir: Tensor, sun: Tensor, albedo: Tensor, air: Air, light_steps: int) -> Tensor:
+    """The planet's ground at `points` [n, 3] (planet frame, on the surface): Lambertian of `albedo`
+    [n, 3], lit by the sun (`sun_dir` [n, 3], irradiance `sun` [n, 3]) through the air. -> [n, 3]."""
+    normal = points / points.norm(dim=1, keepdim=True)
+    cos = (normal * sun_dir).sum(dim=1).clamp_min(0.0)
+    return albedo / math.pi * sun * sun_transmittance(points, sun_dir, air, light_steps) * cos[:, None]
+
+
+def rows_of(air: Air, rows: Tensor) -> Air:
+    """The rays `rows` [m] of `air` (gathered per ray)."""
+    return Air(**{f.name: getattr(air, f.name)[rows] for f in fields(air)})
+
+
+@dataclass(frozen=True)
+class AirPath:
+    """The air along a chunk's camera rays, as a medium of their march (`volume.joint`): `origins`
+    (planet frame), `directions` [n, 3]; `enter`, `leave`, `ground` [n] (`shell_span`); the optical
+    depth from the camera at K + 1 even nodes over [enter, leave] (`depth` [n, K + 1, 3]); the
+    sun's direction and irradiance [n, 3]; the air [n] and its `light_steps`."""
+
+    origins: Tensor
+    directions: Tensor
+    enter: Tensor
+    leave: Tensor
+    ground: Tensor
+    depth: Tensor
+    sun_dir: Tensor
+    sun: Tensor
+    air: Air
+    light_steps: int
+
+    def transmittance(self, rows: Tensor, t: Tensor) -> Tensor:
+        """The air's transmittance [m, 3] from the camera to distance `t` [m] along rays `rows` [m]
+        (the table interpolated linearly: exact where the air is homogeneous)."""
+        k = self.depth.shape[1] - 1
+        enter, span = self.enter[rows], (self.leave[rows] - self.enter[rows]).clamp_min(torch.finfo(t.dtype).tiny)
+        u = ((t - enter) / span).clamp(0.0, 1.0) * k
+        lo = u.floor().clamp(max=k - 1).long()
+        table = self.depth[rows]
+        a, b = table.gather(1, lo[:, None, None].expand(-1, 1, 3))[:, 0], table.gather(1, (lo + 1)[:, None, None].expand(-1, 1, 3))[:, 0]
+        return torch.exp(-torch.lerp(a, b, (u - lo)[:, None]))
+
+    def source(self, rows: Tensor, t: Tensor) -> Tensor:
+        """The sun's light scattered by the air towards the camera per unit length [m, 3] at
+        distance `t` [m] along rays `rows` [m] (not yet attenuated on the way to the camera)."""
+        air, d, sun_dir = rows_of(self.air, rows), self.directions[rows], self.sun_dir[rows]
+        p = self.origins[rows] + t[:, None] * d
+        density = densities(p, air)
+        cos = (d * sun_dir).sum(dim=1)
+        scatter = (density[:, :1] * air.rayleigh * rayleigh_phase(cos)[:, None]
+                   + (density[:, 1] * air.mie * mie_cornette_shanks(cos, air.mie_g))[:, None])
+        return self.sun[rows] * sun_transmittance(p, sun_dir, air, self.light_steps) * scatter
+
+
+def air_path(origins: Tensor, directions: Tensor, sun_dir: Tensor, sun: Tensor, air: Air, *, steps: int,
+             light_steps: int) -> AirPath:
+    """The `AirPath` of world rays `origins`, `directions` [n, 3] lit by the sun `sun_dir` [n, 3]
+    (irradiance `sun` [n, 3]): the optical depth tabulated at `steps` + 1 nodes (the midpoint rule
+    between them), `light_steps` for the march towards the sun."""
+    o = planet_frame(origins, air)
+    enter, leave, ground = shell_span(origins, directions, air)
+    dt = (leave - enter).clamp_min(0.0) / steps
+    depth = [torch.zeros_like(o)]
+    for i in range(steps):
+        p = o + (enter + (i + 0.5) * dt)[:, None] * directions
+        depth.append(depth[-1] + extinction(densities(p, air) * dt[:, None], air))
+    return AirPath(o, directions, enter, leave, ground, torch.stack(depth, dim=1), sun_dir, sun, air, light_steps)

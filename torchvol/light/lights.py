@@ -9,7 +9,7 @@ per ray), a homogeneous medium has a closed form, and a shadow can be tabulated 
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal, NamedTuple, Sequence
+from typing import Annotated, Callable, Literal, NamedTuple, Sequence
 
 import torch
 from pydantic import Field, field_validator
@@ -118,14 +118,26 @@ def sun_index(lights: Sequence) -> int | None:
 
 
 class LightSource:
-    """One light index across a batch: its kind and its `Stacked` parameters."""
+    """One light index across a batch: its kind and its `Stacked` parameters, and `through`: what
+    lies between it and any point of the scene that is not part of the scene (the `[atmosphere]`'s
+    air on the sun's way), `through(points [n, 3], s [n]) -> transmittance [n, 3]`, or None."""
 
     def __init__(self, kind, params: Stacked):
         self.kind, self.params = kind, params
         self.directional: bool = kind.caps["directional"]
         self.radiant = radiant(params)  # (B, 3)
         self.direction = sun_direction(params) if self.directional else None  # (B, 3)
+        self.through: Callable[[Tensor, Tensor], Tensor] | None = None
 
     def toward(self, points: Tensor, s: Tensor) -> Toward:
-        """Direction, irradiance and distance to the light from `points` [n, 3] of scenes `s` [n]."""
+        """Direction, irradiance and distance to the light from `points` [n, 3] of scenes `s` [n]
+        (the irradiance as it arrives: through the air where there is one)."""
+        toward = self.kind.fn(self.params, points, s)
+        if self.through is None:
+            return toward
+        return toward._replace(irradiance=toward.irradiance * self.through(points, s))
+
+    def leaving(self, points: Tensor, s: Tensor) -> Toward:
+        """`toward` before `through`: the light as it leaves its source (a march that takes a sun's
+        irradiance once per ray applies `through` at each sample)."""
         return self.kind.fn(self.params, points, s)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import torch
@@ -21,7 +21,15 @@ from ..fields.edge import EdgeField
 from ..geometry.bounds import BOUNDS
 from ..geometry.camera import Camera, Rays
 from ..geometry.sampling import march_dither, ray_keys, subpixel_jitter
-from ..light.atmosphere import aerial_perspective, gather_air
+from ..light.atmosphere import (
+    AirPath,
+    air_path,
+    gather_air,
+    ground_radiance,
+    planet_frame,
+    rows_of,
+    sun_transmittance,
+)
 from ..light.lights import LIGHTS, LightSource, sun_index
 from ..light.phase import PHASES
 from ..light.sky import SKIES, sun_glow
@@ -100,6 +108,8 @@ class RenderContext:
         self.timer, self.counts = Timer(), Counts()
         self.times = batch.time
         self.lights = [LightSource(LIGHTS[li.kind], li) for li in batch.lights]
+        if plan.atmosphere:  # the sun reaches every point of the scene through the air
+            self.lights[plan.sun].through = sun_through_air(batch.atmosphere, self.lights[plan.sun])
         self.volumes = [self._volume(vp, self.compiled) for vp in plan.volumes]
         # what a surface's shadow ray sees besides that surface (volumes, the other surface), as the plan says
         shadow_rays = lambda use, p, s, direction, distance: occluder_transmittance(self, use, p, s, direction, distance)
@@ -150,6 +160,16 @@ class RenderContext:
         return None if self.plan.sun is None else self.lights[self.plan.sun].direction
 
 
+def sun_through_air(atm: Stacked, sun: LightSource) -> Callable[[Tensor, Tensor], Tensor]:
+    """The `[atmosphere]`'s transmittance towards `sun` from world points: `fn(points [n, 3], s [n])
+    -> [n, 3]` (`LightSource.through`)."""
+    def through(points: Tensor, s: Tensor) -> Tensor:
+        air = gather_air(atm, s)
+        return sun_transmittance(planet_frame(points, air), take(sun.direction, s), air, atm.light_steps)
+
+    return through
+
+
 def sky_radiance(ctx: RenderContext, rays: Rays) -> Tensor:
     """The sky behind each ray [n, 3], with the sun's halo where the sky has one."""
     return sky_toward(ctx, rays.directions, rays.scene_index)
@@ -179,16 +199,25 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
             surf = ctx.surface.run(*args, keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp))
         else:
             surf = ctx.surface.run(*args)
-    media = march_media(ctx, rays, background, None if surf is None else surf.t)
-    with ctx.timer.section("composite"):
-        behind = background if surf is None else surf.color  # the shaded surface where hit
-        volumes = composite_volumes(media.parts, rays.origins[:, 0])
-        out = finish(volumes, behind, surf, rays.forward_cos, ctx.settings.depth_threshold)
-    if plan.labels is not None:
-        out.update(label_rays(ctx, rays, media, volumes, surf))
+    air = None
     if plan.atmosphere:
         with ctx.timer.section("atmosphere"):
-            out = through_the_air(ctx, rays, out)
+            air = air_along(ctx, rays)
+    t_limit = None if surf is None else surf.t
+    if air is not None:  # the planet's ground stops what no surface stopped before it
+        t_limit = air.ground if surf is None else torch.where(surf.hit, surf.t, air.ground)
+    media = march_media(ctx, rays, background, t_limit, air)
+    with ctx.timer.section("composite"):
+        behind = background if surf is None else surf.color  # the shaded surface where hit
+        ground = None
+        if air is not None:
+            behind, ground = behind_the_air(ctx, air, rays.scene_index, behind, surf)
+        volumes = composite_volumes(media.parts, rays.origins[:, 0])
+        out = finish(volumes, behind, surf, rays.forward_cos, ctx.settings.depth_threshold)
+        if ground is not None:
+            out = on_the_ground(out, ground, rays)
+    if plan.labels is not None:
+        out.update(label_rays(ctx, rays, media, volumes, surf))
     if plan.flare:
         with ctx.timer.section("post.flare"):
             s, flare = rays.scene_index, ctx.batch.sky.flare
@@ -197,32 +226,61 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
     return out
 
 
-def march_media(ctx: RenderContext, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> Media:
+def march_media(ctx: RenderContext, rays: Rays, background: Tensor | None, t_limit: Tensor | None,
+                air: AirPath | None = None) -> Media:
     """The chunk's volumes as the plan marches them: the joint march of the physically shaded ones
-    (`Plan.joint`), then each other volume by its strategy (`STRATEGIES`); `background` [n, 3] (the
-    sky) or None, `t_limit` [n] (a surface hit) or None."""
+    and the air (`Plan.joint`, `air` along the rays or None), then each other volume by its
+    strategy (`STRATEGIES`), seen through the air in front of its entry; `background` [n, 3] (the
+    sky) or None, `t_limit` [n] (a surface hit, the ground) or None."""
     joint, parts, members, shares = ctx.plan.joint, [], [], None
     if joint is not None:
         with ctx.timer.section(joint.name):
             together = march_joint(ctx, [ctx.volumes[v] for v in joint.volumes], rays, background, t_limit,
-                                   shares=joint.shares)
+                                   shares=joint.shares, air=air)
         parts, members, shares = [together.part], [joint.volumes], together.shares
     for v, vol in enumerate(ctx.volumes):
         if not vol.plan.joint:
-            parts.append(STRATEGIES[vol.plan.strategy](ctx, vol, rays, background, t_limit))
+            part = STRATEGIES[vol.plan.strategy](ctx, vol, rays, background, t_limit)
+            if air is not None:  # (its own look's march, outside the joint one: the air in front of it)
+                entry = torch.where(torch.isfinite(part.t0), part.t0, torch.zeros_like(part.t0))
+                part = replace(part, radiance=part.radiance * air.transmittance(torch.arange(len(rays), device=entry.device), entry))
+            parts.append(part)
             members.append((v,))
     return Media(parts, members, shares)
 
 
-def through_the_air(ctx: RenderContext, rays: Rays, out: dict[str, Tensor]) -> dict[str, Tensor]:
-    """The composited scene seen through the `[atmosphere]` medium (aerial perspective, its ground
-    behind); the planet's ground is an opaque surface: alpha 1, and its depth where nothing nearer."""
+def air_along(ctx: RenderContext, rays: Rays) -> AirPath:
+    """The `[atmosphere]`'s air along a chunk's rays, lit by the scene's sun (`AirPath`)."""
     atm, s, sun = ctx.batch.atmosphere, rays.scene_index, ctx.lights[ctx.plan.sun]
-    radiance, ground_t = aerial_perspective(
-        out["radiance"], out["alpha"], out["distance"], rays.origins, rays.directions, take(sun.direction, s),
-        take(sun.radiant, s), take(atm.ground, s), gather_air(atm, s), steps=atm.steps, light_steps=atm.light_steps)
+    return air_path(rays.origins, rays.directions, take(sun.direction, s), take(sun.radiant, s), gather_air(atm, s),
+                    steps=atm.steps, light_steps=atm.light_steps)
+
+
+def behind_the_air(ctx: RenderContext, air: AirPath, s: Tensor, behind: Tensor | None, surf) -> tuple[Tensor, Tensor]:
+    """What lies behind the media of rays of scenes `s` [n], seen through all the air in front of
+    it: the surface where one was hit (`surf`), else the planet's ground where the ray meets it
+    (lit by the sun through the air), else `behind` [n, 3] (the sky, None: space, black). -> (its
+    radiance [n, 3], the distance to the ground [n], 0 where the ray does not end on it)."""
+    n = air.enter.shape[0]
+    rows = torch.arange(n, device=air.enter.device)
+    on_surface = torch.zeros(n, dtype=torch.bool, device=rows.device) if surf is None else surf.hit
+    ground = torch.isfinite(air.ground) & ~on_surface
+    behind = air.enter.new_zeros(n, 3) if behind is None else behind
+    ids = ground.nonzero().squeeze(1)
+    if ids.numel():
+        p = air.origins[ids] + air.ground[ids, None] * air.directions[ids]
+        atm = ctx.batch.atmosphere
+        behind = behind.index_put((ids,), ground_radiance(p, air.sun_dir[ids], air.sun[ids], take(atm.ground, s[ids]),
+                                                          rows_of(air.air, ids), air.light_steps))
+    t_end = torch.where(on_surface, surf.t if surf is not None else air.leave, air.leave)
+    return behind * air.transmittance(rows, t_end), torch.where(ground, air.ground, torch.zeros_like(air.ground))
+
+
+def on_the_ground(out: dict[str, Tensor], ground_t: Tensor, rays: Rays) -> dict[str, Tensor]:
+    """The planet's ground is an opaque surface: alpha 1 where a ray ends on it (`ground_t` [n] > 0),
+    and its distance and depth where nothing nearer set them."""
     ground = ground_t > 0
-    out = {**out, "radiance": radiance, "alpha": torch.where(ground, torch.ones_like(out["alpha"]), out["alpha"])}
+    out = {**out, "alpha": torch.where(ground, torch.ones_like(out["alpha"]), out["alpha"])}
     for key, t in (("distance", ground_t), ("depth", ground_t * rays.forward_cos),
                    ("depth_median", ground_t * rays.forward_cos)):
         out[key] = torch.where(ground & (out[key] == 0), t, out[key])  # the ground where nothing nearer

@@ -115,25 +115,26 @@ class VolumePass:
 
 @dataclass(frozen=True)
 class JointPass:
-    """The physically shaded volumes (`volumes`, their indices) marched together, one march through
-    every medium of a ray (`volume.joint`): its pass `name` (``media.closed_form`` where every one
-    has a closed form, else ``media.march``) and whether the labels need each medium's share of
-    the alpha (`shares`)."""
+    """The physically shaded volumes (`volumes`, their indices) and the `[atmosphere]`'s air
+    (`air`) marched together, one march through every medium of a ray (`volume.joint`): its pass
+    `name` (``media.closed_form`` where every one has a closed form, else ``media.march``) and
+    whether the labels need each medium's share of the alpha (`shares`)."""
 
     volumes: tuple[int, ...]
     name: str
     shares: bool = False
+    air: bool = False
 
 
-def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None) -> JointPass | None:
-    """The joint march of the physically shaded volumes, where there are two or more (None: each
-    volume is its own pass)."""
+def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None, *, air: bool) -> JointPass | None:
+    """The joint march of the physically shaded volumes and the air, where there are two or more
+    media, or the air (None: each volume is its own pass)."""
     members = tuple(v for v in volumes if SHADINGS[v.shading].caps["physical"])
-    if len(members) < 2:
+    if len(members) < 2 and not air:
         return None
-    closed = all(v.strategy == "closed_form" for v in members)
+    closed = not air and all(v.strategy == "closed_form" for v in members)
     shares = labels is not None and bool({"alpha_volumes", "instance"} & set(labels.names))
-    return JointPass(tuple(v.index for v in members), "media.closed_form" if closed else "media.march", shares)
+    return JointPass(tuple(v.index for v in members), "media.closed_form" if closed else "media.march", shares, air)
 
 
 @dataclass(frozen=True)
@@ -212,7 +213,7 @@ class Plan:
     terrain: TerrainPass | None
     volumes: tuple[VolumePass, ...]
     joint: JointPass | None  # the volumes marched together (None: each on its own)
-    atmosphere: bool  # the [atmosphere] medium over the composited scene (aerial perspective)
+    atmosphere: bool  # the [atmosphere]'s air, a medium of the joint march (`JointPass.air`), and its ground
     spp: int
     post: tuple[tuple[str, str], ...]  # (POST kind, pass name), in order
     aovs: tuple[str, ...]  # the AOVs the render outputs
@@ -236,7 +237,8 @@ class Plan:
     def volume_names(self) -> list[str]:
         """The volumes' passes in the order they run: the joint march with its members' passes,
         then each other volume's."""
-        joint = [] if self.joint is None else [self.joint.name] + [n for v in self.joint.volumes for n in self.volumes[v].names()]
+        joint = [] if self.joint is None else (["atmosphere"] if self.joint.air else []) + [self.joint.name] + [
+            n for v in self.joint.volumes for n in self.volumes[v].names()]
         alone = [n for v in self.volumes if not v.joint for n in v.names()]
         return joint + alone
 
@@ -246,7 +248,7 @@ class Plan:
         voxels, terrain = (self.voxels.names() if self.voxels else []), (self.terrain.names() if self.terrain else [])
         return (["rays"] + (["sky"] if self.sky else []) + (terrain + voxels if voxels and terrain else voxels + terrain)
                 + self.volume_names() + ["composite"]
-                + (self.labels.pass_names() if self.labels else []) + (["atmosphere"] if self.atmosphere else [])
+                + (self.labels.pass_names() if self.labels else [])
                 + (["post.flare"] if self.flare else [])
                 + (["resolve"] if self.spp > 1 else []) + (["accumulate"] if self.passes > 1 else [])
                 + [name for _, name in self.post])
@@ -289,7 +291,7 @@ def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bo
     """Whether volume `vol` (its `Stacked` parameters) is the technique the fused march renders:
     a density with the ``fused_march`` capability (the template's cloud layer) in the seeds' look,
     no edge falloff, lit (if at all) by suns (`uses`: its lights)."""
-    return (bool(DENSITIES[vol.density.kind].caps.get("fused_march")) and vol.shading == "shader"
+    return (bool(DENSITIES[vol.density.kind].caps.get("fused_march")) and vol.shading == "shader" and batch.atmosphere is None
             and SHADINGS[vol.shading].caps["semantics"] == "shader" and vol.edge is None
             and all(LIGHTS[batch.lights[use.light].kind].caps["directional"] for use in uses))
 
@@ -383,7 +385,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
     volumes = tuple(volume_pass(batch, v, settings, compile=compile, dtype=dtype, device=device)
                     for v in range(len(batch.volumes)))
     labels = label_pass(batch, aovs)
-    joint = joint_pass(volumes, labels)
+    joint = joint_pass(volumes, labels, air=batch.atmosphere is not None)
     if joint is not None:
         volumes = tuple(replace(v, joint=v.index in joint.volumes) for v in volumes)
     # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread

@@ -21,10 +21,11 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import Rays
+from ..light.atmosphere import AirPath
 from ..schema.batch import take
 from .composite import VolumePart, composite_volumes
 from .context import VolumeContext
-from .march import Medium, gathered, march, march_adaptive
+from .march import MarchResult, Medium, StepRule, gathered, march, march_adaptive
 from .physical import exact_segment
 from .strategy import entry_exit, skipped_span
 
@@ -39,16 +40,21 @@ class Joint:
     shares: Tensor | None
 
 
-def spans(ctx: VolumeContext, vols: Sequence, rays: Rays, t_limit: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+def spans(ctx: VolumeContext, vols: Sequence, rays: Rays, t_limit: Tensor | None,
+          air: AirPath | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """(t0, t1, hit) [V, n]: where each of the volumes `vols` holds medium along the chunk's rays:
-    its bounds up to `t_limit` [n] (a surface), or its occupied span where it skips empty space."""
+    its bounds up to `t_limit` [n] (a surface), or its occupied span where it skips empty space;
+    with `air`, row V is the air's span, up to `t_limit` too."""
     out = []
+    if air is not None:
+        t1 = air.leave if t_limit is None else torch.minimum(air.leave, t_limit)
+        out.append((air.enter, t1, t1 > air.enter))
     for vol in vols:
         t0, t1, hit = entry_exit(vol, rays, t_limit)
         if vol.plan.strategy == "skip":
             with ctx.timer.section(vol.plan.skip_pass):
                 (t0, t1), hit = skipped_span(vol, rays, t0, t1, hit)
-        out.append((t0, t1, hit))
+        out.insert(len(out) - (air is not None), (t0, t1, hit))
     return tuple(torch.stack(x) for x in zip(*out))
 
 
@@ -64,14 +70,37 @@ def pieces(t0: Tensor, t1: Tensor, hit: Tensor) -> tuple[Tensor, Tensor, Tensor]
     return start, end, active
 
 
-def summed_medium(media: Sequence[Medium], active: Tensor, *, shares: bool, signed: bool) -> Medium:
-    """The media of one piece as one: at each sample the σ_t and sources of the media `active` [V, R]
-    on its ray summed. `shares`: the source has V channels more, σ_t,v each (integrated like a
+def summed_medium(media: Sequence[Medium], active: Tensor, *, shares: bool, signed: bool,
+                  air: AirPath | None = None) -> Medium:
+    """The media of one piece as one: at each sample the σ_t and sources of the media `active`
+    [V, R] on its ray summed (with `air`, row V of `active` is the air's: its in-scatter is added
+    where it is active, and every source reaches the camera through the air in front of it, an RGB
+    transmittance). `shares`: the source has V channels more, σ_t,v each (integrated like a
     source, they give each medium's share of the alpha). `signed`: the media return signed σ_t
     (`march_adaptive`); the sum is the positive parts' where any is positive, else the largest."""
     # per medium, the rows of a sample batch on its rays: memoised on the march's ids, so a
     # medium's own gathers (`gathered`) see the same sub-ids object until the march compacts
     subsets = [gathered(lambda ids, a=a: _rows(a[ids], ids)) for a in active]
+    volumes = medium_sum(media, subsets, shares=shares, signed=signed)
+    if air is None:
+        return volumes
+
+    def through_air(ids: Tensor, t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+        sigma, source = volumes(ids, t, dt)
+        rows, sub = subsets[-1](ids)
+        if sub is not None:  # the air's own in-scatter (σ_t 0: its extinction is the RGB factor below)
+            if rows is None:
+                source[:, :3] += air.source(sub, t)
+            else:
+                source[rows, :3] += air.source(sub, t[rows])
+        source[:, :3] *= air.transmittance(ids, t)
+        return sigma, source
+
+    return through_air
+
+
+def medium_sum(media: Sequence[Medium], subsets: Sequence, *, shares: bool, signed: bool) -> Medium:
+    """`summed_medium` of the volumes' `media` alone, each on the rows `subsets[v](ids)` gives."""
 
     def medium(ids: Tensor, t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
         n = ids.shape[0]
@@ -111,12 +140,15 @@ def _rows(on: Tensor, ids: Tensor) -> tuple[Tensor | None, Tensor | None]:
 
 def march_piece(ctx: VolumeContext, medium: Medium, rays: Rays, start: Tensor, end: Tensor, rows: Tensor,
                 exact: Tensor, *, channels: int, dither: Tensor | None, features: Tensor | None,
-                compact_below: float) -> VolumePart:
+                compact_below: float, air_only: Tensor | None = None, air_steps: int = 0) -> VolumePart:
     """One piece [start, end] [n] of the rays `rows` [n] bool through `medium`: one exact segment
-    where `exact` [n] bool (every medium there has a closed form), else the march the settings ask
-    for (`dither` [n] or None: the march's start offsets; `features` [n]: the finest feature size
-    of the media there, inf where none, or None)."""
+    where `exact` [n] bool (every medium there has a closed form), `air_steps` equal steps where
+    `air_only` [n] bool (only the air is there: smooth, it takes the atmosphere's own step count),
+    else the march the settings ask for (`dither` [n] or None: the march's start offsets;
+    `features` [n]: the finest feature size of the media there, inf where none, or None)."""
     st, marched = ctx.settings, rows & ~exact
+    if air_only is not None:
+        marched = marched & ~air_only
     if st.tolerance is not None:
         res = march_adaptive(
             start, end, marched, medium, tolerance=st.tolerance, integrator=st.integrator, channels=channels,
@@ -125,13 +157,15 @@ def march_piece(ctx: VolumeContext, medium: Medium, rays: Rays, start: Tensor, e
             max_step=None if features is None else 0.5 * features)
         ctx.counts.error_estimate = max(ctx.counts.error_estimate, float(res.error.max()) if len(res.error) else 0.0)
     else:
-        res = march(start, end, marched, medium, rule=st.rule, integrator=st.integrator, channels=channels,
-                    dither=dither, dither_unit="absolute" if st.dither == "sin" else "step",
-                    min_transmittance=st.min_transmittance, compact_below=compact_below)
-    ctx.counts.march_steps += int(res.steps.sum())
-    ctx.counts.truncated_rays += int(res.truncated.sum())
+        res = fixed_march(ctx, medium, start, end, marched, st.rule, channels=channels, dither=dither,
+                          compact_below=compact_below)
     out = dict(radiance=res.radiance, transmittance=res.transmittance, weight_sum=res.weight_sum,
                weighted_t=res.weighted_t, median_t=res.median_t)
+    if air_only is not None and bool(air_only.any()):
+        res = fixed_march(ctx, medium, start, end, air_only, StepRule("count", air_steps), channels=channels,
+                          dither=dither, compact_below=compact_below)
+        for key, value in out.items():
+            out[key] = torch.where(air_only.view(-1, *([1] * (value.dim() - 1))), getattr(res, key), value)
     ids = exact.nonzero().squeeze(1)
     if ids.numel():
         a, length = start[ids], end[ids] - start[ids]
@@ -141,21 +175,38 @@ def march_piece(ctx: VolumeContext, medium: Medium, rays: Rays, start: Tensor, e
     return VolumePart(**out, t0=torch.where(rows, start, torch.full_like(start, math.inf)))
 
 
+def fixed_march(ctx: VolumeContext, medium: Medium, start: Tensor, end: Tensor, rows: Tensor, rule: StepRule, *,
+                channels: int, dither: Tensor | None, compact_below: float) -> MarchResult:
+    """`march` of the rays `rows` [n] bool over [start, end] [n] by `rule`, with the render's
+    integrator, dither and early termination; its steps counted in the render's stats."""
+    st = ctx.settings
+    res = march(start, end, rows, medium, rule=rule, integrator=st.integrator, channels=channels, dither=dither,
+                dither_unit="absolute" if st.dither == "sin" else "step", min_transmittance=st.min_transmittance,
+                compact_below=compact_below)
+    ctx.counts.march_steps += int(res.steps.sum())
+    ctx.counts.truncated_rays += int(res.truncated.sum())
+    return res
+
+
 def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tensor | None, t_limit: Tensor | None,
-                *, shares: bool = False) -> Joint:
+                *, shares: bool = False, air: AirPath | None = None) -> Joint:
     """The volumes `vols` (physically shaded) marched together along a chunk's `rays` [n] (the sky
-    behind them `background` [n, 3] or None, surfaces at `t_limit` [n] or None). `shares`: also
-    each medium's share of the alpha (the labels). -> `Joint`."""
-    t0, t1, hit = spans(ctx, vols, rays, t_limit)
+    behind them `background` [n, 3] or None, surfaces at `t_limit` [n] or None), with `air` (the
+    `[atmosphere]` along the rays) a medium of the march where given. `shares`: also each medium's
+    share of the alpha (the labels). -> `Joint`."""
+    t0, t1, hit = spans(ctx, vols, rays, t_limit, air)
     start, end, active = pieces(t0, t1, hit)
     signed = ctx.settings.tolerance is not None
     media = [vol.shading.fn(ctx, vol, rays, background, signed=signed) for vol in vols]
-    closed = torch.tensor([vol.plan.strategy == "closed_form" for vol in vols], device=t0.device)
-    feature = [vol.field.feature_size for vol in vols]
-    compact_below = max(vol.plan.compact_below for vol in vols)
+    # the air varies along every ray: a piece with air is marched
+    closed = torch.tensor([vol.plan.strategy == "closed_form" for vol in vols] + [False] * (air is not None),
+                          dtype=torch.bool, device=t0.device)
+    feature = [vol.field.feature_size for vol in vols] + [None] * (air is not None)
+    compact_below = max([vol.plan.compact_below for vol in vols], default=1.0)
     channels = 3 + (len(vols) if shares else 0)
     parts, front, floor = [], torch.ones_like(start[0]), ctx.settings.min_transmittance
     dither = ctx.dither(rays)
+    air_steps = 0 if air is None else air.depth.shape[1] - 1
     for p in range(start.shape[0]):
         rows = active[p].any(dim=0) & (front >= floor) if floor > 0 else active[p].any(dim=0)
         if not bool(rows.any()):
@@ -165,13 +216,14 @@ def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tens
         if any(f is not None for f in feature) and ctx.settings.tolerance is not None:
             features = torch.stack([torch.where(active[p, v], take(f, rays.scene_index), math.inf)
                                     for v, f in enumerate(feature) if f is not None]).amin(dim=0)
-        medium = summed_medium(media, active[p], shares=shares, signed=signed)
-        part = march_piece(ctx, medium, rays, start[p], end[p], rows, exact, channels=channels, dither=dither, features=features,
-                           compact_below=compact_below)
+        medium = summed_medium(media, active[p], shares=shares, signed=signed, air=air)
+        air_only = None if air is None else rows & ~active[p, :-1].any(dim=0)
+        part = march_piece(ctx, medium, rays, start[p], end[p], rows, exact, channels=channels, dither=dither,
+                           features=features, compact_below=compact_below, air_only=air_only, air_steps=air_steps)
         front = front * part.transmittance
         parts.append(part)
     whole = composite_volumes(parts, start[0])
-    first = torch.where(hit, t0, torch.full_like(t0, math.inf)).amin(dim=0)
+    first = torch.where(hit, t0, torch.full_like(t0, math.inf)).amin(dim=0)  # (the air's entry too)
     part = VolumePart(radiance=whole.radiance[:, :3], transmittance=whole.transmittance, weight_sum=whole.weight_sum,
                       weighted_t=whole.weighted_t, median_t=whole.median_t, t0=first)
     return Joint(part, _alpha_shares(whole.radiance[:, 3:].T, whole.transmittance) if shares else None)

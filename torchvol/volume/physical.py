@@ -44,8 +44,8 @@ def light_responses(ctx: VolumeContext, vol, d: Tensor, s: Tensor) -> list[Tenso
     this once per ray."""
     out = []
     for light in ctx.lights:
-        if light.directional:
-            toward = light.toward(d, s)
+        if light.directional:  # as it leaves the sun: `in_scatter` applies the air at each sample
+            toward = light.leaving(d, s)
             out.append(response(vol, toward.irradiance, (d * toward.direction).sum(dim=1), s))
         else:
             out.append(None)
@@ -75,6 +75,8 @@ def in_scatter(ctx: VolumeContext, vol, p: Tensor, d: Tensor | None, s: Tensor, 
             radiance = resp * sigma_s[:, None]
             if trans is not None:
                 radiance = radiance * trans[:, None]
+        if toward is None and light.through is not None:  # a per-ray response: the air on the sun's way to p
+            radiance = radiance * light.through(p, s)
         out = out + radiance
     if vol.plan.ambient:
         out = out + ambient_in_scatter(ctx, vol, p, s, sigma_s)
