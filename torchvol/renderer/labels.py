@@ -20,8 +20,8 @@ here):
   AOV; terrain: V + 1). Integer-valued float32 (the render's buffers), a pixel's first sub-sample.
 - ``sun_visibility``: the transmittance towards the scene's sun (`Plan.sun`; refused without one) from the
   depth point: where transmittance crosses 0.5 (``depth_median``) or else the surface hit, through
-  every physically shaded volume (marched with the sun's `shadow` settings, or the quality level's
-  shadow steps), times 0 where the terrain or the voxels block it; 1 where neither exists (sky).
+  every volume, whatever its shading, as the lights' shadow rays see them (marched with the sun's
+  `shadow` settings, or the quality level's shadow steps), times 0 where the terrain or the voxels block it; 1 where neither exists (sky).
 """
 
 from __future__ import annotations
