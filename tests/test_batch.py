@@ -247,7 +247,7 @@ BASES: dict[str, dict] = {
         "lights": [{**SUN, "direction": [0.4, 0.8, 0.3], "shadow": {"steps": 3}}],
         "terrain": {"seed": 4, "base": -0.2, "amplitude": 0.9, "frequency": 0.6, "octaves": 3, "color": [0.3, 0.5, 0.2],
                     "rock_color": [0.5, 0.45, 0.4], "rock_slope": 0.15, "ambient": [0.1, 0.12, 0.15], "steps": 48,
-                    "safety": 0.6, "epsilon": 2e-3, "max_distance": 9.0, "shadow_offset": 0.02},
+                    "safety": 0.6, "epsilon": 2e-3, "max_distance": 9.0, "shadow_offset": 0.02, "ambient_steps": 3},
         "volumes": [{"bounds": {"slab": {"y_min": 1.2, "y_max": 1.9}},
                      "density": {"fbm": {"octaves": 2, "frequency": 1.1, "seed": 3, "bias": -0.3, "amplitude": 1.5,
                                          "hash": "arithmetic"}},

@@ -9,16 +9,20 @@ overshoot a steeper slope is pulled back to the secant root between its last two
 (|fbm| < 1), so a shadow ray that leaves it upwards is done at once.
 
 The surface is Lambert-shaded by the lights: grass `color` blended to `rock_color` on steep slopes,
-`ambient` plus each light's n·l irradiance, times its visibility where the light casts shadows
-(`lights[i].shadow`): the terrain itself and every volume the shadow ray crosses (`transmittance`
-from the render, see `volume/physical.py: occluder_transmittance`). It outputs hit distance,
-colour and the `normal` AOV, like the voxel surface, and the volumes march up to its hit.
+`ambient` (the sky light) plus each light's n·l irradiance, times its visibility where the light
+casts shadows (`lights[i].shadow`): the terrain itself and every volume the shadow ray crosses
+(`transmittance` from the render, see `volume/shadow.py: occluder_transmittance`). Where the scene
+has volumes, the sky light has its visibility too (`ambient_visibility = "march"`): the
+transmittance of one ray straight up (the zenith, where the sky is brightest) through every
+volume, so ground under a cloud or in fog gets less of it; a heightfield never rises over its own
+zenith, so the terrain itself cannot block that ray. It outputs hit distance, colour and the
+`normal` AOV, like the voxel surface, and the volumes march up to its hit.
 """
 
 from __future__ import annotations
 
 from contextlib import nullcontext
-from typing import Annotated, Callable, Sequence
+from typing import Annotated, Callable, Literal, Sequence
 
 import torch
 from pydantic import Field, field_validator
@@ -37,7 +41,9 @@ class Terrain(Strict):
     where 1 − n.y exceeds `rock_slope` (a 0.1-wide blend), plus `ambient`. `steps` sphere-tracing
     steps of `safety` · (y − h) per primary and shadow ray, hits where the gap is under
     `epsilon` · (1 + t), rays traced up to `max_distance`; shadow rays start `shadow_offset` above
-    the hit along the normal."""
+    the hit along the normal. `ambient_visibility`: "march" (where the scene has volumes, the
+    `ambient` is times the transmittance straight up through them, `ambient_steps` equal steps
+    over each volume's chord) or "none" (the `ambient` everywhere)."""
 
     seed: Annotated[int, EACH] = 0
     base: float = 0.0
@@ -53,6 +59,8 @@ class Terrain(Strict):
     epsilon: float = Field(1e-3, gt=0.0, le=0.1)
     max_distance: float = Field(200.0, gt=0.0)
     shadow_offset: float = Field(0.01, ge=0.0)
+    ambient_visibility: Literal["march", "none"] = "march"
+    ambient_steps: int = Field(8, ge=1, le=256)
 
     _c = field_validator("color", "rock_color", "ambient")(lambda v: nonneg(v))
 
@@ -199,6 +207,11 @@ class TerrainSurface:
                 light = take(p.ambient, sh)
                 # clear of the hit rule's width at this distance (the hit is on the surface, refined)
                 start = x + (take(p.shadow_offset, sh) + 2.0 * take(p.epsilon, sh) * (1.0 + th))[:, None] * nrm
+            if self.plan.sky is not None:  # the sky light's visibility: straight up through the volumes
+                with section(self.plan.sky.name):
+                    up = torch.zeros_like(start)
+                    up[:, 1] = 1.0
+                    light = light * self.transmittance(self.plan.sky, start, sh, up, torch.full_like(th, torch.inf))[:, None]
             shadows = {use.light: use for use in self.plan.shadows}
             for l, source in enumerate(self.lights):
                 toward = source.toward(x, sh)

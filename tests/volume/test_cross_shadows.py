@@ -157,6 +157,9 @@ def test_multi_layer_cumulus_shadows_the_fog(one_thread):
     overrides = {"image.width": 16, "image.height": 12, "camera.eye": [0.0, 2.5, -3.0], "camera.target": [0.0, 0.0, 2.0],
                  "camera.fov_y": 30.0}
     scene = tv.load_scene("multi-layer", overrides).model_dump()
+    fog = scene["volumes"][1]  # a low ground fog, under the camera (the preset's rises into the cloud bases)
+    fog["bounds"]["box"]["max"] = (30.0, 1.6, 48.0)
+    fog["density"]["exponential"]["scale_height"], fog["sigma_t"] = 0.4, 3.0
     with_cumulus = tv.render(scene)
     fog_only = tv.render({**scene, "volumes": scene["volumes"][1:]})
     assert "volume1.shadow0.volume0" in with_cumulus.stats["passes"]

@@ -22,9 +22,10 @@ here):
   sub-sample.
 - ``sun_visibility``: the transmittance towards the scene's sun (`Plan.sun`; refused without one) from the
   depth point: where transmittance crosses 0.5 (``depth_median``) or else the surface hit, through
-  every physically shaded volume (marched with the sun's `shadow` settings, or the quality level's
-  shadow steps), times 0 where the terrain or the voxels block it (from a surface hit the ray
-  starts where that surface's own shadow rays do); 1 where neither exists (sky).
+  every volume, whatever its shading, as the lights' shadow rays see them (marched with the sun's
+  `shadow` settings, or the quality level's shadow steps), times 0 where the terrain or the voxels
+  block it (from a surface hit the ray starts where that surface's own shadow rays do); 1 where
+  neither exists (sky).
 """
 
 from __future__ import annotations

@@ -46,13 +46,14 @@ Threads = Literal["caller", "glue_on_one_thread"]
 
 @dataclass(frozen=True)
 class LightPass:
-    """Light `light` shading a volume, the voxels or the terrain; `name` is its own pass in `stats`
+    """Light `light` shading a volume, the voxels or the terrain (None: the sky, a visibility ray
+    of sky light: `volumes[i].ambient`, the terrain's `ambient`); `name` is its own pass in `stats`
     (its shadow, or the shader look's derivative light; None: no pass of its own); `shadow` its
     shadow settings (None: unshadowed). A shadow ray also sees the other volumes `occluders` (each
-    its own pass `{name}.volume{j}`), where `terrain`, the terrain (`{name}.terrain`) and, where
-    `voxels`, the voxels (`{name}.voxels`)."""
+    its own pass `{name}.volume{j}`, whatever its shading), where `terrain`, the terrain
+    (`{name}.terrain`) and, where `voxels`, the voxels (`{name}.voxels`)."""
 
-    light: int
+    light: int | None
     name: str | None
     shadow: object | None
     occluders: tuple[int, ...] = ()
@@ -81,7 +82,8 @@ class VolumePass:
     compact_below: float  # the march drops finished rays below this active fraction (`volume.march.march`)
     sky_blend: bool = False  # sources blend into the sky with distance (`volumes[i].sky_blend`)
     ambient: bool = False  # sky light in-scattered (`volumes[i].ambient`)
-    ambient_pass: str | None = None  # its visibility march, a pass of its own ("volume0.ambient")
+    # its visibility march ("volume0.ambient"), through the other volumes and the terrain too
+    ambient_sky: LightPass | None = None
     multiple: bool = False  # Wrenninge's octaves on the lights' in-scatter (`volumes[i].multiple_scattering`)
     backend: Backend = "eager"  # what its march runs on
     joint: bool = False  # marched with the other media in the scene's joint pass (`JointPass`), not on its own
@@ -90,6 +92,11 @@ class VolumePass:
     def step_pass(self) -> str:
         """The name of its integration pass: `volume{i}.closed_form` or `volume{i}.march`."""
         return f"{self.name}.closed_form" if self.strategy == "closed_form" else f"{self.name}.march"
+
+    @property
+    def ambient_pass(self) -> str | None:
+        """The name of its ambient visibility march (None: no march, V = 1)."""
+        return None if self.ambient_sky is None else self.ambient_sky.name
 
     @property
     def skip_pass(self) -> str:
@@ -109,7 +116,7 @@ class VolumePass:
     def names(self) -> list[str]:
         """Its passes in `stats`, in the order they first run."""
         own = ([self.emission_pass] if self.emission_map is not None else []) + ([self.bloom_pass] if self.bloom is not None else [])
-        own += [n for li in self.lights for n in li.names()] + ([self.ambient_pass] if self.ambient_pass else [])
+        own += [n for li in self.lights for n in li.names()] + (self.ambient_sky.names() if self.ambient_sky else [])
         return ([self.skip_pass] if self.strategy == "skip" else []) + ([] if self.joint else [self.step_pass]) + own
 
 
@@ -165,10 +172,13 @@ class VoxelPass:
 @dataclass(frozen=True)
 class TerrainPass:
     shadows: tuple[LightPass, ...]  # one per light that casts shadows, seeing the terrain and every volume
+    # the sky light's visibility ray (`terrain.ambient_visibility`) through every volume; None: constant
+    sky: LightPass | None = None
 
     def names(self) -> list[str]:
-        """The terrain's passes in `stats`: trace, shade, then each light's shadow."""
-        return ["terrain.trace", "terrain.shade"] + [n for li in self.shadows for n in li.names()]
+        """The terrain's passes in `stats`: trace, shade, the sky light's visibility, then each light's shadow."""
+        return (["terrain.trace", "terrain.shade"] + (self.sky.names() if self.sky else [])
+                + [n for li in self.shadows for n in li.names()])
 
 
 LABELS = ("optical_thickness", "alpha_volumes", "instance", "sun_visibility")
@@ -177,7 +187,7 @@ LABELS = ("optical_thickness", "alpha_volumes", "instance", "sun_visibility")
 @dataclass(frozen=True)
 class LabelPass:
     """The labels a batch computes (`names`, in `LABELS` order) and, for ``sun_visibility``, its
-    shadow ray's `LightPass` (from lights[0], through every physical volume, the terrain and the voxels)."""
+    shadow ray's `LightPass` (from lights[0], through every volume, the terrain and the voxels)."""
 
     names: tuple[str, ...]
     sun: LightPass | None = None
@@ -276,9 +286,20 @@ def strategy(batch: Stacked, vol: Stacked, settings: MarchSettings) -> Strategy:
 
 
 def shadow_occluders(batch: Stacked, *, exclude: int | None = None) -> tuple[int, ...]:
-    """The volumes a shadow ray sees besides the one it starts in (`exclude`): every physically
-    shaded one (the shader look has no extinction of its own to cast)."""
-    return tuple(j for j, vol in enumerate(batch.volumes) if j != exclude and SHADINGS[vol.shading].caps["physical"])
+    """The volumes a shadow or sky-visibility ray sees besides the one it starts in (`exclude`):
+    every one, whatever its shading (the extinction it casts is its `sigma_t` × density, the σ_t
+    of the `optical_thickness` label)."""
+    return tuple(j for j in range(len(batch.volumes)) if j != exclude)
+
+
+def ambient_sky(batch: Stacked, v: int) -> LightPass | None:
+    """The visibility march of volume `v`'s sky light (None: no ambient, or `visibility = "none"`):
+    its own `ambient.steps` through itself, then through every other volume and the terrain."""
+    amb = batch.volumes[v].ambient
+    if amb is None or amb.visibility != "march":
+        return None
+    return LightPass(None, f"volume{v}.ambient", Shadow(steps=amb.steps), shadow_occluders(batch, exclude=v),
+                     batch.terrain is not None)
 
 
 def both_surfaces(batch: Stacked) -> bool:
@@ -340,7 +361,7 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
                       emission_map=None if vol.emission_map is None else vol.emission_map.kind,
                       bloom=None if vol.bloom is None else vol.bloom.light,
                       sky_blend=vol.sky_blend is not None, ambient=ambient,
-                      ambient_pass=f"{name}.ambient" if ambient and vol.ambient.visibility == "march" else None,
+                      ambient_sky=ambient_sky(batch, v),
                       multiple=vol.multiple_scattering is not None)
 
 
@@ -363,12 +384,16 @@ def voxel_pass(batch: Stacked) -> VoxelPass | None:
 
 def terrain_pass(batch: Stacked) -> TerrainPass | None:
     """The terrain's pass (None: no terrain), with a shadow pass per shadowed light that sees the
-    terrain, every physical volume and the voxels (where the scene has them)."""
+    terrain, every volume and the voxels (where the scene has them), and, where the scene has
+    volumes, its sky light's visibility ray through them (`terrain.ambient_visibility`)."""
     if batch.terrain is None:
         return None
+    terrain, sky = batch.terrain, None
+    if terrain.ambient_visibility == "march" and batch.volumes:  # over no volume the sky is always seen
+        sky = LightPass(None, "terrain.ambient", Shadow(steps=terrain.ambient_steps), shadow_occluders(batch))
     return TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True,
                                                batch.voxels is not None)
-                                     for l, li in enumerate(batch.lights) if li.shadow is not None))
+                                     for l, li in enumerate(batch.lights) if li.shadow is not None), sky=sky)
 
 
 def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: torch.dtype | None = None,

@@ -7,7 +7,10 @@ clouds' ambient gradient, seed 000 Step 6 Method C). V, the fraction of that lig
 point, is estimated as production cloud renderers do with one short march: the transmittance
 towards the sky along `direction` (up by default: the sky is brightest there and a cloud's base is
 the part it cannot reach), with σ_t scaled by `sigma_scale` (< 1: light that reaches the point from
-other directions, or diffuses in, is not lost). `visibility = "none"` takes V = 1."""
+other directions, or diffuses in, is not lost), times the transmittance of the same ray through
+every other volume (whatever its shading, its own σ_t unscaled) and the terrain where the scene has
+them, as the lights' shadow rays see them (`shadow.occluder_transmittance`, each its own pass
+`volume{i}.ambient.volume{j}`, `volume{i}.ambient.terrain`). `visibility = "none"` takes V = 1."""
 
 from __future__ import annotations
 
@@ -21,7 +24,7 @@ from torch import Tensor
 from ..schema.batch import take
 from ..schema.models import Strict, Vec3, nonneg, nonzero
 from .context import VolumeContext
-from .shadow import shadow_transmittance
+from .shadow import occluder_transmittance, shadow_transmittance
 
 SKY_DIRECTIONS = 64  # the Fibonacci sphere the sky's mean radiance is averaged over
 
@@ -70,16 +73,18 @@ def ambient_radiance(vol, p: Tensor, s: Tensor) -> Tensor:
 
 def ambient_in_scatter(ctx: VolumeContext, vol, p: Tensor, s: Tensor, sigma_s: Tensor) -> Tensor:
     """σs · L_amb · V [n, 3] at points `p` [n, 3] of scenes `s` [n], scattering `sigma_s` [n]."""
-    amb = vol.params.ambient
+    amb, use = vol.params.ambient, vol.plan.ambient_sky
     out = ambient_radiance(vol, p, s) * sigma_s[:, None]
-    if vol.plan.ambient_pass is None:
+    if use is None:
         return out
-    with ctx.timer.section(vol.plan.ambient_pass):
+    with ctx.timer.section(use.name):
         direction = take(torch.nn.functional.normalize(amb.direction, dim=1), s)
         exit_t = vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach)
         scale = take(amb.sigma_scale * vol.params.sigma_t, s)
         v = shadow_transmittance(p, direction, exit_t, lambda q, owner: scale[owner] * vol.field(q, s[owner]),
                                  steps=amb.steps)
+        if use.occluders or use.terrain:  # the sky seen through the other volumes and past the terrain
+            v = v * occluder_transmittance(ctx, use, p, s, direction, torch.full_like(v, math.inf))
     return out * v[:, None]
 
 

@@ -1,4 +1,6 @@
-"""The volumetric shadow march: transmittance from points towards a light through one volume."""
+"""The volumetric shadow march: transmittance from points towards a light through one volume,
+and through everything else a shadow or sky-visibility ray meets (`occluder_transmittance`: the
+other volumes, whatever their shading, and the terrain)."""
 
 from __future__ import annotations
 
@@ -6,6 +8,11 @@ from typing import Callable
 
 import torch
 from torch import Tensor
+
+from ..geometry.rays import clip_to_ray
+from ..schema.batch import per_scene, take
+from .context import VolumeContext
+from .sun_volume import SunGrid, sun_transmittance_grid
 
 
 def shadow_distances(
@@ -49,3 +56,58 @@ def shadow_transmittance(
     owner = torch.arange(n, device=points.device).repeat_interleave(k)
     sigma = extinction(sample_points.reshape(-1, 3), owner).reshape(n, k)
     return torch.exp(-(sigma * length).sum(dim=1))
+
+
+def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
+    """What a shadow ray of LightPass `use` (or a sky-visibility ray: `use.light` None) from `p`
+    [n, 3] along `direction` [n, 3], up to `distance` [n] (inf: a sun, the sky), lets through
+    besides its own volume: each volume `use.occluders` names (σ_t = its `sigma_t` × density,
+    whatever its shading), marched over its chord in `use.shadow.steps` equal steps (exact for homogeneous media)
+    or, with `shadow.method = "grid"`, looked up in that volume's sun grid where the ray enters
+    it, times 0 where the terrain blocks it (`use.terrain`) and where the voxels do (`use.voxels`)
+    -> [n]. Each is its own pass, reported only where some shadow ray crosses it."""
+    out = p.new_ones(p.shape[0])
+    for j in use.occluders:
+        other = ctx.volumes[j]
+        t0, t1, crosses = clip_to_ray(*other.intersect(p, direction, s), torch.minimum(distance, p.new_tensor(other.plan.reach)))
+        ids = crosses.nonzero().squeeze(1)
+        if ids.numel() == 0:
+            continue
+        with ctx.timer.section(f"{use.name}.volume{j}"):
+            sj, entry = s[ids], torch.addcmul(p[ids], t0[ids, None], direction[ids])
+            if use.shadow.method == "grid":  # the other volume's sun grid, looked up where the ray enters it
+                grids, sigma = sun_grids(ctx, other, use.light), take(other.params.sigma_t, sj) * other.field(entry, sj)
+                through = per_scene(entry, sj, len(grids), lambda b, i, q: grids[b].lookup(q, sigma[i]))
+            else:
+                through = shadow_transmittance(
+                    entry, direction[ids], t1[ids] - t0[ids],
+                    lambda q, owner: take(other.params.sigma_t, sj[owner]) * other.field(q, sj[owner]), steps=use.shadow.steps)
+            out[ids] = out[ids] * through
+    if use.terrain:
+        with ctx.timer.section(f"{use.name}.terrain"):
+            out = out * ctx.terrain.visibility(p, direction, s, distance)
+    if use.voxels:
+        with ctx.timer.section(f"{use.name}.voxels"):
+            out = out * ctx.voxels.visibility(p, direction, s, distance)
+    return out
+
+
+def sun_grids(ctx: VolumeContext, vol, light: int) -> list[SunGrid]:
+    """Transmittance to sun `light` through the volume, one grid per scene, built on first use and
+    kept for every chunk of the render."""
+    if light not in vol.sun_grids:
+        resolution = ctx.lights[light].params.shadow.resolution
+        direction = ctx.lights[light].direction
+        lo, hi = vol.bounds.aabb(vol.params.bounds.value)
+        grids = []
+        for b in range(len(vol.params)):
+            def owner(q: Tensor, b: int = b) -> Tensor:
+                return torch.full((q.shape[0],), b, dtype=torch.long, device=q.device)
+
+            def extinction(q: Tensor, b: int = b) -> Tensor:  # called on nodes inside the bounds only
+                return vol.params.sigma_t[b] * vol.field(q, owner(q))
+
+            grids.append(sun_transmittance_grid(extinction, lo[b], hi[b], direction[b], resolution=resolution,
+                                                chord=lambda o, d, b=b: vol.intersect(o, d, owner(o, b))))
+        vol.sun_grids[light] = grids
+    return vol.sun_grids[light]

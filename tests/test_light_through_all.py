@@ -1,0 +1,131 @@
+"""Shadows and sky light through everything (issue 31, item 3): every light's shadow rays and every
+sky-visibility ray see every volume, whatever its shading, and the terrain.
+
+Closed forms in float64: a vertical ray through a homogeneous box is marched exactly (equal steps
+over its chord of a constant σ_t), so a medium above another one dims what the lower one scatters
+by exactly e^{−σ_t·h}, the σ_t × density of the `optical_thickness` label. Each ratio is of one
+render against the same scene with the upper medium at σ_t = 0 (everything else, the camera rays
+included, unchanged): in-scatter and the composite are linear in the light's transmittance.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from conftest import assert_close
+
+import torchvol as tv
+from torchvol.renderer.plan import make_plan
+
+UP = [0.0, 1.0, 0.0]
+
+
+def _box(lo, hi, sigma_t, **more) -> dict:
+    return {"bounds": {"box": {"min": lo, "max": hi}}, "density": {"constant": 1.0}, "sigma_t": sigma_t, **more}
+
+
+def _lit_box_under(upper: dict, **scene) -> dict:
+    """A homogeneous scattering box at the origin seen from the side (the camera never sees `upper`,
+    which lies above it, across every ray straight up from it), lit by a sun overhead."""
+    return {
+        "image": {"width": 12, "height": 10},
+        "camera": {"eye": [0.0, 0.0, -5.0], "target": [0.0, 0.0, 0.0], "fov_y": 30.0},
+        "volumes": [_box([-0.5, -0.5, -0.5], [0.5, 0.5, 0.5], 2.0, albedo=0.5), upper],
+        **scene,
+    }
+
+
+def _ratio(scene_with: dict, scene_without: dict) -> tuple[torch.Tensor, object]:
+    lit = tv.render(scene_with, dtype=torch.float64)
+    bare = tv.render(scene_without, dtype=torch.float64)
+    seen = bare.radiance[0, 1] > 1e-6
+    assert seen.float().mean() > 0.1, "the lower box is in view and lit"
+    return (lit.radiance[0, 1] / bare.radiance[0, 1].clamp_min(1e-300))[seen], lit
+
+
+def test_a_shader_look_box_shadows_a_physical_one_by_its_exact_optical_depth(one_thread):
+    """A sun straight overhead; above the lit box a shader-look box of σ_t 1.5, 0.8 thick: every
+    shadow ray crosses 0.8 of it, the lower box's radiance is e^{−1.2} that of the same scene with
+    the shader box at σ_t = 0 (before: the shader look cast no shadow, a ratio of 1)."""
+    sigma, thick = 1.5, 0.8
+    def scene(s):
+        upper = _box([-1.0, 3.0, -1.0], [1.0, 3.0 + thick, 1.0], s, shading="shader")
+        return _lit_box_under(upper, lights=[{"kind": "sun", "direction": UP, "intensity": 3.0, "shadow": {"steps": 8}}])
+    ratio, out = _ratio(scene(sigma), scene(0.0))
+    assert_close(ratio, torch.full_like(ratio, math.exp(-sigma * thick)), atol=1e-6, what="shadow through the shader look")
+    assert "volume0.shadow0.volume1" in out.stats["passes"]
+    assert make_plan(tv.load_scene(scene(sigma))).volumes[0].lights[0].occluders == (1,)
+
+
+def test_ambient_visibility_sees_another_medium_by_its_exact_optical_depth(one_thread):
+    """No light, only the lower box's sky light (`ambient`, visibility marched straight up): a
+    pure absorber of σ_t 0.7 and 1.3 thick above it scales that sky light by e^{−0.91} (before:
+    the visibility march saw its own volume only, a ratio of 1)."""
+    sigma, thick = 0.7, 1.3
+    def scene(s):
+        upper = _box([-1.0, 3.0, -1.0], [1.0, 3.0 + thick, 1.0], s, albedo=0.0)
+        out = _lit_box_under(upper)
+        out["volumes"][0]["ambient"] = {"radiance": [1.0, 1.0, 1.0], "steps": 4}
+        return out
+    ratio, out = _ratio(scene(sigma), scene(0.0))
+    assert_close(ratio, torch.full_like(ratio, math.exp(-sigma * thick)), atol=1e-6, what="sky light through the absorber")
+    assert "volume0.ambient.volume1" in out.stats["passes"]
+    sky = make_plan(tv.load_scene(scene(sigma))).volumes[0].ambient_sky
+    assert sky.name == "volume0.ambient" and sky.light is None and sky.occluders == (1,) and not sky.terrain
+
+
+def _ground_under(sigma: float, **terrain) -> dict:
+    """Flat ground lit by its sky light only (no light), under a wide absorbing box 2 < y < 3.1
+    that the camera, below it and looking down, never looks through onto the ground."""
+    return {
+        "image": {"width": 12, "height": 10},
+        "camera": {"eye": [0.0, 1.0, -3.0], "target": [0.0, 0.0, 0.0], "fov_y": 40.0},
+        "terrain": {"amplitude": 0.0, "ambient": [0.5, 0.6, 0.7], **terrain},
+        "volumes": [_box([-500.0, 2.0, -500.0], [500.0, 3.1, 500.0], sigma, albedo=0.0)],
+    }
+
+
+def test_terrain_sky_light_is_dimmed_by_the_medium_above_it(one_thread):
+    """The ground's radiance is its colour × its `ambient` × e^{−σ_t·1.1} under the box, by a
+    ray straight up through it (before: the sky light was a constant, e^0)."""
+    sigma = 0.9
+    out = tv.render(_ground_under(sigma), dtype=torch.float64)
+    ground = out.depth[0, 0] > 0
+    assert ground.float().mean() > 0.5
+    color, ambient = torch.tensor([0.3, 0.45, 0.18], dtype=torch.float64), torch.tensor([0.5, 0.6, 0.7], dtype=torch.float64)
+    expected = (color * ambient * math.exp(-sigma * 1.1))[:, None].expand(3, int(ground.sum()))
+    assert_close(out.radiance[0][:, ground], expected, atol=1e-6, what="the ground's sky light under the absorber")
+    assert out.stats["passes"][:4] == ["rays", "terrain.trace", "terrain.shade", "terrain.ambient"]
+    assert "terrain.ambient.volume0" in out.stats["passes"]
+
+
+def test_terrain_sky_light_costs_nothing_where_not_asked_for(one_thread):
+    """`ambient_visibility = "none"`, or no volume over the terrain: no visibility pass, the sky light
+    is the constant `ambient`."""
+    off = tv.load_scene(_ground_under(0.9, ambient_visibility="none"))
+    bare = tv.load_scene({**_ground_under(0.9), "volumes": []})
+    for scene in (off, bare):
+        plan = make_plan(scene)
+        assert plan.terrain.sky is None and not any("terrain.ambient" in n for n in plan.names())
+    out = tv.render(off, dtype=torch.float64)
+    ground = out.depth[0, 0] > 0
+    assert_close(out.radiance[0, 1][ground], torch.full((int(ground.sum()),), 0.45 * 0.6, dtype=torch.float64), atol=1e-6)
+
+
+def test_every_shadow_and_sky_ray_sees_every_volume_whatever_its_shading():
+    """The plan: the terrain's shadow rays, its sky light and the sun-visibility label see the
+    shader-look and surface-look volumes too; a volume's sky light sees the terrain."""
+    scene = tv.load_scene({
+        "lights": [{"kind": "sun", "direction": [0.3, 1.0, 0.2], "shadow": {"steps": 4}}],
+        "terrain": {},
+        "volumes": [_box([-1.0, 2.0, -1.0], [1.0, 3.0, 1.0], 1.0, ambient={"radiance": [1.0, 1.0, 1.0]}),
+                    _box([-1.0, 4.0, -1.0], [1.0, 5.0, 1.0], 1.0, shading="shader"),
+                    _box([-1.0, 6.0, -1.0], [1.0, 7.0, 1.0], 1.0, shading="surface")],
+    })
+    plan = make_plan(scene, aovs=["sun_visibility"])
+    assert plan.terrain.shadows[0].occluders == (0, 1, 2) and plan.terrain.shadows[0].terrain
+    assert plan.terrain.sky.occluders == (0, 1, 2) and not plan.terrain.sky.terrain
+    assert plan.volumes[0].lights[0].occluders == (1, 2)
+    assert plan.volumes[0].ambient_sky.occluders == (1, 2) and plan.volumes[0].ambient_sky.terrain
+    assert plan.labels.sun.occluders == (0, 1, 2)
