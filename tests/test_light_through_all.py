@@ -129,3 +129,57 @@ def test_every_shadow_and_sky_ray_sees_every_volume_whatever_its_shading():
     assert plan.volumes[0].lights[0].occluders == (1, 2)
     assert plan.volumes[0].ambient_sky.occluders == (1, 2) and plan.volumes[0].ambient_sky.terrain
     assert plan.labels.sun.occluders == (0, 1, 2)
+
+
+def voxel_floor_scene(volume, *, intensity=2.0, cells_min=(-4, 0, -4), cells_max=(4, 1, 4)):
+    """A voxel slab (cells `cells_min`..`cells_max`) under an overhead shadowed sun, seen from the
+    side below height 2, with `volume` in the scene."""
+    return {"image": {"width": 32, "height": 16},
+            "camera": {"eye": [0.0, 1.6, -9.0], "target": [0.0, 0.8, 0.0], "fov_y": 40.0},
+            "lights": [{"kind": "sun", "direction": [0.0, 1.0, 0.0], "intensity": intensity, "shadow": {"steps": 4}}],
+            "voxels": {"occupancy": {"function": {"fn": lambda cells: torch.ones(len(cells), dtype=torch.long)}},
+                       "cells": {"min": list(cells_min), "max": list(cells_max)}, "materials": [[0.7, 0.7, 0.7]],
+                       "shadow": {"steps": 16}},
+            "volumes": [volume], "march": {"quality": "draft"}}
+
+
+def test_voxel_shadow_rays_see_the_volumes(one_thread):
+    # an absorbing box over the right half of a voxel floor, the sun overhead: the floor's direct
+    # light under it is e^{−σ·thickness} of the light beside it (the view rays pass under the box)
+    sigma, thickness = 1.3, 0.5
+    box = {"bounds": {"box": {"min": [0.0, 2.0, -6.0], "max": [6.0, 2.0 + thickness, 6.0]}}, "sigma_t": sigma,
+           "albedo": 0.0}
+    lit, dark = tv.render(voxel_floor_scene(box)), tv.render(voxel_floor_scene(box, intensity=0.0))
+    assert "voxels.shadow0.volume0" in lit.stats["passes"]
+    floor = (lit.aovs["normal"][0, 1] > 0.99) & (lit.depth[0, 0] > 0)
+    xs = world_x(lit)
+    direct = (lit.radiance - dark.radiance)[0, 0]
+    under, beside = floor & (xs > 0.5), floor & (xs < -0.5)
+    assert under.sum() > 10 and beside.sum() > 10
+    ratio = direct[under].mean() / direct[beside].mean()
+    assert_close(ratio, math.exp(-sigma * thickness), atol=1e-4, what="floor under the box / beside it")
+
+
+def test_volume_shadow_rays_see_the_voxels_without_a_terrain(one_thread):
+    # a scattering layer under a voxel roof over its right half: no sun reaches it there
+    layer = {"bounds": {"box": {"min": [-6.0, 0.0, -6.0], "max": [6.0, 1.0, 6.0]}}, "sigma_t": 0.5, "albedo": 1.0}
+    out = tv.render(voxel_floor_scene(layer, cells_min=(0, 2, -6), cells_max=(6, 3, 6)))
+    assert "volume0.shadow0.voxels" in out.stats["passes"]
+    xs = world_x(out, fallback=True)
+    mist = (out.aovs["normal"][0].abs().sum(dim=0) == 0) & (out.alpha[0, 0] > 0.5)  # the layer, no voxel face
+    under, beside = mist & (xs > 1.0), mist & (xs < -1.0)
+    assert under.sum() > 10 and beside.sum() > 10
+    assert out.radiance[0, 0][under].max() < 1e-3 * out.radiance[0, 0][beside].mean()
+
+
+def world_x(out, fallback=False):
+    """[H, W] world x of each pixel's depth point (with `fallback`, of its ray 9 units out)."""
+    K, w2c = out.camera.K[0], out.camera.world_to_camera[0]
+    h, w = out.depth.shape[-2:]
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    rays = torch.stack([u, v, torch.ones_like(u)], dim=-1) @ torch.linalg.inv(K).T @ w2c[:3, :3]
+    eye = -w2c[:3, :3].T @ w2c[:3, 3]
+    depth = out.depth[0, 0]
+    if fallback:
+        depth = torch.where(depth > 0, depth, torch.full_like(depth, 9.0))
+    return (eye + depth[..., None] * rays)[..., 0]

@@ -299,13 +299,7 @@ def ambient_sky(batch: Stacked, v: int) -> LightPass | None:
     if amb is None or amb.visibility != "march":
         return None
     return LightPass(None, f"volume{v}.ambient", Shadow(steps=amb.steps), shadow_occluders(batch, exclude=v),
-                     batch.terrain is not None)
-
-
-def both_surfaces(batch: Stacked) -> bool:
-    """Whether the batch has both surfaces, voxels and a terrain: then the volumes' shadow rays see
-    the voxels too (`LightPass.voxels`; with one surface they see the terrain alone, as before)."""
-    return batch.voxels is not None and batch.terrain is not None
+                     batch.terrain is not None, batch.voxels is not None)
 
 
 def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bool:
@@ -344,7 +338,7 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
         occluders = shadow_occluders(batch, exclude=v)
         uses = tuple(LightPass(l, None, None) if li.shadow is None
                      else LightPass(l, f"{name}.shadow{l}", li.shadow, occluders, batch.terrain is not None,
-                                    both_surfaces(batch))
+                                    batch.voxels is not None)
                      for l, li in lights)
     bounds, density = BOUNDS[vol.bounds.kind], DENSITIES[vol.density.kind]
     if settings.max_distance is not None:
@@ -371,9 +365,12 @@ def voxel_pass(batch: Stacked) -> VoxelPass | None:
     vx = batch.voxels
     if vx is None:
         return None
-    # with a terrain too, each shadow ray also meets the terrain (`voxels.shadow{l}.terrain`)
-    shadows = tuple(LightPass(l, f"voxels.shadow{l}", vx.shadow, terrain=batch.terrain is not None)
-                    for l in range(len(batch.lights))) if vx.shadow is not None else ()
+    # each shadow ray also meets every volume (`voxels.shadow{l}.volume{j}`, marched with the light's
+    # own shadow settings or the quality level's steps: the voxels' DDA takes `voxels.shadow`) and
+    # the terrain beside them
+    shadows = tuple(LightPass(l, f"voxels.shadow{l}", li.shadow or Shadow(steps=QUALITY[batch.march.quality].shadow_steps),
+                              shadow_occluders(batch), batch.terrain is not None)
+                    for l, li in enumerate(batch.lights)) if vx.shadow is not None else ()
     return VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
                      glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
                      emission=any(bool((m.emission > 0).any()) for m in vx.materials),
@@ -390,7 +387,8 @@ def terrain_pass(batch: Stacked) -> TerrainPass | None:
         return None
     terrain, sky = batch.terrain, None
     if terrain.ambient_visibility == "march" and batch.volumes:  # over no volume the sky is always seen
-        sky = LightPass(None, "terrain.ambient", Shadow(steps=terrain.ambient_steps), shadow_occluders(batch))
+        sky = LightPass(None, "terrain.ambient", Shadow(steps=terrain.ambient_steps), shadow_occluders(batch),
+                        voxels=batch.voxels is not None)
     return TerrainPass(shadows=tuple(LightPass(l, f"terrain.shadow{l}", li.shadow, shadow_occluders(batch), True,
                                                batch.voxels is not None)
                                      for l, li in enumerate(batch.lights) if li.shadow is not None), sky=sky)

@@ -23,7 +23,8 @@ __all__ = ["DirectLight"]
 class DirectLight:
     """`lights` at the hits of the batch's voxels (`voxels`: its `Stacked` voxels; `plan` its
     `VoxelPass`), shadow rays traced by `tracer`; `transmittance(use, p, s, direction, distance) -> [n]`
-    what a shadow ray of LightPass `use` sees besides the voxels (the terrain, where `use.terrain`)."""
+    what a shadow ray of LightPass `use` sees besides the voxels (the volumes `use.occluders`, the
+    terrain where `use.terrain`)."""
 
     def __init__(self, voxels: Stacked, plan, lights: Sequence[LightSource], tracer: VoxelTracer,
                  transmittance: Callable[..., Tensor] | None = None):
@@ -47,7 +48,7 @@ class DirectLight:
                     start = point.x + take(p.shadow.offset, s)[:, None] * point.face_normal
                     at_start = None if source.directional else source.toward(start, s)
                     vis = self.tracer.visibility(start, s, source, p.shadow.steps, at_start)
-                if use.terrain:  # the terrain beside the voxels blocks it too (its own pass)
+                if use.terrain or use.occluders:  # the media and the terrain beside the voxels (their own passes)
                     at_start = source.toward(start, s) if at_start is None else at_start
                     vis = vis * self.transmittance(use, start, s, at_start.direction, at_start.distance)
                 if point.shadow is None:
