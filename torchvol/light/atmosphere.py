@@ -2,7 +2,7 @@
 Mie densities, each with its own scale height, single scattering of the sun with the seeds' nested
 optical-depth march towards it. One function, `single_scatter`, serves both the `atmosphere` sky
 (`torchvol.light.sky`: the shell seen from a fixed height, as a background) and the top-level
-`[atmosphere]` medium (`aerial_perspective`: the scene inside the shell, whose ground y = 0 is the
+`[atmosphere]` medium (`AirPath`: the scene inside the shell, whose ground y = 0 is the
 planet's surface, centre (0, −R, 0), with the camera anywhere: on the ground, in the air, in space).
 
 The medium is one of the media of the camera rays' march (`AirPath`, marched with the volumes by

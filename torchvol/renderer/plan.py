@@ -5,7 +5,7 @@ fixed march over the occupied span, error-controlled march), which lights shade 
 shadows are found, which voxel passes run, which post effects apply. `render` executes the plan by
 looking each pass up, and decides nothing again. A term the batch does not ask for is not in the
 plan and costs nothing: no shadow pass without a light with `shadow`, no sky pass without `[sky]`,
-no aerial perspective without `[atmosphere]`, no march without volumes, no post pass at its
+no air march without `[atmosphere]`, no march without volumes, no post pass at its
 identity setting.
 
 Decisions read only values a batch shares (its structure), or ask whether *any* scene of the batch

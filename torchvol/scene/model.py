@@ -423,7 +423,7 @@ class Scene(Strict):
     volumes: list[Volume] = Field(default_factory=list)
     voxels: Voxels | None = None
     terrain: Terrain | None = None
-    atmosphere: AtmosphereMedium | None = None  # the scene inside a planet's air (aerial perspective)
+    atmosphere: AtmosphereMedium | None = None  # the scene inside a planet's air (a medium of the march)
     march: Annotated[March, SHARED] = Field(default_factory=March)
     post: Post = Field(default_factory=Post)
 
