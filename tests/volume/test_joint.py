@@ -246,3 +246,20 @@ def test_a_volume_inside_the_air_and_the_sun_reddened_on_its_way(one_thread):
     unreddened = torch.from_numpy(air_quadrature(rayleigh, box, reddened=False))
     assert (expected - clear).min() > 0.1 * clear.min()
     assert ((unreddened - expected).abs() / expected).max() > 50 * 2e-4
+
+
+def test_the_terrain_is_lit_through_the_air(one_thread):
+    # flat ground 0.5 under the camera, the sun overhead through 3 units of homogeneous air: its
+    # direct light is e^{−β·3} of the clear air's, and the view ray's air takes e^{−β·d} more
+    # (the air's own in-scatter, β·p·E·d ≈ 0.2 % of the ground here, is inside the tolerance)
+    rayleigh = (0.02, 0.05, 0.1)
+    s = air_scene([], rayleigh)
+    s.pop("volumes")
+    s["camera"] = {"eye": [0.0, 0.5, -0.5], "target": [0.0, 0.0, 0.0], "fov_y": 10.0}
+    s["terrain"] = {"base": 0.0, "amplitude": 0.0, "color": [1.0, 1.0, 1.0], "ambient": [0.0, 0.0, 0.0]}
+    hazy = tv.render(s, dtype=torch.float64)
+    clear = tv.render({**s, "atmosphere": {**s["atmosphere"], "rayleigh": [0.0, 0.0, 0.0]}}, dtype=torch.float64)
+    d = math.hypot(0.5, 0.5)  # the eye to the ground point it looks at
+    expected = torch.exp(-torch.tensor(rayleigh, dtype=torch.float64) * (3.0 + d))
+    assert_close(hazy.radiance[0, :, 0, 0] / clear.radiance[0, :, 0, 0], expected, atol=5e-3,
+                 what="ground lit through the air / in clear air")
