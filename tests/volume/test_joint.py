@@ -77,15 +77,23 @@ def emissive(layout):
     return [slab_box(z0, z1, sigma, emission=[e, e, e]) for z0, z1, sigma, e in layout]
 
 
+# the scattering media's albedo: with an unshadowed sun their source is σ_t·albedo·p·E, constant
+ALBEDO = 0.6
+
+
 @pytest.mark.parametrize("closed_form", [True, False])
 @pytest.mark.parametrize("name", list(LAYOUTS))
-def test_overlapping_emission_and_absorption_match_the_piecewise_closed_form(name, closed_form, one_thread):
+@pytest.mark.parametrize("scattering", [False, True])
+def test_overlapping_media_match_the_piecewise_closed_form(name, closed_form, scattering, one_thread):
     layout = LAYOUTS[name]
-    radiance, trans, distance, shares = piecewise(layout)
+    albedo = ALBEDO if scattering else 0.0
+    radiance, trans, distance, shares = piecewise(
+        [(z0, z1, sigma, e + sigma * albedo * ISOTROPIC * SUN["intensity"]) for z0, z1, sigma, e in layout])
     for order in itertools.permutations(range(len(layout))):
-        vols = emissive([layout[i] for i in order])
+        vols = [{**v, "albedo": albedo} for v in emissive([layout[i] for i in order])]
         # frostbite is exact on constant pieces: the march matches to rounding, however few its steps
-        out = tv.render(axis_scene(vols, march={"closed_form": closed_form, "steps": 8}), dtype=torch.float64,
+        out = tv.render(axis_scene(vols, lights=[SUN] if scattering else [],
+                                   march={"closed_form": closed_form, "steps": 8}), dtype=torch.float64,
                         aovs=["alpha_volumes"])
         assert out.stats["plan"]["joint"] == [f"volume{i}" for i in range(len(layout))]
         assert ("media.closed_form" in out.stats["passes"]) == closed_form
