@@ -271,3 +271,17 @@ def test_the_terrain_is_lit_through_the_air(one_thread):
     expected = torch.exp(-torch.tensor(rayleigh, dtype=torch.float64) * (3.0 + d))
     assert_close(hazy.radiance[0, :, 0, 0] / clear.radiance[0, :, 0, 0], expected, atol=5e-3,
                  what="ground lit through the air / in clear air")
+
+
+def test_the_error_controlled_march_holds_the_air_too(one_thread):
+    # (the air alone on a piece has σ_t 0, not the −inf "no medium here" of a signed sum: found by
+    # the fuzz, it made the transmittance inf and the image NaN)
+    rayleigh, box = (0.02, 0.05, 0.1), (0.0, 2.0, 1.0, 0.8, 0.05)
+    vol = slab_box(box[0], box[1], box[2], albedo=box[3], emission=[box[4]] * 3)
+    vol["bounds"]["box"]["min"][1], vol["bounds"]["box"]["max"][1] = 0.5, 1.5
+    s = air_scene([vol], rayleigh)
+    s["march"] = {"tolerance": 1e-4, "closed_form": False}
+    out = tv.render(s, dtype=torch.float64)
+    expected = torch.from_numpy(air_quadrature(rayleigh, box))
+    assert_close(out.radiance[0, :, 0, 0] / expected, torch.ones(3, dtype=torch.float64), atol=1e-3,
+                 what="radiance / quadrature, error-controlled march")

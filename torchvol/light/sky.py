@@ -67,9 +67,9 @@ class AtmosphereSky(SkyBase):
 
 
 def gradient_sky(directions: Tensor, horizon: Tensor, slope: Tensor) -> Tensor:
-    """The template's `bgcol = horizon − rd.y · slope`. `directions`: [R, 3]; `horizon`, `slope`:
-    [R, 3] (gathered per ray). -> [R, 3]."""
-    return horizon - directions[:, 1:2] * slope
+    """The template's `bgcol = horizon − rd.y · slope`, never below 0 (a radiance; a steep slope
+    would take it there). `directions`: [R, 3]; `horizon`, `slope`: [R, 3] (gathered per ray). -> [R, 3]."""
+    return (horizon - directions[:, 1:2] * slope).clamp_min(0.0)
 
 
 def sun_glow(directions: Tensor, sun_dir: Tensor, color: Tensor, power: Tensor) -> Tensor:

@@ -124,7 +124,9 @@ def medium_sum(media: Sequence[Medium], subsets: Sequence, *, shares: bool, sign
                 source[rows, :3] += src
                 if shares:
                     source[rows, 3 + v] = positive
-        return (torch.where(sigma > 0, sigma, largest) if signed else sigma), source
+        if signed:  # (a sample with no volume on it, the air's alone, has σ_t 0)
+            sigma = torch.where(sigma > 0, sigma, torch.where(torch.isfinite(largest), largest, 0.0))
+        return sigma, source
 
     return medium
 
@@ -226,7 +228,10 @@ def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tens
     first = torch.where(hit, t0, torch.full_like(t0, math.inf)).amin(dim=0)  # (the air's entry too)
     part = VolumePart(radiance=whole.radiance[:, :3], transmittance=whole.transmittance, weight_sum=whole.weight_sum,
                       weighted_t=whole.weighted_t, median_t=whole.median_t, t0=first)
-    return Joint(part, _alpha_shares(whole.radiance[:, 3:].T, whole.transmittance) if shares else None)
+    if not shares:
+        return Joint(part, None)
+    raw = whole.radiance[:, 3:].T if parts else start.new_zeros(len(vols), start.shape[1])  # (no piece: no share)
+    return Joint(part, _alpha_shares(raw, whole.transmittance))
 
 
 def _alpha_shares(raw: Tensor, trans: Tensor) -> Tensor:

@@ -123,7 +123,8 @@ def sun_transmittance_grid(
     sigma = base.new_zeros(steps + 1, n * n)
     nodes = torch.addcmul(base[column], (k * spacing)[:, None], frame[2])
     # in chunks: a 384 grid has ~28 M nodes in a sphere, whose density intermediates took 5 GB at once
-    sigma[k, column] = torch.cat([extinction(nodes[i:i + NODE_CHUNK]) for i in range(0, nodes.shape[0], NODE_CHUNK)])
+    if nodes.shape[0]:  # (a coarse grid's lines may all miss a thin medium: then it casts no shadow)
+        sigma[k, column] = torch.cat([extinction(nodes[i:i + NODE_CHUNK]) for i in range(0, nodes.shape[0], NODE_CHUNK)])
     return _sun_grid(sigma.reshape(steps + 1, n, n), spacing, frame=frame, origin=origin, size=size, like=box_min)
 
 
