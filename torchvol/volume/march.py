@@ -501,7 +501,10 @@ def _adaptive_step(rays: _AdaptiveRays, medium: Medium, step_fn: Callable, *, to
     # accepted step's second half and this step's halves
     previous = (light[0] - a.light_prev) / (where[n:2 * n] - a.at_prev)[:, None]
     curvature = 2.0 * ((light[1] - light[0]) / (2 * quarter)[:, None] - previous) / (where[2 * n:] - a.at_prev)[:, None]
-    curvature = torch.where((lit.all(0) & a.at_prev.isfinite())[:, None], curvature, 0.0)
+    # (only where the three abscissae are apart: in float32 a step near min_step far along a ray
+    # rounds them together, and 0/0 made the error, and with it the next step, NaN)
+    apart = (where[2 * n:] > where[n:2 * n]) & (where[n:2 * n] > a.at_prev)
+    curvature = torch.where((lit.all(0) & a.at_prev.isfinite() & apart)[:, None], curvature, 0.0)
     light_error = halves_sigma.mean(0) * dt**3 * curvature.abs().amax(dim=1) / (96.0 * a.scale)
     trans = a.transmittance
     local = trans * torch.maximum((s_full - s_half).abs() / 3.0, (c_full - c_half).abs().amax(dim=1) / (3.0 * a.scale) + light_error)
