@@ -83,6 +83,7 @@ def _extras(rng: np.random.Generator, scene: dict) -> None:
         scene["lights"] = [sun] + [li for li in scene.get("lights", []) if li.get("kind") == "point"][:1]
         scene["atmosphere"] = {"steps": 4, "light_steps": 2,
                                "planet_radius": float(rng.choice([1e3, 6.36e6])), "atmosphere_height": float(rng.choice([10.0, 6e4]))}
+    _rebind_blooms(scene)
     post = scene.setdefault("post", {})
     if rng.random() < 0.15:
         post["fog"] = {"density": float(rng.choice([0.0, 0.05, 10.0]))}
@@ -91,6 +92,17 @@ def _extras(rng: np.random.Generator, scene: dict) -> None:
     if rng.random() < 0.1:
         scene["image"] = {**scene.get("image", {}), "passes": 2}
         scene["march"] = {**scene.get("march", {}), "dither": "hash"}
+
+
+def _rebind_blooms(scene: dict) -> None:
+    """A bloom glows around a point light: bound to the scene's first one, dropped without one."""
+    points = [i for i, li in enumerate(scene.get("lights", [])) if li.get("kind") == "point"]
+    for vol in scene.get("volumes", []):
+        if "bloom" in vol:
+            if points:
+                vol["bloom"]["light"] = points[0]
+            else:
+                del vol["bloom"]
 
 
 def _leaves(tree: Any, path: tuple = ()) -> list[tuple]:
