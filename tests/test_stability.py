@@ -422,3 +422,63 @@ def test_cameras_under_the_terrain_see_the_ground_at_zero(eye_y, base, amplitude
     under = eye_y < base - amplitude - 1e-3
     if under:
         assert (out.alpha == 1).all() and (out.depth == 0).all(), f"{scene}: a camera in the ground sees past it"
+
+
+# -- found by the fuzz (torchvol.measure.fuzz, tests/test_fuzz.py) ---------------------------------
+
+
+@FAST
+@given(horizon=st.tuples(*[st.floats(0.0, 1.0)] * 3), slope=st.tuples(*[st.floats(-2.0, 2.0)] * 3),
+       pitch=st.floats(-3.0, 3.0))
+def test_gradient_sky_is_never_negative(horizon, slope, pitch):
+    """horizon − rd.y · slope goes negative towards a pole when |slope| exceeds the horizon's colour:
+    the sky is clamped at 0 (radiance = max(horizon − rd.y · slope, 0), through the camera's rays)."""
+    scene = _small(camera={"eye": [0.0, 0.0, 0.0], "target": [0.0, pitch, 1.0], "fov_y": 120.0},
+                   sky={"kind": "gradient", "horizon": list(horizon), "slope": list(slope)})
+    out = tv.render(scene)
+    check_output(out, what=str(scene))
+    d = out.camera.rays().directions[:, 1:2].float()
+    expected = (torch.tensor(horizon) - d * torch.tensor(slope)).clamp_min(0.0)
+    assert_close(out.radiance[0].permute(1, 2, 0).reshape(-1, 3), expected, atol=1e-5, what="gradient sky")
+
+
+@FAST
+@given(count=st.integers(2, 3), yaw=st.floats(90.0, 270.0), labels=st.sampled_from([["alpha_volumes"], ["instance"],
+       ["alpha_volumes", "instance", "optical_thickness"]]))
+def test_jointly_marched_volumes_no_ray_meets_give_zero_labels(count, yaw, labels):
+    """Overlapping volumes, marched jointly, that no ray of the image meets (the camera looks away):
+    the labels' per-volume alpha shares are zeros of V channels (they were [0, n] and the labels
+    raised a shape mismatch)."""
+    a = math.radians(yaw)
+    volumes = [{"bounds": {"sphere": {"center": [0.0, 0.0, 0.2 * k], "radius": 0.5}}, "density": {"fbm": {"octaves": 1}},
+                "sigma_t": 2.0} for k in range(count)]
+    scene = _small(camera={"eye": [0.0, 0.0, -3.0], "target": [math.sin(a), 0.0, -3.0 + math.cos(a)], "fov_y": 30.0},
+                   lights=[SUN], volumes=volumes)
+    out = tv.render(scene, aovs=labels)
+    check_output(out, what=str(scene))
+    assert (out.alpha == 0).all()
+    if "alpha_volumes" in labels:
+        assert out.aovs["alpha_volumes"].shape[1] == count and (out.aovs["alpha_volumes"] == 0).all()
+    if "instance" in labels:
+        assert (out.aovs["instance"] == 0).all()
+
+
+HUGE = [{"constant": 1e38}, {"grid": {"data": [[[1e30, 0.0], [0.0, 1e38]]]}}, {"fbm": {"octaves": 1, "amplitude": 1e30, "bias": 1e30}},
+        {"particles": {"count": 2, "core": 1e30, "amplitude": 1e30}}, {"fur": {"scale": 1e30}}]
+
+
+@FAST
+@given(density=st.sampled_from(HUGE), sigma_t=st.sampled_from([1.0, 1e12]), shading=st.sampled_from(["physical", "shader", "surface"]),
+       march=st.sampled_from([{"closed_form": True}, {"closed_form": False}, {"tolerance": 0.1}]),
+       light=st.sampled_from([SUN, {"kind": "sun", "direction": [0.3, 1.0, -0.2], "shadow": {"method": "grid", "resolution": 4}},
+                              {"kind": "point", "position": [0.0, 0.0, 0.0], "shadow": {"steps": 2}}]))
+def test_huge_densities_are_capped(density, sigma_t, shading, march, light):
+    """A density far past 1e12 (a constant, grid values, an fbm's amplitude: the schema bounds none
+    of them) times sigma_t overflowed float32 to inf, and the march's inf × 0 to NaN: every field's
+    density is capped at DENSITY_MAX (1e12), so the medium is opaque and the output finite."""
+    scene = _small(camera={"eye": [0.0, 0.2, -3.0], "target": [0.0, 0.0, 0.0]}, lights=[light],
+                   sky={"kind": "constant", "radiance": [0.5, 0.5, 0.5]},
+                   volumes=[{"bounds": BOUNDS["box"], "density": density, "sigma_t": sigma_t, "shading": shading}])
+    scene["march"].update(march if shading == "physical" else {})
+    out = tv.render(scene, aovs=["optical_thickness", "alpha_volumes", "instance"])
+    check_output(out, what=str(scene))

@@ -6,6 +6,12 @@ from typing import Protocol
 
 from torch import Tensor
 
+# the largest density a render reads from any field (`renderer/stats.CountedField` caps every
+# evaluation): 1e12 × `sigma_t` (≤ 1e12) is opaque over any step and still finite in float32, as is
+# every optical depth summed from it; above ~1e26 the extinction overflows float32 to inf (and
+# inf × 0 is NaN). A constant, a grid's values, an fbm's amplitude or a fur's scale may ask for more.
+DENSITY_MAX = 1e12
+
 
 class Field(Protocol):
     """A density field of B scenes, built by its kind from the batch's `Stacked` parameters

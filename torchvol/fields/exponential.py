@@ -11,11 +11,10 @@ from torch import Tensor
 
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict
+from .base import DENSITY_MAX
 
-# the largest density the field returns: far below its base a small scale height overflows
-# e^{(base − y)/H} (e^{1000} is inf, and inf × 0 NaN); 1e12 × `sigma_t` (≤ 1e12) is opaque over any
-# step and still finite in float32, as is every optical depth summed from it
-DENSITY_MAX = 1e12
+# far below its base a small scale height overflows e^{(base − y)/H} (e^{1000} is inf, and inf × 0
+# NaN): the field itself stops at DENSITY_MAX (fields/base.py), before the exponential overflows
 LOG_DENSITY_MAX = math.log(DENSITY_MAX)
 
 

@@ -12,6 +12,7 @@ from typing import Iterator
 from torch import Tensor
 
 from ..fields import Field
+from ..fields.base import DENSITY_MAX
 
 
 class Timer:
@@ -51,7 +52,9 @@ class Counts:
 
 class CountedField:
     """A field that counts the points it evaluates: the render's `stats["density_evals"]`, and its
-    own `evals` (`stats["density_evals_by_volume"]`)."""
+    own `evals` (`stats["density_evals_by_volume"]`); every density it returns is capped at
+    `fields.base.DENSITY_MAX` (a huge constant, grid value or fbm amplitude would otherwise overflow
+    σ_t · density to inf in float32, and the march's inf × 0 to NaN)."""
 
     def __init__(self, inner: Field, counts: Counts):
         self.inner, self.counts, self.evals = inner, counts, 0
@@ -60,11 +63,11 @@ class CountedField:
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         self.counts.density_evals += points.shape[0]
         self.evals += points.shape[0]
-        return self.inner(points, scene_index, lod)
+        return self.inner(points, scene_index, lod).clamp_max(DENSITY_MAX)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         """The inner field's signed density [n] at `points` [n, 3] of scenes `scene_index` [n]
-        (`lod` [n] or None), its evaluations counted."""
+        (`lod` [n] or None), its evaluations counted, capped at DENSITY_MAX as the density is."""
         self.counts.density_evals += points.shape[0]
         self.evals += points.shape[0]
-        return self.inner.signed(points, scene_index, lod)
+        return self.inner.signed(points, scene_index, lod).clamp_max(DENSITY_MAX)
