@@ -28,6 +28,9 @@ LABELS = ["optical_thickness", "alpha_volumes", "instance"]
 # a SceneError names the key first: "volumes[0].sigma_t: got -1.0; ..."
 NAMES_A_KEY = re.compile(r"^[A-Za-z_][\w\[\].]*: got ")
 EDGES = (0.0, 1e-9, 1e-3, 10.0, 1e6, 1e12)
+# a density's values may go past the cap (1e12, `fields.base.DENSITY_MAX`): the schema bounds none
+# of them (positions are kept to EDGES: a noise at 1e30 has no meaning to keep finite)
+DENSITY_EDGES = EDGES + (1e30,)
 
 
 @dataclass
@@ -125,7 +128,9 @@ def _push(rng: np.random.Generator, scene: dict) -> None:
     elif rng.random() < 0.1:
         new = -abs(value) - 1.0  # most keys refuse it, naming the key
     else:
-        new = float(rng.choice(EDGES)) * (1.0 if rng.random() < 0.5 else abs(value) + 1.0)
+        values = "density" in path and not any(k in ("center", "offset", "wind", "drift") for k in path)
+        edges = DENSITY_EDGES if values else EDGES  # (a density's values, not where it sits)
+        new = float(rng.choice(edges)) * (1.0 if rng.random() < 0.5 else abs(value) + 1.0)
     node = scene
     for key in path[:-1]:
         node = node[key]
