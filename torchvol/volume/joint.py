@@ -105,7 +105,7 @@ def medium_sum(media: Sequence[Medium], subsets: Sequence, *, shares: bool, sign
     def medium(ids: Tensor, t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
         n = ids.shape[0]
         sigma = t.new_zeros(n)
-        largest = torch.full_like(sigma, -math.inf)
+        largest = torch.full_like(sigma, -math.inf) if signed else None  # (only the signed sum reads it)
         source = t.new_zeros(n, 3 + (len(media) if shares else 0))
         for v, med in enumerate(media):
             rows, sub = subsets[v](ids)
@@ -113,14 +113,15 @@ def medium_sum(media: Sequence[Medium], subsets: Sequence, *, shares: bool, sign
                 continue
             sig, src = med(sub, t, dt) if rows is None else med(sub, t[rows], dt[rows])
             positive = sig.clamp_min(0.0)
+            if signed:
+                largest = torch.maximum(largest, sig) if rows is None else largest.index_reduce(0, rows, sig, "amax")
             if rows is None:
-                sigma, largest = sigma + positive, torch.maximum(largest, sig)
+                sigma = sigma + positive
                 source[:, :3] += src
                 if shares:
                     source[:, 3 + v] = positive
             else:
                 sigma.index_add_(0, rows, positive)
-                largest[rows] = torch.maximum(largest[rows], sig)
                 source[rows, :3] += src
                 if shares:
                     source[rows, 3 + v] = positive
