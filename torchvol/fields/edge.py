@@ -11,6 +11,7 @@ import torch
 from pydantic import Field
 from torch import Tensor
 
+from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict
 
@@ -22,11 +23,10 @@ class Edge(Strict):
     base: float | None = Field(None, description="world height of a flat base: no density below it, fading in over width")
 
 
-def smoothstep01(x: Tensor) -> Tensor:
-    """3x² − 2x³ of `x` clamped to [0, 1]: 0 at 0, 1 at 1, flat at both. Any shape -> the same
-    shape."""
-    x = x.clamp(0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
+def faded(density, depth, width):
+    """`density` · smoothstep(0, `width`, `depth`), in lanes (`ops.lanes`): the edge's fade of a
+    density at `depth` inside the bounds."""
+    return density * lanes.smoothstep01(depth / width)
 
 
 class EdgeField:
@@ -44,7 +44,7 @@ class EdgeField:
         depth = self.depth(self.bounds, points, s)
         if self.edge.base is not None:
             depth = torch.minimum(depth, points[:, 1] - take(self.edge.base, s))
-        return smoothstep01(depth / take(self.edge.width, s))
+        return faded(1.0, depth, take(self.edge.width, s))
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         return self.inner(points, scene_index, lod) * self.fade(points, scene_index)

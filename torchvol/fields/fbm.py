@@ -3,12 +3,14 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 from torch import Tensor
 
 from ..noise import fast as fastnoise
+from ..ops import lanes
 from ..noise import lattice as noise
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
@@ -91,5 +93,14 @@ class FbmField:
                 radial=p.radial, center=p.center)
         q = take(p.frequency, s)[:, None] * (points - take(self.shift, s)) + take(p.offset, s)
         f = seeded_fbm(self.basis, q, s, p, lod, fused=self.fused)
-        falloff = take(p.radial, s) * (points - take(p.center, s)).norm(dim=1)
-        return take(p.bias, s) + take(p.amplitude, s) * f - falloff
+        per_point = SimpleNamespace(bias=take(p.bias, s), amplitude=take(p.amplitude, s), radial=take(p.radial, s),
+                                    center=take(p.center, s).unbind(1))
+        return puff(f, *points.unbind(1), per_point)
+
+
+def puff(f, x, y, z, q):
+    """bias + amplitude · f − radial · |p − center|: the fbm `f` made a puff around its centre, in
+    lanes (`ops.lanes`): x, y, z the points' coordinates, `q` the per-point bias, amplitude, radial
+    and center (three lanes)."""
+    c = q.center
+    return q.bias + q.amplitude * f - q.radial * lanes.length3(x - c[0], y - c[1], z - c[2])

@@ -9,10 +9,11 @@ import torch
 from pydantic import Field, model_validator
 from torch import Tensor
 
+from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3
 from ..schema.registry import Registry
-from .rays import intersect_box, intersect_shell, intersect_slab, intersect_sphere
+from .rays import box_interval, intersect_box, intersect_shell, intersect_slab, intersect_sphere, sphere_interval
 
 SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
 
@@ -89,12 +90,24 @@ def _shell_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tenso
 def _shell_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
     reach = (b.planet_radius + b.top)[:, None]
     return _shell_center(b) - reach, _shell_center(b) + reach
+def box_depth(p, lo, hi):
+    """The distance from `p` in to the box's nearest face, lanes (`ops.lanes`): p, lo, hi three
+    lanes each."""
+    m = [lanes.minimum(p[i] - lo[i], hi[i] - p[i]) for i in range(3)]
+    return lanes.minimum(lanes.minimum(m[0], m[1]), m[2])
+
+
+def sphere_depth(p, center, radius):
+    """The distance from `p` in to the sphere's surface, lanes: p, center three lanes each."""
+    return radius - lanes.length3(p[0] - center[0], p[1] - center[1], p[2] - center[2])
+
+
 def _box_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
-    return torch.minimum(p - take(b.min, s), take(b.max, s) - p).amin(dim=1)
+    return box_depth(p.unbind(1), take(b.min, s).unbind(1), take(b.max, s).unbind(1))
 
 
 def _sphere_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
-    return take(b.radius, s) - (p - take(b.center, s)).norm(dim=1)
+    return sphere_depth(p.unbind(1), take(b.center, s).unbind(1), take(b.radius, s))
 
 
 def _slab_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
@@ -119,10 +132,15 @@ def _heights(lo: Tensor, hi: Tensor) -> Tensor:
 
 
 BOUNDS = Registry("bounds")
+# `lanes`: the kind's (interval, depth) in lanes over its parameters per lane `q` (three lanes for a
+# vector): interval(q, o, d) -> (t_near, t_far), depth(q, p) -> distance in; what a kernel traces
 BOUNDS.register("box", Box, _box_intersect, finite=True, aabb=lambda b: (b.min, b.max),
-                height_range=lambda b: _heights(b.min[:, 1], b.max[:, 1]), depth=_box_depth)
+                height_range=lambda b: _heights(b.min[:, 1], b.max[:, 1]), depth=_box_depth,
+                lanes=(lambda q, o, d: box_interval(o, d, q.min, q.max), lambda q, p: box_depth(p, q.min, q.max)))
 BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, aabb=_sphere_aabb,
-                height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius), depth=_sphere_depth)
+                height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius), depth=_sphere_depth,
+                lanes=(lambda q, o, d: sphere_interval(o, d, q.center, q.radius),
+                       lambda q, p: sphere_depth(p, q.center, q.radius)))
 # a slab's exit is at infinity along its planes: rays stop at SLAB_REACH unless march.max_distance says
 BOUNDS.register("slab", Slab, _slab_intersect, finite=False, aabb=None, height_range=lambda b: _heights(b.y_min, b.y_max),
                 depth=_slab_depth)

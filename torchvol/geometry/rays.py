@@ -25,6 +25,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..ops import lanes
+
 __all__ = ["intersect_box", "intersect_sphere", "intersect_slab", "clip_to_ray"]
 
 
@@ -32,32 +34,36 @@ def _as(x, like: Tensor) -> Tensor:
     return torch.as_tensor(x, dtype=like.dtype, device=like.device)
 
 
-def _canonical(t_near: Tensor, t_far: Tensor, miss: Tensor) -> tuple[Tensor, Tensor]:
-    """Set misses (and empty/infinite-degenerate intervals) to (+inf, -inf)."""
+def _canonical(t_near, t_far, miss):
+    """Set misses (and empty/infinite-degenerate intervals) to (+inf, -inf). Lanes (`ops.lanes`)."""
     miss = miss | ~(t_near <= t_far) | (t_near == float("inf")) | (t_far == float("-inf"))
-    inf = torch.full_like(t_near, float("inf"))
-    return torch.where(miss, inf, t_near), torch.where(miss, -inf, t_far)
+    return lanes.where(miss, float("inf"), t_near), lanes.where(miss, float("-inf"), t_far)
 
 
-def _slab(o: Tensor, d: Tensor, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-component slab interval: (t_lo, t_hi, miss) elementwise, NaN-free.
+def _slab(o, d, lo, hi):
+    """Per-component slab interval: (t_lo, t_hi, miss) elementwise, NaN-free; lanes (`ops.lanes`).
 
     ``d == 0`` (either sign): ``(-inf, +inf)`` if ``lo <= o <= hi`` else a miss.
     Division (not multiplication by 1/d) so that a subnormal ``d`` with ``o`` on a plane gives 0,
     not ``0 * inf``.
     """
     parallel = d == 0
-    d_safe = torch.where(parallel, torch.ones_like(d), d)
+    d_safe = lanes.where(parallel, 1.0, d)
     t1 = (lo - o) / d_safe
     t2 = (hi - o) / d_safe
-    t_lo = torch.minimum(t1, t2)
-    t_hi = torch.maximum(t1, t2)
-    inside = (o >= lo) & (o <= hi)
-    inf = torch.full_like(t_lo, float("inf"))
-    t_lo = torch.where(parallel, -inf, t_lo)
-    t_hi = torch.where(parallel, inf, t_hi)
-    miss = parallel & ~inside
+    t_lo = lanes.where(parallel, float("-inf"), lanes.minimum(t1, t2))
+    t_hi = lanes.where(parallel, float("inf"), lanes.maximum(t1, t2))
+    miss = parallel & ~((o >= lo) & (o <= hi))
     return t_lo, t_hi, miss
+
+
+def box_interval(o, d, lo, hi):
+    """The box ``lo <= p <= hi`` along rays o + t d, in lanes: o, d, lo, hi three lanes each ->
+    (t_near, t_far), misses (+inf, -inf). `intersect_box`'s body."""
+    slabs = [_slab(o[i], d[i], lo[i], hi[i]) for i in range(3)]
+    t_near = lanes.maximum(lanes.maximum(slabs[0][0], slabs[1][0]), slabs[2][0])
+    t_far = lanes.minimum(lanes.minimum(slabs[0][1], slabs[1][1]), slabs[2][1])
+    return _canonical(t_near, t_far, slabs[0][2] | slabs[1][2] | slabs[2][2])
 
 
 def intersect_box(origins: Tensor, directions: Tensor, box_min, box_max) -> tuple[Tensor, Tensor]:
@@ -65,12 +71,25 @@ def intersect_box(origins: Tensor, directions: Tensor, box_min, box_max) -> tupl
 
     origins, directions [R, 3]; box_min, box_max [3] or [R, 3] -> (t_near [R], t_far [R]).
     """
-    lo = _as(box_min, origins)
-    hi = _as(box_max, origins)
-    t_lo, t_hi, miss = _slab(origins, directions, lo, hi)
-    t_near = t_lo.amax(dim=-1)
-    t_far = t_hi.amin(dim=-1)
-    return _canonical(t_near, t_far, miss.any(dim=-1))
+    lo = _as(box_min, origins).expand_as(origins)
+    hi = _as(box_max, origins).expand_as(origins)
+    return box_interval(origins.unbind(-1), directions.unbind(-1), lo.unbind(-1), hi.unbind(-1))
+
+
+def sphere_interval(o, d, center, radius):
+    """The sphere ``|p - center| <= radius`` along rays o + t d (d unit), in lanes: o, d, center
+    three lanes each, radius one -> (t_near, t_far), misses (+inf, -inf). `intersect_sphere`'s body."""
+    oc = [o[i] - center[i] for i in range(3)]
+    b = oc[0] * d[0] + oc[1] * d[1] + oc[2] * d[2]
+    c = (oc[0] * oc[0] + oc[1] * oc[1] + oc[2] * oc[2]) - radius * radius
+    perp = [oc[i] - b * d[i] for i in range(3)]
+    disc = lanes.maximum(radius * radius - (perp[0] * perp[0] + perp[1] * perp[1] + perp[2] * perp[2]), -c)
+    miss = disc < 0
+    s = lanes.sqrt(lanes.clamp_min(disc, 0.0))
+    q = -(b + lanes.where(b < 0, -s, s))  # |q| = |b| + s: no cancellation (b = ±0: the roots are ±s either way)
+    q_zero = q == 0  # only when b == 0 and disc == 0, hence c == 0: both roots 0
+    t2 = lanes.where(q_zero, 0.0, c / lanes.where(q_zero, 1.0, q))
+    return _canonical(lanes.minimum(q, t2), lanes.maximum(q, t2), miss)
 
 
 def intersect_sphere(origins: Tensor, directions: Tensor, center, radius) -> tuple[Tensor, Tensor]:
@@ -83,24 +102,9 @@ def intersect_sphere(origins: Tensor, directions: Tensor, center, radius) -> tup
     for unit d), clamped below by ``-c`` (its exact lower bound, so an origin inside never misses),
     and the roots use the stable pair ``q = -b - sign(b) sqrt(disc)``, ``t = q`` and ``t = c / q``.
     """
-    ctr = _as(center, origins)
-    r = _as(radius, origins)
-    oc = origins - ctr
-    b = (oc * directions).sum(-1)
-    c = (oc * oc).sum(-1) - r * r
-    perp = oc - b[..., None] * directions
-    disc = r * r - (perp * perp).sum(-1)
-    disc = torch.maximum(disc, -c)
-    miss = disc < 0
-    s = torch.sqrt(torch.clamp(disc, min=0))
-    q = -(b + torch.copysign(s, b))  # |q| = |b| + s: no cancellation
-    q_zero = q == 0  # only when b == 0 and disc == 0, hence c == 0: both roots 0
-    q_safe = torch.where(q_zero, torch.ones_like(q), q)
-    t1 = q
-    t2 = torch.where(q_zero, torch.zeros_like(q), c / q_safe)
-    t_near = torch.minimum(t1, t2)
-    t_far = torch.maximum(t1, t2)
-    return _canonical(t_near, t_far, miss)
+    ctr = _as(center, origins).expand_as(origins)
+    r = _as(radius, origins).expand(origins.shape[:-1])
+    return sphere_interval(origins.unbind(-1), directions.unbind(-1), ctr.unbind(-1), r)
 
 
 def intersect_shell(origins: Tensor, directions: Tensor, center, ground, inner, outer) -> tuple[Tensor, Tensor]:
@@ -130,7 +134,7 @@ def intersect_slab(origins: Tensor, directions: Tensor, y_min, y_max) -> tuple[T
     """
     oy = origins[..., 1]
     dy = directions[..., 1]
-    t_lo, t_hi, miss = _slab(oy, dy, _as(y_min, oy), _as(y_max, oy))
+    t_lo, t_hi, miss = _slab(oy, dy, _as(y_min, oy).expand_as(oy), _as(y_max, oy).expand_as(oy))
     return _canonical(t_lo, t_hi, miss)
 
 

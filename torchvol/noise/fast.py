@@ -22,11 +22,13 @@ the fast path (`generate` uses it).
 from __future__ import annotations
 
 import functools
+from types import SimpleNamespace
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
+from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..runtime.compilation import compiled
 from ..runtime.threads import threads_for, torch_threads
@@ -68,13 +70,13 @@ def _value(p: Sequence[Tensor], seed: Tensor | int) -> Tensor:
     """Value noise of points given as their three coordinates (each ``[N]``) with a mixed seed
     -> ``[N]`` in [0, 1) (`value_noise_hashed`). Coordinates, not ``[N, 3]``: contiguous loads
     let inductor vectorise the fused loop."""
-    fl = [torch.floor(c) for c in p]
+    fl = [lanes.floor(c) for c in p]
     u = [(c - f) * (c - f) * (3.0 - 2.0 * (c - f)) for c, f in zip(p, fl)]
-    x0, y0, z0 = (f.to(torch.int32) for f in fl)
+    x0, y0, z0 = (lanes.to_int32(f) for f in fl)
     # hash_cells' products per axis once, not per corner (xor is associative: the same bits)
     hx = [x * _P[0] for x in (x0, x0 + 1)]
     hxy = [h ^ (y * _P[1]) for y in (y0, y0 + 1) for h in hx]
-    vals = [((_mix32(h ^ hz) >> 8) & 0xFFFFFF).to(p[0].dtype) * 2.0**-24
+    vals = [lanes.to_float((_mix32(h ^ hz) >> 8) & 0xFFFFFF, p[0]) * 2.0**-24
             for hz in ((z0 * _P[2]) ^ seed, ((z0 + 1) * _P[2]) ^ seed) for h in hxy]  # noise._CORNERS order
     return noise._trilinear(vals, u)
 
@@ -94,7 +96,7 @@ def _fbm_sum(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod:
     for k in range(1, octaves):
         s = scales[k - 1]
         term = _value((x * s, y * s, z * s), seed) * (0.5 * gain**k)
-        f = f + (term if lod is None else torch.where(lod >= k + 1, term, torch.zeros_like(term)))
+        f = f + (term if lod is None else lanes.where(lod >= k + 1, term, 0.0))
     return f
 
 
@@ -109,6 +111,20 @@ def _compiled_fbm(octaves: int, gain: float):
     return compiled(fused)
 
 
+def fbm_field(x, y, z, seed, scales, count, q, *, octaves: int, gain: float = 0.5):
+    """The fbm field's signed density with the arithmetic hash, lanes (`ops.lanes`: torch [N] or
+    Dr.Jit): `fields.fbm.puff` of `_fbm_sum` at frequency·(p − shift) + offset. x, y, z: the
+    points' coordinates; seed: mixed seeds (`mixed_seeds`), per point or one; scales: the octave
+    scales (`noise.folded_scales`), a list or [octaves − 1]; count: octaves kept per point or None;
+    `q`: the field's per-point parameters, attributes frequency, bias, amplitude, radial and
+    shift, offset, center (three lanes each). What the compiled graph and the Dr.Jit march run."""
+    from ..fields.fbm import puff
+
+    u = [q.frequency * (c - q.shift[i]) + q.offset[i] for i, c in enumerate((x, y, z))]
+    f = _fbm_sum(*u, seed, scales, count, octaves, gain)
+    return puff(f, x, y, z, q)
+
+
 @functools.cache
 def _compiled_field(octaves: int, gain: float):
     """`fbm_field_hashed` as one compiled graph: the fbm with the field's affine map in front and
@@ -118,10 +134,9 @@ def _compiled_field(octaves: int, gain: float):
     def fused(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None, frequency: Tensor,
               shift: Sequence[Tensor], offset: Sequence[Tensor], bias: Tensor, amplitude: Tensor, radial: Tensor,
               center: Sequence[Tensor]) -> Tensor:
-        q = [frequency * (c - shift[i]) + offset[i] for i, c in enumerate((x, y, z))]
-        f = _fbm_sum(*q, seed, scales, lod, octaves, gain)
-        dist = torch.sqrt((x - center[0]) ** 2 + (y - center[1]) ** 2 + (z - center[2]) ** 2)
-        return bias + amplitude * f - radial * dist
+        q = SimpleNamespace(frequency=frequency, shift=shift, offset=offset, bias=bias, amplitude=amplitude,
+                            radial=radial, center=center)
+        return fbm_field(x, y, z, seed, scales, lod, q, octaves=octaves, gain=gain)
 
     return compiled(fused)
 

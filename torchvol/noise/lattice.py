@@ -18,6 +18,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..runtime.compilation import compiled
 
@@ -201,11 +202,11 @@ def _trilinear(vals: list[Tensor], u: Tensor | Sequence[Tensor]) -> Tensor:
     """Blend 8 corner values (each ``[N]``, `_CORNERS` order) with weights ``u [N, 3]`` (or its
     three columns, each ``[N]``: what a fused compiled kernel can load contiguously)."""
     ux, uy, uz = u.unbind(-1) if isinstance(u, Tensor) else u
-    x00 = torch.lerp(vals[0], vals[1], ux)
-    x10 = torch.lerp(vals[2], vals[3], ux)
-    x01 = torch.lerp(vals[4], vals[5], ux)
-    x11 = torch.lerp(vals[6], vals[7], ux)
-    return torch.lerp(torch.lerp(x00, x10, uy), torch.lerp(x01, x11, uy), uz)
+    x00 = lanes.lerp(vals[0], vals[1], ux)
+    x10 = lanes.lerp(vals[2], vals[3], ux)
+    x01 = lanes.lerp(vals[4], vals[5], ux)
+    x11 = lanes.lerp(vals[6], vals[7], ux)
+    return lanes.lerp(lanes.lerp(x00, x10, uy), lanes.lerp(x01, x11, uy), uz)
 
 
 def value_noise(p: Tensor, *, seed: int = 0) -> Tensor:

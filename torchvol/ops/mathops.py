@@ -11,10 +11,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from . import lanes
 
-def pow_(x: Tensor, y: Tensor | float) -> Tensor:
-    """x ** y for x ≥ 0 and y > 0, as exp(y · ln x) (0 at x = 0). Shapes broadcast."""
-    return torch.exp(y * torch.log(x))
+
+def pow_(x, y):
+    """x ** y for x ≥ 0 and y > 0, as exp(y · ln x) (0 at x = 0). Shapes broadcast; lanes too
+    (`ops.lanes`: a Dr.Jit kernel computes it alike)."""
+    return lanes.exp(y * lanes.log(x))
 
 
 def take_rows(table: Tensor, index: Tensor) -> Tensor:

@@ -29,7 +29,7 @@ from ..runtime.compilation import CompileMode
 from ..scene.model import Scene
 from ..scene.quality import QUALITY, MarchSettings, at_level, march_settings
 from ..schema.batch import Stacked, stack
-from ..volume import drjit_march
+from ..volume import drjit_march, kernel_march
 from ..volume.march import COMPACT_BELOW
 from ..volume.shading import SHADINGS
 from ..voxel.materials import any_ggx
@@ -313,14 +313,19 @@ def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bo
 
 def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: str,
                   dtype: torch.dtype, device: torch.device | str) -> Backend:
-    """What volume `vol`'s march runs on: the fused march under ``compile="all"`` where it is that
-    technique (`fused_march`), as one Dr.Jit kernel where Dr.Jit runs for `dtype` on `device`
-    (`drjit_march.available`), else as torch.compile kernels; everything else eagerly."""
+    """What volume `vol`'s march runs on, decided once for the render: one Dr.Jit kernel wherever
+    the compile mode is not "off", Dr.Jit runs for `dtype` on `device` (`drjit_march.available`)
+    and a kernel renders the technique (the template's fused march, `fused_march`; a physical
+    medium, `kernel_march.supports`); under "all" the template's torch.compile kernels where
+    Dr.Jit cannot run; everything else eagerly."""
     if strategy == "closed_form":
         return "closed_form"
-    if strategy != "march" or compile != "all" or not fused_march(batch, vol, uses):
+    if strategy != "march" or compile == "off":
         return "eager"
-    return "drjit" if drjit_march.available(torch.zeros((), dtype=dtype, device=device)) else "inductor"
+    drjit = drjit_march.available(torch.zeros((), dtype=dtype, device=device))
+    if fused_march(batch, vol, uses):
+        return "drjit" if drjit else "inductor" if compile == "all" else "eager"
+    return "drjit" if drjit and kernel_march.supports(batch, vol, uses) is None else "eager"
 
 
 def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str = "off",

@@ -19,13 +19,23 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..ops import lanes
 
-def one_minus_exp_over_x(x: Tensor) -> Tensor:
-    """(1 − e^{−x}) / x for x ≥ 0, → 1 as x → 0 and → 1/x for huge x. `x`: any shape. expm1 keeps
-    it exact near 0 (relative error ~1e-7 in float32, ~1e-14 in float64 against the series), and x
-    is clamped to the smallest normal number so that 0 gives 1, not 0/0: three ops, no branches."""
-    safe = x.clamp_min(torch.finfo(x.dtype).tiny)
-    return -torch.expm1(-safe) / safe
+
+def one_minus_exp_over_x(x):
+    """(1 − e^{−x}) / x for x ≥ 0, → 1 as x → 0 and → 1/x for huge x; lanes (`ops.lanes`), any
+    shape. expm1 keeps it exact near 0 (relative error ~1e-7 in float32, ~1e-14 in float64 against
+    the series), and x is clamped to the smallest normal number so that 0 gives 1, not 0/0: three
+    ops, no branches."""
+    safe = lanes.clamp_min(x, lanes.tiny(x))
+    return -lanes.expm1(-safe) / safe
+
+
+def frostbite_weight(sigma_t, dt):
+    """(Δt·(1 − e^{−x})/x, e^{−x}) with x = σΔt, lanes: what a segment's source is multiplied by
+    (`frostbite_step`) and its transmittance."""
+    x = sigma_t * dt
+    return dt * one_minus_exp_over_x(x), lanes.exp(-x)
 
 
 def segment_transmittance(sigma_t: Tensor, dt: Tensor) -> Tensor:
@@ -42,8 +52,8 @@ def frostbite_step(source: Tensor, sigma_t: Tensor, dt: Tensor) -> tuple[Tensor,
     """Contribution (S − S e^{−σΔt})/σ, written as S·Δt·(1 − e^{−x})/x with x = σΔt (no 0/0).
 
     `source`: [N, C]; `sigma_t`, `dt`: [N]."""
-    x = sigma_t * dt
-    return source * (dt * one_minus_exp_over_x(x))[:, None], torch.exp(-x)
+    weight, trans = frostbite_weight(sigma_t, dt)
+    return source * weight[:, None], trans
 
 
 def alpha_step(color: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:

@@ -25,6 +25,7 @@ from typing import Callable, Literal
 import torch
 from torch import Tensor
 
+from ..ops import lanes
 from ..ops.mathops import pow_, take_rows
 from .integrate import alpha_linear_step, alpha_step, frostbite_step, riemann_step
 
@@ -75,13 +76,13 @@ class StepRule:
     step_size: float = 0.0
     step_growth: float = 0.0
 
-    def length(self, t: Tensor, span: Tensor) -> Tensor:
-        """`t`: [n] current distance; `span`: [n] t1 − t0 of the ray. -> [n]."""
+    def length(self, t, span):
+        """`t`: [n] current distance; `span`: [n] t1 − t0 of the ray. -> [n]. Lanes (`ops.lanes`)."""
         if self.placement == "count":
             return span / self.steps
         if self.placement == "size":
-            return torch.full_like(t, self.step_size)
-        return torch.clamp_min(self.step_growth * t, self.step_size)
+            return lanes.full_like(t, self.step_size)
+        return lanes.clamp_min(self.step_growth * t, self.step_size)
 
     @property
     def max_iterations(self) -> int:
@@ -289,12 +290,18 @@ def _composite(state: Tensor, contrib: Tensor, seg_trans: Tensor, value: Tensor,
     if crossed.any():
         if shader:
             t_cross = t_sample
-        else:  # exponential inside the segment: T(s) = T·e^{−σ s}
-            sigma = value.clamp_min(torch.finfo(t.dtype).tiny)
-            t_cross = t + torch.minimum(torch.log(trans / 0.5) / sigma, dt)
+        else:
+            t_cross = median_crossing(t, trans, value, dt)
         state[_MEDIAN] = torch.where(crossed, t_cross, state[_MEDIAN])
     state[_STEPS] += 1.0 if active is None else active
     trans.copy_(new_trans)
+
+
+def median_crossing(t, trans, sigma_t, dt):
+    """Where a segment [t, t + dt] of extinction `sigma_t`, entered at transmittance `trans` > 0.5,
+    takes it to 0.5: T(s) = T·e^{−σ s} (lanes, `ops.lanes`)."""
+    sigma = lanes.clamp_min(sigma_t, lanes.tiny(sigma_t))
+    return t + lanes.minimum(lanes.log(trans / 0.5) / sigma, dt)
 
 
 def expected_depth_fraction(x: Tensor) -> Tensor:

@@ -44,16 +44,20 @@ def octave_response(vol, irradiance: Tensor, cos: Tensor, s: Tensor) -> Tensor:
     return torch.stack(out, dim=1)
 
 
+def octave_weights(sigma_s, transmittance, exponents) -> list:
+    """σs · T^(bⁱ) of each octave i, lanes (`ops.lanes`): `sigma_s`, `transmittance` to the light
+    (None: unshadowed), `exponents` bⁱ of the octaves i ≥ 1 (lanes or numbers) -> a lane per octave."""
+    if transmittance is None:
+        return [sigma_s] * (len(exponents) + 1)
+    return [sigma_s * transmittance] + [sigma_s * pow_(transmittance, e) for e in exponents]
+
+
 def octave_sum(vol, response: Tensor, sigma_s: Tensor, transmittance: Tensor | None, s: Tensor) -> Tensor:
     """Σᵢ σs · response_i · T^(bⁱ) [n, 3]: `response` [n, K, 3] from `octave_response`, `sigma_s`
     [n], `transmittance` [n] to the light (None: unshadowed) of scenes `s` [n]."""
-    out = response[:, 0] * sigma_s[:, None]
-    if transmittance is not None:
-        out = out * transmittance[:, None]
     b = take(vol.params.multiple_scattering.b, s)
+    weights = octave_weights(sigma_s, transmittance, [b**i for i in range(1, response.shape[1])])
+    out = response[:, 0] * weights[0][:, None]
     for i in range(1, response.shape[1]):
-        octave = response[:, i] * sigma_s[:, None]
-        if transmittance is not None:
-            octave = octave * pow_(transmittance, b**i)[:, None]
-        out = out + octave
+        out = out + response[:, i] * weights[i][:, None]
     return out

@@ -10,30 +10,37 @@ import torch
 from torch import Tensor
 
 from ..geometry.rays import clip_to_ray
+from ..ops import lanes
 from ..schema.batch import per_scene, take
 from .context import VolumeContext
 from .sun_volume import SunGrid, sun_transmittance_grid
 
 
+def shadow_segments(exit_distance, *, steps: int, growth: float = 1.0, first_step: float | None = None) -> list:
+    """Midpoints and lengths of the shadow ray's segments towards the light, lanes (`ops.lanes`).
+
+    `exit_distance`: where the shadow ray leaves the volume's bounds. Segment lengths grow
+    geometrically by `growth`; with `first_step` None they are scaled to end exactly at the exit
+    (exact for homogeneous media), otherwise they start at `first_step` and are cut at the exit.
+    Returns [(midpoint, length)] of the `steps` segments, each a lane.
+    """
+    rel = [growth**k for k in range(steps)]
+    total = sum(rel)
+    out, start, reach = [], lanes.full_like(exit_distance, 0.0), 0.0
+    for k in range(steps):
+        reach = reach + (rel[k] / total if first_step is None else first_step * rel[k])
+        end = lanes.minimum(exit_distance * reach if first_step is None else reach, exit_distance)
+        out.append((0.5 * (start + end), end - start))
+        start = end
+    return out
+
+
 def shadow_distances(
     exit_distance: Tensor, *, steps: int, growth: float = 1.0, first_step: float | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Midpoints and lengths of the shadow ray's segments towards the light.
-
-    `exit_distance`: [N], where the shadow ray leaves the volume's bounds. Segment lengths grow
-    geometrically by `growth`; with `first_step` None they are scaled to end exactly at the exit
-    (exact for homogeneous media), otherwise they start at `first_step` and are cut at the exit.
-    Returns (midpoints [N, K], lengths [N, K]).
-    """
-    k = torch.arange(steps, dtype=exit_distance.dtype, device=exit_distance.device)
-    rel = growth**k  # [K]
-    if first_step is None:
-        lengths = exit_distance[:, None] * (rel / rel.sum())[None, :]
-    else:
-        lengths = first_step * rel[None, :].expand(exit_distance.shape[0], steps)
-    ends = torch.cumsum(lengths, dim=1).minimum(exit_distance[:, None])
-    starts = torch.cat([torch.zeros_like(ends[:, :1]), ends[:, :-1]], dim=1)
-    return 0.5 * (starts + ends), ends - starts
+    """`shadow_segments` as tensors: `exit_distance` [N] -> (midpoints [N, K], lengths [N, K])."""
+    segments = shadow_segments(exit_distance, steps=steps, growth=growth, first_step=first_step)
+    return torch.stack([m for m, _ in segments], dim=1), torch.stack([dt for _, dt in segments], dim=1)
 
 
 def shadow_transmittance(

@@ -14,6 +14,7 @@ from torch import Tensor
 from ..geometry.camera import Rays
 from ..geometry.rays import clip_to_ray
 from ..schema.batch import take
+from . import kernel_march
 from .composite import VolumePart
 from .context import VolumeContext
 from .fused import march_fused
@@ -66,7 +67,12 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
         with ctx.timer.section(vol.plan.skip_pass):
             occupied, marched = skipped_span(vol, rays, t0, t1, hit)
     with ctx.timer.section(vol.plan.step_pass):
-        if not skip and vol.plan.backend in ("inductor", "drjit"):  # compiled kernels, or one Dr.Jit kernel
+        if not skip and vol.plan.backend == "drjit" and vol.shading.semantics == "segments":  # one Dr.Jit kernel
+            res, evals = kernel_march.march(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays))
+            ctx.counts.density_evals += evals
+            vol.field.evals += evals
+            return _part(ctx, vol, res, t0, hit)
+        if not skip and vol.plan.backend in ("inductor", "drjit"):  # the template's compiled kernels, or one Dr.Jit kernel
             behind = background if background is not None else rays.origins.new_zeros(len(rays), 3)  # no [sky]: black
             res = march_fused(ctx, vol, rays, behind, t0, t1, hit, ctx.dither(rays), drjit=vol.plan.backend == "drjit")
             return _part(ctx, vol, res, t0, hit)

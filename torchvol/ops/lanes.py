@@ -1,0 +1,213 @@
+"""Elementwise maths written once for two backends: torch tensors (the eager reference: any
+device, float64 too) and Dr.Jit's LLVM arrays (the compiled kernels, `volume.kernel_march`).
+
+A technique written with Python's operators and these functions — one value per lane, a vector
+as three lanes, a colour as three — runs as either: called with torch tensors of shape [n] it is
+the eager code, called with Dr.Jit `Float`/`Int32` arrays inside a `drjit.while_loop` it is traced
+into the kernel. Python numbers mix with both. That is how the renderer keeps one source per
+technique and no hand-kept twin of it (docs/SPEED.md, "One source"). Each function picks its
+backend from its array arguments; the results agree within float rounding (the Dr.Jit forms of
+`expm1` and `lerp` are written out below to match torch's)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+Lane = object  # a torch Tensor [n], a Dr.Jit array of n lanes, or a Python number
+
+
+def _is_torch(*xs) -> bool:
+    return any(isinstance(x, torch.Tensor) for x in xs)
+
+
+def _is_number(*xs) -> bool:
+    return all(isinstance(x, (int, float)) for x in xs)
+
+
+def where(cond, a, b):
+    """`a` where `cond`, else `b` (torch.where / drjit.select)."""
+    if _is_torch(cond, a, b):
+        return torch.where(cond, a, b)
+    import drjit as dr
+
+    return dr.select(cond, a, b)
+
+
+def exp(x):
+    if _is_number(x):
+        return math.exp(x)
+    if _is_torch(x):
+        return torch.exp(x)
+    import drjit as dr
+
+    return dr.exp(x)
+
+
+def log(x):
+    if _is_torch(x):
+        return torch.log(x)
+    import drjit as dr
+
+    return dr.log(x)
+
+
+def log2(x):
+    if _is_torch(x):
+        return torch.log2(x)
+    import drjit as dr
+
+    return dr.log2(x)
+
+
+def sqrt(x):
+    if _is_number(x):
+        return math.sqrt(x)
+    if _is_torch(x):
+        return torch.sqrt(x)
+    import drjit as dr
+
+    return dr.sqrt(x)
+
+
+def floor(x):
+    if _is_torch(x):
+        return torch.floor(x)
+    import drjit as dr
+
+    return dr.floor(x)
+
+
+def abs(x):  # noqa: A001  the lane form of the builtin
+    if _is_number(x):
+        return math.fabs(x)
+    if _is_torch(x):
+        return torch.abs(x)
+    import drjit as dr
+
+    return dr.abs(x)
+
+
+def expm1(x):
+    """e^x − 1 without cancellation near 0. Dr.Jit has no expm1: Kahan's form (u − 1)·x / ln u,
+    exact to a few ulps, with its limits written out (u = 1: x; u − 1 = −1: −1)."""
+    if _is_torch(x):
+        return torch.expm1(x)
+    import drjit as dr
+
+    u = dr.exp(x)
+    um1 = u - 1.0
+    kahan = um1 * x / dr.log(dr.select(u == 1.0, 2.0, u))
+    return dr.select(u == 1.0, x, dr.select(um1 == -1.0, -1.0, dr.select(dr.isinf(u), u, kahan)))
+
+
+def minimum(a, b):
+    """The smaller of `a` and `b` (selects in Dr.Jit: LLVM 15 cannot lower its min intrinsics)."""
+    if _is_number(a, b):
+        return min(a, b)
+    if _is_torch(a, b):
+        if _is_number(a) or _is_number(b):  # a Python number keeps its precision in a float64 render
+            return b.clamp_max(a) if _is_number(a) else a.clamp_max(b)
+        return torch.minimum(a, b)
+    import drjit as dr
+
+    return dr.select(b < a, b, a)
+
+
+def maximum(a, b):
+    """The larger of `a` and `b`."""
+    if _is_number(a, b):
+        return max(a, b)
+    if _is_torch(a, b):
+        if _is_number(a) or _is_number(b):
+            return b.clamp_min(a) if _is_number(a) else a.clamp_min(b)
+        return torch.maximum(a, b)
+    import drjit as dr
+
+    return dr.select(b > a, b, a)
+
+
+def clamp_min(x, lo: float):
+    if _is_torch(x):
+        return x.clamp_min(lo)
+    import drjit as dr
+
+    return dr.select(x < lo, lo, x)
+
+
+def clamp_max(x, hi: float):
+    if _is_torch(x):
+        return x.clamp_max(hi)
+    import drjit as dr
+
+    return dr.select(x > hi, hi, x)
+
+
+def clamp(x, lo: float, hi: float):
+    """clamp_max then clamp_min, NaN passing through as torch's."""
+    if _is_torch(x):
+        return x.clamp(lo, hi)
+    return clamp_min(clamp_max(x, hi), lo)
+
+
+def lerp(a, b, w):
+    """a + w·(b − a) as torch.lerp's vectorised CPU kernel computes it: a fused multiply-add from
+    the nearer end (exactly `b` at w = 1)."""
+    if _is_torch(a, b, w):
+        if not isinstance(w, torch.Tensor):
+            return torch.lerp(a, b, w)
+        return torch.lerp(torch.as_tensor(a, dtype=w.dtype), torch.as_tensor(b, dtype=w.dtype), w)
+    import drjit as dr
+
+    small = dr.abs(w) < 0.5
+    return dr.fma(dr.select(small, w, w - 1.0), b - a, dr.select(small, a, b))
+
+
+def full_like(x, value: float):
+    """`value` in every lane of `x`."""
+    if _is_torch(x):
+        return torch.full_like(x, value)
+    import drjit as dr
+
+    return dr.full(type(x), value, dr.width(x))
+
+
+def tiny(x) -> float:
+    """The smallest normal number of `x`'s float type (float32 for Dr.Jit's Float)."""
+    if _is_torch(x):
+        return torch.finfo(x.dtype).tiny
+    return float(torch.finfo(torch.float32).tiny)
+
+
+def to_int32(x):
+    """Truncated towards 0 to int32 (the lattice noises' cell index after a floor)."""
+    if _is_torch(x):
+        return x.to(torch.int32)
+    from drjit.llvm import Int32
+
+    return Int32(x)
+
+
+def to_float(i, like):
+    """Int lanes `i` as floats of `like`'s type."""
+    if _is_torch(i):
+        return i.to(like.dtype)
+    from drjit.llvm import Float
+
+    return Float(i)
+
+
+def smoothstep01(x):
+    """3x² − 2x³ of `x` clamped to [0, 1]: 0 at 0, 1 at 1, flat at both."""
+    x = clamp(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def length3(x, y, z):
+    """|(x, y, z)| of three lanes."""
+    return sqrt(x * x + y * y + z * z)
+
+
+__all__ = ["abs", "clamp", "clamp_max", "clamp_min", "exp", "expm1", "floor", "full_like", "length3", "lerp", "log",
+           "log2", "maximum", "minimum", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]

@@ -1,0 +1,257 @@
+"""The physical march of one volume as one Dr.Jit kernel per chunk: a loop per ray (its state in
+registers until its march ends), the sun's shadow marches and the sky light's visibility march
+under a per-sample branch where the density passes the threshold, the step rule, dither,
+early termination and the depth statistics inside it.
+
+One source: every per-sample formula here is the eager renderer's own function, written in lanes
+(`ops.lanes`) and traced here with Dr.Jit arrays: the fbm field (`noise.fast.fbm_field`,
+`fields.fbm.puff`), the edge fade (`fields.edge.faded` over the bounds' `lanes` depth), the
+shadow rays' exits and segments (the bounds' `lanes` interval, `volume.shadow.shadow_segments`),
+the multiple-scattering octaves (`volume.multiple.octave_weights`), the step rule
+(`march.StepRule.length`), the Frostbite step (`integrate.frostbite_weight`) and the median
+(`march.median_crossing`). What is constant along a ray is computed by the eager code itself
+before the kernel runs: the lights' phase responses (`physical.light_responses`), the sky behind,
+the dither, entry and exit. The eager march (`compile="off"`) is the reference the kernel is held
+to (tests/volume/test_kernel_march.py).
+
+`supports` says which volumes it renders (the plan asks once); the others run eagerly. Numbers a
+dataset draws per scene are the kernel's inputs, and the settings that are numbers are its
+parameters (`drjit.opaque`), so one kernel serves a whole dataset; Dr.Jit caches it on disk.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..fields.edge import EdgeField, faded
+from ..noise import fast as fastnoise
+from ..noise import lattice as noise
+from ..ops import lanes
+from ..runtime.threads import kernel_threads
+from ..schema.batch import take
+from .integrate import frostbite_weight
+from .march import MarchResult, median_crossing
+from .multiple import octave_weights
+from .physical import light_responses
+from .shadow import shadow_segments
+
+BOUNDS_KINDS = ("sphere", "box")
+
+
+def supports(batch, vol, uses) -> str | None:
+    """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
+    light passes `uses`, or None where it can: an fbm density with the arithmetic hash, in a
+    sphere or box, physically shaded with the Frostbite integrator, lit by suns with marched
+    shadows through it alone, sky light graded or not, and no emission."""
+    from ..light.lights import LIGHTS
+    from ..scene.quality import march_settings
+
+    settings = march_settings(batch.march)
+    checks = [
+        (vol.density.kind == "fbm" and vol.density.value.hash == "arithmetic", "a density other than an arithmetic-hash fbm"),
+        (vol.bounds.kind in BOUNDS_KINDS, f"{vol.bounds.kind} bounds"),
+        (vol.shading == "physical", f"the {vol.shading} shading"),
+        (batch.atmosphere is None, "the [atmosphere]"),
+        (settings.integrator == "frostbite" and settings.tolerance is None, "the march settings"),
+        (vol.emission_map is None and vol.bloom is None and vol.sky_blend is None and not bool((vol.emission > 0).any()),
+         "emission"),
+        (vol.ambient is None or vol.ambient.top is None, "a graded ambient"),
+        (all(LIGHTS[batch.lights[u.light].kind].caps["directional"] for u in uses), "a light that is not a sun"),
+        (all(u.shadow is None or (u.shadow.method == "march" and not (u.occluders or u.terrain or u.voxels)) for u in uses),
+         "shadows through other volumes or surfaces"),
+        (batch.terrain is None and batch.voxels is None, "surfaces"),
+    ]
+    return next((why for ok, why in checks if not ok), None)
+
+
+def _floats(t: Tensor):
+    from drjit.llvm import Float
+
+    return Float(t.detach().to(torch.float32).contiguous().cpu().numpy())
+
+
+def _lanes_of(value: Tensor, gather):
+    """Per-ray lanes of a per-ray tensor [n] or [n, C] (a list of C lanes)."""
+    return gather(value) if value.ndim == 1 else [gather(value[:, c]) for c in range(value.shape[1])]
+
+
+def _inputs(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, dither: Tensor | None,
+            idx: Tensor) -> SimpleNamespace:
+    """The kernel's per-ray inputs for the rays `idx` [n], computed by the eager code: rays, what
+    the field, bounds, lights and sky take per ray, the lights' phase responses."""
+    s = rays.scene_index.index_select(0, idx)
+    o, d = rays.origins.index_select(0, idx), rays.directions.index_select(0, idx)
+    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
+    per_ray = lambda x: lane(take(x, s))  # noqa: E731  per scene -> per ray
+    k = SimpleNamespace(origin=lane(o), direction=lane(d), t_start=lane(t0.index_select(0, idx)),
+                        t_end=lane(t1.index_select(0, idx)), dither=None if dither is None else lane(dither.index_select(0, idx)))
+    k.span = k.t_end - k.t_start
+    fbm, edge = _fbm_and_edge(vol)
+    p = fbm.p
+    k.fbm = SimpleNamespace(frequency=per_ray(p.frequency), shift=per_ray(fbm.shift), offset=per_ray(p.offset),
+                            bias=per_ray(p.bias), amplitude=per_ray(p.amplitude), radial=per_ray(p.radial),
+                            center=per_ray(p.center))
+    from drjit.llvm import Int32
+
+    k.seed = Int32(take(fastnoise.mixed_seeds(p.seed, "cpu"), s.cpu()).numpy())
+    bounds = vol.params.bounds.value
+    k.bounds = SimpleNamespace(**{name: per_ray(getattr(bounds, name)) for name in type(bounds.models[0]).model_fields})
+    k.edge = None if edge is None else SimpleNamespace(width=per_ray(edge.width),
+                                                       base=None if edge.base is None else per_ray(edge.base))
+    k.sigma_t, k.albedo = per_ray(vol.params.sigma_t), per_ray(vol.params.albedo)
+    responses = light_responses(ctx, vol, d, s)
+    k.lights = []
+    for use in vol.plan.lights:
+        resp = responses[use.light]  # [n, 3] or per octave [n, K, 3]
+        resp = [resp] if resp.ndim == 2 else list(resp.unbind(1))
+        k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(ctx.lights[use.light].direction),
+                                        shadow=use.shadow))
+    if vol.plan.multiple:
+        b = vol.params.multiple_scattering.b
+        k.exponents = [per_ray(b**i) for i in range(1, vol.params.multiple_scattering.octaves)]
+    if vol.plan.ambient:
+        amb = vol.params.ambient
+        k.ambient = lane(take(vol.ambient_bottom, s))
+        k.ambient_direction = per_ray(torch.nn.functional.normalize(amb.direction, dim=1))
+        k.ambient_sigma = per_ray(amb.sigma_scale * vol.params.sigma_t)
+        k.ambient_steps = amb.steps
+    del background  # the physical march's source has no sky term (`sky_blend` is eager's)
+    return k
+
+
+def march(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit: Tensor,
+          dither: Tensor | None) -> tuple[MarchResult, int]:
+    """The fixed march of physical volume `vol` (`supports` said yes) for a chunk's `rays` [R]
+    through [t0, t1] [R] where `hit` [R], `dither` [R] the first segment's fraction or None, as
+    one Dr.Jit kernel. -> (`march.march`'s result, density evaluations)."""
+    import drjit as dr
+    from drjit.llvm import Bool, Float, Int32
+
+    idx = hit.nonzero().squeeze(1)
+    result = MarchResult.empty(t0, 3)
+    if idx.shape[0] == 0:
+        return result, 0
+    threads = kernel_threads()
+    if dr.thread_count() != threads:
+        dr.set_thread_count(threads)
+    k = _inputs(ctx, vol, rays, background, t0, t1, dither, idx)
+    st = ctx.settings
+    bounds_lanes = _bounds_lanes(vol)
+    octaves = int(_fbm_and_edge(vol)[0].p.octaves)
+    scales = [dr.opaque(Float, float(c)) for c in noise.folded_scales(octaves, dtype=torch.float32, device="cpu")]
+    par = SimpleNamespace(threshold=dr.opaque(Float, st.density_threshold), reach=dr.opaque(Float, min(vol.plan.reach, 3e38)),
+                          lod=None if st.lod_scale is None else dr.opaque(Float, st.lod_scale),
+                          min_transmittance=dr.opaque(Float, st.min_transmittance),
+                          max_iterations=dr.opaque(Int32, st.rule.max_iterations))
+
+    def density(p, count):
+        """The volume's density at lanes `p` (three), `count` octaves kept or None: its field,
+        clamped at 0, faded at the edge and capped, as `renderer.stats.CountedField` reads it."""
+        raw = lanes.clamp_min(fastnoise.fbm_field(*p, k.seed, scales, count, k.fbm, octaves=octaves), 0.0)
+        if k.edge is not None:
+            depth = bounds_lanes[1](k.bounds, p)
+            if k.edge.base is not None:
+                depth = lanes.minimum(depth, p[1] - k.edge.base)
+            raw = faded(raw, depth, k.edge.width)
+        from ..fields.base import DENSITY_MAX
+
+        return lanes.clamp_max(raw, DENSITY_MAX)
+
+    def transmittance(p, direction, sigma_scale, shadow):
+        """Transmittance from lanes `p` along `direction` (three lanes) out of the bounds, σ_t =
+        `sigma_scale` × density, by `shadow`'s segments (`shadow.shadow_transmittance`'s march)."""
+        exit_t = lanes.clamp(bounds_lanes[0](k.bounds, p, direction)[1], 0.0, par.reach)
+        tau = dr.zeros(Float, dr.width(exit_t))
+        for mid, length in shadow_segments(exit_t, steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step):
+            q = [p[c] + mid * direction[c] for c in range(3)]
+            tau = tau + sigma_scale * density(q, None) * length
+        return lanes.exp(-tau)
+
+    def in_scatter(p, sigma_t):
+        """Σ over the lights of σs·p(θ)·E·T_light (octaves summed), plus σs·L_amb·V: three lanes."""
+        sigma_s = k.albedo * sigma_t
+        out = [dr.zeros(Float, dr.width(sigma_t)) for _ in range(3)]
+        for light in k.lights:
+            trans = None if light.shadow is None else transmittance(p, light.direction, k.sigma_t, light.shadow)
+            if vol.plan.multiple:
+                weights = octave_weights(sigma_s, trans, k.exponents)
+                radiance = [sum((light.response[i][c] * weights[i] for i in range(1, len(weights))),
+                                light.response[0][c] * weights[0]) for c in range(3)]
+            else:
+                radiance = [light.response[0][c] * sigma_s for c in range(3)]
+                if trans is not None:
+                    radiance = [r * trans for r in radiance]
+            out = [out[c] + radiance[c] for c in range(3)]
+        if vol.plan.ambient:
+            amb = [k.ambient[c] * sigma_s for c in range(3)]
+            if vol.plan.ambient_sky is not None:
+                v = transmittance(p, k.ambient_direction, k.ambient_sigma, SimpleNamespace(steps=k.ambient_steps, growth=1.0,
+                                                                                           first_step=None))
+                amb = [a * v for a in amb]
+            out = [out[c] + amb[c] for c in range(3)]
+        return out
+
+    lit_evals = sum(light.shadow.steps for light in k.lights if light.shadow is not None)
+    lit_evals += k.ambient_steps if vol.plan.ambient and vol.plan.ambient_sky is not None else 0
+
+    def body(t, trans, wsum, wt, median, steps, alive, truncated, first, evals, red, green, blue):
+        dt = st.rule.length(t, k.span)
+        if k.dither is not None:  # only a ray's first segment is dithered
+            dt = dr.select(first, dt * k.dither, dt)
+        dt = lanes.minimum(dt, k.t_end - t)
+        t_sample = t + 0.5 * dt
+        p = [k.origin[c] + t_sample * k.direction[c] for c in range(3)]
+        count = None if par.lod is None else octaves - Int32(dr.floor(dr.log2(1.0 + t_sample * par.lod)))
+        raw = density(p, count)
+        sigma_t = k.sigma_t * raw
+        lit = (raw > par.threshold) & (dt > 0.0)
+        source = dr.if_stmt((p[0], p[1], p[2], sigma_t), lit, lambda x, y, z, sg: tuple(in_scatter([x, y, z], sg)),
+                            lambda x, y, z, sg: (dr.zeros(Float, dr.width(x)),) * 3)
+        weight, seg_trans = frostbite_weight(sigma_t, dt)
+        radiance = (red, green, blue)
+        radiance = tuple(radiance[c] + trans * (source[c] * weight) for c in range(3))
+        w = trans * (1.0 - seg_trans)
+        new_trans = trans * seg_trans
+        crossed = (trans > 0.5) & (new_trans <= 0.5)
+        median = dr.select(crossed, median_crossing(t, trans, sigma_t, dt), median)
+        steps = steps + 1
+        t_next = t + dt
+        keep = (t_next < k.t_end) & (new_trans >= par.min_transmittance) if st.min_transmittance > 0 else t_next < k.t_end
+        last = steps >= par.max_iterations
+        evals = evals + 1 + dr.select(lit, Int32(lit_evals), Int32(0))
+        return (t_next, new_trans, wsum + w, wt + w * t_sample, median, steps, keep & ~last, keep & last,
+                dr.full(Bool, False, dr.width(t)), evals, *radiance)
+
+    n = dr.width(k.t_start)
+    zero = dr.zeros(Float, n)
+    state = (k.t_start, dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
+             dr.full(Bool, False, n), dr.full(Bool, True, n), dr.zeros(Int32, n), zero, zero, zero)
+    out = dr.while_loop(state, lambda *s: s[6], body, mode="symbolic")
+    dr.eval(out)
+    dr.sync_thread()
+    _, trans, wsum, wt, median, steps, _, truncated, _, evals, *radiance = (torch.from_numpy(np.array(v)) for v in out)
+    dtype = t0.dtype
+    result.radiance.index_copy_(0, idx, torch.stack(radiance, 1).to(dtype))
+    for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
+                        ("steps", steps.long()), ("truncated", truncated)):
+        target = getattr(result, name)
+        target.index_copy_(0, idx, value.to(target.dtype))
+    return result, int(evals.long().sum())
+
+
+def _fbm_and_edge(vol):
+    """The volume's fbm field and its `Edge` tables (None: no edge fade) under its counted field."""
+    field = vol.field.inner
+    return (field.inner, field.edge) if isinstance(field, EdgeField) else (field, None)
+
+
+def _bounds_lanes(vol):
+    """The volume's bounds kind's (interval, depth) in lanes (`geometry.bounds`)."""
+    return vol.bounds.caps["lanes"]
+
+
+__all__ = ["march", "supports"]
