@@ -21,19 +21,20 @@ TINY = {"image.width": 6, "image.height": 4}
 
 
 @pytest.mark.parametrize("value, mode", [(True, "all"), (False, "off"), (None, "off"), (1, "all"), (0, "off"),
-                                         (np.bool_(True), "all"), ("off", "off"), ("exact", "exact"), ("all", "all")])
+                                         (np.bool_(True), "all"), ("off", "off"), ("exact", "exact"), ("all", "all"),
+                                         ("kernels", "kernels"), ("auto", "kernels")])
 def test_modes_and_bools(value, mode):
-    assert compile_mode(value) == mode
+    assert compile_mode(value) == mode  # one render's "auto" is the Dr.Jit kernels
 
 
-@pytest.mark.parametrize("value", ["fast", "auto", 2, 0.5])
+@pytest.mark.parametrize("value", ["fast", 2, 0.5])
 def test_a_bad_mode_names_the_key_and_the_choices(value):
-    with pytest.raises(ValueError, match=r"compile.*off, exact, all"):
+    with pytest.raises(ValueError, match=r"compile.*off, kernels, exact, all, auto"):
         tv.render(tv.preset("voxel-fog", width=4, height=4), compile=value)
 
 
 def test_auto_compiles_the_exact_kernels_from_the_threshold_on():
-    assert auto_mode("auto", AUTO_COMPILE_SAMPLES - 1) == "off"
+    assert auto_mode("auto", AUTO_COMPILE_SAMPLES - 1) == "kernels"
     assert auto_mode("auto", AUTO_COMPILE_SAMPLES) == "exact"
     assert auto_mode("all", 1) == "all" and auto_mode("off", 10**6) == "off"
 
@@ -47,7 +48,7 @@ def test_all_compiles_density_kernels_only_where_they_pay():
 
 def test_scene_dataset_auto_resolves_from_its_length_whatever_the_process_rendered_before(monkeypatch):
     """ds[i] runs the same whatever the process rendered before: "auto" is "exact" for a dataset
-    of AUTO_COMPILE_SAMPLES samples or more, "off" below, at its first sample as at its thousandth."""
+    of AUTO_COMPILE_SAMPLES samples or more, "kernels" below, at its first sample as at its thousandth."""
     seen = []
     monkeypatch.setattr(data, "render_samples", lambda *a, **k: seen.append(k["compile"]) or [{}])
     small = data.SceneDataset(DATASETS / "voxel-terrain.toml", AUTO_COMPILE_SAMPLES - 1, overrides=TINY)
@@ -55,21 +56,22 @@ def test_scene_dataset_auto_resolves_from_its_length_whatever_the_process_render
     assert small.compile == large.compile == "auto"
     small[0]
     large[0]
-    assert seen == ["off", "exact"]
+    assert seen == ["kernels", "exact"]
     for k in range(AUTO_COMPILE_SAMPLES):  # a process that has rendered many samples since
         large[k]
     seen.clear()
     small[0]
     small.batch([1, 2])
     large[0]
-    assert seen == ["off", "off", "exact"]
+    assert seen == ["kernels", "kernels", "exact"]
     assert data.SceneDataset(DATASETS / "voxel-terrain.toml", 8, compile=True).compile == "all"
     with pytest.raises(ValueError, match="compile"):
         data.SceneDataset(DATASETS / "voxel-terrain.toml", 8, compile="sometimes")
 
 
 def test_generate_records_only_the_mode_that_changes_bytes(tmp_path, monkeypatch):
-    """meta.json names "compiled" only for "all"; "exact" (also what "auto" picks) writes eager's bytes."""
+    """meta.json names "compiled" only for "all" and "eager" only for "off"; "kernels" and "exact"
+    (what "auto" picks) write the same, canonical bytes."""
     seen = []
     real = data.render_samples
 
@@ -79,8 +81,8 @@ def test_generate_records_only_the_mode_that_changes_bytes(tmp_path, monkeypatch
 
     monkeypatch.setattr("torchvol.dataset.generate.render_samples", spy)
     recipe = DATASETS / "voxel-terrain.toml"
-    for mode, count, expected in (("auto", 2, "off"), ("auto", AUTO_COMPILE_SAMPLES, "exact"), ("exact", 2, "exact"),
-                                  ("all", 2, "all")):
+    for mode, count, expected in (("auto", 2, "kernels"), ("auto", AUTO_COMPILE_SAMPLES, "exact"), ("exact", 2, "exact"),
+                                  ("all", 2, "all"), ("off", 2, "off")):
         seen.clear()
         out = tmp_path / f"{mode}-{count}"
         generate(recipe, count=count, out=out, overrides=TINY, progress=False, compile=mode,
@@ -88,11 +90,12 @@ def test_generate_records_only_the_mode_that_changes_bytes(tmp_path, monkeypatch
         assert set(seen) == {expected}, (mode, count, seen)
         meta = json.loads((out / "meta.json").read_text())
         assert meta.get("compiled") is (True if expected == "all" else None)
+        assert meta.get("eager") is (True if expected == "off" else None)
     # resumed, "auto" decides from what is left: fewer than the threshold now
     seen.clear()
     generate(recipe, count=AUTO_COMPILE_SAMPLES, out=tmp_path / f"auto-{AUTO_COMPILE_SAMPLES}", overrides=TINY,
              progress=False, stop_after=1)
-    assert set(seen) == {"off"}, seen
+    assert set(seen) == {"kernels"}, seen
 
 
 def test_cli_modes():
@@ -104,7 +107,8 @@ def test_cli_modes():
     render = ["render", "voxel-fog", "--out", "x.png"]
     assert parse(render + ["--compile-mode", "exact"]).compile == "exact"
     assert parse(["render", "--compile", "voxel-fog", "--out", "x.png"]).compile == "all"
-    assert parse(render).compile == "off"
+    assert parse(render).compile == "auto"
+    assert parse(render + ["--eager"]).compile == "off"
 
 
 @pytest.mark.slow

@@ -118,9 +118,13 @@ def compile_hint(recipe, *, overrides, seed: int, count: int) -> str | None:
     """The note `generate` prints when a large eager run's scenes take the compiled fast path
     (opt-in: compiled samples are not bitwise `SceneDataset`'s)."""
     from .dataset.recipe import Recipe
-    from .renderer.plan import compile_pays
+    from .renderer.plan import compile_pays, make_plan
 
-    if count < COMPILE_HINT_COUNT or not compile_pays(Recipe.load(recipe, overrides).sample_with_params(0, seed)[0]):
+    if count < COMPILE_HINT_COUNT:
+        return None
+    scene = Recipe.load(recipe, overrides).sample_with_params(0, seed)[0]
+    # where every march already runs as a Dr.Jit kernel by default, inductor has nothing to add
+    if not compile_pays(scene) or all(b == "drjit" for b in make_plan(scene, compile="kernels").summary()["marches"].values()):
         return None
     return ("torchvol: note: this recipe's scenes take the compiled fast path: --compile renders them about 5x faster "
             "once each worker has compiled (about 10 s), within 1e-5 of eager but not bitwise (docs/SPEED.md)")
@@ -288,11 +292,14 @@ def _render_command() -> Command:
         option("--device", default="cpu", help="torch device to render on (default cpu)"),
         option("--chunk-rays", type=int, default=DEFAULT_CHUNK_RAYS,
                help=f"rays per chunk: bounds peak memory, not the result (default {DEFAULT_CHUNK_RAYS})"),
-        (option("--compile", dest="compile", action="store_const", const="all", default="off",
-                help="run the density, march and voxel-walk kernels under torch.compile (within 1e-5 of "
-                "eager; --compile-mode all)"),
-         option("--compile-mode", dest="compile", choices=["off", "exact", "all"],
-                help="off (default), exact (only the voxel walk: bitwise eager) or all")),
+        (option("--compile", dest="compile", action="store_const", const="all", default="auto",
+                help="also run the voxel walk and the density kernels under torch.compile (--compile-mode all)"),
+         option("--eager", dest="compile", action="store_const", const="off",
+                help="render the eager reference: no Dr.Jit march kernel (by default a volume whose technique has one "
+                "marches in it, within ~1e-5 of eager)"),
+         option("--compile-mode", dest="compile", choices=["auto", "off", "kernels", "exact", "all"],
+                help="auto (default: the Dr.Jit march kernels), off (eager), kernels, exact (also the voxel walk: "
+                "bitwise eager) or all (docs/SPEED.md)")),
     ))
 
 
@@ -312,8 +319,9 @@ def _generate_command() -> Command:
                 "arithmetic hash, the template's fused march step, fur's Worley noise): within 1e-5 of eager, not bitwise; pays "
                 "from about 8 samples a worker once inductor's cache is warm"),
          option("--eager", dest="compile", action="store_const", const="off",
-                help="compile nothing (by default a worker rendering 512 samples or more compiles the voxel "
-                "walk, whose output is bitwise eager's)")),
+                help="render the eager reference: no Dr.Jit march kernel, no compiled walk (by default volumes march "
+                "in Dr.Jit kernels, within ~1e-5 of eager, and a worker rendering 512 samples or more compiles the "
+                "voxel walk, bitwise eager's)")),
         option("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)"),
         option("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)"),
         option("--batch", type=int, default=4, help="samples rendered as one batch (default 4)"),

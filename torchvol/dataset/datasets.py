@@ -36,7 +36,7 @@ def epoch_seed(seed: int, epoch: int | None) -> int:
 
 
 def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aovs: Sequence[str] | None = None,
-                   chunk_rays: int | None = None, compile: CompileMode | bool = "off") -> list[dict]:
+                   chunk_rays: int | None = None, compile: CompileMode | Literal["auto"] | bool = "auto") -> list[dict]:
     """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
     e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch.
     `compile` (`torchvol.runtime.compilation`): "all" compiles a batch's density and march kernels only
@@ -109,12 +109,11 @@ class SceneDataset(Dataset):
 
     ds[i] depends only on (seed, epoch, i): the same in any process, DataLoader worker or order.
     `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`
-    (`torchvol.runtime.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
-    eager (the voxel walk) where the dataset holds `AUTO_COMPILE_SAMPLES` samples or more (its
-    length, never what the process rendered before), "exact" always, "off" never; "all" (or True)
-    also the density and march kernels where that is the fast path, as `torchvol generate
-    --compile` does: samples within 1e-5 of eager ones, not bitwise (each worker process compiles
-    once). A DataLoader's workers: `worker_init_fn=SceneDataset.worker_init_fn` tunes each
+    (`torchvol.runtime.compilation`): "auto" (the default) marches with the Dr.Jit kernels and
+    also compiles the voxel walk (bitwise eager) where the dataset holds `AUTO_COMPILE_SAMPLES`
+    samples or more (its length, never what the process rendered before): the same bytes as
+    `torchvol generate`; "off" (False) renders the eager reference; "all" (or True) also inductor's
+    density kernels where that is the fast path, as `torchvol generate --compile` does. A DataLoader's workers: `worker_init_fn=SceneDataset.worker_init_fn` tunes each
     (`tune_process`)."""
 
     def __init__(self, recipe: Recipe | str | Path | Mapping, length: int, seed: int = 0, epoch: int | None = None, *,

@@ -79,7 +79,7 @@ class Task:
     layout: Layout
     batch: int
     shard: int
-    compile: CompileMode = "off"  # what renders compiled (torchvol.runtime.compilation)
+    compile: CompileMode = "kernels"  # what renders compiled (torchvol.runtime.compilation)
 
 
 def run_task(task: Task) -> list[int]:
@@ -165,12 +165,12 @@ def generate(
     leaves it as it is), or the Dask cluster at `scheduler` (its workers tuned too). `progress`: a bar of samples
     done on stderr (None: only when stderr is a terminal). `stop_after` (testing: simulates a kill)
     stops once that many samples were written, leaving the dataset unfinished. `compile`
-    (`torchvol.runtime.compilation`): "auto" (the default) compiles the kernels whose output is bitwise
-    eager (the voxel walk) when a worker's share of the samples still to render is
-    `AUTO_COMPILE_SAMPLES` or more; "exact" always, "off" never: the bytes are `SceneDataset`'s
-    either way. "all" (or True) also compiles the density and march kernels where that is the
-    fast path (`renderer.plan.compile_pays`: within 1e-5 of eager, not bitwise, so opt-in; recorded
-    in meta.json, so a resumed run renders as the first did).
+    (`torchvol.runtime.compilation`): "auto" (the default) marches with the Dr.Jit kernels and also
+    compiles the voxel walk (bitwise eager) when a worker's share of the samples still to render is
+    `AUTO_COMPILE_SAMPLES` or more: the bytes are `SceneDataset`'s either way. "all" (or True) also
+    compiles inductor's density and march kernels where that is the fast path
+    (`renderer.plan.compile_pays`); "off" (False) renders the eager reference. Both are recorded in
+    meta.json (their bytes differ), so a resumed run renders as the first did.
     Returns {"written": samples rendered now, "count", "out"}."""
     for name, value in (("count", count), ("workers", workers), ("batch", batch), ("shard_size", shard_size)):
         integer(name, value, low=1)
@@ -219,6 +219,7 @@ def dataset_meta_bytes(recipe: Recipe, *, count: int, seed: int, layout: Layout,
         **dataset_meta(recipe),
         # only where the bytes differ from eager's; absent otherwise: older datasets keep their meta bytes
         **({"compiled": True} if compile == "all" else {}),
+        **({"eager": True} if compile == "off" else {}),
     }
     return json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"
 

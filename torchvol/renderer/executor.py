@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Callable, Literal, Sequence
 
 import torch
 from torch import Tensor
@@ -343,7 +343,7 @@ def render(
     device: str | torch.device = "cpu",
     dtype: torch.dtype | None = None,
     chunk_rays: int = DEFAULT_CHUNK_RAYS,
-    compile: CompileMode | bool = "off",
+    compile: CompileMode | Literal["auto"] | bool = "auto",
     progress: Callable[[int], None] | None = None,
     aovs: Sequence[str] = (),
     keep_context: bool = False,
@@ -354,10 +354,12 @@ def render(
     `renderer.prepare.Batch` (taken as it is). `seed` (one int, or one per scene) drives the dither
     and sub-pixel jitter, hashed per (seed, pixel, sample): a scene renders the same, to the bit,
     alone or anywhere in a batch and for any chunking. `dtype` defaults to the quality level's
-    (float64 for reference). `chunk_rays` bounds peak memory. `compile` ("off", "exact" or "all";
-    True is "all", False "off") runs kernels under torch.compile: "exact" only the voxel walk,
-    bitwise eager; "all" also the density and march kernels, within ~1e-5 of eager
-    (`runtime.compilation`). `progress(pixels)`, where given, is called after each chunk with the
+    (float64 for reference). `chunk_rays` bounds peak memory. `compile` (`runtime.compilation`):
+    "auto" (the default) and "kernels" march with the Dr.Jit kernels wherever one renders a
+    volume's technique (the canonical output, within ~1e-5 of eager); "exact" also runs the voxel
+    walk under torch.compile (bitwise eager); "all" (True) also inductor's density kernels; "off"
+    (False) is the eager reference. `stats["plan"]["marches"]` says what each march ran on.
+    `progress(pixels)`, where given, is called after each chunk with the
     pixels it finished (in each of `image.passes` passes). With `image.passes` > 1,
     `stats["accumulation"]` is the mean |change| of the blended radiance after each pass after the
     first (`renderer.accumulate`). `aovs` asks for the AOVs computed only on request (the

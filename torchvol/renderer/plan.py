@@ -439,7 +439,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
         dtype=dtype,
         threads="glue_on_one_thread" if glue else "caller",
         # the walk's kernels are bitwise eager's: compiled under "exact" and "all"
-        walk=None if voxels is None else ("eager" if compile == "off" else "inductor"),
+        walk=None if voxels is None else ("inductor" if compile in ("exact", "all") else "eager"),
     )
 
 

@@ -1,22 +1,25 @@
-"""Which kernels a render runs under torch.compile: the `compile` setting of `render`, `generate`
-and `SceneDataset`.
+"""Which kernels a render runs compiled: the `compile` setting of `render`, `generate` and
+`SceneDataset`. Two compilers serve them: Dr.Jit's LLVM backend builds the march kernels
+(`volume.kernel_march`, `volume.drjit_march`) in about a second and caches them on disk;
+torch.compile (inductor) builds the voxel walk and, opt-in, the density kernels.
 
-* ``"off"`` (``False``): every kernel eager, the reference.
-* ``"exact"``: only the kernels whose compiled output is bitwise the eager one — the voxel DDA
+* ``"auto"`` (the default): ``"kernels"``, and ``"exact"`` where a process renders at least
+  `AUTO_COMPILE_SAMPLES` samples (`generate` decides from each worker's share of the samples
+  still to render, `SceneDataset` from its length; never from what a process rendered before).
+  Both give the same bytes, so a sample's bytes never depend on the dataset's size.
+* ``"kernels"``: the Dr.Jit march kernels wherever the plan finds one for a volume's technique
+  and Dr.Jit runs (float32 on the CPU, libLLVM present); the rest eager. Their output is the
+  canonical one; it agrees with eager within the tolerances of tests/volume/test_kernel_march.py
+  (~1e-5), not bitwise.
+* ``"exact"``: also the kernels whose torch.compile output is bitwise the eager one — the voxel DDA
   walk with its fog and its hybrid jumps (`voxel.walk`): divisions, compares, integer steps and
   gathers, which inductor emits as eager computes them (its C++ is built with
-  ``-ffp-contract=off`` and without unsafe math; the fog's exp stays eager). A sample's bytes are
-  the eager sample's (tests/voxel/test_walk.py), so this mode may be chosen by speed alone; where
-  inductor cannot build them (`exact_kernel`), they run eagerly after one warning.
-* ``"all"`` (``True``): also the density and march kernels (`fastnoise`, `volume.fused`), where
-  inductor's fused float code gives values within ~1e-5 of eager, not bitwise: opt-in, and
-  recorded in a generated dataset's meta.json.
-* ``"auto"`` (`generate` and `SceneDataset` only, their default): ``"exact"`` where a process
-  renders at least `AUTO_COMPILE_SAMPLES` samples (compiling costs each worker process seconds
-  once), else ``"off"``: `generate` decides from each worker's share of the samples still to
-  render, `SceneDataset` from its length; never from what a process rendered before. Either
-  gives the same bytes. On CPU: "exact"'s kernels are shown bitwise there; on a GPU, Triton's code and
-  atomic sums are not (render(..., device="cuda", compile="exact") is not promised bitwise).
+  ``-ffp-contract=off`` and without unsafe math; the fog's exp stays eager). Where inductor cannot
+  build them (`exact_kernel`), they run eagerly after one warning. On a GPU, Triton's code and
+  atomic sums are not promised bitwise.
+* ``"all"`` (``True``): also inductor's density and march kernels (`fastnoise`, `volume.fused`)
+  where no Dr.Jit kernel serves, within ~1e-5 of eager: recorded in a generated dataset's meta.json.
+* ``"off"`` (``False``, ``--eager``): every kernel eager: the reference, on any device and dtype.
 """
 
 from __future__ import annotations
@@ -35,8 +38,8 @@ from ..schema.validate import fail, is_integer
 
 __all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "auto_mode", "compile_mode", "compile_settings", "compiled", "exact_kernel"]
 
-CompileMode = Literal["off", "exact", "all"]
-MODES = ("off", "exact", "all")
+CompileMode = Literal["off", "kernels", "exact", "all"]
+MODES = ("off", "kernels", "exact", "all")
 # samples a process renders before "auto" compiles: building the walk's kernels took 21-25 s in a
 # fresh process with inductor's cache cold and 5-7 s warm, and saved 0.025 s (voxel-terrain) to
 # 0.19 s (voxel-world) a 128² sample on one thread: from 512 a warm-cache run gains on every voxel recipe
@@ -45,23 +48,25 @@ AUTO_COMPILE_SAMPLES = 512
 
 def compile_mode(value, *, path: str = "compile", auto: bool = False) -> str:
     """`value` (a mode name; a bool, numpy's too, or 0 / 1: true is "all", false "off"; None is
-    "off") as a mode name; "auto" only where `auto`. Raises ValueError naming `path` otherwise."""
+    "off") as a mode name; "auto" kept where `auto`, else resolved for one render ("kernels").
+    Raises ValueError naming `path` otherwise."""
     if value is None:
         return "off"
     if isinstance(value, (bool, np.bool_)) or (is_integer(value) and value in (0, 1)):
         return "all" if value else "off"
-    allowed = MODES + (("auto",) if auto else ())
+    allowed = MODES + ("auto",)
     if not isinstance(value, str) or value not in allowed:
         fail(path, value, "expected " + ", ".join(allowed) + " (or True for all, False or None for off)")
-    return value
+    return value if auto or value != "auto" else "kernels"
 
 
 def auto_mode(mode: str, samples: int) -> CompileMode:
     """A resolved mode: "auto" becomes "exact" for a process that will render `samples` ≥
-    `AUTO_COMPILE_SAMPLES`, else "off" (`generate`: each worker's share; `SceneDataset`: its length)."""
+    `AUTO_COMPILE_SAMPLES`, else "kernels" (`generate`: each worker's share; `SceneDataset`: its
+    length): the same bytes either way."""
     if mode != "auto":
         return mode
-    return "exact" if samples >= AUTO_COMPILE_SAMPLES else "off"
+    return "exact" if samples >= AUTO_COMPILE_SAMPLES else "kernels"
 
 
 # inductor decides when it builds a CPU kernel whether its loops run on threads: serially where the

@@ -1,0 +1,97 @@
+"""The physical march as one Dr.Jit kernel (`torchvol.volume.kernel_march`): held to the eager
+march (the reference, `compile="off"`) within the tolerance table on the recipe that uses it and
+on every variant it renders; its bytes the same alone and in a batch, for any chunking and thread
+count; the plan taking it by default where it renders the technique and eager elsewhere."""
+
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import TOL
+
+import torchvol as tv
+from torchvol.dataset.recipe import Recipe
+from torchvol.volume import drjit_march
+
+pytestmark = pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
+CLOUDS = Path(__file__).resolve().parents[2] / "datasets" / "clouds.toml"
+SIZE = {"image.width": 24, "image.height": 20}
+# kernel against eager, float32: the same samples and formulas, rounded apart by fused multiply-adds
+# and the order of a few sums (measured at 128²: 9e-6 at most on the tonemapped image)
+KERNEL_TOL = {"radiance": 5 * TOL[torch.float32], "depth": 5 * TOL[torch.float32]}
+
+
+def _scene(index: int = 0, **overrides):
+    return Recipe.load(CLOUDS, {**SIZE, **overrides}).sample_with_params(index, 0)[0]
+
+
+def _close(kernel, eager, what: str):
+    for name in ("radiance", "alpha", "depth"):
+        a, b = getattr(kernel, name), getattr(eager, name)
+        err = (a - b).abs()
+        worst = int(err.argmax())
+        tol = KERNEL_TOL["depth" if name == "depth" else "radiance"] * max(1.0, float(b.abs().max()))
+        assert float(err.max()) <= tol, (f"{what}: {name} off by {float(err.max()):.3g} (tolerance {tol:.3g}) at flat "
+                                         f"index {worst}: kernel {float(a.flatten()[worst])}, eager {float(b.flatten()[worst])}")
+
+
+def _both(scene, **kw):
+    kernel = tv.render(scene, **kw)
+    assert set(kernel.stats["plan"]["marches"].values()) == {"drjit"}, kernel.stats["plan"]["marches"]
+    eager = tv.render(scene, compile="off", **kw)
+    assert set(eager.stats["plan"]["marches"].values()) == {"eager"}
+    return kernel, eager
+
+
+@pytest.mark.parametrize("index", [0, 1, 2, 3, 4])
+def test_recipe_samples_match_the_eager_march(index):
+    """clouds.toml, the main job: fbm puff, edge with a base, dual HG, a shadowed sun, octaves,
+    sky light with its visibility march."""
+    kernel, eager = _both(_scene(index))
+    _close(kernel, eager, f"clouds.toml sample {index}")
+    assert kernel.stats["density_evals"] > 0
+    # the same samples: the evaluations the kernel counts are the eager march's
+    assert kernel.stats["density_evals"] == eager.stats["density_evals"]
+
+
+VARIANTS = {
+    "box, no edge": {"volumes.0.bounds": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}, "volumes.0.edge": None},
+    "hg, single scattering": {"volumes.0.phase": {"hg": {"g": 0.6}}, "volumes.0.multiple_scattering": None},
+    "unshadowed sun, no sky light": {"lights": [{"kind": "sun", "direction": [0.3, 0.9, 0.2], "intensity": 5.0}],
+                                     "volumes.0.ambient": None},
+    "sky light without visibility": {"volumes.0.ambient": {"visibility": "none"}},
+    "lod, no dither, early stop": {"march.lod": {"scale": 0.8}, "march.dither": "none", "march.min_transmittance": 0.05},
+    "size placement": {"march.step_size": 0.05},
+    "two suns, shadow steps from the light": {"lights": [
+        {"kind": "sun", "direction": [0.3, 0.9, 0.2], "intensity": 5.0, "shadow": {"steps": 4, "first_step": 0.1}},
+        {"kind": "sun", "direction": [-0.5, 0.2, 0.8], "intensity": 3.0, "shadow": {"steps": 3, "growth": 1.5}}]},
+}
+
+
+@pytest.mark.parametrize("name", list(VARIANTS))
+def test_every_variant_the_kernel_renders_matches_the_eager_march(name):
+    kernel, eager = _both(_scene(1, **VARIANTS[name]))
+    _close(kernel, eager, name)
+
+
+def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count():
+    scenes = [_scene(i) for i in range(3)]
+    batch = tv.render(scenes, seed=[5, 6, 7])
+    for b, scene in enumerate(scenes):
+        alone = tv.render(scene, seed=5 + b, chunk_rays=97)
+        assert torch.equal(alone.radiance[0], batch.radiance[b]) and torch.equal(alone.depth[0], batch.depth[b])
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = tv.render(scenes[0], seed=5)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one.radiance[0], batch.radiance[0])
+
+
+def test_the_plan_takes_the_kernel_only_where_it_renders_the_technique():
+    table = tv.render(_scene(0, **{"volumes.0.density.fbm.hash": "table"}))
+    assert table.stats["plan"]["marches"] == {"volume0": "eager"}  # the table hash has no kernel yet
+    wide = tv.render(_scene(0), dtype=torch.float64)
+    assert wide.stats["plan"]["marches"] == {"volume0": "eager"}  # float64: the reference
+    assert tv.render(_scene(0), compile="kernels").stats["plan"]["marches"] == {"volume0": "drjit"}
