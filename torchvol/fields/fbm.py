@@ -10,7 +10,6 @@ from pydantic import Field, model_validator
 from torch import Tensor
 
 from ..noise import fast as fastnoise
-from ..ops import lanes
 from ..noise import lattice as noise
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
@@ -95,12 +94,5 @@ class FbmField:
         f = seeded_fbm(self.basis, q, s, p, lod, fused=self.fused)
         per_point = SimpleNamespace(bias=take(p.bias, s), amplitude=take(p.amplitude, s), radial=take(p.radial, s),
                                     center=take(p.center, s).unbind(1))
-        return puff(f, *points.unbind(1), per_point)
+        return fastnoise.puff(f, *points.unbind(1), per_point)
 
-
-def puff(f, x, y, z, q):
-    """bias + amplitude · f − radial · |p − center|: the fbm `f` made a puff around its centre, in
-    lanes (`ops.lanes`): x, y, z the points' coordinates, `q` the per-point bias, amplitude, radial
-    and center (three lanes)."""
-    c = q.center
-    return q.bias + q.amplitude * f - q.radial * lanes.length3(x - c[0], y - c[1], z - c[2])

@@ -118,11 +118,17 @@ def fbm_field(x, y, z, seed, scales, count, q, *, octaves: int, gain: float = 0.
     scales (`noise.folded_scales`), a list or [octaves − 1]; count: octaves kept per point or None;
     `q`: the field's per-point parameters, attributes frequency, bias, amplitude, radial and
     shift, offset, center (three lanes each). What the compiled graph and the Dr.Jit march run."""
-    from ..fields.fbm import puff
-
     u = [q.frequency * (c - q.shift[i]) + q.offset[i] for i, c in enumerate((x, y, z))]
     f = _fbm_sum(*u, seed, scales, count, octaves, gain)
     return puff(f, x, y, z, q)
+
+
+def puff(f, x, y, z, q):
+    """bias + amplitude · f − radial · |p − center|: the fbm `f` made a puff around its centre, in
+    lanes (`ops.lanes`): x, y, z the points' coordinates, `q` the per-point bias, amplitude, radial
+    and center (three lanes)."""
+    c = q.center
+    return q.bias + q.amplitude * f - q.radial * lanes.length3(x - c[0], y - c[1], z - c[2])
 
 
 @functools.cache

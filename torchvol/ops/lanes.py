@@ -36,6 +36,7 @@ def where(cond, a, b):
 
 
 def exp(x):
+    """e^x."""
     if _is_number(x):
         return math.exp(x)
     if _is_torch(x):
@@ -46,6 +47,7 @@ def exp(x):
 
 
 def log(x):
+    """The natural logarithm."""
     if _is_torch(x):
         return torch.log(x)
     import drjit as dr
@@ -54,6 +56,7 @@ def log(x):
 
 
 def log2(x):
+    """The base-2 logarithm."""
     if _is_torch(x):
         return torch.log2(x)
     import drjit as dr
@@ -62,6 +65,7 @@ def log2(x):
 
 
 def sqrt(x):
+    """The square root."""
     if _is_number(x):
         return math.sqrt(x)
     if _is_torch(x):
@@ -72,6 +76,7 @@ def sqrt(x):
 
 
 def floor(x):
+    """Rounded down to an integer value (still a float)."""
     if _is_torch(x):
         return torch.floor(x)
     import drjit as dr
@@ -80,6 +85,7 @@ def floor(x):
 
 
 def abs(x):  # noqa: A001  the lane form of the builtin
+    """|x|."""
     if _is_number(x):
         return math.fabs(x)
     if _is_torch(x):
@@ -129,6 +135,7 @@ def maximum(a, b):
 
 
 def clamp_min(x, lo: float):
+    """max(x, lo), NaN passing through."""
     if _is_torch(x):
         return x.clamp_min(lo)
     import drjit as dr
@@ -137,6 +144,7 @@ def clamp_min(x, lo: float):
 
 
 def clamp_max(x, hi: float):
+    """min(x, hi), NaN passing through."""
     if _is_torch(x):
         return x.clamp_max(hi)
     import drjit as dr

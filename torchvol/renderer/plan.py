@@ -312,7 +312,7 @@ def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bo
 
 
 def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: str,
-                  dtype: torch.dtype, device: torch.device | str) -> Backend:
+                  settings: MarchSettings, dtype: torch.dtype, device: torch.device | str) -> Backend:
     """What volume `vol`'s march runs on, decided once for the render: one Dr.Jit kernel wherever
     the compile mode is not "off", Dr.Jit runs for `dtype` on `device` (`drjit_march.available`)
     and a kernel renders the technique (the template's fused march, `fused_march`; a physical
@@ -325,7 +325,7 @@ def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[
     drjit = drjit_march.available(torch.zeros((), dtype=dtype, device=device))
     if fused_march(batch, vol, uses):
         return "drjit" if drjit else "inductor" if compile == "all" else "eager"
-    return "drjit" if drjit and kernel_march.supports(batch, vol, uses) is None else "eager"
+    return "drjit" if drjit and kernel_march.supports(batch, vol, uses, settings) is None else "eager"
 
 
 def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str = "off",
@@ -355,7 +355,8 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
     ambient = vol.ambient is not None
     how = strategy(batch, vol, settings)
     return VolumePass(index=v, name=name, strategy=how, shading=vol.shading, lights=uses,
-                      backend=march_backend(batch, vol, how, uses, compile=compile, dtype=dtype, device=device),
+                      backend=march_backend(batch, vol, how, uses, compile=compile, settings=settings, dtype=dtype,
+                                           device=device),
                       emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
                       emission_map=None if vol.emission_map is None else vol.emission_map.kind,
                       bloom=None if vol.bloom is None else vol.bloom.light,

@@ -42,13 +42,10 @@ if TYPE_CHECKING:
     from .march_spec import CloudLook, StepConfig
 
 OPT_OUT = "TORCHVOL_DRJIT"
-# whether this process may use Dr.Jit: None until the first `available` probes it; False for good
-# in a child forked after the parent started Dr.Jit (its thread pool's threads do not survive a fork)
+# whether this process may use Dr.Jit: None until the first `available` probes it. A child forked
+# after its parent started Dr.Jit (a DataLoader worker) uses it too: its kernels run there, the same
+# bytes (tests/volume/test_kernel_march.py), since a sample's bytes must not depend on the workers
 _USABLE: dict[str, bool | None] = {"usable": None}
-
-
-def _forked() -> None:
-    _USABLE["usable"] = False
 
 
 def _probe() -> bool:
@@ -56,14 +53,13 @@ def _probe() -> bool:
         import drjit as dr
     except ImportError:
         return False
-    os.register_at_fork(after_in_child=_forked)
     return bool(dr.has_backend(dr.JitBackend.LLVM))
 
 
 def available(like: Tensor) -> bool:
     """Whether the Dr.Jit march can render with `like` (a tensor of the render's dtype and device):
-    float32 on the CPU, `drjit` importable with its LLVM backend (it needs libLLVM), `TORCHVOL_DRJIT`
-    not "0", and not in a child process forked after its parent started Dr.Jit."""
+    float32 on the CPU, `drjit` importable with its LLVM backend (it needs libLLVM) and
+    `TORCHVOL_DRJIT` not "0"."""
     if like.dtype != torch.float32 or like.device.type != "cpu" or os.environ.get(OPT_OUT) == "0":
         return False
     if _USABLE["usable"] is None:
@@ -211,13 +207,10 @@ def _kernel_parameters(config: StepConfig, scales: list[Tensor]) -> dict:
     from drjit.llvm import Float, Int32
 
     param = lambda v: dr.opaque(Float, float(v))
-    rule = config.rule
     values = {"octave_scales": [param(c) for c in scales], "threshold": param(config.threshold),
               "max_iterations": dr.opaque(Int32, config.max_iterations)}
     values["lod_scale"] = None if config.lod_scale is None else param(config.lod_scale)
     values["min_transmittance"] = param(config.min_transmittance)
-    values["step"] = param(rule.steps if rule.placement == "count" else rule.step_size)
-    values["growth"] = param(rule.step_growth)
     return values
 
 
@@ -247,7 +240,7 @@ def _march_body(k: SimpleNamespace, config: StepConfig) -> Callable:
         weight, new_trans = trans * (1.0 - seg), trans * seg
         crossed = (trans > 0.5) & (new_trans <= 0.5)
         steps = steps + 1
-        t_next = t + _step_length(k, config.rule, t)
+        t_next = t + config.rule.length(t, k.span)  # the eager rule itself, traced (`ops.lanes`)
         keep = t_next <= k.t_end
         if config.min_transmittance > 0:
             keep = keep & (new_trans >= k.min_transmittance)
@@ -279,16 +272,3 @@ def _sample_light(k: SimpleNamespace, config: StepConfig, density: Callable, p: 
         dif = _clamp((rho - ahead) / k.light_scale, 0.0, 1.0)
         lin = [k.irradiance[c] * dif + lin[c] for c in range(3)]
     return lin
-
-
-def _step_length(k: SimpleNamespace, rule, t):
-    """The next step's length at Float `t`, as `StepRule.length` (count, size or adaptive placement)."""
-    import drjit as dr
-    from drjit.llvm import Float
-
-    if rule.placement == "count":
-        return k.span / k.step
-    if rule.placement == "size":
-        return dr.full(Float, k.step, dr.width(t))
-    grown = k.growth * t
-    return dr.select(grown < k.step, k.step, grown)  # clamp_min

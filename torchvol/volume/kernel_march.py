@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..fields.base import DENSITY_MAX
 from ..fields.edge import EdgeField, faded
 from ..noise import fast as fastnoise
 from ..noise import lattice as noise
@@ -42,15 +43,14 @@ from .shadow import shadow_segments
 BOUNDS_KINDS = ("sphere", "box")
 
 
-def supports(batch, vol, uses) -> str | None:
+def supports(batch, vol, uses, settings) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
     light passes `uses`, or None where it can: an fbm density with the arithmetic hash, in a
     sphere or box, physically shaded with the Frostbite integrator, lit by suns with marched
-    shadows through it alone, sky light graded or not, and no emission."""
+    shadows through it alone, ungraded sky light, and no emission; `settings` the render's
+    `MarchSettings`."""
     from ..light.lights import LIGHTS
-    from ..scene.quality import march_settings
 
-    settings = march_settings(batch.march)
     checks = [
         (vol.density.kind == "fbm" and vol.density.value.hash == "arithmetic", "a density other than an arithmetic-hash fbm"),
         (vol.bounds.kind in BOUNDS_KINDS, f"{vol.bounds.kind} bounds"),
@@ -139,62 +139,95 @@ def march(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit
     if dr.thread_count() != threads:
         dr.set_thread_count(threads)
     k = _inputs(ctx, vol, rays, background, t0, t1, dither, idx)
-    st = ctx.settings
-    bounds_lanes = _bounds_lanes(vol)
+    n = dr.width(k.t_start)
+    zero = dr.zeros(Float, n)
+    state = (k.t_start, dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
+             dr.full(Bool, False, n), dr.full(Bool, True, n), dr.zeros(Int32, n), zero, zero, zero)
+    out = dr.while_loop(state, lambda *s: s[6], _body(k, vol, ctx.settings), mode="symbolic")
+    dr.eval(out)
+    dr.sync_thread()
+    _, trans, wsum, wt, median, steps, _, truncated, _, evals, *radiance = (torch.from_numpy(np.array(v)) for v in out)
+    result.radiance.index_copy_(0, idx, torch.stack(radiance, 1).to(t0.dtype))
+    for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
+                        ("steps", steps.long()), ("truncated", truncated)):
+        target = getattr(result, name)
+        target.index_copy_(0, idx, value.to(target.dtype))
+    return result, int(evals.long().sum())
+
+
+def _parameters(vol, st) -> SimpleNamespace:
+    """The settings that are numbers as the kernel's parameters (`drjit.opaque`: one kernel for any
+    value), the octave count and scales."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
     octaves = int(_fbm_and_edge(vol)[0].p.octaves)
-    scales = [dr.opaque(Float, float(c)) for c in noise.folded_scales(octaves, dtype=torch.float32, device="cpu")]
-    par = SimpleNamespace(threshold=dr.opaque(Float, st.density_threshold), reach=dr.opaque(Float, min(vol.plan.reach, 3e38)),
-                          lod=None if st.lod_scale is None else dr.opaque(Float, st.lod_scale),
-                          min_transmittance=dr.opaque(Float, st.min_transmittance),
-                          max_iterations=dr.opaque(Int32, st.rule.max_iterations))
+    return SimpleNamespace(
+        threshold=dr.opaque(Float, st.density_threshold), reach=dr.opaque(Float, min(vol.plan.reach, 3e38)),
+        lod=None if st.lod_scale is None else dr.opaque(Float, st.lod_scale),
+        min_transmittance=dr.opaque(Float, st.min_transmittance), max_iterations=dr.opaque(Int32, st.rule.max_iterations),
+        octaves=octaves,
+        scales=[dr.opaque(Float, float(c)) for c in noise.folded_scales(octaves, dtype=torch.float32, device="cpu")])
+
+
+def _medium(k: SimpleNamespace, vol, par: SimpleNamespace) -> SimpleNamespace:
+    """The per-sample functions of the volume over the kernel's inputs `k` and parameters `par`:
+    density(p, count), transmittance(p, direction, sigma_scale, shadow), in_scatter(p, sigma_t)."""
+    import drjit as dr
+    from drjit.llvm import Float
+
+    interval, depth_in = vol.bounds.caps["lanes"]
 
     def density(p, count):
-        """The volume's density at lanes `p` (three), `count` octaves kept or None: its field,
-        clamped at 0, faded at the edge and capped, as `renderer.stats.CountedField` reads it."""
-        raw = lanes.clamp_min(fastnoise.fbm_field(*p, k.seed, scales, count, k.fbm, octaves=octaves), 0.0)
+        """The density at lanes `p` (three), `count` octaves kept or None: the field clamped at 0,
+        faded at the edge and capped, as `renderer.stats.CountedField` reads it."""
+        raw = lanes.clamp_min(fastnoise.fbm_field(*p, k.seed, par.scales, count, k.fbm, octaves=par.octaves), 0.0)
         if k.edge is not None:
-            depth = bounds_lanes[1](k.bounds, p)
+            depth = depth_in(k.bounds, p)
             if k.edge.base is not None:
                 depth = lanes.minimum(depth, p[1] - k.edge.base)
             raw = faded(raw, depth, k.edge.width)
-        from ..fields.base import DENSITY_MAX
-
         return lanes.clamp_max(raw, DENSITY_MAX)
 
     def transmittance(p, direction, sigma_scale, shadow):
-        """Transmittance from lanes `p` along `direction` (three lanes) out of the bounds, σ_t =
-        `sigma_scale` × density, by `shadow`'s segments (`shadow.shadow_transmittance`'s march)."""
-        exit_t = lanes.clamp(bounds_lanes[0](k.bounds, p, direction)[1], 0.0, par.reach)
+        """From lanes `p` along `direction` (three lanes) out of the bounds, σ_t = `sigma_scale` ×
+        density, over `shadow`'s segments (`shadow.shadow_transmittance`'s march)."""
+        exit_t = lanes.clamp(interval(k.bounds, p, direction)[1], 0.0, par.reach)
         tau = dr.zeros(Float, dr.width(exit_t))
         for mid, length in shadow_segments(exit_t, steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step):
-            q = [p[c] + mid * direction[c] for c in range(3)]
-            tau = tau + sigma_scale * density(q, None) * length
+            tau = tau + sigma_scale * density([p[c] + mid * direction[c] for c in range(3)], None) * length
         return lanes.exp(-tau)
 
     def in_scatter(p, sigma_t):
-        """Σ over the lights of σs·p(θ)·E·T_light (octaves summed), plus σs·L_amb·V: three lanes."""
+        """Σ over the lights of σs·p(θ)·E·T_light (octaves summed), plus σs·L_amb·V: three lanes
+        (`physical.in_scatter`'s terms, in its order)."""
         sigma_s = k.albedo * sigma_t
         out = [dr.zeros(Float, dr.width(sigma_t)) for _ in range(3)]
         for light in k.lights:
             trans = None if light.shadow is None else transmittance(p, light.direction, k.sigma_t, light.shadow)
-            if vol.plan.multiple:
-                weights = octave_weights(sigma_s, trans, k.exponents)
-                radiance = [sum((light.response[i][c] * weights[i] for i in range(1, len(weights))),
+            weights = octave_weights(sigma_s, trans, k.exponents if vol.plan.multiple else [])
+            out = [out[c] + sum((light.response[i][c] * weights[i] for i in range(1, len(weights))),
                                 light.response[0][c] * weights[0]) for c in range(3)]
-            else:
-                radiance = [light.response[0][c] * sigma_s for c in range(3)]
-                if trans is not None:
-                    radiance = [r * trans for r in radiance]
-            out = [out[c] + radiance[c] for c in range(3)]
         if vol.plan.ambient:
             amb = [k.ambient[c] * sigma_s for c in range(3)]
             if vol.plan.ambient_sky is not None:
-                v = transmittance(p, k.ambient_direction, k.ambient_sigma, SimpleNamespace(steps=k.ambient_steps, growth=1.0,
-                                                                                           first_step=None))
+                v = transmittance(p, k.ambient_direction, k.ambient_sigma,
+                                  SimpleNamespace(steps=k.ambient_steps, growth=1.0, first_step=None))
                 amb = [a * v for a in amb]
             out = [out[c] + amb[c] for c in range(3)]
         return out
 
+    return SimpleNamespace(density=density, transmittance=transmittance, in_scatter=in_scatter)
+
+
+def _body(k: SimpleNamespace, vol, st):
+    """The loop body: one segment of `march.march`'s physical loop (``segments``, the Frostbite
+    step) for a ray still going, its lighting under a branch where the density passes the threshold."""
+    import drjit as dr
+    from drjit.llvm import Bool, Float, Int32
+
+    par = _parameters(vol, st)
+    medium = _medium(k, vol, par)
     lit_evals = sum(light.shadow.steps for light in k.lights if light.shadow is not None)
     lit_evals += k.ambient_steps if vol.plan.ambient and vol.plan.ambient_sky is not None else 0
 
@@ -205,53 +238,31 @@ def march(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit
         dt = lanes.minimum(dt, k.t_end - t)
         t_sample = t + 0.5 * dt
         p = [k.origin[c] + t_sample * k.direction[c] for c in range(3)]
-        count = None if par.lod is None else octaves - Int32(dr.floor(dr.log2(1.0 + t_sample * par.lod)))
-        raw = density(p, count)
+        count = None if par.lod is None else par.octaves - Int32(dr.floor(dr.log2(1.0 + t_sample * par.lod)))
+        raw = medium.density(p, count)
         sigma_t = k.sigma_t * raw
         lit = (raw > par.threshold) & (dt > 0.0)
-        source = dr.if_stmt((p[0], p[1], p[2], sigma_t), lit, lambda x, y, z, sg: tuple(in_scatter([x, y, z], sg)),
+        source = dr.if_stmt((p[0], p[1], p[2], sigma_t), lit, lambda x, y, z, sg: tuple(medium.in_scatter([x, y, z], sg)),
                             lambda x, y, z, sg: (dr.zeros(Float, dr.width(x)),) * 3)
         weight, seg_trans = frostbite_weight(sigma_t, dt)
-        radiance = (red, green, blue)
-        radiance = tuple(radiance[c] + trans * (source[c] * weight) for c in range(3))
-        w = trans * (1.0 - seg_trans)
-        new_trans = trans * seg_trans
-        crossed = (trans > 0.5) & (new_trans <= 0.5)
-        median = dr.select(crossed, median_crossing(t, trans, sigma_t, dt), median)
-        steps = steps + 1
-        t_next = t + dt
-        keep = (t_next < k.t_end) & (new_trans >= par.min_transmittance) if st.min_transmittance > 0 else t_next < k.t_end
+        radiance = tuple(r + trans * (source[c] * weight) for c, r in enumerate((red, green, blue)))
+        w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
+        median = dr.select((trans > 0.5) & (new_trans <= 0.5), median_crossing(t, trans, sigma_t, dt), median)
+        steps, t_next = steps + 1, t + dt
+        keep = t_next < k.t_end
+        if st.min_transmittance > 0:
+            keep = keep & (new_trans >= par.min_transmittance)
         last = steps >= par.max_iterations
-        evals = evals + 1 + dr.select(lit, Int32(lit_evals), Int32(0))
         return (t_next, new_trans, wsum + w, wt + w * t_sample, median, steps, keep & ~last, keep & last,
-                dr.full(Bool, False, dr.width(t)), evals, *radiance)
+                dr.full(Bool, False, dr.width(t)), evals + 1 + dr.select(lit, Int32(lit_evals), Int32(0)), *radiance)
 
-    n = dr.width(k.t_start)
-    zero = dr.zeros(Float, n)
-    state = (k.t_start, dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
-             dr.full(Bool, False, n), dr.full(Bool, True, n), dr.zeros(Int32, n), zero, zero, zero)
-    out = dr.while_loop(state, lambda *s: s[6], body, mode="symbolic")
-    dr.eval(out)
-    dr.sync_thread()
-    _, trans, wsum, wt, median, steps, _, truncated, _, evals, *radiance = (torch.from_numpy(np.array(v)) for v in out)
-    dtype = t0.dtype
-    result.radiance.index_copy_(0, idx, torch.stack(radiance, 1).to(dtype))
-    for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
-                        ("steps", steps.long()), ("truncated", truncated)):
-        target = getattr(result, name)
-        target.index_copy_(0, idx, value.to(target.dtype))
-    return result, int(evals.long().sum())
+    return body
 
 
 def _fbm_and_edge(vol):
     """The volume's fbm field and its `Edge` tables (None: no edge fade) under its counted field."""
     field = vol.field.inner
     return (field.inner, field.edge) if isinstance(field, EdgeField) else (field, None)
-
-
-def _bounds_lanes(vol):
-    """The volume's bounds kind's (interval, depth) in lanes (`geometry.bounds`)."""
-    return vol.bounds.caps["lanes"]
 
 
 __all__ = ["march", "supports"]

@@ -19,7 +19,7 @@ from .context import VolumeContext
 from .emission import EMISSION_MAPS, bloom_glow
 from .integrate import frostbite_step
 from .march import LN2, Medium, expected_depth_fraction, gathered, lod_drop
-from .multiple import octave_response, octave_sum
+from .multiple import octave_response, octave_sum, octave_weights
 from .shadow import occluder_transmittance, shadow_transmittance, sun_grids
 
 
@@ -69,10 +69,8 @@ def in_scatter(ctx: VolumeContext, vol, p: Tensor, d: Tensor | None, s: Tensor, 
                 trans = light_transmittance(ctx, vol, use, p, s, sigma_t, toward)
         if vol.plan.multiple:
             radiance = octave_sum(vol, resp, sigma_s, trans, s)
-        else:
-            radiance = resp * sigma_s[:, None]
-            if trans is not None:
-                radiance = radiance * trans[:, None]
+        else:  # octave 0 alone: single scattering is the octaves' first term, to the bit
+            radiance = resp * octave_weights(sigma_s, trans, [])[0][:, None]
         if toward is None and light.through is not None:  # a per-ray response: the air on the sun's way to p
             radiance = radiance * light.through(p, s)
         out = out + radiance
