@@ -55,6 +55,7 @@ def test_recipe_samples_match_the_eager_march(index):
 
 
 VARIANTS = {
+    "the table hash": {"volumes.0.density.fbm.hash": "table"},
     "box, no edge": {"volumes.0.bounds": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}, "volumes.0.edge": None},
     "hg, single scattering": {"volumes.0.phase": {"hg": {"g": 0.6}}, "volumes.0.multiple_scattering": None},
     "unshadowed sun, no sky light": {"lights": [{"kind": "sun", "direction": [0.3, 0.9, 0.2], "intensity": 5.0}],
@@ -74,8 +75,9 @@ def test_every_variant_the_kernel_renders_matches_the_eager_march(name):
     _close(kernel, eager, name)
 
 
-def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count():
-    scenes = [_scene(i) for i in range(3)]
+@pytest.mark.parametrize("hash_", ["arithmetic", "table"])
+def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count(hash_):
+    scenes = [_scene(i, **{"volumes.0.density.fbm.hash": hash_}) for i in range(3)]
     batch = tv.render(scenes, seed=[5, 6, 7])
     for b, scene in enumerate(scenes):
         alone = tv.render(scene, seed=5 + b, chunk_rays=97)
@@ -89,9 +91,14 @@ def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count():
     assert torch.equal(one.radiance[0], batch.radiance[0])
 
 
+def test_the_preset_matches_the_eager_march():
+    kernel, eager = _both(tv.preset("cloud-puff", width=32, height=24))
+    _close(kernel, eager, "cloud-puff")
+
+
 def test_the_plan_takes_the_kernel_only_where_it_renders_the_technique():
-    table = tv.render(_scene(0, **{"volumes.0.density.fbm.hash": "table"}))
-    assert table.stats["plan"]["marches"] == {"volume0": "eager"}  # the table hash has no kernel yet
+    perlin = tv.render(_scene(0, **{"volumes.0.density.fbm": {"noise": "perlin", "octaves": 3}}))
+    assert perlin.stats["plan"]["marches"] == {"volume0": "eager"}  # Perlin's gradient noise has no kernel yet
     wide = tv.render(_scene(0), dtype=torch.float64)
     assert wide.stats["plan"]["marches"] == {"volume0": "eager"}  # float64: the reference
     assert tv.render(_scene(0), compile="kernels").stats["plan"]["marches"] == {"volume0": "drjit"}

@@ -88,38 +88,44 @@ def value_noise_hashed(p: Tensor, *, seed: int = 0) -> Tensor:
     return _value(p.unbind(-1), _seed32(seed))
 
 
-def _fbm_sum(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None, octaves: int,
-             gain: float) -> Tensor:
-    """Every octave of `noise.fbm` in its float order, LOD as a mask: the body of the compiled
-    graphs. x, y, z each ``[N]``; seed 0-dim or ``[N]`` int32; scales ``[octaves - 1]``; lod ``[N]`` or None."""
-    f = _value((x, y, z), seed) * 0.5
+def fbm_sum(basis, x, y, z, scales, lod, octaves: int, gain: float):
+    """Every octave of `noise.fbm` in its float order, LOD as a mask, in lanes (`ops.lanes`):
+    `basis(x, y, z)` the noise (this module's arithmetic hash, or `noise.value_lanes` over the
+    tables); x, y, z each ``[N]``; scales ``[octaves - 1]`` or a list; lod ``[N]`` octaves kept, or None.
+    The body of the compiled graphs and of the Dr.Jit march's densities."""
+    f = basis(x, y, z) * 0.5
     for k in range(1, octaves):
         s = scales[k - 1]
-        term = _value((x * s, y * s, z * s), seed) * (0.5 * gain**k)
+        term = basis(x * s, y * s, z * s) * (0.5 * gain**k)
         f = f + (term if lod is None else lanes.where(lod >= k + 1, term, 0.0))
     return f
 
 
+def hashed(seed):
+    """The arithmetic-hash value noise with mixed seed `seed` (per point or one) as `fbm_sum`'s basis."""
+    return lambda x, y, z: _value((x, y, z), seed)
+
+
 @functools.cache
 def _compiled_fbm(octaves: int, gain: float):
-    """`_fbm_sum` as one compiled graph (octaves and gain are constants of it)."""
+    """`fbm_sum` as one compiled graph (octaves and gain are constants of it)."""
 
     def fused(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None) -> Tensor:
-        return _fbm_sum(x, y, z, seed, scales, lod, octaves, gain)
+        return fbm_sum(hashed(seed), x, y, z, scales, lod, octaves, gain)
 
     # dynamic shapes: the march hands over a different number of active points every step
     return compiled(fused)
 
 
-def fbm_field(x, y, z, seed, scales, count, q, *, octaves: int, gain: float = 0.5):
-    """The fbm field's signed density with the arithmetic hash, lanes (`ops.lanes`: torch [N] or
-    Dr.Jit): `fields.fbm.puff` of `_fbm_sum` at frequency·(p − shift) + offset. x, y, z: the
-    points' coordinates; seed: mixed seeds (`mixed_seeds`), per point or one; scales: the octave
+def fbm_field(x, y, z, basis, scales, count, q, *, octaves: int, gain: float = 0.5):
+    """The fbm field's signed density, lanes (`ops.lanes`: torch [N] or Dr.Jit): `puff` of
+    `fbm_sum` over `basis` at frequency·(p − shift) + offset. x, y, z: the points'
+    coordinates; basis: `fbm_sum`'s (`hashed(seed)`, seeds from `mixed_seeds`); scales: the octave
     scales (`noise.folded_scales`), a list or [octaves − 1]; count: octaves kept per point or None;
     `q`: the field's per-point parameters, attributes frequency, bias, amplitude, radial and
     shift, offset, center (three lanes each). What the compiled graph and the Dr.Jit march run."""
     u = [q.frequency * (c - q.shift[i]) + q.offset[i] for i, c in enumerate((x, y, z))]
-    f = _fbm_sum(*u, seed, scales, count, octaves, gain)
+    f = fbm_sum(basis, *u, scales, count, octaves, gain)
     return puff(f, x, y, z, q)
 
 
@@ -142,7 +148,7 @@ def _compiled_field(octaves: int, gain: float):
               center: Sequence[Tensor]) -> Tensor:
         q = SimpleNamespace(frequency=frequency, shift=shift, offset=offset, bias=bias, amplitude=amplitude,
                             radial=radial, center=center)
-        return fbm_field(x, y, z, seed, scales, lod, q, octaves=octaves, gain=gain)
+        return fbm_field(x, y, z, hashed(seed), scales, lod, q, octaves=octaves, gain=gain)
 
     return compiled(fused)
 

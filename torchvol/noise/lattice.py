@@ -120,10 +120,10 @@ def _corner_hashes(cells: Tensor, perm: Tensor) -> list[Tensor]:
 
 
 def _corner_chain(perm: Tensor, x: Tensor, y: Tensor, z: Tensor) -> list[Tensor]:
-    """Perlin's chain for the 8 corners of cells x, y, z [N] int32 in a doubled table `perm`."""
-    px = [take_rows(perm, x + i) for i in (0, 1)]
-    pxy = [take_rows(perm, px[i] + (y + j)) for j in (0, 1) for i in (0, 1)]
-    return [take_rows(perm, pxy[i] + (z + k)) for k in (0, 1) for i in range(4)]
+    """Perlin's chain for the 8 corners of cells x, y, z [N] int32 in a doubled table `perm` (lanes)."""
+    px = [lanes.gather(perm, x + i) for i in (0, 1)]
+    pxy = [lanes.gather(perm, px[i] + (y + j)) for j in (0, 1) for i in (0, 1)]
+    return [lanes.gather(perm, pxy[i] + (z + k)) for k in (0, 1) for i in range(4)]
 
 
 @functools.lru_cache(maxsize=16)
@@ -155,11 +155,18 @@ def value_noise_scenes(p: Tensor, rows: Tensor, seeds: Sequence[int]) -> Tensor:
 def _value(p: Tensor, perm: Tensor, first: Tensor, rows: Tensor | None = None) -> Tensor:
     """Value noise at p [N, 3] from a doubled permutation `perm` (int32) and lattice values
     `first`, each point's chain starting at its row (rows [N], None: 0) -> [N]."""
-    cell, f = _cell_frac(p)
-    u = f * f * (3.0 - 2.0 * f)
-    x, y, z = (cell & 255).to(torch.int32).unbind(-1)
-    first = first.to(p.dtype)
-    return _trilinear([take_rows(first, h) for h in _corner_chain(perm, x if rows is None else x + rows, y, z)], u)
+    return value_lanes(*p.unbind(-1), perm, first.to(p.dtype), rows)
+
+
+def value_lanes(x, y, z, perm, first, rows=None):
+    """`value_noise` in lanes (`ops.lanes`: torch [N] or Dr.Jit) at points x, y, z (|p| < 2**31)
+    from a doubled permutation `perm` (int32) and lattice values `first` (the points' float type),
+    each point's chain starting at its row `rows` (None: 0): what the Dr.Jit march traces."""
+    fl = [lanes.floor(c) for c in (x, y, z)]
+    f = [c - lo for c, lo in zip((x, y, z), fl)]
+    u = [g * g * (3.0 - 2.0 * g) for g in f]
+    cx, cy, cz = (lanes.to_int32(lo) & 255 for lo in fl)
+    return _trilinear([lanes.gather(first, h) for h in _corner_chain(perm, cx if rows is None else cx + rows, cy, cz)], u)
 
 
 def lattice_values(cells: Tensor, seed: int, dtype: torch.dtype) -> Tensor:

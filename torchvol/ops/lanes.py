@@ -206,6 +206,17 @@ def to_float(i, like):
     return Float(i)
 
 
+def gather(table, index):
+    """`table[index]`: a 1-D table (a torch tensor, or a Dr.Jit array of the lanes' type) at int32
+    lanes `index` (values in range)."""
+    if _is_torch(table, index):
+        return table.index_select(0, index)
+    import drjit as dr
+    from drjit.llvm import UInt32
+
+    return dr.gather(type(table), table, UInt32(index))
+
+
 def smoothstep01(x):
     """3x² − 2x³ of `x` clamped to [0, 1]: 0 at 0, 1 at 1, flat at both."""
     x = clamp(x, 0.0, 1.0)
@@ -217,5 +228,5 @@ def length3(x, y, z):
     return sqrt(x * x + y * y + z * z)
 
 
-__all__ = ["abs", "clamp", "clamp_max", "clamp_min", "exp", "expm1", "floor", "full_like", "length3", "lerp", "log",
+__all__ = ["abs", "clamp", "clamp_max", "clamp_min", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
            "log2", "maximum", "minimum", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]

@@ -45,14 +45,14 @@ BOUNDS_KINDS = ("sphere", "box")
 
 def supports(batch, vol, uses, settings) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
-    light passes `uses`, or None where it can: an fbm density with the arithmetic hash, in a
+    light passes `uses`, or None where it can: a value-noise fbm density (either hash), in a
     sphere or box, physically shaded with the Frostbite integrator, lit by suns with marched
     shadows through it alone, ungraded sky light, and no emission; `settings` the render's
     `MarchSettings`."""
     from ..light.lights import LIGHTS
 
     checks = [
-        (vol.density.kind == "fbm" and vol.density.value.hash == "arithmetic", "a density other than an arithmetic-hash fbm"),
+        (vol.density.kind == "fbm" and vol.density.value.noise == "value", "a density other than a value-noise fbm"),
         (vol.bounds.kind in BOUNDS_KINDS, f"{vol.bounds.kind} bounds"),
         (vol.shading == "physical", f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
@@ -95,9 +95,14 @@ def _inputs(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, d
     k.fbm = SimpleNamespace(frequency=per_ray(p.frequency), shift=per_ray(fbm.shift), offset=per_ray(p.offset),
                             bias=per_ray(p.bias), amplitude=per_ray(p.amplitude), radial=per_ray(p.radial),
                             center=per_ray(p.center))
-    from drjit.llvm import Int32
+    from drjit.llvm import Float, Int32
 
-    k.seed = Int32(take(fastnoise.mixed_seeds(p.seed, "cpu"), s.cpu()).numpy())
+    if p.hash == "arithmetic":
+        k.basis = fastnoise.hashed(Int32(take(fastnoise.mixed_seeds(p.seed, "cpu"), s.cpu()).numpy()))
+    else:  # the scenes' permutation tables stacked, each ray's chain starting in its scene's block
+        perm, first = noise._scene_lattice_tables(tuple(int(x) for x in p.seed), "cpu")
+        perm, first, rows = Int32(perm.numpy()), Float(first.to(torch.float32).numpy()), Int32(noise.scene_rows(s.cpu()).numpy())
+        k.basis = lambda x, y, z: noise.value_lanes(x, y, z, perm, first, rows)
     bounds = vol.params.bounds.value
     k.bounds = SimpleNamespace(**{name: per_ray(getattr(bounds, name)) for name in type(bounds.models[0]).model_fields})
     k.edge = None if edge is None else SimpleNamespace(width=per_ray(edge.width),
@@ -181,7 +186,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace) -> SimpleNamespace:
     def density(p, count):
         """The density at lanes `p` (three), `count` octaves kept or None: the field clamped at 0,
         faded at the edge and capped, as `renderer.stats.CountedField` reads it."""
-        raw = lanes.clamp_min(fastnoise.fbm_field(*p, k.seed, par.scales, count, k.fbm, octaves=par.octaves), 0.0)
+        raw = lanes.clamp_min(fastnoise.fbm_field(*p, k.basis, par.scales, count, k.fbm, octaves=par.octaves), 0.0)
         if k.edge is not None:
             depth = depth_in(k.bounds, p)
             if k.edge.base is not None:
