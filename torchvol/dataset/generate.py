@@ -269,8 +269,12 @@ def _execute(tasks: list[Task], *, workers: int, threads: int | None, scheduler:
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures import as_completed as done_order
 
-    # the initializer lives in a module without torch: it tunes the worker before the tasks import torch
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+    # one thread a worker: forked (torch and the kernels loaded already: a spawned worker spent ~3 s
+    # importing torch, as long as 64 clouds take to render); a fork inherits the parent's tuning,
+    # and torch's OpenMP pool, which does not survive a fork, never runs on one thread. More threads:
+    # spawned, tuned by the initializer (a module without torch) before the tasks import torch
+    start = "fork" if threads == 1 and "fork" in multiprocessing.get_all_start_methods() else "spawn"
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(start),
                              initializer=init_worker, initargs=(threads,)) as pool:
         futures = [pool.submit(run_task, t) for t in tasks]
         try:
