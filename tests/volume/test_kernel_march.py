@@ -56,6 +56,10 @@ def test_recipe_samples_match_the_eager_march(index):
 
 VARIANTS = {
     "the table hash": {"volumes.0.density.fbm.hash": "table"},
+    "constant density": {"volumes.0.density": {"constant": 1.0}},
+    "exponential density in a slab": {"volumes.0.bounds": {"slab": {"y_min": -1.0, "y_max": 0.5}}, "volumes.0.sigma_t": 2.0,
+                                      "volumes.0.density": {"exponential": {"value": 1.0, "base": -1.0, "scale_height": 0.5}}},
+    "fbm in a slab": {"volumes.0.bounds": {"slab": {"y_min": -1.0, "y_max": 0.5}}},
     "box, no edge": {"volumes.0.bounds": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}, "volumes.0.edge": None},
     "hg, single scattering": {"volumes.0.phase": {"hg": {"g": 0.6}}, "volumes.0.multiple_scattering": None},
     "unshadowed sun, no sky light": {"lights": [{"kind": "sun", "direction": [0.3, 0.9, 0.2], "intensity": 5.0}],

@@ -13,7 +13,11 @@ capabilities:
   path (one fused kernel: the fbm on the arithmetic hash, fur's Worley noise, the template's cloud
   layer in the seeds' look); absent: it is not (`renderer.plan.compile_pays`);
 - ``fused_march``: the template's cloud layer, whose whole march in the seeds' look has a fused
-  form (`volume.fused`, `volume.drjit_march`; `renderer.plan.fused_march` decides where it runs).
+  form (`volume.fused`, `volume.drjit_march`; `renderer.plan.fused_march` decides where it runs);
+- ``lanes = (inputs, density)``: the density written once in lanes (`ops.lanes`), what the Dr.Jit
+  march traces (`volume.kernel_march`): `inputs(field, to)` its per-lane parameters,
+  `density(q, p, count)` its signed density at p (three lanes), `count` octaves kept or None;
+  `supports(volume) -> bool` where a kind renders only some of its variants.
 
 Each field holds per-scene parameter tensors of shape (B, ...) and calls plain noise / sampling
 functions, so B scenes of one structure evaluate in one call.
@@ -25,20 +29,21 @@ from ..schema.registry import Registry
 from .base import Field
 from .clouds import CloudLayer, CloudsDensity
 from .cloudscape import Cloudscape, CloudscapeDensity
-from .constant import Constant, ConstantDensity
+from .constant import Constant, ConstantDensity, constant_density, constant_lanes
 from .explosion import ExplosionDensity, ExplosionField
-from .exponential import Exponential, ExponentialDensity
-from .fbm import FbmDensity, FbmField
+from .exponential import Exponential, ExponentialDensity, exponential_density, exponential_lanes
+from .fbm import FbmDensity, FbmField, fbm_density, fbm_lanes
 from .fur import FurDensity, FurField
 from .grid import Grid, GridDensity
 from .particles import ParticleField, ParticlesDensity
 
 DENSITIES = Registry("density")
-DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True)
+DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lanes=(constant_lanes, constant_density))
 DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True)
-DENSITIES.register("exponential", ExponentialDensity, Exponential)
+DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density))
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True,
-                   compiles_fast=lambda volume: volume.density.value.hash == "arithmetic")
+                   compiles_fast=lambda volume: volume.density.value.hash == "arithmetic",
+                   lanes=(fbm_lanes, fbm_density, lambda volume: volume.density.value.noise == "value"))
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, fused_march=True,
                    compiles_fast=lambda volume: volume.shading == "shader" and volume.edge is None)
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Annotated
 
 from pydantic import Field
@@ -22,3 +23,13 @@ class Constant:
         return take(self.value, scene_index)
 
     signed = __call__  # never clamped: the density is its own signed value
+
+
+def constant_lanes(field: Constant, to) -> SimpleNamespace:
+    """What the constant takes per lane (`to.per_lane`: per scene -> lanes)."""
+    return SimpleNamespace(value=to.per_lane(field.value))
+
+
+def constant_density(q, p, count):
+    """The constant's density in lanes (`ops.lanes`): `q` from `constant_lanes`."""
+    return q.value

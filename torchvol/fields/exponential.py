@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import math
 
-import torch
+from types import SimpleNamespace
+
 from pydantic import Field
 from torch import Tensor
 
+from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict
 from .base import DENSITY_MAX
@@ -34,8 +36,21 @@ class Exponential:
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         p, s = self.p, scene_index
-        h = (points[:, 1] - take(p.base, s)) / take(p.scale_height, s)
-        # the exponent capped before exp (no inf, so value 0 gives 0), the product capped after
-        return (take(p.value, s) * torch.exp((-h).clamp_max(LOG_DENSITY_MAX))).clamp_max(DENSITY_MAX)
+        q = SimpleNamespace(value=take(p.value, s), base=take(p.base, s), scale_height=take(p.scale_height, s))
+        return exponential_density(q, points.unbind(1), None)
 
     signed = __call__  # never clamped: the density is its own signed value
+
+
+def exponential_lanes(field: Exponential, to) -> SimpleNamespace:
+    """What the profile takes per lane (`to.per_lane`: per scene -> lanes)."""
+    return SimpleNamespace(value=to.per_lane(field.p.value), base=to.per_lane(field.p.base),
+                           scale_height=to.per_lane(field.p.scale_height))
+
+
+def exponential_density(q, p, count):
+    """value · e^{−(y − base)/H} in lanes (`ops.lanes`) at p (three lanes), `q` from
+    `exponential_lanes`: the exponent capped before exp (no inf, so value 0 gives 0), the product
+    capped after."""
+    h = (p[1] - q.base) / q.scale_height
+    return lanes.clamp_max(q.value * lanes.exp(lanes.clamp_max(-h, LOG_DENSITY_MAX)), DENSITY_MAX)

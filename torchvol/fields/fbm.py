@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 from typing import Annotated, Literal
 
+import torch
 from pydantic import Field, model_validator
 from torch import Tensor
 
@@ -96,3 +97,27 @@ class FbmField:
                                     center=take(p.center, s).unbind(1))
         return fastnoise.puff(f, *points.unbind(1), per_point)
 
+
+def fbm_lanes(field: FbmField, to) -> SimpleNamespace:
+    """What the fbm takes per lane: its parameters (`to.per_lane`: per scene -> lanes), its noise
+    basis over the lanes' scenes `to.scene` (the arithmetic hash's mixed seeds, or the scenes'
+    permutation tables stacked, each lane's chain in its scene's block; `to.ints`, `to.floats`:
+    a table as the backend's array) and its octave scales."""
+    p = field.p
+    q = SimpleNamespace(frequency=to.per_lane(p.frequency), shift=to.per_lane(field.shift), offset=to.per_lane(p.offset),
+                        bias=to.per_lane(p.bias), amplitude=to.per_lane(p.amplitude), radial=to.per_lane(p.radial),
+                        center=to.per_lane(p.center), octaves=int(p.octaves))
+    q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
+    if p.hash == "arithmetic":
+        q.basis = fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(p.seed, "cpu"), to.scene)))
+    else:
+        perm, first = noise._scene_lattice_tables(tuple(int(x) for x in p.seed), "cpu")
+        perm, first, rows = to.ints(perm), to.floats(first), to.ints(noise.scene_rows(to.scene))
+        q.basis = lambda x, y, z: noise.value_lanes(x, y, z, perm, first, rows)
+    return q
+
+
+def fbm_density(q, p, count):
+    """The fbm field's signed density in lanes (`ops.lanes`) at p (three lanes), `count` octaves
+    kept per lane or None; `q` from `fbm_lanes`."""
+    return fastnoise.fbm_field(*p, q.basis, q.scales, count, q, octaves=q.octaves)

@@ -13,7 +13,7 @@ from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3
 from ..schema.registry import Registry
-from .rays import box_interval, intersect_box, intersect_shell, intersect_slab, intersect_sphere, sphere_interval
+from .rays import box_interval, intersect_box, intersect_shell, intersect_slab, intersect_sphere, slab_interval, sphere_interval
 
 SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
 
@@ -110,8 +110,13 @@ def _sphere_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
     return sphere_depth(p.unbind(1), take(b.center, s).unbind(1), take(b.radius, s))
 
 
+def slab_depth(p, y_min, y_max):
+    """The distance from `p` in to the layer's nearer plane, lanes: p three lanes."""
+    return lanes.minimum(p[1] - y_min, y_max - p[1])
+
+
 def _slab_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
-    return torch.minimum(p[:, 1] - take(b.y_min, s), take(b.y_max, s) - p[:, 1])
+    return slab_depth(p.unbind(1), take(b.y_min, s), take(b.y_max, s))
 
 
 def _shell_altitude(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
@@ -143,6 +148,7 @@ BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, aabb=_sphere_a
                        lambda q, p: sphere_depth(p, q.center, q.radius)))
 # a slab's exit is at infinity along its planes: rays stop at SLAB_REACH unless march.max_distance says
 BOUNDS.register("slab", Slab, _slab_intersect, finite=False, aabb=None, height_range=lambda b: _heights(b.y_min, b.y_max),
-                depth=_slab_depth)
+                depth=_slab_depth, lanes=(lambda q, o, d: slab_interval(o, d, q.y_min, q.y_max),
+                                          lambda q, p: slab_depth(p, q.y_min, q.y_max)))
 BOUNDS.register("shell", Shell, _shell_intersect, finite=True, aabb=_shell_aabb,
                 height_range=lambda b: _heights(b.bottom, b.top), depth=_shell_depth, altitude=_shell_altitude)

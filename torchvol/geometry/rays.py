@@ -126,6 +126,12 @@ def intersect_shell(origins: Tensor, directions: Tensor, center, ground, inner, 
     return _canonical(start, end, n_out > f_out)
 
 
+def slab_interval(o, d, y_min, y_max):
+    """The layer ``y_min <= y <= y_max`` along rays o + t d, in lanes: o, d three lanes each ->
+    (t_near, t_far), misses (+inf, -inf). `intersect_slab`'s body."""
+    return _canonical(*_slab(o[1], d[1], y_min, y_max))
+
+
 def intersect_slab(origins: Tensor, directions: Tensor, y_min, y_max) -> tuple[Tensor, Tensor]:
     """Horizontal layer ``y_min <= y <= y_max``.
 
@@ -133,9 +139,7 @@ def intersect_slab(origins: Tensor, directions: Tensor, y_min, y_max) -> tuple[T
     ``(-inf, +inf)`` inside the layer (boundary included) and a miss outside.
     """
     oy = origins[..., 1]
-    dy = directions[..., 1]
-    t_lo, t_hi, miss = _slab(oy, dy, _as(y_min, oy).expand_as(oy), _as(y_max, oy).expand_as(oy))
-    return _canonical(t_lo, t_hi, miss)
+    return slab_interval(origins.unbind(-1), directions.unbind(-1), _as(y_min, oy).expand_as(oy), _as(y_max, oy).expand_as(oy))
 
 
 def clip_to_ray(t_near: Tensor, t_far: Tensor, t_max=None) -> tuple[Tensor, Tensor, Tensor]:

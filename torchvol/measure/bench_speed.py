@@ -46,12 +46,12 @@ from ..noise import lattice as noise
 from ..renderer.executor import render
 from ..runtime.compilation import compile_settings, compiled
 from ..runtime.threads import torch_threads
-from ..scene.model import preset
+from ..scene.model import preset, preset_names
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = sorted(p.stem for p in (ROOT / "datasets").glob("*.toml"))
 TEMPLATE_SIZES = ((640, 360), (1280, 720))
-PARTS = ("profile", "render", "floor", "generate", "loaded", "heap")  # the report's sections, in order
+PARTS = ("profile", "render", "floor", "presets", "generate", "loaded", "heap")  # the report's sections, in order
 
 
 def _seconds(fn: Callable[[], object]) -> float:
@@ -283,6 +283,44 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
                  first_s=first[(kernel, density, threads)]) for (kernel, density, threads), t in times.items()]
 
 
+def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
+    """The floor of a render `out` (rendered with `keep_context`) whose every march is a Dr.Jit
+    kernel: its density alone in the Dr.Jit kernel on `points` points (the physical march's
+    `kernel_march.density_kernel` over its bounds' box; the template's Dr.Jit fbm), None elsewhere."""
+    from ..volume import kernel_march
+
+    marches = list(out.stats["plan"]["marches"].values())
+    if not marches or any(m != "drjit" for m in marches) or len(marches) > 1:
+        return None
+    n = torch.get_num_threads()
+    if name == "template-clouds":
+        key = (DRJIT_FBM, "template-clouds", n)
+        return Floor(kernels[key], points, n) if key in kernels else None
+    vol = out.context.volumes[0]
+    lo, hi = vol.bounds.caps["aabb"](vol.params.bounds.value)
+    g = torch.Generator().manual_seed(0)
+    kernel = kernel_march.density_kernel(vol, lo[0] + (hi[0] - lo[0]) * torch.rand(points, 3, generator=g))
+    kernel()  # builds: not in the timed runs
+    return Floor(kernel, points, n)
+
+
+def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[dict]:
+    """Every preset at size×size as `render` runs it by default: rows {preset, marches (what each
+    march ran on), seconds, first_s, eager_s (one eager render, where a march ran as a kernel),
+    x_floor (against its density alone in the Dr.Jit kernel, where every march is one)}."""
+    rows, kernels = [], floor_kernels(points=floor_points)
+    for name in preset_names():
+        scene = preset(name, width=size, height=size)
+        out = render(scene, keep_context=True)
+        floor = _kernel_floor(out, name, kernels, floor_points)
+        t = time_render(scene, compile="auto", repeat=repeat, floor=floor)
+        marches = out.stats["plan"]["marches"]
+        eager = _seconds(lambda: render(scene, compile="off")) if "drjit" in marches.values() else None
+        rows.append(dict(preset=name, marches=", ".join(sorted(set(marches.values()))) or "none", seconds=t.seconds,
+                         first_s=t.first_s, eager_s=eager, x_floor=t.x_floor))
+    return rows
+
+
 def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
                     layout: str = "folder", compiled: bool = True) -> list[dict]:
     """`generate` of each recipe at size×size (None: the recipe's own size) with each worker count,
@@ -475,6 +513,26 @@ def _floor_section(sections: dict) -> list[str]:
     return lines
 
 
+def _presets_section(sections: dict) -> list[str]:
+    """The report's section on every preset's default render: its Markdown lines."""
+    size = sections["preset_size"]
+    lines = [f"## Presets: the default render, {size}×{size}", "",
+             "| preset | marches on | default s | eager s | × eager | × floor | first call s |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    lines += [f"| {r['preset']} | {r['marches']} | {r['seconds']:.3f} | {_fmt(r['eager_s'])} | "
+              f"{_fmt(None if r['eager_s'] is None else r['eager_s'] / r['seconds'], '.1f')} | {_fmt(r['x_floor'], '.2f')} | "
+              f"{_fmt(r['first_s'], '.2f')} |" for r in sections["presets"]]
+    lines += ["", "What `render(scene)` does without flags (`compile=\"auto\"`): a march whose technique has a Dr.Jit "
+              "kernel runs in it (\"drjit\": torchvol/volume/kernel_march.py for physical value-noise fbm media, "
+              "torchvol/volume/drjit_march.py for the template's look), the others eagerly; `stats[\"plan\"][\"marches\"]` "
+              "says which. × eager: one eager render (`compile=\"off\"`, the reference) over the default's median. × floor: "
+              "the render's time over the time its density evaluations alone take in the Dr.Jit kernel (the same "
+              "density function, traced alone, on random points of its bounds' box), run beside each render; only "
+              "where every march is a kernel. First call: the first render in this process, the kernel's build "
+              "(or Dr.Jit's disk cache) included.", ""]
+    return lines
+
+
 def _generate_section(sections: dict) -> list[str]:
     """The report's section on the generator's throughput: its Markdown lines."""
     lines = ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
@@ -529,7 +587,7 @@ def _heap_section(sections: dict) -> list[str]:
 
 # the report's sections, in their order on the page
 _SECTIONS = {"profile": _profile_section, "render": _render_section, "floor": _floor_section,
-             "generate": _generate_section, "loaded": _loaded_section, "heap": _heap_section}
+             "presets": _presets_section, "generate": _generate_section, "loaded": _loaded_section, "heap": _heap_section}
 
 
 def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | None = None,
@@ -552,6 +610,10 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
                                          floor_points=2**16 if quick else 2**20)
     if "floor" in parts:
         sections["floor"] = floor_rows(points=2**16 if quick else 2**20, repeat=repeat)
+    if "presets" in parts:
+        sections["preset_size"] = 48 if quick else 256
+        sections["presets"] = preset_rows(size=sections["preset_size"], repeat=repeat,
+                                          floor_points=2**16 if quick else 2**20)
     if "generate" in parts:
         chosen = recipes or (("clouds", "template-clouds") if quick else RECIPES)
         sections["recipes"] = list(recipes) if recipes else None

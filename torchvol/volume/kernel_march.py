@@ -21,15 +21,17 @@ parameters (`drjit.opaque`), so one kernel serves a whole dataset; Dr.Jit caches
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from types import SimpleNamespace
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from ..fields import DENSITIES
+from ..geometry.bounds import BOUNDS
 from ..fields.base import DENSITY_MAX
 from ..fields.edge import EdgeField, faded
-from ..noise import fast as fastnoise
 from ..noise import lattice as noise
 from ..ops import lanes
 from ..runtime.threads import kernel_threads
@@ -40,20 +42,19 @@ from .multiple import octave_weights
 from .physical import light_responses
 from .shadow import shadow_segments
 
-BOUNDS_KINDS = ("sphere", "box")
-
 
 def supports(batch, vol, uses, settings) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
-    light passes `uses`, or None where it can: a value-noise fbm density (either hash), in a
+    light passes `uses`, or None where it can: a density written in lanes (constant, exponential,
+    value-noise fbm of either hash), in a
     sphere or box, physically shaded with the Frostbite integrator, lit by suns with marched
     shadows through it alone, ungraded sky light, and no emission; `settings` the render's
     `MarchSettings`."""
     from ..light.lights import LIGHTS
 
     checks = [
-        (vol.density.kind == "fbm" and vol.density.value.noise == "value", "a density other than a value-noise fbm"),
-        (vol.bounds.kind in BOUNDS_KINDS, f"{vol.bounds.kind} bounds"),
+        (_has_lanes(vol), f"the {vol.density.kind} density"),
+        ("lanes" in BOUNDS[vol.bounds.kind].caps, f"{vol.bounds.kind} bounds"),
         (vol.shading == "physical", f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
         (settings.integrator == "frostbite" and settings.tolerance is None, "the march settings"),
@@ -68,6 +69,12 @@ def supports(batch, vol, uses, settings) -> str | None:
     return next((why for ok, why in checks if not ok), None)
 
 
+def _has_lanes(vol) -> bool:
+    """Whether the volume's density kind is written in lanes for this variant (`fields.DENSITIES`)."""
+    kind = DENSITIES[vol.density.kind].caps.get("lanes")
+    return kind is not None and (len(kind) < 3 or kind[2](vol))
+
+
 def _floats(t: Tensor):
     from drjit.llvm import Float
 
@@ -77,6 +84,47 @@ def _floats(t: Tensor):
 def _lanes_of(value: Tensor, gather):
     """Per-ray lanes of a per-ray tensor [n] or [n, C] (a list of C lanes)."""
     return gather(value) if value.ndim == 1 else [gather(value[:, c]) for c in range(value.shape[1])]
+
+
+def _field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
+    """What the volume's density takes per lane, for points of scenes `s` [n] (`per_ray`: per
+    scene -> per lane): its kind's lanes inputs (`fields.DENSITIES`' ``lanes``), the bounds', the edge's."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    inner, edge = _inner_and_edge(vol)
+    inputs, density = DENSITIES[vol.params.density.kind].caps["lanes"][:2]
+    to = SimpleNamespace(per_lane=per_ray, scene=s.cpu(), ints=lambda t: Int32(t.to(torch.int32).numpy()),
+                         floats=lambda t: Float(t.to(torch.float32).numpy()), number=lambda c: dr.opaque(Float, float(c)))
+    bounds = vol.params.bounds.value
+    return SimpleNamespace(
+        field=inputs(inner, to), field_density=density,
+        bounds=SimpleNamespace(**{name: per_ray(getattr(bounds, name)) for name in type(bounds.models[0]).model_fields}),
+        edge=None if edge is None else SimpleNamespace(width=per_ray(edge.width),
+                                                       base=None if edge.base is None else per_ray(edge.base)))
+
+
+def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
+    """The volume's density alone at `points` [N, 3] of scene 0, as one Dr.Jit kernel: the march's
+    floor (`torchvol bench speed`: what the march would cost if nothing but its density did).
+    -> a function that evaluates it once, returning [N]."""
+    import drjit as dr
+
+    s = torch.zeros(points.shape[0], dtype=torch.long)
+    k = _field_inputs(vol, s, lambda x: _lanes_of(take(x, s), _floats))
+    medium = _medium(k, vol, _parameters(vol, None))
+    p = _lanes_of(points, _floats)
+
+    def run() -> Tensor:
+        threads = kernel_threads()
+        if dr.thread_count() != threads:
+            dr.set_thread_count(threads)
+        out = medium.density(p, None)
+        dr.eval(out)
+        dr.sync_thread()
+        return torch.from_numpy(np.array(out))
+
+    return run
 
 
 def _inputs(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, dither: Tensor | None,
@@ -90,23 +138,7 @@ def _inputs(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, d
     k = SimpleNamespace(origin=lane(o), direction=lane(d), t_start=lane(t0.index_select(0, idx)),
                         t_end=lane(t1.index_select(0, idx)), dither=None if dither is None else lane(dither.index_select(0, idx)))
     k.span = k.t_end - k.t_start
-    fbm, edge = _fbm_and_edge(vol)
-    p = fbm.p
-    k.fbm = SimpleNamespace(frequency=per_ray(p.frequency), shift=per_ray(fbm.shift), offset=per_ray(p.offset),
-                            bias=per_ray(p.bias), amplitude=per_ray(p.amplitude), radial=per_ray(p.radial),
-                            center=per_ray(p.center))
-    from drjit.llvm import Float, Int32
-
-    if p.hash == "arithmetic":
-        k.basis = fastnoise.hashed(Int32(take(fastnoise.mixed_seeds(p.seed, "cpu"), s.cpu()).numpy()))
-    else:  # the scenes' permutation tables stacked, each ray's chain starting in its scene's block
-        perm, first = noise._scene_lattice_tables(tuple(int(x) for x in p.seed), "cpu")
-        perm, first, rows = Int32(perm.numpy()), Float(first.to(torch.float32).numpy()), Int32(noise.scene_rows(s.cpu()).numpy())
-        k.basis = lambda x, y, z: noise.value_lanes(x, y, z, perm, first, rows)
-    bounds = vol.params.bounds.value
-    k.bounds = SimpleNamespace(**{name: per_ray(getattr(bounds, name)) for name in type(bounds.models[0]).model_fields})
-    k.edge = None if edge is None else SimpleNamespace(width=per_ray(edge.width),
-                                                       base=None if edge.base is None else per_ray(edge.base))
+    k.__dict__.update(vars(_field_inputs(vol, s, per_ray)))
     k.sigma_t, k.albedo = per_ray(vol.params.sigma_t), per_ray(vol.params.albedo)
     responses = light_responses(ctx, vol, d, s)
     k.lights = []
@@ -161,18 +193,17 @@ def march(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit
 
 
 def _parameters(vol, st) -> SimpleNamespace:
-    """The settings that are numbers as the kernel's parameters (`drjit.opaque`: one kernel for any
-    value), the octave count and scales."""
+    """The settings `st` (`MarchSettings`; None: none, the density alone) that are numbers as the
+    kernel's parameters (`drjit.opaque`: one kernel for any value), the octave count and scales."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
-    octaves = int(_fbm_and_edge(vol)[0].p.octaves)
+    if st is None:  # the density alone
+        return SimpleNamespace()
     return SimpleNamespace(
         threshold=dr.opaque(Float, st.density_threshold), reach=dr.opaque(Float, min(vol.plan.reach, 3e38)),
         lod=None if st.lod_scale is None else dr.opaque(Float, st.lod_scale),
-        min_transmittance=dr.opaque(Float, st.min_transmittance), max_iterations=dr.opaque(Int32, st.rule.max_iterations),
-        octaves=octaves,
-        scales=[dr.opaque(Float, float(c)) for c in noise.folded_scales(octaves, dtype=torch.float32, device="cpu")])
+        min_transmittance=dr.opaque(Float, st.min_transmittance), max_iterations=dr.opaque(Int32, st.rule.max_iterations))
 
 
 def _medium(k: SimpleNamespace, vol, par: SimpleNamespace) -> SimpleNamespace:
@@ -186,7 +217,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace) -> SimpleNamespace:
     def density(p, count):
         """The density at lanes `p` (three), `count` octaves kept or None: the field clamped at 0,
         faded at the edge and capped, as `renderer.stats.CountedField` reads it."""
-        raw = lanes.clamp_min(fastnoise.fbm_field(*p, k.basis, par.scales, count, k.fbm, octaves=par.octaves), 0.0)
+        raw = lanes.clamp_min(k.field_density(k.field, p, count), 0.0)
         if k.edge is not None:
             depth = depth_in(k.bounds, p)
             if k.edge.base is not None:
@@ -233,6 +264,7 @@ def _body(k: SimpleNamespace, vol, st):
 
     par = _parameters(vol, st)
     medium = _medium(k, vol, par)
+    octaves = getattr(k.field, "octaves", None)  # LOD cuts a sum of octaves short
     lit_evals = sum(light.shadow.steps for light in k.lights if light.shadow is not None)
     lit_evals += k.ambient_steps if vol.plan.ambient and vol.plan.ambient_sky is not None else 0
 
@@ -243,7 +275,7 @@ def _body(k: SimpleNamespace, vol, st):
         dt = lanes.minimum(dt, k.t_end - t)
         t_sample = t + 0.5 * dt
         p = [k.origin[c] + t_sample * k.direction[c] for c in range(3)]
-        count = None if par.lod is None else par.octaves - Int32(dr.floor(dr.log2(1.0 + t_sample * par.lod)))
+        count = None if par.lod is None or octaves is None else octaves - Int32(dr.floor(dr.log2(1.0 + t_sample * par.lod)))
         raw = medium.density(p, count)
         sigma_t = k.sigma_t * raw
         lit = (raw > par.threshold) & (dt > 0.0)
@@ -264,10 +296,10 @@ def _body(k: SimpleNamespace, vol, st):
     return body
 
 
-def _fbm_and_edge(vol):
-    """The volume's fbm field and its `Edge` tables (None: no edge fade) under its counted field."""
+def _inner_and_edge(vol):
+    """The volume's density field and its `Edge` tables (None: no edge fade) under its counted field."""
     field = vol.field.inner
     return (field.inner, field.edge) if isinstance(field, EdgeField) else (field, None)
 
 
-__all__ = ["march", "supports"]
+__all__ = ["density_kernel", "march", "supports"]
