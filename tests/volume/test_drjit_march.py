@@ -19,6 +19,7 @@ from volume.test_fused import (
 )
 
 import torchvol as tv
+from torchvol.fields import clouds
 from torchvol.noise import lattice as noise
 from torchvol.volume import drjit_march, fused
 
@@ -44,13 +45,14 @@ def _torch(v):
 
 
 def test_texture_noise_is_the_torch_one_bitwise():
-    """Every value equal to `noise.texture_noise_coords`, past the float->int32 overflow and at NaN,
-    each point on its own texture of a stacked table."""
+    """`noise.texture_noise_coords` traced by Dr.Jit (one source, `ops.lanes`) gives its torch
+    values bitwise, past the float->int32 overflow and at NaN, each point on its own texture of a
+    stacked table."""
     _, packed = _stacked_tables([0, 5])
     p = hard_points()
     base = (torch.arange(p.shape[0]) % 2) * 65536
     expected = noise.texture_noise_coords(*p.unbind(1), packed, base.to(torch.int32))
-    got = _torch(drjit_march.texture_noise(*(_floats(c.contiguous()) for c in p.unbind(1)), _ints(packed), _ints(base)))
+    got = _torch(noise.texture_noise_coords(*(_floats(c.contiguous()) for c in p.unbind(1)), _ints(packed), _ints(base)))
     assert_same_values(got, expected, p)
 
 
@@ -59,7 +61,7 @@ def test_texture_noise_is_the_torch_one_bitwise():
 def test_texture_noise_is_bitwise_at_any_float32_point(xyz):
     _, packed = _stacked_tables([3])
     p = torch.tensor([xyz], dtype=torch.float32)
-    got = drjit_march.texture_noise(*(_floats(c) for c in p.unbind(1)), _ints(packed), _ints(torch.zeros(1)))
+    got = noise.texture_noise_coords(*(_floats(c) for c in p.unbind(1)), _ints(packed), _ints(torch.zeros(1)))
     assert torch.equal(_torch(got), noise.texture_noise_coords(*p.unbind(1), packed))
 
 
@@ -73,10 +75,9 @@ def test_fbm_with_its_level_of_detail_is_the_eager_one_bitwise():
     from drjit.llvm import Float
 
     for kept in (None, count):
-        expected = fused.cloud_fbm(*p.unbind(1), packed, base, kept, octaves=5, scales=scales)
-        got = drjit_march.cloud_fbm(*(_floats(c.contiguous()) for c in p.unbind(1)), _ints(packed), _ints(base),
-                                    None if kept is None else _ints(kept), octaves=5,
-                                    scales=[Float(float(c)) for c in scales])
+        expected = clouds.cloud_fbm(*p.unbind(1), packed, base, kept, octaves=5, scales=scales)
+        got = clouds.cloud_fbm(*(_floats(c.contiguous()) for c in p.unbind(1)), _ints(packed), _ints(base),
+                               None if kept is None else _ints(kept), octaves=5, scales=[Float(float(c)) for c in scales])
         assert torch.equal(_torch(got), expected), f"octaves kept {'all' if kept is None else 'by count'}"
 
 

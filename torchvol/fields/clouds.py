@@ -15,6 +15,7 @@ from pydantic import Field, field_validator
 from torch import Tensor
 
 from ..noise import lattice as noise
+from ..ops import lanes
 from ..runtime import compilation
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
@@ -85,4 +86,23 @@ class CloudLayer:
         else:
             f = noise.fbm(q, lambda x, r: noise.texture_noise_coords(*x.unbind(1), self.packed, r) * 2.0 - 1.0,
                           octaves=p.octaves, lod=octaves, rows=noise.texture_rows(s, points.dtype))
-        return (take(p.bias, s) - points[:, 1] + take(p.density_scale, s) * f).clamp_max(1.0)
+        return cloud_density(f, points[:, 1], take(p.bias, s), take(p.density_scale, s))
+
+
+def cloud_density(f, y, bias, density_scale):
+    """The cloud layer's signed density bias − y + density_scale · f, at most 1, from its fbm `f`
+    at height `y`; lanes (`ops.lanes`)."""
+    return lanes.clamp_max(bias - y + density_scale * f, 1.0)
+
+
+def cloud_fbm(x, y, z, packed, base, count, *, octaves: int, scales: list):
+    """`noise.fbm` of the template's texture noise (`CloudLayer`) at points given as coordinates
+    `x`, `y`, `z` [N], with its LOD as a mask: octave k ≥ 1 adds where `count` [N] (octaves kept)
+    ≥ k + 1 (None: all). `base` [N]: the points' rows in the stacked `packed` tables. Lanes
+    (`ops.lanes`): the fused march's kernels and the Dr.Jit march trace it. -> [N]."""
+    f = (noise.texture_noise_coords(x, y, z, packed, base) * 2.0 - 1.0) * 0.5
+    for k in range(1, octaves):
+        c = scales[k - 1]
+        term = (noise.texture_noise_coords(x * c, y * c, z * c, packed, base) * 2.0 - 1.0) * (0.5 * 0.5**k)
+        f = f + term if count is None else lanes.where(count >= k + 1, f + term, f)
+    return f

@@ -41,6 +41,7 @@ from typing import Callable, NamedTuple, Sequence
 
 import torch
 
+from ..fields.clouds import cloud_fbm
 from ..noise import fast as fastnoise
 from ..noise import lattice as noise
 from ..renderer.executor import render
@@ -219,14 +220,13 @@ def _drjit_fbm(x, y, z, packed, base, *, scales) -> Callable[[], object]:
     import drjit as dr
     from drjit.llvm import Float, Int32
 
-    from ..volume import drjit_march
 
     points = [Float(c.numpy()) for c in (x, y, z)]
     table, rows, factors = Int32(packed.numpy()), Int32(base.numpy()), [Float(float(c)) for c in scales]
 
     def run():
         dr.set_thread_count(torch.get_num_threads())
-        out = drjit_march.cloud_fbm(*points, table, rows, None, octaves=5, scales=factors)
+        out = cloud_fbm(*points, table, rows, None, octaves=5, scales=factors)
         dr.eval(out)
         dr.sync_thread()
         return out
@@ -237,11 +237,10 @@ def _drjit_fbm(x, y, z, packed, base, *, scales) -> Callable[[], object]:
 def floor_kernels(*, points: int, octaves: int = 4) -> dict[tuple[str, str, int], Callable[[], object]]:
     """Each measured render's noise alone on the same `points` random points: cloud-puff's
     `octaves`-octave value-noise fbm and the template's 5-octave texture-noise fbm
-    (`volume.fused.cloud_fbm`), eager and as a fused compiled kernel, and the template's in Dr.Jit
+    (`fields.clouds.cloud_fbm`), eager and as a fused compiled kernel, and the template's in Dr.Jit
     where it runs (the compiled and Dr.Jit ones also on one
     thread, the floor of the one-thread render rows). {(kernel, density (the preset whose floor
     it is), torch threads): fn}; run each on its threads."""
-    from ..volume.fused import cloud_fbm
 
     g = torch.Generator().manual_seed(0)
     p = torch.rand(points, 3, generator=g) * 20.0 - 10.0

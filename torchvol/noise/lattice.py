@@ -484,31 +484,32 @@ def texture_rows(scene: Tensor, dtype: torch.dtype) -> Tensor:
     return scene.to(texture_index_dtype(dtype)) * (256 * 256)
 
 
-def texture_noise_coords(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: Tensor | None = None, *,
-                         filter_bits: int = LLVMPIPE_FILTER_BITS) -> Tensor:
+def texture_noise_coords(x, y, z, packed, base=None, *, filter_bits: int = LLVMPIPE_FILTER_BITS):
     """`texture_noise_table` with a fixed-point filter, bit for bit, for points given as their
     coordinates (each ``[N]``) and a `packed_table`, its integer steps in integers (int32 for
     float32 points, int64 for float64) instead of float64: contiguous loads and integer lanes
-    are what inductor vectorises (`volume.fused`). `base` ``[N]``: rows in stacked tables."""
+    are what inductor vectorises (`volume.fused`). `base` ``[N]``: rows in stacked tables. Lanes
+    (`ops.lanes`): with Dr.Jit arrays (float32, int32 `packed` and `base`) it is what the template's
+    Dr.Jit march traces, bitwise these values."""
     bits = int(filter_bits)
     if not 1 <= bits <= 15:
         raise ValueError(f"filter_bits: got {filter_bits!r}; an int in 1..15")
-    itype = texture_index_dtype(x.dtype)
+    wide = isinstance(x, Tensor) and texture_index_dtype(x.dtype) == torch.int64
     one, half = 1 << bits, 1 << (bits - 1)
-    fx, fy, fz = torch.floor(x), torch.floor(y), torch.floor(z)
+    fx, fy, fz = lanes.floor(x), lanes.floor(y), lanes.floor(z)
     wx_, wy_, wz = x - fx, y - fy, z - fz
     wx_, wy_, wz = wx_ * wx_ * (3.0 - 2.0 * wx_), wy_ * wy_ * (3.0 - 2.0 * wy_), wz * wz * (3.0 - 2.0 * wz)
     u = (fx + 37.0 * fz) + wx_
     v = (fy + 239.0 * fz) + wy_
 
-    def texel(c: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # (i0 & 255, i1 & 255, weight) of one axis
-        s = torch.round((c + 0.5) * float(one))
-        bad = ~(s.abs() < 2.0**31)  # x86 cvt overflow / NaN -> 0x80000000, then the int32 wrap of −half
-        if itype == torch.int32:  # |s| < 2**31 in float32 is at most 2**31 − 128: s − half cannot wrap
-            shifted = torch.where(bad, 2**31 - half, torch.where(bad, 0.0, s).to(itype) - half)
-        else:
-            si = torch.where(bad, -(2.0**31), s).to(itype) - half
+    def texel(c):  # (i0 & 255, i1 & 255, weight) of one axis
+        s = lanes.round((c + 0.5) * float(one))
+        bad = ~(lanes.abs(s) < 2.0**31)  # x86 cvt overflow / NaN -> 0x80000000, then the int32 wrap of −half
+        if wide:
+            si = torch.where(bad, -(2.0**31), s).to(torch.int64) - half
             shifted = torch.where(si < -(2**31), si + 2**32, si)
+        else:  # |s| < 2**31 in float32 is at most 2**31 − 128: s − half cannot wrap
+            shifted = lanes.where(bad, lanes.int_like(2**31 - half, s), lanes.to_int32(lanes.where(bad, 0.0, s)) - half)
         i0 = shifted >> bits
         return i0 & 255, (i0 + 1) & 255, shifted & (one - 1)
 
@@ -517,14 +518,14 @@ def texture_noise_coords(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: 
     row0, row1 = y0 * 256, y1 * 256
     if base is not None:
         row0, row1 = row0 + base, row1 + base
-    at = lambda row, col: take_rows(packed, row + col)  # noqa: E731
+    at = lambda row, col: lanes.gather(packed, row + col)  # noqa: E731
 
-    def lerp(a: Tensor, b: Tensor, w: Tensor) -> Tensor:  # a + ((w (b − a) + half) >> bits), both channels
+    def lerp(a, b, w):  # a + ((w (b − a) + half) >> bits), both channels
         return ((a & 255) * (one - w) + (b & 255) * w + half) >> bits, ((a >> 8) * (one - w) + (b >> 8) * w + half) >> bits
 
     (g0, r0), (g1, r1) = lerp(at(row0, x0), at(row0, x1), wx), lerp(at(row1, x0), at(row1, x1), wx)
-    g = (((g0 * (one - wy) + g1 * wy + half) >> bits).to(x.dtype)) * (1.0 / 255.0)
-    r = (((r0 * (one - wy) + r1 * wy + half) >> bits).to(x.dtype)) * (1.0 / 255.0)
+    g = lanes.to_float((g0 * (one - wy) + g1 * wy + half) >> bits, x) * (1.0 / 255.0)
+    r = lanes.to_float((r0 * (one - wy) + r1 * wy + half) >> bits, x) * (1.0 / 255.0)
     return g + wz * (r - g)
 
 

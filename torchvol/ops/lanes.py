@@ -75,6 +75,24 @@ def sqrt(x):
     return dr.sqrt(x)
 
 
+def round(x):  # noqa: A001  the lane form of the builtin
+    """To the nearest integer value, ties to even (torch.round, drjit.round)."""
+    if _is_torch(x):
+        return torch.round(x)
+    import drjit as dr
+
+    return dr.round(x)
+
+
+def int_like(value: int, like):
+    """The integer `value` where `like` is a Dr.Jit array (an Int32 lane), else the number itself."""
+    if _is_torch(like) or _is_number(like):
+        return value
+    from drjit.llvm import Int32
+
+    return Int32(value)
+
+
 def floor(x):
     """Rounded down to an integer value (still a float)."""
     if _is_torch(x):
@@ -229,4 +247,4 @@ def length3(x, y, z):
 
 
 __all__ = ["abs", "clamp", "clamp_max", "clamp_min", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
-           "log2", "maximum", "minimum", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]
+           "int_like", "log2", "maximum", "minimum", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]

@@ -35,6 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..fields.clouds import cloud_density, cloud_fbm
+from ..ops import lanes
 from ..runtime.threads import kernel_threads
 from .march import MarchResult
 
@@ -65,76 +67,6 @@ def available(like: Tensor) -> bool:
     if _USABLE["usable"] is None:
         _USABLE["usable"] = _probe()
     return bool(_USABLE["usable"])
-
-
-def _texel(c):
-    """`noise.texture_noise_coords`' `texel` on Float `c`: (i0 & 255, i1 & 255, weight), Int32."""
-    import drjit as dr
-    from drjit.llvm import Int32
-
-    s = dr.round((c + 0.5) * 256.0)  # ties to even, as torch.round
-    ok = dr.abs(s) < 2.0**31
-    # x86's float -> int32 overflow (0x80000000, NaN too) minus half: converting an out-of-range
-    # float is undefined in LLVM, so only in-range values are converted
-    shifted = dr.select(ok, Int32(dr.select(ok, s, 0.0)) - 128, Int32(2**31 - 128))
-    i0 = shifted >> 8
-    return i0 & 255, (i0 + 1) & 255, shifted & 255
-
-
-def texture_noise(x, y, z, packed, base):
-    """`noise.texture_noise_coords` (8 filter bits) in Dr.Jit, bitwise: Floats `x`, `y`, `z` [N],
-    `packed` Int32 [M] (`noise.packed_table`), `base` Int32 [N] (rows in stacked tables) -> Float [N]."""
-    import drjit as dr
-    from drjit.llvm import Float, Int32, UInt32
-
-    fx, fy, fz = dr.floor(x), dr.floor(y), dr.floor(z)
-    wx, wy, wz = x - fx, y - fy, z - fz
-    wx, wy, wz = wx * wx * (3.0 - 2.0 * wx), wy * wy * (3.0 - 2.0 * wy), wz * wz * (3.0 - 2.0 * wz)
-    x0, x1, tx = _texel((fx + 37.0 * fz) + wx)
-    y0, y1, ty = _texel((fy + 239.0 * fz) + wy)
-    row0, row1 = y0 * 256 + base, y1 * 256 + base
-    a, b = dr.gather(Int32, packed, UInt32(row0 + x0)), dr.gather(Int32, packed, UInt32(row0 + x1))
-    c, d = dr.gather(Int32, packed, UInt32(row1 + x0)), dr.gather(Int32, packed, UInt32(row1 + x1))
-    sx, sy = 256 - tx, 256 - ty
-    g0, r0 = ((a & 255) * sx + (b & 255) * tx + 128) >> 8, ((a >> 8) * sx + (b >> 8) * tx + 128) >> 8
-    g1, r1 = ((c & 255) * sx + (d & 255) * tx + 128) >> 8, ((c >> 8) * sx + (d >> 8) * tx + 128) >> 8
-    g = Float((g0 * sy + g1 * ty + 128) >> 8) * (1.0 / 255.0)
-    r = Float((r0 * sy + r1 * ty + 128) >> 8) * (1.0 / 255.0)
-    return g + wz * (r - g)
-
-
-def cloud_fbm(x, y, z, packed, base, count, *, octaves: int, scales: list):
-    """`fused.cloud_fbm` in Dr.Jit: octave k ≥ 1 adds where Int32 `count` [N] ≥ k + 1 (None: all);
-    `scales` Floats (`noise.folded_scales`). A dropped octave is skipped, not masked, where a
-    whole vector of rays drops it (the same values; 3% of a 640×360 template render)."""
-    import drjit as dr
-
-    def octave(x, y, z, f, k: int):
-        c = scales[k - 1]
-        return f + (texture_noise(x * c, y * c, z * c, packed, base) * 2.0 - 1.0) * (0.5 * 0.5**k)
-
-    f = (texture_noise(x, y, z, packed, base) * 2.0 - 1.0) * 0.5
-    for k in range(1, octaves):
-        f = octave(x, y, z, f, k) if count is None else dr.if_stmt(
-            (x, y, z, f), count >= k + 1, lambda x, y, z, f, k=k: octave(x, y, z, f, k), lambda x, y, z, f: f)
-    return f
-
-
-def _lerp(a, b, w):
-    """torch.lerp as its vectorised CPU kernel computes it: a fused multiply-add from the nearer end."""
-    import drjit as dr
-
-    small = dr.abs(w) < 0.5
-    return dr.fma(dr.select(small, w, w - 1.0), b - a, dr.select(small, a, b))
-
-
-def _clamp(x, lo, hi):
-    """clamp_max then clamp_min, NaN passing through as torch's (selects: LLVM 15 cannot lower
-    the min/max intrinsics Dr.Jit emits)."""
-    import drjit as dr
-
-    x = dr.select(x > hi, hi, x)
-    return dr.select(x < lo, lo, x)
 
 
 def _floats(t: Tensor):
@@ -223,7 +155,7 @@ def _march_body(k: SimpleNamespace, config: StepConfig) -> Callable:
     def density(x, y, z, count):
         f = cloud_fbm(x - k.shift[0], y - k.shift[1], z - k.shift[2], k.table, k.base, count, octaves=config.octaves,
                       scales=k.octave_scales)
-        return _clamp(k.bias - y + k.density_scale * f, 0.0, 1.0)
+        return lanes.clamp_min(cloud_density(f, y, k.bias, k.density_scale), 0.0)
 
     def body(t, trans, wsum, wt, median, steps, alive, truncated, evals, red, green, blue):
         # the loop runs only alive rays
@@ -234,7 +166,7 @@ def _march_body(k: SimpleNamespace, config: StepConfig) -> Callable:
         lin = _sample_light(k, config, density, p, count, rho, lit)
         haze = 1.0 - dr.exp(-k.fog * t * t)
         alpha = dr.select(lit, rho * k.alpha_scale, 0.0)
-        color = [dr.select(lit, _lerp(_lerp(k.color_lit[c], k.color_dark[c], rho) * lin[c], k.sky[c], haze), 0.0)
+        color = [dr.select(lit, lanes.lerp(lanes.lerp(k.color_lit[c], k.color_dark[c], rho) * lin[c], k.sky[c], haze), 0.0)
                  for c in range(3)]
         seg = 1.0 - alpha  # the eager step's alpha_step, op for op
         weight, new_trans = trans * (1.0 - seg), trans * seg
@@ -262,13 +194,13 @@ def _sample_light(k: SimpleNamespace, config: StepConfig, density: Callable, p: 
 
     lin = list(k.ambient)
     if config.graded:
-        w = _clamp((p[1] - k.heights[0]) / (k.heights[1] - k.heights[0]), 0.0, 1.0)
-        lin = [_lerp(lin[c], k.ambient_top[c], w) for c in range(3)]
+        w = lanes.clamp((p[1] - k.heights[0]) / (k.heights[1] - k.heights[0]), 0.0, 1.0)
+        lin = [lanes.lerp(lin[c], k.ambient_top[c], w) for c in range(3)]
     if config.light:
         step = k.light_step
         ahead = dr.if_stmt((p[0], p[1], p[2], count), lit,
                            lambda x, y, z, n: density(x + step[0], y + step[1], z + step[2], n),
                            lambda x, y, z, n: dr.zeros(Float, dr.width(x)))
-        dif = _clamp((rho - ahead) / k.light_scale, 0.0, 1.0)
+        dif = lanes.clamp((rho - ahead) / k.light_scale, 0.0, 1.0)
         lin = [k.irradiance[c] * dif + lin[c] for c in range(3)]
     return lin

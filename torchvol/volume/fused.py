@@ -30,6 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..fields.clouds import cloud_density, cloud_fbm
 from ..noise import lattice as noise
 from ..ops.mathops import take_rows
 from ..runtime.compilation import compiled
@@ -80,19 +81,6 @@ def cloud_look(ctx: VolumeContext, vol) -> tuple[CloudLook, Tensor]:
     return cl, torch.cat([layer.packed, layer.packed[:1]])
 
 
-def cloud_fbm(x: Tensor, y: Tensor, z: Tensor, packed: Tensor, base: Tensor, count: Tensor | None, *, octaves: int,
-              scales: list[Tensor]) -> Tensor:
-    """`noise.fbm` of the template's texture noise (`fields.clouds.CloudLayer`) at points given
-    as coordinates `x`, `y`, `z` [N], with its LOD as a mask: octave k ≥ 1 adds where `count` [N]
-    (octaves kept) ≥ k + 1. `base` [N]: the points' rows in the stacked `packed` tables. -> [N]."""
-    f = (noise.texture_noise_coords(x, y, z, packed, base) * 2.0 - 1.0) * 0.5
-    for k in range(1, octaves):
-        c = scales[k - 1]
-        term = (noise.texture_noise_coords(x * c, y * c, z * c, packed, base) * 2.0 - 1.0) * (0.5 * 0.5**k)
-        f = f + term if count is None else torch.where(count >= k + 1, f + term, f)
-    return f
-
-
 def _count(t: Tensor, config: StepConfig) -> Tensor | None:
     """Octaves kept at distance `t` [N] (the template's LOD, `march.lod_drop`); None: all."""
     if config.lod_scale is None:
@@ -107,7 +95,7 @@ def _density(x: Tensor, y: Tensor, z: Tensor, count: Tensor | None, s: Tensor, l
     shift = look.shift[s]
     f = cloud_fbm(x - shift[:, 0], y - shift[:, 1], z - shift[:, 2], packed, look.base[s], count,
                   octaves=config.octaves, scales=scales)
-    return (look.bias[s] - y + look.density_scale[s] * f).clamp_max(1.0).clamp_min(0.0)
+    return cloud_density(f, y, look.bias[s], look.density_scale[s]).clamp_min(0.0)
 
 
 class Sample(NamedTuple):

@@ -32,7 +32,6 @@ from ..fields import DENSITIES
 from ..geometry.bounds import BOUNDS
 from ..fields.base import DENSITY_MAX
 from ..fields.edge import EdgeField, faded
-from ..noise import lattice as noise
 from ..ops import lanes
 from ..runtime.threads import kernel_threads
 from ..schema.batch import take
