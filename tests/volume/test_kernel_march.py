@@ -60,6 +60,17 @@ VARIANTS = {
     "exponential density in a slab": {"volumes.0.bounds": {"slab": {"y_min": -1.0, "y_max": 0.5}}, "volumes.0.sigma_t": 2.0,
                                       "volumes.0.density": {"exponential": {"value": 1.0, "base": -1.0, "scale_height": 0.5}}},
     "fbm in a slab": {"volumes.0.bounds": {"slab": {"y_min": -1.0, "y_max": 0.5}}},
+    "a point light beside the sun": {"lights": [
+        {"kind": "sun", "direction": [0.3, 0.9, 0.2], "intensity": 5.0, "shadow": {"steps": 4}},
+        {"kind": "point", "position": [0.2, 1.5, 0.3], "intensity": 3.0, "color": [1.0, 0.6, 0.3], "shadow": {"steps": 3}}]},
+    "a point light, HG, single scattering": {
+        "lights": [{"kind": "point", "position": [0.2, 1.5, 0.3], "intensity": 3.0, "shadow": {"steps": 3}}],
+        "volumes.0.phase": {"hg": {"g": 0.5}}, "volumes.0.multiple_scattering": None},
+    "a point light, Mie with octaves": {"lights": [{"kind": "point", "position": [-1.2, 0.5, 0.3], "intensity": 2.0}],
+                                        "volumes.0.phase": {"mie": {"g": 0.5}}},
+    "a point light, Rayleigh with octaves": {"lights": [{"kind": "point", "position": [0.0, 0.0, 0.0], "intensity": 1.0}],
+                                             "volumes.0.phase": "rayleigh"},
+    "emission": {"volumes.0.emission": [0.5, 0.2, 0.1]},
     "box, no edge": {"volumes.0.bounds": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}, "volumes.0.edge": None},
     "hg, single scattering": {"volumes.0.phase": {"hg": {"g": 0.6}}, "volumes.0.multiple_scattering": None},
     "unshadowed sun, no sky light": {"lights": [{"kind": "sun", "direction": [0.3, 0.9, 0.2], "intensity": 5.0}],

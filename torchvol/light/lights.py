@@ -15,6 +15,7 @@ import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
+from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import SHARED, Strict, Vec3, nonneg, nonzero
 from ..schema.registry import Registry
@@ -98,10 +99,19 @@ def point_toward(light: Stacked, points: Tensor, s: Tensor) -> Toward:
     """A point light as seen from `points` [n, 3] of scenes `s` [n]: the unit direction to it
     [n, 3], its irradiance there [n, 3] (falling off as 1/r², r no less than POINT_RADIUS) and
     the distance [n]."""
-    v = take(light.position, s) - points
-    r2 = (v * v).sum(dim=1).clamp_min(POINT_RADIUS * POINT_RADIUS)
-    r = r2.sqrt()
-    return Toward(v / r[:, None], take(radiant(light), s) / r2[:, None], r)
+    direction, irradiance, r = point_lanes(take(light.position, s).unbind(1), take(radiant(light), s).unbind(1),
+                                           points.unbind(1))
+    return Toward(torch.stack(direction, 1), torch.stack(irradiance, 1), r)
+
+
+def point_lanes(position, radiant_intensity, p):
+    """A point light at `position` of `radiant_intensity` (three lanes each) seen from `p` (three
+    lanes), in lanes (`ops.lanes`): (unit direction to it, irradiance there (1/r², r no less than
+    POINT_RADIUS), each three lanes; the distance r)."""
+    v = [position[c] - p[c] for c in range(3)]
+    r2 = lanes.clamp_min(v[0] * v[0] + v[1] * v[1] + v[2] * v[2], POINT_RADIUS * POINT_RADIUS)
+    r = lanes.sqrt(r2)
+    return [c / r for c in v], [e / r2 for e in radiant_intensity], r
 
 
 LIGHTS = Registry("light")

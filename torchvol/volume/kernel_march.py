@@ -29,9 +29,10 @@ import torch
 from torch import Tensor
 
 from ..fields import DENSITIES
-from ..geometry.bounds import BOUNDS
 from ..fields.base import DENSITY_MAX
 from ..fields.edge import EdgeField, faded
+from ..geometry.bounds import BOUNDS
+from ..light.lights import point_lanes
 from ..ops import lanes
 from ..runtime.threads import kernel_threads
 from ..schema.batch import take
@@ -45,22 +46,19 @@ from .shadow import shadow_segments
 def supports(batch, vol, uses, settings) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
     light passes `uses`, or None where it can: a density written in lanes (constant, exponential,
-    value-noise fbm of either hash), in a
-    sphere or box, physically shaded with the Frostbite integrator, lit by suns with marched
-    shadows through it alone, ungraded sky light, and no emission; `settings` the render's
+    value-noise fbm of either hash) in bounds written in lanes (sphere, box, slab), physically
+    shaded with the Frostbite integrator, lit by suns and point lights with marched shadows
+    through it alone, ungraded sky light, emission without a colour map; `settings` the render's
     `MarchSettings`."""
-    from ..light.lights import LIGHTS
-
     checks = [
         (_has_lanes(vol), f"the {vol.density.kind} density"),
         ("lanes" in BOUNDS[vol.bounds.kind].caps, f"{vol.bounds.kind} bounds"),
         (vol.shading == "physical", f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
         (settings.integrator == "frostbite" and settings.tolerance is None, "the march settings"),
-        (vol.emission_map is None and vol.bloom is None and vol.sky_blend is None and not bool((vol.emission > 0).any()),
-         "emission"),
+        (vol.emission_map is None and vol.bloom is None and vol.sky_blend is None, "an emission map, bloom or sky blend"),
         (vol.ambient is None or vol.ambient.top is None, "a graded ambient"),
-        (all(LIGHTS[batch.lights[u.light].kind].caps["directional"] for u in uses), "a light that is not a sun"),
+        (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
         (all(u.shadow is None or (u.shadow.method == "march" and not (u.occluders or u.terrain or u.voxels)) for u in uses),
          "shadows through other volumes or surfaces"),
         (batch.terrain is None and batch.voxels is None, "surfaces"),
@@ -142,10 +140,21 @@ def _inputs(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, d
     responses = light_responses(ctx, vol, d, s)
     k.lights = []
     for use in vol.plan.lights:
-        resp = responses[use.light]  # [n, 3] or per octave [n, K, 3]
+        light, resp = ctx.lights[use.light], responses[use.light]  # [n, 3] or per octave [n, K, 3]; None: a point light
+        if resp is None:  # its θ changes along the ray: the phase is traced per sample
+            k.lights.append(SimpleNamespace(response=None, position=per_ray(light.params.position),
+                                            radiant=per_ray(light.radiant), shadow=use.shadow))
+            continue
         resp = [resp] if resp.ndim == 2 else list(resp.unbind(1))
-        k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(ctx.lights[use.light].direction),
+        k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(light.direction),
                                         shadow=use.shadow))
+    if any(light.response is None for light in k.lights):
+        inputs, k.phase = vol.phase.caps["lanes"]
+        k.phase_params = inputs(vol.params.phase.value, SimpleNamespace(per_lane=per_ray))
+        ms = vol.params.multiple_scattering
+        k.octave_scales = [] if not vol.plan.multiple else [(per_ray(ms.a**i), per_ray(ms.c**i)) for i in range(1, ms.octaves)]
+    if vol.plan.emissive:
+        k.emission = per_ray(vol.params.emission)
     if vol.plan.multiple:
         b = vol.params.multiple_scattering.b
         k.exponents = [per_ray(b**i) for i in range(1, vol.params.multiple_scattering.octaves)]
@@ -224,10 +233,13 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace) -> SimpleNamespace:
             raw = faded(raw, depth, k.edge.width)
         return lanes.clamp_max(raw, DENSITY_MAX)
 
-    def transmittance(p, direction, sigma_scale, shadow):
-        """From lanes `p` along `direction` (three lanes) out of the bounds, σ_t = `sigma_scale` ×
-        density, over `shadow`'s segments (`shadow.shadow_transmittance`'s march)."""
+    def transmittance(p, direction, sigma_scale, shadow, distance=None):
+        """From lanes `p` along `direction` (three lanes) out of the bounds or to the light at
+        `distance` (None: a sun), σ_t = `sigma_scale` × density, over `shadow`'s segments
+        (`shadow.shadow_transmittance`'s march)."""
         exit_t = lanes.clamp(interval(k.bounds, p, direction)[1], 0.0, par.reach)
+        if distance is not None:
+            exit_t = lanes.minimum(exit_t, distance)
         tau = dr.zeros(Float, dr.width(exit_t))
         for mid, length in shadow_segments(exit_t, steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step):
             tau = tau + sigma_scale * density([p[c] + mid * direction[c] for c in range(3)], None) * length
@@ -239,10 +251,16 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace) -> SimpleNamespace:
         sigma_s = k.albedo * sigma_t
         out = [dr.zeros(Float, dr.width(sigma_t)) for _ in range(3)]
         for light in k.lights:
-            trans = None if light.shadow is None else transmittance(p, light.direction, k.sigma_t, light.shadow)
+            response, direction, distance = light.response, getattr(light, "direction", None), None
+            if response is None:  # a point light: `physical.response` at this sample
+                direction, irradiance, distance = point_lanes(light.position, light.radiant, p)
+                cos = k.direction[0] * direction[0] + k.direction[1] * direction[1] + k.direction[2] * direction[2]
+                response = [[e * k.phase(k.phase_params, cos, 1.0) for e in irradiance]]
+                response += [[e * (a * k.phase(k.phase_params, cos, c)) for e in irradiance] for a, c in k.octave_scales]
+            trans = None if light.shadow is None else transmittance(p, direction, k.sigma_t, light.shadow, distance)
             weights = octave_weights(sigma_s, trans, k.exponents if vol.plan.multiple else [])
-            out = [out[c] + sum((light.response[i][c] * weights[i] for i in range(1, len(weights))),
-                                light.response[0][c] * weights[0]) for c in range(3)]
+            out = [out[c] + sum((response[i][c] * weights[i] for i in range(1, len(weights))),
+                                response[0][c] * weights[0]) for c in range(3)]
         if vol.plan.ambient:
             amb = [k.ambient[c] * sigma_s for c in range(3)]
             if vol.plan.ambient_sky is not None:
@@ -280,6 +298,8 @@ def _body(k: SimpleNamespace, vol, st):
         lit = (raw > par.threshold) & (dt > 0.0)
         source = dr.if_stmt((p[0], p[1], p[2], sigma_t), lit, lambda x, y, z, sg: tuple(medium.in_scatter([x, y, z], sg)),
                             lambda x, y, z, sg: (dr.zeros(Float, dr.width(x)),) * 3)
+        if vol.plan.emissive:  # σe = emission × density, as `physical.physical_medium` adds it
+            source = tuple(source[c] + k.emission[c] * raw for c in range(3))
         weight, seg_trans = frostbite_weight(sigma_t, dt)
         radiance = tuple(r + trans * (source[c] * weight) for c, r in enumerate((red, green, blue)))
         w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
