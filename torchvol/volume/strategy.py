@@ -71,6 +71,10 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
             res, evals = kernel_march.march(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays))
             ctx.counts.density_evals += evals
             vol.field.evals += evals
+            if bool(hit.any()):  # the kernel ran its shadow and visibility rays: their passes ran, inside its time
+                for name in [n for use in vol.plan.lights for n in use.names()] + (vol.plan.ambient_sky.names() if vol.plan.ambient_sky else []):
+                    with ctx.timer.section(name):
+                        pass
             return _part(ctx, vol, res, t0, hit)
         if not skip and vol.plan.backend in ("inductor", "drjit"):  # the template's compiled kernels, or one Dr.Jit kernel
             behind = background if background is not None else rays.origins.new_zeros(len(rays), 3)  # no [sky]: black
