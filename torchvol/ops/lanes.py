@@ -35,55 +35,6 @@ def where(cond, a, b):
     return dr.select(cond, a, b)
 
 
-def exp(x):
-    """e^x."""
-    if _is_number(x):
-        return math.exp(x)
-    if _is_torch(x):
-        return torch.exp(x)
-    import drjit as dr
-
-    return dr.exp(x)
-
-
-def log(x):
-    """The natural logarithm."""
-    if _is_torch(x):
-        return torch.log(x)
-    import drjit as dr
-
-    return dr.log(x)
-
-
-def log2(x):
-    """The base-2 logarithm."""
-    if _is_torch(x):
-        return torch.log2(x)
-    import drjit as dr
-
-    return dr.log2(x)
-
-
-def sqrt(x):
-    """The square root."""
-    if _is_number(x):
-        return math.sqrt(x)
-    if _is_torch(x):
-        return torch.sqrt(x)
-    import drjit as dr
-
-    return dr.sqrt(x)
-
-
-def round(x):  # noqa: A001  the lane form of the builtin
-    """To the nearest integer value, ties to even (torch.round, drjit.round)."""
-    if _is_torch(x):
-        return torch.round(x)
-    import drjit as dr
-
-    return dr.round(x)
-
-
 def int_like(value: int, like):
     """The integer `value` where `like` is a Dr.Jit array (an Int32 lane), else the number itself."""
     if _is_torch(like) or _is_number(like):
@@ -93,24 +44,29 @@ def int_like(value: int, like):
     return Int32(value)
 
 
-def floor(x):
-    """Rounded down to an integer value (still a float)."""
-    if _is_torch(x):
-        return torch.floor(x)
-    import drjit as dr
+def _unary(name: str, number=None, doc: str = ""):
+    """The lane function `name` of torch and Dr.Jit alike (`number`: its form on a Python number)."""
 
-    return dr.floor(x)
+    def fn(x):
+        if number is not None and _is_number(x):
+            return number(x)
+        if _is_torch(x):
+            return getattr(torch, name)(x)
+        import drjit as dr
+
+        return getattr(dr, name)(x)
+
+    fn.__name__, fn.__doc__ = name, doc
+    return fn
 
 
-def abs(x):  # noqa: A001  the lane form of the builtin
-    """|x|."""
-    if _is_number(x):
-        return math.fabs(x)
-    if _is_torch(x):
-        return torch.abs(x)
-    import drjit as dr
-
-    return dr.abs(x)
+exp = _unary("exp", math.exp, "e^x.")
+log = _unary("log", None, "The natural logarithm.")
+log2 = _unary("log2", None, "The base-2 logarithm.")
+sqrt = _unary("sqrt", math.sqrt, "The square root.")
+floor = _unary("floor", None, "Rounded down to an integer value (still a float).")
+abs = _unary("abs", math.fabs, "|x|.")  # noqa: A001  the lane form of the builtin
+round = _unary("round", None, "To the nearest integer value, ties to even (torch.round, drjit.round).")  # noqa: A001  the lane form of the builtin
 
 
 def expm1(x):

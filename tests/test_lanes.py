@@ -1,0 +1,74 @@
+"""`torchvol.ops.lanes`: each function gives the same values on torch tensors and on Dr.Jit arrays
+(bitwise where both backends compute the same IEEE operation; `expm1`, which Dr.Jit lacks, within
+a few ulps of float64), and keeps a Python number's precision in a float64 render."""
+
+import numpy as np
+import pytest
+import torch
+
+from torchvol.ops import lanes
+from torchvol.volume import drjit_march
+
+pytestmark = pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
+
+
+def _points(n: int = 4096, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = (torch.rand(n, generator=g) - 0.5) * 40.0
+    x[:8] = torch.tensor([0.0, -0.0, 0.5, -0.5, 1.5, 2.5, 1e-30, -3e9])  # ties, signed zeros, tiny, huge
+    return x
+
+
+def _jit(t: torch.Tensor):
+    from drjit.llvm import Float, Int32
+
+    return (Int32 if t.dtype == torch.int32 else Float)(t.numpy())
+
+
+def _back(v) -> torch.Tensor:
+    return torch.from_numpy(np.array(v))
+
+
+@pytest.mark.parametrize("name", ["exp", "log", "log2", "sqrt", "floor", "abs", "round", "smoothstep01"])
+def test_unary_functions_agree_bitwise(name):
+    x = _points()
+    if name in ("log", "log2", "sqrt"):
+        x = x.abs() + 1e-3
+    fn = getattr(lanes, name)
+    torch_values, jit_values = fn(x), _back(fn(_jit(x)))
+    if name in ("exp", "log", "log2", "sqrt"):  # each backend's own (Dr.Jit's sqrt too): within an ulp or two
+        torch.testing.assert_close(jit_values, torch_values, rtol=4e-7, atol=0.0)
+    else:
+        assert torch.equal(jit_values, torch_values), f"{name}: largest difference {float((jit_values - torch_values).abs().max())}"
+
+
+def test_expm1_is_accurate_near_zero_in_both():
+    x = torch.cat([torch.logspace(-30, 1, 400), -torch.logspace(-30, 1, 400), torch.tensor([0.0])])
+    exact = torch.expm1(x.double())
+    for values in (lanes.expm1(x), _back(lanes.expm1(_jit(x)))):
+        rel = ((values.double() - exact).abs() / exact.abs().clamp_min(1e-300)).max()
+        assert float(rel) < 4e-7, float(rel)
+
+
+def test_lerp_where_minimum_clamp_and_gather_agree_bitwise():
+    a, b, w = _points(seed=1), _points(seed=2), torch.rand(4096, generator=torch.Generator().manual_seed(3)) * 1.4 - 0.2
+    assert torch.equal(_back(lanes.lerp(_jit(a), _jit(b), _jit(w))), lanes.lerp(a, b, w))
+    assert torch.equal(lanes.lerp(a, b, w), torch.lerp(a, b, w))
+    assert torch.equal(_back(lanes.where(_jit(a) > 0.0, _jit(a), 0.0)), lanes.where(a > 0.0, a, 0.0))
+    assert torch.equal(_back(lanes.minimum(_jit(a), _jit(b))), lanes.minimum(a, b))
+    assert torch.equal(_back(lanes.maximum(_jit(a), 1.0)), lanes.maximum(a, 1.0))
+    assert torch.equal(_back(lanes.clamp(_jit(a), -1.0, 2.0)), lanes.clamp(a, -1.0, 2.0))
+    table, index = _points(seed=4), (torch.arange(4096, dtype=torch.int32) * 7) % 4096
+    assert torch.equal(_back(lanes.gather(_jit(table), _jit(index))), lanes.gather(table, index))
+
+
+def test_a_python_number_keeps_its_precision_in_float64():
+    x = torch.zeros(3, dtype=torch.float64)
+    third = 1.0 / 3.0
+    assert float(lanes.maximum(x, third)[0]) == third and float(lanes.minimum(third, x + 1.0)[0]) == third
+    assert lanes.maximum(x, third).dtype == torch.float64
+
+
+def test_clamp_passes_nan_through_in_both():
+    x = torch.tensor([float("nan"), -5.0, 5.0, 0.5])
+    assert torch.equal(_back(lanes.clamp(_jit(x), 0.0, 1.0)).isnan(), lanes.clamp(x, 0.0, 1.0).isnan())
