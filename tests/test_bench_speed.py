@@ -2,6 +2,8 @@
 
 import pytest
 
+import torchvol as tv
+
 from torchvol.cli import build_parser
 from torchvol.measure import bench_speed
 
@@ -31,8 +33,8 @@ def test_generation_and_loaded_sections_report(tmp_path):
 def test_speed_quick_logic_on_tiny_sizes(tmp_path):
     rows = bench_speed.render_rows(((16, 9),), repeat=1, physical_size=(8, 8))
     drjit = bench_speed.fastest("template-clouds") == bench_speed.DRJIT_FBM
-    compiled = ({"torchvol compiled (Dr.Jit march)", "torchvol torch.compile kernels"} if drjit
-                else {"torchvol torch.compile"})
+    compiled = ({"torchvol default (Dr.Jit march)", "torchvol torch.compile kernels", "table hash, default (Dr.Jit march)"}
+                if drjit else {"torchvol torch.compile"})
     assert {r["renderer"] for r in rows} >= {"torchvol eager", "arithmetic hash, fused field compiled"} | compiled
     floor = bench_speed.floor_rows(points=2048, repeat=1)
     assert all(r["evals_per_s"] > 0 for r in floor) and {r["density"] for r in floor} == {"cloud-puff", "template-clouds"}
@@ -44,11 +46,19 @@ def test_speed_quick_logic_on_tiny_sizes(tmp_path):
     profile["fused"] = bench_speed.profile_rows("cloud-puff", size=8, top=3, hash="arithmetic", compile=True)
     assert all(len(rows) == 3 and all(0 < r["share"] <= 1 for r in rows) for rows in profile.values())
     generation = bench_speed.generation_rows(["clouds"], workers=(1,), count=1, size=8)
-    assert [r["mode"] for r in generation] == ["eager", "compiled"]
+    # clouds march in the Dr.Jit kernel by default: the default and the eager reference
+    assert [r["mode"] for r in generation] == (["default", "eager"] if drjit else ["default", "compiled"])
+    presets = bench_speed.preset_rows(size=8, repeat=1, floor_points=2048)
+    by_name = {r["preset"]: r for r in presets}
+    assert set(by_name) == set(tv.preset_names()) and by_name["homogeneous-box"]["marches"] == "closed_form"
+    if drjit:  # a preset whose march is a kernel has its eager time and its floor
+        assert by_name["cloud-puff"]["marches"] == "drjit" and by_name["cloud-puff"]["eager_s"] > 0
+        assert by_name["cloud-puff"]["x_floor"] > 0 and by_name["template-clouds"]["x_floor"] > 0
     text = bench_speed.markdown({"quick": True, "repeat": 1, "profile": profile, "render": rows, "floor": floor,
-                                 "generate": generation})
+                                 "presets": presets, "preset_size": 8, "generate": generation})
     assert "## Where the time goes" in text and "## Renders" in text and "## The floor" in text
-    assert "| clouds | 1 | compiled |" in text
+    assert "## Presets: the default render, 8×8" in text and "| cloud-puff |" in text
+    assert "| clouds | 1 | default |" in text
 
 
 @pytest.mark.parametrize("preset, expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])

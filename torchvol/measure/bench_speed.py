@@ -89,7 +89,7 @@ def floor_ratio(render_s: Sequence[float], floor_s: Sequence[float], *, evals: i
     return statistics.median(r * points / (evals * f) for r, f in zip(render_s, floor_s, strict=True))
 
 
-def time_render(scene, *, compile: bool, repeat: int, floor: Floor | None = None) -> RenderTiming:
+def time_render(scene, *, compile: str | bool, repeat: int, floor: Floor | None = None) -> RenderTiming:
     """`render(scene)` timed `repeat` times after a first call. With a `floor`, its kernel runs after
     each render (on its threads), and × floor is taken run by run: on a VM whose speed drifts, a
     floor measured minutes apart from the render skewed the ratio by up to 2× (docs/SPEED.md)."""
@@ -148,20 +148,23 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
                              ratio=1.0, x_floor=None, first_s=None))
         scene = preset("template-clouds", width=width, height=height)
         drjit = fastest("template-clouds") == DRJIT_FBM
-        compiled_name = "torchvol compiled (Dr.Jit march)" if drjit else "torchvol torch.compile"
-        for compile, n, name in ((False, threads, "torchvol eager"), (True, threads, compiled_name),
-                                 (True, 1, f"{compiled_name}, 1 thread"),
-                                 *([(True, threads, "torchvol torch.compile kernels")] if drjit else [])):
+        compiled_name = "torchvol default (Dr.Jit march)" if drjit else "torchvol torch.compile"
+        for compile, n, name in (("off", threads, "torchvol eager"), ("auto" if drjit else "all", threads, compiled_name),
+                                 ("auto" if drjit else "all", 1, f"{compiled_name}, 1 thread"),
+                                 *([("all", threads, "torchvol torch.compile kernels")] if drjit else [])):
             with torch_threads(n), _drjit_off(name == "torchvol torch.compile kernels"):
                 t = time_render(scene, compile=compile, repeat=repeat, floor=floor("template-clouds", n))
             rows.append(dict(work=work, renderer=name, threads=n, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
                              ratio=t.seconds / gl if gl else None, x_floor=t.x_floor, first_s=t.first_s))
     width, height = physical_size
     work, base = f"cloud-puff {width}×{height}", None
-    for hash, compile, name in (("table", False, "table hash, eager"), ("arithmetic", False, "arithmetic hash, eager"),
-                                ("arithmetic", True, "arithmetic hash, fused field compiled")):
-        t = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat,
-                        floor=floor("cloud-puff", threads))
+    for hash, compile, name in (("table", "off", "table hash, eager"), ("arithmetic", "off", "arithmetic hash, eager"),
+                                ("table", "auto", "table hash, default (Dr.Jit march)"),
+                                ("arithmetic", "auto", "arithmetic hash, default (Dr.Jit march)"),
+                                ("arithmetic", "all", "arithmetic hash, fused field compiled")):
+        with _drjit_off(compile == "all"):  # inductor's fused field, the march around it eager
+            t = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat,
+                            floor=floor("cloud-puff", threads))
         base = base or t.seconds
         rows.append(dict(work=work, renderer=name, threads=threads, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
                          ratio=t.seconds / base, x_floor=t.x_floor, first_s=t.first_s))
@@ -323,31 +326,35 @@ def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[di
 def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
                     layout: str = "folder", compiled: bool = True) -> list[dict]:
     """`generate` of each recipe at size×size (None: the recipe's own size) with each worker count,
-    eager and, with `compiled`, in each compile mode that changes what the recipe's scenes run
-    (`torchvol.runtime.compilation`: "exact" for voxel scenes, "all" where `renderer.plan.compile_pays`):
+    as it runs by default ("auto": its marches in the Dr.Jit kernels where they have one), eager
+    where that differs, and, with `compiled`, in each compile mode that changes what the recipe's
+    scenes run (`torchvol.runtime.compilation`: "exact" for voxel scenes, "all" where
+    `renderer.plan.compile_pays` and no kernel serves):
     rows {recipe, workers, mode, seconds, samples_per_s, steady_per_s, first_s, bytes_per_sample}.
     After a warm-up run (one batch a worker: inductor's on-disk cache is then warm for both timed
-    runs), each is run for N and for 2N samples (N = `count`, 4·`count` compiled, whose samples
+    runs), each is run for N and for 2N samples (N = `count`, 4·`count` compiled or in kernels, whose samples
     are fast and whose start-up is long): the difference is the steady rate (N / (T₂ − T₁)); what
     the first run took beyond N samples at that rate is the start-up (worker processes, dynamo's
     tracing: `first_s`). `samples_per_s`: 2N / T₂."""
     from ..dataset.generate import generate
     from ..dataset.recipe import Recipe
-    from ..renderer.plan import compile_pays
+    from ..renderer.plan import compile_pays, make_plan
 
     rows = []
     overrides = {} if size is None else {"image.width": size, "image.height": size}
     for name in recipes:
         path = ROOT / "datasets" / f"{name}.toml"
         scene = Recipe.load(path, overrides).sample_with_params(0, 0)[0]
-        modes = [("off", "eager")]
+        kernels = "drjit" in make_plan(scene, compile="kernels").summary()["marches"].values()
+        modes = [("auto", "default")] + ([("off", "eager")] if kernels else [])  # without a kernel the default is eager
         if compiled and scene.voxels is not None:
             modes.append(("exact", "compiled exact"))
-        if compiled and compile_pays(scene):
+        if compiled and compile_pays(scene) and not kernels:
             modes.append(("all", "compiled"))
         for n in workers:
             for compile, label in modes:
-                seconds, n_samples = [], count * (1 if compile == "off" else 4)
+                fast = compile in ("exact", "all") or (compile == "auto" and kernels)
+                seconds, n_samples = [], count * (4 if fast else 1)
                 for k in (batch * n, n_samples, 2 * n_samples):  # warm-up, N, 2N
                     with tempfile.TemporaryDirectory() as tmp:
                         start = time.perf_counter()
@@ -488,13 +495,14 @@ def _render_section(sections: dict) -> list[str]:
               "render and the ratio taken run by run (the median of the runs' ratios): 1 would be a render that "
               "costs nothing but its noise. "
               "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
-              "Compiled, template-clouds runs its march as one Dr.Jit kernel per chunk where Dr.Jit's LLVM backend "
-              "runs (torchvol/volume/drjit_march.py: a loop per ray, the light's fbm under a per-ray branch, one "
-              "launch); \"torch.compile kernels\" is the same render with `TORCHVOL_DRJIT=0`: the fused march step "
+              "By default (`compile=\"auto\"`) template-clouds runs its march as one Dr.Jit kernel per chunk where Dr.Jit's "
+              "LLVM backend runs (torchvol/volume/drjit_march.py: a loop per ray, the light's fbm under a per-ray branch, one "
+              "launch), and cloud-puff its physical march (torchvol/volume/kernel_march.py); \"torch.compile kernels\" "
+              "is the template with `compile=\"all\"` and `TORCHVOL_DRJIT=0`: the fused march step "
               "(torchvol/volume/fused.py: a step is two compiled kernels over a chunk's rays, the sample's density "
               "with the previous step's compositing, and the light's density at the lit samples). The template's "
-              "floor is the Dr.Jit fbm, the fastest. The arithmetic hash's fbm is one fused kernel, the physical "
-              "march around it eager (docs/VOLUMES.md). \"1 thread\": as a generator's worker renders (one torch "
+              "floor is the Dr.Jit fbm, the fastest. \"fused field compiled\": the arithmetic hash's fbm one inductor "
+              "kernel, the physical march around it eager (`TORCHVOL_DRJIT=0`; docs/VOLUMES.md). \"1 thread\": as a generator's worker renders (one torch "
               "thread each, workers scale by processes): the march's eager glue between kernels (gathers, compaction, "
               "dynamo's guards: small ops and Python) runs on one thread, where waking a second costs more than it saves, so a second thread speeds the kernels only (docs/VOLUMES.md, \"Two threads\"). "
               "Density evals/s count the evaluations the eager march makes; "
@@ -539,11 +547,14 @@ def _generate_section(sections: dict) -> list[str]:
     lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['samples']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
               f"{_fmt(r['steady_per_s'], '.2f')} | {_fmt(r['first_s'], '.1f')} | {r['bytes_per_sample']:,.0f} |"
               for r in sections["generate"]]
-    lines += ["", f"Each row generates one batch a worker (warm-up), then N = {sections.get('count', 16)} and 2N samples (N four times as many compiled; "
+    lines += ["", f"Each row generates one batch a worker (warm-up), then N = {sections.get('count', 16)} and 2N samples (N four times as many compiled or in kernels; "
               "samples, seconds and samples/s are the 2N run's): steady samples/s = N / (T₂ − T₁), start-up = what the "
               "N run took beyond N samples at that rate (worker processes; dynamo tracing the compiled kernels, "
               "inductor's on-disk cache being warm; blank where the N extra samples took under a tenth of the 2N "
-              "run: the difference is then noise, not a rate). compiled exact: `compile=\"exact\"` for voxel recipes (the "
+              "run: the difference is then noise, not a rate). default: `torchvol generate` without flags (a march whose "
+              "technique has a Dr.Jit kernel runs in it); eager: `--eager`, where that differs. Worker processes are "
+              "forked (one thread each): their start-up is the fork's, not an import of torch. "
+              "compiled exact: `compile=\"exact\"` for voxel recipes (the "
               "fused DDA walk, bitwise eager; what the default `auto` takes from 512 samples a worker); compiled: "
               "`torchvol generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the "
               "template's fused march step, fur); each worker process compiles (traces) on its own.", ""]
