@@ -1,18 +1,19 @@
 """The physical march of one volume as one Dr.Jit kernel per chunk: a loop per ray (its state in
-registers until its march ends), the sun's shadow marches and the sky light's visibility march
+registers until its march ends), the lights' shadow marches and the sky light's visibility march
 under a per-sample branch where the density passes the threshold, the step rule, dither,
 early termination and the depth statistics inside it.
 
 One source: every per-sample formula here is the eager renderer's own function, written in lanes
-(`ops.lanes`) and traced here with Dr.Jit arrays: the fbm field (`noise.fast.fbm_field`,
-`fields.fbm.puff`), the edge fade (`fields.edge.faded` over the bounds' `lanes` depth), the
-shadow rays' exits and segments (the bounds' `lanes` interval, `volume.shadow.shadow_segments`),
-the multiple-scattering octaves (`volume.multiple.octave_weights`), the step rule
-(`march.StepRule.length`), the Frostbite step (`integrate.frostbite_weight`) and the median
-(`march.median_crossing`). What is constant along a ray is computed by the eager code itself
-before the kernel runs: the lights' phase responses (`physical.light_responses`), the sky behind,
-the dither, entry and exit. The eager march (`compile="off"`) is the reference the kernel is held
-to (tests/volume/test_kernel_march.py).
+(`ops.lanes`) and traced here with Dr.Jit arrays: the density (its kind's ``lanes`` capability in
+`fields.DENSITIES`: constant, exponential, value-noise fbm), the edge fade (`fields.edge.faded`
+over the bounds' ``lanes`` depth), the shadow rays' exits and segments (the bounds' ``lanes``
+interval, `volume.shadow.shadow_segments`), a point light's falloff (`light.lights.point_lanes`)
+and phase (`light.phase`'s ``lanes``), the multiple-scattering octaves
+(`volume.multiple.octave_weights`), the step rule (`march.StepRule.length`), the Frostbite step
+(`integrate.frostbite_weight`) and the median (`march.median_crossing`). What is constant along a
+ray is computed by the eager code itself before the kernel runs: the suns' phase responses
+(`physical.light_responses`), the dither, entry and exit. The eager march (`compile="off"`) is the
+reference the kernel is held to (tests/volume/test_kernel_march.py).
 
 `supports` says which volumes it renders (the plan asks once); the others run eagerly. Numbers a
 dataset draws per scene are the kernel's inputs, and the settings that are numbers are its
@@ -124,8 +125,7 @@ def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
     return run
 
 
-def _inputs(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, dither: Tensor | None,
-            idx: Tensor) -> SimpleNamespace:
+def _inputs(ctx, vol, rays, t0: Tensor, t1: Tensor, dither: Tensor | None, idx: Tensor) -> SimpleNamespace:
     """The kernel's per-ray inputs for the rays `idx` [n], computed by the eager code: rays, what
     the field, bounds, lights and sky take per ray, the lights' phase responses."""
     s = rays.scene_index.index_select(0, idx)
@@ -164,7 +164,6 @@ def _inputs(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, d
         k.ambient_direction = per_ray(torch.nn.functional.normalize(amb.direction, dim=1))
         k.ambient_sigma = per_ray(amb.sigma_scale * vol.params.sigma_t)
         k.ambient_steps = amb.steps
-    del background  # the physical march's source has no sky term (`sky_blend` is eager's)
     return k
 
 
@@ -172,7 +171,9 @@ def march(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit
           dither: Tensor | None) -> tuple[MarchResult, int]:
     """The fixed march of physical volume `vol` (`supports` said yes) for a chunk's `rays` [R]
     through [t0, t1] [R] where `hit` [R], `dither` [R] the first segment's fraction or None, as
-    one Dr.Jit kernel. -> (`march.march`'s result, density evaluations)."""
+    one Dr.Jit kernel (`background`, the sky behind [R, 3], is not part of a physical medium's
+    source without `sky_blend`, which `supports` leaves to eager). -> (`march.march`'s result,
+    density evaluations)."""
     import drjit as dr
     from drjit.llvm import Bool, Float, Int32
 
@@ -183,7 +184,7 @@ def march(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit
     threads = kernel_threads()
     if dr.thread_count() != threads:
         dr.set_thread_count(threads)
-    k = _inputs(ctx, vol, rays, background, t0, t1, dither, idx)
+    k = _inputs(ctx, vol, rays, t0, t1, dither, idx)
     n = dr.width(k.t_start)
     zero = dr.zeros(Float, n)
     state = (k.t_start, dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
