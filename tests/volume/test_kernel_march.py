@@ -106,9 +106,12 @@ def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count(hash_
     assert torch.equal(one.radiance[0], batch.radiance[0])
 
 
-def test_the_preset_matches_the_eager_march():
-    kernel, eager = _both(tv.preset("cloud-puff", width=32, height=24))
-    _close(kernel, eager, "cloud-puff")
+@pytest.mark.parametrize("name", ["cloud-puff", "explosion"])
+def test_the_presets_match_the_eager_march(name):
+    """cloud-puff (table-hash fbm), explosion (its density, colour map and the point light's bloom)."""
+    kernel, eager = _both(tv.preset(name, width=32, height=24))
+    _close(kernel, eager, name)
+    assert sorted(kernel.stats["passes"]) == sorted(eager.stats["passes"])  # the same passes, the kernel's inside its march
 
 
 def test_the_plan_takes_the_kernel_only_where_it_renders_the_technique():

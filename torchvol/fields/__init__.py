@@ -30,7 +30,7 @@ from .base import Field
 from .clouds import CloudLayer, CloudsDensity
 from .cloudscape import Cloudscape, CloudscapeDensity
 from .constant import Constant, ConstantDensity, constant_density, constant_lanes
-from .explosion import ExplosionDensity, ExplosionField
+from .explosion import ExplosionDensity, ExplosionField, explosion_density, explosion_lanes
 from .exponential import Exponential, ExponentialDensity, exponential_density, exponential_lanes
 from .fbm import FbmDensity, FbmField, fbm_density, fbm_lanes
 from .fur import FurDensity, FurField
@@ -46,7 +46,7 @@ DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True,
                    lanes=(fbm_lanes, fbm_density, lambda volume: volume.density.value.noise == "value"))
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, fused_march=True,
                    compiles_fast=lambda volume: volume.shading == "shader" and volume.edge is None)
-DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True)
+DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, lanes=(explosion_lanes, explosion_density))
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
 DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True)
 DENSITIES.register("fur", FurDensity, FurField, compiles_fast=lambda volume: True)

@@ -13,15 +13,19 @@ reads the density as a fraction, `volume.emission`).
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Annotated
 
+import torch
 from pydantic import Field
 from torch import Tensor
 
 from ..noise import lattice as noise
+from ..noise.fast import fbm_sum
+from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import EACH, Strict, Vec3
-from .fbm import seeded_fbm
+from .fbm import seeded_fbm, value_basis
 
 
 class ExplosionDensity(Strict):
@@ -58,5 +62,28 @@ class ExplosionField:
         q = (points - take(p.center, s)) / take(self.size, s)[:, None]
         x = take(p.frequency, s)[:, None] * q + take(self.shift, s)
         n = seeded_fbm(self.basis, x, s, p, lod)
-        shape = 1.0 - q.norm(dim=1) + take(p.displacement, s) * (n - 0.5)
-        return (take(p.sharpness, s) * shape).clamp_max(1.0)
+        return fireball(q.unbind(1), n, take(p.displacement, s), take(p.sharpness, s))
+
+
+def fireball(q, n, displacement, sharpness):
+    """clamp(sharpness · (1 − |q| + displacement · (n − 0.5)), ·, 1): the ball at `q` (three lanes,
+    in radii) displaced by its noise `n`, in lanes (`ops.lanes`)."""
+    return lanes.clamp_max(sharpness * (1.0 - lanes.length3(*q) + displacement * (n - 0.5)), 1.0)
+
+
+def explosion_lanes(field: ExplosionField, to) -> SimpleNamespace:
+    """What the explosion takes per lane (`to.per_lane`: per scene -> lanes), its noise basis and
+    octave scales (`fields.fbm.value_basis`, `to.number`)."""
+    p = field.p
+    q = SimpleNamespace(center=to.per_lane(p.center), size=to.per_lane(field.size), frequency=to.per_lane(p.frequency),
+                        shift=to.per_lane(field.shift), displacement=to.per_lane(p.displacement),
+                        sharpness=to.per_lane(p.sharpness), octaves=int(p.octaves), basis=value_basis(p.seed, "table", to))
+    q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
+    return q
+
+
+def explosion_density(q, p, count):
+    """The explosion's signed density in lanes at p (three lanes), `count` octaves kept or None."""
+    r = [(p[c] - q.center[c]) / q.size for c in range(3)]
+    n = fbm_sum(q.basis, *(q.frequency * r[c] + q.shift[c] for c in range(3)), q.scales, count, q.octaves, 0.5)
+    return fireball(r, n, q.displacement, q.sharpness)

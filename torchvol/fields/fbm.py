@@ -100,21 +100,25 @@ class FbmField:
 
 def fbm_lanes(field: FbmField, to) -> SimpleNamespace:
     """What the fbm takes per lane: its parameters (`to.per_lane`: per scene -> lanes), its noise
-    basis over the lanes' scenes `to.scene` (the arithmetic hash's mixed seeds, or the scenes'
-    permutation tables stacked, each lane's chain in its scene's block; `to.ints`, `to.floats`:
-    a table as the backend's array) and its octave scales."""
+    basis over the lanes' scenes (`value_basis`) and its octave scales (`to.number`)."""
     p = field.p
     q = SimpleNamespace(frequency=to.per_lane(p.frequency), shift=to.per_lane(field.shift), offset=to.per_lane(p.offset),
                         bias=to.per_lane(p.bias), amplitude=to.per_lane(p.amplitude), radial=to.per_lane(p.radial),
                         center=to.per_lane(p.center), octaves=int(p.octaves))
     q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
-    if p.hash == "arithmetic":
-        q.basis = fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(p.seed, "cpu"), to.scene)))
-    else:
-        perm, first = noise._scene_lattice_tables(tuple(int(x) for x in p.seed), "cpu")
-        perm, first, rows = to.ints(perm), to.floats(first), to.ints(noise.scene_rows(to.scene))
-        q.basis = lambda x, y, z: noise.value_lanes(x, y, z, perm, first, rows)
+    q.basis = value_basis(p.seed, p.hash, to)
     return q
+
+
+def value_basis(seeds, hash: str, to):
+    """Value noise of the lanes' scenes (`to.scene`, each with its seed of `seeds`) as `fbm_sum`'s
+    basis: the arithmetic hash's mixed seeds, or the scenes' permutation tables stacked, each
+    lane's chain in its scene's block (`to.ints`, `to.floats`: a table as the backend's array)."""
+    if hash == "arithmetic":
+        return fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(seeds, "cpu"), to.scene)))
+    perm, first = noise._scene_lattice_tables(tuple(int(x) for x in seeds), "cpu")
+    perm, first, rows = to.ints(perm), to.floats(first), to.ints(noise.scene_rows(to.scene))
+    return lambda x, y, z: noise.value_lanes(x, y, z, perm, first, rows)
 
 
 def fbm_density(q, p, count):

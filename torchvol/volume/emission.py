@@ -27,10 +27,14 @@ medium in front of it, like emission.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
+import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
 from ..light.lights import radiant
+from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
 from ..schema.registry import Registry
@@ -65,38 +69,75 @@ class Bloom(Strict):
     falloff: float = Field(0.08, ge=0.0)
 
 
+def mix(a, b, w):
+    """GLSL mix(a, b, w) = a · (1 − w) + b · w, lanes (`ops.lanes`)."""
+    return a * (1.0 - w) + b * w
+
+
+def explosion_lanes(params: Stacked, to) -> SimpleNamespace:
+    """The colour map's parameters per lane (`to.per_lane`: per scene -> lanes; colours three lanes)."""
+    return SimpleNamespace(**{name: to.per_lane(getattr(params, name)) for name in ExplosionMap.model_fields})
+
+
+def explosion_glow(q, p, density):
+    """σe, three lanes (`ops.lanes`), at p (three lanes) of density `density` (≥ 0): scale ·
+    max(mix(thin, dense, min(ρ, 1)) · mix(core, edge, min(r / reach, overshoot)), 0) · ρ, r = |p −
+    center| / radius; `q` from `explosion_lanes`."""
+    c = q.center
+    r = lanes.length3(p[0] - c[0], p[1] - c[1], p[2] - c[2]) / q.radius
+    color = _color(lanes.clamp_max(density, 1.0), r, q.thin, q.dense, q.core, q.edge, q.reach, q.overshoot)
+    weight = q.scale * density
+    return [lanes.clamp_min(c, 0.0) * weight for c in color]
+
+
+def _color(density, radius, thin, dense, core, edge, reach, overshoot) -> list:
+    """The seeds' computeColor, unclamped, in lanes: colours three lanes each -> three lanes."""
+    t = lanes.minimum(radius / reach, overshoot)
+    return [mix(thin[i], dense[i], density) * mix(core[i], edge[i], t) for i in range(3)]
+
+
 def explosion_color(density: Tensor, radius: Tensor, *, thin: Tensor, dense: Tensor, core: Tensor, edge: Tensor,
                     reach: Tensor, overshoot: Tensor) -> Tensor:
     """The seeds' computeColor, unclamped: `density`, `radius` [n]; colours [n, 3]; `reach`,
     `overshoot` [n] -> [n, 3]."""
-    base = mix(thin, dense, density[:, None])
-    ramp = mix(core, edge, (radius / reach).minimum(overshoot)[:, None])
-    return base * ramp
-
-
-def mix(a: Tensor, b: Tensor, w: Tensor) -> Tensor:
-    """GLSL mix(a, b, w) = a · (1 − w) + b · w; [n, 3] with `w` [n, 1]."""
-    return a * (1.0 - w) + b * w
+    return torch.stack(_color(density, radius, thin.unbind(-1), dense.unbind(-1), core.unbind(-1), edge.unbind(-1), reach,
+                              overshoot), dim=-1)
 
 
 def explosion_emission(params: Stacked, points: Tensor, density: Tensor, s: Tensor) -> Tensor:
     """σe [n, 3] at `points` [n, 3] of density `density` [n] (≥ 0) in scenes `s` [n]."""
-    radius = (points - take(params.center, s)).norm(dim=1) / take(params.radius, s)
-    color = explosion_color(density.clamp_max(1.0), radius, thin=take(params.thin, s), dense=take(params.dense, s),
-                            core=take(params.core, s), edge=take(params.edge, s), reach=take(params.reach, s),
-                            overshoot=take(params.overshoot, s))
-    return color.clamp_min(0.0) * (take(params.scale, s) * density)[:, None]
+    q = explosion_lanes(params, SimpleNamespace(per_lane=lambda v: _columns(take(v, s))))
+    return torch.stack(explosion_glow(q, points.unbind(1), density), dim=1)
+
+
+def bloom_lanes(bloom: Stacked, light: Stacked, to) -> SimpleNamespace:
+    """The glow's and its point light's parameters per lane (`to.per_lane`)."""
+    return SimpleNamespace(strength=to.per_lane(bloom.strength), falloff=to.per_lane(bloom.falloff),
+                           position=to.per_lane(light.position), radiant=to.per_lane(radiant(light)))
+
+
+def bloom_source(q, p):
+    """The glow, three lanes, at p (three lanes): strength · intensity · color · e^{−falloff · d³};
+    `q` from `bloom_lanes`."""
+    v = [p[c] - q.position[c] for c in range(3)]
+    d2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    weight = q.strength * lanes.exp(-q.falloff * d2 * lanes.sqrt(d2))
+    return [e * weight for e in q.radiant]
 
 
 def bloom_glow(bloom: Stacked, light: Stacked, points: Tensor, s: Tensor) -> Tensor:
     """The glow source [n, 3] at `points` [n, 3] of scenes `s` [n] around point light `light`
     (its `Stacked` parameters: position, color, intensity)."""
-    v = points - take(light.position, s)
-    d2 = (v * v).sum(dim=1)
-    weight = take(bloom.strength, s) * (-take(bloom.falloff, s) * d2 * d2.sqrt()).exp()
-    return take(radiant(light), s) * weight[:, None]
+    q = bloom_lanes(bloom, light, SimpleNamespace(per_lane=lambda v: _columns(take(v, s))))
+    return torch.stack(bloom_source(q, points.unbind(1)), dim=1)
+
+
+def _columns(value: Tensor):
+    """A per-point tensor [n] as it is, [n, 3] as its three columns (lanes)."""
+    return value if value.ndim == 1 else value.unbind(1)
 
 
 EMISSION_MAPS = Registry("emission map")
-EMISSION_MAPS.register("explosion", ExplosionMap, explosion_emission)
+# `lanes = (inputs(params, to), glow(q, p, density))`: the map in lanes, what the Dr.Jit march traces
+EMISSION_MAPS.register("explosion", ExplosionMap, explosion_emission, lanes=(explosion_lanes, explosion_glow))
 EmissionMap = EMISSION_MAPS.one_of("EmissionMap", "An emission colour map: `{ explosion = {...} }`.")

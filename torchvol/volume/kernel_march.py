@@ -37,6 +37,7 @@ from ..light.lights import point_lanes
 from ..ops import lanes
 from ..runtime.threads import kernel_threads
 from ..schema.batch import take
+from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import frostbite_weight
 from .march import MarchResult, median_crossing
 from .multiple import octave_weights
@@ -49,7 +50,7 @@ def supports(batch, vol, uses, settings) -> str | None:
     light passes `uses`, or None where it can: a density written in lanes (constant, exponential,
     value-noise fbm of either hash) in bounds written in lanes (sphere, box, slab), physically
     shaded with the Frostbite integrator, lit by suns and point lights with marched shadows
-    through it alone, ungraded sky light, emission without a colour map; `settings` the render's
+    through it alone, ungraded sky light, emission, its colour map and bloom; `settings` the render's
     `MarchSettings`."""
     checks = [
         (_has_lanes(vol), f"the {vol.density.kind} density"),
@@ -57,7 +58,7 @@ def supports(batch, vol, uses, settings) -> str | None:
         (vol.shading == "physical", f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
         (settings.integrator == "frostbite" and settings.tolerance is None, "the march settings"),
-        (vol.emission_map is None and vol.bloom is None and vol.sky_blend is None, "an emission map, bloom or sky blend"),
+        (vol.sky_blend is None, "a sky blend"),
         (vol.ambient is None or vol.ambient.top is None, "a graded ambient"),
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
         (all(u.shadow is None or (u.shadow.method == "march" and not (u.occluders or u.terrain or u.voxels)) for u in uses),
@@ -155,6 +156,12 @@ def _inputs(ctx, vol, rays, t0: Tensor, t1: Tensor, dither: Tensor | None, idx: 
         k.octave_scales = [] if not vol.plan.multiple else [(per_ray(ms.a**i), per_ray(ms.c**i)) for i in range(1, ms.octaves)]
     if vol.plan.emissive:
         k.emission = per_ray(vol.params.emission)
+    to = SimpleNamespace(per_lane=per_ray)
+    if vol.plan.emission_map is not None:
+        inputs, k.emission_glow = EMISSION_MAPS[vol.plan.emission_map].caps["lanes"]
+        k.emission_map = inputs(vol.params.emission_map.value, to)
+    if vol.plan.bloom is not None:
+        k.bloom = bloom_lanes(vol.params.bloom, ctx.lights[vol.plan.bloom].params, to)
     if vol.plan.multiple:
         b = vol.params.multiple_scattering.b
         k.exponents = [per_ray(b**i) for i in range(1, vol.params.multiple_scattering.octaves)]
@@ -299,8 +306,12 @@ def _body(k: SimpleNamespace, vol, st):
         lit = (raw > par.threshold) & (dt > 0.0)
         source = dr.if_stmt((p[0], p[1], p[2], sigma_t), lit, lambda x, y, z, sg: tuple(medium.in_scatter([x, y, z], sg)),
                             lambda x, y, z, sg: (dr.zeros(Float, dr.width(x)),) * 3)
-        if vol.plan.emissive:  # σe = emission × density, as `physical.physical_medium` adds it
+        if vol.plan.emissive:  # σe = emission × density, then its colour map and the bloom, as `physical_medium` adds them
             source = tuple(source[c] + k.emission[c] * raw for c in range(3))
+        if vol.plan.emission_map is not None:
+            source = tuple(a + b for a, b in zip(source, k.emission_glow(k.emission_map, p, raw)))
+        if vol.plan.bloom is not None:
+            source = tuple(a + b for a, b in zip(source, bloom_source(k.bloom, p)))
         weight, seg_trans = frostbite_weight(sigma_t, dt)
         radiance = tuple(r + trans * (source[c] * weight) for c, r in enumerate((red, green, blue)))
         w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
