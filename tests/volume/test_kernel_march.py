@@ -117,6 +117,9 @@ def test_the_presets_match_the_eager_march(name):
 def test_the_plan_takes_the_kernel_only_where_it_renders_the_technique():
     perlin = tv.render(_scene(0, **{"volumes.0.density.fbm": {"noise": "perlin", "octaves": 3}}))
     assert perlin.stats["plan"]["marches"] == {"volume0": "eager"}  # Perlin's gradient noise has no kernel yet
+    assert perlin.stats["plan"]["eager_because"] == {"volume0": "no kernel for the fbm density"}
     wide = tv.render(_scene(0), dtype=torch.float64)
     assert wide.stats["plan"]["marches"] == {"volume0": "eager"}  # float64: the reference
-    assert tv.render(_scene(0), compile="kernels").stats["plan"]["marches"] == {"volume0": "drjit"}
+    assert "float64" in wide.stats["plan"]["eager_because"]["volume0"]
+    fast = tv.render(_scene(0), compile="kernels").stats["plan"]
+    assert fast["marches"] == {"volume0": "drjit"} and "eager_because" not in fast

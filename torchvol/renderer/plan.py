@@ -86,6 +86,7 @@ class VolumePass:
     ambient_sky: LightPass | None = None
     multiple: bool = False  # Wrenninge's octaves on the lights' in-scatter (`volumes[i].multiple_scattering`)
     backend: Backend = "eager"  # what its march runs on
+    eager_because: str | None = None  # why it is eager where it is (`march_backend`)
     joint: bool = False  # marched with the other media in the scene's joint pass (`JointPass`), not on its own
 
     @property
@@ -238,8 +239,12 @@ class Plan:
 
     def summary(self) -> dict:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
-        march's backend, the thread policy, the compile mode and the dtype."""
+        march's backend (and, where one is eager, why: `eager_because`), the thread policy, the
+        compile mode and the dtype."""
+        eager = {v.name: "marched with the other media of its rays (the joint march has no kernel yet)" if v.joint
+                 else v.eager_because for v in self.volumes if v.backend == "eager"}
         return {"passes": self.names(), "sun": self.sun, "marches": {v.name: v.backend for v in self.volumes},
+                **({"eager_because": eager} if eager else {}),
                 **({"joint": [self.volumes[v].name for v in self.joint.volumes]} if self.joint is not None else {}),
                 **({"walk": self.walk} if self.walk is not None else {}),
                 "threads": self.threads, "compile": self.compile, "dtype": str(self.dtype).removeprefix("torch.")}
@@ -312,20 +317,27 @@ def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bo
 
 
 def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: str,
-                  settings: MarchSettings, dtype: torch.dtype, device: torch.device | str) -> Backend:
-    """What volume `vol`'s march runs on, decided once for the render: one Dr.Jit kernel wherever
-    the compile mode is not "off", Dr.Jit runs for `dtype` on `device` (`drjit_march.available`)
-    and a kernel renders the technique (the template's fused march, `fused_march`; a physical
-    medium, `kernel_march.supports`); under "all" the template's torch.compile kernels where
-    Dr.Jit cannot run; everything else eagerly."""
+                  settings: MarchSettings, dtype: torch.dtype, device: torch.device | str) -> tuple[Backend, str | None]:
+    """What volume `vol`'s march runs on, decided once for the render, and why it is eager where
+    it is (None otherwise): one Dr.Jit kernel wherever the compile mode is not "off", Dr.Jit runs
+    for `dtype` on `device` (`drjit_march.available`) and a kernel renders the technique (the
+    template's fused march, `fused_march`; a physical medium, `kernel_march.supports`); under "all"
+    the template's torch.compile kernels where Dr.Jit cannot run; everything else eagerly."""
     if strategy == "closed_form":
-        return "closed_form"
-    if strategy != "march" or compile == "off":
-        return "eager"
-    drjit = drjit_march.available(torch.zeros((), dtype=dtype, device=device))
+        return "closed_form", None
+    if compile == "off":
+        return "eager", "compile is off: the eager reference"
+    if strategy != "march":
+        return "eager", f"the {strategy} strategy has no kernel"
+    like = torch.zeros((), dtype=dtype, device=device)
+    drjit = drjit_march.available(like)
+    why = None if drjit else (f"Dr.Jit renders float32 on the CPU, not {str(dtype).removeprefix('torch.')} on "
+                              f"{like.device.type}" if dtype != torch.float32 or like.device.type != "cpu"
+                              else "Dr.Jit's LLVM backend is not available here")
     if fused_march(batch, vol, uses):
-        return "drjit" if drjit else "inductor" if compile == "all" else "eager"
-    return "drjit" if drjit and kernel_march.supports(batch, vol, uses, settings) is None else "eager"
+        return ("drjit", None) if drjit else ("inductor", None) if compile == "all" else ("eager", why)
+    why = why or kernel_march.supports(batch, vol, uses, settings)
+    return ("eager", f"no kernel for {why}" if drjit else why) if why is not None else ("drjit", None)
 
 
 def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str = "off",
@@ -354,9 +366,8 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
     ambient = vol.ambient is not None
     how = strategy(batch, vol, settings)
-    return VolumePass(index=v, name=name, strategy=how, shading=vol.shading, lights=uses,
-                      backend=march_backend(batch, vol, how, uses, compile=compile, settings=settings, dtype=dtype,
-                                           device=device),
+    backend, why = march_backend(batch, vol, how, uses, compile=compile, settings=settings, dtype=dtype, device=device)
+    return VolumePass(index=v, name=name, strategy=how, shading=vol.shading, lights=uses, backend=backend, eager_because=why,
                       emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
                       emission_map=None if vol.emission_map is None else vol.emission_map.kind,
                       bloom=None if vol.bloom is None else vol.bloom.light,
