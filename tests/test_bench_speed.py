@@ -3,7 +3,6 @@
 import pytest
 
 import torchvol as tv
-
 from torchvol.cli import build_parser
 from torchvol.measure import bench_speed
 

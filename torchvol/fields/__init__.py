@@ -30,8 +30,18 @@ from .base import Field
 from .clouds import CloudLayer, CloudsDensity
 from .cloudscape import Cloudscape, CloudscapeDensity
 from .constant import Constant, ConstantDensity, constant_density, constant_lanes
-from .explosion import ExplosionDensity, ExplosionField, explosion_density, explosion_lanes
-from .exponential import Exponential, ExponentialDensity, exponential_density, exponential_lanes
+from .explosion import (
+                   ExplosionDensity,
+                   ExplosionField,
+                   explosion_density,
+                   explosion_lanes,
+)
+from .exponential import (
+                   Exponential,
+                   ExponentialDensity,
+                   exponential_density,
+                   exponential_lanes,
+)
 from .fbm import FbmDensity, FbmField, fbm_density, fbm_lanes
 from .fur import FurDensity, FurField
 from .grid import Grid, GridDensity

@@ -4,7 +4,6 @@ atmosphere (there radially; here along y)."""
 from __future__ import annotations
 
 import math
-
 from types import SimpleNamespace
 
 from pydantic import Field

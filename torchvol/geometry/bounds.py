@@ -13,7 +13,15 @@ from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3
 from ..schema.registry import Registry
-from .rays import box_interval, intersect_box, intersect_shell, intersect_slab, intersect_sphere, slab_interval, sphere_interval
+from .rays import (
+    box_interval,
+    intersect_box,
+    intersect_shell,
+    intersect_slab,
+    intersect_sphere,
+    slab_interval,
+    sphere_interval,
+)
 
 SLAB_REACH = 1e5  # world units a ray may travel in a slab unless march.max_distance says otherwise
 

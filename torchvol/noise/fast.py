@@ -22,8 +22,8 @@ the fast path (`generate` uses it).
 from __future__ import annotations
 
 import functools
-from types import SimpleNamespace
 from collections.abc import Sequence
+from types import SimpleNamespace
 
 import torch
 from torch import Tensor

@@ -8,7 +8,6 @@ renderer promises bitwise-equal results for those, so it computes powers here.""
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from . import lanes

@@ -114,6 +114,15 @@ class VolumePass:
         """The name of its bloom (the glow around a point light) pass."""
         return f"{self.name}.bloom"
 
+    @property
+    def sample_passes(self) -> list[str]:
+        """The passes its march runs at the samples, in the order they first run there: the lights'
+        shadows, the sky's visibility, the emission map, the bloom (a Dr.Jit kernel runs them
+        inside its march and lists them there)."""
+        return ([n for li in self.lights for n in li.names()] + (self.ambient_sky.names() if self.ambient_sky else [])
+                + ([self.emission_pass] if self.emission_map is not None else [])
+                + ([self.bloom_pass] if self.bloom is not None else []))
+
     def names(self) -> list[str]:
         """Its passes in `stats`, in the order they first run."""
         own = ([self.emission_pass] if self.emission_map is not None else []) + ([self.bloom_pass] if self.bloom is not None else [])

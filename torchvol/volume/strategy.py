@@ -71,11 +71,8 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
             res, evals = kernel_march.march(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays))
             ctx.counts.density_evals += evals
             vol.field.evals += evals
-            if bool(hit.any()):  # the kernel ran its shadow and visibility rays and its sources: their passes ran, in its time
-                plan = vol.plan
-                for name in ([n for use in plan.lights for n in use.names()] + (plan.ambient_sky.names() if plan.ambient_sky else [])
-                             + ([plan.emission_pass] if plan.emission_map is not None else [])
-                             + ([plan.bloom_pass] if plan.bloom is not None else [])):
+            if bool(hit.any()):  # its per-sample passes ran inside the kernel, their time in its own
+                for name in vol.plan.sample_passes:
                     with ctx.timer.section(name):
                         pass
             return _part(ctx, vol, res, t0, hit)
