@@ -107,6 +107,18 @@ def test_overlapping_media_match_the_piecewise_closed_form(name, closed_form, sc
                      what=f"{name} {order}: alpha shares")
 
 
+@pytest.mark.parametrize("closed_form", [True, False])
+def test_the_median_depth_is_where_the_whole_ray_crosses_one_half(closed_form, one_thread):
+    # two boxes of transmittance 0.6 each: neither alone takes a ray below 0.5, the two do, in
+    # the second one at 0.6·e^{−σx} = 0.5 (the pieces' own medians once made this label 0)
+    sigma = -math.log(0.6)
+    for vols in ([slab_box(0, 1, sigma), slab_box(1.5, 2.5, sigma)], [slab_box(1.5, 2.5, sigma), slab_box(0, 1, sigma)]):
+        out = tv.render(axis_scene(vols, march={"closed_form": closed_form, "steps": 8}), dtype=torch.float64)
+        assert_close(out.aovs["depth_median"][0, 0, 0, 0], 6.5 + math.log(0.6 / 0.5) / sigma, atol=1e-9,
+                     what="median depth behind a first medium")
+        assert_close(out.alpha[0, 0, 0, 0], 1.0 - 0.36, atol=1e-9, what="alpha")
+
+
 def test_the_issue_case_is_no_longer_nine_percent_too_bright(one_thread):
     # an emissive box (σ 1, emission 1, z 0..2) in an absorbing box (σ 1, z 1..3): (1 − e⁻¹) + e⁻¹·½(1 − e⁻²)
     exact = (1.0 - math.exp(-1.0)) + math.exp(-1.0) * 0.5 * (1.0 - math.exp(-2.0))

@@ -23,7 +23,7 @@ from torch import Tensor
 from ..geometry.camera import Rays
 from ..light.atmosphere import AirPath
 from ..schema.batch import take
-from .composite import VolumePart, composite_volumes
+from .composite import VolumePart
 from .context import VolumeContext
 from .march import MarchResult, Medium, StepRule, gathered, march, march_adaptive
 from .physical import exact_segment
@@ -142,13 +142,15 @@ def _rows(on: Tensor, ids: Tensor) -> tuple[Tensor | None, Tensor | None]:
 
 
 def march_piece(ctx: VolumeContext, medium: Medium, rays: Rays, start: Tensor, end: Tensor, rows: Tensor,
-                exact: Tensor, *, channels: int, dither: Tensor | None, features: Tensor | None,
+                exact: Tensor, front: Tensor, *, channels: int, dither: Tensor | None, features: Tensor | None,
                 compact_below: float, air_only: Tensor | None = None, air_steps: int = 0) -> VolumePart:
-    """One piece [start, end] [n] of the rays `rows` [n] bool through `medium`: one exact segment
-    where `exact` [n] bool (every medium there has a closed form), `air_steps` equal steps where
-    `air_only` [n] bool (only the air is there: smooth, it takes the atmosphere's own step count),
-    else the march the settings ask for (`dither` [n] or None: the march's start offsets;
-    `features` [n]: the finest feature size of the media there, inf where none, or None)."""
+    """One piece [start, end] [n] of the rays `rows` [n] bool through `medium`, behind the
+    transmittance `front` [n]: one exact segment where `exact` [n] bool (every medium there has a
+    closed form), `air_steps` equal steps where `air_only` [n] bool (only the air is there: smooth,
+    it takes the atmosphere's own step count), else the march the settings ask for (`dither` [n]
+    or None: the march's start offsets; `features` [n]: the finest feature size of the media
+    there, inf where none, or None). -> the piece's share of the whole ray's radiance, weight sums
+    and median crossing (0: none in it), and the ray's transmittance behind it (`front` off `rows`)."""
     st, marched = ctx.settings, rows & ~exact
     if air_only is not None:
         marched = marched & ~air_only
@@ -157,35 +159,37 @@ def march_piece(ctx: VolumeContext, medium: Medium, rays: Rays, start: Tensor, e
             start, end, marched, medium, tolerance=st.tolerance, integrator=st.integrator, channels=channels,
             radiance_scale=ctx.radiance_scale(rays.scene_index), min_transmittance=st.min_transmittance,
             max_steps_per_span=st.rule.steps if st.rule.placement == "count" and features is None else None,
-            max_step=None if features is None else 0.5 * features)
+            max_step=None if features is None else 0.5 * features, transmittance=front)
         ctx.counts.error_estimate = max(ctx.counts.error_estimate, float(res.error.max()) if len(res.error) else 0.0)
     else:
         res = fixed_march(ctx, medium, start, end, marched, st.rule, channels=channels, dither=dither,
-                          compact_below=compact_below)
+                          compact_below=compact_below, front=front)
     out = dict(radiance=res.radiance, transmittance=res.transmittance, weight_sum=res.weight_sum,
                weighted_t=res.weighted_t, median_t=res.median_t)
     if air_only is not None and bool(air_only.any()):
         res = fixed_march(ctx, medium, start, end, air_only, StepRule("count", air_steps), channels=channels,
-                          dither=dither, compact_below=compact_below)
+                          dither=dither, compact_below=compact_below, front=front)
         for key, value in out.items():
             out[key] = torch.where(air_only.view(-1, *([1] * (value.dim() - 1))), getattr(res, key), value)
     ids = exact.nonzero().squeeze(1)
     if ids.numel():
         a, length = start[ids], end[ids] - start[ids]
         sigma, source = medium(ids, a + 0.5 * length, length)
-        for key, value in exact_segment(source, sigma.clamp_min(0.0), a, length).items():
+        for key, value in exact_segment(source, sigma.clamp_min(0.0), a, length, front[ids]).items():
             out[key][ids] = value
+    out["transmittance"] = torch.where(rows, out["transmittance"], front)
     return VolumePart(**out, t0=torch.where(rows, start, torch.full_like(start, math.inf)))
 
 
 def fixed_march(ctx: VolumeContext, medium: Medium, start: Tensor, end: Tensor, rows: Tensor, rule: StepRule, *,
-                channels: int, dither: Tensor | None, compact_below: float) -> MarchResult:
-    """`march` of the rays `rows` [n] bool over [start, end] [n] by `rule`, with the render's
-    integrator, dither and early termination; its steps counted in the render's stats."""
+                channels: int, dither: Tensor | None, compact_below: float, front: Tensor) -> MarchResult:
+    """`march` of the rays `rows` [n] bool over [start, end] [n] behind the transmittance `front`
+    [n] by `rule`, with the render's integrator, dither and early termination; its steps counted
+    in the render's stats."""
     st = ctx.settings
     res = march(start, end, rows, medium, rule=rule, integrator=st.integrator, channels=channels, dither=dither,
                 dither_unit="absolute" if st.dither == "sin" else "step", min_transmittance=st.min_transmittance,
-                compact_below=compact_below)
+                compact_below=compact_below, transmittance=front)
     ctx.counts.march_steps += int(res.steps.sum())
     ctx.counts.truncated_rays += int(res.truncated.sum())
     return res
@@ -207,7 +211,9 @@ def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tens
     feature = [vol.field.feature_size for vol in vols] + [None] * (air is not None)
     compact_below = max([vol.plan.compact_below for vol in vols], default=1.0)
     channels = 3 + (len(vols) if shares else 0)
-    parts, front, floor = [], torch.ones_like(start[0]), ctx.settings.min_transmittance
+    front, floor = torch.ones_like(start[0]), ctx.settings.min_transmittance
+    # each piece adds its share of the whole ray's radiance (and σ_t shares) and weights
+    radiance, wsum, wt, median = start.new_zeros(start.shape[1], channels), *(torch.zeros_like(front) for _ in range(3))
     dither = ctx.dither(rays)
     air_steps = 0 if air is None else air.depth.shape[1] - 1
     for p in range(start.shape[0]):
@@ -221,18 +227,14 @@ def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tens
                                     for v, f in enumerate(feature) if f is not None]).amin(dim=0)
         medium = summed_medium(media, active[p], shares=shares, signed=signed, air=air)
         air_only = None if air is None else rows & ~active[p, :-1].any(dim=0)
-        part = march_piece(ctx, medium, rays, start[p], end[p], rows, exact, channels=channels, dither=dither,
+        part = march_piece(ctx, medium, rays, start[p], end[p], rows, exact, front, channels=channels, dither=dither,
                            features=features, compact_below=compact_below, air_only=air_only, air_steps=air_steps)
-        front = front * part.transmittance
-        parts.append(part)
-    whole = composite_volumes(parts, start[0])
+        radiance, wsum, wt = radiance + part.radiance, wsum + part.weight_sum, wt + part.weighted_t
+        median, front = torch.where(median == 0, part.median_t, median), part.transmittance
     first = torch.where(hit, t0, torch.full_like(t0, math.inf)).amin(dim=0)  # (the air's entry too)
-    part = VolumePart(radiance=whole.radiance[:, :3], transmittance=whole.transmittance, weight_sum=whole.weight_sum,
-                      weighted_t=whole.weighted_t, median_t=whole.median_t, t0=first)
-    if not shares:
-        return Joint(part, None)
-    raw = whole.radiance[:, 3:].T if parts else start.new_zeros(len(vols), start.shape[1])  # (no piece: no share)
-    return Joint(part, _alpha_shares(raw, whole.transmittance))
+    part = VolumePart(radiance=radiance[:, :3], transmittance=front, weight_sum=wsum, weighted_t=wt, median_t=median,
+                      t0=first)
+    return Joint(part, _alpha_shares(radiance[:, 3:].T, front) if shares else None)
 
 
 def _alpha_shares(raw: Tensor, trans: Tensor) -> Tensor:

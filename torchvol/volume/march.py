@@ -149,6 +149,7 @@ def march(
     min_transmittance: float = 0.0,
     occupied: tuple[Tensor, Tensor] | None = None,
     compact_below: float = COMPACT_BELOW,
+    transmittance: Tensor | None = None,
 ) -> MarchResult:
     """March R rays through [t0, t1] where `hit`. `t0`, `t1`: [R]; `hit`: [R] bool; `dither`: [R]
     in [0, 1): segments: the fraction of the first step; shader: the start offset, in steps
@@ -165,12 +166,18 @@ def march(
 
     `compact_below`: the batch drops its finished rays once fewer than this fraction is still
     going (1.0: after every step that finishes one; right when a medium sample costs more than a
-    gather, as fbm octaves do)."""
+    gather, as fbm octaves do).
+
+    `transmittance` [R]: the rays' transmittance where the march starts (None: 1), for a stretch
+    of a ray behind others (a joint march's pieces): the radiance, weights, median crossing,
+    early termination and the transmittance returned are then the whole ray's."""
     ids = hit.nonzero().squeeze(1)
     if ids.numel() == 0:
         return MarchResult.empty(t0, channels)
     state, first, frac = _march_start(t0, t1, ids, rule=rule, semantics=semantics, dither=dither,
                                       dither_unit=dither_unit, occupied=occupied, channels=channels)
+    if transmittance is not None:
+        state[_TRANS] = transmittance[ids]
     final = t0.new_zeros(_RADIANCE + channels, t0.shape[0])
     final[_TRANS] = 1.0
     truncated = torch.zeros_like(hit)
@@ -382,6 +389,7 @@ def march_adaptive(
     max_iterations: int = 4096,
     min_transmittance: float = 0.0,
     channels: int = 3,
+    transmittance: Tensor | None = None,
 ) -> AdaptiveResult:
     """Error-controlled march: each step is taken once whole and once as two halves (step
     doubling); a third of their difference estimates the error of the halves, which are kept.
@@ -406,7 +414,8 @@ def march_adaptive(
     steps are never longer than (t1 − t0)/max_steps_per_span (for media with no feature size).
 
     `t0`, `t1`, `hit`: [R]; `medium(ids, t, dt) -> (signed σ_t [n], source [n, C])`; σ_t is
-    integrated clamped at 0, so a medium with no clamp of its own returns σ_t itself."""
+    integrated clamped at 0, so a medium with no clamp of its own returns σ_t itself.
+    `transmittance` [R] or None: as `march`'s (the errors are then weighed by the whole ray's)."""
     step_fn = {"riemann": riemann_step, "frostbite": frostbite_step}[integrator]
     out = AdaptiveResult.empty(t0, channels)
     ids = hit.nonzero().squeeze(1)
@@ -414,6 +423,8 @@ def march_adaptive(
         return out
     rays = _AdaptiveRays.start(t0, t1, ids, radiance_scale=radiance_scale, first_step=first_step,
                                max_steps_per_span=max_steps_per_span, max_step=max_step, channels=channels)
+    if transmittance is not None:
+        rays.transmittance = transmittance[ids].clone()
     for _ in range(max_iterations):
         keep = _adaptive_step(rays, medium, step_fn, tolerance=tolerance, min_step=min_step,
                               min_transmittance=min_transmittance)

@@ -18,7 +18,7 @@ from .composite import VolumePart
 from .context import VolumeContext
 from .emission import EMISSION_MAPS, bloom_glow
 from .integrate import frostbite_step
-from .march import LN2, Medium, expected_depth_fraction, gathered, lod_drop
+from .march import LN2, Medium, expected_depth_fraction, gathered, lod_drop, median_crossing
 from .multiple import octave_response, octave_sum, octave_weights
 from .shadow import occluder_transmittance, shadow_transmittance, sun_grids
 
@@ -143,14 +143,21 @@ def physical_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | No
     return medium
 
 
-def exact_segment(source: Tensor, sigma_t: Tensor, a: Tensor, length: Tensor) -> dict[str, Tensor]:
+def exact_segment(source: Tensor, sigma_t: Tensor, a: Tensor, length: Tensor,
+                  front: Tensor | None = None) -> dict[str, Tensor]:
     """One homogeneous segment [a, a + length] (each [n]) of extinction `sigma_t` [n] and source
     `source` [n, C], integrated exactly: its radiance [n, C], transmittance, weight sums Σw and
-    Σwt (at the expected termination depth) and median t (0: T stays above 0.5), each [n]."""
+    Σwt (at the expected termination depth) and median t (0: T stays above 0.5), each [n]; with
+    `front` [n] (the ray's transmittance at `a`, as `march.march`'s `transmittance`), the whole ray's."""
     radiance, trans = frostbite_step(source, sigma_t, length)
-    alpha = 1.0 - trans
+    if front is None:
+        median = torch.where(trans <= 0.5, a + LN2 / sigma_t.clamp_min(torch.finfo(a.dtype).tiny), torch.zeros_like(a))
+    else:
+        radiance, crossed = radiance * front[:, None], (front > 0.5) & (front * trans <= 0.5)
+        median = torch.where(crossed, median_crossing(a, front, sigma_t, length), torch.zeros_like(a))
+        trans = front * trans
+    alpha = (1.0 if front is None else front) - trans
     t_mean = a + length * expected_depth_fraction(sigma_t * length)
-    median = torch.where(trans <= 0.5, a + LN2 / sigma_t.clamp_min(torch.finfo(a.dtype).tiny), torch.zeros_like(a))
     return dict(radiance=radiance, transmittance=trans, weight_sum=alpha, weighted_t=alpha * t_mean, median_t=median)
 
 
