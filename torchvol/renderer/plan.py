@@ -154,6 +154,20 @@ def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None, *, air
     return JointPass(tuple(v.index for v in members), "media.closed_form" if closed else "media.march", shares, air)
 
 
+def joint_backends(volumes: tuple[VolumePass, ...], joint: JointPass) -> tuple[VolumePass, ...]:
+    """The volumes with their backends in the joint march: one Dr.Jit kernel marches every medium
+    of a ray where each member's march is one and there is no air (`volume.kernel_march`); else
+    the members march eagerly together, each saying why."""
+    members = [volumes[i] for i in joint.volumes]
+    slow = next((v for v in members if v.backend != "drjit"), None)
+    if not joint.air and (slow is None or all(v.backend == "closed_form" for v in members)):
+        return volumes
+    own = None if slow is None else slow.eager_because or "in closed form, which the kernel does not mix with marches"
+    why = "marched with the [atmosphere]'s air, which has no kernel" if joint.air else f"marched with {slow.name} ({own})"
+    return tuple(replace(v, backend="eager", eager_because=own if v is slow and not joint.air else why)
+                 if v.index in joint.volumes else v for v in volumes)
+
+
 @dataclass(frozen=True)
 class VoxelPass:
     traversal: str  # "dda" or "hybrid"
@@ -250,8 +264,7 @@ class Plan:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
         march's backend (and, where one is eager, why: `eager_because`), the thread policy, the
         compile mode and the dtype."""
-        eager = {v.name: "marched with the other media of its rays (the joint march has no kernel yet)" if v.joint
-                 else v.eager_because for v in self.volumes if v.backend == "eager"}
+        eager = {v.name: v.eager_because for v in self.volumes if v.backend == "eager"}
         return {"passes": self.names(), "sun": self.sun, "marches": {v.name: v.backend for v in self.volumes},
                 **({"eager_because": eager} if eager else {}),
                 **({"joint": [self.volumes[v].name for v in self.joint.volumes]} if self.joint is not None else {}),
@@ -326,7 +339,8 @@ def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bo
 
 
 def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: str,
-                  settings: MarchSettings, dtype: torch.dtype, device: torch.device | str) -> tuple[Backend, str | None]:
+                  settings: MarchSettings, dtype: torch.dtype, device: torch.device | str,
+                  ambient: LightPass | None = None) -> tuple[Backend, str | None]:
     """What volume `vol`'s march runs on, decided once for the render, and why it is eager where
     it is (None otherwise): one Dr.Jit kernel wherever the compile mode is not "off", Dr.Jit runs
     for `dtype` on `device` (`drjit_march.available`) and a kernel renders the technique (the
@@ -345,7 +359,7 @@ def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[
                               else "Dr.Jit's LLVM backend is not available here")
     if fused_march(batch, vol, uses):
         return ("drjit", None) if drjit else ("inductor", None) if compile == "all" else ("eager", why)
-    why = why or kernel_march.supports(batch, vol, uses, settings)
+    why = why or kernel_march.supports(batch, vol, uses, settings, ambient)
     return ("eager", f"no kernel for {why}" if drjit else why) if why is not None else ("drjit", None)
 
 
@@ -374,14 +388,15 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
     ambient = vol.ambient is not None
-    how = strategy(batch, vol, settings)
-    backend, why = march_backend(batch, vol, how, uses, compile=compile, settings=settings, dtype=dtype, device=device)
+    how, sky = strategy(batch, vol, settings), ambient_sky(batch, v)
+    backend, why = march_backend(batch, vol, how, uses, compile=compile, settings=settings, dtype=dtype, device=device,
+                                 ambient=sky)
     return VolumePass(index=v, name=name, strategy=how, shading=vol.shading, lights=uses, backend=backend, eager_because=why,
                       emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
                       emission_map=None if vol.emission_map is None else vol.emission_map.kind,
                       bloom=None if vol.bloom is None else vol.bloom.light,
                       sky_blend=vol.sky_blend is not None, ambient=ambient,
-                      ambient_sky=ambient_sky(batch, v),
+                      ambient_sky=sky,
                       multiple=vol.multiple_scattering is not None)
 
 
@@ -436,7 +451,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
     labels = label_pass(batch, aovs)
     joint = joint_pass(volumes, labels, air=batch.atmosphere is not None)
     if joint is not None:
-        volumes = tuple(replace(v, joint=v.index in joint.volumes) for v in volumes)
+        volumes = joint_backends(tuple(replace(v, joint=v.index in joint.volumes) for v in volumes), joint)
     # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
     glue = voxels is None and terrain is None and bool(volumes) and all(v.backend == "drjit" for v in volumes)
     return Plan(

@@ -23,6 +23,7 @@ from torch import Tensor
 from ..geometry.camera import Rays
 from ..light.atmosphere import AirPath
 from ..schema.batch import take
+from . import kernel_march
 from .composite import VolumePart
 from .context import VolumeContext
 from .march import MarchResult, Medium, StepRule, gathered, march, march_adaptive
@@ -203,6 +204,16 @@ def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tens
     share of the alpha (the labels). -> `Joint`."""
     t0, t1, hit = spans(ctx, vols, rays, t_limit, air)
     start, end, active = pieces(t0, t1, hit)
+    first = torch.where(hit, t0, torch.full_like(t0, math.inf)).amin(dim=0)  # (the air's entry too)
+    if air is None and all(vol.plan.backend == "drjit" for vol in vols):  # one Dr.Jit kernel
+        res = kernel_march.march(ctx, vols, rays, start, end, active, ctx.dither(rays), shares=shares)
+        if bool(active.any()):  # the members' per-sample passes ran inside it, their time in its own
+            for name in (n for vol in vols for n in vol.plan.sample_passes):
+                with ctx.timer.section(name):
+                    pass
+        part = VolumePart(radiance=res.radiance[:, :3], transmittance=res.transmittance, weight_sum=res.weight_sum,
+                          weighted_t=res.weighted_t, median_t=res.median_t, t0=first)
+        return Joint(part, _alpha_shares(res.radiance[:, 3:].T, res.transmittance) if shares else None)
     signed = ctx.settings.tolerance is not None
     media = [vol.shading.fn(ctx, vol, rays, background, signed=signed) for vol in vols]
     # the air varies along every ray: a piece with air is marched
@@ -231,7 +242,6 @@ def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tens
                            features=features, compact_below=compact_below, air_only=air_only, air_steps=air_steps)
         radiance, wsum, wt = radiance + part.radiance, wsum + part.weight_sum, wt + part.weighted_t
         median, front = torch.where(median == 0, part.median_t, median), part.transmittance
-    first = torch.where(hit, t0, torch.full_like(t0, math.inf)).amin(dim=0)  # (the air's entry too)
     part = VolumePart(radiance=radiance[:, :3], transmittance=front, weight_sum=wsum, weighted_t=wt, median_t=median,
                       t0=first)
     return Joint(part, _alpha_shares(radiance[:, 3:].T, front) if shares else None)

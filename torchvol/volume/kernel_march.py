@@ -45,13 +45,15 @@ from .physical import light_responses
 from .shadow import shadow_segments
 
 
-def supports(batch, vol, uses, settings) -> str | None:
+def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
-    light passes `uses`, or None where it can: a density written in lanes (constant, exponential,
-    value-noise fbm of either hash) in bounds written in lanes (sphere, box, slab), physically
-    shaded with the Frostbite integrator, lit by suns and point lights with marched shadows
-    through it alone, ungraded sky light, emission, its colour map and bloom; `settings` the render's
-    `MarchSettings`."""
+    light passes `uses` and sky-visibility pass `ambient` (None: none), or None where it can: a
+    density written in lanes (constant, exponential, value-noise fbm of either hash) in bounds
+    written in lanes (sphere, box, slab), physically shaded with the Frostbite integrator, lit by
+    suns and point lights with marched shadows through it and through the other volumes (each
+    written in lanes too), ungraded sky light, emission, its colour map and bloom; `settings` the
+    render's `MarchSettings`."""
+    passes = [u for u in uses if u.shadow is not None] + ([] if ambient is None else [ambient])
     checks = [
         (_has_lanes(vol), f"the {vol.density.kind} density"),
         ("lanes" in BOUNDS[vol.bounds.kind].caps, f"{vol.bounds.kind} bounds"),
@@ -61,8 +63,9 @@ def supports(batch, vol, uses, settings) -> str | None:
         (vol.sky_blend is None, "a sky blend"),
         (vol.ambient is None or vol.ambient.top is None, "a graded ambient"),
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
-        (all(u.shadow is None or (u.shadow.method == "march" and not (u.occluders or u.terrain or u.voxels)) for u in uses),
-         "shadows through other volumes or surfaces"),
+        (all(u.shadow.method == "march" for u in passes), "grid shadows"),
+        (all(_has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
+             for u in passes for j in u.occluders), "shadows through a volume not written in lanes"),
         (batch.terrain is None and batch.voxels is None, "surfaces"),
     ]
     return next((why for ok, why in checks if not ok), None)
@@ -103,6 +106,37 @@ def _field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
                                                        base=None if edge.base is None else per_ray(edge.base)))
 
 
+def _density(k: SimpleNamespace, vol) -> Callable:
+    """The volume's density over its `_field_inputs` `k`: density(p, count) at lanes `p` (three),
+    `count` octaves kept or None: the field clamped at 0, faded at the edge and capped, as
+    `renderer.stats.CountedField` reads it."""
+    depth_in = vol.bounds.caps["lanes"][1]
+
+    def density(p, count):
+        raw = lanes.clamp_min(k.field_density(k.field, p, count), 0.0)
+        if k.edge is not None:
+            depth = depth_in(k.bounds, p)
+            if k.edge.base is not None:
+                depth = lanes.minimum(depth, p[1] - k.edge.base)
+            raw = faded(raw, depth, k.edge.width)
+        return lanes.clamp_max(raw, DENSITY_MAX)
+
+    return density
+
+
+def _solid(vol, s: Tensor, per_ray) -> SimpleNamespace:
+    """Volume `vol` as a ray crossing it sees it, for lanes of scenes `s` [n]: its density
+    (`_density`), its bounds' interval(p, direction) -> (near, far), σ_t per lane, its reach and index."""
+    import drjit as dr
+    from drjit.llvm import Float
+
+    k = _field_inputs(vol, s, per_ray)
+    interval = vol.bounds.caps["lanes"][0]
+    return SimpleNamespace(density=_density(k, vol), interval=lambda p, d: interval(k.bounds, p, d),
+                           sigma_t=per_ray(vol.params.sigma_t), reach=dr.opaque(Float, min(vol.plan.reach, 3e38)),
+                           index=vol.plan.index, octaves=getattr(k.field, "octaves", None))
+
+
 def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
     """The volume's density alone at `points` [N, 3] of scene 0, as one Dr.Jit kernel: the march's
     floor (`torchvol bench speed`: what the march would cost if nothing but its density did).
@@ -110,15 +144,14 @@ def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
     import drjit as dr
 
     s = torch.zeros(points.shape[0], dtype=torch.long)
-    k = _field_inputs(vol, s, lambda x: _lanes_of(take(x, s), _floats))
-    medium = _medium(k, vol, _parameters(vol, None))
+    density = _density(_field_inputs(vol, s, lambda x: _lanes_of(take(x, s), _floats)), vol)
     p = _lanes_of(points, _floats)
 
     def run() -> Tensor:
         threads = kernel_threads()
         if dr.thread_count() != threads:
             dr.set_thread_count(threads)
-        out = medium.density(p, None)
+        out = density(p, None)
         dr.eval(out)
         dr.sync_thread()
         return torch.from_numpy(np.array(out))
@@ -126,29 +159,21 @@ def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
     return run
 
 
-def _inputs(ctx, vol, rays, t0: Tensor, t1: Tensor, dither: Tensor | None, idx: Tensor) -> SimpleNamespace:
-    """The kernel's per-ray inputs for the rays `idx` [n], computed by the eager code: rays, what
-    the field, bounds, lights and sky take per ray, the lights' phase responses."""
-    s = rays.scene_index.index_select(0, idx)
-    o, d = rays.origins.index_select(0, idx), rays.directions.index_select(0, idx)
-    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
-    per_ray = lambda x: lane(take(x, s))  # noqa: E731  per scene -> per ray
-    k = SimpleNamespace(origin=lane(o), direction=lane(d), t_start=lane(t0.index_select(0, idx)),
-                        t_end=lane(t1.index_select(0, idx)), dither=None if dither is None else lane(dither.index_select(0, idx)))
-    k.span = k.t_end - k.t_start
-    k.__dict__.update(vars(_field_inputs(vol, s, per_ray)))
-    k.sigma_t, k.albedo = per_ray(vol.params.sigma_t), per_ray(vol.params.albedo)
+def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray) -> SimpleNamespace:
+    """What a member's sample takes per ray, for rays of directions `d` [n, 3] and scenes `s` [n],
+    computed by the eager code: σ_t, albedo, what its lights and sky light take (the suns' phase
+    responses, `physical.light_responses`), its emission, colour map and bloom."""
+    k = SimpleNamespace(direction=lane(d), sigma_t=per_ray(vol.params.sigma_t), albedo=per_ray(vol.params.albedo))
     responses = light_responses(ctx, vol, d, s)
     k.lights = []
     for use in vol.plan.lights:
         light, resp = ctx.lights[use.light], responses[use.light]  # [n, 3] or per octave [n, K, 3]; None: a point light
         if resp is None:  # its θ changes along the ray: the phase is traced per sample
             k.lights.append(SimpleNamespace(response=None, position=per_ray(light.params.position),
-                                            radiant=per_ray(light.radiant), shadow=use.shadow))
+                                            radiant=per_ray(light.radiant), use=use))
             continue
         resp = [resp] if resp.ndim == 2 else list(resp.unbind(1))
-        k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(light.direction),
-                                        shadow=use.shadow))
+        k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(light.direction), use=use))
     if any(light.response is None for light in k.lights):
         inputs, k.phase = vol.phase.caps["lanes"]
         k.phase_params = inputs(vol.params.phase.value, SimpleNamespace(per_lane=per_ray))
@@ -170,94 +195,131 @@ def _inputs(ctx, vol, rays, t0: Tensor, t1: Tensor, dither: Tensor | None, idx: 
         k.ambient = lane(take(vol.ambient_bottom, s))
         k.ambient_direction = per_ray(torch.nn.functional.normalize(amb.direction, dim=1))
         k.ambient_sigma = per_ray(amb.sigma_scale * vol.params.sigma_t)
-        k.ambient_steps = amb.steps
     return k
 
 
-def march(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit: Tensor,
-          dither: Tensor | None) -> tuple[MarchResult, int]:
-    """The fixed march of physical volume `vol` (`supports` said yes) for a chunk's `rays` [R]
-    through [t0, t1] [R] where `hit` [R], `dither` [R] the first segment's fraction or None, as
-    one Dr.Jit kernel (`background`, the sky behind [R, 3], is not part of a physical medium's
-    source without `sky_blend`, which `supports` leaves to eager). -> (`march.march`'s result,
-    density evaluations)."""
+def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: Tensor | None, *,
+          shares: bool = False) -> MarchResult:
+    """The fixed march of the physical volumes `vols` (`supports` said yes for each) along a
+    chunk's `rays` [R] as one Dr.Jit kernel: each ray's span cut into pieces [start, end] [P, R]
+    (`joint.pieces`; one volume alone: one piece, its chord), medium v present in piece p where
+    `active` [P, V, R]; in each piece σ_t and the sources of the media present summed, as
+    `joint.summed_medium` does, and the piece marched by the render's step rule from its own
+    start, its first step dithered by `dither` [R] (the fraction) or not (None). `shares`: the
+    radiance has V channels more, each medium's σ_t integrated (`joint.Joint.shares`). -> the
+    whole ray's `march.march` result; its steps, truncations (one per piece a step limit cut) and
+    each volume's density evaluations counted in the render's stats."""
     import drjit as dr
     from drjit.llvm import Bool, Float, Int32
 
-    idx = hit.nonzero().squeeze(1)
-    result = MarchResult.empty(t0, 3)
+    count = len(ctx.volumes)
+    idx = active.any(dim=1).any(dim=0).nonzero().squeeze(1)
+    result = MarchResult.empty(start[0], 3 + (len(vols) if shares else 0))
     if idx.shape[0] == 0:
-        return result, 0
+        return result
     threads = kernel_threads()
     if dr.thread_count() != threads:
         dr.set_thread_count(threads)
-    k = _inputs(ctx, vol, rays, t0, t1, dither, idx)
-    n = dr.width(k.t_start)
-    zero = dr.zeros(Float, n)
-    state = (k.t_start, dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
-             dr.full(Bool, False, n), dr.full(Bool, True, n), dr.zeros(Int32, n), zero, zero, zero)
-    out = dr.while_loop(state, lambda *s: s[6], _body(k, vol, ctx.settings), mode="symbolic")
+    s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
+    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
+    per_ray = lambda x: lane(take(x, s))  # noqa: E731  per scene -> per ray
+    bools = lambda x: Bool(x.index_select(0, idx).cpu().numpy())  # noqa: E731
+    # the first piece with a medium on each ray
+    pieces = active.any(dim=1)[:, idx]  # [P, n]
+    first_piece = torch.where(pieces, torch.arange(pieces.shape[0])[:, None], pieces.shape[0]).amin(dim=0)
+    k = SimpleNamespace(
+        origin=lane(rays.origins.index_select(0, idx)), direction=lane(d),
+        dither=None if dither is None else lane(dither.index_select(0, idx)),
+        start=[lane(x.index_select(0, idx)) for x in start], end=[lane(x.index_select(0, idx)) for x in end],
+        present=[Bool(x.cpu().numpy()) for x in pieces], active=[[bools(a) for a in v] for v in active.unbind(1)])
+    needed = {v.plan.index for v in vols} | {j for v in vols for u in v.plan.lights + (v.plan.ambient_sky,)
+                                               if u is not None for j in u.occluders}
+    solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
+    par = _parameters(ctx.settings)
+    members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray)),
+                               medium=_medium(m, v, par, solids, count)) for v in vols]
+    n = len(idx)
+    zero, q0 = dr.zeros(Float, n), Int32(first_piece.to(torch.int32).numpy())
+    t0 = lane(start[:, idx].gather(0, first_piece.clamp_max(start.shape[0] - 1)[None]).squeeze(0))
+    state = (t0, q0, dr.zeros(Int32, n), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n),
+             dr.full(Bool, True, n), dr.zeros(Int32, n), dr.full(Bool, True, n),
+             *(dr.zeros(Int32, n) for _ in range(count)), *(zero for _ in range(3 + (len(vols) if shares else 0))))
+    out = dr.while_loop(state, lambda *x: x[8], _body(k, members, par, ctx.settings, count, shares), mode="symbolic")
     dr.eval(out)
     dr.sync_thread()
-    _, trans, wsum, wt, median, steps, _, truncated, _, evals, *radiance = (torch.from_numpy(np.array(v)) for v in out)
-    result.radiance.index_copy_(0, idx, torch.stack(radiance, 1).to(t0.dtype))
+    _, _, _, trans, wsum, wt, median, steps, _, truncated, _, *rest = (torch.from_numpy(np.array(v)) for v in out)
+    evals, radiance = rest[:count], rest[count:]
+    result.radiance.index_copy_(0, idx, torch.stack(radiance, 1).to(start.dtype))
     for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
-                        ("steps", steps.long()), ("truncated", truncated)):
+                        ("steps", steps.long()), ("truncated", truncated > 0)):
         target = getattr(result, name)
         target.index_copy_(0, idx, value.to(target.dtype))
-    return result, int(evals.long().sum())
+    ctx.counts.march_steps += int(steps.long().sum())
+    ctx.counts.truncated_rays += int(truncated.long().sum())
+    for j, e in enumerate(evals):
+        ctx.counts.density_evals += int(e.long().sum())
+        ctx.volumes[j].field.evals += int(e.long().sum())
+    return result
 
 
-def _parameters(vol, st) -> SimpleNamespace:
-    """The settings `st` (`MarchSettings`; None: none, the density alone) that are numbers as the
-    kernel's parameters (`drjit.opaque`: one kernel for any value), the octave count and scales."""
+def _parameters(st) -> SimpleNamespace:
+    """The march settings `st` (`MarchSettings`) that are numbers as the kernel's parameters
+    (`drjit.opaque`: one kernel for any value)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
-    if st is None:  # the density alone
-        return SimpleNamespace()
     return SimpleNamespace(
-        threshold=dr.opaque(Float, st.density_threshold), reach=dr.opaque(Float, min(vol.plan.reach, 3e38)),
-        lod=None if st.lod_scale is None else dr.opaque(Float, st.lod_scale),
+        threshold=dr.opaque(Float, st.density_threshold), lod=None if st.lod_scale is None else dr.opaque(Float, st.lod_scale),
         min_transmittance=dr.opaque(Float, st.min_transmittance), max_iterations=dr.opaque(Int32, st.rule.max_iterations))
 
 
-def _medium(k: SimpleNamespace, vol, par: SimpleNamespace) -> SimpleNamespace:
-    """The per-sample functions of the volume over the kernel's inputs `k` and parameters `par`:
-    density(p, count), transmittance(p, direction, sigma_scale, shadow), in_scatter(p, sigma_t)."""
+def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, count: int) -> SimpleNamespace:
+    """The per-sample functions of member `vol` over its inputs `k` (`_member_inputs`), the
+    parameters `par` and the volumes a ray may cross `solids` (`_solid`, by index):
+    density(p, count), in_scatter(p, sigma_t) -> (three lanes, `count` lanes of evaluations per volume)."""
     import drjit as dr
-    from drjit.llvm import Float
+    from drjit.llvm import Float, Int32
 
-    interval, depth_in = vol.bounds.caps["lanes"]
+    own = solids[vol.plan.index]
 
-    def density(p, count):
-        """The density at lanes `p` (three), `count` octaves kept or None: the field clamped at 0,
-        faded at the edge and capped, as `renderer.stats.CountedField` reads it."""
-        raw = lanes.clamp_min(k.field_density(k.field, p, count), 0.0)
-        if k.edge is not None:
-            depth = depth_in(k.bounds, p)
-            if k.edge.base is not None:
-                depth = lanes.minimum(depth, p[1] - k.edge.base)
-            raw = faded(raw, depth, k.edge.width)
-        return lanes.clamp_max(raw, DENSITY_MAX)
+    def optical_depth(solid, p, direction, exit_t, sigma_scale, steps, growth=1.0, first_step=None):
+        """∫ σ_t along `direction` from `p` to `exit_t` through `solid`, over `shadow_segments`."""
+        tau = dr.zeros(Float, dr.width(exit_t))
+        for mid, length in shadow_segments(exit_t, steps=steps, growth=growth, first_step=first_step):
+            tau = tau + sigma_scale * solid.density([p[c] + mid * direction[c] for c in range(3)], None) * length
+        return tau
 
-    def transmittance(p, direction, sigma_scale, shadow, distance=None):
+    def transmittance(p, direction, sigma_scale, shadow, occluders, evals, distance=None):
         """From lanes `p` along `direction` (three lanes) out of the bounds or to the light at
         `distance` (None: a sun), σ_t = `sigma_scale` × density, over `shadow`'s segments
-        (`shadow.shadow_transmittance`'s march)."""
-        exit_t = lanes.clamp(interval(k.bounds, p, direction)[1], 0.0, par.reach)
+        (`shadow.shadow_transmittance`'s march), times each volume of `occluders` crossed
+        (`shadow.occluder_transmittance`: its σ_t over its chord, `shadow.steps` equal segments);
+        each volume's evaluations added to `evals`."""
+        exit_t = lanes.clamp(own.interval(p, direction)[1], 0.0, own.reach)
         if distance is not None:
             exit_t = lanes.minimum(exit_t, distance)
-        tau = dr.zeros(Float, dr.width(exit_t))
-        for mid, length in shadow_segments(exit_t, steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step):
-            tau = tau + sigma_scale * density([p[c] + mid * direction[c] for c in range(3)], None) * length
-        return lanes.exp(-tau)
+        through = lanes.exp(-optical_depth(own, p, direction, exit_t, sigma_scale, shadow.steps, shadow.growth,
+                                           shadow.first_step))
+        evals[own.index] = evals[own.index] + shadow.steps
+        for j in occluders:
+            other = solids[j]
+            near, far = other.interval(p, direction)
+            t0 = lanes.clamp_min(near, 0.0)
+            t1 = lanes.minimum(far, other.reach if distance is None else lanes.minimum(distance, other.reach))
+            crosses = t1 > t0
+            entry = [p[c] + t0 * direction[c] for c in range(3)]
+            tau = dr.if_stmt((), crosses, lambda: optical_depth(other, entry, direction, t1 - t0, other.sigma_t, shadow.steps),
+                             lambda: dr.zeros(Float, dr.width(t0)))
+            through = through * lanes.exp(-tau)
+            evals[j] = evals[j] + dr.select(crosses, Int32(shadow.steps), Int32(0))
+        return through
 
     def in_scatter(p, sigma_t):
         """Σ over the lights of σs·p(θ)·E·T_light (octaves summed), plus σs·L_amb·V: three lanes
-        (`physical.in_scatter`'s terms, in its order)."""
+        (`physical.in_scatter`'s terms, in its order), and each volume's evaluations."""
         sigma_s = k.albedo * sigma_t
-        out = [dr.zeros(Float, dr.width(sigma_t)) for _ in range(3)]
+        width = dr.width(sigma_t)
+        out, evals = [dr.zeros(Float, width) for _ in range(3)], [dr.zeros(Int32, width) for _ in range(count)]
         for light in k.lights:
             response, direction, distance = light.response, getattr(light, "direction", None), None
             if response is None:  # a point light: `physical.response` at this sample
@@ -265,64 +327,107 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace) -> SimpleNamespace:
                 cos = k.direction[0] * direction[0] + k.direction[1] * direction[1] + k.direction[2] * direction[2]
                 response = [[e * k.phase(k.phase_params, cos, 1.0) for e in irradiance]]
                 response += [[e * (a * k.phase(k.phase_params, cos, c)) for e in irradiance] for a, c in k.octave_scales]
-            trans = None if light.shadow is None else transmittance(p, direction, k.sigma_t, light.shadow, distance)
+            use = light.use
+            trans = None if use.shadow is None else transmittance(p, direction, k.sigma_t, use.shadow, use.occluders,
+                                                                  evals, distance)
             weights = octave_weights(sigma_s, trans, k.exponents if vol.plan.multiple else [])
             out = [out[c] + sum((response[i][c] * weights[i] for i in range(1, len(weights))),
                                 response[0][c] * weights[0]) for c in range(3)]
         if vol.plan.ambient:
             amb = [k.ambient[c] * sigma_s for c in range(3)]
-            if vol.plan.ambient_sky is not None:
-                v = transmittance(p, k.ambient_direction, k.ambient_sigma,
-                                  SimpleNamespace(steps=k.ambient_steps, growth=1.0, first_step=None))
+            sky = vol.plan.ambient_sky
+            if sky is not None:
+                v = transmittance(p, k.ambient_direction, k.ambient_sigma, sky.shadow, sky.occluders, evals)
                 amb = [a * v for a in amb]
             out = [out[c] + amb[c] for c in range(3)]
-        return out
+        return out, evals
 
-    return SimpleNamespace(density=density, transmittance=transmittance, in_scatter=in_scatter)
+    return SimpleNamespace(density=own.density, in_scatter=in_scatter, octaves=own.octaves)
 
 
-def _body(k: SimpleNamespace, vol, st):
+def _pick(values: list, q):
+    """values[q] per lane, `q` the Int32 lane of a piece (`values` one lane per piece)."""
+    import drjit as dr
+
+    out = values[0]
+    for i in range(1, len(values)):
+        out = dr.select(q == i, values[i], out)
+    return out
+
+
+def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: int, shares: bool):
     """The loop body: one segment of `march.march`'s physical loop (``segments``, the Frostbite
-    step) for a ray still going, its lighting under a branch where the density passes the threshold."""
+    step) in the ray's current piece, each member present sampled (its lighting under a branch
+    where its density passes the threshold), then on to the next piece with a medium where the
+    piece ends (`joint.march_joint`'s order)."""
     import drjit as dr
     from drjit.llvm import Bool, Float, Int32
 
-    par = _parameters(vol, st)
-    medium = _medium(k, vol, par)
-    octaves = getattr(k.field, "octaves", None)  # LOD cuts a sum of octaves short
-    lit_evals = sum(light.shadow.steps for light in k.lights if light.shadow is not None)
-    lit_evals += k.ambient_steps if vol.plan.ambient and vol.plan.ambient_sky is not None else 0
+    pieces = len(k.start)
 
-    def body(t, trans, wsum, wt, median, steps, alive, truncated, first, evals, red, green, blue):
-        dt = st.rule.length(t, k.span)
-        if k.dither is not None:  # only a ray's first segment is dithered
+    def next_piece(q):
+        """The first piece after `q` with a medium on the ray (`pieces`: none)."""
+        out = dr.full(Int32, pieces, dr.width(q))
+        for i in reversed(range(pieces)):
+            out = dr.select((q < i) & k.present[i], Int32(i), out)
+        return out
+
+    def sample(m, p, t_sample, dt):
+        """Member `m` at lanes `p`: (σ_t, its source's three lanes, each volume's evaluations)."""
+        med, mk, vol = m.medium, m.k, m.vol
+        drop = None if par.lod is None or med.octaves is None else Int32(dr.floor(dr.log2(1.0 + t_sample * par.lod)))
+        raw = med.density(p, None if drop is None else med.octaves - drop)
+        sigma_t = mk.sigma_t * raw
+        lit = (raw > par.threshold) & (dt > 0.0)
+        width = dr.width(raw)
+        dark = lambda: ([dr.zeros(Float, width) for _ in range(3)], [dr.zeros(Int32, width) for _ in range(count)])  # noqa: E731
+        source, evals = dr.if_stmt((), lit, lambda: med.in_scatter(p, sigma_t), dark)
+        evals = list(evals)
+        evals[vol.plan.index] = evals[vol.plan.index] + 1
+        if vol.plan.emissive:  # σe = emission × density, then its colour map and the bloom, as `physical_medium` adds them
+            source = tuple(source[c] + mk.emission[c] * raw for c in range(3))
+        if vol.plan.emission_map is not None:
+            source = tuple(a + b for a, b in zip(source, mk.emission_glow(mk.emission_map, p, raw)))
+        if vol.plan.bloom is not None:
+            source = tuple(a + b for a, b in zip(source, bloom_source(mk.bloom, p)))
+        return sigma_t, tuple(source), evals
+
+    def body(t, q, piece_steps, trans, wsum, wt, median, steps, alive, truncated, first, *rest):
+        evals, radiance = list(rest[:count]), list(rest[count:])
+        start, end = _pick(k.start, q), _pick(k.end, q)
+        dt = st.rule.length(t, end - start)
+        if k.dither is not None:  # only a piece's first segment is dithered
             dt = dr.select(first, dt * k.dither, dt)
-        dt = lanes.minimum(dt, k.t_end - t)
+        dt = lanes.minimum(dt, end - t)
         t_sample = t + 0.5 * dt
         p = [k.origin[c] + t_sample * k.direction[c] for c in range(3)]
-        count = None if par.lod is None or octaves is None else octaves - Int32(dr.floor(dr.log2(1.0 + t_sample * par.lod)))
-        raw = medium.density(p, count)
-        sigma_t = k.sigma_t * raw
-        lit = (raw > par.threshold) & (dt > 0.0)
-        source = dr.if_stmt((p[0], p[1], p[2], sigma_t), lit, lambda x, y, z, sg: tuple(medium.in_scatter([x, y, z], sg)),
-                            lambda x, y, z, sg: (dr.zeros(Float, dr.width(x)),) * 3)
-        if vol.plan.emissive:  # σe = emission × density, then its colour map and the bloom, as `physical_medium` adds them
-            source = tuple(source[c] + k.emission[c] * raw for c in range(3))
-        if vol.plan.emission_map is not None:
-            source = tuple(a + b for a, b in zip(source, k.emission_glow(k.emission_map, p, raw)))
-        if vol.plan.bloom is not None:
-            source = tuple(a + b for a, b in zip(source, bloom_source(k.bloom, p)))
-        weight, seg_trans = frostbite_weight(sigma_t, dt)
-        radiance = tuple(r + trans * (source[c] * weight) for c, r in enumerate((red, green, blue)))
+        sigma, source, sigmas = dr.zeros(Float, dr.width(t)), [dr.zeros(Float, dr.width(t))] * 3, []
+        for i, m in enumerate(members):
+            if len(members) == 1:  # (a piece has a medium: the one)
+                sig, src, ev = sample(m, p, t_sample, dt)
+            else:
+                width = dr.width(t)
+                none = lambda: (dr.zeros(Float, width), (dr.zeros(Float, width),) * 3,  # noqa: E731
+                                [dr.zeros(Int32, width) for _ in range(count)])
+                sig, src, ev = dr.if_stmt((), _pick(k.active[i], q), lambda m=m: sample(m, p, t_sample, dt), none)
+            sigma, source = sigma + sig, [source[c] + src[c] for c in range(3)]
+            evals = [e + x for e, x in zip(evals, ev)]
+            sigmas.append(sig)
+        weight, seg_trans = frostbite_weight(sigma, dt)
+        radiance = [r + trans * (x * weight) for r, x in zip(radiance, source + (sigmas if shares else []))]
         w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
-        median = dr.select((trans > 0.5) & (new_trans <= 0.5), median_crossing(t, trans, sigma_t, dt), median)
-        steps, t_next = steps + 1, t + dt
-        keep = t_next < k.t_end
-        if st.min_transmittance > 0:
-            keep = keep & (new_trans >= par.min_transmittance)
-        last = steps >= par.max_iterations
-        return (t_next, new_trans, wsum + w, wt + w * t_sample, median, steps, keep & ~last, keep & last,
-                dr.full(Bool, False, dr.width(t)), evals + 1 + dr.select(lit, Int32(lit_evals), Int32(0)), *radiance)
+        median = dr.select((trans > 0.5) & (new_trans <= 0.5), median_crossing(t, trans, sigma, dt), median)
+        t_next, piece_steps = t + dt, piece_steps + 1
+        inside = t_next < end
+        going = new_trans >= par.min_transmittance if st.min_transmittance > 0 else dr.full(Bool, True, dr.width(t))
+        last = piece_steps >= par.max_iterations
+        truncated = truncated + dr.select(inside & going & last, Int32(1), Int32(0))
+        done = ~inside | last
+        after = next_piece(q)
+        q = dr.select(done, after, q)
+        t_next = dr.select(done, _pick(k.start, q), t_next)
+        return (t_next, q, dr.select(done, Int32(0), piece_steps), new_trans, wsum + w, wt + w * t_sample, median,
+                steps + 1, going & (~done | (after < pieces)), truncated, done, *evals, *radiance)
 
     return body
 

@@ -37,9 +37,14 @@ def entry_exit(vol, rays: Rays, t_limit: Tensor | None) -> tuple[Tensor, Tensor,
     return t0, t1, hit
 
 
-def _part(ctx: VolumeContext, vol, res, t0: Tensor, hit: Tensor) -> VolumePart:
+def _counted(ctx: VolumeContext, res):
+    """The march result `res`, its steps and truncated rays counted in the render's stats."""
     ctx.counts.march_steps += int(res.steps.sum())
     ctx.counts.truncated_rays += int(res.truncated.sum())
+    return res
+
+
+def _part(ctx: VolumeContext, vol, res, t0: Tensor, hit: Tensor) -> VolumePart:
     radiance, trans = res.radiance, res.transmittance
     if vol.shading.semantics == "shader":  # the template's clamp(sum, 0, 1)
         radiance, trans = radiance.clamp(0.0, 1.0), 1.0 - (1.0 - trans).clamp(0.0, 1.0)
@@ -68,9 +73,7 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
             occupied, marched = skipped_span(vol, rays, t0, t1, hit)
     with ctx.timer.section(vol.plan.step_pass):
         if not skip and vol.plan.backend == "drjit" and vol.shading.semantics == "segments":  # one Dr.Jit kernel
-            res, evals = kernel_march.march(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays))
-            ctx.counts.density_evals += evals
-            vol.field.evals += evals
+            res = kernel_march.march(ctx, [vol], rays, t0[None], t1[None], hit[None, None], ctx.dither(rays))
             if bool(hit.any()):  # its per-sample passes ran inside the kernel, their time in its own
                 for name in vol.plan.sample_passes:
                     with ctx.timer.section(name):
@@ -79,7 +82,7 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
         if not skip and vol.plan.backend in ("inductor", "drjit"):  # the template's compiled kernels, or one Dr.Jit kernel
             behind = background if background is not None else rays.origins.new_zeros(len(rays), 3)  # no [sky]: black
             res = march_fused(ctx, vol, rays, behind, t0, t1, hit, ctx.dither(rays), drjit=vol.plan.backend == "drjit")
-            return _part(ctx, vol, res, t0, hit)
+            return _part(ctx, vol, _counted(ctx, res), t0, hit)
         medium = vol.shading.fn(ctx, vol, rays, background)
         res = march(
             t0, t1, marched, medium, rule=st.rule, integrator=st.integrator, semantics=vol.shading.semantics,
@@ -87,7 +90,7 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
             min_transmittance=st.min_transmittance, occupied=occupied,
             compact_below=vol.plan.compact_below,
         )
-    return _part(ctx, vol, res, t0, hit)
+    return _part(ctx, vol, _counted(ctx, res), t0, hit)
 
 
 def run_skip(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_limit: Tensor | None) -> VolumePart:
@@ -113,7 +116,7 @@ def run_tolerance(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None
             max_step=None if feature is None else 0.5 * take(feature, rays.scene_index),
         )
     ctx.counts.error_estimate = max(ctx.counts.error_estimate, float(res.error.max()) if len(res.error) else 0.0)
-    return _part(ctx, vol, res, t0, hit)
+    return _part(ctx, vol, _counted(ctx, res), t0, hit)
 
 
 def skipped_span(vol, rays: Rays, t0: Tensor, t1: Tensor, hit: Tensor):
