@@ -106,12 +106,75 @@ def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count(hash_
     assert torch.equal(one.radiance[0], batch.radiance[0])
 
 
-@pytest.mark.parametrize("name", ["cloud-puff", "explosion"])
+@pytest.mark.parametrize("name", ["cloud-puff", "explosion", "fire", "god-rays", "multi-layer"])
 def test_the_presets_match_the_eager_march(name):
-    """cloud-puff (table-hash fbm), explosion (its density, colour map and the point light's bloom)."""
+    """cloud-puff (table-hash fbm), explosion (its density, colour map and the point light's
+    bloom), and the joint march: fire (two explosions sharing space), god-rays (the haze's shadow
+    rays marched through the canopy), multi-layer (octaves, sky light through the other volume,
+    shadows looked up in the sun's grids)."""
     kernel, eager = _both(tv.preset(name, width=32, height=24))
     _close(kernel, eager, name)
-    assert sorted(kernel.stats["passes"]) == sorted(eager.stats["passes"])  # the same passes, the kernel's inside its march
+    assert kernel.stats["density_evals_by_volume"] == eager.stats["density_evals_by_volume"]
+    # the same passes, the kernel's inside its march; eager names a shadow ray's pass through another
+    # volume only where one crossed it, the kernel every one the plan has
+    assert set(eager.stats["passes"]) <= set(kernel.stats["passes"]) <= set(kernel.stats["plan"]["passes"])
+
+
+SUN = {"kind": "sun", "direction": [0.3, 0.9, 0.2], "intensity": 5.0, "shadow": {"steps": 4}}
+PUFF = {"bounds": {"sphere": {"center": [0.0, 0.0, 0.0], "radius": 1.0}}, "sigma_t": 6.0, "albedo": 0.9,
+        "density": {"fbm": {"octaves": 3, "frequency": 2.0, "seed": 4, "bias": 0.1}}, "phase": {"hg": {"g": 0.5}}}
+FOG = {"bounds": {"box": {"min": [-2.0, -1.5, -2.0], "max": [2.0, 0.3, 2.0]}}, "sigma_t": 0.8, "albedo": 0.8,
+       "density": {"exponential": {"value": 1.0, "base": -1.5, "scale_height": 0.6}}}
+
+
+def _media(volumes, lights=(SUN,), **extra):
+    return {"image": {"width": 24, "height": 20}, "camera": {"eye": [0.3, 0.6, -3.5], "target": [0.0, 0.0, 0.0], "fov_y": 50.0},
+            "sky": {"kind": "constant", "radiance": [0.3, 0.4, 0.6]}, "lights": list(lights), "volumes": list(volumes),
+            "march": {"steps": 24}, **extra}
+
+
+JOINT = {
+    "a cloud in fog": _media([PUFF, FOG]),
+    "the fog first, three media": _media([FOG, PUFF, {**PUFF, "bounds": {"box": {"min": [0.2, -0.8, -0.5], "max": [1.5, 0.8, 0.5]}},
+                                                     "density": {"constant": 0.7}, "emission": [0.2, 0.1, 0.0]}]),
+    "grid shadows, sky light, octaves": _media(
+        [{**PUFF, "ambient": {"visibility": "march", "steps": 2}, "multiple_scattering": {"octaves": 3}}, FOG],
+        lights=[{**SUN, "shadow": {"method": "grid", "resolution": 32}}]),
+    "a point light, early stop": _media([PUFF, FOG], lights=[SUN, {"kind": "point", "position": [0.5, 1.2, -0.5],
+                                                                   "intensity": 2.0, "shadow": {"steps": 3}}],
+                                        march={"steps": 24, "min_transmittance": 0.05}),
+}
+
+
+@pytest.mark.parametrize("name", list(JOINT))
+def test_media_sharing_space_match_the_eager_joint_march(name):
+    kernel, eager = _both(JOINT[name], aovs=["alpha_volumes"])
+    assert kernel.stats["plan"]["joint"] == eager.stats["plan"]["joint"]
+    _close(kernel, eager, name)
+    shares = (kernel.aovs["alpha_volumes"] - eager.aovs["alpha_volumes"]).abs().max()
+    assert shares <= KERNEL_TOL["radiance"], f"{name}: each medium's share of alpha off by {float(shares):.3g}"
+    assert kernel.stats["density_evals_by_volume"] == eager.stats["density_evals_by_volume"]
+    assert kernel.stats["march_steps"] == eager.stats["march_steps"]
+
+
+def test_the_joint_kernel_gives_the_same_bytes_alone_in_a_batch_and_for_any_chunking():
+    scenes = [JOINT["a cloud in fog"], _media([{**PUFF, "sigma_t": 3.0, "density": {"fbm": {"octaves": 3, "seed": 9}}},
+                                               {**FOG, "sigma_t": 0.3}], lights=[{**SUN, "direction": [-0.4, 0.8, 0.1]}])]
+    batch = tv.render(scenes, seed=[1, 2])
+    for b, scene in enumerate(scenes):
+        alone = tv.render(scene, seed=1 + b, chunk_rays=53)
+        assert torch.equal(alone.radiance[0], batch.radiance[b]) and torch.equal(alone.depth[0], batch.depth[b])
+
+
+def test_a_joint_member_without_a_kernel_marches_every_member_eagerly():
+    perlin = {**FOG, "density": {"fbm": {"noise": "perlin", "octaves": 2}}}
+    out = tv.render(_media([PUFF, perlin], lights=[{**SUN, "shadow": None}]))
+    assert out.stats["plan"]["marches"] == {"volume0": "eager", "volume1": "eager"}
+    assert out.stats["plan"]["eager_because"] == {"volume0": "marched with volume1 (no kernel for the fbm density)",
+                                                  "volume1": "no kernel for the fbm density"}
+    # a shadow ray through it: the other volume's own march has no kernel either
+    shadowed = tv.render(_media([PUFF, perlin])).stats["plan"]["eager_because"]
+    assert shadowed["volume0"] == "no kernel for shadows through a volume not written in lanes"
 
 
 def test_the_plan_takes_the_kernel_only_where_it_renders_the_technique():

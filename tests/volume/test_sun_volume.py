@@ -112,3 +112,23 @@ def test_shadow_grid_sees_only_the_medium_inside_sphere_bounds():
     # counting the corners gave 99%; what is left is the sphere's hard surface smeared over a grid
     # cell (1.9%, 0.69%, 0.30% at resolution 96, 192, 384)
     assert err < 0.01, f"shadow grid vs shadow march in a sphere: relative RMSE {err:.2%}"
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_the_lookup_is_grid_samples_bicubic(dtype):
+    """The lookup is written in lanes (one source for eager and the Dr.Jit kernel); its bicubic
+    interpolation is held to `F.grid_sample`'s, points past the table's box included."""
+    lo, hi = torch.tensor([-1.0, -0.5, -0.8], dtype=dtype), torch.tensor([1.0, 0.5, 0.6], dtype=dtype)
+    ext = lambda p: 1.0 + torch.sin(3.0 * p[:, 0]) * torch.cos(2.0 * p[:, 1] + p[:, 2])  # noqa: E731
+    grid = sun_transmittance_grid(ext, lo, hi, torch.tensor([0.3, 0.8, -0.5], dtype=dtype), resolution=24)
+    g = torch.Generator().manual_seed(1)
+    points = (lo - 0.3 + (hi - lo + 0.6) * torch.rand(2000, 3, generator=g, dtype=F64).to(dtype))
+    sigma = ext(points)
+    m = grid.to_atlas
+    q = (grid.offset + points[:, :1] * m[0] + points[:, 1:2] * m[1] + points[:, 2:3] * m[2]).clamp(grid.low, grid.high)
+    plane = torch.ceil(q[:, 2])
+    coords = torch.stack([q[:, 0] + plane * grid.plane_stride, q[:, 1]], dim=1).reshape(1, 1, -1, 2)
+    tau, feet = torch.nn.functional.grid_sample(grid.atlas, coords, mode="bicubic", padding_mode="border",
+                                                align_corners=True).reshape(2, -1)
+    expected = torch.exp(-(tau.clamp_min(0.0) + 0.5 * (plane - q[:, 2]) * grid.plane_gap * (sigma + feet.clamp_min(0.0))))
+    assert_close(grid.lookup(points, sigma), expected, atol=1e-12 if dtype == F64 else 2e-6, what="lanes lookup vs grid_sample")

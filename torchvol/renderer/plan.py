@@ -162,10 +162,14 @@ def joint_backends(volumes: tuple[VolumePass, ...], joint: JointPass) -> tuple[V
     slow = next((v for v in members if v.backend != "drjit"), None)
     if not joint.air and (slow is None or all(v.backend == "closed_form" for v in members)):
         return volumes
-    own = None if slow is None else slow.eager_because or "in closed form, which the kernel does not mix with marches"
-    why = "marched with the [atmosphere]'s air, which has no kernel" if joint.air else f"marched with {slow.name} ({own})"
-    return tuple(replace(v, backend="eager", eager_because=own if v is slow and not joint.air else why)
-                 if v.index in joint.volumes else v for v in volumes)
+    closed = "in closed form, which the kernel does not mix with marches"
+    why = ("marched with the [atmosphere]'s air, which has no kernel" if joint.air
+           else f"marched with {slow.name} ({slow.eager_because or closed})")
+
+    def because(v: VolumePass) -> str:  # a member with no kernel of its own says so
+        return v.eager_because if v.backend == "eager" else closed if v.backend == "closed_form" and not joint.air else why
+
+    return tuple(replace(v, backend="eager", eager_because=because(v)) if v.index in joint.volumes else v for v in volumes)
 
 
 @dataclass(frozen=True)

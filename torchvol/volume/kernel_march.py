@@ -42,7 +42,8 @@ from .integrate import frostbite_weight
 from .march import MarchResult, median_crossing
 from .multiple import octave_weights
 from .physical import light_responses
-from .shadow import shadow_segments
+from .shadow import shadow_segments, sun_grids
+from .sun_volume import grid_transmittance, grids_lanes
 
 
 def supports(batch, vol, uses, settings, ambient=None) -> str | None:
@@ -50,8 +51,8 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     light passes `uses` and sky-visibility pass `ambient` (None: none), or None where it can: a
     density written in lanes (constant, exponential, value-noise fbm of either hash) in bounds
     written in lanes (sphere, box, slab), physically shaded with the Frostbite integrator, lit by
-    suns and point lights with marched shadows through it and through the other volumes (each
-    written in lanes too), ungraded sky light, emission, its colour map and bloom; `settings` the
+    suns and point lights with shadows (marched, or the sun's grid) through it and through the
+    other volumes (each written in lanes too), ungraded sky light, emission, its colour map and bloom; `settings` the
     render's `MarchSettings`."""
     passes = [u for u in uses if u.shadow is not None] + ([] if ambient is None else [ambient])
     checks = [
@@ -63,7 +64,6 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
         (vol.sky_blend is None, "a sky blend"),
         (vol.ambient is None or vol.ambient.top is None, "a graded ambient"),
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
-        (all(u.shadow.method == "march" for u in passes), "grid shadows"),
         (all(_has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
              for u in passes for j in u.occluders), "shadows through a volume not written in lanes"),
         (batch.terrain is None and batch.voxels is None, "surfaces"),
@@ -170,10 +170,13 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray) -> SimpleNames
         light, resp = ctx.lights[use.light], responses[use.light]  # [n, 3] or per octave [n, K, 3]; None: a point light
         if resp is None:  # its θ changes along the ray: the phase is traced per sample
             k.lights.append(SimpleNamespace(response=None, position=per_ray(light.params.position),
-                                            radiant=per_ray(light.radiant), use=use))
+                                            radiant=per_ray(light.radiant), use=use, grids=None))
             continue
         resp = [resp] if resp.ndim == 2 else list(resp.unbind(1))
-        k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(light.direction), use=use))
+        grids = None if use.shadow is None or use.shadow.method != "grid" else {
+            j: grids_lanes(sun_grids(ctx, ctx.volumes[j], use.light), s, per_ray, _floats) for j in (vol.plan.index, *use.occluders)}
+        k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(light.direction), use=use,
+                                        grids=grids))
     if any(light.response is None for light in k.lights):
         inputs, k.phase = vol.phase.caps["lanes"]
         k.phase_params = inputs(vol.params.phase.value, SimpleNamespace(per_lane=per_ray))
@@ -289,18 +292,23 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, count: 
             tau = tau + sigma_scale * solid.density([p[c] + mid * direction[c] for c in range(3)], None) * length
         return tau
 
-    def transmittance(p, direction, sigma_scale, shadow, occluders, evals, distance=None):
+    def transmittance(p, direction, sigma_scale, shadow, occluders, evals, distance=None, sigma_t=None, grids=None):
         """From lanes `p` along `direction` (three lanes) out of the bounds or to the light at
         `distance` (None: a sun), σ_t = `sigma_scale` × density, over `shadow`'s segments
-        (`shadow.shadow_transmittance`'s march), times each volume of `occluders` crossed
-        (`shadow.occluder_transmittance`: its σ_t over its chord, `shadow.steps` equal segments);
-        each volume's evaluations added to `evals`."""
-        exit_t = lanes.clamp(own.interval(p, direction)[1], 0.0, own.reach)
-        if distance is not None:
-            exit_t = lanes.minimum(exit_t, distance)
-        through = lanes.exp(-optical_depth(own, p, direction, exit_t, sigma_scale, shadow.steps, shadow.growth,
-                                           shadow.first_step))
-        evals[own.index] = evals[own.index] + shadow.steps
+        (`shadow.shadow_transmittance`'s march) or looked up in the sun's grid (`grids`, by
+        volume: `sun_volume.grids_lanes`; `sigma_t` the extinction at p), times each volume of
+        `occluders` crossed (`shadow.occluder_transmittance`: its σ_t over its chord in
+        `shadow.steps` equal segments, or its grid where the ray enters it); each volume's
+        evaluations added to `evals`."""
+        if shadow.method == "grid":
+            through = grid_transmittance(grids[own.index], p, sigma_t)
+        else:
+            exit_t = lanes.clamp(own.interval(p, direction)[1], 0.0, own.reach)
+            if distance is not None:
+                exit_t = lanes.minimum(exit_t, distance)
+            through = lanes.exp(-optical_depth(own, p, direction, exit_t, sigma_scale, shadow.steps, shadow.growth,
+                                               shadow.first_step))
+            evals[own.index] = evals[own.index] + shadow.steps
         for j in occluders:
             other = solids[j]
             near, far = other.interval(p, direction)
@@ -308,8 +316,14 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, count: 
             t1 = lanes.minimum(far, other.reach if distance is None else lanes.minimum(distance, other.reach))
             crosses = t1 > t0
             entry = [p[c] + t0 * direction[c] for c in range(3)]
+            zero = lambda: dr.zeros(Float, dr.width(t0))  # noqa: E731
+            if shadow.method == "grid":
+                sigma = dr.if_stmt((), crosses, lambda: other.sigma_t * other.density(entry, None), zero)
+                through = through * dr.select(crosses, grid_transmittance(grids[j], entry, sigma), 1.0)
+                evals[j] = evals[j] + dr.select(crosses, Int32(1), Int32(0))
+                continue
             tau = dr.if_stmt((), crosses, lambda: optical_depth(other, entry, direction, t1 - t0, other.sigma_t, shadow.steps),
-                             lambda: dr.zeros(Float, dr.width(t0)))
+                             zero)
             through = through * lanes.exp(-tau)
             evals[j] = evals[j] + dr.select(crosses, Int32(shadow.steps), Int32(0))
         return through
@@ -329,7 +343,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, count: 
                 response += [[e * (a * k.phase(k.phase_params, cos, c)) for e in irradiance] for a, c in k.octave_scales]
             use = light.use
             trans = None if use.shadow is None else transmittance(p, direction, k.sigma_t, use.shadow, use.occluders,
-                                                                  evals, distance)
+                                                                  evals, distance, sigma_t, light.grids)
             weights = octave_weights(sigma_s, trans, k.exponents if vol.plan.multiple else [])
             out = [out[c] + sum((response[i][c] * weights[i] for i in range(1, len(weights))),
                                 response[0][c] * weights[0]) for c in range(3)]

@@ -20,11 +20,14 @@ node; a lookup needs none.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Callable
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from ..ops import lanes
 
 PAD = 2  # replicated border around each plane in the atlas: bicubic taps reach 2 texels out
 NODE_CHUNK = 1 << 21  # density evaluations per call while building a grid
@@ -50,21 +53,69 @@ class SunGrid:
 
     def lookup(self, points: Tensor, sigma_t: Tensor) -> Tensor:
         """T to the sun at `points` [N, 3], whose extinction is `sigma_t` [N]. -> [N]."""
-        # the affine map as three multiply-adds, not addmm: BLAS takes another path for a single
-        # row (a 1-ray chunk), whose rounding differs; these are the same for any chunking
-        m = self.to_atlas
-        q = torch.addcmul(torch.addcmul(torch.addcmul(self.offset, points[:, :1], m[0]), points[:, 1:2], m[1]), points[:, 2:3], m[2])
-        q = q.clamp_(self.low, self.high)
-        w = q[:, 2]
-        plane = torch.ceil(w)
-        gap = (plane - w) * self.plane_gap  # world distance to the next plane towards the sun
-        x = torch.add(q[:, 0], plane, alpha=self.plane_stride)
-        coords = torch.stack([x, q[:, 1]], dim=1)
-        tau, sigma_feet = F.grid_sample(self.atlas, coords.reshape(1, 1, -1, 2), mode="bicubic", padding_mode="border",
-                                        align_corners=True).reshape(2, -1)
-        # bicubic weights are negative in places: an overshoot below 0 would mean T > 1
-        tau = tau.clamp_min(0.0) + 0.5 * gap * (sigma_t + sigma_feet.clamp_min(0.0))
-        return torch.exp(-tau)
+        return grid_transmittance(self.lanes(), list(points.unbind(1)), sigma_t)
+
+    def lanes(self) -> SimpleNamespace:
+        """What `grid_transmittance` takes, for this grid alone."""
+        height, width = self.atlas.shape[-2:]
+        return SimpleNamespace(to_atlas=[list(row) for row in self.to_atlas], offset=list(self.offset), low=list(self.low),
+                               high=list(self.high), plane_stride=self.plane_stride, plane_gap=self.plane_gap,
+                               atlas=self.atlas.reshape(-1), base=0, width=width, height=height, plane_size=width * height)
+
+
+def grids_lanes(grids: list[SunGrid], s: Tensor, per_lane, table) -> SimpleNamespace:
+    """What `grid_transmittance` takes for lanes of scenes `s` [n], one grid per scene (`grids`,
+    of one shape: a batch shares its shadow settings): `per_lane` (per scene [B] or [B, C] -> a
+    lane or C lanes), `table` (a flat tensor -> the lanes' table type)."""
+    from drjit.llvm import Int32
+
+    one = grids[0].lanes()
+    rows = per_lane(torch.stack([g.to_atlas.reshape(9) for g in grids]))
+    plane_size = one.plane_size
+    return SimpleNamespace(
+        to_atlas=[rows[3 * r:3 * r + 3] for r in range(3)],
+        **{name: per_lane(torch.stack([getattr(g, name) for g in grids])) for name in ("offset", "low", "high")},
+        plane_stride=per_lane(torch.tensor([g.plane_stride for g in grids])),
+        plane_gap=per_lane(torch.tensor([g.plane_gap for g in grids])),
+        atlas=table(torch.cat([g.atlas.reshape(-1) for g in grids])), base=Int32((s * 2 * plane_size).to(torch.int32).numpy()),
+        width=one.width, height=one.height, plane_size=plane_size)
+
+
+def _cubic(t) -> list:
+    """The bicubic weights (A = −0.75, as `F.grid_sample`'s) of the four taps around fraction `t` (lanes)."""
+    a = -0.75
+    near = lambda x: ((a + 2.0) * x - (a + 3.0)) * x * x + 1.0  # noqa: E731
+    far = lambda x: ((a * x - 5.0 * a) * x + 8.0 * a) * x - 4.0 * a  # noqa: E731
+    return [far(t + 1.0), near(t), near(1.0 - t), far(2.0 - t)]
+
+
+def grid_transmittance(g: SimpleNamespace, p: list, sigma_t):
+    """T to the sun at lanes `p` (three) of extinction `sigma_t` (lanes, `ops.lanes`), from a
+    `SunGrid` (`g`: its `lanes()`, or `grids_lanes`): τ and σ_t on the next plane towards the sun,
+    interpolated bicubically where the sun ray from p meets it (`F.grid_sample`'s bicubic, border
+    padding, corners aligned), plus the trapezoid over the gap."""
+    m = g.to_atlas  # the affine map as multiply-adds per lane: the same for any chunking
+    q = [lanes.minimum(lanes.maximum(g.offset[c] + p[0] * m[0][c] + p[1] * m[1][c] + p[2] * m[2][c], g.low[c]), g.high[c])
+         for c in range(3)]
+    plane = -lanes.floor(-q[2])  # the next stored plane towards the sun
+    gap = (plane - q[2]) * g.plane_gap  # world distance to it
+    ix = (q[0] + plane * g.plane_stride + 1.0) * 0.5 * (g.width - 1)  # atlas texels
+    iy = (q[1] + 1.0) * 0.5 * (g.height - 1)
+    fx, fy = lanes.floor(ix), lanes.floor(iy)
+    wx, wy = _cubic(ix - fx), _cubic(iy - fy)
+    x0, y0 = lanes.to_int32(fx), lanes.to_int32(fy)
+    cols = [lanes.minimum(lanes.maximum(x0 + (i - 1), 0), g.width - 1) for i in range(4)]
+    tau = feet = 0.0
+    for j in range(4):
+        row = g.base + lanes.minimum(lanes.maximum(y0 + (j - 1), 0), g.height - 1) * g.width
+        taps = [row + c for c in cols]
+        tau = tau + wy[j] * sum((wx[i] * lanes.gather(g.atlas, taps[i]) for i in range(1, 4)),
+                                wx[0] * lanes.gather(g.atlas, taps[0]))
+        feet = feet + wy[j] * sum((wx[i] * lanes.gather(g.atlas, taps[i] + g.plane_size) for i in range(1, 4)),
+                                  wx[0] * lanes.gather(g.atlas, taps[0] + g.plane_size))
+    # bicubic weights are negative in places: an overshoot below 0 would mean T > 1
+    tau = lanes.clamp_min(tau, 0.0) + 0.5 * gap * (sigma_t + lanes.clamp_min(feet, 0.0))
+    return lanes.exp(-tau)
 
 
 def sun_frame(sun_dir: Tensor) -> Tensor:
