@@ -78,6 +78,8 @@ VARIANTS = {
     "sky light without visibility": {"volumes.0.ambient": {"visibility": "none"}},
     "lod, no dither, early stop": {"march.lod": {"scale": 0.8}, "march.dither": "none", "march.min_transmittance": 0.05},
     "size placement": {"march.step_size": 0.05},
+    "the Riemann sum": {"march.integrator": "riemann"},
+    "the seeds' alpha compositing": {"march.integrator": "alpha"},
     "two suns, shadow steps from the light": {"lights": [
         {"kind": "sun", "direction": [0.3, 0.9, 0.2], "intensity": 5.0, "shadow": {"steps": 4, "first_step": 0.1}},
         {"kind": "sun", "direction": [-0.5, 0.2, 0.8], "intensity": 3.0, "shadow": {"steps": 3, "growth": 1.5}}]},

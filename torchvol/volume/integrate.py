@@ -38,14 +38,20 @@ def frostbite_weight(sigma_t, dt):
     return dt * one_minus_exp_over_x(x), lanes.exp(-x)
 
 
-def segment_transmittance(sigma_t: Tensor, dt: Tensor) -> Tensor:
-    """Beer-Lambert e^{−σ·Δt}. `sigma_t`, `dt`: [N]."""
-    return torch.exp(-sigma_t * dt)
+def riemann_weight(sigma_t, dt):
+    """(Δt, e^{−σΔt}), lanes: the naive step's source weight and its transmittance."""
+    return dt, lanes.exp(-sigma_t * dt)
+
+
+def alpha_linear_weight(sigma_t, dt):
+    """(min(Δt, 1/σ), 1 − min(σΔt, 1)), lanes: `alpha_linear_step`'s source weight and transmittance."""
+    return lanes.minimum(dt, 1.0 / sigma_t), 1.0 - lanes.clamp_max(sigma_t * dt, 1.0)
 
 
 def riemann_step(source: Tensor, sigma_t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
     """Contribution S·Δt and transmittance. `source`: [N, C]; `sigma_t`, `dt`: [N]."""
-    return source * dt[:, None], segment_transmittance(sigma_t, dt)
+    weight, trans = riemann_weight(sigma_t, dt)
+    return source * weight[:, None], trans
 
 
 def frostbite_step(source: Tensor, sigma_t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
@@ -66,10 +72,14 @@ def alpha_step(color: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
 def alpha_linear_step(source: Tensor, sigma_t: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
     """The seeds' density→alpha mapping for a physical medium: a = min(σΔt, 1), colour S/σ.
 
-    Contribution S·min(Δt, 1/σ) (no division: 1/0 = inf is fine in the min). `source`: [N, C];
+    Contribution S·min(Δt, 1/σ) (1/0 = inf is fine in the min). `source`: [N, C];
     `sigma_t`, `dt`: [N]. First order; converges to the exact result as Δt → 0."""
-    reach = torch.minimum(dt, 1.0 / sigma_t)
-    return source * reach[:, None], 1.0 - (sigma_t * dt).clamp(max=1.0)
+    reach, trans = alpha_linear_weight(sigma_t, dt)
+    return source * reach[:, None], trans
+
+
+# each integrator's (source weight, transmittance) of a segment, lanes (the Dr.Jit march's step)
+WEIGHTS = {"riemann": riemann_weight, "frostbite": frostbite_weight, "alpha": alpha_linear_weight}
 
 
 def composite(contribution: Tensor, transmittance: Tensor) -> tuple[Tensor, Tensor, Tensor]:

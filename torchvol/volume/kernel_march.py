@@ -1,19 +1,24 @@
-"""The physical march of one volume as one Dr.Jit kernel per chunk: a loop per ray (its state in
-registers until its march ends), the lights' shadow marches and the sky light's visibility march
-under a per-sample branch where the density passes the threshold, the step rule, dither,
-early termination and the depth statistics inside it.
+"""The physical march as one Dr.Jit kernel per chunk: a loop per ray (its state in registers
+until its march ends) through every physical medium of the ray (one volume alone, or the media of
+the joint march, `volume.joint`: the ray cut into pieces at every entry and exit, the media of a
+piece summed), the lights' shadow rays (marched, or looked up in the sun's grids) and the sky
+light's visibility march through it and through the other volumes, under a per-sample branch
+where the density passes the threshold; the step rule, dither, early termination and the depth
+statistics inside it.
 
 One source: every per-sample formula here is the eager renderer's own function, written in lanes
 (`ops.lanes`) and traced here with Dr.Jit arrays: the density (its kind's ``lanes`` capability in
-`fields.DENSITIES`: constant, exponential, value-noise fbm), the edge fade (`fields.edge.faded`
-over the bounds' ``lanes`` depth), the shadow rays' exits and segments (the bounds' ``lanes``
-interval, `volume.shadow.shadow_segments`), a point light's falloff (`light.lights.point_lanes`)
+`fields.DENSITIES`: constant, exponential, value-noise fbm, explosion), the edge fade
+(`fields.edge.faded` over the bounds' ``lanes`` depth), the shadow rays' exits and segments (the
+bounds' ``lanes`` interval, `volume.shadow.shadow_segments`), the sun's grid lookup
+(`volume.sun_volume.grid_transmittance`), a point light's falloff (`light.lights.point_lanes`)
 and phase (`light.phase`'s ``lanes``), the multiple-scattering octaves
-(`volume.multiple.octave_weights`), the step rule (`march.StepRule.length`), the Frostbite step
-(`integrate.frostbite_weight`) and the median (`march.median_crossing`). What is constant along a
-ray is computed by the eager code itself before the kernel runs: the suns' phase responses
-(`physical.light_responses`), the dither, entry and exit. The eager march (`compile="off"`) is the
-reference the kernel is held to (tests/volume/test_kernel_march.py).
+(`volume.multiple.octave_weights`), the emission colour map and bloom, the step rule
+(`march.StepRule.length`), the integrator's step (`integrate.WEIGHTS`) and the median
+(`march.median_crossing`). What is constant along a ray is computed by the eager code itself
+before the kernel runs: the suns' phase responses (`physical.light_responses`), the dither, the
+pieces, the sun grids. The eager march (`compile="off"`) is the reference the kernel is held to
+(tests/volume/test_kernel_march.py).
 
 `supports` says which volumes it renders (the plan asks once); the others run eagerly. Numbers a
 dataset draws per scene are the kernel's inputs, and the settings that are numbers are its
@@ -38,7 +43,7 @@ from ..ops import lanes
 from ..runtime.threads import kernel_threads
 from ..schema.batch import take
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
-from .integrate import frostbite_weight
+from .integrate import WEIGHTS
 from .march import MarchResult, median_crossing
 from .multiple import octave_weights
 from .physical import light_responses
@@ -50,7 +55,7 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
     light passes `uses` and sky-visibility pass `ambient` (None: none), or None where it can: a
     density written in lanes (constant, exponential, value-noise fbm of either hash) in bounds
-    written in lanes (sphere, box, slab), physically shaded with the Frostbite integrator, lit by
+    written in lanes (sphere, box, slab), physically shaded, by any integrator, lit by
     suns and point lights with shadows (marched, or the sun's grid) through it and through the
     other volumes (each written in lanes too), ungraded sky light, emission, its colour map and bloom; `settings` the
     render's `MarchSettings`."""
@@ -60,7 +65,7 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
         ("lanes" in BOUNDS[vol.bounds.kind].caps, f"{vol.bounds.kind} bounds"),
         (vol.shading == "physical", f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
-        (settings.integrator == "frostbite" and settings.tolerance is None, "the march settings"),
+        (settings.tolerance is None, "the error-controlled march"),
         (vol.sky_blend is None, "a sky blend"),
         (vol.ambient is None or vol.ambient.top is None, "a graded ambient"),
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
@@ -370,8 +375,8 @@ def _pick(values: list, q):
 
 
 def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: int, shares: bool):
-    """The loop body: one segment of `march.march`'s physical loop (``segments``, the Frostbite
-    step) in the ray's current piece, each member present sampled (its lighting under a branch
+    """The loop body: one segment of `march.march`'s physical loop (``segments``, the render's
+    integrator) in the ray's current piece, each member present sampled (its lighting under a branch
     where its density passes the threshold), then on to the next piece with a medium where the
     piece ends (`joint.march_joint`'s order)."""
     import drjit as dr
@@ -427,7 +432,7 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
             sigma, source = sigma + sig, [source[c] + src[c] for c in range(3)]
             evals = [e + x for e, x in zip(evals, ev)]
             sigmas.append(sig)
-        weight, seg_trans = frostbite_weight(sigma, dt)
+        weight, seg_trans = WEIGHTS[st.integrator](sigma, dt)
         radiance = [r + trans * (x * weight) for r, x in zip(radiance, source + (sigmas if shares else []))]
         w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
         median = dr.select((trans > 0.5) & (new_trans <= 0.5), median_crossing(t, trans, sigma, dt), median)
