@@ -54,6 +54,24 @@ def test_flat_terrain_hit_is_the_plane_intersection():
     assert not up.any() and not short.any()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_height_is_the_fbm_of_value_noise_of_each_scene(dtype):
+    """The height is written once in lanes (eager and the Dr.Jit march's shadow rays); per scene it
+    is `noise.fbm` of that scene's value noise in [−1, 1], to the bit."""
+    from torchvol.noise import lattice as noise
+
+    t = stack([Terrain(seed=3, base=0.2, amplitude=1.5, frequency=0.7, octaves=5),
+               Terrain(seed=11, base=-0.4, amplitude=0.8, frequency=1.3, octaves=5)], dtype=dtype)
+    g = torch.Generator().manual_seed(2)
+    xz = (torch.rand(600, 2, generator=g, dtype=torch.float64) * 40.0 - 20.0).to(dtype)
+    s = torch.arange(600) % 2
+    for b, seed in enumerate((3, 11)):
+        rows = s == b
+        q = t.frequency[b] * torch.stack([xz[rows, 0], torch.zeros_like(xz[rows, 0]), xz[rows, 1]], dim=1)
+        expected = t.base[b] + t.amplitude[b] * noise.fbm(q, lambda x: noise.value_noise(x, seed=seed) * 2.0 - 1.0, octaves=5)
+        assert torch.equal(T.height(t, xz, s)[rows], expected), f"scene {b}"
+
+
 def test_flat_terrain_normal_is_up():
     p = torch.tensor([[0.3, 0.0, -1.2], [5.0, 0.0, 7.0]], dtype=torch.float64)
     assert_close(T.normal(_stacked(amplitude=0.0), p, torch.zeros(2, dtype=torch.long)),

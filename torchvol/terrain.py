@@ -22,16 +22,20 @@ zenith, so the terrain itself cannot block that ray. It outputs hit distance, co
 from __future__ import annotations
 
 from contextlib import nullcontext
+from types import SimpleNamespace
 from typing import Annotated, Callable, Literal, Sequence
 
 import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from .geometry.rays import clip_to_ray, intersect_slab
+from .fields.fbm import value_basis
+from .geometry.rays import clip_to_ray, intersect_slab, slab_interval
 from .geometry.surface_hit import SurfaceHit
+from .noise import fast as fastnoise
 from .noise import lattice as noise
-from .schema.batch import Stacked, per_scene, take
+from .ops import lanes
+from .schema.batch import Stacked, take
 from .schema.models import EACH, Strict, Vec3, nonneg
 
 
@@ -69,14 +73,54 @@ TERRAIN_AOVS = ("normal",)
 
 
 def height(t: Stacked, xz: Tensor, s: Tensor) -> Tensor:
-    """Terrain height [n] at horizontal points `xz` [n, 2] of scenes `s` [n]."""
-    q = take(t.frequency, s)[:, None] * torch.stack([xz[:, 0], torch.zeros_like(xz[:, 0]), xz[:, 1]], dim=1)
+    """Terrain height [n] at horizontal points `xz` [n, 2] of scenes `s` [n] (`height_lanes` on torch)."""
+    to = SimpleNamespace(per_lane=lambda v: take(v, s), scene=s, number=lambda c: c,
+                         ints=lambda v: v.to(device=xz.device, dtype=torch.int32), floats=lambda v: v.to(xz))
+    return height_lanes(terrain_lanes(t, to, xz.dtype), xz[:, 0], xz[:, 1])
 
-    def one_scene(b: int, idx, q_b: Tensor) -> Tensor:
-        seed = t.seed[b]
-        return noise.fbm(q_b, lambda x: noise.value_noise(x, seed=seed) * 2.0 - 1.0, octaves=t.octaves)
 
-    return take(t.base, s) + take(t.amplitude, s) * per_scene(q, s, len(t), one_scene)
+def terrain_lanes(t: Stacked, to, dtype: torch.dtype) -> SimpleNamespace:
+    """What the terrain's height and its tracing take per lane (`to` as a density's lanes inputs:
+    `per_lane`, `scene`, `ints`, `floats`, `number`; `dtype` the lanes' float type)."""
+    q = SimpleNamespace(**{k: to.per_lane(getattr(t, k)) for k in ("base", "amplitude", "frequency", "safety", "epsilon",
+                                                                 "max_distance")})
+    q.octaves, q.steps = int(t.octaves), int(t.steps)
+    q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=dtype, device="cpu")]
+    q.basis = value_basis(t.seed, "table", to)
+    return q
+
+
+def height_lanes(q: SimpleNamespace, x, z):
+    """base + amplitude · fbm(frequency · (x, 0, z)) in lanes (`ops.lanes`): `noise.fbm`'s octaves
+    of value noise in [−1, 1], in its float order; `q` from `terrain_lanes`."""
+    u, w = q.frequency * x, q.frequency * z
+    f = fastnoise.fbm_sum(lambda a, b, c: q.basis(a, b, c) * 2.0 - 1.0, u, lanes.full_like(u, 0.0), w, q.scales, None,
+                          q.octaves, 0.5)
+    return q.base + q.amplitude * f
+
+
+def visible_lanes(q: SimpleNamespace, p, direction, distance):
+    """`visibility` in lanes, for a Dr.Jit kernel (the loop is Dr.Jit's; its rules `trace`'s):
+    1 where the ray from `p` along `direction` (three lanes each) reaches `distance` (a lane; inf:
+    a sun) without meeting the terrain, else 0."""
+    import drjit as dr
+    from drjit.llvm import Int32
+
+    pad = 1e-3 * (1.0 + q.amplitude)
+    near, far = slab_interval(p, direction, q.base - q.amplitude - pad, q.base + q.amplitude + pad)
+    t0, t1 = lanes.clamp_min(near, 0.0), lanes.minimum(far, lanes.minimum(distance, q.max_distance))
+    gap_at = lambda t: p[1] + t * direction[1] - height_lanes(q, p[0] + t * direction[0], p[2] + t * direction[2])  # noqa: E731
+    under = (p[1] < q.base + q.amplitude) & (gap_at(0.0) < 0.0)  # the ground is solid
+
+    def step(t, going, hit, i):
+        g = gap_at(t)
+        done = g < q.epsilon * (1.0 + t)
+        nxt = t + q.safety * g
+        return nxt, going & ~done & (nxt <= t1), hit | done, i + 1
+
+    start = (t0, (t1 > t0) & ~under, under, dr.zeros(Int32, dr.width(t0)))
+    _, _, hit, _ = dr.while_loop(start, lambda t, going, hit, i: going & (i < q.steps), step, mode="symbolic")
+    return dr.select(hit, dr.zeros(type(t0), dr.width(t0)), dr.full(type(t0), 1.0, dr.width(t0)))
 
 
 def gap(t: Stacked, p: Tensor, s: Tensor) -> Tensor:

@@ -108,12 +108,13 @@ def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count(hash_
     assert torch.equal(one.radiance[0], batch.radiance[0])
 
 
-@pytest.mark.parametrize("name", ["cloud-puff", "explosion", "fire", "god-rays", "multi-layer"])
+@pytest.mark.parametrize("name", ["cloud-puff", "explosion", "fire", "god-rays", "multi-layer", "terrain-clouds"])
 def test_the_presets_match_the_eager_march(name):
     """cloud-puff (table-hash fbm), explosion (its density, colour map and the point light's
     bloom), and the joint march: fire (two explosions sharing space), god-rays (the haze's shadow
     rays marched through the canopy), multi-layer (octaves, sky light through the other volume,
-    shadows looked up in the sun's grids)."""
+    shadows looked up in the sun's grids), terrain-clouds (shadow and sky rays sphere-traced
+    against the terrain)."""
     kernel, eager = _both(tv.preset(name, width=32, height=24))
     _close(kernel, eager, name)
     assert kernel.stats["density_evals_by_volume"] == eager.stats["density_evals_by_volume"]

@@ -27,6 +27,7 @@ parameters (`drjit.opaque`), so one kernel serves a whole dataset; Dr.Jit caches
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from types import SimpleNamespace
 
@@ -42,6 +43,7 @@ from ..light.lights import point_lanes
 from ..ops import lanes
 from ..runtime.threads import kernel_threads
 from ..schema.batch import take
+from ..terrain import terrain_lanes, visible_lanes
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
 from .march import MarchResult, median_crossing
@@ -71,7 +73,7 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
         (all(_has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
              for u in passes for j in u.occluders), "shadows through a volume not written in lanes"),
-        (batch.terrain is None and batch.voxels is None, "surfaces"),
+        (not any(u.voxels for u in passes), "shadows through the voxels"),
     ]
     return next((why for ok, why in checks if not ok), None)
 
@@ -96,19 +98,25 @@ def _lanes_of(value: Tensor, gather):
 def _field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
     """What the volume's density takes per lane, for points of scenes `s` [n] (`per_ray`: per
     scene -> per lane): its kind's lanes inputs (`fields.DENSITIES`' ``lanes``), the bounds', the edge's."""
-    import drjit as dr
-    from drjit.llvm import Float, Int32
 
     inner, edge = _inner_and_edge(vol)
     inputs, density = DENSITIES[vol.params.density.kind].caps["lanes"][:2]
-    to = SimpleNamespace(per_lane=per_ray, scene=s.cpu(), ints=lambda t: Int32(t.to(torch.int32).numpy()),
-                         floats=lambda t: Float(t.to(torch.float32).numpy()), number=lambda c: dr.opaque(Float, float(c)))
     bounds = vol.params.bounds.value
     return SimpleNamespace(
-        field=inputs(inner, to), field_density=density,
+        field=inputs(inner, _to(s, per_ray)), field_density=density,
         bounds=SimpleNamespace(**{name: per_ray(getattr(bounds, name)) for name in type(bounds.models[0]).model_fields}),
         edge=None if edge is None else SimpleNamespace(width=per_ray(edge.width),
                                                        base=None if edge.base is None else per_ray(edge.base)))
+
+
+def _to(s: Tensor, per_ray) -> SimpleNamespace:
+    """How lanes inputs are made for lanes of scenes `s` [n] (`fields.DENSITIES`' ``lanes``):
+    per scene -> per lane (`per_lane`), int and float tables, numbers as kernel parameters."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    return SimpleNamespace(per_lane=per_ray, scene=s.cpu(), ints=lambda t: Int32(t.to(torch.int32).numpy()),
+                           floats=lambda t: Float(t.to(torch.float32).numpy()), number=lambda c: dr.opaque(Float, float(c)))
 
 
 def _density(k: SimpleNamespace, vol) -> Callable:
@@ -244,8 +252,9 @@ def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: T
                                                if u is not None for j in u.occluders}
     solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
     par = _parameters(ctx.settings)
+    terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, _to(s, per_ray), torch.float32)
     members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray)),
-                               medium=_medium(m, v, par, solids, count)) for v in vols]
+                               medium=_medium(m, v, par, solids, terrain, count)) for v in vols]
     n = len(idx)
     zero, q0 = dr.zeros(Float, n), Int32(first_piece.to(torch.int32).numpy())
     t0 = lane(start[:, idx].gather(0, first_piece.clamp_max(start.shape[0] - 1)[None]).squeeze(0))
@@ -281,9 +290,10 @@ def _parameters(st) -> SimpleNamespace:
         min_transmittance=dr.opaque(Float, st.min_transmittance), max_iterations=dr.opaque(Int32, st.rule.max_iterations))
 
 
-def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, count: int) -> SimpleNamespace:
+def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain, count: int) -> SimpleNamespace:
     """The per-sample functions of member `vol` over its inputs `k` (`_member_inputs`), the
-    parameters `par` and the volumes a ray may cross `solids` (`_solid`, by index):
+    parameters `par`, the volumes a ray may cross `solids` (`_solid`, by index) and the terrain
+    (`terrain.terrain_lanes`, None: none):
     density(p, count), in_scatter(p, sigma_t) -> (three lanes, `count` lanes of evaluations per volume)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
@@ -297,14 +307,16 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, count: 
             tau = tau + sigma_scale * solid.density([p[c] + mid * direction[c] for c in range(3)], None) * length
         return tau
 
-    def transmittance(p, direction, sigma_scale, shadow, occluders, evals, distance=None, sigma_t=None, grids=None):
+    def transmittance(p, direction, sigma_scale, shadow, occluders, terrain, evals, distance=None, sigma_t=None,
+                      grids=None):
         """From lanes `p` along `direction` (three lanes) out of the bounds or to the light at
         `distance` (None: a sun), σ_t = `sigma_scale` × density, over `shadow`'s segments
         (`shadow.shadow_transmittance`'s march) or looked up in the sun's grid (`grids`, by
         volume: `sun_volume.grids_lanes`; `sigma_t` the extinction at p), times each volume of
         `occluders` crossed (`shadow.occluder_transmittance`: its σ_t over its chord in
         `shadow.steps` equal segments, or its grid where the ray enters it); each volume's
-        evaluations added to `evals`."""
+        evaluations added to `evals`; times 0 where it meets the `terrain` (`terrain.terrain_lanes`,
+        None: not asked)."""
         if shadow.method == "grid":
             through = grid_transmittance(grids[own.index], p, sigma_t)
         else:
@@ -331,6 +343,8 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, count: 
                              zero)
             through = through * lanes.exp(-tau)
             evals[j] = evals[j] + dr.select(crosses, Int32(shadow.steps), Int32(0))
+        if terrain is not None:
+            through = through * visible_lanes(terrain, p, direction, math.inf if distance is None else distance)
         return through
 
     def in_scatter(p, sigma_t):
@@ -347,8 +361,9 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, count: 
                 response = [[e * k.phase(k.phase_params, cos, 1.0) for e in irradiance]]
                 response += [[e * (a * k.phase(k.phase_params, cos, c)) for e in irradiance] for a, c in k.octave_scales]
             use = light.use
-            trans = None if use.shadow is None else transmittance(p, direction, k.sigma_t, use.shadow, use.occluders,
-                                                                  evals, distance, sigma_t, light.grids)
+            trans = None if use.shadow is None else transmittance(
+                p, direction, k.sigma_t, use.shadow, use.occluders, terrain if use.terrain else None, evals, distance,
+                sigma_t, light.grids)
             weights = octave_weights(sigma_s, trans, k.exponents if vol.plan.multiple else [])
             out = [out[c] + sum((response[i][c] * weights[i] for i in range(1, len(weights))),
                                 response[0][c] * weights[0]) for c in range(3)]
@@ -356,7 +371,8 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, count: 
             amb = [k.ambient[c] * sigma_s for c in range(3)]
             sky = vol.plan.ambient_sky
             if sky is not None:
-                v = transmittance(p, k.ambient_direction, k.ambient_sigma, sky.shadow, sky.occluders, evals)
+                v = transmittance(p, k.ambient_direction, k.ambient_sigma, sky.shadow, sky.occluders,
+                                  terrain if sky.terrain else None, evals)
                 amb = [a * v for a in amb]
             out = [out[c] + amb[c] for c in range(3)]
         return out, evals
