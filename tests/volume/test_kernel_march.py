@@ -108,13 +108,15 @@ def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count(hash_
     assert torch.equal(one.radiance[0], batch.radiance[0])
 
 
-@pytest.mark.parametrize("name", ["cloud-puff", "explosion", "fire", "god-rays", "multi-layer", "terrain-clouds"])
+@pytest.mark.parametrize("name", ["cloud-puff", "explosion", "fire", "god-rays", "multi-layer", "terrain-clouds",
+                                  "particles"])
 def test_the_presets_match_the_eager_march(name):
     """cloud-puff (table-hash fbm), explosion (its density, colour map and the point light's
     bloom), and the joint march: fire (two explosions sharing space), god-rays (the haze's shadow
     rays marched through the canopy), multi-layer (octaves, sky light through the other volume,
     shadows looked up in the sun's grids), terrain-clouds (shadow and sky rays sphere-traced
-    against the terrain)."""
+    against the terrain), particles (a loop over the particles, each one's fbm where a sample is
+    inside it)."""
     kernel, eager = _both(tv.preset(name, width=32, height=24))
     _close(kernel, eager, name)
     assert kernel.stats["density_evals_by_volume"] == eager.stats["density_evals_by_volume"]
@@ -167,6 +169,25 @@ def test_the_joint_kernel_gives_the_same_bytes_alone_in_a_batch_and_for_any_chun
     for b, scene in enumerate(scenes):
         alone = tv.render(scene, seed=1 + b, chunk_rays=53)
         assert torch.equal(alone.radiance[0], batch.radiance[b]) and torch.equal(alone.depth[0], batch.depth[b])
+
+
+def _particles(seed: int, combine: str):
+    return {**PUFF, "bounds": {"box": {"min": [-1.5, -1.2, -1.2], "max": [1.5, 1.2, 1.2]}},
+            "density": {"particles": {"count": 7, "seed": seed, "region_min": [-0.8, -0.5, -0.5], "region_max": [0.8, 0.5, 0.5],
+                                      "radius": [0.3, 0.6], "core": -0.2, "amplitude": 2.0, "octaves": 3, "combine": combine}}}
+
+
+@pytest.mark.parametrize("combine", ["sum", "max"])
+def test_particles_match_eager_and_give_the_same_bytes_alone_and_in_a_batch(combine):
+    scenes = [_media([_particles(seed, combine)]) for seed in (3, 4)]
+    for scene in scenes:
+        kernel, eager = _both(scene)
+        _close(kernel, eager, f"particles, {combine}")
+        assert kernel.stats["density_evals"] == eager.stats["density_evals"]
+    batch = tv.render(scenes, seed=[1, 2])
+    for b, scene in enumerate(scenes):
+        alone = tv.render(scene, seed=1 + b, chunk_rays=61)
+        assert torch.equal(alone.radiance[0], batch.radiance[b])
 
 
 def test_a_joint_member_without_a_kernel_marches_every_member_eagerly():

@@ -45,7 +45,12 @@ from .exponential import (
 from .fbm import FbmDensity, FbmField, fbm_density, fbm_lanes
 from .fur import FurDensity, FurField
 from .grid import Grid, GridDensity
-from .particles import ParticleField, ParticlesDensity
+from .particles import (
+                   ParticleField,
+                   ParticlesDensity,
+                   particles_density,
+                   particles_lanes,
+)
 
 DENSITIES = Registry("density")
 DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lanes=(constant_lanes, constant_density))
@@ -58,7 +63,8 @@ DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, fused_marc
                    compiles_fast=lambda volume: volume.shading == "shader" and volume.edge is None)
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, lanes=(explosion_lanes, explosion_density))
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
-DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True)
+DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True,
+                   lanes=(particles_lanes, particles_density, lambda volume: volume.density.value.noise == "value"))
 DENSITIES.register("fur", FurDensity, FurField, compiles_fast=lambda volume: True)
 
 __all__ = ["DENSITIES", "Field"]

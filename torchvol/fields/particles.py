@@ -12,16 +12,19 @@ distances, `torch.cdist`); noise is evaluated only on the (point, particle) pair
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Annotated, Literal
 
 import torch
 from pydantic import Field, field_validator, model_validator
 from torch import Tensor
 
+from ..noise import fast as fastnoise
 from ..noise import lattice as noise
+from ..ops import lanes
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
-from .fbm import NOISES, seeded_fbm
+from .fbm import NOISES, seeded_fbm, value_basis
 
 MAX_PARTICLES = 256
 
@@ -75,11 +78,17 @@ def particle_draws(seed: int, count: int, dtype: torch.dtype = torch.float64) ->
     return {k: v.to(dtype) for k, v in draws.items()}
 
 
-def falloff(r: Tensor, edge: Tensor) -> Tensor:
+def falloff(r, edge):
     """1 − smoothstep(1 − edge, 1, r): 1 inside the core, 0 from the sphere (r = 1) on, C¹ between.
-    `r` [n] radii in units of the particle's radius, `edge` [n] in (0, 1]."""
-    t = ((r - (1.0 - edge)) / edge).clamp(0.0, 1.0)
+    `r` radii in units of the particle's radius, `edge` in (0, 1]; lanes (`ops.lanes`)."""
+    t = lanes.clamp((r - (1.0 - edge)) / edge, 0.0, 1.0)
     return 1.0 - t * t * (3.0 - 2.0 * t)
+
+
+def particle_value(f, r, core, amplitude, edge):
+    """One particle's signed term (core + amplitude · f) · falloff(r), its fbm `f` at the point,
+    lanes (`ops.lanes`)."""
+    return (core + amplitude * f) * falloff(r, edge)
 
 
 class ParticleField:
@@ -129,7 +138,7 @@ class ParticleField:
         local = (points[i] - self.centers[si, k]) / self.radii[si, k][:, None]
         q = take(p.frequency, si)[:, None] * local + self.offsets[si, k]
         f = seeded_fbm(self.basis, q, si, p, None if lod is None else lod[i]) if pairs.shape[0] else q.new_zeros(0)
-        raw = (take(p.core, si) + take(p.amplitude, si) * f) * falloff(r[i, k], take(p.edge, si))
+        raw = particle_value(f, r[i, k], take(p.core, si), take(p.amplitude, si), take(p.edge, si))
         # dense [N, K] then a reduction along K: a point's sum has the same rounding in any batch
         parts = r.new_zeros(r.shape)
         parts[i, k] = raw.clamp_min(0.0)
@@ -139,3 +148,45 @@ class ParticleField:
         nearest = -(r - 1.0)
         nearest[i, k] = raw
         return density, nearest.amax(dim=1)
+
+
+def particles_lanes(field: ParticleField, to) -> SimpleNamespace:
+    """What the particles take per lane (`to`: as `fields.DENSITIES`' ``lanes`` inputs): each
+    scene's particles as flat tables and the lane's first row in them, the noise and falloff."""
+    p = field.p
+    count = int(p.count)
+    q = SimpleNamespace(count=count, combine=p.combine, octaves=int(p.octaves), base=to.ints(to.scene * count),
+                        centers=to.floats(field.centers.reshape(-1)), radii=to.floats(field.radii.reshape(-1)),
+                        offsets=to.floats(field.offsets.reshape(-1)), frequency=to.per_lane(p.frequency),
+                        core=to.per_lane(p.core), amplitude=to.per_lane(p.amplitude), edge=to.per_lane(p.edge),
+                        basis=value_basis(p.seed, "table", to))
+    q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
+    return q
+
+
+def particles_density(q, p, count):
+    """The particles' density at p (three Dr.Jit lanes), `count` octaves kept or None: a loop over
+    the particles, each one's fbm evaluated only where p is inside it, summed (or the largest) in
+    particle order. Dr.Jit only (the eager field evaluates the pairs inside a sphere at once); the
+    per-pair term is `particle_value`, the same function eager calls."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    width = dr.width(p[0])
+
+    def body(k, total):
+        i = q.base + k
+        v = [p[a] - lanes.gather(q.centers, i * 3 + a) for a in range(3)]
+        radius = lanes.gather(q.radii, i)
+        r = lanes.length3(*v) / radius
+
+        def inside():
+            u = [q.frequency * (v[a] / radius) + lanes.gather(q.offsets, i * 3 + a) for a in range(3)]
+            f = fastnoise.fbm_sum(q.basis, *u, q.scales, count, q.octaves, 0.5)
+            return lanes.clamp_min(particle_value(f, r, q.core, q.amplitude, q.edge), 0.0)
+
+        part = dr.if_stmt((), r < 1.0, inside, lambda: dr.zeros(Float, width))
+        return k + 1, total + part if q.combine == "sum" else lanes.maximum(total, part)
+
+    return dr.while_loop((dr.zeros(Int32, width), dr.zeros(Float, width)), lambda k, total: k < q.count, body,
+                         mode="symbolic")[1]

@@ -18,7 +18,14 @@ from .composite import VolumePart
 from .context import VolumeContext
 from .emission import EMISSION_MAPS, bloom_glow
 from .integrate import frostbite_step
-from .march import LN2, Medium, expected_depth_fraction, gathered, lod_drop, median_crossing
+from .march import (
+    LN2,
+    Medium,
+    expected_depth_fraction,
+    gathered,
+    lod_drop,
+    median_crossing,
+)
 from .multiple import octave_response, octave_sum, octave_weights
 from .shadow import occluder_transmittance, shadow_transmittance, sun_grids
 
