@@ -190,6 +190,34 @@ def test_particles_match_eager_and_give_the_same_bytes_alone_and_in_a_batch(comb
         assert torch.equal(alone.radiance[0], batch.radiance[b])
 
 
+LOOK = {**PUFF, "shading": "shader", "shader": {"alpha_scale": 0.3, "light_offset": 0.3, "light_scale": 0.5}}
+LOOKS = {
+    "the seeds' look, lit by a sun": _media([LOOK]),
+    "height-graded ambient, fog, a point light": _media(
+        [{**LOOK, "shader": {"ambient": [0.2, 0.3, 0.5], "ambient_top": [0.9, 1.0, 1.1], "fog": 0.05}}],
+        lights=[{"kind": "point", "position": [0.5, 1.5, -1.0], "intensity": 4.0}]),
+    "no light, the sin dither, size placement, LOD": _media([{**LOOK, "shader": {"light": "none"}}],
+                                                         march={"step_size": 0.07, "dither": "sin", "lod": {"scale": 0.5}}),
+    "no sky, early stop": {**_media([LOOK], march={"steps": 24, "min_transmittance": 0.1}), "sky": None},
+}
+
+
+@pytest.mark.parametrize("name", list(LOOKS))
+def test_the_seeds_look_matches_its_eager_loop(name):
+    kernel, eager = _both(LOOKS[name])
+    _close(kernel, eager, name)
+    assert kernel.stats["density_evals"] == eager.stats["density_evals"]
+    assert kernel.stats["march_steps"] == eager.stats["march_steps"]
+
+
+@pytest.mark.parametrize("index", [0, 1])
+def test_voxel_terrain_samples_march_their_cloud_layer_in_the_kernel(index):
+    """voxel-terrain.toml: the seeds' look over voxels (the volume marches up to the terrain)."""
+    scene = Recipe.load(CLOUDS.parent / "voxel-terrain.toml", SIZE).sample_with_params(index, 0)[0]
+    kernel, eager = _both(scene)
+    _close(kernel, eager, f"voxel-terrain sample {index}")
+
+
 def test_a_joint_member_without_a_kernel_marches_every_member_eagerly():
     perlin = {**FOG, "density": {"fbm": {"noise": "perlin", "octaves": 2}}}
     out = tv.render(_media([PUFF, perlin], lights=[{**SUN, "shadow": None}]))

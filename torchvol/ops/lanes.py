@@ -191,6 +191,11 @@ def gather(table, index):
     return dr.gather(type(table), table, UInt32(index))
 
 
+def columns(x):
+    """A per-point torch tensor as lanes: [n] as it is, [n, C] as its C columns."""
+    return x if x.ndim == 1 else list(x.unbind(1))
+
+
 def smoothstep01(x):
     """3x² − 2x³ of `x` clamped to [0, 1]: 0 at 0, 1 at 1, flat at both."""
     x = clamp(x, 0.0, 1.0)
@@ -202,5 +207,5 @@ def length3(x, y, z):
     return sqrt(x * x + y * y + z * z)
 
 
-__all__ = ["abs", "clamp", "clamp_max", "clamp_min", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
+__all__ = ["abs", "clamp", "clamp_max", "clamp_min", "columns", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
            "int_like", "log2", "maximum", "minimum", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]

@@ -88,6 +88,7 @@ class VolumePass:
     backend: Backend = "eager"  # what its march runs on
     eager_because: str | None = None  # why it is eager where it is (`march_backend`)
     joint: bool = False  # marched with the other media in the scene's joint pass (`JointPass`), not on its own
+    fused: bool = False  # the template's fused march renders it (`fused_march`), not `volume.kernel_march`
 
     @property
     def step_pass(self) -> str:
@@ -401,7 +402,7 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
                       bloom=None if vol.bloom is None else vol.bloom.light,
                       sky_blend=vol.sky_blend is not None, ambient=ambient,
                       ambient_sky=sky,
-                      multiple=vol.multiple_scattering is not None)
+                      multiple=vol.multiple_scattering is not None, fused=fused_march(batch, vol, uses))
 
 
 def voxel_pass(batch: Stacked) -> VoxelPass | None:

@@ -106,7 +106,7 @@ def explosion_color(density: Tensor, radius: Tensor, *, thin: Tensor, dense: Ten
 
 def explosion_emission(params: Stacked, points: Tensor, density: Tensor, s: Tensor) -> Tensor:
     """σe [n, 3] at `points` [n, 3] of density `density` [n] (≥ 0) in scenes `s` [n]."""
-    q = explosion_lanes(params, SimpleNamespace(per_lane=lambda v: _columns(take(v, s))))
+    q = explosion_lanes(params, SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, s))))
     return torch.stack(explosion_glow(q, points.unbind(1), density), dim=1)
 
 
@@ -128,13 +128,9 @@ def bloom_source(q, p):
 def bloom_glow(bloom: Stacked, light: Stacked, points: Tensor, s: Tensor) -> Tensor:
     """The glow source [n, 3] at `points` [n, 3] of scenes `s` [n] around point light `light`
     (its `Stacked` parameters: position, color, intensity)."""
-    q = bloom_lanes(bloom, light, SimpleNamespace(per_lane=lambda v: _columns(take(v, s))))
+    q = bloom_lanes(bloom, light, SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, s))))
     return torch.stack(bloom_source(q, points.unbind(1)), dim=1)
 
-
-def _columns(value: Tensor):
-    """A per-point tensor [n] as it is, [n, 3] as its three columns (lanes)."""
-    return value if value.ndim == 1 else value.unbind(1)
 
 
 EMISSION_MAPS = Registry("emission map")

@@ -49,6 +49,7 @@ from .integrate import WEIGHTS
 from .march import MarchResult, median_crossing
 from .multiple import octave_weights
 from .physical import light_responses
+from .shader_look import ambient_light, derivative_light, look_lanes, shaded
 from .shadow import shadow_segments, sun_grids
 from .sun_volume import grid_transmittance, grids_lanes
 
@@ -65,7 +66,7 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     checks = [
         (_has_lanes(vol), f"the {vol.density.kind} density"),
         ("lanes" in BOUNDS[vol.bounds.kind].caps, f"{vol.bounds.kind} bounds"),
-        (vol.shading == "physical", f"the {vol.shading} shading"),
+        (vol.shading in ("physical", "shader"), f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
         (settings.tolerance is None, "the error-controlled march"),
         (vol.sky_blend is None, "a sky blend"),
@@ -277,6 +278,106 @@ def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: T
         ctx.counts.density_evals += int(e.long().sum())
         ctx.volumes[j].field.evals += int(e.long().sum())
     return result
+
+
+def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit: Tensor,
+               dither: Tensor | None) -> MarchResult:
+    """The seeds' loop through volume `vol` in the shader look (`shader_look`: its alpha
+    compositing, samples at t from a dithered start) along a chunk's `rays` [R] through [t0, t1]
+    [R] where `hit` [R], the sky behind them `background` [R, 3] (None: black), `dither` [R] the
+    start offsets in steps or None, as one Dr.Jit kernel. -> `march.march`'s result; its steps,
+    truncations and density evaluations counted in the render's stats."""
+    import drjit as dr
+    from drjit.llvm import Bool, Float, Int32
+
+    st, idx = ctx.settings, hit.nonzero().squeeze(1)
+    result = MarchResult.empty(t0, 3)
+    if idx.shape[0] == 0:
+        return result
+    threads = kernel_threads()
+    if dr.thread_count() != threads:
+        dr.set_thread_count(threads)
+    s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
+    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
+    per_ray = lambda x: lane(take(x, s))  # noqa: E731
+    start, end = t0.index_select(0, idx), t1.index_select(0, idx)
+    span = end - start
+    if dither is not None:  # `march.march`'s shader start: dithered by a fraction of a step, or in world units
+        start = start + dither.index_select(0, idx) * (st.rule.length(start, span) if st.dither != "sin" else 1.0)
+    behind = torch.zeros_like(d) if background is None else background.index_select(0, idx)
+    k = SimpleNamespace(origin=lane(rays.origins.index_select(0, idx)), direction=lane(d), t_end=lane(end),
+                        span=lane(span), behind=lane(behind), look=look_lanes(vol, SimpleNamespace(per_lane=per_ray)))
+    k.lights = []
+    for use in vol.plan.lights:  # the derivative light: the first light only
+        light = ctx.lights[use.light]
+        k.lights.append(SimpleNamespace(direction=per_ray(light.direction), irradiance=per_ray(light.radiant))
+                        if light.directional else
+                        SimpleNamespace(position=per_ray(light.params.position), radiant=per_ray(light.radiant)))
+    solid, par, n = _solid(vol, s, per_ray), _parameters(st), len(idx)
+    zero = dr.zeros(Float, n)
+    state = (lane(start), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
+             dr.full(Bool, False, n), dr.zeros(Int32, n), zero, zero, zero)
+    out = dr.while_loop(state, lambda *x: x[6], _look_body(k, solid, par, st), mode="symbolic")
+    dr.eval(out)
+    dr.sync_thread()
+    _, trans, wsum, wt, median, steps, _, truncated, evals, *radiance = (torch.from_numpy(np.array(v)) for v in out)
+    result.radiance.index_copy_(0, idx, torch.stack(radiance, 1).to(t0.dtype))
+    for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
+                        ("steps", steps.long()), ("truncated", truncated)):
+        target = getattr(result, name)
+        target.index_copy_(0, idx, value.to(target.dtype))
+    ctx.counts.march_steps += int(steps.long().sum())
+    ctx.counts.truncated_rays += int(truncated.sum())
+    ctx.counts.density_evals += int(evals.long().sum())
+    vol.field.evals += int(evals.long().sum())
+    return result
+
+
+def _look_body(k: SimpleNamespace, solid: SimpleNamespace, par: SimpleNamespace, st):
+    """The loop body of `march_look`: one sample of `march.march`'s shader loop, its shading
+    (`shader_look`'s lanes functions) under a branch where the density passes the threshold."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    q = k.look
+
+    def body(t, trans, wsum, wt, median, steps, alive, truncated, evals, red, green, blue):
+        dt = st.rule.length(t, k.span)
+        p = [k.origin[c] + t * k.direction[c] for c in range(3)]
+        count = None
+        if par.lod is not None and solid.octaves is not None:
+            count = solid.octaves - Int32(dr.floor(dr.log2(1.0 + t * par.lod)))
+        density = solid.density(p, count)
+
+        def shade():
+            light = ambient_light(q, p[1])
+            for source in k.lights:
+                if hasattr(source, "position"):
+                    direction, irradiance, _ = point_lanes(source.position, source.radiant, p)
+                else:
+                    direction, irradiance = source.direction, source.irradiance
+                ahead = solid.density([p[c] + q.light_offset * direction[c] for c in range(3)], count)
+                dif = derivative_light(density, ahead, scale=q.light_scale)
+                light = [irradiance[c] * dif + light[c] for c in range(3)]
+            alpha, colour = shaded(q, density, light, k.behind, t)
+            return alpha, colour
+
+        width = dr.width(t)
+        alpha, colour = dr.if_stmt((), density > par.threshold, shade,
+                                   lambda: (dr.zeros(Float, width), [dr.zeros(Float, width) for _ in range(3)]))
+        seg_trans = 1.0 - alpha
+        radiance = [r + trans * (colour[c] * alpha) for c, r in enumerate((red, green, blue))]
+        w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
+        median = dr.select((trans > 0.5) & (new_trans <= 0.5), t, median)
+        evals = evals + 1 + dr.select(density > par.threshold, Int32(len(k.lights)), Int32(0))
+        steps, t_next = steps + 1, t + dt
+        keep = t_next <= k.t_end
+        if st.min_transmittance > 0:
+            keep = keep & (new_trans >= par.min_transmittance)
+        last = steps >= par.max_iterations
+        return (t_next, new_trans, wsum + w, wt + w * t, median, steps, keep & ~last, keep & last, evals, *radiance)
+
+    return body
 
 
 def _parameters(st) -> SimpleNamespace:

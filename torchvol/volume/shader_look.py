@@ -5,6 +5,7 @@ the sky by 1 − exp(−fog · t²); composited as the seeds' alpha (clamped sum
 from __future__ import annotations
 
 from collections.abc import Callable
+from types import SimpleNamespace
 from typing import Literal
 
 import torch
@@ -12,6 +13,7 @@ from pydantic import Field
 from torch import Tensor
 
 from ..geometry.camera import Rays
+from ..ops import lanes
 from ..schema.batch import take
 from ..schema.models import Strict, Vec3
 from .context import VolumeContext
@@ -36,21 +38,38 @@ class ShaderLook(Strict):
     fog: float = Field(0.0, ge=0.0)  # mix towards the sky by 1 − exp(−fog·t²)
 
 
-def derivative_light(density: Tensor, density_towards_light: Tensor, *, scale: Tensor | float) -> Tensor:
-    """The seeds' directional-derivative light: clamp((d − d(p + o·L)) / scale, 0, 1).
+def derivative_light(density, density_towards_light, *, scale):
+    """The seeds' directional-derivative light: clamp((d − d(p + o·L)) / scale, 0, 1); lanes
+    (`ops.lanes`), or [N] tensors."""
+    return lanes.clamp((density - density_towards_light) / scale, 0.0, 1.0)
 
-    `density`, `density_towards_light`: [N]; `scale`: [N] or scalar. -> [N]."""
-    return ((density - density_towards_light) / scale).clamp(0.0, 1.0)
 
-
-def ambient(vol, p: Tensor, s: Tensor) -> Tensor:
-    """The look's ambient light at points `p` [n, 3] of scenes `s` [n] -> [n, 3]."""
+def look_lanes(vol, to) -> SimpleNamespace:
+    """The look's parameters per lane (`to.per_lane`: per scene -> a lane, or three)."""
     look = vol.params.shader
-    if look.ambient_top is None:
-        return take(look.ambient, s)
-    heights = take(vol.bounds.height_range(vol.params.bounds.value), s)  # [n, 2]
-    height = ((p[:, 1] - heights[:, 0]) / (heights[:, 1] - heights[:, 0])).clamp(0.0, 1.0)
-    return torch.lerp(take(look.ambient, s), take(look.ambient_top, s), height[:, None])
+    q = SimpleNamespace(**{k: to.per_lane(getattr(look, k)) for k in (
+        "ambient", "color_lit", "color_dark", "alpha_scale", "fog", "light_offset", "light_scale")})
+    q.top = None if look.ambient_top is None else to.per_lane(look.ambient_top)
+    if q.top is not None:
+        heights = vol.bounds.height_range(vol.params.bounds.value)  # (B, 2)
+        q.low, q.high = to.per_lane(heights[:, 0]), to.per_lane(heights[:, 1])
+    return q
+
+
+def ambient_light(q: SimpleNamespace, y) -> list:
+    """The look's ambient light at height `y` (a lane; `q` from `look_lanes`): three lanes."""
+    if q.top is None:
+        return list(q.ambient)
+    h = lanes.clamp((y - q.low) / (q.high - q.low), 0.0, 1.0)
+    return [lanes.lerp(q.ambient[c], q.top[c], h) for c in range(3)]
+
+
+def shaded(q: SimpleNamespace, density, light: list, behind: list, t) -> tuple:
+    """(alpha, colour: three lanes) of a sample of `density` at distance `t` lit by `light` (three
+    lanes), fogged towards `behind` (the sky there, three lanes); `q` from `look_lanes`."""
+    col = [lanes.lerp(q.color_lit[c], q.color_dark[c], density) * light[c] for c in range(3)]
+    fog = 1.0 - lanes.exp(-q.fog * t * t)
+    return density * q.alpha_scale, [lanes.lerp(col[c], behind[c], fog) for c in range(3)]
 
 
 def alpha_look_medium(ctx: VolumeContext, vol, rays: Rays, shade: Callable[..., tuple[Tensor, Tensor]]) -> Medium:
@@ -79,21 +98,21 @@ def alpha_look_medium(ctx: VolumeContext, vol, rays: Rays, shade: Callable[..., 
 
 
 def shader_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
-    """(alpha [n], colour [n, 3]) of the look at each sample (`signed` does not apply)."""
-    look = vol.params.shader
+    """(alpha [n], colour [n, 3]) of the look at each sample (`signed` does not apply): its lanes
+    functions (`ambient_light`, `derivative_light`, `shaded`) on torch columns."""
 
     def shade(ids, keep, s, p, t, d, density, lod):
-        lin = ambient(vol, p, s)
+        q = look_lanes(vol, SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, s))))
+        lin = ambient_light(q, p[:, 1])
         for use in vol.plan.lights:  # the derivative light: the first light only
             with ctx.timer.section(use.name):
                 toward = ctx.lights[use.light].toward(p, s)
-                ahead = vol.field(p + take(look.light_offset, s)[:, None] * toward.direction, s, lod)
-                dif = derivative_light(density, ahead, scale=take(look.light_scale, s))
-                lin = toward.irradiance * dif[:, None] + lin
-        col = torch.lerp(take(look.color_lit, s), take(look.color_dark, s), density[:, None]) * lin
-        fog = take(look.fog, s)
-        behind = background[ids][keep] if background is not None else torch.zeros_like(col)  # no [sky]: black
-        col = torch.lerp(col, behind, (1.0 - torch.exp(-fog * t * t))[:, None])
-        return density * take(look.alpha_scale, s), col
+                ahead = vol.field(p + q.light_offset[:, None] * toward.direction, s, lod)
+                dif = derivative_light(density, ahead, scale=q.light_scale)
+                lin = [toward.irradiance[:, c] * dif + lin[c] for c in range(3)]
+        behind = background[ids][keep] if background is not None else p.new_zeros(p.shape[0], 3)  # no [sky]: black
+        alpha, col = shaded(q, density, lin, behind.unbind(1), t)
+        return alpha, torch.stack(col, 1)
 
     return alpha_look_medium(ctx, vol, rays, shade)
+

@@ -72,8 +72,11 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
         with ctx.timer.section(vol.plan.skip_pass):
             occupied, marched = skipped_span(vol, rays, t0, t1, hit)
     with ctx.timer.section(vol.plan.step_pass):
-        if not skip and vol.plan.backend == "drjit" and vol.shading.semantics == "segments":  # one Dr.Jit kernel
-            res = kernel_march.march(ctx, [vol], rays, t0[None], t1[None], hit[None, None], ctx.dither(rays))
+        if not skip and vol.plan.backend == "drjit" and not vol.plan.fused:  # one Dr.Jit kernel
+            if vol.shading.semantics == "shader":
+                res = kernel_march.march_look(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays))
+            else:
+                res = kernel_march.march(ctx, [vol], rays, t0[None], t1[None], hit[None, None], ctx.dither(rays))
             if bool(hit.any()):  # its per-sample passes ran inside the kernel, their time in its own
                 for name in vol.plan.sample_passes:
                     with ctx.timer.section(name):
