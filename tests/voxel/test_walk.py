@@ -140,24 +140,21 @@ VOXEL_PRESETS = [name for name in tv.preset_names() if name.startswith("voxel-")
 @pytest.mark.parametrize("name, overrides", [(name, {}) for name in VOXEL_PRESETS]
                          + [("voxel-fog", {"voxels.traversal": "hybrid"}), ("voxel-glow", {"voxels.traversal": "hybrid"})])
 def test_exact_renders_are_eager_renders(name, overrides, monkeypatch):
-    """`render(..., compile="exact")` takes the fused walk (its eager twin here: nothing compiles)
-    and renders every output bitwise as eager does; with fog or glow a hybrid scene walks plainly
-    on either path."""
-    taken = []
-
-    def twin():
-        taken.append(1)
-        return walk.walk_block
-
-    monkeypatch.setattr(walk, "compiled_block", twin)
+    """Every walk gives the eager walk's bits: `render(..., compile="exact")` (the fused walk, its
+    eager twin here: nothing compiles, for the walks that record their cells; Dr.Jit's for the
+    others) and the default (Dr.Jit's walk) render every output bitwise as the eager reference
+    does; with fog or glow a hybrid scene walks plainly on every path."""
+    monkeypatch.setattr(walk, "compiled_block", lambda: walk.walk_block)
     scene = tv.load_scene(tv.preset(name, width=40, height=30), overrides=overrides)
-    fast, slow = tv.render(scene, compile="exact"), tv.render(scene)
-    assert taken, "the fused walk did not run"
-    for key in ("image", "radiance", "depth", "alpha"):
-        a, b = getattr(fast, key), getattr(slow, key)
-        assert torch.equal(a, b), f"{name}: {key} differs by {float((a - b).abs().max()):.3e}"
-    for key, a in slow.aovs.items():
-        assert torch.equal(fast.aovs[key], a), f"{name}: AOV {key} differs"
+    slow = tv.render(scene, compile="off")
+    assert slow.stats["plan"]["walk"] == "eager"
+    for mode in ("exact", "auto"):
+        fast = tv.render(scene, compile=mode)
+        for key in ("image", "radiance", "depth", "alpha"):
+            a, b = getattr(fast, key), getattr(slow, key)
+            assert torch.equal(a, b), f"{name}, {mode}: {key} differs by {float((a - b).abs().max()):.3e}"
+        for key, a in slow.aovs.items():
+            assert torch.equal(fast.aovs[key], a), f"{name}, {mode}: AOV {key} differs"
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -208,14 +205,15 @@ def test_exact_render_compiled_is_eager(one_thread):
 
 def test_a_walk_that_cannot_compile_walks_eagerly(tmp_path):
     """No C++ compiler (CXX names none, inductor's cache empty): `compile="exact"` warns once and
-    renders eagerly, the same bits, instead of failing where eager runs."""
+    renders eagerly, the same bits, instead of failing where eager runs (voxel-fog: its primary
+    walk records the fog's cells, which Dr.Jit's walk does not)."""
     import os
     import subprocess
     import sys
 
     code = """
 import warnings, torch, torchvol as tv
-scene = tv.preset("voxel-pbr", width=12, height=8)
+scene = tv.preset("voxel-fog", width=12, height=8)
 with warnings.catch_warnings(record=True) as seen:
     warnings.simplefilter("always")
     fast = tv.render(scene, compile="exact")
@@ -228,3 +226,30 @@ print("fell back")
     env = {**os.environ, "CXX": str(tmp_path / "no-such-compiler"), "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cache")}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and "fell back" in out.stdout, out.stderr[-2000:]
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 200), max_steps=st.integers(1, 60), limited=st.booleans(),
+       late=st.booleans(), hybrid=st.booleans())
+def test_the_drjit_walk_is_bitwise_the_plain_walk(seed, n, max_steps, limited, late, hybrid):
+    """`walk.drjit_traverse`: the block's own step (`walk_step`, lanes) in one Dr.Jit loop per ray;
+    float32 rays, axis-parallel ones and rays that start inside or part-way included."""
+    from torchvol.volume import drjit_march
+
+    if not drjit_march.available(torch.zeros(1)):
+        pytest.skip("Dr.Jit's LLVM backend is not available")
+    shape, p = ((14, 12, 16), 0.03) if hybrid else ((6, 7, 8), 0.12)
+    (o, d), lookup, table, (lo, hi), (distance, field) = _world(seed, n, torch.float32, shape=shape, p=p)
+    g = torch.Generator().manual_seed(seed)
+    t_max = torch.rand(n, generator=g) * 12 if limited else None
+    t_min = torch.rand(n, generator=g) * 6 if late else None
+    if hybrid:
+        plain = hybrid_traverse(o, d, lookup, distance, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max)
+    else:
+        plain = traverse(o, d, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max)
+    kernel = walk.drjit_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max,
+                                 distance=field if hybrid else None)
+    for name in FIELDS:
+        a, b = getattr(plain, name), getattr(kernel, name)
+        assert a.dtype == b.dtype and torch.equal(a, b), \
+            f"{name}: {int((a != b).sum())} of {n} rays differ (first at ray {int((a != b).nonzero()[0, 0])})"

@@ -117,7 +117,7 @@ class RenderContext:
         if plan.voxels is not None:
             self.voxel_surface = VoxelSurface(
                 batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs}, dtype=plan.dtype,
-                device=device, compiled=plan.walk == "inductor", time=self.times,
+                device=device, compiled=plan.compile in ("exact", "all"), drjit=plan.walk == "drjit", time=self.times,
                 sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s), transmittance=shadow_rays)
             self.voxels = VoxelOccluder(self.voxel_surface.tracer, voxel_shadow_steps(batch.voxels))
         if plan.terrain is not None:

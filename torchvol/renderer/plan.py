@@ -155,6 +155,17 @@ def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None, *, air
     return JointPass(tuple(v.index for v in members), "media.closed_form" if closed else "media.march", shares, air)
 
 
+def walk_backend(compile: str, dtype: torch.dtype, device) -> Backend:
+    """What the voxel DDA walks run on: one Dr.Jit kernel (`voxel.walk.drjit_traverse`) wherever
+    the compile mode is not "off" and Dr.Jit runs for `dtype` on `device`; else the compiled walk
+    under "exact" and "all" (`voxel.walk.fused_traverse`), else eagerly. Every one gives the same
+    bits. A walk that records each cell it visits (the fog's and the glow's primary walk) runs
+    compiled under "exact" and "all", else eagerly, whatever this says."""
+    if compile != "off" and drjit_march.available(torch.zeros((), dtype=dtype, device=device)):
+        return "drjit"
+    return "inductor" if compile in ("exact", "all") else "eager"
+
+
 def joint_backends(volumes: tuple[VolumePass, ...], joint: JointPass) -> tuple[VolumePass, ...]:
     """The volumes with their backends in the joint march: one Dr.Jit kernel marches every medium
     of a ray where each member's march is one and there is no air (`volume.kernel_march`); else
@@ -263,7 +274,7 @@ class Plan:
     compile: str = "off"  # the compile mode the render runs in (`runtime.compilation`)
     dtype: torch.dtype = torch.float32  # the render's float type (the quality level's unless given)
     threads: Threads = "caller"  # torch's thread policy during the render
-    walk: Backend | None = None  # what the voxel DDA walk runs on (inductor: its exact kernels), None: no voxels
+    walk: Backend | None = None  # what the voxel DDA walk runs on (`walk_backend`), None: no voxels
 
     def summary(self) -> dict:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
@@ -479,8 +490,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
         compile=compile,
         dtype=dtype,
         threads="glue_on_one_thread" if glue else "caller",
-        # the walk's kernels are bitwise eager's: compiled under "exact" and "all"
-        walk=None if voxels is None else ("inductor" if compile in ("exact", "all") else "eager"),
+        walk=None if voxels is None else walk_backend(compile, dtype, device),
     )
 
 

@@ -17,17 +17,22 @@ instead (`fused_traverse(..., fog=)`, `fog.FogWalk`): the same sums in the same 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from types import SimpleNamespace
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..runtime.compilation import exact_kernel
+from ..runtime.threads import kernel_threads
 from .dda import Hits, Visit, start
 from .fog import FogWalk
 
-__all__ = ["BLOCK", "fused_traverse", "walk_block"]
+__all__ = ["BLOCK", "drjit_traverse", "fused_traverse", "walk_block", "walk_step"]
 
 # steps a block runs before finished slots are dropped: a block costs about 30 µs of call overhead
 # and a compaction about 10 eager gathers, while a finished slot still rides along in the block
@@ -38,7 +43,7 @@ MIN_SLOTS = 4
 def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: Tensor, max_steps: Tensor,
                fog_table: Tensor | None = None, distance: Tensor | None = None, *, steps: int, limited: bool,
                record: bool, switch: int = 2):
-    """`steps` DDA steps of N slots.
+    """`steps` DDA steps of N slots (`walk_step`, on torch columns).
 
     state: cx, cy, cz [N] int32, the cell to look up next; t [N], its entry distance; axis [N]
     int32, its entry axis; n [N] int32, lookups so far; alive [N] bool; t_exit [N], material [N]
@@ -54,99 +59,109 @@ def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: 
     -> (the state after the block, records): with `record` each step's visits (each [steps, N]:
     visited, cx, cy, cz, t_in, t_out, hit), with fog each step's fog visits (empty, cx, cy, cz,
     tau, fog_tau after it), else None."""
-    cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = state
     o, d, lo, hi, base, t_max, *fog_rows = rays
-    ox, oy, oz = o.unbind(1)
-    dx, dy, dz = d.unbind(1)
-    lx, ly, lz = lo.unbind(1)
-    hx, hy, hz = hi.unbind(1)
+    r = SimpleNamespace(o=o.unbind(1), d=d.unbind(1), lo=lo.unbind(1), hi=hi.unbind(1), base=base.to(torch.int32),
+                        t_max=t_max if limited else None, fog_row=fog_rows[0].to(torch.int32) if fog_rows else None)
+    g = SimpleNamespace(table=table, distance=distance, fog=fog_table, y=strides[0], x=strides[1], max_steps=max_steps,
+                        switch=switch)
     records = []
     for _ in range(steps):
-        flat = base + (cz.long() * strides[0] + cy.long()) * strides[1] + cx.long()
-        if distance is not None:
-            k = take_rows(distance, torch.where(alive, flat, torch.zeros_like(flat))).to(torch.int32)
-            jump = alive & (k >= switch)
-            t_new, cx, cy, cz = _jump(jump, k - 1, t, (cx, cy, cz), o, d, lo, hi)
-            t, n = torch.where(jump, t_new, t), n + jump.to(torch.int32)
-            flat = base + (cz.long() * strides[0] + cy.long()) * strides[1] + cx.long()
-        mat = take_rows(table, torch.where(alive, flat, torch.zeros_like(flat))).to(torch.int32)
-        n = n + alive.to(torch.int32)
-        hit = alive & (mat > 0)
-        ax, t_next, nx, ny, nz = _next_cell((cx, cy, cz), (ox, oy, oz), (dx, dy, dz))
-        t_out = torch.where(hit, t, t_next)
+        state, step_records = walk_step(state, r, g)
         if record:
-            records.append((alive, cx, cy, cz, t, t_out, hit))
+            records.append(step_records[0])
         if fog_table is not None:
-            empty, tau, fog_tau[0] = _fog_step(alive, hit, cy, t, t_out, fog_rows[0], fog_table, fog_tau[0])
-            records.append((empty, cx, cy, cz, tau, fog_tau[0]))
-        inside = (nx >= lx) & (nx < hx) & (ny >= ly) & (ny < hy) & (nz >= lz) & (nz < hz)
-        if limited:
-            inside = inside & (t_next <= t_max)
-        keep = alive & ~hit & inside & (n < max_steps)
-        done = alive & ~hit & ~keep
-        material = torch.where(hit, mat, material)
-        t_exit = torch.where(hit, t, torch.where(done, torch.where(inside, t, t_next), t_exit))
-        cx, cy, cz = torch.where(keep, nx, cx), torch.where(keep, ny, cy), torch.where(keep, nz, cz)
-        t, axis = torch.where(keep, t_next, t), torch.where(keep, ax, axis)
-        alive = keep
-    state = [cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau]
+            records.append(step_records[1])
     return state, (tuple(torch.stack(column) for column in zip(*records)) if records else None)
 
 
+def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
+    """One DDA step of every slot, in lanes (`ops.lanes`: torch columns, or Dr.Jit arrays in
+    `drjit_traverse`'s loop): the state as `walk_block`'s (a list), the rays `r` (o, d, lo, hi:
+    three lanes each; base, the flat index of cell (0, 0, 0); t_max or None; fog_row or None), the
+    tables `g` (table, distance or None, fog or None, y, x, max_steps, switch). -> (the state
+    after it, (this step's visit record, its fog record or None))."""
+    cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = state
+    zero = lanes.int_like(0, cx)
+    if g.distance is not None:
+        flat = r.base + (cz * g.y + cy) * g.x + cx
+        k = lanes.to_int32(lanes.gather(g.distance, lanes.where(alive, flat, zero)))
+        jump = alive & (k >= g.switch)
+        t_new, jx, jy, jz = _jump(k - 1, t, (cx, cy, cz), r)
+        cx, cy, cz = lanes.where(jump, jx, cx), lanes.where(jump, jy, cy), lanes.where(jump, jz, cz)
+        t, n = lanes.where(jump, t_new, t), n + lanes.to_int32(jump)
+    flat = r.base + (cz * g.y + cy) * g.x + cx
+    mat = lanes.to_int32(lanes.gather(g.table, lanes.where(alive, flat, zero)))
+    n = n + lanes.to_int32(alive)
+    hit = alive & (mat > 0)
+    ax, t_next, nx, ny, nz = _next_cell((cx, cy, cz), r.o, r.d)
+    t_out = lanes.where(hit, t, t_next)
+    visit = (alive, cx, cy, cz, t, t_out, hit)
+    fog = None
+    if g.fog is not None:
+        empty = alive & ~hit
+        tau = lanes.gather(g.fog, lanes.where(alive, r.fog_row + cy, zero)) * lanes.clamp_min(t_out - t, 0.0)
+        fog_tau = [lanes.where(empty, fog_tau[0] + tau, fog_tau[0])]
+        fog = (empty, cx, cy, cz, tau, fog_tau[0])
+    inside = ((nx >= r.lo[0]) & (nx < r.hi[0]) & (ny >= r.lo[1]) & (ny < r.hi[1]) & (nz >= r.lo[2])
+              & (nz < r.hi[2]))
+    if r.t_max is not None:
+        inside = inside & (t_next <= r.t_max)
+    keep = alive & ~hit & inside & (n < g.max_steps)
+    done = alive & ~hit & ~keep
+    material = lanes.where(hit, mat, material)
+    t_exit = lanes.where(hit, t, lanes.where(done, lanes.where(inside, t, t_next), t_exit))
+    cx, cy, cz = lanes.where(keep, nx, cx), lanes.where(keep, ny, cy), lanes.where(keep, nz, cz)
+    t, axis = lanes.where(keep, t_next, t), lanes.where(keep, ax, axis)
+    return [cx, cy, cz, t, axis, n, keep, t_exit, material, *fog_tau], (visit, fog)
+
+
+def _sign(d):
+    """sign(d) as int32 lanes: 1, −1, or 0 where d = 0."""
+    return lanes.to_int32(d > 0) - lanes.to_int32(d < 0)
+
+
 def _next_cell(cells: tuple, o: tuple, d: tuple):
-    """`dda.dda_step`'s crossings and tie rule, per column: cells, o, d three [N] columns (int32,
-    float, float). -> (the axis crossed [N] int32, the distance to it [N], the next cell's three
-    [N] int32 columns)."""
+    """`dda.dda_step`'s crossings and tie rule, per column, lanes: cells, o, d three lanes each
+    (int32, float, float). -> (the axis crossed (int32), the distance to it, the next cell's three
+    int32 lanes)."""
     (cx, cy, cz), (ox, oy, oz), (dx, dy, dz) = cells, o, d
     sx, sy, sz = (_crossing(c, oc, dc) for c, oc, dc in ((cx, ox, dx), (cy, oy, dy), (cz, oz, dz)))
     x_first, y_before_z = (sx <= sy) & (sx <= sz), sy <= sz
-    ax = torch.where(x_first, 0, torch.where(y_before_z, 1, 2)).to(torch.int32)
-    t_next = torch.minimum(torch.minimum(sx, sy), sz)
-    nx = cx + torch.where(ax == 0, torch.sign(dx), 0).to(torch.int32)
-    ny = cy + torch.where(ax == 1, torch.sign(dy), 0).to(torch.int32)
-    nz = cz + torch.where(ax == 2, torch.sign(dz), 0).to(torch.int32)
+    ax = lanes.to_int32(~x_first) * (1 + lanes.to_int32(~y_before_z))  # 0: x first, else 1 (y) or 2 (z)
+    t_next = lanes.minimum(lanes.minimum(sx, sy), sz)
+    nx = cx + lanes.to_int32(ax == 0) * _sign(dx)
+    ny = cy + lanes.to_int32(ax == 1) * _sign(dy)
+    nz = cz + lanes.to_int32(ax == 2) * _sign(dz)
     return ax, t_next, nx, ny, nz
 
 
-def _fog_step(alive: Tensor, hit: Tensor, cy: Tensor, t: Tensor, t_out: Tensor, row0: Tensor, fog_table: Tensor,
-              fog_tau: Tensor):
-    """The fog's eager callback (passes/fog.py), per slot: the same products, the same order of
-    sums. The fog over [t, t_out] [N] in the empty cells (alive [N] bool and not hit) at height
-    `cy` [N] int32; `row0` [N] long, the ray's first row of `fog_table`. -> (empty [N] bool, τ
-    [N], fog_tau [N] after it)."""
-    empty = alive & ~hit
-    row = torch.where(alive, row0 + cy.long(), torch.zeros_like(row0))
-    tau = take_rows(fog_table, row) * (t_out - t).clamp_min(0.0)
-    return empty, tau, torch.where(empty, fog_tau + tau, fog_tau)
-
-
-def _jump(jump: Tensor, r: Tensor, t: Tensor, cells: tuple, o: Tensor, d: Tensor, lo: Tensor, hi: Tensor):
-    """`dda.hybrid_traverse`'s jump, per column: across the empty cube [cell − r, cell + r] to the
-    last cube cell on the ray, where `jump` [N] (elsewhere the cells stay). r, t [N]; cells three
-    [N] int32; o, d [N, 3]; lo, hi [N, 3] int32. -> (the exit distance [N], the three columns)."""
+def _jump(r, t, cells: tuple, rays: SimpleNamespace):
+    """`dda.hybrid_traverse`'s jump, per column, lanes: across the empty cube [cell − r, cell + r]
+    to the last cube cell on the ray (the caller keeps it where no jump is due). r (int32), t;
+    cells three int32 lanes; `rays`' o, d, lo, hi. -> (the exit distance, the three cells)."""
     exits = []
     for a, c in enumerate(cells):
-        da = d[:, a]
+        da = rays.d[a]
         zero = da == 0
-        far = torch.where(da > 0, c + r + 1, c - r).to(d.dtype)
-        exits.append(torch.where(zero, torch.full_like(far, torch.inf), (far - o[:, a]) / torch.where(zero, torch.ones_like(far), da)))
-    t_new = torch.maximum(torch.minimum(torch.minimum(exits[0], exits[1]), exits[2]), t)
+        far = lanes.to_float(lanes.where(da > 0, c + r + 1, c - r), da)
+        exits.append(lanes.where(zero, math.inf, (far - rays.o[a]) / lanes.where(zero, 1.0, da)))
+    t_new = lanes.maximum(lanes.minimum(lanes.minimum(exits[0], exits[1]), exits[2]), t)
     moved = []
     for a, c in enumerate(cells):
-        da = d[:, a]
-        p = o[:, a] + t_new * da
-        before = torch.where(da > 0, torch.ceil(p) - 1, torch.floor(p)).to(torch.int32)
-        before = torch.minimum(torch.maximum(before, torch.maximum(c - r, lo[:, a])), torch.minimum(c + r, hi[:, a] - 1))
-        moved.append(torch.where(jump, before, c))
+        da = rays.d[a]
+        p = rays.o[a] + t_new * da
+        before = lanes.to_int32(lanes.where(da > 0, -lanes.floor(-p) - 1.0, lanes.floor(p)))
+        moved.append(lanes.minimum(lanes.maximum(before, lanes.maximum(c - r, rays.lo[a])),
+                                   lanes.minimum(c + r, rays.hi[a] - 1)))
     return t_new, *moved
 
 
-def _crossing(cell: Tensor, o: Tensor, d: Tensor) -> Tensor:
-    """`dda._crossings` for one axis: the distance [N] to the next plane (inf where d = 0)."""
+def _crossing(cell, o, d):
+    """`dda._crossings` for one axis, lanes: the distance to the next plane (inf where d = 0)."""
     zero = d == 0
-    plane = (cell + (d > 0).to(torch.int32)).to(d.dtype)
-    side = (plane - o) / torch.where(zero, torch.ones_like(d), d)
-    return torch.where(zero, torch.full_like(side, torch.inf), side)
+    plane = lanes.to_float(cell + lanes.to_int32(d > 0), d)
+    side = (plane - o) / lanes.where(zero, 1.0, d)
+    return lanes.where(zero, math.inf, side)
 
 
 _COMPILED: dict = {}
@@ -212,6 +227,49 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
         state = [take_rows(v, keep) for v in result]
         rays = [take_rows(v, keep) for v in rays]
     return out
+
+
+def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
+                   max_steps: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
+                   distance: Tensor | None = None, switch: int = 2) -> Hits:
+    """`fused_traverse` without `visit` or `fog` (nothing recorded per step) as one Dr.Jit kernel:
+    each slot's whole walk a loop (`drjit.while_loop`) of `walk_step`, the same function the
+    block runs; float32 rays; `table`, `distance` as `fused_traverse`'s, or already `int_table`s.
+    The same `Hits` as `dda.traverse`, bitwise (tests/voxel/test_walk.py)."""
+    import drjit as dr
+    from drjit.llvm import Bool, Float, Int32
+
+    out, ok, t0, cell0, axis0, lo, hi = start(origins, directions, lo, hi, t_min, t_max)
+    idx = ok.nonzero().squeeze(1)
+    if idx.numel() == 0:
+        return out
+    threads = kernel_threads()
+    if dr.thread_count() != threads:
+        dr.set_thread_count(threads)
+    floats = lambda x: Float(take_rows(x, idx).to(torch.float32).contiguous().numpy())  # noqa: E731
+    ints = lambda x: Int32(take_rows(x, idx).to(torch.int32).contiguous().numpy())  # noqa: E731
+    r = SimpleNamespace(o=[floats(c) for c in origins.unbind(1)], d=[floats(c) for c in directions.unbind(1)],
+                        lo=[ints(c) for c in lo.unbind(1)], hi=[ints(c) for c in hi.unbind(1)], base=ints(base),
+                        t_max=None if t_max is None else floats(t_max), fog_row=None)
+    g = SimpleNamespace(table=int_table(table), distance=None if distance is None else int_table(distance), fog=None,
+                        y=int(strides[0]), x=int(strides[1]), max_steps=dr.opaque(Int32, max_steps), switch=switch)
+    n = idx.shape[0]
+    state = (*(ints(c) for c in cell0.unbind(1)), floats(t0), ints(axis0), dr.zeros(Int32, n), dr.full(Bool, True, n),
+             dr.zeros(Float, n), dr.zeros(Int32, n))
+    result = dr.while_loop(state, lambda *x: x[6], lambda *x: tuple(walk_step(list(x), r, g)[0]), mode="symbolic")
+    dr.eval(result)
+    dr.sync_thread()
+    result = [torch.from_numpy(np.array(v)) for v in result]
+    _write_finished(out, None, idx, torch.arange(n, device=idx.device), [v.to(origins.device) for v in result])
+    return out
+
+
+def int_table(table):
+    """A flattened uint8 grid [M] as a Dr.Jit Int32 array (Dr.Jit gathers 32-bit lanes); one
+    already converted as it is (a tracer converts its grids once)."""
+    from drjit.llvm import Int32
+
+    return Int32(table.to(torch.int32).cpu().numpy()) if isinstance(table, Tensor) else table
 
 
 def _write_finished(out: Hits, fog: FogWalk | None, g: Tensor, finished: Tensor, result: list[Tensor]) -> None:
