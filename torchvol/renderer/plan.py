@@ -272,6 +272,7 @@ class Plan:
     labels: LabelPass | None = None  # the per-medium labels asked for (torchvol.renderer.labels), after the composite
     sun: int | None = None  # the index of the light that is the scene's sun (`lights.sun_index`), None: none
     compile: str = "off"  # the compile mode the render runs in (`runtime.compilation`)
+    kernels: bool = False  # Dr.Jit's kernels run in this render: the mode is not "off", Dr.Jit runs for its dtype and device
     dtype: torch.dtype = torch.float32  # the render's float type (the quality level's unless given)
     threads: Threads = "caller"  # torch's thread policy during the render
     walk: Backend | None = None  # what the voxel DDA walk runs on (`walk_backend`), None: no voxels
@@ -491,6 +492,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
         dtype=dtype,
         threads="glue_on_one_thread" if glue else "caller",
         walk=None if voxels is None else walk_backend(compile, dtype, device),
+        kernels=compile != "off" and drjit_march.available(torch.zeros((), dtype=dtype, device=device)),
     )
 
 

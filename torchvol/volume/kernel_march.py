@@ -401,13 +401,6 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
 
     own = solids[vol.plan.index]
 
-    def optical_depth(solid, p, direction, exit_t, sigma_scale, steps, growth=1.0, first_step=None):
-        """∫ σ_t along `direction` from `p` to `exit_t` through `solid`, over `shadow_segments`."""
-        tau = dr.zeros(Float, dr.width(exit_t))
-        for mid, length in shadow_segments(exit_t, steps=steps, growth=growth, first_step=first_step):
-            tau = tau + sigma_scale * solid.density([p[c] + mid * direction[c] for c in range(3)], None) * length
-        return tau
-
     def transmittance(p, direction, sigma_scale, shadow, occluders, terrain, evals, distance=None, sigma_t=None,
                       grids=None):
         """From lanes `p` along `direction` (three lanes) out of the bounds or to the light at
@@ -427,26 +420,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
             through = lanes.exp(-optical_depth(own, p, direction, exit_t, sigma_scale, shadow.steps, shadow.growth,
                                                shadow.first_step))
             evals[own.index] = evals[own.index] + shadow.steps
-        for j in occluders:
-            other = solids[j]
-            near, far = other.interval(p, direction)
-            t0 = lanes.clamp_min(near, 0.0)
-            t1 = lanes.minimum(far, other.reach if distance is None else lanes.minimum(distance, other.reach))
-            crosses = t1 > t0
-            entry = [p[c] + t0 * direction[c] for c in range(3)]
-            zero = lambda: dr.zeros(Float, dr.width(t0))  # noqa: E731
-            if shadow.method == "grid":
-                sigma = dr.if_stmt((), crosses, lambda: other.sigma_t * other.density(entry, None), zero)
-                through = through * dr.select(crosses, grid_transmittance(grids[j], entry, sigma), 1.0)
-                evals[j] = evals[j] + dr.select(crosses, Int32(1), Int32(0))
-                continue
-            tau = dr.if_stmt((), crosses, lambda: optical_depth(other, entry, direction, t1 - t0, other.sigma_t, shadow.steps),
-                             zero)
-            through = through * lanes.exp(-tau)
-            evals[j] = evals[j] + dr.select(crosses, Int32(shadow.steps), Int32(0))
-        if terrain is not None:
-            through = through * visible_lanes(terrain, p, direction, math.inf if distance is None else distance)
-        return through
+        return through * _through_others(solids, occluders, terrain, p, direction, distance, shadow, grids, evals)
 
     def in_scatter(p, sigma_t):
         """Σ over the lights of σs·p(θ)·E·T_light (octaves summed), plus σs·L_amb·V: three lanes
@@ -479,6 +453,91 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
         return out, evals
 
     return SimpleNamespace(density=own.density, in_scatter=in_scatter, octaves=own.octaves)
+
+
+def optical_depth(solid, p, direction, exit_t, sigma_scale, steps, growth=1.0, first_step=None):
+    """∫ σ_t along `direction` from `p` to `exit_t` (lanes) through `solid` (`_solid`), σ_t =
+    `sigma_scale` × its density, over `shadow.shadow_segments`."""
+    import drjit as dr
+    from drjit.llvm import Float
+
+    tau = dr.zeros(Float, dr.width(exit_t))
+    for mid, length in shadow_segments(exit_t, steps=steps, growth=growth, first_step=first_step):
+        tau = tau + sigma_scale * solid.density([p[c] + mid * direction[c] for c in range(3)], None) * length
+    return tau
+
+
+def _through_others(solids: dict, occluders, terrain, p, direction, distance, shadow, grids, evals):
+    """What a shadow or sky ray from lanes `p` along `direction` up to `distance` (a lane; None:
+    a sun, the sky) lets through besides its own volume (`shadow.occluder_transmittance`): each
+    volume of `occluders` it crosses (`solids`, by index), its σ_t over its chord in
+    `shadow.steps` equal segments or its sun grid where the ray enters it (`grids`, by volume),
+    each one's evaluations added to `evals`; 0 where it meets the `terrain` (None: not asked)."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    through = 1.0
+    for j in occluders:
+        other = solids[j]
+        near, far = other.interval(p, direction)
+        t0 = lanes.clamp_min(near, 0.0)
+        t1 = lanes.minimum(far, other.reach if distance is None else lanes.minimum(distance, other.reach))
+        crosses = t1 > t0
+        entry = [p[c] + t0 * direction[c] for c in range(3)]
+        zero = lambda: dr.zeros(Float, dr.width(t0))  # noqa: E731
+        if shadow.method == "grid":
+            sigma = dr.if_stmt((), crosses, lambda: other.sigma_t * other.density(entry, None), zero)
+            through = through * dr.select(crosses, grid_transmittance(grids[j], entry, sigma), 1.0)
+            evals[j] = evals[j] + dr.select(crosses, Int32(1), Int32(0))
+            continue
+        tau = dr.if_stmt((), crosses, lambda: optical_depth(other, entry, direction, t1 - t0, other.sigma_t, shadow.steps),
+                         zero)
+        through = through * lanes.exp(-tau)
+        evals[j] = evals[j] + dr.select(crosses, Int32(shadow.steps), Int32(0))
+    if terrain is not None:
+        through = through * visible_lanes(terrain, p, direction, math.inf if distance is None else distance)
+    return through
+
+
+def occluders_supported(ctx, use) -> bool:
+    """Whether `occluders` renders what LightPass `use` asks of `shadow.occluder_transmittance`
+    besides the voxels: every occluding volume written in lanes, float32 on the CPU (the plan's
+    `kernels`)."""
+    return ctx.plan.kernels and all(_has_lanes(ctx.volumes[j].params) and "lanes" in ctx.volumes[j].bounds.caps
+                                    for j in use.occluders)
+
+
+def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
+    """`shadow.occluder_transmittance`'s volumes and terrain (`use.occluders`, `use.terrain`) as
+    one Dr.Jit kernel (`occluders_supported` said yes): the same `_through_others` a kernel
+    march's shadow rays take, from points `p` [n, 3] of scenes `s` [n] along `direction` [n, 3]
+    up to `distance` [n] (inf: a sun, the sky). -> [n]; each volume's evaluations counted."""
+    import drjit as dr
+    from drjit.llvm import Int32
+
+    if p.shape[0] == 0:
+        return p.new_ones(0)
+    threads = kernel_threads()
+    if dr.thread_count() != threads:
+        dr.set_thread_count(threads)
+    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
+    per_ray = lambda x: lane(take(x, s))  # noqa: E731
+    solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in use.occluders}
+    grids = None if use.shadow.method != "grid" else {
+        j: grids_lanes(sun_grids(ctx, ctx.volumes[j], use.light), s, per_ray, _floats) for j in use.occluders}
+    terrain = terrain_lanes(ctx.terrain.p, _to(s, per_ray), torch.float32) if use.terrain else None
+    evals = {j: dr.zeros(Int32, p.shape[0]) for j in use.occluders}
+    finite = torch.isfinite(distance)
+    far = None if not bool(finite.any()) else lane(torch.where(finite, distance, torch.full_like(distance, 3e38)))
+    through = _through_others(solids, use.occluders, terrain, lane(p), lane(direction), far, use.shadow, grids, evals)
+    through = through if not isinstance(through, float) else dr.full(type(far or lane(p)[0]), through, p.shape[0])
+    dr.eval(through, evals)
+    dr.sync_thread()
+    for j, e in evals.items():
+        count = int(np.array(e).astype(np.int64).sum())
+        ctx.counts.density_evals += count
+        ctx.volumes[j].field.evals += count
+    return torch.from_numpy(np.array(through)).to(p.dtype)
 
 
 def _pick(values: list, q):
