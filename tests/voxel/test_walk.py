@@ -143,16 +143,19 @@ def test_exact_renders_are_eager_renders(name, overrides, monkeypatch):
     """Every walk gives the eager walk's bits: `render(..., compile="exact")` (the fused walk, its
     eager twin here: nothing compiles, for the walks that record their cells; Dr.Jit's for the
     others) and the default (Dr.Jit's walk) render every output bitwise as the eager reference
-    does; with fog or glow a hybrid scene walks plainly on every path."""
+    does (a fog's light excepted, which Dr.Jit's walk sums with its own exp: within float
+    rounding); with fog or glow a hybrid scene walks plainly on every path."""
     monkeypatch.setattr(walk, "compiled_block", lambda: walk.walk_block)
     scene = tv.load_scene(tv.preset(name, width=40, height=30), overrides=overrides)
     slow = tv.render(scene, compile="off")
     assert slow.stats["plan"]["walk"] == "eager"
+    fog = scene.voxels.fog is not None and scene.voxels.glow is None
     for mode in ("exact", "auto"):
         fast = tv.render(scene, compile=mode)
         for key in ("image", "radiance", "depth", "alpha"):
             a, b = getattr(fast, key), getattr(slow, key)
-            assert torch.equal(a, b), f"{name}, {mode}: {key} differs by {float((a - b).abs().max()):.3e}"
+            tol = 1e-6 * float(b.abs().max()) if fog and key in ("image", "radiance") else 0.0
+            assert float((a - b).abs().max()) <= tol, f"{name}, {mode}: {key} differs by {float((a - b).abs().max()):.3e}"
         for key, a in slow.aovs.items():
             assert torch.equal(fast.aovs[key], a), f"{name}, {mode}: AOV {key} differs"
 
@@ -206,14 +209,14 @@ def test_exact_render_compiled_is_eager(one_thread):
 def test_a_walk_that_cannot_compile_walks_eagerly(tmp_path):
     """No C++ compiler (CXX names none, inductor's cache empty): `compile="exact"` warns once and
     renders eagerly, the same bits, instead of failing where eager runs (voxel-fog: its primary
-    walk records the fog's cells, which Dr.Jit's walk does not)."""
+    walk calls the glow's callback at every cell, which Dr.Jit's walk does not)."""
     import os
     import subprocess
     import sys
 
     code = """
 import warnings, torch, torchvol as tv
-scene = tv.preset("voxel-fog", width=12, height=8)
+scene = tv.preset("voxel-glow", width=12, height=8)
 with warnings.catch_warnings(record=True) as seen:
     warnings.simplefilter("always")
     fast = tv.render(scene, compile="exact")

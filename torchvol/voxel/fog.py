@@ -4,6 +4,7 @@ fused walk gathers from (`walk.walk_block`), so the two give the same bits."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -26,9 +27,16 @@ class FogWalk:
     (each ray's b·Y − lo_y): the kernel has no exp of its own, whose last bit inductor's vector
     code may round otherwise than eager's. Filled by the walk: tau [R], each ray's optical depth
     to where it ended; visits, one (ray ids [m], cells [m, 3] long, weights [m]) a block: every
-    empty cell visited, in `dda.traverse`'s order, weighted by τ · e^(−τ so far)."""
+    empty cell visited, in `dda.traverse`'s order, weighted by τ · e^(−τ so far).
+
+    Dr.Jit's walk (`walk.drjit_traverse`) records no visits: it sums the light itself, into
+    `light` [R, 3], from `irradiance(flat cell indices [u]) -> [u, 3]` (the light reaching those
+    cells' centres, asked once for every distinct empty cell the rays visited) times `color` [R, 3]."""
 
     rows: Tensor
     table: Tensor
     tau: Tensor | None = None
     visits: list = field(default_factory=list)
+    irradiance: Callable[[Tensor], Tensor] | None = None
+    color: Tensor | None = None
+    light: Tensor | None = None

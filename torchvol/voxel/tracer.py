@@ -18,8 +18,9 @@ __all__ = ["VoxelTracer"]
 
 class VoxelTracer:
     """Traces rays through `grid` (the batch's `VoxelGrid`) by `traversal` ("dda" or "hybrid",
-    the plan's): walks that record nothing per cell as one Dr.Jit kernel where `drjit`
-    (`walk.drjit_traverse`), the others on the compiled walk where `compiled`, else eagerly;
+    the plan's): every walk but one with a per-cell callback (`visit`: the glow) as one Dr.Jit
+    kernel where `drjit` (`walk.drjit_traverse`), the others on the compiled walk where
+    `compiled`, else eagerly;
     `steps_total` the DDA steps counted so far."""
 
     def __init__(self, grid: VoxelGrid, traversal: str, compiled: bool, drjit: bool = False):
@@ -36,13 +37,13 @@ class VoxelTracer:
         lookup = lambda c, ids: g.lookup(c, take_rows(s, ids))
         lo, hi = take_rows(g.lo, s), take_rows(g.hi, s)
         hybrid = self.traversal == "hybrid" and visit is None and fog is None and not plain
-        if self.drjit and visit is None and fog is None:
+        if self.drjit and visit is None:
             if not self._tables:
                 self._tables = {"table": int_table(g.flat_materials),
                                 "distance": None if g.flat_distance is None else int_table(g.flat_distance)}
             base, strides = g.flat_base(s)
             return drjit_traverse(og, dg, self._tables["table"], base, strides, lo, hi, max_steps=max_steps, t_min=t_min,
-                                  t_max=t_max, distance=self._tables["distance"] if hybrid else None)
+                                  t_max=t_max, distance=self._tables["distance"] if hybrid else None, fog=fog)
         if self.compiled:
             base, strides = g.flat_base(s)
             return fused_traverse(og, dg, g.flat_materials, base, strides, lo, hi, max_steps=max_steps,

@@ -231,11 +231,14 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
 
 def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
                    max_steps: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
-                   distance: Tensor | None = None, switch: int = 2) -> Hits:
-    """`fused_traverse` without `visit` or `fog` (nothing recorded per step) as one Dr.Jit kernel:
-    each slot's whole walk a loop (`drjit.while_loop`) of `walk_step`, the same function the
-    block runs; float32 rays; `table`, `distance` as `fused_traverse`'s, or already `int_table`s.
-    The same `Hits` as `dda.traverse`, bitwise (tests/voxel/test_walk.py)."""
+                   distance: Tensor | None = None, switch: int = 2, fog: FogWalk | None = None) -> Hits:
+    """`fused_traverse` without `visit` as one Dr.Jit kernel: each slot's whole walk a loop
+    (`drjit.while_loop`) of `walk_step`, the same function the block runs; float32 rays; `table`,
+    `distance` as `fused_traverse`'s, or already `int_table`s. The same `Hits` as `dda.traverse`,
+    bitwise (tests/voxel/test_walk.py). With `fog`, its τ and its light (`FogWalk.light`, no
+    visits): the walk runs twice, first marking every empty cell it visits, whose light
+    `fog.irradiance` then gives, then summing τ · e^(−τ so far) · that light · colour per ray, in
+    the eager callback's order (its exp Dr.Jit's: within float rounding of eager's)."""
     import drjit as dr
     from drjit.llvm import Bool, Float, Int32
 
@@ -256,12 +259,59 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     n = idx.shape[0]
     state = (*(ints(c) for c in cell0.unbind(1)), floats(t0), ints(axis0), dr.zeros(Int32, n), dr.full(Bool, True, n),
              dr.zeros(Float, n), dr.zeros(Int32, n))
-    result = dr.while_loop(state, lambda *x: x[6], lambda *x: tuple(walk_step(list(x), r, g)[0]), mode="symbolic")
+    if fog is None:
+        result = dr.while_loop(state, lambda *x: x[6], lambda *x: tuple(walk_step(list(x), r, g)[0]), mode="symbolic")
+    else:
+        result = _fog_walks(fog, state + (dr.zeros(Float, n),), r, g, idx, floats, origins)
     dr.eval(result)
     dr.sync_thread()
     result = [torch.from_numpy(np.array(v)) for v in result]
-    _write_finished(out, None, idx, torch.arange(n, device=idx.device), [v.to(origins.device) for v in result])
+    _write_finished(out, fog, idx, torch.arange(n, device=idx.device), [v.to(origins.device) for v in result])
     return out
+
+
+def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespace, idx: Tensor, floats, like: Tensor):
+    """`drjit_traverse`'s two walks with the fog (`state` with its τ): the first marks the empty
+    cells visited, the second sums their light; fills `fog.light` [R, 3]. -> the walk's final state."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    r.fog_row, g.fog = Int32(take_rows(fog.rows, idx).to(torch.int32).numpy()), Float(fog.table.to(torch.float32).numpy())
+    fog.tau = like.new_zeros(like.shape[0])
+    cells = dr.width(g.table)
+    seen = dr.zeros(Int32, cells)
+
+    def flat(record):
+        _, cx, cy, cz, *_ = record
+        return r.base + (cz * g.y + cy) * g.x + cx
+
+    def marking(*x):
+        new, (_, record) = walk_step(list(x), r, g)
+        dr.scatter(seen, Int32(1), flat(record), active=record[0])
+        return tuple(new)
+
+    dr.eval(dr.while_loop(state, lambda *x: x[6], marking, mode="symbolic"), seen)
+    unique = torch.from_numpy(np.array(seen)).nonzero().squeeze(1)
+    light = torch.zeros(cells, 3, dtype=torch.float32)
+    light[unique] = fog.irradiance(unique.to(like.device)).to(torch.float32).cpu()
+    light = [Float(light[:, c].contiguous().numpy()) for c in range(3)]
+    color = [floats(c) for c in fog.color.unbind(1)]
+
+    def summing(*x):
+        new, (_, record) = walk_step(list(x[:-3]), r, g)
+        empty, tau, so_far = record[0], record[4], record[5]
+        weight = tau * dr.exp(-so_far)
+        at = flat(record)
+        sums = [dr.select(empty, x[-3 + c] + (weight * dr.gather(Float, light[c], at, empty)) * color[c], x[-3 + c])
+                for c in range(3)]
+        return (*new, *sums)
+
+    result = dr.while_loop(state + tuple(dr.zeros(Float, len(idx)) for _ in range(3)), lambda *x: x[6], summing,
+                           mode="symbolic")
+    dr.eval(result)
+    fog.light = like.new_zeros(like.shape[0], 3)
+    fog.light[idx] = torch.stack([torch.from_numpy(np.array(v)) for v in result[-3:]], 1).to(like)
+    return result[:-3]
 
 
 def int_table(table):

@@ -40,7 +40,8 @@ class FogGlow:
         cy = g.lo[:, 1:2] + torch.arange(Y, device=s.device)  # (B, Y)
         y = g.origin[:, 1:2] + (cy.to(g.origin.dtype) + 0.5) * g.voxel_size[:, None]  # `to_world`'s sum
         sigma = extinction(y, *(take(v, scenes)[:, None] for v in (f.density, f.base, f.scale_height)))
-        return FogWalk(rows=s * Y - take_rows(g.lo[:, 1], s), table=sigma.reshape(-1))
+        return FogWalk(rows=s * Y - take_rows(g.lo[:, 1], s), table=sigma.reshape(-1), color=take(f.color, s),
+                       irradiance=lambda flat: self._fog_irradiance(*g.index_cell(flat)))
 
     def _fog_light(self, visits: list) -> list:
         """The light [m, 3] each fog visit (ray ids, scenes, cells, weights as `visit` recorded them)
@@ -93,7 +94,8 @@ class FogGlowRays:
         self.glow, self.fog_tau, self.fog_light = o.new_zeros(n), o.new_zeros(n), o.new_zeros(n, 3)
         self.visits = []  # (ray ids [m], scenes [m], cells [m, 3], weights [m]) of the fog's visited empty cells
         plan = owner.plan
-        self.walked = owner.fog_walk(s) if owner.tracer.compiled and plan.fog and not plan.glow else None
+        fused = owner.tracer.compiled or owner.tracer.drjit
+        self.walked = owner.fog_walk(s) if fused and plan.fog and not plan.glow else None
         self.visit = self._visit if self.walked is None else None
 
     def _visit(self, ids: Tensor, cells: Tensor, t_in: Tensor, t_out: Tensor, hit: Tensor) -> None:
@@ -120,6 +122,9 @@ class FogGlowRays:
         """After the traversal: the compiled walk's fog, and the fog's in-scattered light."""
         if self.walked is not None:
             self.fog_tau = self.walked.tau
+            if self.walked.light is not None:  # Dr.Jit's walk summed the light itself
+                self.fog_light = self.walked.light
+                return
             self.visits.extend((ie, take_rows(self.s, ie), ce, weight) for ie, ce, weight in self.walked.visits)
         for ie, se, light in self.owner._fog_light(self.visits):
             self.fog_light.index_add_(0, ie, light * take(self.owner.p.fog.color, se))
