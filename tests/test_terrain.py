@@ -233,3 +233,25 @@ def test_no_shadow_acne_under_a_high_sun(one_thread):
     hit = lit.depth[0, 0] > 0
     shadowed = (lit.radiance[0, 1] < 0.5 * bare.radiance[0, 1]) & hit
     assert float(shadowed.sum()) / float(hit.sum()) < 0.01, f"{int(shadowed.sum())} of {int(hit.sum())} hits self-shadowed"
+
+
+def test_the_kernel_trace_is_bitwise_the_eager_trace():
+    """`trace_kernel` (Dr.Jit's loop of the same `trace_step` and `onto_surface`): the same hits and
+    distances, bitwise, over rays from above, below and inside the terrain's slab, grazing ones too."""
+    from torchvol.volume import drjit_march
+
+    if not drjit_march.available(torch.zeros(1)):
+        pytest.skip("Dr.Jit's LLVM backend is not available")
+    t = stack([Terrain(seed=3, amplitude=2.0, frequency=0.4), Terrain(seed=5, amplitude=1.0, safety=0.8)], dtype=torch.float32)
+    g = torch.Generator().manual_seed(0)
+    n = 3000
+    o = torch.rand(n, 3, generator=g) * torch.tensor([20.0, 6.0, 20.0]) - torch.tensor([10.0, 2.0, 10.0])
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    d[: n // 10, 1] = 1e-3  # grazing
+    d = torch.nn.functional.normalize(d, dim=1)
+    s = torch.arange(n) % 2
+    hit, dist = T.trace(t, o, d, s, torch.full((n,), math.inf), steps=128, refine=True)
+    k_hit, k_dist = T.trace_kernel(t, o, d, s)
+    assert hit.any() and (~hit).any()
+    assert torch.equal(hit, k_hit), f"{int((hit != k_hit).sum())} hits differ"
+    assert torch.equal(dist, k_dist), f"{int((dist != k_dist).sum())} distances differ, by up to {float((dist - k_dist).abs().max()):.3g}"

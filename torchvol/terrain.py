@@ -21,6 +21,7 @@ zenith, so the terrain itself cannot block that ray. It outputs hit distance, co
 
 from __future__ import annotations
 
+import math
 from contextlib import nullcontext
 from types import SimpleNamespace
 from typing import Annotated, Callable, Literal, Sequence
@@ -100,27 +101,39 @@ def height_lanes(q: SimpleNamespace, x, z):
 
 
 def visible_lanes(q: SimpleNamespace, p, direction, distance):
-    """`visibility` in lanes, for a Dr.Jit kernel (the loop is Dr.Jit's; its rules `trace`'s):
-    1 where the ray from `p` along `direction` (three lanes each) reaches `distance` (a lane; inf:
-    a sun) without meeting the terrain, else 0."""
+    """`visibility` in lanes, for a Dr.Jit kernel: 1 where the ray from `p` along `direction`
+    (three lanes each) reaches `distance` (a lane; inf: a sun) without meeting the terrain, else 0."""
+    import drjit as dr
+
+    hit, _ = trace_lanes(q, p, direction, distance, refine=False)
+    return dr.select(hit, dr.zeros(type(p[0]), dr.width(hit)), dr.full(type(p[0]), 1.0, dr.width(hit)))
+
+
+def trace_lanes(q: SimpleNamespace, o, d, t_max, *, refine: bool):
+    """`trace` as a Dr.Jit loop per ray (its step `trace_step`, its refinement `onto_surface`):
+    rays `o`, `d` (three lanes each) up to `t_max` (a lane or a number); `q` from
+    `terrain_lanes`. -> (hit, t) lanes."""
     import drjit as dr
     from drjit.llvm import Int32
 
     pad = 1e-3 * (1.0 + q.amplitude)
-    near, far = slab_interval(p, direction, q.base - q.amplitude - pad, q.base + q.amplitude + pad)
-    t0, t1 = lanes.clamp_min(near, 0.0), lanes.minimum(far, lanes.minimum(distance, q.max_distance))
-    gap_at = lambda t: p[1] + t * direction[1] - height_lanes(q, p[0] + t * direction[0], p[2] + t * direction[2])  # noqa: E731
-    under = (p[1] < q.base + q.amplitude) & (gap_at(0.0) < 0.0)  # the ground is solid
+    near, far = slab_interval(o, d, q.base - q.amplitude - pad, q.base + q.amplitude + pad)
+    t0, t1 = lanes.clamp_min(near, 0.0), lanes.minimum(far, lanes.minimum(t_max, q.max_distance))
+    live = t1 > t0
+    rule = SimpleNamespace(safety=q.safety, epsilon=q.epsilon, height=lambda x, z: height_lanes(q, x, z))
+    under = (o[1] < q.base + q.amplitude) & ((o[1] - rule.height(o[0], o[2])) < 0.0)  # the ground is solid
+    dist = dr.select(under | ~live, 0.0, t0)
 
-    def step(t, going, hit, i):
-        g = gap_at(t)
-        done = g < q.epsilon * (1.0 + t)
-        nxt = t + q.safety * g
-        return nxt, going & ~done & (nxt <= t1), hit | done, i + 1
+    def step(t, going, hit, i, last_t, last_g):
+        done, ti, nxt, g = trace_step(rule, o, d, t, last_t, last_g, i == 0)
+        keep = ~done & (nxt <= t1)
+        return dr.select(keep, nxt, ti), keep, hit | done, i + 1, ti, g
 
-    start = (t0, (t1 > t0) & ~under, under, dr.zeros(Int32, dr.width(t0)))
-    _, _, hit, _ = dr.while_loop(start, lambda t, going, hit, i: going & (i < q.steps), step, mode="symbolic")
-    return dr.select(hit, dr.zeros(type(t0), dr.width(t0)), dr.full(type(t0), 1.0, dr.width(t0)))
+    start = (dist, live & ~under, under, dr.zeros(Int32, dr.width(t0)), dist, dist)
+    dist, _, hit, *_ = dr.while_loop(start, lambda t, going, hit, i, *_: going & (i < q.steps), step, mode="symbolic")
+    if refine:
+        dist = dr.select(hit, onto_surface(rule, o, d, dist), dist)
+    return hit, dist
 
 
 def gap(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
@@ -158,21 +171,15 @@ def trace(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, *, steps: 
     hit = underground(t, o, s)  # the ground is solid: a ray that starts in it meets it at 0
     dist = torch.where(hit, torch.zeros_like(dist), dist)
     ids = (live & ~hit).nonzero().squeeze(1)
-    last_t, last_g = dist[ids], None  # the previous point of each live ray (for the overshoot secant)
+    last_t = last_g = dist[ids]  # the previous point of each live ray (for the overshoot secant)
     safety, eps = take(t.safety, s), take(t.epsilon, s)
-    for _ in range(steps):
+    for step in range(steps):
         if ids.numel() == 0:
             break
-        ti = dist[ids]
-        g = gap(t, o[ids] + ti[:, None] * d[ids], s[ids])
-        done = g < eps[ids] * (1.0 + ti)
-        if last_g is not None:  # a step that crossed the surface: the secant root between the two points
-            over = done & (g < 0)
-            frac = last_g / (last_g - g).clamp_min(torch.finfo(g.dtype).tiny)
-            ti = torch.where(over, last_t + frac * (ti - last_t), ti)
-            dist[ids] = ti
+        q = SimpleNamespace(safety=safety[ids], epsilon=eps[ids], height=lambda x, z, i=ids: height(t, torch.stack([x, z], 1), s[i]))
+        done, ti, nxt, g = trace_step(q, o[ids].unbind(1), d[ids].unbind(1), dist[ids], last_t, last_g, step == 0)
+        dist[ids] = ti
         hit[ids[done]] = True
-        nxt = ti + safety[ids] * g
         keep = ~done & (nxt <= t1[ids])
         dist[ids[keep]] = nxt[keep]
         ids, last_t, last_g = ids[keep], ti[keep], g[keep]
@@ -181,21 +188,43 @@ def trace(t: Stacked, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, *, steps: 
     return hit, dist
 
 
+def trace_step(q: SimpleNamespace, o, d, t, last_t, last_g, first):
+    """One sphere-tracing step of `trace` at distance `t` along rays `o`, `d` (three lanes each),
+    lanes (`ops.lanes`): the gap there; the hit rule (under ε·(1 + t)); where a step crossed the
+    surface, the secant root between the last point (`last_t`, its gap `last_g`; unread on the
+    `first` step: True, False, or a lane) and this one; the next point, `safety` · gap on. `q`: safety, epsilon and
+    height(x, z). -> (done, t (on the secant where it overshot), the next t, the gap)."""
+    g = (o[1] + t * d[1]) - q.height(o[0] + t * d[0], o[2] + t * d[2])
+    done = g < q.epsilon * (1.0 + t)
+    if first is not True:  # a step that crossed the surface: the secant root between the two points
+        over = done & (g < 0.0) if first is False else done & (g < 0.0) & ~first
+        frac = last_g / lanes.clamp_min(last_g - g, lanes.tiny(g))
+        t = lanes.where(over, last_t + frac * (t - last_t), t)
+    return done, t, t + q.safety * g, g
+
+
 def _onto_surface(t: Stacked, o: Tensor, d: Tensor, s: Tensor, hit: Tensor, dist: Tensor) -> Tensor:
-    """One secant step of each hit [n] from dist [n] onto the surface, through the gap there and a
-    hit-rule width back along the ray; a ray along which the gap does not fall stays."""
+    """`onto_surface` of each hit [n] from dist [n]; the others stay."""
     ids = hit.nonzero().squeeze(1)
     if ids.numel() == 0:
         return dist
-    ti, si, oi, di = dist[ids], s[ids], o[ids], d[ids]
-    back = 2.0 * take(t.epsilon, si) * (1.0 + ti)
-    g = gap(t, torch.cat([oi + ti[:, None] * di, oi + (ti - back)[:, None] * di]), si.repeat(2)).view(2, -1)
-    fall = g[1] - g[0]  # > 0 where the gap shrinks along the ray
-    step = torch.where(fall > 0, back * g[0] / fall.clamp_min(torch.finfo(ti.dtype).tiny), torch.zeros_like(ti))
+    rule = SimpleNamespace(epsilon=take(t.epsilon, s[ids]), height=lambda x, z: height(t, torch.stack([x, z], 1), s[ids]))
     out = dist.clone()
-    # never behind the ray's origin: a camera under the surface is in the ground, which it meets at 0
-    out[ids] = (ti + step.clamp(-back, 2.0 * back)).clamp_min(0.0)
+    out[ids] = onto_surface(rule, o[ids].unbind(1), d[ids].unbind(1), dist[ids])
     return out
+
+
+def onto_surface(q: SimpleNamespace, o, d, t):
+    """One secant step from `t` onto the surface, through the gap there and a hit-rule width back
+    along the ray (lanes; `q`: epsilon and height(x, z)); a ray along which the gap does not fall
+    stays. Never behind the ray's origin: a camera under the surface meets the ground at 0."""
+    back = 2.0 * q.epsilon * (1.0 + t)
+    gaps = []
+    for at in (t, t - back):
+        gaps.append((o[1] + at * d[1]) - q.height(o[0] + at * d[0], o[2] + at * d[2]))
+    fall = gaps[1] - gaps[0]  # > 0 where the gap shrinks along the ray
+    step = lanes.where(fall > 0, back * gaps[0] / lanes.clamp_min(fall, lanes.tiny(t)), lanes.full_like(t, 0.0))
+    return lanes.clamp_min(t + lanes.minimum(lanes.maximum(step, -back), 2.0 * back), 0.0)
 
 
 def normal(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
@@ -216,14 +245,37 @@ def visibility(t: Stacked, p: Tensor, direction: Tensor, s: Tensor, distance: Te
     return (~hit).to(p.dtype)
 
 
+def trace_kernel(t: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    """`trace` of primary rays `o`, `d` [n, 3] of scenes `s` [n] (no farther than the terrain's
+    reach, the hit refined onto the surface) as one Dr.Jit kernel (`trace_lanes`): float32 on the
+    CPU. -> (hit [n] bool, t [n])."""
+    import drjit as dr
+    import numpy as np
+    from drjit.llvm import Float, Int32
+
+    from .runtime.threads import kernel_threads
+
+    threads = kernel_threads()
+    if dr.thread_count() != threads:
+        dr.set_thread_count(threads)
+    floats = lambda x: Float(x.to(torch.float32).contiguous().cpu().numpy())  # noqa: E731
+    columns = lambda x: floats(x) if x.ndim == 1 else [floats(c) for c in x.unbind(1)]  # noqa: E731
+    to = SimpleNamespace(per_lane=lambda v: columns(take(v, s)), scene=s.cpu(), floats=floats,
+                         ints=lambda v: Int32(v.to(torch.int32).cpu().numpy()), number=lambda c: dr.opaque(Float, float(c)))
+    hit, dist = trace_lanes(terrain_lanes(t, to, torch.float32), columns(o), columns(d), math.inf, refine=True)
+    dr.eval(hit, dist)
+    dr.sync_thread()
+    return torch.from_numpy(np.array(hit)).to(o.device), torch.from_numpy(np.array(dist)).to(o)
+
+
 class TerrainSurface:
     """One batch's terrain (`params`: the batch's `Stacked` terrain) lit by `lights`; `plan` the
     batch's `TerrainPass`; `aovs` the AOV names to output; `transmittance(use, p, s, direction,
     distance) -> [n]` what a shadow ray of LightPass `use` sees (volumes and terrain)."""
 
     def __init__(self, params: Stacked, lights: Sequence, plan, aovs: Sequence[str],
-                 transmittance: Callable[..., Tensor]):
-        self.p, self.lights, self.plan, self.transmittance = params, list(lights), plan, transmittance
+                 transmittance: Callable[..., Tensor], kernels: bool = False):
+        self.p, self.lights, self.plan, self.transmittance, self.kernels = params, list(lights), plan, transmittance, kernels
         self.aov_names = [a for a in aovs if a in TERRAIN_AOVS]
 
     def visibility(self, p: Tensor, direction: Tensor, s: Tensor, distance: Tensor) -> Tensor:
@@ -237,7 +289,10 @@ class TerrainSurface:
         [n], color [n, 3] (the background where missed) and the AOVs."""
         p, n = self.p, o.shape[0]
         with section("terrain.trace"):
-            hit, t = trace(p, o, d, s, torch.full_like(o[:, 0], torch.inf), steps=p.steps, refine=True)
+            if self.kernels:  # one Dr.Jit kernel, the same rules
+                hit, t = trace_kernel(p, o, d, s)
+            else:
+                hit, t = trace(p, o, d, s, torch.full_like(o[:, 0], torch.inf), steps=p.steps, refine=True)
         color = background.clone()
         aovs = {k: o.new_zeros(n, 3) for k in self.aov_names}
         ids = hit.nonzero().squeeze(1)
