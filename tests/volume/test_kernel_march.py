@@ -109,14 +109,14 @@ def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count(hash_
 
 
 @pytest.mark.parametrize("name", ["cloud-puff", "explosion", "fire", "god-rays", "multi-layer", "terrain-clouds",
-                                  "particles"])
+                                  "particles", "fur-ball"])
 def test_the_presets_match_the_eager_march(name):
     """cloud-puff (table-hash fbm), explosion (its density, colour map and the point light's
     bloom), and the joint march: fire (two explosions sharing space), god-rays (the haze's shadow
     rays marched through the canopy), multi-layer (octaves, sky light through the other volume,
     shadows looked up in the sun's grids), terrain-clouds (shadow and sky rays sphere-traced
     against the terrain), particles (a loop over the particles, each one's fbm where a sample is
-    inside it)."""
+    inside it), fur-ball (Worley strands lit as a surface: the normal's six density samples)."""
     kernel, eager = _both(tv.preset(name, width=32, height=24))
     _close(kernel, eager, name)
     assert kernel.stats["density_evals_by_volume"] == eager.stats["density_evals_by_volume"]
@@ -199,6 +199,10 @@ LOOKS = {
     "no light, the sin dither, size placement, LOD": _media([{**LOOK, "shader": {"light": "none"}}],
                                                          march={"step_size": 0.07, "dither": "sin", "lod": {"scale": 0.5}}),
     "no sky, early stop": {**_media([LOOK], march={"steps": 24, "min_transmittance": 0.1}), "sky": None},
+    "lit as a surface, forward differences, a point light": _media(
+        [{**PUFF, "shading": "surface", "surface": {"gradient": "forward", "shininess": 20.0, "ambient": [0.1, 0.1, 0.2]}}],
+        lights=[SUN, {"kind": "point", "position": [0.5, 1.5, -1.0], "intensity": 4.0}]),
+    "lit as a surface, central differences": _media([{**PUFF, "shading": "surface", "surface": {"epsilon": 0.02}}]),
 }
 
 

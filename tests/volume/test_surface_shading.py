@@ -25,6 +25,11 @@ LIGHT = (0.2, 0.3, -1.0)
 GLSL_DENSITY = "float sampleDensity(vec3 p) { return 1.0 - dot(p, p) + 0.5 * p.x * p.y * p.z + 0.3 * p.x * p.x * p.y; }"
 
 
+def _surface_light(normal, to_light, to_eye, shininess):
+    """`surface_light` (lanes) of rows [n, 3] -> (diffuse [n], specular [n])."""
+    return surface_light(normal.unbind(1), to_light.unbind(1), to_eye.unbind(1), shininess)
+
+
 def density(p, s=None, lod=None):
     x, y, z = p.unbind(1)
     return 1.0 - (p * p).sum(1) + 0.5 * x * y * z + 0.3 * x * x * y
@@ -86,7 +91,7 @@ def test_fur_normal_and_lighting_match_the_seed_glsl(mode, gradient):
     assert_close(normal, gl[:, :3], atol=2e-4, what=f"{gradient} normal")
     print(f"{gradient}: max |normal| {float((normal - gl[:, :3]).abs().max()):.2e}")
     light = torch.nn.functional.normalize(torch.tensor([LIGHT]), dim=1).expand(n, 3)
-    diff, spec = surface_light(normal if mode == 0 else gl[:, :3], light, -rd, torch.full((n,), SHININESS))
+    diff, spec = _surface_light(normal if mode == 0 else gl[:, :3], light, -rd, torch.full((n,), SHININESS))
     if mode == 0:  # the lighting on the seed's own normal
         lit = torch.from_numpy(run_fragment(shadertoy_source(BODY), W, H, uniforms={"uMode": 2, "uLight": LIGHT})).reshape(-1, 4)
         assert_close(density(pos), lit[:, 2], what="density")
@@ -109,7 +114,7 @@ def test_lighting_closed_forms():
     n = torch.tensor([[0.0, 1.0, 0.0]] * 4, dtype=torch.float64)
     to_light = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
     to_eye = torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
-    diff, spec = surface_light(n, to_light, to_eye, torch.full((4,), 8.0, dtype=torch.float64))
+    diff, spec = _surface_light(n, to_light, to_eye, torch.full((4,), 8.0, dtype=torch.float64))
     assert_close(diff, torch.tensor([1.0, 0.5, 0.0, 0.5], dtype=torch.float64))  # half-Lambert: the terminator at 0.5
     # H = N: 1; light and eye opposite (H the zero vector normalised): 0; H at 45°: cos⁸ 45° = 1/16
     assert_close(spec, torch.tensor([1.0, 0.0, 0.0, 1.0 / 16.0], dtype=torch.float64))
@@ -125,7 +130,7 @@ def test_flat_or_extreme_inputs_stay_finite(point, eps, shininess):
         normal = density_normal(field, p, s, field(p), torch.full((2,), eps), gradient="central")
         assert normal.isfinite().all()
         light = torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])
-        diff, spec = surface_light(normal, light, -light, torch.full((2,), shininess))
+        diff, spec = _surface_light(normal, light, -light, torch.full((2,), shininess))
         assert diff.isfinite().all() and spec.isfinite().all() and (diff >= 0).all() and (spec >= 0).all()
 
 
@@ -195,7 +200,7 @@ def test_rows_shade_alike_in_any_batch():
 
     def shade(i):
         n = density_normal(density, p[i], s[i], density(p[i]), eps[i], gradient="central")
-        return torch.cat([n, torch.stack(surface_light(n, light[i] / 0.6, eye[i] / 0.6, shine[i]), dim=1)], dim=1)
+        return torch.cat([n, torch.stack(_surface_light(n, light[i] / 0.6, eye[i] / 0.6, shine[i]), dim=1)], dim=1)
 
     whole = shade(slice(None))
     assert torch.equal(whole, torch.cat([shade(slice(i, i + 1)) for i in range(200)]))

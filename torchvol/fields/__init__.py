@@ -43,7 +43,7 @@ from .exponential import (
                    exponential_lanes,
 )
 from .fbm import FbmDensity, FbmField, fbm_density, fbm_lanes
-from .fur import FurDensity, FurField
+from .fur import FurDensity, FurField, fur_density, fur_lanes
 from .grid import Grid, GridDensity
 from .particles import (
                    ParticleField,
@@ -65,6 +65,6 @@ DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, 
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
 DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True,
                    lanes=(particles_lanes, particles_density, lambda volume: volume.density.value.noise == "value"))
-DENSITIES.register("fur", FurDensity, FurField, compiles_fast=lambda volume: True)
+DENSITIES.register("fur", FurDensity, FurField, compiles_fast=lambda volume: True, lanes=(fur_lanes, fur_density))
 
 __all__ = ["DENSITIES", "Field"]

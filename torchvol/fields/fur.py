@@ -9,6 +9,7 @@ with r = |p − center| and u = (p − center) / r."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Annotated
 
 import torch
@@ -16,6 +17,7 @@ from pydantic import Field
 from torch import Tensor
 
 from ..noise import lattice as noise
+from ..ops import lanes
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
 
@@ -48,14 +50,44 @@ class FurField:
         return take(self.p.scale, scene_index) * self.unscaled(points, scene_index)
 
     def unscaled(self, points: Tensor, scene_index: Tensor) -> Tensor:
-        """max(core, strand), `points` [N, 3] -> [N]."""
+        """max(core, strand), `points` [N, 3] -> [N] (`fur_unscaled` on torch columns; compiled:
+        its Worley noise under torch.compile, scene by scene)."""
         p, s = self.p, scene_index
-        rel = points - take(p.center, s)
-        r = rel.norm(dim=1)
-        u = rel / r.clamp_min(1e-12)[:, None]  # the centre itself: u = 0, inside the core anyway
-        q = take(p.frequency, s)[:, None] * u
-        f1 = per_scene(q, s, len(p), lambda b, idx, q_b: self.worley(q_b, seed=p.seed[b]))
-        radius, length = take(p.radius, s), take(p.length, s)
-        core = (radius - r) / length
-        strand = ((radius + length - r) / length).clamp_max(1.0) - f1 / take(p.thickness, s)
-        return torch.maximum(core, strand)
+        if self.worley is not noise.worley_noise:
+            worley = lambda q: per_scene(torch.stack(q, 1), s, len(p), lambda b, idx, q_b: self.worley(q_b, seed=p.seed[b]))  # noqa: E731
+        else:
+            perm, values = noise.scene_worley_tables(tuple(int(x) for x in p.seed), str(points.device))
+            rows = noise.scene_rows(s)
+            worley = lambda q: noise.worley_lanes(*q, perm, [v.to(points.dtype) for v in values], rows)  # noqa: E731
+        q = SimpleNamespace(**{k: lanes.columns(take(getattr(p, k), s)) for k in ("center", "radius", "length", "frequency",
+                                                                                  "thickness")})
+        return fur_unscaled(q, points.unbind(1), worley)
+
+
+def fur_unscaled(q: SimpleNamespace, p, worley):
+    """max(core, strand) at p (three lanes), `ops.lanes`: `q` the ball's parameters per lane
+    (center: three lanes; radius, length, frequency, thickness), `worley(three lanes)` its F1."""
+    rel = [p[c] - q.center[c] for c in range(3)]
+    r = lanes.length3(*rel)
+    inv = lanes.clamp_min(r, 1e-12)  # the centre itself: u = 0, inside the core anyway
+    f1 = worley([q.frequency * (rel[c] / inv) for c in range(3)])
+    core = (q.radius - r) / q.length
+    strand = lanes.clamp_max((q.radius + q.length - r) / q.length, 1.0) - f1 / q.thickness
+    return lanes.maximum(core, strand)
+
+
+def fur_lanes(field: FurField, to) -> SimpleNamespace:
+    """What the fur takes per lane (`to`: `fields.DENSITIES`' ``lanes`` inputs)."""
+    p = field.p
+    q = SimpleNamespace(**{k: to.per_lane(getattr(p, k)) for k in ("center", "radius", "length", "frequency", "thickness",
+                                                                    "scale")})
+    perm, values = noise.scene_worley_tables(tuple(int(x) for x in p.seed), "cpu")
+    q.perm, q.values, q.rows = to.ints(perm), [to.floats(v) for v in values], to.ints(noise.scene_rows(to.scene))
+    return q
+
+
+def fur_density(q, p, count):
+    """The fur's density at p (three lanes): scale · clamp(max(core, strand), 0, 1), as the field
+    reads it (`count` does not apply)."""
+    worley = lambda u: noise.worley_lanes(*u, q.perm, q.values, q.rows)  # noqa: E731
+    return q.scale * lanes.clamp(fur_unscaled(q, p, worley), 0.0, 1.0)

@@ -12,6 +12,7 @@ bilinear filter bit for bit (see its docstring), so float32 results equal the GL
 from __future__ import annotations
 
 import functools
+import math
 import weakref
 from collections.abc import Callable, Sequence
 
@@ -281,7 +282,10 @@ def worley_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
 
 
 def _worley(p: Tensor, perm: Tensor, values: Tensor, *, period: int | None = None) -> Tensor:
-    """`worley_noise` at p [N, 3] from `_lattice_tables`' `perm` [512] and `values` [256, 3]."""
+    """`worley_noise` at p [N, 3] from `_lattice_tables`' `perm` [512] and `values` [256, 3]
+    (`worley_lanes` where the noise does not tile)."""
+    if period is None:
+        return worley_lanes(*p.unbind(-1), perm.to(torch.int32), [v.to(p.dtype) for v in values.unbind(1)])
     cell, f = _cell_frac(p)
     best = torch.full(p.shape[:1], float("inf"), dtype=p.dtype, device=p.device)
     for dz in (-1, 0, 1):  # loop over the 27 neighbour offsets, vectorised over points
@@ -293,6 +297,41 @@ def _worley(p: Tensor, perm: Tensor, values: Tensor, *, period: int | None = Non
                 d = off.to(p.dtype) + feat - f  # [N, 3]
                 best = torch.minimum(best, (d * d).sum(-1))
     return best.sqrt().clamp(0.0, 1.0)
+
+
+def worley_lanes(x, y, z, perm, values, rows=None):
+    """`worley_noise` in lanes (`ops.lanes`) at points x, y, z: the distance to the nearest of the
+    feature points of the 27 cells around, clamped to [0, 1]. `perm`: doubled permutations (int32;
+    several scenes' stacked as `scene_worley_tables` stacks them), `values`: the feature points'
+    three offset tables in the same rows, `rows`: each lane's block (None: 0)."""
+    fl = [lanes.floor(c) for c in (x, y, z)]
+    f = [c - lo for c, lo in zip((x, y, z), fl)]
+    cell = [lanes.to_int32(lo) for lo in fl]
+    best = math.inf
+    for dz in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                off = (dx, dy, dz)
+                c = [(cell[a] + off[a]) & 255 for a in range(3)]
+                x0 = c[0] if rows is None else c[0] + rows
+                h = lanes.gather(perm, lanes.gather(perm, lanes.gather(perm, x0) + c[1]) + c[2])
+                d = [(off[a] + lanes.gather(values[a], h)) - f[a] for a in range(3)]
+                best = lanes.minimum(best, d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    return lanes.clamp(lanes.sqrt(best), 0.0, 1.0)
+
+
+@functools.lru_cache(maxsize=16)
+def scene_worley_tables(seeds: tuple[int, ...], device: str) -> tuple[Tensor, list[Tensor]]:
+    """`_lattice_tables` of several seeds stacked in blocks of 512 rows (as `_scene_lattice_tables`:
+    block b's permutation plus 512·b), with the three feature-offset columns in the blocks' first
+    256 rows: `worley_lanes`' tables (rows from `scene_rows`)."""
+    perms, columns = [], [[], [], []]
+    for b, seed in enumerate(seeds):
+        perm, values = _lattice_tables(int(seed), device)
+        perms.append(perm + 512 * b)
+        for c in range(3):
+            columns[c].append(torch.cat([values[:, c], values.new_zeros(256)]))
+    return torch.cat(perms).to(torch.int32), [torch.cat(col) for col in columns]
 
 
 def _perm_table(seed: int, device: str) -> tuple[Tensor]:

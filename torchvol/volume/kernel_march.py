@@ -52,6 +52,7 @@ from .physical import light_responses
 from .shader_look import ambient_light, derivative_light, look_lanes, shaded
 from .shadow import shadow_segments, sun_grids
 from .sun_volume import grid_transmittance, grids_lanes
+from .surface_look import look_normal, surface_colour, surface_lanes
 
 
 def supports(batch, vol, uses, settings, ambient=None) -> str | None:
@@ -66,7 +67,7 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     checks = [
         (_has_lanes(vol), f"the {vol.density.kind} density"),
         ("lanes" in BOUNDS[vol.bounds.kind].caps, f"{vol.bounds.kind} bounds"),
-        (vol.shading in ("physical", "shader"), f"the {vol.shading} shading"),
+        (vol.shading in ("physical", "shader", "surface"), f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
         (settings.tolerance is None, "the error-controlled march"),
         (vol.sky_blend is None, "a sky blend"),
@@ -282,8 +283,9 @@ def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: T
 
 def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit: Tensor,
                dither: Tensor | None) -> MarchResult:
-    """The seeds' loop through volume `vol` in the shader look (`shader_look`: its alpha
-    compositing, samples at t from a dithered start) along a chunk's `rays` [R] through [t0, t1]
+    """The seeds' loop through volume `vol` in the shader look (`shader_look`) or lit as a surface
+    (`surface_look`): alpha compositing, samples at t from a dithered start, along a chunk's
+    `rays` [R] through [t0, t1]
     [R] where `hit` [R], the sky behind them `background` [R, 3] (None: black), `dither` [R] the
     start offsets in steps or None, as one Dr.Jit kernel. -> `march.march`'s result; its steps,
     truncations and density evaluations counted in the render's stats."""
@@ -305,10 +307,12 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
     if dither is not None:  # `march.march`'s shader start: dithered by a fraction of a step, or in world units
         start = start + dither.index_select(0, idx) * (st.rule.length(start, span) if st.dither != "sin" else 1.0)
     behind = torch.zeros_like(d) if background is None else background.index_select(0, idx)
+    to = SimpleNamespace(per_lane=per_ray)
     k = SimpleNamespace(origin=lane(rays.origins.index_select(0, idx)), direction=lane(d), t_end=lane(end),
-                        span=lane(span), behind=lane(behind), look=look_lanes(vol, SimpleNamespace(per_lane=per_ray)))
+                        span=lane(span), behind=lane(behind), surface=vol.params.shading == "surface")
+    k.look = surface_lanes(vol, to) if k.surface else look_lanes(vol, to)
     k.lights = []
-    for use in vol.plan.lights:  # the derivative light: the first light only
+    for use in vol.plan.lights:  # the shader look's derivative light: the first light only; the surface look's: every one
         light = ctx.lights[use.light]
         k.lights.append(SimpleNamespace(direction=per_ray(light.direction), irradiance=per_ray(light.radiant))
                         if light.directional else
@@ -335,11 +339,14 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
 
 def _look_body(k: SimpleNamespace, solid: SimpleNamespace, par: SimpleNamespace, st):
     """The loop body of `march_look`: one sample of `march.march`'s shader loop, its shading
-    (`shader_look`'s lanes functions) under a branch where the density passes the threshold."""
+    (`shader_look`'s or `surface_look`'s lanes functions) under a branch where the density passes
+    the threshold."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
     q = k.look
+    # density evaluations a lit sample adds: the derivative light's one a light, or the normal's
+    lit_evals = (6 if q.gradient == "central" else 3) if k.surface else len(k.lights)
 
     def body(t, trans, wsum, wt, median, steps, alive, truncated, evals, red, green, blue):
         dt = st.rule.length(t, k.span)
@@ -349,13 +356,20 @@ def _look_body(k: SimpleNamespace, solid: SimpleNamespace, par: SimpleNamespace,
             count = solid.octaves - Int32(dr.floor(dr.log2(1.0 + t * par.lod)))
         density = solid.density(p, count)
 
+        def toward(source):
+            if hasattr(source, "position"):
+                return point_lanes(source.position, source.radiant, p)[:2]
+            return source.direction, source.irradiance
+
+        def shade_surface():
+            normal = look_normal(lambda x: solid.density(x, count), p, density, q.epsilon, gradient=q.gradient)
+            colour = surface_colour(q, normal, [-c for c in k.direction], [toward(source) for source in k.lights])
+            return lanes.clamp_max(density * q.alpha_scale, 1.0), colour
+
         def shade():
             light = ambient_light(q, p[1])
             for source in k.lights:
-                if hasattr(source, "position"):
-                    direction, irradiance, _ = point_lanes(source.position, source.radiant, p)
-                else:
-                    direction, irradiance = source.direction, source.irradiance
+                direction, irradiance = toward(source)
                 ahead = solid.density([p[c] + q.light_offset * direction[c] for c in range(3)], count)
                 dif = derivative_light(density, ahead, scale=q.light_scale)
                 light = [irradiance[c] * dif + light[c] for c in range(3)]
@@ -363,13 +377,13 @@ def _look_body(k: SimpleNamespace, solid: SimpleNamespace, par: SimpleNamespace,
             return alpha, colour
 
         width = dr.width(t)
-        alpha, colour = dr.if_stmt((), density > par.threshold, shade,
+        alpha, colour = dr.if_stmt((), density > par.threshold, shade_surface if k.surface else shade,
                                    lambda: (dr.zeros(Float, width), [dr.zeros(Float, width) for _ in range(3)]))
         seg_trans = 1.0 - alpha
         radiance = [r + trans * (colour[c] * alpha) for c, r in enumerate((red, green, blue))]
         w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
         median = dr.select((trans > 0.5) & (new_trans <= 0.5), t, median)
-        evals = evals + 1 + dr.select(density > par.threshold, Int32(len(k.lights)), Int32(0))
+        evals = evals + 1 + dr.select(density > par.threshold, Int32(lit_evals), Int32(0))
         steps, t_next = steps + 1, t + dt
         keep = t_next <= k.t_end
         if st.min_transmittance > 0:

@@ -5,6 +5,7 @@ max(0, N·L·0.5 + 0.5) plus Blinn-Phong specular max(0, N·H)^shininess from ev
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Literal
 
 import torch
@@ -12,6 +13,7 @@ from pydantic import Field
 from torch import Tensor
 
 from ..geometry.camera import Rays
+from ..ops import lanes
 from ..ops.mathops import pow_
 from ..schema.batch import take
 from ..schema.models import Strict, Vec3
@@ -34,55 +36,71 @@ class SurfaceLook(Strict):
     alpha_scale: float = Field(0.4, ge=0.0)
 
 
-_AXES = torch.eye(3, dtype=torch.float64)
-
-
 def density_normal(field, p: Tensor, s: Tensor, density: Tensor, epsilon: Tensor, *,
                    gradient: Literal["central", "forward"], lod: Tensor | None = None) -> Tensor:
     """N = −normalize(finite-difference gradient of `field`) at points `p` [n, 3] of scenes `s` [n]
     with their densities `density` [n], step `epsilon` [n] -> [n, 3] (the zero vector where the
-    density is flat, where GLSL's normalize is undefined)."""
-    n = p.shape[0]
-    steps = epsilon[None, :, None] * _AXES.to(p)[:, None, :]  # [3, n, 3]
-    signs = (1.0, -1.0) if gradient == "central" else (1.0,)
-    points = torch.cat([(p + sign * steps).reshape(3 * n, 3) for sign in signs])
-    reps = 3 * len(signs)
-    values = field(points, s.repeat(reps), None if lod is None else lod.repeat(reps)).view(len(signs), 3, n)
-    grad = (values[0] - values[1] if gradient == "central" else values[0] - density).T
-    return -grad / torch.sqrt(_dot(grad, grad)).clamp_min(1e-30)[:, None]
+    density is flat, where GLSL's normalize is undefined): `look_normal` on torch columns."""
+    density_at = lambda q: field(torch.stack(q, 1), s, lod)  # noqa: E731
+    return torch.stack(look_normal(density_at, p.unbind(1), density, epsilon, gradient=gradient), 1)
 
 
-def surface_light(normal: Tensor, to_light: Tensor, to_eye: Tensor, shininess: Tensor) -> tuple[Tensor, Tensor]:
+def look_normal(density_at, p, density, epsilon, *, gradient: Literal["central", "forward"]) -> list:
+    """−normalize(finite-difference gradient) at p (three lanes) of density `density`, step
+    `epsilon`, `density_at(three lanes)` the field: three lanes (`ops.lanes`)."""
+    grad = []
+    for a in range(3):
+        ahead = density_at([p[c] + epsilon if c == a else p[c] for c in range(3)])
+        grad.append(ahead - (density_at([p[c] - epsilon if c == a else p[c] for c in range(3)])
+                             if gradient == "central" else density))
+    norm = lanes.clamp_min(lanes.sqrt(_dot(grad, grad)), 1e-30)
+    return [-g / norm for g in grad]
+
+
+def surface_light(normal, to_light, to_eye, shininess) -> tuple:
     """Half-Lambert diffuse max(0, N·L·0.5 + 0.5) and Blinn-Phong specular max(0, N·H)^shininess,
-    H = normalize(L + V). `normal`, `to_light`, `to_eye`: [n, 3] (unit); `shininess`: [n] (> 0).
-    -> (diffuse [n], specular [n])."""
-    half = to_light + to_eye
-    n_dot_h = _dot(normal, half) / torch.sqrt(_dot(half, half)).clamp_min(1e-30)
-    diffuse = (_dot(normal, to_light) * 0.5 + 0.5).clamp_min(0.0)
-    specular = pow_(n_dot_h.clamp_min(0.0), shininess)
+    H = normalize(L + V), lanes: `normal`, `to_light`, `to_eye` three lanes each (unit),
+    `shininess` (> 0). -> (diffuse, specular)."""
+    half = [to_light[c] + to_eye[c] for c in range(3)]
+    n_dot_h = _dot(normal, half) / lanes.clamp_min(lanes.sqrt(_dot(half, half)), 1e-30)
+    diffuse = lanes.clamp_min(_dot(normal, to_light) * 0.5 + 0.5, 0.0)
+    specular = pow_(lanes.clamp_min(n_dot_h, 0.0), shininess)
     return diffuse, specular
 
 
-def _dot(a: Tensor, b: Tensor) -> Tensor:
-    """Row dot products of `a`, `b` [n, 3] -> [n], elementwise (a reduction's rounding could
-    depend on n or strides; batches must match single renders to the bit)."""
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+def surface_colour(q: SimpleNamespace, normal, to_eye, lights) -> list:
+    """ambient + Σ lights E · (diffuse · half-Lambert + specular · Blinn-Phong): three lanes;
+    `lights` (direction, irradiance) pairs of three lanes each, `q` from `surface_lanes`."""
+    col = list(q.ambient)
+    for direction, irradiance in lights:
+        dif, spec = surface_light(normal, direction, to_eye, q.shininess)
+        col = [col[c] + irradiance[c] * (q.diffuse[c] * dif + q.specular[c] * spec) for c in range(3)]
+    return col
+
+
+def surface_lanes(vol, to) -> SimpleNamespace:
+    """The look's parameters per lane (`to.per_lane`: per scene -> a lane, or three)."""
+    look = vol.params.surface
+    return SimpleNamespace(**{k: to.per_lane(getattr(look, k)) for k in (
+        "diffuse", "specular", "shininess", "ambient", "epsilon", "alpha_scale")}, gradient=look.gradient)
+
+
+def _dot(a, b):
+    """a · b of three lanes each, elementwise (a reduction's rounding could depend on n or
+    strides; batches must match single renders to the bit)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def surface_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:
     """(alpha [n], colour [n, 3]) of the surface look at each sample (`background` and `signed`
     do not apply)."""
-    look = vol.params.surface
 
     def shade(ids, keep, s, p, t, d, density, lod):
-        normal = density_normal(vol.field, p, s, density, take(look.epsilon, s), gradient=look.gradient, lod=lod)
-        to_eye, shininess = -d, take(look.shininess, s)
-        diffuse, specular = take(look.diffuse, s), take(look.specular, s)
-        col = take(look.ambient, s)
-        for use in vol.plan.lights:
-            toward = ctx.lights[use.light].toward(p, s)
-            dif, spec = surface_light(normal, toward.direction, to_eye, shininess)
-            col = col + toward.irradiance * (diffuse * dif[:, None] + specular * spec[:, None])
-        return (density * take(look.alpha_scale, s)).clamp_max(1.0), col
+        q = surface_lanes(vol, SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, s))))
+        normal = density_normal(vol.field, p, s, density, q.epsilon, gradient=q.gradient, lod=lod)
+        lights = [(x.direction.unbind(1), x.irradiance.unbind(1))
+                  for x in (ctx.lights[use.light].toward(p, s) for use in vol.plan.lights)]
+        col = surface_colour(q, normal.unbind(1), (-d).unbind(1), lights)
+        return lanes.clamp_max(density * q.alpha_scale, 1.0), torch.stack(col, 1)
 
     return alpha_look_medium(ctx, vol, rays, shade)
