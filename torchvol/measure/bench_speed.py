@@ -287,23 +287,34 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
 
 def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
     """The floor of a render `out` (rendered with `keep_context`) whose every march is a Dr.Jit
-    kernel: its density alone in the Dr.Jit kernel on `points` points (the physical march's
-    `kernel_march.density_kernel` over its bounds' box; the template's Dr.Jit fbm), None elsewhere."""
+    kernel: its densities alone in the Dr.Jit kernel on `points` points, each volume's share of
+    them its share of the render's evaluations (`kernel_march.density_kernel` over its bounds'
+    box, a slab's 20 units across; the template's Dr.Jit fbm), None elsewhere."""
     from ..volume import kernel_march
 
     marches = list(out.stats["plan"]["marches"].values())
-    if not marches or any(m != "drjit" for m in marches) or len(marches) > 1:
+    if not marches or any(m != "drjit" for m in marches):
         return None
     n = torch.get_num_threads()
     if name == "template-clouds":
         key = (DRJIT_FBM, "template-clouds", n)
         return Floor(kernels[key], points, n) if key in kernels else None
-    vol = out.context.volumes[0]
-    lo, hi = vol.bounds.caps["aabb"](vol.params.bounds.value)
-    g = torch.Generator().manual_seed(0)
-    kernel = kernel_march.density_kernel(vol, lo[0] + (hi[0] - lo[0]) * torch.rand(points, 3, generator=g))
-    kernel()  # builds: not in the timed runs
-    return Floor(kernel, points, n)
+    by_volume, g, parts = out.stats["density_evals_by_volume"], torch.Generator().manual_seed(0), []
+    total = sum(by_volume.values())
+    for vol in out.context.volumes:
+        count = round(points * by_volume.get(vol.plan.name, 0) / total) if total else 0
+        if count == 0:
+            continue
+        box = vol.bounds.caps["aabb"]
+        if box is None:  # a slab: its heights, 20 units across
+            b = vol.params.bounds.value
+            lo, hi = torch.tensor([[-10.0, float(b.y_min[0]), -10.0]]), torch.tensor([[10.0, float(b.y_max[0]), 10.0]])
+        else:
+            lo, hi = box(vol.params.bounds.value)
+        parts.append(kernel_march.density_kernel(vol, lo[0] + (hi[0] - lo[0]) * torch.rand(count, 3, generator=g)))
+    for kernel in parts:
+        kernel()  # builds: not in the timed runs
+    return Floor(lambda: [kernel() for kernel in parts], points, n)
 
 
 def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[dict]:
