@@ -326,4 +326,5 @@ class TerrainSurface:
         return SurfaceHit(hit=hit, t=torch.where(hit, t, torch.full_like(t, torch.inf)), color=color, aovs=aovs)
 
 
-__all__ = ["Terrain", "TerrainSurface", "gap", "height", "normal", "trace", "visibility"]
+__all__ = ["Terrain", "TerrainSurface", "gap", "height", "height_lanes", "normal", "onto_surface", "terrain_lanes", "trace",
+           "trace_kernel", "trace_lanes", "trace_step", "visibility", "visible_lanes"]

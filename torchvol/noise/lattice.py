@@ -30,6 +30,8 @@ __all__ = [
     "value_noise",
     "perlin_noise",
     "worley_noise",
+    "worley_lanes",
+    "scene_worley_tables",
     "compiled_noise",
     "default_noise_texture",
     "texture_noise",

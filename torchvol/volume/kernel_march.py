@@ -647,4 +647,4 @@ def _inner_and_edge(vol):
     return (field.inner, field.edge) if isinstance(field, EdgeField) else (field, None)
 
 
-__all__ = ["density_kernel", "march", "supports"]
+__all__ = ["density_kernel", "march", "march_look", "occluders", "occluders_supported", "supports"]
