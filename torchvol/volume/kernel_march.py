@@ -235,12 +235,7 @@ def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: T
     result = MarchResult.empty(start[0], 3 + (len(vols) if shares else 0))
     if idx.shape[0] == 0:
         return result
-    threads = kernel_threads()
-    if dr.thread_count() != threads:
-        dr.set_thread_count(threads)
-    s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
-    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
-    per_ray = lambda x: lane(take(x, s))  # noqa: E731  per scene -> per ray
+    s, d, lane, per_ray = _ray_lanes(rays, idx)
     bools = lambda x: Bool(x.index_select(0, idx).cpu().numpy())  # noqa: E731
     # the first piece with a medium on each ray
     pieces = active.any(dim=1)[:, idx]  # [P, n]
@@ -266,19 +261,7 @@ def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: T
     out = dr.while_loop(state, lambda *x: x[8], _body(k, members, par, ctx.settings, count, shares), mode="symbolic")
     dr.eval(out)
     dr.sync_thread()
-    _, _, _, trans, wsum, wt, median, steps, _, truncated, _, *rest = (torch.from_numpy(np.array(v)) for v in out)
-    evals, radiance = rest[:count], rest[count:]
-    result.radiance.index_copy_(0, idx, torch.stack(radiance, 1).to(start.dtype))
-    for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
-                        ("steps", steps.long()), ("truncated", truncated > 0)):
-        target = getattr(result, name)
-        target.index_copy_(0, idx, value.to(target.dtype))
-    ctx.counts.march_steps += int(steps.long().sum())
-    ctx.counts.truncated_rays += int(truncated.long().sum())
-    for j, e in enumerate(evals):
-        ctx.counts.density_evals += int(e.long().sum())
-        ctx.volumes[j].field.evals += int(e.long().sum())
-    return result
+    return _written(ctx, result, idx, out[3:8], out[9], out[11 + count:], dict(enumerate(out[11:11 + count])))
 
 
 def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit: Tensor,
@@ -296,12 +279,7 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
     result = MarchResult.empty(t0, 3)
     if idx.shape[0] == 0:
         return result
-    threads = kernel_threads()
-    if dr.thread_count() != threads:
-        dr.set_thread_count(threads)
-    s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
-    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
-    per_ray = lambda x: lane(take(x, s))  # noqa: E731
+    s, d, lane, per_ray = _ray_lanes(rays, idx)
     start, end = t0.index_select(0, idx), t1.index_select(0, idx)
     span = end - start
     if dither is not None:  # `march.march`'s shader start: dithered by a fraction of a step, or in world units
@@ -324,16 +302,40 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
     out = dr.while_loop(state, lambda *x: x[6], _look_body(k, solid, par, st), mode="symbolic")
     dr.eval(out)
     dr.sync_thread()
-    _, trans, wsum, wt, median, steps, _, truncated, evals, *radiance = (torch.from_numpy(np.array(v)) for v in out)
-    result.radiance.index_copy_(0, idx, torch.stack(radiance, 1).to(t0.dtype))
+    return _written(ctx, result, idx, out[1:6], out[7], out[9:], {vol.plan.index: out[8]})
+
+
+def _ray_lanes(rays, idx: Tensor):
+    """Dr.Jit's threads set for a kernel over the chunk's rays `idx` [n]; -> (their scenes [n],
+    directions [n, 3], `lane` (a tensor [n] or [n, C] -> lanes), `per_ray` (per scene -> lanes))."""
+    import drjit as dr
+
+    threads = kernel_threads()
+    if dr.thread_count() != threads:
+        dr.set_thread_count(threads)
+    s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
+    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
+    return s, d, lane, lambda x: lane(take(x, s))
+
+
+def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, evals: dict) -> MarchResult:
+    """A march kernel's lanes for the rays `idx` [n] written into `result` (`state`: the
+    transmittance, weight sums, median and steps; `truncated`: truncations a ray, or whether;
+    `radiance` its channels), its steps, truncations and each volume's evaluations (`evals`, by
+    index in `ctx.volumes`) counted in the render's stats. -> `result`."""
+    trans, wsum, wt, median, steps = (torch.from_numpy(np.array(v)) for v in state)
+    truncated = torch.from_numpy(np.array(truncated)).long()
+    result.radiance.index_copy_(0, idx, torch.stack([torch.from_numpy(np.array(r)) for r in radiance], 1).to(result.radiance))
     for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
-                        ("steps", steps.long()), ("truncated", truncated)):
+                        ("steps", steps.long()), ("truncated", truncated > 0)):
         target = getattr(result, name)
         target.index_copy_(0, idx, value.to(target.dtype))
     ctx.counts.march_steps += int(steps.long().sum())
     ctx.counts.truncated_rays += int(truncated.sum())
-    ctx.counts.density_evals += int(evals.long().sum())
-    vol.field.evals += int(evals.long().sum())
+    for j, e in evals.items():
+        count = int(torch.from_numpy(np.array(e)).long().sum())
+        ctx.counts.density_evals += count
+        ctx.volumes[j].field.evals += count
     return result
 
 
