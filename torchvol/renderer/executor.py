@@ -39,10 +39,10 @@ from ..runtime.threads import glue_on_one_thread
 from ..schema.batch import Stacked, stack, take
 from ..schema.validate import fail, integer, is_integer
 from ..terrain import TerrainSurface
+from ..volume import kernel_march
 from ..volume.ambient import sky_mean
 from ..volume.composite import Media, composite_volumes, finish
 from ..volume.joint import march_joint
-from ..volume.physical import occluder_transmittance
 from ..volume.shading import SHADINGS
 from ..volume.strategy import STRATEGIES
 from ..voxel.surface import VoxelSurface
@@ -112,7 +112,7 @@ class RenderContext:
             self.lights[plan.sun].through = sun_through_air(batch.atmosphere, self.lights[plan.sun])
         self.volumes = [self._volume(vp, self.compiled) for vp in plan.volumes]
         # what a surface's shadow ray sees besides that surface (volumes, the other surface), as the plan says
-        shadow_rays = lambda use, p, s, direction, distance: occluder_transmittance(self, use, p, s, direction, distance)
+        shadow_rays = lambda use, p, s, direction, distance: kernel_march.surface_shadows(self, use, p, s, direction, distance)
         self.voxel_surface = self.voxels = self.terrain = None
         if plan.voxels is not None:
             self.voxel_surface = VoxelSurface(

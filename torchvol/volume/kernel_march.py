@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -38,19 +39,19 @@ from torch import Tensor
 from ..fields import DENSITIES
 from ..fields.base import DENSITY_MAX
 from ..fields.edge import EdgeField, faded
+from ..fields.heightfield import terrain_lanes, visible_lanes
 from ..geometry.bounds import BOUNDS
 from ..light.lights import point_lanes
 from ..ops import lanes
 from ..runtime.threads import kernel_threads
 from ..schema.batch import take
-from ..terrain import terrain_lanes, visible_lanes
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
 from .march import MarchResult, median_crossing
 from .multiple import octave_weights
 from .physical import light_responses
 from .shader_look import ambient_light, derivative_light, look_lanes, shaded
-from .shadow import shadow_segments, sun_grids
+from .shadow import occluder_transmittance, shadow_segments, sun_grids
 from .sun_volume import grid_transmittance, grids_lanes
 from .surface_look import look_normal, surface_colour, surface_lanes
 
@@ -410,7 +411,7 @@ def _parameters(st) -> SimpleNamespace:
 def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain, count: int) -> SimpleNamespace:
     """The per-sample functions of member `vol` over its inputs `k` (`_member_inputs`), the
     parameters `par`, the volumes a ray may cross `solids` (`_solid`, by index) and the terrain
-    (`terrain.terrain_lanes`, None: none):
+    (`fields.heightfield.terrain_lanes`, None: none):
     density(p, count), in_scatter(p, sigma_t) -> (three lanes, `count` lanes of evaluations per volume)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
@@ -422,11 +423,8 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
         """From lanes `p` along `direction` (three lanes) out of the bounds or to the light at
         `distance` (None: a sun), σ_t = `sigma_scale` × density, over `shadow`'s segments
         (`shadow.shadow_transmittance`'s march) or looked up in the sun's grid (`grids`, by
-        volume: `sun_volume.grids_lanes`; `sigma_t` the extinction at p), times each volume of
-        `occluders` crossed (`shadow.occluder_transmittance`: its σ_t over its chord in
-        `shadow.steps` equal segments, or its grid where the ray enters it); each volume's
-        evaluations added to `evals`; times 0 where it meets the `terrain` (`terrain.terrain_lanes`,
-        None: not asked)."""
+        volume; `sigma_t` the extinction at p), times what the `occluders` and the `terrain`
+        (None: not asked) let through (`_through_others`), evaluations added to `evals`."""
         if shadow.method == "grid":
             through = grid_transmittance(grids[own.index], p, sigma_t)
         else:
@@ -523,6 +521,19 @@ def occluders_supported(ctx, use) -> bool:
                                     for j in use.occluders)
 
 
+def surface_shadows(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
+    """`shadow.occluder_transmittance` of a surface's shadow or sky ray (LightPass `use`), its
+    volumes and the terrain as one Dr.Jit kernel (`occluders`) where `occluders_supported`,
+    their passes listed (their time their caller's), the voxels' walk then its own. -> [n]."""
+    if not (use.occluders or use.terrain) or not occluders_supported(ctx, use):
+        return occluder_transmittance(ctx, use, p, s, direction, distance)
+    out = occluders(ctx, use, p, s, direction, distance)
+    for name in use.names()[1:len(use.occluders) + 1 + use.terrain]:
+        with ctx.timer.section(name):
+            pass
+    return out * occluder_transmittance(ctx, replace(use, occluders=(), terrain=False), p, s, direction, distance)
+
+
 def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
     """`shadow.occluder_transmittance`'s volumes and terrain (`use.occluders`, `use.terrain`) as
     one Dr.Jit kernel (`occluders_supported` said yes): the same `_through_others` a kernel
@@ -566,6 +577,43 @@ def _pick(values: list, q):
     return out
 
 
+def _next_piece(present: list, q):
+    """The first piece after `q` (an Int32 lane) with a medium on the ray (`present`: a Bool lane
+    a piece), or the number of pieces: none."""
+    import drjit as dr
+    from drjit.llvm import Int32
+
+    out = dr.full(Int32, len(present), dr.width(q))
+    for i in reversed(range(len(present))):
+        out = dr.select((q < i) & present[i], Int32(i), out)
+    return out
+
+
+def _sample(m: SimpleNamespace, par: SimpleNamespace, count: int, p, t_sample, dt):
+    """Member `m` (its volume, inputs and `_medium`) at lanes `p`, sampled at `t_sample` over a
+    step `dt`: (σ_t, its source's three lanes, each of the `count` volumes' evaluations)."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    med, mk, vol = m.medium, m.k, m.vol
+    drop = None if par.lod is None or med.octaves is None else Int32(dr.floor(dr.log2(1.0 + t_sample * par.lod)))
+    raw = med.density(p, None if drop is None else med.octaves - drop)
+    sigma_t = mk.sigma_t * raw
+    lit = (raw > par.threshold) & (dt > 0.0)
+    width = dr.width(raw)
+    dark = lambda: ([dr.zeros(Float, width) for _ in range(3)], [dr.zeros(Int32, width) for _ in range(count)])  # noqa: E731
+    source, evals = dr.if_stmt((), lit, lambda: med.in_scatter(p, sigma_t), dark)
+    evals = list(evals)
+    evals[vol.plan.index] = evals[vol.plan.index] + 1
+    if vol.plan.emissive:  # σe = emission × density, then its colour map and the bloom, as `physical_medium` adds them
+        source = tuple(source[c] + mk.emission[c] * raw for c in range(3))
+    if vol.plan.emission_map is not None:
+        source = tuple(a + b for a, b in zip(source, mk.emission_glow(mk.emission_map, p, raw)))
+    if vol.plan.bloom is not None:
+        source = tuple(a + b for a, b in zip(source, bloom_source(mk.bloom, p)))
+    return sigma_t, tuple(source), evals
+
+
 def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: int, shares: bool):
     """The loop body: one segment of `march.march`'s physical loop (``segments``, the render's
     integrator) in the ray's current piece, each member present sampled (its lighting under a branch
@@ -575,33 +623,7 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
     from drjit.llvm import Bool, Float, Int32
 
     pieces = len(k.start)
-
-    def next_piece(q):
-        """The first piece after `q` with a medium on the ray (`pieces`: none)."""
-        out = dr.full(Int32, pieces, dr.width(q))
-        for i in reversed(range(pieces)):
-            out = dr.select((q < i) & k.present[i], Int32(i), out)
-        return out
-
-    def sample(m, p, t_sample, dt):
-        """Member `m` at lanes `p`: (σ_t, its source's three lanes, each volume's evaluations)."""
-        med, mk, vol = m.medium, m.k, m.vol
-        drop = None if par.lod is None or med.octaves is None else Int32(dr.floor(dr.log2(1.0 + t_sample * par.lod)))
-        raw = med.density(p, None if drop is None else med.octaves - drop)
-        sigma_t = mk.sigma_t * raw
-        lit = (raw > par.threshold) & (dt > 0.0)
-        width = dr.width(raw)
-        dark = lambda: ([dr.zeros(Float, width) for _ in range(3)], [dr.zeros(Int32, width) for _ in range(count)])  # noqa: E731
-        source, evals = dr.if_stmt((), lit, lambda: med.in_scatter(p, sigma_t), dark)
-        evals = list(evals)
-        evals[vol.plan.index] = evals[vol.plan.index] + 1
-        if vol.plan.emissive:  # σe = emission × density, then its colour map and the bloom, as `physical_medium` adds them
-            source = tuple(source[c] + mk.emission[c] * raw for c in range(3))
-        if vol.plan.emission_map is not None:
-            source = tuple(a + b for a, b in zip(source, mk.emission_glow(mk.emission_map, p, raw)))
-        if vol.plan.bloom is not None:
-            source = tuple(a + b for a, b in zip(source, bloom_source(mk.bloom, p)))
-        return sigma_t, tuple(source), evals
+    sample = lambda m, p, t_sample, dt: _sample(m, par, count, p, t_sample, dt)  # noqa: E731
 
     def body(t, q, piece_steps, trans, wsum, wt, median, steps, alive, truncated, first, *rest):
         evals, radiance = list(rest[:count]), list(rest[count:])
@@ -634,7 +656,7 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
         last = piece_steps >= par.max_iterations
         truncated = truncated + dr.select(inside & going & last, Int32(1), Int32(0))
         done = ~inside | last
-        after = next_piece(q)
+        after = _next_piece(k.present, q)
         q = dr.select(done, after, q)
         t_next = dr.select(done, _pick(k.start, q), t_next)
         return (t_next, q, dr.select(done, Int32(0), piece_steps), new_trans, wsum + w, wt + w * t_sample, median,
@@ -649,4 +671,4 @@ def _inner_and_edge(vol):
     return (field.inner, field.edge) if isinstance(field, EdgeField) else (field, None)
 
 
-__all__ = ["density_kernel", "march", "march_look", "occluders", "occluders_supported", "supports"]
+__all__ = ["density_kernel", "march", "march_look", "occluders", "occluders_supported", "supports", "surface_shadows"]

@@ -166,24 +166,18 @@ def march(
 
     `compact_below`: the batch drops its finished rays once fewer than this fraction is still
     going (1.0: after every step that finishes one; right when a medium sample costs more than a
-    gather, as fbm octaves do).
-
-    `transmittance` [R]: the rays' transmittance where the march starts (None: 1), for a stretch
-    of a ray behind others (a joint march's pieces): the radiance, weights, median crossing,
-    early termination and the transmittance returned are then the whole ray's."""
+    gather, as fbm octaves do). `transmittance` [R]: the rays' transmittance at t0 (None: 1), for
+    a stretch behind others (a joint march's pieces): the results are then the whole ray's."""
     ids = hit.nonzero().squeeze(1)
     if ids.numel() == 0:
         return MarchResult.empty(t0, channels)
-    state, first, frac = _march_start(t0, t1, ids, rule=rule, semantics=semantics, dither=dither,
-                                      dither_unit=dither_unit, occupied=occupied, channels=channels)
-    if transmittance is not None:
-        state[_TRANS] = transmittance[ids]
+    state, first, frac = _march_start(t0, t1, ids, rule=rule, semantics=semantics, dither=dither, dither_unit=dither_unit,
+                                      occupied=occupied, channels=channels, transmittance=transmittance)
     final = t0.new_zeros(_RADIANCE + channels, t0.shape[0])
     final[_TRANS] = 1.0
     truncated = torch.zeros_like(hit)
     step_fn = {"riemann": riemann_step, "frostbite": frostbite_step, "alpha": alpha_linear_step}[integrator]
     active = None  # None: every row is active; else [n] 1.0 / 0.0 (a float mask: it scales), rows finished but not compacted away yet
-
     for step in range(rule.max_iterations):
         keep = _march_step(state, ids, medium, step, rule=rule, semantics=semantics, step_fn=step_fn,
                            first=first, frac=frac, active=active, min_transmittance=min_transmittance)
@@ -212,9 +206,11 @@ def _compact(final: Tensor, state: Tensor, ids: Tensor, keep: Tensor) -> tuple[T
 
 
 def _march_start(t0: Tensor, t1: Tensor, ids: Tensor, *, rule: StepRule, semantics: str, dither: Tensor | None,
-                 dither_unit: str, occupied: tuple[Tensor, Tensor] | None, channels: int):
-    """`march`'s state for the rays `ids` [n]: (state (K, n), one row per quantity; `first` [n] bool,
-    the rays whose first segment is dithered, or None; `frac` [n], that segment's fraction, or None)."""
+                 dither_unit: str, occupied: tuple[Tensor, Tensor] | None, channels: int,
+                 transmittance: Tensor | None = None):
+    """`march`'s state for the rays `ids` [n] (their transmittance `transmittance` [R], None: 1):
+    (state (K, n), one row per quantity; `first` [n] bool, the rays whose first segment is
+    dithered, or None; `frac` [n], that segment's fraction, or None)."""
     t_start, t_end = t0[ids], t1[ids]
     span = t_end - t_start
     first = frac = None
@@ -234,7 +230,8 @@ def _march_start(t0: Tensor, t1: Tensor, ids: Tensor, *, rule: StepRule, semanti
                                            first=first, frac=frac)
     # the active rays' state, one row per quantity: compacting it is one gather
     state = t.new_zeros(_RADIANCE + channels, t.shape[0])
-    state[_T], state[_T_END], state[_T_STOP], state[_SPAN], state[_TRANS] = t, t_end, t_stop, span, 1.0
+    state[_T], state[_T_END], state[_T_STOP], state[_SPAN] = t, t_end, t_stop, span
+    state[_TRANS] = 1.0 if transmittance is None else transmittance[ids]
     return state, first, frac
 
 
@@ -413,18 +410,14 @@ def march_adaptive(
     than a step falls between samples, where not even the quadratic sees it). `max_steps_per_span`:
     steps are never longer than (t1 − t0)/max_steps_per_span (for media with no feature size).
 
-    `t0`, `t1`, `hit`: [R]; `medium(ids, t, dt) -> (signed σ_t [n], source [n, C])`; σ_t is
-    integrated clamped at 0, so a medium with no clamp of its own returns σ_t itself.
-    `transmittance` [R] or None: as `march`'s (the errors are then weighed by the whole ray's)."""
+    `t0`, `t1`, `hit`: [R]; `medium(ids, t, dt) -> (signed σ_t [n], source [n, C])`, σ_t integrated
+    clamped at 0; `transmittance` [R] or None: as `march`'s (its errors weighed by the whole ray's)."""
     step_fn = {"riemann": riemann_step, "frostbite": frostbite_step}[integrator]
-    out = AdaptiveResult.empty(t0, channels)
-    ids = hit.nonzero().squeeze(1)
+    out, ids = AdaptiveResult.empty(t0, channels), hit.nonzero().squeeze(1)
     if ids.numel() == 0:
         return out
-    rays = _AdaptiveRays.start(t0, t1, ids, radiance_scale=radiance_scale, first_step=first_step,
-                               max_steps_per_span=max_steps_per_span, max_step=max_step, channels=channels)
-    if transmittance is not None:
-        rays.transmittance = transmittance[ids].clone()
+    rays = _AdaptiveRays.start(t0, t1, ids, radiance_scale=radiance_scale, first_step=first_step, channels=channels,
+                               max_steps_per_span=max_steps_per_span, max_step=max_step, transmittance=transmittance)
     for _ in range(max_iterations):
         keep = _adaptive_step(rays, medium, step_fn, tolerance=tolerance, min_step=min_step,
                               min_transmittance=min_transmittance)
@@ -467,8 +460,10 @@ class _AdaptiveRays:
 
     @classmethod
     def start(cls, t0: Tensor, t1: Tensor, ids: Tensor, *, radiance_scale: Tensor | float, first_step: float | None,
-              max_steps_per_span: int | None, max_step: Tensor | None, channels: int) -> _AdaptiveRays:
-        """The rays `ids` [n] of `t0`, `t1` [R] at their entry, nothing marched yet."""
+              max_steps_per_span: int | None, max_step: Tensor | None, channels: int,
+              transmittance: Tensor | None = None) -> _AdaptiveRays:
+        """The rays `ids` [n] of `t0`, `t1` [R] at their entry (at `transmittance` [R], None: 1),
+        nothing marched yet."""
         r = t0.shape[0]
         scale = torch.as_tensor(radiance_scale, dtype=t0.dtype, device=t0.device).expand(r)[ids].clamp_min(1e-30)
         t, t_end = t0[ids].clone(), t1[ids]
@@ -477,7 +472,7 @@ class _AdaptiveRays:
         if max_step is not None:
             max_dt = torch.minimum(max_dt, max_step[ids])
         dt = span / 8 if first_step is None else torch.full_like(t, first_step)
-        trans = torch.ones_like(t)
+        trans = torch.ones_like(t) if transmittance is None else transmittance[ids].clone()
         radiance = t.new_zeros(t.shape[0], channels)
         wsum, wt, median, err = (torch.zeros_like(t) for _ in range(4))
         return cls(ids=ids, samples=ids.repeat(3), t=t, t_end=t_end, span=span, max_dt=max_dt, dt=dt, scale=scale,

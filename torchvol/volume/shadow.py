@@ -4,7 +4,6 @@ other volumes, whatever their shading, and the terrain)."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Callable
 
 import torch
@@ -73,18 +72,8 @@ def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direct
     whatever its shading), marched over its chord in `use.shadow.steps` equal steps (exact for homogeneous media)
     or, with `shadow.method = "grid"`, looked up in that volume's sun grid where the ray enters
     it, times 0 where the terrain blocks it (`use.terrain`) and where the voxels do (`use.voxels`)
-    -> [n]. Each is its own pass, reported only where some shadow ray crosses it. Where the
-    render runs Dr.Jit's kernels, the volumes and the terrain are one kernel
-    (`kernel_march.occluders`: the same functions, in lanes), its passes listed, its time its caller's."""
-    from . import kernel_march  # (it imports this module)
-
+    -> [n]. Each is its own pass, reported only where some shadow ray crosses it."""
     out = p.new_ones(p.shape[0])
-    if (use.occluders or use.terrain) and kernel_march.occluders_supported(ctx, use):
-        out = kernel_march.occluders(ctx, use, p, s, direction, distance)
-        for name in use.names()[1:len(use.occluders) + 1 + use.terrain]:
-            with ctx.timer.section(name):
-                pass
-        use = replace(use, occluders=(), terrain=False)  # the voxels' walk, below, is their own
     for j in use.occluders:
         other = ctx.volumes[j]
         t0, t1, crosses = clip_to_ray(*other.intersect(p, direction, s), torch.minimum(distance, p.new_tensor(other.plan.reach)))

@@ -244,6 +244,8 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
 
     out, ok, t0, cell0, axis0, lo, hi = start(origins, directions, lo, hi, t_min, t_max)
     idx = ok.nonzero().squeeze(1)
+    if fog is not None:  # (a ray that enters no grid keeps no fog)
+        fog.tau, fog.light = origins.new_zeros(origins.shape[0]), origins.new_zeros(origins.shape[0], 3)
     if idx.numel() == 0:
         return out
     threads = kernel_threads()
@@ -277,7 +279,6 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
     from drjit.llvm import Float, Int32
 
     r.fog_row, g.fog = Int32(take_rows(fog.rows, idx).to(torch.int32).numpy()), Float(fog.table.to(torch.float32).numpy())
-    fog.tau = like.new_zeros(like.shape[0])
     cells = dr.width(g.table)
     seen = dr.zeros(Int32, cells)
 
@@ -309,7 +310,6 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
     result = dr.while_loop(state + tuple(dr.zeros(Float, len(idx)) for _ in range(3)), lambda *x: x[6], summing,
                            mode="symbolic")
     dr.eval(result)
-    fog.light = like.new_zeros(like.shape[0], 3)
     fog.light[idx] = torch.stack([torch.from_numpy(np.array(v)) for v in result[-3:]], 1).to(like)
     return result[:-3]
 
