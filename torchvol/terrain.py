@@ -173,11 +173,9 @@ def trace_kernel(t: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, T
     import numpy as np
     from drjit.llvm import Float, Int32
 
-    from .runtime.threads import kernel_threads
+    from .runtime.threads import set_drjit_threads
 
-    threads = kernel_threads()
-    if dr.thread_count() != threads:
-        dr.set_thread_count(threads)
+    set_drjit_threads()
     floats = lambda x: Float(x.to(torch.float32).contiguous().cpu().numpy())  # noqa: E731
     columns = lambda x: floats(x) if x.ndim == 1 else [floats(c) for c in x.unbind(1)]  # noqa: E731
     to = SimpleNamespace(per_lane=lambda v: columns(take(v, s)), scene=s.cpu(), floats=floats,

@@ -155,13 +155,13 @@ def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None, *, air
     return JointPass(tuple(v.index for v in members), "media.closed_form" if closed else "media.march", shares, air)
 
 
-def walk_backend(compile: str, dtype: torch.dtype, device) -> Backend:
+def walk_backend(compile: str, kernels: bool) -> Backend:
     """What the voxel DDA walks run on: one Dr.Jit kernel (`voxel.walk.drjit_traverse`) wherever
-    the compile mode is not "off" and Dr.Jit runs for `dtype` on `device`; else the compiled walk
+    the render runs kernels (`Plan.kernels`); else the compiled walk
     under "exact" and "all" (`voxel.walk.fused_traverse`), else eagerly. Every one gives the same
     bits. A walk that records each cell it visits (the fog's and the glow's primary walk) runs
     compiled under "exact" and "all", else eagerly, whatever this says."""
-    if compile != "off" and drjit_march.available(torch.zeros((), dtype=dtype, device=device)):
+    if kernels:
         return "drjit"
     return "inductor" if compile in ("exact", "all") else "eager"
 
@@ -357,11 +357,11 @@ def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bo
 
 def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: str,
                   settings: MarchSettings, dtype: torch.dtype, device: torch.device | str,
-                  ambient: LightPass | None = None) -> tuple[Backend, str | None]:
+                  ambient: LightPass | None = None, fused: bool = False) -> tuple[Backend, str | None]:
     """What volume `vol`'s march runs on, decided once for the render, and why it is eager where
     it is (None otherwise): one Dr.Jit kernel wherever the compile mode is not "off", Dr.Jit runs
     for `dtype` on `device` (`drjit_march.available`) and a kernel renders the technique (the
-    template's fused march, `fused_march`; a physical medium, `kernel_march.supports`); under "all"
+    template's fused march, `fused`: `fused_march` said so; a physical medium, `kernel_march.supports`); under "all"
     the template's torch.compile kernels where Dr.Jit cannot run; everything else eagerly."""
     if strategy == "closed_form":
         return "closed_form", None
@@ -374,7 +374,7 @@ def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[
     why = None if drjit else (f"Dr.Jit renders float32 on the CPU, not {str(dtype).removeprefix('torch.')} on "
                               f"{like.device.type}" if dtype != torch.float32 or like.device.type != "cpu"
                               else "Dr.Jit's LLVM backend is not available here")
-    if fused_march(batch, vol, uses):
+    if fused:
         return ("drjit", None) if drjit else ("inductor", None) if compile == "all" else ("eager", why)
     why = why or kernel_march.supports(batch, vol, uses, settings, ambient)
     return ("eager", f"no kernel for {why}" if drjit else why) if why is not None else ("drjit", None)
@@ -405,16 +405,16 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
     ambient = vol.ambient is not None
-    how, sky = strategy(batch, vol, settings), ambient_sky(batch, v)
+    how, sky, fused = strategy(batch, vol, settings), ambient_sky(batch, v), fused_march(batch, vol, uses)
     backend, why = march_backend(batch, vol, how, uses, compile=compile, settings=settings, dtype=dtype, device=device,
-                                 ambient=sky)
+                                 ambient=sky, fused=fused)
     return VolumePass(index=v, name=name, strategy=how, shading=vol.shading, lights=uses, backend=backend, eager_because=why,
                       emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
                       emission_map=None if vol.emission_map is None else vol.emission_map.kind,
                       bloom=None if vol.bloom is None else vol.bloom.light,
                       sky_blend=vol.sky_blend is not None, ambient=ambient,
                       ambient_sky=sky,
-                      multiple=vol.multiple_scattering is not None, fused=fused_march(batch, vol, uses))
+                      multiple=vol.multiple_scattering is not None, fused=fused)
 
 
 def voxel_pass(batch: Stacked) -> VoxelPass | None:
@@ -470,6 +470,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
     if joint is not None:
         volumes = joint_backends(tuple(replace(v, joint=v.index in joint.volumes) for v in volumes), joint)
     # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
+    kernels = compile != "off" and drjit_march.available(torch.zeros((), dtype=dtype, device=device))
     glue = voxels is None and terrain is None and bool(volumes) and all(v.backend == "drjit" for v in volumes)
     return Plan(
         settings=settings,
@@ -491,8 +492,8 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
         compile=compile,
         dtype=dtype,
         threads="glue_on_one_thread" if glue else "caller",
-        walk=None if voxels is None else walk_backend(compile, dtype, device),
-        kernels=compile != "off" and drjit_march.available(torch.zeros((), dtype=dtype, device=device)),
+        walk=None if voxels is None else walk_backend(compile, kernels),
+        kernels=kernels,
     )
 
 

@@ -57,6 +57,15 @@ def kernel_threads() -> int:
     return torch.get_num_threads() if threads is None else threads
 
 
+def set_drjit_threads() -> None:
+    """Dr.Jit's pool at `kernel_threads()`, before a kernel launches (resized only when it differs)."""
+    import drjit as dr
+
+    threads = kernel_threads()
+    if dr.thread_count() != threads:
+        dr.set_thread_count(threads)
+
+
 @contextlib.contextmanager
 def glue_on_one_thread():
     """torch on one thread inside the block, `kernel_threads` the caller's count: for a render

@@ -37,7 +37,7 @@ from torch import Tensor
 
 from ..fields.clouds import cloud_density, cloud_fbm
 from ..ops import lanes
-from ..runtime.threads import kernel_threads
+from ..runtime.threads import set_drjit_threads
 from .march import MarchResult
 
 if TYPE_CHECKING:
@@ -89,9 +89,7 @@ def march(t0: Tensor, t1: Tensor, hit: Tensor, start: Tensor, ray: Tensor, s: Te
     result = MarchResult.empty(t0, 3)
     if idx.shape[0] == 0:
         return result, torch.zeros((), dtype=torch.long)
-    threads = kernel_threads()
-    if dr.thread_count() != threads:
-        dr.set_thread_count(threads)
+    set_drjit_threads()
 
     def rays(x: Tensor):  # [R] -> the hit rays' Float
         return _floats(x.index_select(0, idx))

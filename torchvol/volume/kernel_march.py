@@ -43,7 +43,7 @@ from ..fields.heightfield import terrain_lanes, visible_lanes
 from ..geometry.bounds import BOUNDS
 from ..light.lights import point_lanes
 from ..ops import lanes
-from ..runtime.threads import kernel_threads
+from ..runtime.threads import set_drjit_threads
 from ..schema.batch import take
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
@@ -164,9 +164,7 @@ def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
     p = _lanes_of(points, _floats)
 
     def run() -> Tensor:
-        threads = kernel_threads()
-        if dr.thread_count() != threads:
-            dr.set_thread_count(threads)
+        set_drjit_threads()
         out = density(p, None)
         dr.eval(out)
         dr.sync_thread()
@@ -309,11 +307,8 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
 def _ray_lanes(rays, idx: Tensor):
     """Dr.Jit's threads set for a kernel over the chunk's rays `idx` [n]; -> (their scenes [n],
     directions [n, 3], `lane` (a tensor [n] or [n, C] -> lanes), `per_ray` (per scene -> lanes))."""
-    import drjit as dr
 
-    threads = kernel_threads()
-    if dr.thread_count() != threads:
-        dr.set_thread_count(threads)
+    set_drjit_threads()
     s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
     lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
     return s, d, lane, lambda x: lane(take(x, s))
@@ -544,9 +539,7 @@ def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tenso
 
     if p.shape[0] == 0:
         return p.new_ones(0)
-    threads = kernel_threads()
-    if dr.thread_count() != threads:
-        dr.set_thread_count(threads)
+    set_drjit_threads()
     lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
     per_ray = lambda x: lane(take(x, s))  # noqa: E731
     solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in use.occluders}

@@ -28,7 +28,7 @@ from torch import Tensor
 from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..runtime.compilation import exact_kernel
-from ..runtime.threads import kernel_threads
+from ..runtime.threads import set_drjit_threads
 from .dda import Hits, Visit, start
 from .fog import FogWalk
 
@@ -248,9 +248,7 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
         fog.tau, fog.light = origins.new_zeros(origins.shape[0]), origins.new_zeros(origins.shape[0], 3)
     if idx.numel() == 0:
         return out
-    threads = kernel_threads()
-    if dr.thread_count() != threads:
-        dr.set_thread_count(threads)
+    set_drjit_threads()
     floats = lambda x: Float(take_rows(x, idx).to(torch.float32).contiguous().numpy())  # noqa: E731
     ints = lambda x: Int32(take_rows(x, idx).to(torch.int32).contiguous().numpy())  # noqa: E731
     r = SimpleNamespace(o=[floats(c) for c in origins.unbind(1)], d=[floats(c) for c in directions.unbind(1)],
