@@ -58,6 +58,18 @@ def test_console_script_runs():
     assert done.returncode == 0 and "--preset" in done.stdout
 
 
+def test_console_script_flushes_its_report_and_keeps_the_exit_code(tmp_path):
+    """`command` ends the process without finalisation: what `main` printed and wrote must be out."""
+    out = tmp_path / "o.png"
+    done = subprocess.run([sys.executable, "-m", "torchvol.cli", "render", "--preset", "cloud-puff", "--param", "width=8",
+                           "--param", "height=6", "--out", str(out)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["passes"][0] == "rays" and Image.open(out).size == (8, 6)
+    bad = subprocess.run([sys.executable, "-m", "torchvol.cli", "render", "--preset", "no-such", "--out", str(out)],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "no-such" in bad.stderr
+
+
 def _commands(parser, path=()):
     """(command path, its parser) for every command of the CLI."""
     for action in parser._actions:
