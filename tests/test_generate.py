@@ -9,7 +9,8 @@ import torch
 
 import torchvol as tv
 from torchvol.cli import main
-from torchvol.dataset.generate import generate
+from torchvol.dataset.generate import AUTO_BATCH_RAYS, auto_batch, generate
+from torchvol.dataset.recipe import Recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "datasets" / "clouds.toml"
@@ -96,6 +97,17 @@ def test_other_settings_in_an_existing_folder_are_refused(reference):
 def test_workers_give_the_same_bytes(reference, tmp_path):
     d = tmp_path / "ds"
     generate(RECIPE, count=5, out=d, seed=3, overrides=TINY, batch=2, workers=2, threads=1)
+    assert tree(d) == tree(reference["folder"])
+
+
+def test_the_default_batch_fills_its_rays_and_gives_the_same_bytes(reference, tmp_path):
+    recipe = Recipe.load(RECIPE, TINY)  # 16×12: 192 rays a sample
+    assert auto_batch(recipe, count=5, workers=1, seed=3) == 3  # two tasks a worker: ceil(5 / 2)
+    assert auto_batch(recipe, count=10_000, workers=2, seed=3) == AUTO_BATCH_RAYS // 192
+    big = Recipe.load(RECIPE, {"image.width": 512, "image.height": 512})
+    assert auto_batch(big, count=10_000, workers=2, seed=3) == 1  # more rays than a batch holds: one sample
+    d = tmp_path / "ds"
+    generate(RECIPE, count=5, out=d, seed=3, overrides=TINY)
     assert tree(d) == tree(reference["folder"])
 
 

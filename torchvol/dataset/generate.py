@@ -116,6 +116,22 @@ def run_task(task: Task) -> list[int]:
     return list(task.indices)
 
 
+# rays one batch of samples renders when `generate` picks the batch: a batch's fixed costs (its plan,
+# its scenes' tables and grids, each kernel's tracing in Python) are shared by its samples. CPU time
+# a sample on one thread (docs/SPEED.md, "Batch size"): voxel-terrain (96×64) 32.6 ms in batches of
+# 4, 27.3 ms of 16; clouds (128²) 13.2 ms of 4, 10.7 ms of 8
+AUTO_BATCH_RAYS = 1 << 17
+
+
+def auto_batch(recipe: Recipe, *, count: int, workers: int, seed: int) -> int:
+    """The samples a batch renders by default: as many as fill `AUTO_BATCH_RAYS` rays (each
+    sample's views and frames counted), but no more than gives every worker two tasks, so that
+    the workers finish together. A sample's bytes do not depend on it."""
+    image = recipe.sample_with_params(0, seed)[0].image
+    rays = image.width * image.height * recipe.views * (1 if recipe.sequence is None else recipe.sequence.frames)
+    return max(1, min(AUTO_BATCH_RAYS // rays, -(-count // (2 * workers))))
+
+
 def plan_tasks(recipe: Recipe, *, count: int, seed: int, out: Path, layout: Layout, batch: int, shard_size: int) -> list[Task]:
     """The dataset's work as tasks in index order: a batch of `batch` samples each (folder), or a
     shard of `shard_size` samples each (webdataset)."""
@@ -152,7 +168,7 @@ def generate(
     workers: int = 1,
     layout: Layout = "folder",
     overrides: Mapping[str, Any] | None = None,
-    batch: int = 4,
+    batch: int | None = None,
     shard_size: int = 64,
     threads: int | None = None,
     scheduler: str | None = None,
@@ -162,7 +178,7 @@ def generate(
 ) -> dict:
     """Generate (or finish) the dataset in `out`. `workers` local processes (spawned, each with
     `threads` torch threads, tuned by `tune_process`; `workers=1` renders in this process and
-    leaves it as it is), or the Dask cluster at `scheduler` (its workers tuned too). `progress`: a bar of samples
+    leaves it as it is), `batch` samples rendered together (None: `auto_batch`), or the Dask cluster at `scheduler` (its workers tuned too). `progress`: a bar of samples
     done on stderr (None: only when stderr is a terminal). `stop_after` (testing: simulates a kill)
     stops once that many samples were written, leaving the dataset unfinished. `compile`
     (`torchvol.runtime.compilation`): "auto" (the default) marches with the Dr.Jit kernels and also
@@ -172,8 +188,10 @@ def generate(
     (`renderer.plan.compile_pays`); "off" (False) renders the eager reference. Both are recorded in
     meta.json (their bytes differ), so a resumed run renders as the first did.
     Returns {"written": samples rendered now, "count", "out"}."""
-    for name, value in (("count", count), ("workers", workers), ("batch", batch), ("shard_size", shard_size)):
+    for name, value in (("count", count), ("workers", workers), ("shard_size", shard_size)):
         integer(name, value, low=1)
+    if batch is not None:
+        integer("batch", batch, low=1)
     if threads is not None:
         integer("threads", threads, low=1)
     integer("seed", seed)
@@ -181,6 +199,7 @@ def generate(
         fail("layout", layout, "expected folder or webdataset")
     compile = compile_mode(compile, auto=True)
     recipe = Recipe.load(recipe, overrides)
+    batch = auto_batch(recipe, count=count, workers=workers, seed=seed) if batch is None else batch
     out = Path(out)
     open_dataset(out, dataset_meta_bytes(recipe, count=count, seed=seed, layout=layout, shard_size=shard_size,
                                          compile=compile), layout)
