@@ -65,6 +65,8 @@ log = _unary("log", None, "The natural logarithm.")
 log2 = _unary("log2", None, "The base-2 logarithm.")
 sqrt = _unary("sqrt", math.sqrt, "The square root.")
 floor = _unary("floor", None, "Rounded down to an integer value (still a float).")
+ceil = _unary("ceil", None, "Rounded up to an integer value (still a float).")
+isfinite = _unary("isfinite", math.isfinite, "Neither infinite nor NaN.")
 abs = _unary("abs", math.fabs, "|x|.")  # noqa: A001  the lane form of the builtin
 round = _unary("round", None, "To the nearest integer value, ties to even (torch.round, drjit.round).")  # noqa: A001  the lane form of the builtin
 

@@ -33,10 +33,11 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from ..geometry.rays import intersect_box
+from ..geometry.rays import box_interval
+from ..ops import lanes
 from ..ops.mathops import take_rows
 
-__all__ = ["Hits", "Lookup", "hybrid_traverse", "reference_traverse", "start", "start_cells", "traverse"]
+__all__ = ["Hits", "Lookup", "hybrid_traverse", "reference_traverse", "start", "start_lanes", "traverse"]
 
 # lookup(cells [N, 3] long, ray_ids [N] long) -> material ids [N] (long, 0 = empty)
 Lookup = Callable[[Tensor, Tensor], Tensor]
@@ -65,31 +66,50 @@ def _bounds(x, like: Tensor) -> Tensor:
     return torch.as_tensor(x, device=like.device).to(torch.long).expand(like.shape[0], 3)
 
 
-def start_cells(o: Tensor, d: Tensor, t: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
-    """The cell [R, 3] long a ray occupies just after parameter `t` [R] (see the module notes)."""
-    p = o + t[:, None] * d
-    cell = torch.where(d < 0, torch.ceil(p) - 1, torch.floor(p))
-    cell = torch.nan_to_num(cell, nan=0.0, posinf=0.0, neginf=0.0).to(torch.long)
-    return torch.minimum(torch.maximum(cell, lo), hi - 1)
-
-
-def _entry_axis(o: Tensor, d: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
-    """The last axis whose slab is entered latest: [R] long."""
-    zero = d == 0
-    ds = torch.where(zero, torch.ones_like(d), d)
-    t_lo = torch.minimum((lo.to(d.dtype) - o) / ds, (hi.to(d.dtype) - o) / ds)
-    t_lo = torch.where(zero, torch.full_like(t_lo, -torch.inf), t_lo)
-    return 2 - torch.argmax(t_lo.flip(-1), dim=-1)
-
-
-def _enter(o: Tensor, d: Tensor, lo: Tensor, hi: Tensor, t_min: Optional[Tensor], t_max: Optional[Tensor]):
-    t_near, t_far = intersect_box(o, d, lo.to(o.dtype), hi.to(o.dtype))
-    t0 = t_near.clamp_min(0.0) if t_min is None else torch.maximum(t_near, t_min)
+def start_lanes(o, d, lo, hi, t_min, t_max):
+    """Where rays o, d (three float lanes each) enter the cell range [lo, hi) (three int lanes each),
+    in lanes (`ops.lanes`: torch columns in `start`, Dr.Jit arrays in `walk.drjit_traverse`): (whether
+    they enter, their entry t0 (0 where not), first cell (three int32 lanes), entry axis (int32)).
+    `t_min`, `t_max`: lanes or None. See the module notes."""
+    lo_f, hi_f = [lanes.to_float(x, o[0]) for x in lo], [lanes.to_float(x, o[0]) for x in hi]
+    t_near, t_far = box_interval(o, d, lo_f, hi_f)
+    t0 = lanes.clamp_min(t_near, 0.0) if t_min is None else lanes.maximum(t_near, t_min)
     ok = (t_near <= t_far) & (t0 <= t_far)
     if t_max is not None:
-        ok &= t0 <= t_max
-    t0 = torch.where(ok, t0, torch.zeros_like(t0))
-    return ok, t0
+        ok = ok & (t0 <= t_max)
+    t0 = lanes.where(ok, t0, 0.0)
+    cell = []
+    for i in range(3):  # the cell just after t0: floor(p), or ceil(p) − 1 moving down; clamped into the range
+        p = o[i] + t0 * d[i]
+        c = lanes.where(d[i] < 0, lanes.ceil(p) - 1.0, lanes.floor(p))
+        c = lanes.where(lanes.isfinite(c), c, 0.0)
+        # clamped before the conversion: the same cell as converting first, and no int32 overflow
+        cell.append(lanes.to_int32(lanes.minimum(lanes.maximum(c, lo_f[i]), hi_f[i] - 1.0)))
+    t_lo = []
+    for i in range(3):  # each slab's entry; an axis the ray runs along never entered
+        zero = d[i] == 0
+        ds = lanes.where(zero, 1.0, d[i])
+        t_lo.append(lanes.where(zero, float("-inf"), lanes.minimum((lo_f[i] - o[i]) / ds, (hi_f[i] - o[i]) / ds)))
+    # the last axis whose slab is entered latest (the x, y, z tie order)
+    axis = lanes.where((t_lo[2] >= t_lo[1]) & (t_lo[2] >= t_lo[0]), 2, lanes.where(t_lo[1] >= t_lo[0], 1, 0))
+    return ok, t0, cell, lanes.to_int32(axis)
+
+
+def start(o: Tensor, d: Tensor, lo, hi, t_min: Tensor | None, t_max: Tensor | None):
+    """Where R rays o, d [R, 3] enter the cell range [lo, hi) ([3] or [R, 3]): (the `Hits` of rays
+    that find nothing, the rays that enter [R] bool, their entry t0 [R], first cell [R, 3] long and
+    entry axis [R], lo and hi as [R, 3] long). The start of every eager walk (`traverse`, `walk`):
+    `start_lanes` on torch columns."""
+    R, dev = o.shape[0], o.device
+    lo, hi = _bounds(lo, o), _bounds(hi, o)
+    ok, t0, cell, axis = start_lanes(o.unbind(1), d.unbind(1), lo.unbind(1), hi.unbind(1), t_min, t_max)
+    cell0, axis0 = torch.stack(cell, 1).long(), axis.long()
+    out = Hits(
+        hit=torch.zeros(R, dtype=torch.bool, device=dev), cell=cell0.clone(), axis=axis0.clone(),
+        t=torch.where(ok, t0, torch.full_like(t0, torch.inf)), material=torch.zeros(R, dtype=torch.long, device=dev),
+        steps=torch.zeros(R, dtype=torch.long, device=dev), t_exit=t0.clone(),
+    )
+    return out, ok, t0, cell0, axis0, lo, hi
 
 
 def _crossings(cell: Tensor, o: Tensor, d: Tensor) -> Tensor:
@@ -154,23 +174,6 @@ def dda_step(cell: Tensor, o: Tensor, d: Tensor, step: Tensor) -> tuple[Tensor, 
     t_next = torch.minimum(torch.minimum(sx, sy), sz)
     new = cell + (ax[:, None] == torch.arange(3, device=cell.device)) * step
     return ax, t_next, new
-
-
-def start(o: Tensor, d: Tensor, lo, hi, t_min: Tensor | None, t_max: Tensor | None):
-    """Where R rays o, d [R, 3] enter the cell range [lo, hi) ([3] or [R, 3]): (the `Hits` of rays
-    that find nothing, the rays that enter [R] bool, their entry t0 [R], first cell [R, 3] long and
-    entry axis [R], lo and hi as [R, 3] long). The start of every walk (`traverse`, `walk`)."""
-    R, dev = o.shape[0], o.device
-    lo, hi = _bounds(lo, o), _bounds(hi, o)
-    ok, t0 = _enter(o, d, lo, hi, t_min, t_max)
-    cell0 = start_cells(o, d, t0, lo, hi)
-    axis0 = _entry_axis(o, d, lo, hi)
-    out = Hits(
-        hit=torch.zeros(R, dtype=torch.bool, device=dev), cell=cell0.clone(), axis=axis0.clone(),
-        t=torch.where(ok, t0, torch.full_like(t0, torch.inf)), material=torch.zeros(R, dtype=torch.long, device=dev),
-        steps=torch.zeros(R, dtype=torch.long, device=dev), t_exit=torch.where(ok, t0, torch.zeros_like(t0)),
-    )
-    return out, ok, t0, cell0, axis0, lo, hi
 
 
 def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance=None, switch=2) -> Hits:

@@ -29,7 +29,7 @@ from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..runtime.compilation import exact_kernel
 from ..runtime.threads import set_drjit_threads
-from .dda import Hits, Visit, start
+from .dda import Hits, Visit, start, start_lanes
 from .fog import FogWalk
 
 __all__ = ["BLOCK", "drjit_traverse", "fused_traverse", "walk_block", "walk_step"]
@@ -232,51 +232,61 @@ def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
 def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
                    max_steps: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
                    distance: Tensor | None = None, switch: int = 2, fog: FogWalk | None = None) -> Hits:
-    """`fused_traverse` without `visit` as one Dr.Jit kernel: each slot's whole walk a loop
-    (`drjit.while_loop`) of `walk_step`, the same function the block runs; float32 rays; `table`,
-    `distance` as `fused_traverse`'s, or already `int_table`s. The same `Hits` as `dda.traverse`,
-    bitwise (tests/voxel/test_walk.py). With `fog`, its τ and its light (`FogWalk.light`, no
-    visits): the walk runs twice, first marking every empty cell it visits, whose light
-    `fog.irradiance` then gives, then summing τ · e^(−τ so far) · that light · colour per ray, in
-    the eager callback's order (its exp Dr.Jit's: within float rounding of eager's)."""
+    """`fused_traverse` without `visit` as one Dr.Jit kernel: each ray's start (`dda.start_lanes`)
+    and whole walk a loop (`drjit.while_loop`) of `walk_step`, the same functions the eager walks
+    run; float32 rays; `table`, `distance` as `fused_traverse`'s, or already `int_table`s. The same
+    `Hits` as `dda.traverse`, bitwise (tests/voxel/test_walk.py). With `fog`, its τ and its light
+    (`FogWalk.light`, no visits): the walk runs twice, first marking every empty cell it visits,
+    whose light `fog.irradiance` then gives, then summing τ · e^(−τ so far) · that light · colour
+    per ray, in the eager callback's order (its exp Dr.Jit's: within float rounding of eager's)."""
     import drjit as dr
-    from drjit.llvm import Bool, Float, Int32
+    from drjit.llvm import Float, Int32
 
-    out, ok, t0, cell0, axis0, lo, hi = start(origins, directions, lo, hi, t_min, t_max)
-    idx = ok.nonzero().squeeze(1)
-    if fog is not None:  # (a ray that enters no grid keeps no fog)
-        fog.tau, fog.light = origins.new_zeros(origins.shape[0]), origins.new_zeros(origins.shape[0], 3)
-    if idx.numel() == 0:
-        return out
+    R = origins.shape[0]
+    if fog is not None:
+        fog.tau, fog.light = origins.new_zeros(R), origins.new_zeros(R, 3)
+    if R == 0:
+        return start(origins, directions, lo, hi, t_min, t_max)[0]
     set_drjit_threads()
-    floats = lambda x: Float(take_rows(x, idx).to(torch.float32).contiguous().numpy())  # noqa: E731
-    ints = lambda x: Int32(take_rows(x, idx).to(torch.int32).contiguous().numpy())  # noqa: E731
+    floats = lambda x: Float(x.to(torch.float32).contiguous().cpu().numpy())  # noqa: E731
+    ints = lambda x: Int32(x.to(torch.int32).contiguous().cpu().numpy())  # noqa: E731
+    lo, hi = (torch.as_tensor(x, device=origins.device).to(torch.int32).expand(R, 3) for x in (lo, hi))
     r = SimpleNamespace(o=[floats(c) for c in origins.unbind(1)], d=[floats(c) for c in directions.unbind(1)],
                         lo=[ints(c) for c in lo.unbind(1)], hi=[ints(c) for c in hi.unbind(1)], base=ints(base),
                         t_max=None if t_max is None else floats(t_max), fog_row=None)
     g = SimpleNamespace(table=int_table(table), distance=None if distance is None else int_table(distance), fog=None,
                         y=int(strides[0]), x=int(strides[1]), max_steps=dr.opaque(Int32, max_steps), switch=switch)
-    n = idx.shape[0]
-    state = (*(ints(c) for c in cell0.unbind(1)), floats(t0), ints(axis0), dr.zeros(Int32, n), dr.full(Bool, True, n),
-             dr.zeros(Float, n), dr.zeros(Int32, n))
+    ok, t0, cell0, axis0 = start_lanes(r.o, r.d, r.lo, r.hi, None if t_min is None else floats(t_min), r.t_max)
+    state = (*cell0, t0, axis0, dr.zeros(Int32, R), ok, dr.zeros(Float, R), dr.zeros(Int32, R))
     if fog is None:
         result = dr.while_loop(state, lambda *x: x[6], lambda *x: tuple(walk_step(list(x), r, g)[0]), mode="symbolic")
     else:
-        result = _fog_walks(fog, state + (dr.zeros(Float, n),), r, g, idx, floats, origins)
-    dr.eval(result)
+        result = _fog_walks(fog, state + (dr.zeros(Float, R),), r, g, floats, origins)
+    dr.eval(result, ok, t0, axis0)
     dr.sync_thread()
-    result = [torch.from_numpy(np.array(v)) for v in result]
-    _write_finished(out, fog, idx, torch.arange(n, device=idx.device), [v.to(origins.device) for v in result])
-    return out
+    return _hits([torch.from_numpy(np.array(v)).to(origins.device) for v in (*result, ok, t0, axis0)], fog)
 
 
-def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespace, idx: Tensor, floats, like: Tensor):
+def _hits(result: list[Tensor], fog: FogWalk | None) -> Hits:
+    """The `Hits` [R] of `drjit_traverse`'s final state and start (ok, t0, axis0): `dda.start`'s
+    for rays that never enter, the walk's where they hit (and the fog's τ in `fog`)."""
+    cx, cy, cz, t, axis, n, _, t_exit, material, *rest = result
+    *fog_tau, ok, t0, axis0 = rest
+    if fog is not None:
+        fog.tau = fog_tau[0]
+    hit = material > 0
+    return Hits(hit=hit, cell=torch.stack([cx, cy, cz], 1).long(), axis=torch.where(hit, axis, axis0).long(),
+                t=torch.where(hit, t, torch.where(ok, t0, torch.full_like(t0, torch.inf))), material=material.long(),
+                steps=n.long(), t_exit=t_exit)
+
+
+def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespace, floats, like: Tensor):
     """`drjit_traverse`'s two walks with the fog (`state` with its τ): the first marks the empty
     cells visited, the second sums their light; fills `fog.light` [R, 3]. -> the walk's final state."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
-    r.fog_row, g.fog = Int32(take_rows(fog.rows, idx).to(torch.int32).numpy()), Float(fog.table.to(torch.float32).numpy())
+    r.fog_row, g.fog = Int32(fog.rows.to(torch.int32).cpu().numpy()), Float(fog.table.to(torch.float32).cpu().numpy())
     cells = dr.width(g.table)
     seen = dr.zeros(Int32, cells)
 
@@ -305,10 +315,10 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
                 for c in range(3)]
         return (*new, *sums)
 
-    result = dr.while_loop(state + tuple(dr.zeros(Float, len(idx)) for _ in range(3)), lambda *x: x[6], summing,
-                           mode="symbolic")
+    result = dr.while_loop(state + tuple(dr.zeros(Float, dr.width(state[0])) for _ in range(3)), lambda *x: x[6],
+                           summing, mode="symbolic")
     dr.eval(result)
-    fog.light[idx] = torch.stack([torch.from_numpy(np.array(v)) for v in result[-3:]], 1).to(like)
+    fog.light = torch.stack([torch.from_numpy(np.array(v)) for v in result[-3:]], 1).to(like)
     return result[:-3]
 
 
