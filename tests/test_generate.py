@@ -103,7 +103,9 @@ def test_workers_give_the_same_bytes(reference, tmp_path):
 def test_the_default_batch_fills_its_rays_and_gives_the_same_bytes(reference, tmp_path):
     recipe = Recipe.load(RECIPE, TINY)  # 16×12: 192 rays a sample
     assert auto_batch(recipe, count=5, workers=1, seed=3) == 3  # two tasks a worker: ceil(5 / 2)
-    assert auto_batch(recipe, count=10_000, workers=2, seed=3) == AUTO_BATCH_RAYS // 192
+    # 341 samples fill the rays: 30 batches (even: as many a worker) of 334
+    assert AUTO_BATCH_RAYS // 192 == 341 and auto_batch(recipe, count=10_000, workers=2, seed=3) == 334
+    assert auto_batch(recipe, count=64, workers=2, seed=3) == 16  # four batches: two a worker
     big = Recipe.load(RECIPE, {"image.width": 512, "image.height": 512})
     assert auto_batch(big, count=10_000, workers=2, seed=3) == 1  # more rays than a batch holds: one sample
     d = tmp_path / "ds"

@@ -326,7 +326,7 @@ def _generate_command() -> Command:
         option("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)"),
         option("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)"),
         option("--batch", type=int, default=None, help="samples rendered as one batch (default: as many as fill "
-               "131,072 rays, at most a worker's share of the samples halved)"),
+               "65,536 rays, in at least two batches a worker)"),
         option("--shard-size", type=int, default=64, help="samples per webdataset shard (default 64)"),
         option("--scheduler", default=None, metavar="ADDRESS", help="run the tasks on this Dask cluster"),
     ))

@@ -116,20 +116,23 @@ def run_task(task: Task) -> list[int]:
     return list(task.indices)
 
 
-# rays one batch of samples renders when `generate` picks the batch: a batch's fixed costs (its plan,
-# its scenes' tables and grids, each kernel's tracing in Python) are shared by its samples. CPU time
-# a sample on one thread (docs/SPEED.md, "Batch size"): voxel-terrain (96×64) 32.6 ms in batches of
-# 4, 27.3 ms of 16; clouds (128²) 13.2 ms of 4, 10.7 ms of 8
-AUTO_BATCH_RAYS = 1 << 17
+# rays one batch of samples renders when `generate` picks the batch, one render chunk: a batch's
+# fixed costs (its plan, its scenes' tables and grids, each kernel's tracing in Python) are shared by
+# its samples. CPU time a sample on one thread (`python tools/bench_batch.py`, docs/SPEED.md, "Batch
+# size"): clouds (64²) 26.5 ms alone, 13.5 ms in batches of 4, 10.8 ms of 16; voxel-terrain (96×64)
+# 47.0, 26.2 and 23.3 ms (of 8)
+AUTO_BATCH_RAYS = 1 << 16
 
 
 def auto_batch(recipe: Recipe, *, count: int, workers: int, seed: int) -> int:
     """The samples a batch renders by default: as many as fill `AUTO_BATCH_RAYS` rays (each
-    sample's views and frames counted), but no more than gives every worker two tasks, so that
-    the workers finish together. A sample's bytes do not depend on it."""
+    sample's views and frames counted), in a number of batches that is a multiple of `workers`
+    and at least two a worker, so that the workers finish together. A sample's bytes do not
+    depend on it."""
     image = recipe.sample_with_params(0, seed)[0].image
     rays = image.width * image.height * recipe.views * (1 if recipe.sequence is None else recipe.sequence.frames)
-    return max(1, min(AUTO_BATCH_RAYS // rays, -(-count // (2 * workers))))
+    batches = max(2 * workers, -(-count // max(1, AUTO_BATCH_RAYS // rays)))
+    return -(-count // (-(-batches // workers) * workers))
 
 
 def plan_tasks(recipe: Recipe, *, count: int, seed: int, out: Path, layout: Layout, batch: int, shard_size: int) -> list[Task]:
