@@ -10,9 +10,10 @@ from torch import Tensor
 
 from ..geometry.sdf import sd_rounded_box
 from ..noise import lattice as noise
+from ..ops import lanes
 from ..ops.mathops import pow_
 
-__all__ = ["face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_refine"]
+__all__ = ["ao_lanes", "face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_refine"]
 
 
 def face_normal(axis: Tensor, directions: Tensor) -> Tensor:
@@ -36,32 +37,40 @@ def face_tone(axis: Tensor, tones: Tensor) -> Tensor:
     return tones.gather(1, axis[:, None])[:, 0]
 
 
-def vertex_ao(side1: Tensor, side2: Tensor, corner: Tensor) -> Tensor:
-    """Occlusion of one face vertex from its two edge neighbours and its corner (0/1 floats)."""
-    return (side1 + side2 + torch.maximum(corner, side1 * side2)) / 3.0
+def vertex_ao(side1, side2, corner):
+    """Occlusion of one face vertex from its two edge neighbours and its corner (0/1 floats, lanes)."""
+    return (side1 + side2 + lanes.maximum(corner, side1 * side2)) / 3.0
 
 
-def voxel_ao(occupied: Callable[[Tensor], Tensor], cell: Tensor, normal: Tensor, axis: Tensor, uv: Tensor, *, gamma: float | Tensor = 1.0) -> Tensor:
-    """Seed Step 7: neighbour AO at the hit face, [N].
-
-    occupied(cells [M, 3] long) -> [M] float 0/1 (M = 8N: the 4 edge and 4 corner neighbours of the
-    empty cell in front of the face, ``pos = cell + normal``, stepped along d1 = e[(axis+1)%3] and
-    d2 = e[(axis+2)%3]); cell [N, 3] long; normal [N, 3]; axis [N]; uv [N, 2] face UV.
+def ao_lanes(occupied: Callable, cell, normal, axis, u, v, gamma):
+    """Seed Step 7: neighbour AO at hit faces, in lanes (`ops.lanes`: torch columns in `voxel_ao`,
+    Dr.Jit arrays in `ao_kernel`). `cell`, `normal`: three int lanes each (the hit cell, the face's
+    outward normal); `axis` int (the face's axis); `u`, `v` the face UV; `gamma`; occupied(x, y, z)
+    -> 1.0 / 0.0 at int cells. The 4 edge and 4 corner neighbours of the empty cell in front of the
+    face, ``pos = cell + normal``, stepped along d1 = e[(axis+1)%3] and d2 = e[(axis+2)%3];
     ao = mix(mix(a.z, a.w, u), mix(a.y, a.x, u), v) ^ gamma with a = 1 − vertexAo per vertex."""
-    n = cell.shape[0]
-    pos = cell + normal.to(torch.long)
-    eye = torch.eye(3, dtype=torch.long, device=cell.device)
-    d1, d2 = eye[(axis + 1) % 3], eye[(axis + 2) % 3]
-    offs = torch.stack([d1, d2, -d1, -d2, d1 + d2, -d1 + d2, -d1 - d2, d1 - d2])  # [8, N, 3]
-    occ = occupied((pos[None] + offs).reshape(-1, 3)).reshape(8, n).to(uv.dtype)
-    sx, sy, sz, sw, cx, cy, cz, cw = occ.unbind(0)
+    pos = [c + n for c, n in zip(cell, normal)]
+    a1, a2 = lanes.where(axis == 2, 0, axis + 1), lanes.where(axis == 0, 2, axis - 1)
+    d1, d2 = [lanes.to_int32(a1 == i) for i in range(3)], [lanes.to_int32(a2 == i) for i in range(3)]
+
+    def at(s1: int, s2: int):
+        return occupied(*(pos[i] + s1 * d1[i] + s2 * d2[i] for i in range(3)))
+
+    sx, sy, sz, sw = at(1, 0), at(0, 1), at(-1, 0), at(0, -1)
+    cx, cy, cz, cw = at(1, 1), at(-1, 1), at(-1, -1), at(1, -1)
     ax = 1.0 - vertex_ao(sx, sy, cx)
     ay = 1.0 - vertex_ao(sy, sz, cy)
     az = 1.0 - vertex_ao(sz, sw, cz)
     aw = 1.0 - vertex_ao(sw, sx, cw)
-    u, v = uv[:, 0], uv[:, 1]
-    ao = torch.lerp(torch.lerp(az, aw, u), torch.lerp(ay, ax, u), v)
-    return pow_(ao, gamma)
+    return pow_(lanes.lerp(lanes.lerp(az, aw, u), lanes.lerp(ay, ax, u), v), gamma)
+
+
+def voxel_ao(occupied: Callable[[Tensor], Tensor], cell: Tensor, normal: Tensor, axis: Tensor, uv: Tensor, *,
+             gamma: float | Tensor = 1.0) -> Tensor:
+    """`ao_lanes` on torch columns: occupied(cells [M, 3] long) -> [M] bool or 0/1; cell [N, 3] long;
+    normal [N, 3]; axis [N]; uv [N, 2] face UV. -> [N]."""
+    return ao_lanes(lambda x, y, z: occupied(torch.stack([x, y, z], 1)).to(uv.dtype), cell.unbind(1),
+                    normal.to(torch.long).unbind(1), axis, uv[:, 0], uv[:, 1], gamma)
 
 
 def lambert(normal: Tensor, sun: Tensor) -> Tensor:

@@ -11,6 +11,8 @@ from ..ops.mathops import take_rows
 from .dda import Hits, hybrid_traverse, traverse
 from .fog import FogWalk
 from .grid import VoxelGrid
+from .shade import voxel_ao
+from .shade_kernel import ao_kernel
 from .walk import drjit_traverse, fused_traverse, int_table
 
 __all__ = ["VoxelTracer"]
@@ -38,12 +40,9 @@ class VoxelTracer:
         lo, hi = take_rows(g.lo, s), take_rows(g.hi, s)
         hybrid = self.traversal == "hybrid" and visit is None and fog is None and not plain
         if self.drjit and visit is None:
-            if not self._tables:
-                self._tables = {"table": int_table(g.flat_materials),
-                                "distance": None if g.flat_distance is None else int_table(g.flat_distance)}
             base, strides = g.flat_base(s)
-            return drjit_traverse(og, dg, self._tables["table"], base, strides, lo, hi, max_steps=max_steps, t_min=t_min,
-                                  t_max=t_max, distance=self._tables["distance"] if hybrid else None, fog=fog)
+            return drjit_traverse(og, dg, self._table("table"), base, strides, lo, hi, max_steps=max_steps, t_min=t_min,
+                                  t_max=t_max, distance=self._table("distance") if hybrid else None, fog=fog)
         if self.compiled:
             base, strides = g.flat_base(s)
             return fused_traverse(og, dg, g.flat_materials, base, strides, lo, hi, max_steps=max_steps,
@@ -64,6 +63,25 @@ class VoxelTracer:
         t_max = None if light.directional else toward.distance
         h = self.traverse(p, toward.direction, s, max_steps=steps, t_max=t_max, plain=True)
         return (~h.hit).to(p.dtype)
+
+    def ao(self, cell: Tensor, normal: Tensor, axis: Tensor, uv: Tensor, gamma: Tensor, s: Tensor) -> Tensor:
+        """`shade.voxel_ao` [n] of hits of scenes s [n] (cell [n, 3] long, face normal [n, 3], axis [n],
+        uv [n, 2], gamma [n]): one Dr.Jit kernel where `drjit`, else eagerly."""
+        g = self.grid
+        if not self.drjit:
+            return voxel_ao(lambda c: g.lookup(c, s) > 0, cell, normal, axis, uv, gamma=gamma)
+        base, strides = g.flat_base(s)
+        return ao_kernel(self._table("table"), base, strides, take_rows(g.lo, s), take_rows(g.hi, s), cell, normal,
+                         axis, uv, gamma)
+
+    def _table(self, name: str):
+        """The grid's flattened materials ("table") or distances ("distance") as a Dr.Jit array,
+        converted once."""
+        if not self._tables:
+            g = self.grid
+            self._tables = {"table": int_table(g.flat_materials),
+                            "distance": None if g.flat_distance is None else int_table(g.flat_distance)}
+        return self._tables[name]
 
     def count(self, steps: Tensor) -> None:
         """Adds rays' DDA steps [n] to `steps_total` (primary, secondary and GI rays; shadow rays

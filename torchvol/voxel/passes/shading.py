@@ -10,7 +10,7 @@ from torch import Tensor
 from ...schema.batch import Stacked, per_scene, take
 from ..grid import VoxelGrid
 from ..materials import default_material, material_table
-from ..shade import atlas_sample, face_normal, face_tone, face_uv, voxel_ao
+from ..shade import atlas_sample, face_normal, face_tone, face_uv
 from .direct import DirectLight
 from .point import ShadingPoint
 
@@ -22,7 +22,7 @@ class Shading:
     atlases and AO of `grid`'s hits, lit by `direct`."""
 
     def __init__(self, voxels: Stacked, plan, grid: VoxelGrid, direct: DirectLight, *, device):
-        self.p, self.plan, self.grid, self.direct = voxels, plan, grid, direct
+        self.p, self.plan, self.grid, self.direct, self.tracer = voxels, plan, grid, direct, direct.tracer
         self.materials = material_table(voxels.materials)  # (B, M, ...)
         if plan.texture:
             self.atlases = [torch.as_tensor(a, device=device) for a in voxels.texture.atlas]
@@ -58,8 +58,7 @@ class Shading:
         """Neighbour AO into the point's albedo (and its `ao`) where `voxels.ao` is set; s [n] the scenes."""
         if self.plan.ao:
             with section("voxels.ao"):
-                ao = voxel_ao(lambda c: (self.grid.lookup(c, s.repeat(8)) > 0), point.cell, point.face_normal,
-                              point.axis, point.uv, gamma=take(self.p.ao.gamma, s))
+                ao = self.tracer.ao(point.cell, point.face_normal, point.axis, point.uv, take(self.p.ao.gamma, s), s)
                 point.albedo = point.albedo * ao[:, None]
                 point.ao = ao[:, None]
 

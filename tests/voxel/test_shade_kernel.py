@@ -1,0 +1,49 @@
+"""The voxel shading kernels (`voxel.shade_kernel`) against the eager shading functions they trace
+(`voxel.shade`): the same lanes functions, Dr.Jit's exp and log within float rounding."""
+
+import pytest
+import torch
+
+from tests.conftest import assert_close
+from torchvol.voxel.shade import voxel_ao
+from torchvol.voxel.shade_kernel import ao_kernel
+from torchvol.voxel.walk import int_table
+
+
+def _drjit() -> bool:
+    try:
+        import drjit as dr
+    except ImportError:
+        return False
+    return bool(dr.has_backend(dr.JitBackend.LLVM))
+
+
+@pytest.mark.skipif(not _drjit(), reason="Dr.Jit's LLVM backend is not available")
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_ao_kernel_is_the_eager_ao(seed):
+    """Hits on every face of random cells of two scenes with their own cell ranges, border cells
+    included (their neighbours outside the range are empty), any UV and gamma."""
+    g = torch.Generator().manual_seed(seed)
+    Z, Y, X = 6, 7, 8
+    occ = ((torch.rand(2, Z, Y, X, generator=g) < 0.4) * torch.randint(1, 4, (2, Z, Y, X), generator=g)).to(torch.uint8)
+    lo = torch.randint(-4, 4, (2, 3), generator=g)
+    hi = lo + torch.tensor([X, Y, Z])
+    n = 4000
+    s = torch.randint(0, 2, (n,), generator=g)
+    cell = lo[s] + (torch.rand(n, 3, generator=g) * (hi - lo)[s]).long()
+    axis = torch.randint(0, 3, (n,), generator=g)
+    normal = torch.zeros(n, 3).scatter_(1, axis[:, None], torch.randint(0, 2, (n, 1), generator=g).float() * 2 - 1)
+    uv, gamma = torch.rand(n, 2, generator=g), 0.3 + 1.7 * torch.rand(n, generator=g)
+    flat = occ.reshape(-1)
+    base = ((s * Z - lo[s, 2]) * Y - lo[s, 1]) * X - lo[s, 0]
+
+    def lookup(c):
+        r, ss = c - lo[s], s
+        inside = ((c >= lo[ss]) & (c < hi[ss])).all(dim=1)
+        r = torch.where(inside[:, None], r, 0)
+        return inside & (flat[((ss * Z + r[:, 2]) * Y + r[:, 1]) * X + r[:, 0]] > 0)
+
+    eager = voxel_ao(lookup, cell, normal, axis, uv, gamma=gamma)
+    kernel = ao_kernel(int_table(flat), base, torch.tensor([Y, X]), lo[s], hi[s], cell, normal, axis, uv, gamma)
+    assert (eager < 0.5).any() and (eager == 1).any(), "no hit was occluded, or every one was"
+    assert_close(kernel, eager, atol=1e-6, what="AO")
