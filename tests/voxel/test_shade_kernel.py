@@ -1,12 +1,16 @@
 """The voxel shading kernels (`voxel.shade_kernel`) against the eager shading functions they trace
 (`voxel.shade`): the same lanes functions, Dr.Jit's exp and log within float rounding."""
 
+import math
+
 import pytest
 import torch
 
+import torchvol as tv
 from tests.conftest import assert_close
+from torchvol.voxel.cone import build_mips, mip_table, trace_cones
 from torchvol.voxel.shade import voxel_ao
-from torchvol.voxel.shade_kernel import ao_kernel
+from torchvol.voxel.shade_kernel import ao_kernel, cones_kernel, mips_lanes
 from torchvol.voxel.walk import int_table
 
 
@@ -47,3 +51,34 @@ def test_the_ao_kernel_is_the_eager_ao(seed):
     kernel = ao_kernel(int_table(flat), base, torch.tensor([Y, X]), lo[s], hi[s], cell, normal, axis, uv, gamma)
     assert (eager < 0.5).any() and (eager == 1).any(), "no hit was occluded, or every one was"
     assert_close(kernel, eager, atol=1e-6, what="AO")
+
+
+@pytest.mark.skipif(not _drjit(), reason="Dr.Jit's LLVM backend is not available")
+@pytest.mark.parametrize("seed, aperture", [(0, 20.0), (1, 60.0)])
+def test_the_cones_kernel_is_the_eager_cone_march(seed, aperture):
+    """Cones from random points of two scenes' random mip chains (8³: four levels), in any
+    direction, narrow and wide (every level blended), some starting outside the cube or
+    limited by max_t: the same `cone_step`, in one Dr.Jit loop."""
+    g = torch.Generator().manual_seed(seed)
+    occ = (torch.rand(2, 8, 8, 6, generator=g) < 0.25).float()
+    levels = build_mips(occ, torch.rand(2, 3, 8, 8, 6, generator=g), occ * (torch.rand(2, 8, 8, 6, generator=g) < 0.7))
+    n = 3000
+    origin = torch.rand(n, 3, generator=g) * 10.0 - 1.0
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    s = torch.randint(0, 2, (n,), generator=g)
+    ratio = torch.full((n,), 2.0 * math.tan(math.radians(aperture)))
+    max_t = torch.rand(n, generator=g) * 12.0
+    colour, occlusion = trace_cones(levels, origin, d, s, ratio, steps=24, max_t=max_t)
+    k_colour, k_occlusion = cones_kernel(mips_lanes(*mip_table(levels)), origin, d, s, ratio, steps=24, max_t=max_t)
+    assert (occlusion > 0.5).any() and (occlusion == 0).any(), "no cone was occluded, or every one was"
+    assert_close(k_occlusion, occlusion, atol=1e-6, what="occlusion")
+    assert_close(k_colour, colour, atol=1e-6 * float(colour.abs().max()), what="radiance")
+
+
+@pytest.mark.skipif(not _drjit(), reason="Dr.Jit's LLVM backend is not available")
+def test_the_cone_preset_renders_as_its_eager_reference():
+    scene = tv.preset("voxel-cone", width=24, height=18)
+    eager, kernel = tv.render(scene, compile="off"), tv.render(scene)
+    assert_close(kernel.radiance, eager.radiance, atol=1e-6 * float(eager.radiance.abs().max()), what="radiance")
+    for key, value in eager.aovs.items():
+        assert_close(kernel.aovs[key], value, atol=1e-6, what=key)

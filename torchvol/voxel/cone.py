@@ -40,6 +40,8 @@ levels each), no DDA traversal.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from types import SimpleNamespace
 from typing import Annotated, Literal, Union
 
 import torch
@@ -47,12 +49,12 @@ import torch.nn.functional as F
 from pydantic import Discriminator, Field, Tag
 from torch import Tensor
 
-from ..ops import mathops
+from ..ops import lanes, mathops
 from ..schema.models import Strict
 from .gi import DistanceLOD, VoxelGI, tangent_frame
 
-__all__ = ["ConeLOD", "VoxelCone", "VoxelGIs", "build_mips", "cone_ao", "cone_directions", "default_aperture", "face_cells",
-           "sample_mips", "trace_cones"]
+__all__ = ["ConeLOD", "VoxelCone", "VoxelGIs", "build_mips", "cone_ao", "cone_directions", "cone_step", "default_aperture",
+           "face_cells", "mip_table", "trace_cones"]
 
 OPAQUE = 0.99  # a cone stops when its occlusion passes this
 CHANNELS = 5  # radiance · surface (3), surface, opacity
@@ -154,67 +156,91 @@ def build_mips(opacity: Tensor, radiance: Tensor, surface: Tensor) -> list[Tenso
     return levels
 
 
-def _fetch(level: Tensor, g: Tensor, s: Tensor) -> Tensor:
-    """Trilinear samples [n, 5] of one level (B, 5, P, P, P) at normalised grid points g [n, 3] (x, y,
-    z in [-1, 1] over the padded cube; zero outside) of scenes s [n]."""
-    out = g.new_zeros(g.shape[0], CHANNELS)
-    for b in range(level.shape[0]):
-        idx = (s == b).nonzero().squeeze(1) if level.shape[0] > 1 else None
-        pts = g if idx is None else g[idx]
-        if pts.shape[0] == 0:
-            continue
-        v = F.grid_sample(level[b:b + 1], pts.view(1, -1, 1, 1, 3), mode="bilinear", padding_mode="zeros",
-                          align_corners=False).view(CHANNELS, -1).t()
-        if idx is None:
-            return v
-        out[idx] = v
+def mip_table(levels: list[Tensor]) -> tuple[Tensor, list[int], list[int]]:
+    """The mip chain as one flat table, channel last: level l's entry (b, z, y, x, c) at
+    ``offsets[l] + (((b·P_l + z)·P_l + y)·P_l + x)·5 + c`` -> (table [M], offsets, sizes P_l)."""
+    flat = [level.permute(0, 2, 3, 4, 1).reshape(-1) for level in levels]
+    offsets = [0]
+    for f in flat[:-1]:
+        offsets.append(offsets[-1] + f.shape[0])
+    return torch.cat(flat), offsets, [level.shape[-1] for level in levels]
+
+
+def _fetch_lanes(table, gather_level: Callable, lvl, g, s):
+    """Trilinear samples (five lanes) of level `lvl` (int lanes) at normalised points `g` (three
+    lanes, x, y, z in [-1, 1] over the padded cube) of scenes `s` (int lanes), zero outside: the
+    `F.grid_sample` of align_corners=False and zero padding, in lanes. `gather_level(lvl)` -> (its
+    offset (int lanes), its size P (int lanes))."""
+    offset, size = gather_level(lvl)
+    fsize = lanes.to_float(size, g[0])
+    ix = [((c + 1.0) * fsize - 1.0) * 0.5 for c in g]
+    i0 = [lanes.to_int32(lanes.floor(x)) for x in ix]
+    w1 = [x - lanes.floor(x) for x in ix]
+    out = [0.0] * CHANNELS
+    for corner in range(8):
+        idx = [i0[a] + ((corner >> a) & 1) for a in range(3)]
+        w = [w1[a] if (corner >> a) & 1 else 1.0 - w1[a] for a in range(3)]
+        inside = ((idx[0] >= 0) & (idx[0] < size) & (idx[1] >= 0) & (idx[1] < size) & (idx[2] >= 0)
+                  & (idx[2] < size))
+        at = offset + (((s * size + idx[2]) * size + idx[1]) * size + idx[0]) * CHANNELS
+        at = lanes.where(inside, at, 0)
+        weight = lanes.where(inside, w[0] * w[1] * w[2], 0.0)
+        for c in range(CHANNELS):
+            out[c] = out[c] + weight * lanes.gather(table, at + c)
     return out
 
 
-def sample_mips(levels: list[Tensor], g: Tensor, lod: Tensor, s: Tensor) -> Tensor:
-    """Samples [n, 5] of the mip chain at normalised points g [n, 3] of scenes s [n] at fractional
-    levels lod [n] (clamped to the chain): trilinear in each level, linear between the two nearest."""
-    top = len(levels) - 1
-    lod = lod.clamp(0.0, float(top))
-    lo = lod.floor().clamp(max=max(top - 1, 0)).long()
-    frac = (lod - lo.to(lod.dtype))[:, None]
-    out = g.new_zeros(g.shape[0], CHANNELS)
-    for level in torch.unique(lo).tolist():
-        idx = (lo == level).nonzero().squeeze(1)
-        a = _fetch(levels[level], g[idx], s[idx])
-        if level + 1 <= top:
-            a = a + frac[idx] * (_fetch(levels[level + 1], g[idx], s[idx]) - a)
-        out[idx] = a
-    return out
+def cone_step(state: list, ray: SimpleNamespace, mips: SimpleNamespace) -> list:
+    """One sample of every cone, in lanes (`ops.lanes`: torch columns in `trace_cones`, Dr.Jit
+    arrays in `shade_kernel.cones_kernel`): state (t, occlusion, the radiance's three lanes,
+    alive); `ray` its origin and direction (three lanes each, in cells of the padded cube), scene
+    s, ratio, max_t; `mips` the chain (`mip_table`'s table, gather_level, top, size P). -> the
+    state after it (a finished cone kept as it was)."""
+    t, occ, cr, cg, cb, alive = state
+    radius = lanes.clamp_min(0.5 * t * ray.ratio, 0.5)  # a cone is at least a voxel wide
+    p = [o + t * d for o, d in zip(ray.o, ray.d)]
+    # the level whose cells are as wide as the radius, the step: samples tile the cone's axis
+    lod = lanes.clamp(lanes.log2(radius), 0.0, float(mips.top))
+    lo = lanes.to_int32(lanes.clamp_max(lanes.floor(lod), float(max(mips.top - 1, 0))))
+    frac = lod - lanes.to_float(lo, lod)
+    g = [c * (2.0 / mips.size) - 1.0 for c in p]
+    v = _fetch_lanes(mips.table, mips.gather_level, lo, g, ray.s)
+    if mips.top > 0:
+        v1 = _fetch_lanes(mips.table, mips.gather_level, lo + 1, g, ray.s)
+        v = [a + frac * (b - a) for a, b in zip(v, v1)]
+    alpha = lanes.clamp(v[4], 0.0, 1.0)
+    # a step shorter than the (level-0) cell crosses that share of it
+    alpha = lanes.where(radius >= 1.0, alpha, 1.0 - mathops.pow_(1.0 - alpha, radius))
+    surface = lanes.clamp_min(v[3], 1e-12)
+    weight = (1.0 - occ) * alpha
+    lit = [c + weight * (v[k] / surface) for k, c in enumerate((cr, cg, cb))]
+    occ_new, t_new = occ + weight, t + radius
+    # past the cube (outside is empty: open to the sky), or wider than it (the top level's one cell)
+    inside = radius <= mips.size
+    for c in p:
+        inside = inside & (c >= 0.0) & (c <= mips.size)
+    keep = alive & (occ_new < OPAQUE) & inside & (t_new < ray.max_t)
+    return [lanes.where(alive, t_new, t), lanes.where(alive, occ_new, occ),
+            *(lanes.where(alive, new, old) for new, old in zip(lit, (cr, cg, cb))), keep]
 
 
 def trace_cones(levels: list[Tensor], origin: Tensor, direction: Tensor, s: Tensor, ratio: Tensor, *,
                 steps: int, max_t: Tensor) -> tuple[Tensor, Tensor]:
-    """March cones front to back through the mip chain. origin [n, 3] in cells of the padded cube
-    (its (0, 0, 0) corner at 0), direction [n, 3] unit, s [n] scenes, ratio [n] the diameter per unit
-    distance (2·tan(half-angle)), max_t [n] the longest distance (cells) -> (radiance [n, 3] the
-    accumulated radiance, occlusion [n] in [0, 1])."""
-    n, P = origin.shape[0], levels[0].shape[-1]
-    color, occ = origin.new_zeros(n, 3), origin.new_zeros(n)
-    t = torch.ones_like(occ)  # the seed's t = 1: the first sample a voxel out
-    alive = torch.arange(n, device=origin.device)
-    for _ in range(steps):
-        if not alive.numel():
+    """March cones front to back through the mip chain (`cone_step` on torch columns, `steps`
+    samples at most). origin [n, 3] in cells of the padded cube (its (0, 0, 0) corner at 0),
+    direction [n, 3] unit, s [n] scenes, ratio [n] the diameter per unit distance (2·tan(half-angle)),
+    max_t [n] the longest distance (cells) -> (radiance [n, 3] the accumulated radiance, occlusion
+    [n] in [0, 1])."""
+    table, offsets, sizes = mip_table(levels)
+    offsets_t, sizes_t = (torch.tensor(x, device=s.device) for x in (offsets, sizes))
+    mips = SimpleNamespace(table=table, top=len(levels) - 1, size=levels[0].shape[-1],
+                           gather_level=lambda lvl: (offsets_t[lvl.long()], sizes_t[lvl.long()]))
+    ray = SimpleNamespace(o=origin.unbind(1), d=direction.unbind(1), s=s, ratio=ratio, max_t=max_t)
+    n = origin.shape[0]
+    state = [torch.ones(n, dtype=origin.dtype, device=origin.device), origin.new_zeros(n), origin.new_zeros(n),
+             origin.new_zeros(n), origin.new_zeros(n), torch.ones(n, dtype=torch.bool, device=origin.device)]
+    for _ in range(steps):  # the seed's t = 1: the first sample a voxel out
+        if not bool(state[5].any()):
             break
-        ta = t[alive]
-        radius = (0.5 * ta * ratio[alive]).clamp_min(0.5)  # a cone is at least a voxel wide
-        p = origin[alive] + ta[:, None] * direction[alive]
-        # the level whose cells are as wide as the radius, the step: samples tile the cone's axis
-        v = sample_mips(levels, p * (2.0 / P) - 1.0, torch.log2(radius), s[alive])
-        alpha = v[:, 4].clamp(0.0, 1.0)
-        # a step shorter than the (level-0) cell crosses that share of it
-        alpha = torch.where(radius >= 1.0, alpha, 1.0 - mathops.pow_(1.0 - alpha, radius))
-        rad = v[:, :3] / v[:, 3].clamp_min(1e-12)[:, None]
-        weight = (1.0 - occ[alive]) * alpha
-        color[alive] += weight[:, None] * rad
-        occ[alive] += weight
-        t[alive] = ta + radius
-        # past the cube (outside is empty: open to the sky), or wider than it (the top level's one cell)
-        inside = ((p >= 0.0) & (p <= P)).all(dim=1) & (radius <= P)
-        alive = alive[(occ[alive] < OPAQUE) & inside & (t[alive] < max_t[alive])]
-    return color, occ
+        state = cone_step(state, ray, mips)
+    return torch.stack(state[2:5], 1), state[1]

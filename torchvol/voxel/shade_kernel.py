@@ -12,9 +12,10 @@ import torch
 from torch import Tensor
 
 from ..runtime.threads import set_drjit_threads
+from .cone import cone_step
 from .shade import ao_lanes
 
-__all__ = ["ao_kernel"]
+__all__ = ["ao_kernel", "cones_kernel", "mips_lanes"]
 
 
 def ao_kernel(table, base: Tensor, strides: Tensor, lo: Tensor, hi: Tensor, cell: Tensor, normal: Tensor,
@@ -46,3 +47,43 @@ def ao_kernel(table, base: Tensor, strides: Tensor, lo: Tensor, hi: Tensor, cell
     dr.eval(ao)
     dr.sync_thread()
     return torch.from_numpy(np.array(ao)).to(uv)
+
+
+def mips_lanes(table: Tensor, offsets: list[int], sizes: list[int]) -> SimpleNamespace:
+    """A mip chain (`cone.mip_table`'s table [M], level offsets and sizes) as `cone.cone_step` takes
+    it in a kernel: Dr.Jit arrays, built once a render."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    flat, offset, size = Float(table.to(torch.float32).cpu().numpy()), Int32(offsets), Int32(sizes)
+    return SimpleNamespace(table=flat, top=len(sizes) - 1, size=sizes[0],
+                           gather_level=lambda lvl: (dr.gather(Int32, offset, lvl), dr.gather(Int32, size, lvl)))
+
+
+def cones_kernel(mips: SimpleNamespace, origin: Tensor, direction: Tensor, s: Tensor, ratio: Tensor, *, steps: int,
+                 max_t: Tensor) -> tuple[Tensor, Tensor]:
+    """`cone.trace_cones` as one Dr.Jit kernel: each cone's march a loop of `cone.cone_step`
+    (`mips`: `mips_lanes`). origin, direction [n, 3]; s, ratio, max_t [n]. -> (radiance [n, 3],
+    occlusion [n]) in origin's dtype (Dr.Jit's exp, log and log2: within float rounding of eager's)."""
+    import drjit as dr
+    from drjit.llvm import Bool, Float, Int32
+
+    n = origin.shape[0]
+    if n == 0:
+        return origin.new_zeros(0, 3), origin.new_zeros(0)
+    set_drjit_threads()
+    floats = lambda x: Float(x.to(torch.float32).contiguous().cpu().numpy())  # noqa: E731
+    ray = SimpleNamespace(o=[floats(c) for c in origin.unbind(1)], d=[floats(c) for c in direction.unbind(1)],
+                          s=Int32(s.to(torch.int32).cpu().numpy()), ratio=floats(ratio), max_t=floats(max_t))
+    limit = dr.opaque(Int32, steps)
+    state = (dr.full(Float, 1.0, n), dr.zeros(Float, n), dr.zeros(Float, n), dr.zeros(Float, n), dr.zeros(Float, n),
+             dr.full(Bool, True, n), dr.zeros(Int32, n))
+
+    def body(*x):  # the seed's t = 1: the first sample a voxel out
+        return (*cone_step(list(x[:6]), ray, mips), x[6] + 1)
+
+    out = dr.while_loop(state, lambda *x: x[5] & (x[6] < limit), body, mode="symbolic")
+    dr.eval(out)
+    dr.sync_thread()
+    colour = torch.stack([torch.from_numpy(np.array(c)) for c in out[2:5]], 1).to(origin)
+    return colour, torch.from_numpy(np.array(out[1])).to(origin)

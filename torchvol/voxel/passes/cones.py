@@ -17,9 +17,11 @@ from ..cone import (
     cone_directions,
     default_aperture,
     face_cells,
+    mip_table,
     trace_cones,
 )
 from ..grid import VoxelGrid
+from ..shade_kernel import cones_kernel, mips_lanes
 from .direct import DirectLight
 from .point import ShadingPoint
 from .shading import Shading
@@ -36,6 +38,7 @@ class ConeGI:
                  sky: Callable[[Tensor, Tensor], Tensor] | None):
         self.p, self.plan, self.grid, self.shading, self.direct, self.sky = voxels, plan, grid, shading, direct, sky
         self.mips = None
+        self.drjit = direct.tracer.drjit  # the cones as one Dr.Jit kernel where the walks are
 
     def __call__(self, point: ShadingPoint, s: Tensor, distance: Tensor, section) -> Tensor:
         """The cones' incoming radiance [n, 3] at the hits `point` of scenes s [n], seen from the
@@ -44,6 +47,8 @@ class ConeGI:
         if self.mips is None:
             with section("voxels.gi.mips"):
                 self.mips = self._mips()
+                if self.drjit:
+                    self.mips_lanes = mips_lanes(*mip_table(self.mips))
         with section("voxels.gi.cones"):
             return self._cones(point, s, distance)
 
@@ -69,8 +74,11 @@ class ConeGI:
         d = torch.cat([cone_directions(point.face_normal[h], k).reshape(-1, 3) for h, k in groups])
         so = s[owner]
         origin = g.to_grid(point.x[owner], so) - g.lo[so].to(dt) + OFFSET * point.face_normal[owner]
-        color, occ = trace_cones(self.mips, origin, d, so, ratio[owner], steps=gi.steps,
-                                 max_t=take(gi.max_distance, so) / g.voxel_size[so])
+        max_t = take(gi.max_distance, so) / g.voxel_size[so]
+        if self.drjit:
+            color, occ = cones_kernel(self.mips_lanes, origin, d, so, ratio[owner], steps=gi.steps, max_t=max_t)
+        else:
+            color, occ = trace_cones(self.mips, origin, d, so, ratio[owner], steps=gi.steps, max_t=max_t)
         if self.sky is not None:
             color = color + (1.0 - occ)[:, None] * self.sky(d, so)
         indirect = torch.zeros_like(point.x).index_add_(0, owner, weight[:, None] * color)
