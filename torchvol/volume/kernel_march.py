@@ -40,11 +40,12 @@ from ..fields import DENSITIES
 from ..fields.base import DENSITY_MAX
 from ..fields.edge import EdgeField, faded
 from ..fields.heightfield import terrain_lanes, visible_lanes
-from ..geometry.bounds import BOUNDS
+from ..geometry.bounds import BOUNDS, bounds_lanes
 from ..light.lights import point_lanes
 from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
 from ..schema.batch import take
+from .ambient import ambient_lanes, ambient_radiance
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
 from .march import MarchResult, median_crossing
@@ -72,7 +73,6 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
         (batch.atmosphere is None, "the [atmosphere]"),
         (settings.tolerance is None, "the error-controlled march"),
         (vol.sky_blend is None, "a sky blend"),
-        (vol.ambient is None or vol.ambient.top is None, "a graded ambient"),
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
         (all(_has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
              for u in passes for j in u.occluders), "shadows through a volume not written in lanes"),
@@ -104,10 +104,8 @@ def _field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
 
     inner, edge = _inner_and_edge(vol)
     inputs, density = DENSITIES[vol.params.density.kind].caps["lanes"][:2]
-    bounds = vol.params.bounds.value
     return SimpleNamespace(
-        field=inputs(inner, _to(s, per_ray)), field_density=density,
-        bounds=SimpleNamespace(**{name: per_ray(getattr(bounds, name)) for name in type(bounds.models[0]).model_fields}),
+        field=inputs(inner, _to(s, per_ray)), field_density=density, bounds=bounds_lanes(vol.params.bounds.value, per_ray),
         edge=None if edge is None else SimpleNamespace(width=per_ray(edge.width),
                                                        base=None if edge.base is None else per_ray(edge.base)))
 
@@ -176,7 +174,8 @@ def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
 def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray) -> SimpleNamespace:
     """What a member's sample takes per ray, for rays of directions `d` [n, 3] and scenes `s` [n],
     computed by the eager code: σ_t, albedo, what its lights and sky light take (the suns' phase
-    responses, `physical.light_responses`), its emission, colour map and bloom."""
+    responses, `physical.light_responses`; the ambient, `ambient.ambient_lanes`), its emission,
+    colour map and bloom."""
     k = SimpleNamespace(direction=lane(d), sigma_t=per_ray(vol.params.sigma_t), albedo=per_ray(vol.params.albedo))
     responses = light_responses(ctx, vol, d, s)
     k.lights = []
@@ -209,7 +208,7 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray) -> SimpleNames
         k.exponents = [per_ray(b**i) for i in range(1, vol.params.multiple_scattering.octaves)]
     if vol.plan.ambient:
         amb = vol.params.ambient
-        k.ambient = lane(take(vol.ambient_bottom, s))
+        k.ambient = ambient_lanes(vol, per_ray)
         k.ambient_direction = per_ray(torch.nn.functional.normalize(amb.direction, dim=1))
         k.ambient_sigma = per_ray(amb.sigma_scale * vol.params.sigma_t)
     return k
@@ -452,7 +451,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
             out = [out[c] + sum((response[i][c] * weights[i] for i in range(1, len(weights))),
                                 response[0][c] * weights[0]) for c in range(3)]
         if vol.plan.ambient:
-            amb = [k.ambient[c] * sigma_s for c in range(3)]
+            amb = [a * sigma_s for a in ambient_radiance(k.ambient, p)]
             sky = vol.plan.ambient_sky
             if sky is not None:
                 v = transmittance(p, k.ambient_direction, k.ambient_sigma, sky.shadow, sky.occluders,
