@@ -50,7 +50,7 @@ from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
 from .march import MarchResult, median_crossing
 from .multiple import octave_weights
-from .physical import light_responses
+from .physical import light_responses, sky_blend
 from .shader_look import ambient_light, derivative_light, look_lanes, shaded
 from .shadow import occluder_transmittance, shadow_segments, sun_grids
 from .sun_volume import grid_transmittance, grids_lanes
@@ -72,7 +72,6 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
         (vol.shading in ("physical", "shader", "surface"), f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
         (settings.tolerance is None, "the error-controlled march"),
-        (vol.sky_blend is None, "a sky blend"),
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
         (all(_has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
              for u in passes for j in u.occluders), "shadows through a volume not written in lanes"),
@@ -171,11 +170,11 @@ def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
     return run
 
 
-def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray) -> SimpleNamespace:
+def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> SimpleNamespace:
     """What a member's sample takes per ray, for rays of directions `d` [n, 3] and scenes `s` [n],
     computed by the eager code: σ_t, albedo, what its lights and sky light take (the suns' phase
     responses, `physical.light_responses`; the ambient, `ambient.ambient_lanes`), its emission,
-    colour map and bloom."""
+    colour map and bloom, and its sky blend towards the sky `behind` the rays (three lanes)."""
     k = SimpleNamespace(direction=lane(d), sigma_t=per_ray(vol.params.sigma_t), albedo=per_ray(vol.params.albedo))
     responses = light_responses(ctx, vol, d, s)
     k.lights = []
@@ -211,13 +210,16 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray) -> SimpleNames
         k.ambient = ambient_lanes(vol, per_ray)
         k.ambient_direction = per_ray(torch.nn.functional.normalize(amb.direction, dim=1))
         k.ambient_sigma = per_ray(amb.sigma_scale * vol.params.sigma_t)
+    if vol.plan.sky_blend:
+        k.behind, k.sky_blend = behind, per_ray(vol.params.sky_blend)
     return k
 
 
-def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: Tensor | None, *,
-          shares: bool = False) -> MarchResult:
+def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor, active: Tensor,
+          dither: Tensor | None, *, shares: bool = False) -> MarchResult:
     """The fixed march of the physical volumes `vols` (`supports` said yes for each) along a
-    chunk's `rays` [R] as one Dr.Jit kernel: each ray's span cut into pieces [start, end] [P, R]
+    chunk's `rays` [R] (the sky behind them `background` [R, 3], None: black; what a sky blend
+    fades towards) as one Dr.Jit kernel: each ray's span cut into pieces [start, end] [P, R]
     (`joint.pieces`; one volume alone: one piece, its chord), medium v present in piece p where
     `active` [P, V, R]; in each piece σ_t and the sources of the media present summed, as
     `joint.summed_medium` does, and the piece marched by the render's step rule from its own
@@ -248,7 +250,8 @@ def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: T
     solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
     par = _parameters(ctx.settings)
     terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, _to(s, per_ray), torch.float32)
-    members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray)),
+    behind = [0.0] * 3 if background is None else lane(background.index_select(0, idx))
+    members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray, behind)),
                                medium=_medium(m, v, par, solids, terrain, count)) for v in vols]
     n = len(idx)
     zero, q0 = dr.zeros(Float, n), Int32(first_piece.to(torch.int32).numpy())
@@ -603,6 +606,8 @@ def _sample(m: SimpleNamespace, par: SimpleNamespace, count: int, p, t_sample, d
         source = tuple(a + b for a, b in zip(source, mk.emission_glow(mk.emission_map, p, raw)))
     if vol.plan.bloom is not None:
         source = tuple(a + b for a, b in zip(source, bloom_source(mk.bloom, p)))
+    if vol.plan.sky_blend:  # last, as `physical_medium` blends the whole source
+        source = sky_blend(source, mk.behind, sigma_t, mk.sky_blend, t_sample)
     return sigma_t, tuple(source), evals
 
 
