@@ -176,18 +176,20 @@ BOUNDS = Registry("bounds")
 # (`bounds_lanes`): interval(q, o, d) -> (t_near, t_far), depth(q, p) -> distance in, altitude(q, p)
 # -> the height its `height_range` grades (y, or a shell's radial altitude); what a kernel traces
 _height = lambda q, p: p[1]  # noqa: E731
-BOUNDS.register("box", Box, _box_intersect, finite=True, aabb=lambda b: (b.min, b.max),
+BOUNDS.register("box", Box, _box_intersect, finite=True, layer=False, aabb=lambda b: (b.min, b.max),
                 height_range=lambda b: _heights(b.min[:, 1], b.max[:, 1]), depth=_box_depth,
                 lanes=(lambda q, o, d: box_interval(o, d, q.min, q.max), lambda q, p: box_depth(p, q.min, q.max), _height))
-BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, aabb=_sphere_aabb,
+BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, layer=False, aabb=_sphere_aabb,
                 height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius), depth=_sphere_depth,
                 lanes=(lambda q, o, d: sphere_interval(o, d, q.center, q.radius),
                        lambda q, p: sphere_depth(p, q.center, q.radius), _height))
+# `layer`: a layer over the ground (a slab, a planet's shell), far wider than what a view of it marches
 # a slab's exit is at infinity along its planes: rays stop at SLAB_REACH unless march.max_distance says
-BOUNDS.register("slab", Slab, _slab_intersect, finite=False, aabb=None, height_range=lambda b: _heights(b.y_min, b.y_max),
+BOUNDS.register("slab", Slab, _slab_intersect, finite=False, layer=True, aabb=None,
+                height_range=lambda b: _heights(b.y_min, b.y_max),
                 depth=_slab_depth, lanes=(lambda q, o, d: slab_interval(o, d, q.y_min, q.y_max),
                                           lambda q, p: slab_depth(p, q.y_min, q.y_max), _height))
-BOUNDS.register("shell", Shell, _shell_intersect, finite=True, aabb=_shell_aabb,
+BOUNDS.register("shell", Shell, _shell_intersect, finite=True, layer=True, aabb=_shell_aabb,
                 height_range=lambda b: _heights(b.bottom, b.top), depth=_shell_depth,
                 lanes=(shell_lanes_interval, lambda q, p: shell_depth(p, q.planet_radius, q.bottom, q.top),
                        lambda q, p: shell_altitude(p, q.planet_radius)))
