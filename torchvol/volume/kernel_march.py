@@ -8,16 +8,18 @@ statistics inside it.
 
 One source: every per-sample formula here is the eager renderer's own function, written in lanes
 (`ops.lanes`) and traced here with Dr.Jit arrays: the density (its kind's ``lanes`` capability in
-`fields.DENSITIES`: constant, exponential, value-noise fbm, explosion), the edge fade
-(`fields.edge.faded` over the bounds' ``lanes`` depth), the shadow rays' exits and segments (the
-bounds' ``lanes`` interval, `volume.shadow.shadow_segments`), the sun's grid lookup
+`fields.DENSITIES`: constant, exponential, value-noise fbm, explosion, particles, fur, the
+production cloudscape), the edge fade (`fields.edge.faded` over the bounds' ``lanes`` depth), the
+shadow rays' exits and segments (the bounds' ``lanes`` interval: box, sphere, slab, a planet's
+shell; `volume.shadow.shadow_segments`), the ambient graded by the bounds' ``lanes`` altitude
+(`volume.ambient.ambient_radiance`), the sky blend (`volume.physical.sky_blend`), the sun's grid lookup
 (`volume.sun_volume.grid_transmittance`), a point light's falloff (`light.lights.point_lanes`)
 and phase (`light.phase`'s ``lanes``), the multiple-scattering octaves
 (`volume.multiple.octave_weights`), the emission colour map and bloom, the step rule
 (`march.StepRule.length`), the integrator's step (`integrate.WEIGHTS`) and the median
 (`march.median_crossing`). What is constant along a ray is computed by the eager code itself
 before the kernel runs: the suns' phase responses (`physical.light_responses`), the dither, the
-pieces, the sun grids. The eager march (`compile="off"`) is the reference the kernel is held to
+pieces, the sun grids, the sky behind each ray (what a sky blend fades towards). The eager march (`compile="off"`) is the reference the kernel is held to
 (tests/volume/test_kernel_march.py).
 
 `supports` says which volumes it renders (the plan asks once); the others run eagerly. Numbers a
@@ -60,11 +62,12 @@ from .surface_look import look_normal, surface_colour, surface_lanes
 def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
     light passes `uses` and sky-visibility pass `ambient` (None: none), or None where it can: a
-    density written in lanes (constant, exponential, value-noise fbm of either hash) in bounds
-    written in lanes (sphere, box, slab), physically shaded, by any integrator, lit by
-    suns and point lights with shadows (marched, or the sun's grid) through it and through the
-    other volumes (each written in lanes too), ungraded sky light, emission, its colour map and bloom; `settings` the
-    render's `MarchSettings`."""
+    density written in lanes (constant, exponential, value-noise fbm of either hash, explosion,
+    particles and fur of value noise, the cloudscape) in bounds written in lanes (sphere, box,
+    slab, shell), physically shaded or in the seeds' looks, by any integrator, lit by suns and point
+    lights with shadows (marched, or the sun's grid) through it and through the other volumes (each
+    written in lanes too) and past the terrain, sky light (graded by altitude or not), a sky
+    blend, emission, its colour map and bloom; `settings` the render's `MarchSettings`."""
     passes = [u for u in uses if u.shadow is not None] + ([] if ambient is None else [ambient])
     checks = [
         (_has_lanes(vol), f"the {vol.density.kind} density"),
