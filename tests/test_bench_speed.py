@@ -53,6 +53,7 @@ def test_speed_quick_logic_on_tiny_sizes(tmp_path):
     if drjit:  # a preset whose march is a kernel has its eager time and its floor
         assert by_name["cloud-puff"]["marches"] == "drjit" and by_name["cloud-puff"]["eager_s"] > 0
         assert by_name["cloud-puff"]["x_floor"] > 0 and by_name["template-clouds"]["x_floor"] > 0
+        assert by_name["cloudscape"]["marches"] == "drjit" and by_name["cloudscape"]["x_floor"] > 0  # its layer's floor
     text = bench_speed.markdown({"quick": True, "repeat": 1, "profile": profile, "render": rows, "floor": floor,
                                  "presets": presets, "preset_size": 8, "generate": generation})
     assert "## Where the time goes" in text and "## Renders" in text and "## The floor" in text

@@ -1,9 +1,11 @@
 """Production cloudscapes: tileable noise textures, the cloud type's height profile, coverage, the
-ambient gradient and the sky blend, dual-lobe HG against the seeds' GLSL, the preset."""
+ambient gradient and the sky blend, dual-lobe HG against the seeds' GLSL, the preset; the density and the
+shell's interval traced by Dr.Jit against their eager runs (the kernel's renders: test_kernel_march.py)."""
 
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,13 +19,16 @@ from torchvol.fields.cloudscape import (
     CLOUD_TYPES,
     Cloudscape,
     CloudscapeDensity,
+    cloudscape_density,
+    cloudscape_lanes,
     height_gradient,
 )
 from torchvol.light.phase import dual_henyey_greenstein
 from torchvol.noise import lattice as noise
 from torchvol.noise import tiles as noise_tiles
 from torchvol.renderer.plan import make_plan
-from torchvol.schema.batch import stack
+from torchvol.schema.batch import stack, take
+from torchvol.volume import drjit_march
 
 F64 = torch.float64
 
@@ -123,6 +128,63 @@ def test_density_is_zero_outside_the_layer(planet_radius):
     assert float(d.max()) > 0.5 and float(d.max()) <= 1.0
     signed = field.signed(p, s)
     assert torch.equal(signed.clamp_min(0.0), d)  # signed: the density where there is some, < 0 elsewhere
+
+
+def _drjit_lanes(s: torch.Tensor):
+    """What a Dr.Jit kernel hands a density's ``lanes`` inputs for points of scenes `s` [n]
+    (`volume.kernel_march`), and a float32 tensor [n] or [n, C] as lanes."""
+    from drjit.llvm import Float, Int32
+
+    def floats(t):
+        return Float(t.to(torch.float32).contiguous().numpy())
+
+    def lane(t):
+        return floats(t) if t.ndim == 1 else [floats(c) for c in t.unbind(1)]
+
+    return SimpleNamespace(per_lane=lambda v: lane(take(v, s)), scene=s, floats=floats,
+                           ints=lambda t: Int32(t.to(torch.int32).numpy())), lane
+
+
+def _awkward_points(field: Cloudscape, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """float32 points [N, 3] of scenes [N] of `field`'s two: in and around the layer, in it on
+    both textures' nodes along x and z across several periods (u = k / size, k from −2·size to
+    2·size: every seam and wrap-around), and far outside it (up to 1e6 away)."""
+    g = torch.Generator().manual_seed(seed)
+    near = (torch.rand(n, 3, generator=g, dtype=F64) * 2 - 1) * torch.tensor([200.0, 4.0, 200.0], dtype=F64)
+    far = (torch.rand(n // 4, 3, generator=g, dtype=F64) * 2 - 1) * 10.0 ** torch.randint(2, 7, (n // 4, 3), generator=g)
+    p, (offset, shift) = [near + torch.tensor([0.0, 2.0, 0.0], dtype=F64), far], (field.p.offset[0].to(F64), field.shift[0].to(F64))
+    for scale, size in ((field.p.scale[0], noise_tiles.BASE_SIZE), (field.p.detail_scale[0], noise_tiles.DETAIL_SIZE)):
+        k = torch.arange(-2 * size, 2 * size + 1, dtype=F64) / size
+        x, z = ((k - offset[c]) * float(scale) + shift[c] for c in (0, 2))
+        p.append(torch.stack([x, torch.full_like(x, 2.0), z], 1))
+    p = torch.cat(p)
+    s = torch.randint(0, 2, (len(p),), generator=g)
+    return p.to(torch.float32), s
+
+
+@pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
+@given(planet_radius=st.sampled_from([None, 300.0, 1000.0]), cloud_type=st.floats(0.0, 1.0),
+       coverage=st.floats(0.0, 1.0), erosion=st.floats(0.0, 3.0), scale=st.floats(0.5, 20.0),
+       offset=st.tuples(*[st.floats(-3.0, 3.0)] * 3), wind=st.tuples(*[st.floats(-1.0, 1.0)] * 3), seed=st.integers(0, 99))
+def test_the_density_traced_by_drjit_is_the_eager_one(planet_radius, cloud_type, coverage, erosion, scale, offset, wind,
+                                                      seed):
+    """`cloudscape_density` traced by Dr.Jit against the eager field (the same function on torch
+    columns) at random points of two scenes of two seeds, at texture seams and wrap-arounds, and
+    far outside the layer. Dr.Jit's fast-math square root and fused multiply-adds round an ulp or
+    two apart from torch's; the height profile's steep smoothsteps and the coverage remap (× 10)
+    amplify an ulp of a planet's altitude up to ~100-fold (1.3e-5 at most over 60 draws; 5e-7
+    over flat ground)."""
+    keys = dict(bottom=1.0, top=3.0, planet_radius=planet_radius, type=cloud_type, coverage=coverage, erosion=erosion,
+                scale=scale, detail_scale=scale / 8, offset=offset, wind=wind)
+    field = Cloudscape(stack([CloudscapeDensity(seed=0, **keys), CloudscapeDensity(seed=1, **{**keys, "coverage": 1 - coverage})],
+                             dtype=torch.float32), torch.full((2,), 1.5))
+    p, s = _awkward_points(field, 2000, seed)
+    eager = field.signed(p, s)
+    to, lane = _drjit_lanes(s)
+    traced = torch.from_numpy(np.array(cloudscape_density(cloudscape_lanes(field, to), lane(p))))
+    assert torch.all(torch.isfinite(eager))
+    assert_close(traced, eager, atol=5e-5, what="Dr.Jit against eager")
 
 
 def test_coverage_grows_the_clouds_and_zero_is_empty():
@@ -322,6 +384,32 @@ def test_shell_bounds_first_stretch_and_the_ground():
     r1 = R + 1.0
     assert_close(torch.stack([t0[6], t1[6]]), torch.tensor([math.sqrt((R + lo) ** 2 - r1**2), math.sqrt((R + hi) ** 2 - r1**2)], dtype=F64),
                  atol=1e-9, what="horizontal")
+
+
+@pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
+def test_the_shell_interval_traced_by_drjit_is_intersect_shells():
+    """`shell_interval` (the shell's ``lanes`` interval, what a kernel's rays and shadow rays take)
+    traced by Dr.Jit against `intersect_shell` (the same function on torch columns): rays from
+    below, inside and above the layer, grazing it and the ground; the same misses, the distances
+    within float32's rounding (Dr.Jit's fast-math square root: an ulp)."""
+    from torchvol.geometry.bounds import BOUNDS, Shell, bounds_lanes
+    from torchvol.geometry.rays import intersect_shell
+
+    g = torch.Generator().manual_seed(4)
+    n, radius = 20000, 300.0
+    o = (torch.rand(n, 3, generator=g) * 2 - 1) * torch.tensor([30.0, 5.0, 30.0]) + torch.tensor([0.0, 3.0, 0.0])
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * torch.tensor([1.0, 0.1, 1.0]), dim=1)  # mostly grazing
+    bounds = stack([Shell(planet_radius=radius, bottom=1.0, top=3.0)])
+    s = torch.zeros(n, dtype=torch.long)
+    _, lane = _drjit_lanes(s)
+    traced = BOUNDS["shell"].caps["lanes"][0](bounds_lanes(bounds, lambda v: lane(take(v, s))), lane(o), lane(d))
+    t0, t1 = intersect_shell(o, d, torch.tensor([0.0, -radius, 0.0]), radius, radius + 1.0, radius + 3.0)
+    for got, want in zip(traced, (t0, t1)):
+        got = torch.from_numpy(np.array(got))
+        assert torch.equal(torch.isinf(got), torch.isinf(want)) and float(torch.isinf(want).float().mean()) > 0.1
+        hit = torch.isfinite(want)
+        assert_close(got[hit] / want[hit].abs().clamp_min(1.0), want[hit] / want[hit].abs().clamp_min(1.0), atol=1e-6,
+                     what="shell interval, relative")
 
 
 def test_shell_layer_renders_over_the_curved_ground():

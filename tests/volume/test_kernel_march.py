@@ -148,6 +148,9 @@ JOINT = {
     "a point light, early stop": _media([PUFF, FOG], lights=[SUN, {"kind": "point", "position": [0.5, 1.2, -0.5],
                                                                    "intensity": 2.0, "shadow": {"steps": 3}}],
                                         march={"steps": 24, "min_transmittance": 0.05}),
+    "a sky blend, a graded ambient": _media([{**PUFF, "sky_blend": 0.05, "ambient": {"radiance": [0.2, 0.3, 0.5],
+                                                                                      "top": [0.9, 1.0, 1.1], "steps": 2}},
+                                             {**FOG, "sky_blend": 0.2}]),
 }
 
 
@@ -189,6 +192,46 @@ def test_particles_match_eager_and_give_the_same_bytes_alone_and_in_a_batch(comb
         alone = tv.render(scene, seed=1 + b, chunk_rays=61)
         assert torch.equal(alone.radiance[0], batch.radiance[b])
 
+
+CLOUDSCAPE = "volumes.0.density.cloudscape"
+SHELL = {"volumes.0.bounds": {"shell": {"planet_radius": 300.0, "bottom": 1.5, "top": 4.0}}, f"{CLOUDSCAPE}.planet_radius": 300.0}
+CLOUDSCAPES = {
+    "the preset (a shell, graded ambient, sky blend)": {},
+    "flat ground in a slab": {"volumes.0.bounds": {"slab": {"y_min": 1.5, "y_max": 4.0}}, f"{CLOUDSCAPE}.planet_radius": None},
+    "stratus over a small planet": {**SHELL, f"{CLOUDSCAPE}.type": 0.1, f"{CLOUDSCAPE}.coverage": 0.7},
+    "cumulonimbus, full coverage, wind, no erosion": {f"{CLOUDSCAPE}.type": 1.0, f"{CLOUDSCAPE}.coverage": 0.9,
+                                                      f"{CLOUDSCAPE}.erosion": 0.0, f"{CLOUDSCAPE}.wind": [0.4, 0.0, 0.3],
+                                                      "time": 3.0},
+    "sky light marched through the shell, an edge, octaves": {
+        **SHELL, "volumes.0.ambient.visibility": "march", "volumes.0.edge": {"width": 0.3},
+        "volumes.0.multiple_scattering": {"octaves": 3}, f"{CLOUDSCAPE}.offset": [0.3, 0.1, 0.7]},
+}
+
+
+def _cloudscape(**overrides):
+    return tv.load_scene("cloudscape", {"image.width": 48, "image.height": 48, **overrides})
+
+
+@pytest.mark.parametrize("name", list(CLOUDSCAPES))
+def test_cloudscapes_match_the_eager_march(name):
+    """The production clouds in the kernel: their density (the tiled textures, the height profile,
+    erosion, coverage), the shell's or the slab's bounds, the graded ambient and the sky blend."""
+    kernel, eager = _both(_cloudscape(**CLOUDSCAPES[name]))
+    _close(kernel, eager, name)
+    assert float(kernel.alpha.max()) > 0.5  # clouds in the picture
+    assert kernel.stats["density_evals"] == eager.stats["density_evals"]
+    assert kernel.stats["march_steps"] == eager.stats["march_steps"]
+
+
+def test_cloudscapes_of_other_seeds_give_the_same_bytes_alone_and_in_a_batch():
+    scenes = [_cloudscape(), _cloudscape(**{f"{CLOUDSCAPE}.seed": 1, f"{CLOUDSCAPE}.coverage": 0.6}),
+              _cloudscape(**{f"{CLOUDSCAPE}.type": 0.3, f"{CLOUDSCAPE}.offset": [0.5, 0.0, 0.2]})]
+    kernel, eager = _both(scenes, seed=[1, 2, 3])
+    _close(kernel, eager, "a batch of cloudscapes")
+    for b, scene in enumerate(scenes):
+        alone = tv.render(scene, seed=1 + b, chunk_rays=97)
+        assert torch.equal(alone.radiance[0], kernel.radiance[b]) and torch.equal(alone.depth[0], kernel.depth[b])
+    assert not torch.equal(kernel.radiance[0], kernel.radiance[1])  # the seed's own textures
 
 LOOK = {**PUFF, "shading": "shader", "shader": {"alpha_scale": 0.3, "light_offset": 0.3, "light_scale": 0.5}}
 LOOKS = {

@@ -28,7 +28,12 @@ from __future__ import annotations
 from ..schema.registry import Registry
 from .base import Field
 from .clouds import CloudLayer, CloudsDensity
-from .cloudscape import Cloudscape, CloudscapeDensity
+from .cloudscape import (
+                   Cloudscape,
+                   CloudscapeDensity,
+                   cloudscape_density,
+                   cloudscape_lanes,
+)
 from .constant import Constant, ConstantDensity, constant_density, constant_lanes
 from .explosion import (
                    ExplosionDensity,
@@ -62,7 +67,7 @@ DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True,
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, fused_march=True,
                    compiles_fast=lambda volume: volume.shading == "shader" and volume.edge is None)
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, lanes=(explosion_lanes, explosion_density))
-DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
+DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape, lanes=(cloudscape_lanes, cloudscape_density))
 DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True,
                    lanes=(particles_lanes, particles_density, lambda volume: volume.density.value.noise == "value"))
 DENSITIES.register("fur", FurDensity, FurField, compiles_fast=lambda volume: True, lanes=(fur_lanes, fur_density))

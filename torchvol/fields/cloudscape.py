@@ -7,8 +7,10 @@ two altitudes, over flat ground or a planet, shaped by tileable Perlin-Worley an
     density = smoothstep(0, 0.1, m + coverage − 1)               coverage remap
 
 (the seeds' `cloudMapBase`, `cloudGradient`, `cloudMapDetail`, `COVERAGE`). Height is `p.y` over
-flat ground, or the distance from the planet's centre (0, −planet_radius, 0) minus its radius: the
-ground passes through the origin either way. The layer's bounds are the volume's: a slab from
+flat ground, or the distance from the planet's centre (0, −planet_radius, 0) minus its radius
+(`geometry.bounds.shell_altitude`): the ground passes through the origin either way. Written once
+in lanes (`cloudscape_density`): the eager field runs it on torch columns, the Dr.Jit march traces
+it (`fields.DENSITIES`' ``lanes``). The layer's bounds are the volume's: a slab from
 `bottom` to `top` for flat ground, a `shell` for a planet.
 
 The seeds' height-based ambient gradient (Step 6, Method C) is the volume's `ambient` with `top`
@@ -17,15 +19,17 @@ The seeds' height-based ambient gradient (Step 6, Method C) is the volume's `amb
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Annotated
 
 import torch
 from pydantic import Field, model_validator
 from torch import Tensor
 
+from ..geometry.bounds import shell_altitude
 from ..noise import tiles as noise_tiles
-from ..ops.mathops import smoothstep
-from ..schema.batch import Stacked, per_scene, take
+from ..ops import lanes
+from ..schema.batch import Stacked, take
 from ..schema.models import EACH, Strict, Vec3
 
 # Height profiles (smoothstep(a, b, h) · (1 − smoothstep(c, d, h)) over the normalised height h) of
@@ -60,57 +64,90 @@ class CloudscapeDensity(Strict):
         return self
 
 
-def height_gradient(h: Tensor, cloud_type: Tensor) -> Tensor:
-    """The cloud type's height profile. `h`: [n] normalised height (0 at the layer's bottom, 1 at
-    its top; 0 outside [0, 1]); `cloud_type`: [n] in [0, 1]. -> [n] in [0, 1]."""
-    table = torch.tensor(CLOUD_TYPES, dtype=h.dtype, device=h.device)  # [4, 4]
+def height_gradient(h, cloud_type):
+    """The cloud type's height profile, in lanes (`ops.lanes`). `h`: normalised height (0 at the
+    layer's bottom, 1 at its top; 0 outside [0, 1]); `cloud_type` in [0, 1]. -> lanes in [0, 1]."""
     x = cloud_type * (len(CLOUD_TYPES) - 1)
-    lo = x.floor().clamp(0, len(CLOUD_TYPES) - 2).long()
-    a, b, c, d = torch.lerp(table[lo], table[lo + 1], (x - lo)[:, None]).unbind(-1)
-    return smoothstep(a, b, h) * (1.0 - smoothstep(c, d, h))
+    lo = lanes.clamp(lanes.floor(x), 0, len(CLOUD_TYPES) - 2)
+    w = x - lo
+
+    def row(i: int, k: int):  # column k of the table's row lo + i
+        rows = CLOUD_TYPES[i:i + len(CLOUD_TYPES) - 1]
+        out = lanes.full_like(x, rows[-1][k])
+        for j in reversed(range(len(rows) - 1)):
+            out = lanes.where(lo == j, rows[j][k], out)
+        return out
+
+    a, b, c, d = (lanes.lerp(row(0, k), row(1, k), w) for k in range(4))
+    return lanes.smoothstep01((h - a) / (b - a)) * (1.0 - lanes.smoothstep01((h - c) / (d - c)))
+
+
+def layer_height(q: SimpleNamespace, p):
+    """Normalised height in the layer of `p` (three lanes; 0 at bottom, 1 at top): `p.y` over flat
+    ground, the altitude above the planet of radius `q.planet_radius` (None: flat) otherwise;
+    lanes (`ops.lanes`), `q` from `cloudscape_lanes`."""
+    altitude = p[1] if q.planet_radius is None else shell_altitude(p, q.planet_radius)
+    return (altitude - q.bottom) / (q.top - q.bottom)
+
+
+def cloudscape_density(q: SimpleNamespace, p, count=None):
+    """The signed density at `p` (three lanes): where the coverage remap is positive the density,
+    else the remap's argument (< 0); lanes (`ops.lanes`), `q` from `cloudscape_lanes` (`count`,
+    the octaves kept, does not apply: the textures hold every octave)."""
+    moved = [p[c] - q.shift[c] for c in range(3)]  # the point the wind brought here
+    shape = noise_tiles.tiled_lanes(q.base, noise_tiles.BASE_SIZE, q.base_row,
+                                    *(moved[c] / q.scale + q.offset[c] for c in range(3)))
+    erode = noise_tiles.tiled_lanes(q.detail, noise_tiles.DETAIL_SIZE, q.detail_row,
+                                    *(moved[c] / q.detail_scale + q.offset[c] for c in range(3)))
+    m = shape * height_gradient(layer_height(q, p), q.type)
+    m = m - q.erosion * EROSION_SCALE * erode
+    x = (m + q.coverage - 1.0) / COVERAGE_EDGE
+    return lanes.where(x > 0, lanes.smoothstep01(x), x)
+
+
+def cloudscape_lanes(field: Cloudscape, to) -> SimpleNamespace:
+    """What the cloudscape takes per lane (`to`: as `fields.DENSITIES`' ``lanes`` inputs): its
+    values, and the batch's textures as flat tables with each lane's first row in them."""
+    p = field.p
+    q = SimpleNamespace(**{k: to.per_lane(getattr(p, k)) for k in ("bottom", "top", "type", "coverage", "erosion",
+                                                                    "scale", "detail_scale", "offset")})
+    q.shift = to.per_lane(field.shift)
+    q.planet_radius = None if p.planet_radius is None else to.per_lane(p.planet_radius)
+    texture = take(field.texture, to.scene)  # each lane's place among the textures
+    q.base, q.base_row = to.floats(field.base), to.ints(texture * noise_tiles.BASE_SIZE**3)
+    q.detail, q.detail_row = to.floats(field.detail), to.ints(texture * noise_tiles.DETAIL_SIZE**3)
+    return q
 
 
 class Cloudscape:
-    """The cloudscape densities of B scenes (per-scene tensors (B, ...), textures per seed)."""
+    """The cloudscape densities of B scenes (per-scene tensors (B, ...), textures per seed: each
+    distinct seed's base and detail textures flattened one after the other, `texture` (B,) a
+    scene's place among them)."""
 
     def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
         self.p = params
-        dtype = times.dtype
-        self.textures = [(noise_tiles.base_texture(seed).to(dtype), noise_tiles.detail_texture(seed).to(dtype))
-                         for seed in params.seed]
+        seeds = list(dict.fromkeys(int(seed) for seed in params.seed))
+        self.texture = torch.tensor([seeds.index(int(seed)) for seed in params.seed], dtype=torch.int32, device=times.device)
+        self.base = torch.cat([noise_tiles.base_texture(seed).reshape(-1) for seed in seeds]).to(times)
+        self.detail = torch.cat([noise_tiles.detail_texture(seed).reshape(-1) for seed in seeds]).to(times)
         self.shift = params.wind * times[:, None]  # (B, 3)
         # the detail texture's node spacing: finer than any shape the trilinear lookups can hold
         self.feature_size = torch.minimum(params.scale / noise_tiles.BASE_SIZE, params.detail_scale / noise_tiles.DETAIL_SIZE)
 
+    def _lanes(self, points: Tensor, scene_index: Tensor) -> SimpleNamespace:
+        """`cloudscape_lanes` on torch columns, for `points` [n, 3] of scenes `scene_index` [n]."""
+        s = scene_index
+        to = SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, s)), scene=s, floats=lambda t: t, ints=lambda t: t)
+        return cloudscape_lanes(self, to)
+
     def height(self, points: Tensor, scene_index: Tensor) -> Tensor:
         """Normalised height in the layer [n] of `points` [n, 3] (0 at bottom, 1 at top)."""
-        p, s = self.p, scene_index
-        if p.planet_radius is None:
-            altitude = points[:, 1]
-        else:
-            radius = take(p.planet_radius, s)
-            centre = torch.stack([torch.zeros_like(radius), -radius, torch.zeros_like(radius)], dim=1)
-            altitude = (points - centre).norm(dim=1) - radius
-        bottom = take(p.bottom, s)
-        return (altitude - bottom) / (take(p.top, s) - bottom)
+        return layer_height(self._lanes(points, scene_index), points.unbind(1))
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         return self.signed(points, scene_index, lod).clamp_min(0.0)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
-        """The density where the coverage remap is positive, else the remap's argument (< 0)."""
-        p, s = self.p, scene_index
-        q = points - take(self.shift, s)
-        offset = take(p.offset, s)
-        base_uvw = q / take(p.scale, s)[:, None] + offset
-        detail_uvw = q / take(p.detail_scale, s)[:, None] + offset
-
-        def lookup(which: int, uvw: Tensor) -> Tensor:
-            return per_scene(uvw, s, len(p), lambda b, _, x: noise_tiles.sample_tiled(self.textures[b][which], x))
-
-        shape, erode = lookup(0, base_uvw), lookup(1, detail_uvw)
-        m = shape * height_gradient(self.height(points, s), take(p.type, s))
-        m = m - take(p.erosion, s) * EROSION_SCALE * erode
-        x = (m + take(p.coverage, s) - 1.0) / COVERAGE_EDGE
-        return torch.where(x > 0, smoothstep(0.0, 1.0, x), x)
-
+        """The density where the coverage remap is positive, else the remap's argument (< 0):
+        `cloudscape_density` on torch columns, `points` [n, 3] -> [n] (`lod` does not apply)."""
+        return cloudscape_density(self._lanes(points, scene_index), points.unbind(1))

@@ -1,9 +1,13 @@
 """Where a volume's medium lives: box, sphere, horizontal slab or a planet's shell. Each kind gives its entry/exit
 distances along rays (`intersect`), the box around it (`aabb`, finite kinds only: the sun grid
 tabulates over it), its height range (`height_range`: the shader look's height gradient, the ambient
-gradient) and the distance in to its surface (`depth`: the edge fade)."""
+gradient) and the distance in to its surface (`depth`: the edge fade); its interval, depth and
+altitude (y, or a shell's radial height) written once in lanes (`lanes`: what the Dr.Jit march
+traces, and what the eager functions run on torch columns)."""
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import torch
 from pydantic import Field, model_validator
@@ -19,6 +23,7 @@ from .rays import (
     intersect_shell,
     intersect_slab,
     intersect_sphere,
+    shell_interval,
     slab_interval,
     sphere_interval,
 )
@@ -98,6 +103,8 @@ def _shell_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tenso
 def _shell_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
     reach = (b.planet_radius + b.top)[:, None]
     return _shell_center(b) - reach, _shell_center(b) + reach
+
+
 def box_depth(p, lo, hi):
     """The distance from `p` in to the box's nearest face, lanes (`ops.lanes`): p, lo, hi three
     lanes each."""
@@ -127,13 +134,35 @@ def _slab_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
     return slab_depth(p.unbind(1), take(b.y_min, s), take(b.y_max, s))
 
 
-def _shell_altitude(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
-    return (p - take(_shell_center(b), s)).norm(dim=1) - take(b.planet_radius, s)
+def shell_altitude(p, radius):
+    """Altitude of `p` (three lanes) above the planet of `radius` centred at (0, −radius, 0), in
+    lanes: |p − centre| − radius written as (x² + z² + y·(y + 2·radius)) / (|p − centre| +
+    radius), which does not cancel (a layer a few units above a planet of 1000: in float32 the
+    difference of two lengths near 1000 was off by up to 9e-5, this form by 1.5e-6)."""
+    x, y, z = p
+    return (x * x + z * z + y * (y + 2.0 * radius)) / (lanes.length3(x, y + radius, z) + radius)
+
+
+def shell_depth(p, radius, bottom, top):
+    """The distance from `p` in to the shell's nearer sphere (its altitude's), lanes: p three lanes."""
+    altitude = shell_altitude(p, radius)
+    return lanes.minimum(altitude - bottom, top - altitude)
+
+
+def shell_lanes_interval(q: SimpleNamespace, o, d):
+    """The shell's (t_near, t_far) along lanes o, d over its parameters per lane `q` (`bounds_lanes`)."""
+    r = q.planet_radius
+    return shell_interval(o, d, (0.0, -r, 0.0), r, r + q.bottom, r + q.top)
 
 
 def _shell_depth(b: Stacked, p: Tensor, s: Tensor) -> Tensor:
-    altitude = _shell_altitude(b, p, s)
-    return torch.minimum(altitude - take(b.bottom, s), take(b.top, s) - altitude)
+    return shell_depth(p.unbind(1), take(b.planet_radius, s), take(b.bottom, s), take(b.top, s))
+
+
+def bounds_lanes(b: Stacked, per_lane) -> SimpleNamespace:
+    """The bounds' parameters per lane (`per_lane`: per scene (B, ...) -> lanes; a vector three
+    lanes), what their ``lanes`` functions take."""
+    return SimpleNamespace(**{name: per_lane(getattr(b, name)) for name in type(b.models[0]).model_fields})
 
 
 def _sphere_aabb(b: Stacked) -> tuple[Tensor, Tensor]:
@@ -145,18 +174,24 @@ def _heights(lo: Tensor, hi: Tensor) -> Tensor:
 
 
 BOUNDS = Registry("bounds")
-# `lanes`: the kind's (interval, depth) in lanes over its parameters per lane `q` (three lanes for a
-# vector): interval(q, o, d) -> (t_near, t_far), depth(q, p) -> distance in; what a kernel traces
-BOUNDS.register("box", Box, _box_intersect, finite=True, aabb=lambda b: (b.min, b.max),
+# `lanes`: the kind's (interval, depth, altitude) in lanes over its parameters per lane `q`
+# (`bounds_lanes`): interval(q, o, d) -> (t_near, t_far), depth(q, p) -> distance in, altitude(q, p)
+# -> the height its `height_range` grades (y, or a shell's radial altitude); what a kernel traces
+_height = lambda q, p: p[1]  # noqa: E731
+BOUNDS.register("box", Box, _box_intersect, finite=True, layer=False, aabb=lambda b: (b.min, b.max),
                 height_range=lambda b: _heights(b.min[:, 1], b.max[:, 1]), depth=_box_depth,
-                lanes=(lambda q, o, d: box_interval(o, d, q.min, q.max), lambda q, p: box_depth(p, q.min, q.max)))
-BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, aabb=_sphere_aabb,
+                lanes=(lambda q, o, d: box_interval(o, d, q.min, q.max), lambda q, p: box_depth(p, q.min, q.max), _height))
+BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, layer=False, aabb=_sphere_aabb,
                 height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius), depth=_sphere_depth,
                 lanes=(lambda q, o, d: sphere_interval(o, d, q.center, q.radius),
-                       lambda q, p: sphere_depth(p, q.center, q.radius)))
+                       lambda q, p: sphere_depth(p, q.center, q.radius), _height))
+# `layer`: a layer over the ground (a slab, a planet's shell), far wider than what a view of it marches
 # a slab's exit is at infinity along its planes: rays stop at SLAB_REACH unless march.max_distance says
-BOUNDS.register("slab", Slab, _slab_intersect, finite=False, aabb=None, height_range=lambda b: _heights(b.y_min, b.y_max),
+BOUNDS.register("slab", Slab, _slab_intersect, finite=False, layer=True, aabb=None,
+                height_range=lambda b: _heights(b.y_min, b.y_max),
                 depth=_slab_depth, lanes=(lambda q, o, d: slab_interval(o, d, q.y_min, q.y_max),
-                                          lambda q, p: slab_depth(p, q.y_min, q.y_max)))
-BOUNDS.register("shell", Shell, _shell_intersect, finite=True, aabb=_shell_aabb,
-                height_range=lambda b: _heights(b.bottom, b.top), depth=_shell_depth, altitude=_shell_altitude)
+                                          lambda q, p: slab_depth(p, q.y_min, q.y_max), _height))
+BOUNDS.register("shell", Shell, _shell_intersect, finite=True, layer=True, aabb=_shell_aabb,
+                height_range=lambda b: _heights(b.bottom, b.top), depth=_shell_depth,
+                lanes=(shell_lanes_interval, lambda q, p: shell_depth(p, q.planet_radius, q.bottom, q.top),
+                       lambda q, p: shell_altitude(p, q.planet_radius)))

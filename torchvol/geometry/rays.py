@@ -107,6 +107,20 @@ def intersect_sphere(origins: Tensor, directions: Tensor, center, radius) -> tup
     return sphere_interval(origins.unbind(-1), directions.unbind(-1), ctr.unbind(-1), r)
 
 
+def shell_interval(o, d, center, ground, inner, outer):
+    """The first stretch ahead of rays o + t d (d unit) inside the shell ``inner <= |p - center| <=
+    outer`` over an opaque ground sphere of radius ``ground`` (<= inner), in lanes: o, d, center
+    three lanes each, the radii one -> (t_near, t_far), misses (+inf, -inf). `intersect_shell`'s body."""
+    n_out, f_out = sphere_interval(o, d, center, outer)
+    n_in, f_in = sphere_interval(o, d, center, inner)
+    n_gr, _ = sphere_interval(o, d, center, ground)
+    start = lanes.clamp_min(n_out, 0.0)
+    start = lanes.where((n_in <= start) & (start < f_in), f_in, start)  # starts below the layer
+    end = lanes.where(n_in > start, lanes.minimum(f_out, n_in), f_out)  # comes down onto the layer's floor
+    end = lanes.where(n_gr >= 0, lanes.minimum(end, n_gr), end)  # the ground hides what lies beyond
+    return _canonical(start, end, n_out > f_out)
+
+
 def intersect_shell(origins: Tensor, directions: Tensor, center, ground, inner, outer) -> tuple[Tensor, Tensor]:
     """The first stretch ahead of each ray inside the shell ``inner <= |p - center| <= outer``
     over an opaque ground sphere of radius ``ground`` (<= inner): a planet's cloud layer.
@@ -116,14 +130,9 @@ def intersect_shell(origins: Tensor, directions: Tensor, center, ground, inner, 
     outer one; from inside it: from 0 to the inner sphere or the outer one, whichever comes first;
     from above: from entering the outer sphere to the inner one or leaving the outer. A ray that
     meets the ground first misses (the layer beyond the horizon is hidden)."""
-    n_out, f_out = intersect_sphere(origins, directions, center, outer)
-    n_in, f_in = intersect_sphere(origins, directions, center, inner)
-    n_gr, _ = intersect_sphere(origins, directions, center, ground)
-    start = n_out.clamp_min(0.0)
-    start = torch.where((n_in <= start) & (start < f_in), f_in, start)  # starts below the layer
-    end = torch.where(n_in > start, torch.minimum(f_out, n_in), f_out)  # comes down onto the layer's floor
-    end = torch.where(n_gr >= 0, torch.minimum(end, n_gr), end)  # the ground hides what lies beyond
-    return _canonical(start, end, n_out > f_out)
+    radii = [_as(r, origins).expand(origins.shape[:-1]) for r in (ground, inner, outer)]
+    ctr = _as(center, origins).expand_as(origins)
+    return shell_interval(origins.unbind(-1), directions.unbind(-1), ctr.unbind(-1), *radii)
 
 
 def slab_interval(o, d, y_min, y_max):

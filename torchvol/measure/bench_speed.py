@@ -289,7 +289,7 @@ def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
     """The floor of a render `out` (rendered with `keep_context`) whose every march is a Dr.Jit
     kernel: its densities alone in the Dr.Jit kernel on `points` points, each volume's share of
     them its share of the render's evaluations (`kernel_march.density_kernel` over its bounds'
-    box, a slab's 20 units across; the template's Dr.Jit fbm), None elsewhere."""
+    box, a layer's heights 20 units across: a slab, a planet's shell; the template's Dr.Jit fbm), None elsewhere."""
     from ..volume import kernel_march
 
     marches = list(out.stats["plan"]["marches"].values())
@@ -305,12 +305,12 @@ def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
         count = round(points * by_volume.get(vol.plan.name, 0) / total) if total else 0
         if count == 0:
             continue
-        box = vol.bounds.caps["aabb"]
-        if box is None:  # a slab: its heights, 20 units across
-            b = vol.params.bounds.value
-            lo, hi = torch.tensor([[-10.0, float(b.y_min[0]), -10.0]]), torch.tensor([[10.0, float(b.y_max[0]), 10.0]])
+        b = vol.params.bounds.value
+        if vol.bounds.caps["layer"]:  # a slab or a planet's shell (its box the planet's): its heights, 20 units across
+            heights = vol.bounds.caps["height_range"](b)[0]
+            lo, hi = torch.tensor([[-10.0, float(heights[0]), -10.0]]), torch.tensor([[10.0, float(heights[1]), 10.0]])
         else:
-            lo, hi = box(vol.params.bounds.value)
+            lo, hi = vol.bounds.caps["aabb"](b)
         parts.append(kernel_march.density_kernel(vol, lo[0] + (hi[0] - lo[0]) * torch.rand(count, 3, generator=g)))
     for kernel in parts:
         kernel()  # builds: not in the timed runs

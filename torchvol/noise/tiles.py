@@ -6,7 +6,8 @@ z); node (i, j, k) holds the generating noise at ``(i, j, k) / N`` in *texture c
 the texture repeats with period 1. Each octave's noise has an integer number of lattice cells per
 period (`perlin_noise` / `worley_noise` with ``period=``), so the texture tiles seamlessly.
 Building costs one noise evaluation per node and octave (a 64³ base: ~0.3 M nodes); sampling
-costs 8 gathers and 7 lerps per point, whatever the octaves.
+costs 8 gathers and 7 lerps per point, whatever the octaves (`tiled_lanes`: eager and the Dr.Jit
+kernels alike).
 """
 
 from __future__ import annotations
@@ -16,11 +17,12 @@ import functools
 import torch
 from torch import Tensor
 
+from ..ops import lanes
 from . import lattice as noise
-from .lattice import _CORNERS, _trilinear
+from .lattice import _trilinear
 
 __all__ = ["BASE_SIZE", "DETAIL_SIZE", "perlin_worley", "worley_fbm", "base_texture", "detail_texture",
-           "texture_nodes", "sample_tiled"]
+           "texture_nodes", "sample_tiled", "tiled_lanes"]
 
 BASE_SIZE = 64  # nodes per period of the base shape texture
 DETAIL_SIZE = 32  # nodes per period of the detail texture
@@ -79,17 +81,29 @@ def detail_texture(seed: int, size: int = DETAIL_SIZE) -> Tensor:
     return _normalised(worley_fbm(texture_nodes(size), seed=int(seed) + 5003, frequencies=DETAIL_FREQUENCIES), size)
 
 
-def sample_tiled(texture: Tensor, uvw: Tensor) -> Tensor:
-    """Trilinear lookup in a periodic texture, wrapping around on every axis.
+def tiled_lanes(table, size: int, row, u, v, w):
+    """Trilinear lookup with wrap-around in a periodic size³ texture flattened [k, j, i] (x fastest)
+    at `row` in `table` (a lane of int32 offsets: a batch's textures one after the other), at
+    texture coordinates u, v, w (lanes, any real values; period 1): 8 gathers and 7 lerps, in lanes
+    (`ops.lanes`). `size` a power of two: a node's index wraps in floats, exactly (x / size and
+    its floor are exact), so no coordinate overflows the int32 index however far it lies."""
+    assert size & (size - 1) == 0, f"texture size {size} is not a power of two"
+    nodes, fracs = [], []
+    for x in (u, v, w):
+        x = x * size
+        fl = lanes.floor(x)
+        fracs.append(x - fl)
+        # the mask keeps a non-finite coordinate's index inside the texture; it changes no other
+        i = lanes.to_int32(fl - lanes.floor(fl * (1.0 / size)) * size) & (size - 1)
+        nodes.append((i, (i + 1) & (size - 1)))
+    (x0, x1), (y0, y1), (z0, z1) = nodes
+    rows = [row + (z * size + y) * size for z in (z0, z1) for y in (y0, y1)]  # `_CORNERS` order
+    return _trilinear([lanes.gather(table, r + x) for r in rows for x in (x0, x1)], fracs)
 
-    `texture`: (N, N, N) [k, j, i] (node (i, j, k) at texture coordinates (i, j, k) / N);
-    `uvw`: [n, 3] texture coordinates (any real values; period 1). -> [n] in `uvw`'s dtype."""
-    n = texture.shape[0]
-    x = uvw * n
-    fl = torch.floor(x)
-    frac = x - fl
-    cell = fl.to(torch.int64)
-    corners = torch.tensor(_CORNERS, dtype=torch.int64, device=uvw.device)  # [8, 3]
-    c = torch.remainder(cell[:, None, :] + corners, n)  # [n, 8, 3]
-    vals = texture.reshape(-1)[(c[..., 2] * n + c[..., 1]) * n + c[..., 0]].to(uvw.dtype)  # [n, 8]
-    return _trilinear(list(vals.unbind(-1)), frac)
+
+def sample_tiled(texture: Tensor, uvw: Tensor) -> Tensor:
+    """Trilinear lookup in a periodic texture, wrapping around on every axis (`tiled_lanes`).
+
+    `texture`: (N, N, N) [k, j, i] (node (i, j, k) at texture coordinates (i, j, k) / N, N a power
+    of two); `uvw`: [n, 3] texture coordinates (any real values; period 1). -> [n] in `uvw`'s dtype."""
+    return tiled_lanes(texture.reshape(-1).to(uvw.dtype), texture.shape[0], 0, *uvw.unbind(1))

@@ -15,12 +15,15 @@ them, as the lights' shadow rays see them (`shadow.occluder_transmittance`, each
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 from typing import Literal
 
 import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
+from ..geometry.bounds import bounds_lanes
+from ..ops import lanes
 from ..schema.batch import take
 from ..schema.models import Strict, Vec3, nonneg, nonzero
 from .context import VolumeContext
@@ -59,22 +62,33 @@ def sky_mean(sky_fn, sky, sun: Tensor | None, count: int, *, dtype, device) -> T
     return sky_fn(sky, d.repeat(count, 1), s, sun).reshape(count, SKY_DIRECTIONS, 3).mean(dim=1)
 
 
-def ambient_radiance(vol, p: Tensor, s: Tensor) -> Tensor:
-    """L_amb [n, 3] at points `p` [n, 3] of scenes `s` [n]: the bottom radiance, graded to `top`."""
-    bottom = take(vol.ambient_bottom, s)
-    if vol.params.ambient.top is None:
-        return bottom
-    b = vol.params.bounds.value
-    heights = take(vol.bounds.caps["height_range"](b), s)  # [n, 2]
-    altitude = vol.bounds.caps["altitude"](b, p, s) if "altitude" in vol.bounds.caps else p[:, 1]  # a shell's is radial
-    h = ((altitude - heights[:, 0]) / (heights[:, 1] - heights[:, 0])).clamp(0.0, 1.0)
-    return torch.lerp(bottom, take(vol.params.ambient.top, s), h[:, None])
+def ambient_lanes(vol, per_lane) -> SimpleNamespace:
+    """What L_amb takes per lane (`per_lane`: per scene (B, ...) -> lanes): the bottom radiance
+    (three lanes) and, where graded, the top's, the bounds' height range (`low`, `high`) and its
+    parameters (`bounds.bounds_lanes`) for their ``lanes`` altitude."""
+    q = SimpleNamespace(bottom=per_lane(vol.ambient_bottom), top=None)
+    if vol.params.ambient.top is not None:
+        b = vol.params.bounds.value
+        q.top, (q.low, q.high) = per_lane(vol.params.ambient.top), per_lane(vol.bounds.caps["height_range"](b))
+        q.bounds, q.altitude = bounds_lanes(b, per_lane), vol.bounds.caps["lanes"][2]
+    return q
+
+
+def ambient_radiance(q: SimpleNamespace, p) -> list:
+    """L_amb at `p` (three lanes), in lanes (`ops.lanes`; `q` from `ambient_lanes`): the bottom
+    radiance, graded linearly by the altitude (a shell's radial, y otherwise) to `top` at the top
+    of the bounds. -> three lanes."""
+    if q.top is None:
+        return q.bottom
+    h = lanes.clamp((q.altitude(q.bounds, p) - q.low) / (q.high - q.low), 0.0, 1.0)
+    return [lanes.lerp(q.bottom[c], q.top[c], h) for c in range(3)]
 
 
 def ambient_in_scatter(ctx: VolumeContext, vol, p: Tensor, s: Tensor, sigma_s: Tensor) -> Tensor:
     """σs · L_amb · V [n, 3] at points `p` [n, 3] of scenes `s` [n], scattering `sigma_s` [n]."""
     amb, use = vol.params.ambient, vol.plan.ambient_sky
-    out = ambient_radiance(vol, p, s) * sigma_s[:, None]
+    q = ambient_lanes(vol, lambda v: lanes.columns(take(v, s)))
+    out = torch.stack(ambient_radiance(q, p.unbind(1)), 1) * sigma_s[:, None]
     if use is None:
         return out
     with ctx.timer.section(use.name):
@@ -88,4 +102,4 @@ def ambient_in_scatter(ctx: VolumeContext, vol, p: Tensor, s: Tensor, sigma_s: T
     return out * v[:, None]
 
 
-__all__ = ["Ambient", "ambient_in_scatter", "sky_mean"]
+__all__ = ["Ambient", "ambient_in_scatter", "ambient_lanes", "ambient_radiance", "sky_mean"]

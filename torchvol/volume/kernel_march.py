@@ -8,16 +8,18 @@ statistics inside it.
 
 One source: every per-sample formula here is the eager renderer's own function, written in lanes
 (`ops.lanes`) and traced here with Dr.Jit arrays: the density (its kind's ``lanes`` capability in
-`fields.DENSITIES`: constant, exponential, value-noise fbm, explosion), the edge fade
-(`fields.edge.faded` over the bounds' ``lanes`` depth), the shadow rays' exits and segments (the
-bounds' ``lanes`` interval, `volume.shadow.shadow_segments`), the sun's grid lookup
+`fields.DENSITIES`: constant, exponential, value-noise fbm, explosion, particles, fur, the
+production cloudscape), the edge fade (`fields.edge.faded` over the bounds' ``lanes`` depth), the
+shadow rays' exits and segments (the bounds' ``lanes`` interval: box, sphere, slab, a planet's
+shell; `volume.shadow.shadow_segments`), the ambient graded by the bounds' ``lanes`` altitude
+(`volume.ambient.ambient_radiance`), the sky blend (`volume.physical.sky_blend`), the sun's grid lookup
 (`volume.sun_volume.grid_transmittance`), a point light's falloff (`light.lights.point_lanes`)
 and phase (`light.phase`'s ``lanes``), the multiple-scattering octaves
 (`volume.multiple.octave_weights`), the emission colour map and bloom, the step rule
 (`march.StepRule.length`), the integrator's step (`integrate.WEIGHTS`) and the median
 (`march.median_crossing`). What is constant along a ray is computed by the eager code itself
 before the kernel runs: the suns' phase responses (`physical.light_responses`), the dither, the
-pieces, the sun grids. The eager march (`compile="off"`) is the reference the kernel is held to
+pieces, the sun grids, the sky behind each ray (what a sky blend fades towards). The eager march (`compile="off"`) is the reference the kernel is held to
 (tests/volume/test_kernel_march.py).
 
 `supports` says which volumes it renders (the plan asks once); the others run eagerly. Numbers a
@@ -40,16 +42,17 @@ from ..fields import DENSITIES
 from ..fields.base import DENSITY_MAX
 from ..fields.edge import EdgeField, faded
 from ..fields.heightfield import terrain_lanes, visible_lanes
-from ..geometry.bounds import BOUNDS
+from ..geometry.bounds import BOUNDS, bounds_lanes
 from ..light.lights import point_lanes
 from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
 from ..schema.batch import take
+from .ambient import ambient_lanes, ambient_radiance
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
 from .march import MarchResult, median_crossing
 from .multiple import octave_weights
-from .physical import light_responses
+from .physical import light_responses, sky_blend
 from .shader_look import ambient_light, derivative_light, look_lanes, shaded
 from .shadow import occluder_transmittance, shadow_segments, sun_grids
 from .sun_volume import grid_transmittance, grids_lanes
@@ -59,11 +62,12 @@ from .surface_look import look_normal, surface_colour, surface_lanes
 def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
     light passes `uses` and sky-visibility pass `ambient` (None: none), or None where it can: a
-    density written in lanes (constant, exponential, value-noise fbm of either hash) in bounds
-    written in lanes (sphere, box, slab), physically shaded, by any integrator, lit by
-    suns and point lights with shadows (marched, or the sun's grid) through it and through the
-    other volumes (each written in lanes too), ungraded sky light, emission, its colour map and bloom; `settings` the
-    render's `MarchSettings`."""
+    density written in lanes (constant, exponential, value-noise fbm of either hash, explosion,
+    particles and fur of value noise, the cloudscape) in bounds written in lanes (sphere, box,
+    slab, shell), physically shaded or in the seeds' looks, by any integrator, lit by suns and point
+    lights with shadows (marched, or the sun's grid) through it and through the other volumes (each
+    written in lanes too) and past the terrain, sky light (graded by altitude or not), a sky
+    blend, emission, its colour map and bloom; `settings` the render's `MarchSettings`."""
     passes = [u for u in uses if u.shadow is not None] + ([] if ambient is None else [ambient])
     checks = [
         (_has_lanes(vol), f"the {vol.density.kind} density"),
@@ -71,8 +75,6 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
         (vol.shading in ("physical", "shader", "surface"), f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
         (settings.tolerance is None, "the error-controlled march"),
-        (vol.sky_blend is None, "a sky blend"),
-        (vol.ambient is None or vol.ambient.top is None, "a graded ambient"),
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
         (all(_has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
              for u in passes for j in u.occluders), "shadows through a volume not written in lanes"),
@@ -104,10 +106,8 @@ def _field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
 
     inner, edge = _inner_and_edge(vol)
     inputs, density = DENSITIES[vol.params.density.kind].caps["lanes"][:2]
-    bounds = vol.params.bounds.value
     return SimpleNamespace(
-        field=inputs(inner, _to(s, per_ray)), field_density=density,
-        bounds=SimpleNamespace(**{name: per_ray(getattr(bounds, name)) for name in type(bounds.models[0]).model_fields}),
+        field=inputs(inner, _to(s, per_ray)), field_density=density, bounds=bounds_lanes(vol.params.bounds.value, per_ray),
         edge=None if edge is None else SimpleNamespace(width=per_ray(edge.width),
                                                        base=None if edge.base is None else per_ray(edge.base)))
 
@@ -173,10 +173,11 @@ def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
     return run
 
 
-def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray) -> SimpleNamespace:
+def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> SimpleNamespace:
     """What a member's sample takes per ray, for rays of directions `d` [n, 3] and scenes `s` [n],
     computed by the eager code: σ_t, albedo, what its lights and sky light take (the suns' phase
-    responses, `physical.light_responses`), its emission, colour map and bloom."""
+    responses, `physical.light_responses`; the ambient, `ambient.ambient_lanes`), its emission,
+    colour map and bloom, and its sky blend towards the sky `behind` the rays (three lanes)."""
     k = SimpleNamespace(direction=lane(d), sigma_t=per_ray(vol.params.sigma_t), albedo=per_ray(vol.params.albedo))
     responses = light_responses(ctx, vol, d, s)
     k.lights = []
@@ -209,16 +210,19 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray) -> SimpleNames
         k.exponents = [per_ray(b**i) for i in range(1, vol.params.multiple_scattering.octaves)]
     if vol.plan.ambient:
         amb = vol.params.ambient
-        k.ambient = lane(take(vol.ambient_bottom, s))
+        k.ambient = ambient_lanes(vol, per_ray)
         k.ambient_direction = per_ray(torch.nn.functional.normalize(amb.direction, dim=1))
         k.ambient_sigma = per_ray(amb.sigma_scale * vol.params.sigma_t)
+    if vol.plan.sky_blend:
+        k.behind, k.sky_blend = behind, per_ray(vol.params.sky_blend)
     return k
 
 
-def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: Tensor | None, *,
-          shares: bool = False) -> MarchResult:
+def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor, active: Tensor,
+          dither: Tensor | None, *, shares: bool = False) -> MarchResult:
     """The fixed march of the physical volumes `vols` (`supports` said yes for each) along a
-    chunk's `rays` [R] as one Dr.Jit kernel: each ray's span cut into pieces [start, end] [P, R]
+    chunk's `rays` [R] (the sky behind them `background` [R, 3], None: black; what a sky blend
+    fades towards) as one Dr.Jit kernel: each ray's span cut into pieces [start, end] [P, R]
     (`joint.pieces`; one volume alone: one piece, its chord), medium v present in piece p where
     `active` [P, V, R]; in each piece σ_t and the sources of the media present summed, as
     `joint.summed_medium` does, and the piece marched by the render's step rule from its own
@@ -249,7 +253,8 @@ def march(ctx, vols, rays, start: Tensor, end: Tensor, active: Tensor, dither: T
     solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
     par = _parameters(ctx.settings)
     terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, _to(s, per_ray), torch.float32)
-    members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray)),
+    behind = [0.0] * 3 if background is None else lane(background.index_select(0, idx))
+    members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray, behind)),
                                medium=_medium(m, v, par, solids, terrain, count)) for v in vols]
     n = len(idx)
     zero, q0 = dr.zeros(Float, n), Int32(first_piece.to(torch.int32).numpy())
@@ -452,7 +457,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
             out = [out[c] + sum((response[i][c] * weights[i] for i in range(1, len(weights))),
                                 response[0][c] * weights[0]) for c in range(3)]
         if vol.plan.ambient:
-            amb = [k.ambient[c] * sigma_s for c in range(3)]
+            amb = [a * sigma_s for a in ambient_radiance(k.ambient, p)]
             sky = vol.plan.ambient_sky
             if sky is not None:
                 v = transmittance(p, k.ambient_direction, k.ambient_sigma, sky.shadow, sky.occluders,
@@ -604,6 +609,8 @@ def _sample(m: SimpleNamespace, par: SimpleNamespace, count: int, p, t_sample, d
         source = tuple(a + b for a, b in zip(source, mk.emission_glow(mk.emission_map, p, raw)))
     if vol.plan.bloom is not None:
         source = tuple(a + b for a, b in zip(source, bloom_source(mk.bloom, p)))
+    if vol.plan.sky_blend:  # last, as `physical_medium` blends the whole source
+        source = sky_blend(source, mk.behind, sigma_t, mk.sky_blend, t_sample)
     return sigma_t, tuple(source), evals
 
 

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import Rays
+from ..ops import lanes
 from ..schema.batch import per_scene, take
 from .ambient import ambient_in_scatter
 from .composite import VolumePart
@@ -141,13 +142,21 @@ def physical_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | No
         if vol.plan.bloom is not None:
             with ctx.timer.section(vol.plan.bloom_pass):
                 source = source + bloom_glow(vol.params.bloom, ctx.lights[vol.plan.bloom].params, p, s)
-        if vol.plan.sky_blend:  # σt·sky integrates to the sky seen through the sample's opacity
-            k = take(vol.params.sky_blend, s)
-            sky = sigma_t[:, None] * (background[ids] if background is not None else 0.0)
-            source = torch.lerp(source, sky, (-torch.expm1(-k * t * t))[:, None])
+        if vol.plan.sky_blend:
+            behind = lanes.columns(background[ids]) if background is not None else [0.0] * 3
+            source = torch.stack(sky_blend(lanes.columns(source), behind, sigma_t, take(vol.params.sky_blend, s), t), 1)
         return sigma_raw, source
 
     return medium
+
+
+def sky_blend(source, sky, sigma_t, k, t) -> list:
+    """A sample's `source` (three lanes) blended into the `sky` behind its ray (three lanes, or
+    numbers) with distance `t`: by 1 − e^(−k·t²), towards σt·sky, which integrates to the sky
+    seen through the sample's opacity; `sigma_t` its extinction, `k` the volume's ``sky_blend``.
+    Lanes (`ops.lanes`): eager and the kernel's sample alike. -> three lanes."""
+    w = -lanes.expm1(-k * t * t)
+    return [lanes.lerp(source[c], sigma_t * sky[c], w) for c in range(3)]
 
 
 def exact_segment(source: Tensor, sigma_t: Tensor, a: Tensor, length: Tensor,

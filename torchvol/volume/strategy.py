@@ -76,7 +76,7 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
             if vol.shading.semantics == "shader":
                 res = kernel_march.march_look(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays))
             else:
-                res = kernel_march.march(ctx, [vol], rays, t0[None], t1[None], hit[None, None], ctx.dither(rays))
+                res = kernel_march.march(ctx, [vol], rays, background, t0[None], t1[None], hit[None, None], ctx.dither(rays))
             if bool(hit.any()):  # its per-sample passes ran inside the kernel, their time in its own
                 for name in vol.plan.sample_passes:
                     with ctx.timer.section(name):
