@@ -99,13 +99,13 @@ def test_generate_points_large_eager_runs_of_fused_scenes_at_compile(monkeypatch
     from pathlib import Path
 
     from torchvol.cli import compile_hint
-    from torchvol.volume import drjit_march
+    from torchvol.runtime import compilation
 
     datasets = Path(__file__).resolve().parents[1] / "datasets"
     # the fur ball's march is a Dr.Jit kernel by default: inductor has nothing to add
     assert compile_hint(datasets / "fur-ball.toml", overrides={}, seed=0, count=1000) is None
     with monkeypatch.context() as m:  # where Dr.Jit cannot run, its fused Worley noise is the fast path
-        m.setattr(drjit_march, "available", lambda like: False)
+        m.setattr(compilation, "drjit_available", lambda *args: False)
         assert "--compile" in compile_hint(datasets / "fur-ball.toml", overrides={}, seed=0, count=1000)
         assert compile_hint(datasets / "fur-ball.toml", overrides={}, seed=0, count=16) is None  # compiling would not pay
     # its march is a Dr.Jit kernel by default: inductor has nothing to add

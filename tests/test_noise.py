@@ -257,3 +257,37 @@ def test_extreme_coordinates_finite_and_in_range(scale, freq, dt, seed):
     assert torch.isfinite(v).all() and (v >= 0).all() and (v <= 1).all()
     f = fbm(p, lambda q: texture_noise(q, TEX) * 2 - 1)
     assert torch.isfinite(f).all() and (f.abs() <= 1).all()
+
+
+def _stacked_tables(seeds):
+    tables = [noise.texture_table(noise.default_noise_texture(s)) for s in seeds]
+    return tables, noise.packed_table(torch.cat(tables))
+
+
+def _hard_points(dtype):
+    """[80,004, 3] points from |p| ≤ 2 to 5·10⁷, past the float->int32 overflow, and NaN."""
+    g = torch.Generator().manual_seed(1)
+    return torch.cat([(torch.rand(20000, 3, generator=g, dtype=dtype) - 0.5) * scale for scale in (4.0, 400.0, 1e5, 1e8)]
+                     + [torch.tensor([[float("nan"), 0, 0], [1e30, 1, 2], [-1e30, 1, 2], [0.5, 0.5, 1e7]], dtype=dtype)])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_integer_texture_noise_is_the_float64_one_bitwise(dtype):
+    """`noise.texture_noise_coords` (int32/int64 steps, stacked tables: the template's eager noise
+    and what its Dr.Jit march traces) against `noise.texture_noise_table` (float64 steps): every
+    value equal, also past the float->int32 overflow and at NaN."""
+    tables, packed = _stacked_tables([0, 5])
+    p = _hard_points(dtype)
+    s = torch.arange(p.shape[0]) % 2
+    expected = torch.where(s == 0, noise.texture_noise_table(p, tables[0]), noise.texture_noise_table(p, tables[1]))
+    got = noise.texture_noise_coords(*p.unbind(1), packed, s * 65536)
+    same = (got == expected) | (got.isnan() & expected.isnan())
+    assert same.all(), f"{int((~same).sum())} of {len(p)} differ, first at {p[~same][0].tolist()}"
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-3e9, 3e9, allow_nan=False, width=32), min_size=3, max_size=3))
+def test_integer_texture_noise_is_bitwise_at_any_float32_point(xyz):
+    tables, packed = _stacked_tables([3])
+    p = torch.tensor([xyz], dtype=torch.float32)
+    assert torch.equal(noise.texture_noise_coords(*p.unbind(1), packed), noise.texture_noise_table(p, tables[0]))

@@ -237,9 +237,9 @@ print("fell back")
 def test_the_drjit_walk_is_bitwise_the_plain_walk(seed, n, max_steps, limited, late, hybrid):
     """`walk.drjit_traverse`: the block's own step (`walk_step`, lanes) in one Dr.Jit loop per ray;
     float32 rays, axis-parallel ones and rays that start inside or part-way included."""
-    from torchvol.volume import drjit_march
+    from torchvol.runtime.compilation import drjit_available
 
-    if not drjit_march.available(torch.zeros(1)):
+    if not drjit_available():
         pytest.skip("Dr.Jit's LLVM backend is not available")
     shape, p = ((14, 12, 16), 0.03) if hybrid else ((6, 7, 8), 0.12)
     (o, d), lookup, table, (lo, hi), (distance, field) = _world(seed, n, torch.float32, shape=shape, p=p)

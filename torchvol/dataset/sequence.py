@@ -97,7 +97,8 @@ def sequence_scenes(recipe: Recipe, indices: Sequence[int], *, seed: int) -> tup
 def add_flow(item: dict) -> None:
     """Adds a stacked sequence sample's `flow` (F, 2, H, W) and `flow_valid` (F, 1, H, W): frame f to
     f + 1 from its depth and the two poses; the last frame's is 0 and invalid."""
-    from .flow import flow_from_depth  # kornia's import (0.13 s) only where a recipe has frames
+    # kornia's import (0.13 s) only where a recipe has frames
+    from .flow import flow_from_depth
 
     flow, valid = flow_from_depth(item["depth"][:-1], item["K"][:-1], item["world_to_camera"][:-1],
                                   item["world_to_camera"][1:])

@@ -10,12 +10,11 @@ capabilities:
   in the batch longer);
 - ``octaves``: a sum of octaves that `march.lod` may cut short with distance;
 - ``compiles_fast(volume) -> bool``: a render compiled with ``compile="all"`` is this volume's fast
-  path (one fused kernel: the fbm on the arithmetic hash, fur's Worley noise, the template's cloud
-  layer in the seeds' look); absent: it is not (`renderer.plan.compile_pays`);
-- ``fused_march``: the template's cloud layer, whose whole march in the seeds' look has a fused
-  form (`volume.fused`, `volume.drjit_march`; `renderer.plan.fused_march` decides where it runs);
+  path (one fused kernel: the fbm on the arithmetic hash, fur's Worley noise); absent: it is not
+  (`renderer.plan.compile_pays`);
 - ``lanes = (inputs, density)``: the density written once in lanes (`ops.lanes`), what the Dr.Jit
-  march traces (`volume.kernel_march`): `inputs(field, to)` its per-lane parameters,
+  march traces (`volume.kernel_march`; the template's cloud layer too, in the seeds' look):
+  `inputs(field, to)` its per-lane parameters,
   `density(q, p, count)` its signed density at p (three lanes), `count` octaves kept or None;
   `supports(volume) -> bool` where a kind renders only some of its variants.
 
@@ -27,7 +26,7 @@ from __future__ import annotations
 
 from ..schema.registry import Registry
 from .base import Field
-from .clouds import CloudLayer, CloudsDensity
+from .clouds import CloudLayer, CloudsDensity, clouds_density, clouds_lanes
 from .cloudscape import Cloudscape, CloudscapeDensity
 from .constant import Constant, ConstantDensity, constant_density, constant_lanes
 from .explosion import (
@@ -59,8 +58,7 @@ DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(expone
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True,
                    compiles_fast=lambda volume: volume.density.value.hash == "arithmetic",
                    lanes=(fbm_lanes, fbm_density, lambda volume: volume.density.value.noise == "value"))
-DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, fused_march=True,
-                   compiles_fast=lambda volume: volume.shading == "shader" and volume.edge is None)
+DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, lanes=(clouds_lanes, clouds_density))
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, lanes=(explosion_lanes, explosion_density))
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
 DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True,

@@ -26,7 +26,6 @@ Compile time is excluded from the steady-state rows and reported on its own (fir
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import platform
@@ -45,6 +44,7 @@ from ..fields.clouds import cloud_fbm
 from ..noise import fast as fastnoise
 from ..noise import lattice as noise
 from ..renderer.executor import render
+from ..runtime import compilation
 from ..runtime.compilation import compile_settings, compiled
 from ..runtime.threads import torch_threads
 from ..scene.model import preset, preset_names
@@ -150,9 +150,8 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
         drjit = fastest("template-clouds") == DRJIT_FBM
         compiled_name = "torchvol default (Dr.Jit march)" if drjit else "torchvol torch.compile"
         for compile, n, name in (("off", threads, "torchvol eager"), ("auto" if drjit else "all", threads, compiled_name),
-                                 ("auto" if drjit else "all", 1, f"{compiled_name}, 1 thread"),
-                                 *([("all", threads, "torchvol torch.compile kernels")] if drjit else [])):
-            with torch_threads(n), _drjit_off(name == "torchvol torch.compile kernels"):
+                                 ("auto" if drjit else "all", 1, f"{compiled_name}, 1 thread")):
+            with torch_threads(n):
                 t = time_render(scene, compile=compile, repeat=repeat, floor=floor("template-clouds", n))
             rows.append(dict(work=work, renderer=name, threads=n, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
                              ratio=t.seconds / gl if gl else None, x_floor=t.x_floor, first_s=t.first_s))
@@ -162,30 +161,11 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
                                 ("table", "auto", "table hash, default (Dr.Jit march)"),
                                 ("arithmetic", "auto", "arithmetic hash, default (Dr.Jit march)"),
                                 ("arithmetic", "all", "arithmetic hash, fused field compiled")):
-        with _drjit_off(compile == "all"):  # inductor's fused field, the march around it eager
-            t = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat,
-                            floor=floor("cloud-puff", threads))
+        t = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat, floor=floor("cloud-puff", threads))
         base = base or t.seconds
         rows.append(dict(work=work, renderer=name, threads=threads, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
                          ratio=t.seconds / base, x_floor=t.x_floor, first_s=t.first_s))
     return rows
-
-
-@contextlib.contextmanager
-def _drjit_off(off: bool):
-    """The compiled template march on torch.compile's kernels inside the block where `off`."""
-    from ..volume import drjit_march
-
-    before = os.environ.get(drjit_march.OPT_OUT)
-    if off:
-        os.environ[drjit_march.OPT_OUT] = "0"
-    try:
-        yield
-    finally:
-        if before is None:
-            os.environ.pop(drjit_march.OPT_OUT, None)
-        else:
-            os.environ[drjit_march.OPT_OUT] = before
 
 
 def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", compile: bool = False) -> list[dict]:
@@ -212,13 +192,11 @@ FASTEST = {"cloud-puff": "arithmetic hash, fused compiled kernel",
 
 def fastest(density: str) -> str:
     """The name of `density`'s fastest `floor_kernels` kernel on this machine."""
-    from ..volume import drjit_march
-
-    return DRJIT_FBM if density == "template-clouds" and drjit_march.available(torch.zeros(1)) else FASTEST[density]
+    return DRJIT_FBM if density == "template-clouds" and compilation.drjit_available() else FASTEST[density]
 
 
 def _drjit_fbm(x, y, z, packed, base, *, scales) -> Callable[[], object]:
-    """The template's fbm as `volume.drjit_march` evaluates it, on Dr.Jit copies of the points (made
+    """The template's fbm as its Dr.Jit march evaluates it (`fields.clouds.clouds_density`), on Dr.Jit copies of the points (made
     once): each call traces, launches on torch's thread count and waits for the result."""
     import drjit as dr
     from drjit.llvm import Float, Int32

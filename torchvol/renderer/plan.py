@@ -25,19 +25,20 @@ from ..fields import DENSITIES
 from ..geometry.bounds import BOUNDS, SLAB_REACH
 from ..light.lights import LIGHTS, Shadow, sun_index
 from ..post import POST
+from ..runtime import compilation
 from ..runtime.compilation import CompileMode
 from ..scene.model import Scene
 from ..scene.quality import QUALITY, MarchSettings, at_level, march_settings
 from ..schema.batch import Stacked, stack
-from ..volume import drjit_march, kernel_march
+from ..volume import kernel_march
 from ..volume.march import COMPACT_BELOW
 from ..volume.shading import SHADINGS
 from ..voxel.materials import any_ggx
 from .aovs import produced
 
 Strategy = Literal["closed_form", "march", "skip", "tolerance"]
-# what a volume's march runs on: no march (its closed form), eager torch, the template's fused
-# march as torch.compile kernels, or as one Dr.Jit kernel (`volume.fused`, `volume.drjit_march`)
+# what a volume's march (or the voxel walk) runs on: no march (its closed form), eager torch, the
+# voxel walk's torch.compile kernels, or one Dr.Jit kernel (`volume.kernel_march`, `voxel.walk`)
 Backend = Literal["closed_form", "eager", "inductor", "drjit"]
 # torch's threads during a render: the caller's, or one for torch's ops while the Dr.Jit kernel
 # runs on the caller's count (`runtime.threads.glue_on_one_thread`)
@@ -88,7 +89,6 @@ class VolumePass:
     backend: Backend = "eager"  # what its march runs on
     eager_because: str | None = None  # why it is eager where it is (`march_backend`)
     joint: bool = False  # marched with the other media in the scene's joint pass (`JointPass`), not on its own
-    fused: bool = False  # the template's fused march renders it (`fused_march`), not `volume.kernel_march`
 
     @property
     def step_pass(self) -> str:
@@ -346,38 +346,25 @@ def ambient_sky(batch: Stacked, v: int) -> LightPass | None:
                      batch.terrain is not None, batch.voxels is not None)
 
 
-def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bool:
-    """Whether volume `vol` (its `Stacked` parameters) is the technique the fused march renders:
-    a density with the ``fused_march`` capability (the template's cloud layer) in the seeds' look,
-    no edge falloff, lit (if at all) by suns (`uses`: its lights)."""
-    return (bool(DENSITIES[vol.density.kind].caps.get("fused_march")) and vol.shading == "shader" and batch.atmosphere is None
-            and SHADINGS[vol.shading].caps["semantics"] == "shader" and vol.edge is None
-            and all(LIGHTS[batch.lights[use.light].kind].caps["directional"] for use in uses))
-
-
 def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: str,
                   settings: MarchSettings, dtype: torch.dtype, device: torch.device | str,
-                  ambient: LightPass | None = None, fused: bool = False) -> tuple[Backend, str | None]:
+                  ambient: LightPass | None = None) -> tuple[Backend, str | None]:
     """What volume `vol`'s march runs on, decided once for the render, and why it is eager where
-    it is (None otherwise): one Dr.Jit kernel wherever the compile mode is not "off", Dr.Jit runs
-    for `dtype` on `device` (`drjit_march.available`) and a kernel renders the technique (the
-    template's fused march, `fused`: `fused_march` said so; a physical medium, `kernel_march.supports`); under "all"
-    the template's torch.compile kernels where Dr.Jit cannot run; everything else eagerly."""
+    it is (None otherwise): one Dr.Jit kernel (`volume.kernel_march`) wherever the compile mode is
+    not "off", Dr.Jit runs for `dtype` on `device` (`compilation.drjit_available`) and the kernel
+    renders the technique (`kernel_march.supports`); everything else eagerly."""
     if strategy == "closed_form":
         return "closed_form", None
     if compile == "off":
         return "eager", "compile is off: the eager reference"
     if strategy != "march":
         return "eager", f"the {strategy} strategy has no kernel"
-    like = torch.zeros((), dtype=dtype, device=device)
-    drjit = drjit_march.available(like)
-    why = None if drjit else (f"Dr.Jit renders float32 on the CPU, not {str(dtype).removeprefix('torch.')} on "
-                              f"{like.device.type}" if dtype != torch.float32 or like.device.type != "cpu"
-                              else "Dr.Jit's LLVM backend is not available here")
-    if fused:
-        return ("drjit", None) if drjit else ("inductor", None) if compile == "all" else ("eager", why)
-    why = why or kernel_march.supports(batch, vol, uses, settings, ambient)
-    return ("eager", f"no kernel for {why}" if drjit else why) if why is not None else ("drjit", None)
+    if dtype != torch.float32 or torch.device(device).type != "cpu":
+        return "eager", f"Dr.Jit renders float32 on the CPU, not {str(dtype).removeprefix('torch.')} on {torch.device(device).type}"
+    if not compilation.drjit_available(dtype, device):
+        return "eager", "Dr.Jit's LLVM backend is not available here"
+    why = kernel_march.supports(batch, vol, uses, settings, ambient)
+    return ("drjit", None) if why is None else ("eager", f"no kernel for {why}")
 
 
 def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str = "off",
@@ -405,16 +392,16 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
     ambient = vol.ambient is not None
-    how, sky, fused = strategy(batch, vol, settings), ambient_sky(batch, v), fused_march(batch, vol, uses)
+    how, sky = strategy(batch, vol, settings), ambient_sky(batch, v)
     backend, why = march_backend(batch, vol, how, uses, compile=compile, settings=settings, dtype=dtype, device=device,
-                                 ambient=sky, fused=fused)
+                                 ambient=sky)
     return VolumePass(index=v, name=name, strategy=how, shading=vol.shading, lights=uses, backend=backend, eager_because=why,
                       emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
                       emission_map=None if vol.emission_map is None else vol.emission_map.kind,
                       bloom=None if vol.bloom is None else vol.bloom.light,
                       sky_blend=vol.sky_blend is not None, ambient=ambient,
                       ambient_sky=sky,
-                      multiple=vol.multiple_scattering is not None, fused=fused)
+                      multiple=vol.multiple_scattering is not None)
 
 
 def voxel_pass(batch: Stacked) -> VoxelPass | None:
@@ -470,7 +457,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
     if joint is not None:
         volumes = joint_backends(tuple(replace(v, joint=v.index in joint.volumes) for v in volumes), joint)
     # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
-    kernels = compile != "off" and drjit_march.available(torch.zeros((), dtype=dtype, device=device))
+    kernels = compile != "off" and compilation.drjit_available(dtype, device)
     glue = voxels is None and terrain is None and bool(volumes) and all(v.backend == "drjit" for v in volumes)
     return Plan(
         settings=settings,

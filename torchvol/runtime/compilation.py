@@ -36,7 +36,8 @@ import torch
 
 from ..schema.validate import fail, is_integer
 
-__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "auto_mode", "compile_mode", "compile_settings", "compiled", "exact_kernel"]
+__all__ = ["AUTO_COMPILE_SAMPLES", "CompileMode", "auto_mode", "compile_mode", "compile_settings", "compiled", "drjit_available",
+           "exact_kernel"]
 
 CompileMode = Literal["off", "kernels", "exact", "all"]
 MODES = ("off", "kernels", "exact", "all")
@@ -58,6 +59,31 @@ def compile_mode(value, *, path: str = "compile", auto: bool = False) -> str:
     if not isinstance(value, str) or value not in allowed:
         fail(path, value, "expected " + ", ".join(allowed) + " (or True for all, False or None for off)")
     return value if auto or value != "auto" else "kernels"
+
+
+# whether this process may use Dr.Jit: None until the first `drjit_available` probes it. A child
+# forked after its parent started Dr.Jit (a DataLoader worker) uses it too: its kernels run there,
+# the same bytes (tests/volume/test_kernel_march.py), since a sample's bytes must not depend on the workers
+_USABLE: dict[str, bool | None] = {"usable": None}
+
+
+def drjit_available(dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> bool:
+    """Whether Dr.Jit's kernels can render in `dtype` on `device`: float32 on the CPU, `drjit`
+    importable with its LLVM backend (it needs libLLVM), probed once a process. The plan asks
+    (`renderer.plan`), once a render; nothing reads an environment variable per chunk."""
+    if dtype != torch.float32 or torch.device(device).type != "cpu":
+        return False
+    if _USABLE["usable"] is None:
+        _USABLE["usable"] = _probe()
+    return bool(_USABLE["usable"])
+
+
+def _probe() -> bool:
+    try:
+        import drjit as dr
+    except ImportError:
+        return False
+    return bool(dr.has_backend(dr.JitBackend.LLVM))
 
 
 def auto_mode(mode: str, samples: int) -> CompileMode:

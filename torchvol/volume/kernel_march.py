@@ -8,7 +8,7 @@ statistics inside it.
 
 One source: every per-sample formula here is the eager renderer's own function, written in lanes
 (`ops.lanes`) and traced here with Dr.Jit arrays: the density (its kind's ``lanes`` capability in
-`fields.DENSITIES`: constant, exponential, value-noise fbm, explosion), the edge fade
+`fields.DENSITIES`: constant, exponential, value-noise fbm, explosion, the template's cloud layer, ...), the edge fade
 (`fields.edge.faded` over the bounds' ``lanes`` depth), the shadow rays' exits and segments (the
 bounds' ``lanes`` interval, `volume.shadow.shadow_segments`), the sun's grid lookup
 (`volume.sun_volume.grid_transmittance`), a point light's falloff (`light.lights.point_lanes`)
@@ -17,8 +17,9 @@ and phase (`light.phase`'s ``lanes``), the multiple-scattering octaves
 (`march.StepRule.length`), the integrator's step (`integrate.WEIGHTS`) and the median
 (`march.median_crossing`). What is constant along a ray is computed by the eager code itself
 before the kernel runs: the suns' phase responses (`physical.light_responses`), the dither, the
-pieces, the sun grids. The eager march (`compile="off"`) is the reference the kernel is held to
-(tests/volume/test_kernel_march.py).
+pieces, the sun grids. `march_look` is the seeds' alpha loop (the shader look: the template;
+the surface look: the fur ball) in the same way. The eager march (`compile="off"`) is the
+reference the kernels are held to (tests/volume/test_kernel_march.py).
 
 `supports` says which volumes it renders (the plan asks once); the others run eagerly. Numbers a
 dataset draws per scene are the kernel's inputs, and the settings that are numbers are its
@@ -348,7 +349,7 @@ def _look_body(k: SimpleNamespace, solid: SimpleNamespace, par: SimpleNamespace,
 
     def body(t, trans, wsum, wt, median, steps, alive, truncated, evals, red, green, blue):
         dt = st.rule.length(t, k.span)
-        p = [k.origin[c] + t * k.direction[c] for c in range(3)]
+        p = [dr.fma(t, k.direction[c], k.origin[c]) for c in range(3)]  # rounded once, as eager's addcmul
         count = None
         if par.lod is not None and solid.octaves is not None:
             count = solid.octaves - Int32(dr.floor(dr.log2(1.0 + t * par.lod)))
@@ -626,7 +627,7 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
             dt = dr.select(first, dt * k.dither, dt)
         dt = lanes.minimum(dt, end - t)
         t_sample = t + 0.5 * dt
-        p = [k.origin[c] + t_sample * k.direction[c] for c in range(3)]
+        p = [dr.fma(t_sample, k.direction[c], k.origin[c]) for c in range(3)]  # rounded once, as eager's addcmul
         sigma, source, sigmas = dr.zeros(Float, dr.width(t)), [dr.zeros(Float, dr.width(t))] * 3, []
         for i, m in enumerate(members):
             if len(members) == 1:  # (a piece has a medium: the one)
