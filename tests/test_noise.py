@@ -2,13 +2,11 @@
 
 import pytest
 import torch
-from conftest import assert_close
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchvol.noise import lattice as noise
 from torchvol.noise.lattice import (
-    compiled_noise,
     default_noise_texture,
     fbm,
     hash3,
@@ -108,17 +106,6 @@ def test_corner_hashes_are_lattice_hash_of_the_corners():
     perm = noise._lattice_tables(7, "cpu")[0].to(torch.int32)
     for corner, h in zip(noise._CORNERS, noise._corner_hashes(cells, perm), strict=True):
         assert torch.equal(h.long(), lattice_hash(cells + torch.tensor(corner), 7)), corner
-
-
-@pytest.mark.parametrize("basis", [value_noise, perlin_noise, worley_noise], ids=lambda f: f.__name__)
-def test_compiled_noise_is_its_noise_in_one_graph(basis):
-    # the tables are looked up outside the compiled kernel: traced, their lru_cache was a graph
-    # break at every call (and a warning), where they were drawn again
-    tables, kernel = noise._KERNELS[basis]
-    p = points(1000, torch.float32, seed=5)
-    explained = torch._dynamo.explain(kernel)(p, *tables(4, "cpu"))
-    assert explained.graph_break_count == 0, explained.break_reasons
-    assert_close(compiled_noise(basis)(p, seed=4), basis(p, seed=4), what=basis.__name__)
 
 
 def test_perlin_zero_at_lattice_points():

@@ -216,11 +216,11 @@ def test_the_plan_records_the_sun_each_marchs_backend_the_walk_and_the_thread_po
     eager = make_plan(template)
     assert eager.volumes[0].backend == "eager" and eager.threads == "caller" and eager.walk is None
     assert make_plan(tv.preset("homogeneous-box", width=8, height=8)).volumes[0].backend == "closed_form"
-    # a physical medium's march is the Dr.Jit kernel in every mode but "off", where Dr.Jit runs
-    assert make_plan(tv.preset("cloud-puff", width=8, height=8), compile="all").volumes[0].backend == ("drjit" if drjit else "eager")
-    # the voxel walks: Dr.Jit's wherever a kernel runs, the compiled walk under "exact" where it does not
-    assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="exact").walk == ("drjit" if drjit else "inductor")
-    assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="exact", dtype=torch.float64).walk == "inductor"
+    # a physical medium's march is the Dr.Jit kernel but under "off", where Dr.Jit runs
+    assert make_plan(tv.preset("cloud-puff", width=8, height=8), compile="kernels").volumes[0].backend == ("drjit" if drjit else "eager")
+    # the voxel walks: Dr.Jit's wherever a kernel runs, else eager (the same bits)
+    assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="kernels").walk == ("drjit" if drjit else "eager")
+    assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="kernels", dtype=torch.float64).walk == "eager"
     assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="off").walk == "eager"
     point_first = {"image": {"width": 8, "height": 8}, "volumes": [{"density": {"constant": 1.0}}],
                    "lights": [{"kind": "point", "position": [0.0, 3.0, 0.0]}, {"kind": "sun", "direction": [0, 1, 0]}]}

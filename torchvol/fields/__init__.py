@@ -1,5 +1,5 @@
 """Density fields: the `DENSITIES` registry. Each kind is its schema model (the table under
-`density = { kind = ... }`), its field class (built per batch: `fn(params, times, compiled=...)`,
+`density = { kind = ... }`), its field class (built per batch: `fn(params, times)`,
 called as `field(points [N, 3], scene_index [N], lod [N] | None) -> density [N]`) and its
 capabilities:
 
@@ -9,9 +9,6 @@ capabilities:
 - ``cheap``: a sample costs less than compacting the march's batch (the march keeps finished rays
   in the batch longer);
 - ``octaves``: a sum of octaves that `march.lod` may cut short with distance;
-- ``compiles_fast(volume) -> bool``: a render compiled with ``compile="all"`` is this volume's fast
-  path (one fused kernel: the fbm on the arithmetic hash, fur's Worley noise); absent: it is not
-  (`renderer.plan.compile_pays`);
 - ``lanes = (inputs, density)``: the density written once in lanes (`ops.lanes`), what the Dr.Jit
   march traces (`volume.kernel_march`; the template's cloud layer too, in the seeds' look):
   `inputs(field, to)` its per-lane parameters,
@@ -56,13 +53,12 @@ DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lane
 DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True)
 DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density))
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True,
-                   compiles_fast=lambda volume: volume.density.value.hash == "arithmetic",
                    lanes=(fbm_lanes, fbm_density, lambda volume: volume.density.value.noise == "value"))
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, lanes=(clouds_lanes, clouds_density))
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, lanes=(explosion_lanes, explosion_density))
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape)
 DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True,
                    lanes=(particles_lanes, particles_density, lambda volume: volume.density.value.noise == "value"))
-DENSITIES.register("fur", FurDensity, FurField, compiles_fast=lambda volume: True, lanes=(fur_lanes, fur_density))
+DENSITIES.register("fur", FurDensity, FurField, lanes=(fur_lanes, fur_density))
 
 __all__ = ["DENSITIES", "Field"]

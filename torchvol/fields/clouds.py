@@ -17,8 +17,7 @@ from torch import Tensor
 
 from ..noise import lattice as noise
 from ..ops import lanes
-from ..runtime import compilation
-from ..schema.batch import Stacked, per_scene, take
+from ..schema.batch import Stacked, take
 from ..schema.models import EACH, Strict, Vec3
 
 
@@ -51,19 +50,16 @@ class CloudsDensity(Strict):
 
 
 class CloudLayer:
-    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor):
         self.p = params
-        self.tables = [
+        tables = [
             noise.texture_table(torch.as_tensor(tex) if tex is not None else noise.default_noise_texture(seed), times.device)
             for tex, seed in zip(params.texture, params.texture_seed)
         ]
-        self.compiled = compiled
         # the integer filter's stacked tables (bitwise texture_noise_table, ~4× faster eager): one
         # pass over every scene's points, each at its scene's rows (`noise.texture_rows`); the
         # Dr.Jit march reads them too (`clouds_lanes`)
-        self.packed = noise.packed_table(torch.cat(self.tables))
-        if compiled:
-            self.kernels = [lambda x, table=table: compilation.compiled(noise.texture_noise_table)(x, table) for table in self.tables]
+        self.packed = noise.packed_table(torch.cat(tables))
         self.shift = params.wind * times[:, None]  # (B, 3)
         self.feature_size = torch.full_like(times, noise.finest_period(params.octaves))
 
@@ -76,17 +72,8 @@ class CloudLayer:
         p, s = self.p, scene_index
         q = points - take(self.shift, s)
         octaves = None if lod is None else p.octaves - lod
-
-        def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
-            kernel = self.kernels[b]
-            return noise.fbm(q_b, lambda x: kernel(x) * 2.0 - 1.0, octaves=p.octaves,
-                             lod=None if octaves is None else octaves[idx])
-
-        if self.compiled:
-            f = per_scene(q, s, len(p), one_scene)
-        else:
-            f = noise.fbm(q, lambda x, r: noise.texture_noise_coords(*x.unbind(1), self.packed, r) * 2.0 - 1.0,
-                          octaves=p.octaves, lod=octaves, rows=noise.texture_rows(s, points.dtype))
+        f = noise.fbm(q, lambda x, r: noise.texture_noise_coords(*x.unbind(1), self.packed, r) * 2.0 - 1.0,
+                      octaves=p.octaves, lod=octaves, rows=noise.texture_rows(s, points.dtype))
         return cloud_density(f, points[:, 1], take(p.bias, s), take(p.density_scale, s))
 
 

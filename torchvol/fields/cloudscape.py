@@ -73,7 +73,7 @@ def height_gradient(h: Tensor, cloud_type: Tensor) -> Tensor:
 class Cloudscape:
     """The cloudscape densities of B scenes (per-scene tensors (B, ...), textures per seed)."""
 
-    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor):
         self.p = params
         dtype = times.dtype
         self.textures = [(noise_tiles.base_texture(seed).to(dtype), noise_tiles.detail_texture(seed).to(dtype))

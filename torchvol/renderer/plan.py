@@ -37,9 +37,9 @@ from ..voxel.materials import any_ggx
 from .aovs import produced
 
 Strategy = Literal["closed_form", "march", "skip", "tolerance"]
-# what a volume's march (or the voxel walk) runs on: no march (its closed form), eager torch, the
-# voxel walk's torch.compile kernels, or one Dr.Jit kernel (`volume.kernel_march`, `voxel.walk`)
-Backend = Literal["closed_form", "eager", "inductor", "drjit"]
+# what a volume's march (or the voxel walk) runs on: no march (its closed form), eager torch, or one
+# Dr.Jit kernel (`volume.kernel_march`, `voxel.walk`)
+Backend = Literal["closed_form", "eager", "drjit"]
 # torch's threads during a render: the caller's, or one for torch's ops while the Dr.Jit kernel
 # runs on the caller's count (`runtime.threads.glue_on_one_thread`)
 Threads = Literal["caller", "glue_on_one_thread"]
@@ -155,17 +155,6 @@ def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None, *, air
     return JointPass(tuple(v.index for v in members), "media.closed_form" if closed else "media.march", shares, air)
 
 
-def walk_backend(compile: str, kernels: bool) -> Backend:
-    """What the voxel DDA walks run on: one Dr.Jit kernel (`voxel.walk.drjit_traverse`) wherever
-    the render runs kernels (`Plan.kernels`); else the compiled walk
-    under "exact" and "all" (`voxel.walk.fused_traverse`), else eagerly. Every one gives the same
-    bits. A walk that records each cell it visits (the fog's and the glow's primary walk) runs
-    compiled under "exact" and "all", else eagerly, whatever this says."""
-    if kernels:
-        return "drjit"
-    return "inductor" if compile in ("exact", "all") else "eager"
-
-
 def joint_backends(volumes: tuple[VolumePass, ...], joint: JointPass) -> tuple[VolumePass, ...]:
     """The volumes with their backends in the joint march: one Dr.Jit kernel marches every medium
     of a ray where each member's march is one and there is no air (`volume.kernel_march`); else
@@ -271,11 +260,14 @@ class Plan:
     blend: str = "mean"
     labels: LabelPass | None = None  # the per-medium labels asked for (torchvol.renderer.labels), after the composite
     sun: int | None = None  # the index of the light that is the scene's sun (`lights.sun_index`), None: none
-    compile: str = "off"  # the compile mode the render runs in (`runtime.compilation`)
+    compile: CompileMode = "off"  # the compile mode the render runs in (`runtime.compilation`)
     kernels: bool = False  # Dr.Jit's kernels run in this render: the mode is not "off", Dr.Jit runs for its dtype and device
     dtype: torch.dtype = torch.float32  # the render's float type (the quality level's unless given)
     threads: Threads = "caller"  # torch's thread policy during the render
-    walk: Backend | None = None  # what the voxel DDA walk runs on (`walk_backend`), None: no voxels
+    # what the voxel DDA walks run on: one Dr.Jit kernel (`voxel.walk.drjit_traverse`) wherever the
+    # render runs kernels, else eagerly, the same bits either way (a walk with a per-cell callback,
+    # the glow's, runs eagerly); None: no voxels
+    walk: Backend | None = None
 
     def summary(self) -> dict:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
@@ -346,7 +338,7 @@ def ambient_sky(batch: Stacked, v: int) -> LightPass | None:
                      batch.terrain is not None, batch.voxels is not None)
 
 
-def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: str,
+def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: CompileMode,
                   settings: MarchSettings, dtype: torch.dtype, device: torch.device | str,
                   ambient: LightPass | None = None) -> tuple[Backend, str | None]:
     """What volume `vol`'s march runs on, decided once for the render, and why it is eager where
@@ -367,7 +359,7 @@ def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[
     return ("drjit", None) if why is None else ("eager", f"no kernel for {why}")
 
 
-def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str = "off",
+def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: CompileMode = "off",
                 dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> VolumePass:
     """The pass of volume `v` of `batch`: its strategy and backend, the lights it sees and their
     shadow passes, and the terms its source adds."""
@@ -439,7 +431,7 @@ def terrain_pass(batch: Stacked) -> TerrainPass | None:
                                      for l, li in enumerate(batch.lights) if li.shadow is not None), sky=sky)
 
 
-def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: torch.dtype | None = None,
+def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", dtype: torch.dtype | None = None,
               device: torch.device | str = "cpu") -> Plan:
     """The plan of a batch (a `Stacked` view of scenes at their quality level), or of one scene;
     `aovs`: AOV names asked for beyond those always output (the labels of `torchvol.renderer.labels`);
@@ -479,30 +471,9 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
         compile=compile,
         dtype=dtype,
         threads="glue_on_one_thread" if glue else "caller",
-        walk=None if voxels is None else walk_backend(compile, kernels),
+        walk=None if voxels is None else "drjit" if kernels else "eager",
         kernels=kernels,
     )
 
 
-
-def compile_pays(scene: Scene) -> bool:
-    """Whether `render(scene, compile=True)` is the fast path: the scene has volumes, each with a
-    density whose compiled form is one fused kernel (the registry's ``compiles_fast``), and no
-    voxels or terrain (whose compiled kernels are other trade-offs). Compiled renders match eager
-    ones within 1e-5, not bitwise (tests/test_fastnoise.py, tests/volume/test_fused.py)."""
-    def fast(volume) -> bool:
-        return DENSITIES[volume.density.kind].caps.get("compiles_fast", lambda v: False)(volume)
-
-    volumes = scene.volumes
-    return bool(volumes) and scene.voxels is None and scene.terrain is None and all(fast(v) for v in volumes)
-
-
-def batch_mode(mode: CompileMode, scene: Scene) -> CompileMode:
-    """The mode a batch of `scene`'s structure renders in under `mode`: "all" only where it is the
-    fast path (`compile_pays`), else the exact kernels."""
-    if mode == "all" and not compile_pays(scene):
-        return "exact"
-    return mode
-
-
-__all__ = ["JointPass", "LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "batch_mode", "compile_pays", "make_plan"]
+__all__ = ["JointPass", "LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "make_plan"]
