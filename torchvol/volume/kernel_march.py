@@ -99,6 +99,17 @@ def _lanes_of(value: Tensor, gather):
     return gather(value) if value.ndim == 1 else [gather(value[:, c]) for c in range(value.shape[1])]
 
 
+def _per_scene(s: Tensor):
+    """per scene (B,) or (B, C) -> the lanes of rays of scenes `s` [n], gathered in the kernel from
+    the B values: a table of B floats a value, not n floats made and copied in torch first (a
+    look's ~30 values were ~10% of a template render's time around its kernel)."""
+    import drjit as dr
+    from drjit.llvm import Float, UInt32
+
+    scene = UInt32(s.to(torch.int32).cpu().numpy())
+    return lambda x: _lanes_of(x, lambda v: dr.gather(Float, _floats(v), scene))
+
+
 def _field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
     """What the volume's density takes per lane, for points of scenes `s` [n] (`per_ray`: per
     scene -> per lane): its kind's lanes inputs (`fields.DENSITIES`' ``lanes``), the bounds', the edge's."""
@@ -312,7 +323,7 @@ def _ray_lanes(rays, idx: Tensor):
     set_drjit_threads()
     s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
     lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
-    return s, d, lane, lambda x: lane(take(x, s))
+    return s, d, lane, _per_scene(s)
 
 
 def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, evals: dict) -> MarchResult:
@@ -542,7 +553,7 @@ def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tenso
         return p.new_ones(0)
     set_drjit_threads()
     lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
-    per_ray = lambda x: lane(take(x, s))  # noqa: E731
+    per_ray = _per_scene(s)
     solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in use.occluders}
     grids = None if use.shadow.method != "grid" else {
         j: grids_lanes(sun_grids(ctx, ctx.volumes[j], use.light), s, per_ray, _floats) for j in use.occluders}
