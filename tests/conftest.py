@@ -50,12 +50,3 @@ def pytest_collection_modifyitems(items):
     """Slow tests first: xdist hands them out before the quick ones, so no worker ends the run
     alone on a long test that started last."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
-
-
-@pytest.fixture
-def inductor_march(monkeypatch):
-    """The template's compiled march on torch.compile's kernels (`volume.fused`), not the Dr.Jit
-    kernel that `render(..., compile=True)` takes where Dr.Jit can run."""
-    from torchvol.volume import drjit_march
-
-    monkeypatch.setattr(drjit_march, "available", lambda like: False)

@@ -93,21 +93,3 @@ def test_help_describes_every_option_and_lists_the_presets(capsys):
         for name in tv.preset_names():
             assert f"  {name} " in text, name
         assert "sigma_t" in text and "noise_texture" in text and "traversal" in text
-
-
-def test_generate_points_large_eager_runs_of_fused_scenes_at_compile(monkeypatch):
-    from pathlib import Path
-
-    from torchvol.cli import compile_hint
-    from torchvol.volume import drjit_march
-
-    datasets = Path(__file__).resolve().parents[1] / "datasets"
-    # the fur ball's march is a Dr.Jit kernel by default: inductor has nothing to add
-    assert compile_hint(datasets / "fur-ball.toml", overrides={}, seed=0, count=1000) is None
-    with monkeypatch.context() as m:  # where Dr.Jit cannot run, its fused Worley noise is the fast path
-        m.setattr(drjit_march, "available", lambda like: False)
-        assert "--compile" in compile_hint(datasets / "fur-ball.toml", overrides={}, seed=0, count=1000)
-        assert compile_hint(datasets / "fur-ball.toml", overrides={}, seed=0, count=16) is None  # compiling would not pay
-    # its march is a Dr.Jit kernel by default: inductor has nothing to add
-    assert compile_hint(datasets / "clouds.toml", overrides={}, seed=0, count=1000) is None
-    assert compile_hint(datasets / "voxel-terrain.toml", overrides={}, seed=0, count=1000) is None  # no fused path

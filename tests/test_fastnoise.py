@@ -1,14 +1,13 @@
 """The arithmetic-hash value-noise fBm (`torchvol.noise.fast`): its hash against a uint32 reference,
-its statistics against the table hash's, the compiled kernel against its eager twin."""
+its statistics against the table hash's, its lanes form (what the Dr.Jit march traces) against the
+eager fbm."""
 
 import pytest
 import torch
-from conftest import assert_close
 
 import torchvol as tv
 from torchvol.noise import fast as fastnoise
 from torchvol.noise import lattice as noise
-from torchvol.renderer.plan import compile_pays
 
 
 def _points(n: int, seed: int = 0, dtype=torch.float32) -> torch.Tensor:
@@ -108,94 +107,15 @@ def test_scene_with_arithmetic_hash_renders_and_differs_from_table():
     assert abs(arith.alpha.mean() - table.alpha.mean()) < 0.1  # the same cloud, another draw of its noise
 
 
-@pytest.mark.slow  # torch.compile: ~20-100 s the first time on 2 cores (cached on disk after)
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_compiled_fbm_matches_eager_twin(dtype):
-    """Not bitwise: inductor's lerp and contraction differ from eager's by an ulp; stated tolerance
-    4 ulp of 1 (the values lie in [0, 1))."""
-    atol = 4 * torch.finfo(dtype).eps
+def test_the_lanes_fbm_is_the_eager_fbm_bitwise(dtype):
+    """`fastnoise.fbm_sum` (what the Dr.Jit march traces: every octave, LOD as a mask) on torch
+    lanes against `fbm_value_hashed` (`noise.fbm`: LOD by compaction): the same values, bitwise."""
     p = _points(5000, seed=3, dtype=dtype)
-    lod = torch.arange(5000) % 6
-    for kwargs in ({}, {"lod": lod}):
-        eager = fastnoise.fbm_value_hashed(p, seed=11, octaves=4, **kwargs)
-        fast = fastnoise.fbm_value_hashed(p, seed=11, octaves=4, compiled=True, **kwargs)
-        assert_close(fast, eager, atol=atol, what=f"compiled fbm {kwargs.keys()}")
-    # another size and seed: no recompile needed, same agreement
-    q = p[:777]
-    assert_close(fastnoise.fbm_value_hashed(q, seed=-4, octaves=4, compiled=True),
-                 fastnoise.fbm_value_hashed(q, seed=-4, octaves=4), atol=atol)
-
-
-@pytest.mark.slow
-def test_compiled_render_matches_eager_render():
-    scene = tv.preset("cloud-puff", width=16, height=16).model_dump()
-    scene["volumes"][0]["density"]["fbm"]["hash"] = "arithmetic"
-    eager, fast = tv.render(scene), tv.render(scene, compile=True)
-    assert_close(fast.radiance, eager.radiance, atol=1e-5, what="radiance")
-    assert_close(fast.alpha, eager.alpha, atol=1e-5, what="alpha")
-
-
-@pytest.mark.slow
-def test_compiled_fbm_field_matches_eager_field():
-    """`fastnoise.fbm_field_hashed` (the whole signed fbm field as one kernel, what FbmField runs
-    under compile) against FbmField's eager code, two scenes of another seed, frequency, offset and
-    falloff in one batch, with and without LOD: within 1e-5 (density values up to ~10); bitwise the
-    values of a scene alone."""
-    from torchvol.fields.fbm import FbmField
-    from torchvol.scene.model import load_scene
-    from torchvol.schema.batch import stack
-
-    scenes = []
-    for seed, freq, radial in ((3, 2.2, 2.4), (77, 1.7, 0.0)):
-        scene = tv.preset("cloud-puff", width=8, height=8).model_dump()
-        scene["volumes"][0]["density"]["fbm"].update(hash="arithmetic", seed=seed, frequency=freq, radial=radial,
-                                                     offset=[seed * 0.1, -1.0, 2.0], wind=[0.3, 0.0, 0.1])
-        scenes.append(load_scene(scene))
-    params = stack(scenes).volumes[0].density.value
-    times = torch.tensor([0.0, 1.5])
-    eager, fast = FbmField(params, times), FbmField(params, times, compiled=True)
-    assert fast.fused_field and not eager.fused_field
-    p = _points(3000, seed=5) * 0.06
-    s = torch.arange(3000) % 2
-    lod = torch.arange(3000) % 3
-    for kwargs in ({}, {"lod": lod}):
-        assert_close(fast.signed(p, s, **kwargs), eager.signed(p, s, **kwargs), atol=1e-5, what=f"field {kwargs.keys()}")
-    assert_close(fast(p, s), eager(p, s), atol=1e-5, what="clamped field")
-    # one kernel call for the batch: a scene's values are those it has rendered alone
-    alone = FbmField(stack(scenes[1:]).volumes[0].density.value, times[1:], compiled=True)
-    mine = s == 1
-    assert torch.equal(alone.signed(p[mine], torch.zeros_like(s[mine])), fast.signed(p, s)[mine])
-
-
-def test_compile_pays_only_for_scenes_of_fused_volumes():
-    scene = tv.preset("cloud-puff", width=8, height=8).model_dump()
-    assert not compile_pays(tv.preset("cloud-puff", width=8, height=8))  # the table hash
-    scene["volumes"][0]["density"]["fbm"]["hash"] = "arithmetic"
-    from torchvol.scene.model import load_scene
-    assert compile_pays(load_scene(scene))
-    assert compile_pays(tv.preset("template-clouds", width=8, height=8))  # the fused march step
-    assert compile_pays(tv.preset("fur-ball", width=8, height=8))  # one Worley kernel
-    assert not compile_pays(tv.preset("voxel-terrain", width=8, height=8))
-
-
-@pytest.mark.slow  # compiles the fused field (cached on disk after the first run)
-@pytest.mark.parametrize("name", ["clouds", "fur-ball"])
-def test_generated_samples_compiled_match_eager(tmp_path, name):
-    """`render_samples(..., compile=True)` (what `generate(..., compile=True)` runs)
-    against eager: within 1e-5; `generate(compile=True)` writes a finished dataset."""
-    from pathlib import Path
-
-    from torchvol.dataset.datasets import render_samples
-    from torchvol.dataset.generate import generate
-    from torchvol.dataset.recipe import Recipe
-
-    path = Path(__file__).resolve().parents[1] / "datasets" / f"{name}.toml"
-    recipe = Recipe.load(path, {"image.width": 12, "image.height": 12})
-    eager, fast = render_samples(recipe, [0, 1]), render_samples(recipe, [0, 1], compile=True)
-    for a, b in zip(eager, fast):
-        assert_close(b["image"], a["image"], atol=1e-5, what="image")
-        assert_close(b["alpha"], a["alpha"], atol=1e-5, what="alpha")
-        for depth in {"depth", "depth_median"} & a.keys():  # world units: a looser bound
-            assert_close(b[depth], a[depth], atol=1e-4, what=depth)
-    report = generate(path, count=1, out=tmp_path / "ds", overrides={"image.width": 8, "image.height": 8}, compile=True)
-    assert report["finished"] and report["written"] == 1
+    kept = 4 - torch.arange(5000) % 4  # octaves kept (`noise.fbm`'s lod), 1..4
+    scales = noise.folded_scales(4, dtype=dtype, device="cpu")
+    seed = int(fastnoise.mixed_seeds([11], "cpu")[0])
+    for lod in (None, kept):
+        eager = fastnoise.fbm_value_hashed(p, seed=11, octaves=4, lod=lod)
+        lanes = fastnoise.fbm_sum(fastnoise.hashed(seed), *p.unbind(1), scales, lod, 4, 0.5)
+        assert torch.equal(lanes, eager), f"LOD {'off' if lod is None else 'on'}"

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from torchvol.ops import lanes
-from torchvol.volume import drjit_march
+from torchvol.runtime.compilation import drjit_available
 
-pytestmark = pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
+pytestmark = pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
 
 
 def _points(n: int = 4096, seed: int = 0) -> torch.Tensor:

@@ -204,22 +204,23 @@ def test_the_plan_records_the_sun_each_marchs_backend_the_walk_and_the_thread_po
     """Every decision is the plan's, made once (not per chunk) and reported in stats["plan"]."""
     import json
 
-    from torchvol.volume import drjit_march
+    from torchvol.runtime.compilation import drjit_available
 
     template = tv.preset("template-clouds", width=8, height=8)
-    drjit = drjit_march.available(torch.zeros((), dtype=torch.float32))
-    fast = make_plan(template, compile="all")
-    assert fast.sun == 0 and fast.volumes[0].backend == ("drjit" if drjit else "inductor")
+    drjit = drjit_available()
+    fast = make_plan(template, compile="kernels")
+    assert fast.sun == 0 and fast.volumes[0].backend == ("drjit" if drjit else "eager")
     assert fast.threads == ("glue_on_one_thread" if drjit else "caller")
-    assert make_plan(template, compile="all", dtype=torch.float64).volumes[0].backend == "inductor"  # Dr.Jit: float32
+    wide = make_plan(template, compile="kernels", dtype=torch.float64).volumes[0]  # Dr.Jit: float32
+    assert wide.backend == "eager" and wide.eager_because == "Dr.Jit renders float32 on the CPU, not float64 on cpu"
     eager = make_plan(template)
     assert eager.volumes[0].backend == "eager" and eager.threads == "caller" and eager.walk is None
     assert make_plan(tv.preset("homogeneous-box", width=8, height=8)).volumes[0].backend == "closed_form"
-    # a physical medium's march is the Dr.Jit kernel in every mode but "off", where Dr.Jit runs
-    assert make_plan(tv.preset("cloud-puff", width=8, height=8), compile="all").volumes[0].backend == ("drjit" if drjit else "eager")
-    # the voxel walks: Dr.Jit's wherever a kernel runs, the compiled walk under "exact" where it does not
-    assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="exact").walk == ("drjit" if drjit else "inductor")
-    assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="exact", dtype=torch.float64).walk == "inductor"
+    # a physical medium's march is the Dr.Jit kernel but under "off", where Dr.Jit runs
+    assert make_plan(tv.preset("cloud-puff", width=8, height=8), compile="kernels").volumes[0].backend == ("drjit" if drjit else "eager")
+    # the voxel walks: Dr.Jit's wherever a kernel runs, else eager (the same bits)
+    assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="kernels").walk == ("drjit" if drjit else "eager")
+    assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="kernels", dtype=torch.float64).walk == "eager"
     assert make_plan(tv.preset("voxel-fog", width=8, height=8), compile="off").walk == "eager"
     point_first = {"image": {"width": 8, "height": 8}, "volumes": [{"density": {"constant": 1.0}}],
                    "lights": [{"kind": "point", "position": [0.0, 3.0, 0.0]}, {"kind": "sun", "direction": [0, 1, 0]}]}

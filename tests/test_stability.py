@@ -396,7 +396,7 @@ def test_exponential_densities_never_overflow(value, base, scale_height, sigma_t
 
 @FAST
 @given(shading=st.sampled_from(["physical", "shader", "surface"]), fog=st.floats(0.0, 10.0),
-       bounds=st.sampled_from(sorted(BOUNDS)), compile=st.sampled_from(["off", "all"]))
+       bounds=st.sampled_from(sorted(BOUNDS)), compile=st.sampled_from(["off", "kernels"]))
 def test_every_shading_renders_without_a_sky(shading, fog, bounds, compile):
     """No [sky]: black behind, for every shading (the shader look's fog blends towards it)."""
     volume = {"bounds": BOUNDS[bounds], "density": {"clouds": {}}, "shading": shading}

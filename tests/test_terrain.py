@@ -238,9 +238,9 @@ def test_no_shadow_acne_under_a_high_sun(one_thread):
 def test_the_kernel_trace_is_bitwise_the_eager_trace():
     """`trace_kernel` (Dr.Jit's loop of the same `trace_step` and `onto_surface`): the same hits and
     distances, bitwise, over rays from above, below and inside the terrain's slab, grazing ones too."""
-    from torchvol.volume import drjit_march
+    from torchvol.runtime.compilation import drjit_available
 
-    if not drjit_march.available(torch.zeros(1)):
+    if not drjit_available():
         pytest.skip("Dr.Jit's LLVM backend is not available")
     t = stack([Terrain(seed=3, amplitude=2.0, frequency=0.4), Terrain(seed=5, amplitude=1.0, safety=0.8)], dtype=torch.float32)
     g = torch.Generator().manual_seed(0)

@@ -1,12 +1,9 @@
-"""Thread counts around blocks and kernels (`torchvol.runtime.threads`), and the fused march's use of them:
-its compiled kernels on the render's threads, the eager glue between them on one."""
+"""Thread counts around blocks and kernels (`torchvol.runtime.threads`)."""
 
 import pytest
 import torch
 
-import torchvol as tv
-from torchvol.runtime.threads import on_threads, torch_threads
-from torchvol.volume import fused
+from torchvol.runtime.threads import torch_threads
 
 
 def test_torch_threads_sets_and_restores_the_count_even_on_error():
@@ -17,65 +14,6 @@ def test_torch_threads_sets_and_restores_the_count_even_on_error():
     with pytest.raises(RuntimeError), torch_threads(1):
         raise RuntimeError("inside")
     assert torch.get_num_threads() == before
-
-
-def test_on_threads_runs_the_function_on_its_count():
-    seen = []
-    run = on_threads(lambda x: seen.append(torch.get_num_threads()) or x + 1, 2)
-    with torch_threads(1):
-        assert run(1) == 2
-        assert torch.get_num_threads() == 1
-    assert seen == [2]
-
-
-def test_the_fused_march_runs_its_kernels_on_the_renders_threads_and_its_glue_on_one(monkeypatch, inductor_march):
-    """The glue's small ops over a wavefront would wake a sleeping second thread each (PASSIVE):
-    measured, 640×360 on 2 threads went 0.47 -> 0.41 s with it on one (docs/SPEED.md)."""
-    kernel_threads, glue_threads = [], []
-
-    def recorded(fn):  # the eager kernel in place of its compiled twin, noting its thread count
-        def run(*args, **kwargs):
-            kernel_threads.append(torch.get_num_threads())
-            return fn(*args, **kwargs)
-        return run
-
-    take_rows = fused.take_rows
-
-    def take_rows_noting(*args):
-        glue_threads.append(torch.get_num_threads())
-        return take_rows(*args)
-
-    monkeypatch.setattr(fused, "compiled", recorded)
-    monkeypatch.setattr(fused, "take_rows", take_rows_noting)
-    fused.compiled_steps.cache_clear()
-    try:
-        with torch_threads(2):
-            tv.render(tv.preset("template-clouds", width=12, height=8), compile="all")
-            assert torch.get_num_threads() == 2
-    finally:
-        fused.compiled_steps.cache_clear()
-    assert kernel_threads and set(kernel_threads) == {2}
-    assert glue_threads and set(glue_threads) == {1}
-
-
-def test_small_density_kernels_run_on_one_thread(monkeypatch):
-    """A compiled kernel's parallel region wakes the second thread at every call (~60 µs): below
-    `PARALLEL_POINTS` points that costs more than it saves."""
-    from torchvol.noise import fast as fastnoise
-    from torchvol.runtime.threads import PARALLEL_POINTS, threads_for
-
-    seen = []
-
-    def recorder(octaves, gain):
-        return lambda x, *rest: seen.append(torch.get_num_threads()) or torch.zeros_like(x)
-
-    monkeypatch.setattr(fastnoise, "_compiled_fbm", recorder)
-    with torch_threads(2):
-        assert threads_for(PARALLEL_POINTS - 1) == 1 and threads_for(PARALLEL_POINTS) == 2
-        for n in (5, PARALLEL_POINTS):
-            fastnoise.fbm_value_hashed(torch.zeros(n, 3), seed=1, octaves=2, compiled=True)
-        assert torch.get_num_threads() == 2
-    assert seen == [1, 2]
 
 
 def test_glue_on_one_thread_hands_kernels_the_callers_count():

@@ -1,10 +1,10 @@
-"""Benchmark: the template-clouds preset in torchvol (eager, torch.compile) against the same GLSL
-template on Mesa llvmpipe, at 640×360 and 1280×720.
+"""Benchmark: the template-clouds preset in torchvol (eager, and by default: its march one Dr.Jit
+kernel) against the same GLSL template on Mesa llvmpipe, at 640×360 and 1280×720.
 
     python tools/bench_template.py [--repeat 3] [--sizes 640x360,1280x720] [--threads N]
 
 Prints a Markdown table: median wall time of `repeat` renders (after one warm-up render, which also
-pays torch.compile's compilation), density evaluations per second, and the ratio to llvmpipe
+builds the kernel or loads it from Dr.Jit's cache), density evaluations per second, and the ratio to llvmpipe
 measured in the same run. llvmpipe uses all CPU threads it finds (LP_NUM_THREADS to change).
 `torchvol bench speed` runs the same comparison (torchvol.measure.bench_speed) with the rest of docs/SPEED.md.
 """
@@ -22,7 +22,7 @@ from torchvol.measure.glsl import renderer_name
 from torchvol.scene.model import preset
 
 
-def time_torchvol(width: int, height: int, *, compile: bool, repeat: int) -> tuple[float, int]:
+def time_torchvol(width: int, height: int, *, compile: str, repeat: int) -> tuple[float, int]:
     timing = time_render(preset("template-clouds", width=width, height=height), compile=compile, repeat=repeat)
     return timing.seconds, timing.evals
 
@@ -44,10 +44,10 @@ def main() -> None:
         gl = time_llvmpipe(width, height, repeat=args.repeat)
         if gl is not None:
             print(f"| {size} | llvmpipe (GLSL template) | {gl:.3f} | | 1.0 |")
-        for compile in (False, True):
+        for compile in ("off", "kernels"):
             seconds, evals = time_torchvol(width, height, compile=compile, repeat=args.repeat)
             ratio = f"{seconds / gl:.1f}" if gl else "n/a"
-            name = "torchvol, torch.compile" if compile else "torchvol, eager"
+            name = "torchvol, the Dr.Jit march" if compile == "kernels" else "torchvol, eager"
             print(f"| {size} | {name} | {seconds:.3f} | {evals / seconds:,.0f} | {ratio} |", flush=True)
 
 

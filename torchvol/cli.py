@@ -112,35 +112,12 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-COMPILE_HINT_COUNT = 64  # past this many samples, compiling (about 10 s a worker) has paid for itself
-
-
-def compile_hint(recipe, *, overrides, seed: int, count: int) -> str | None:
-    """The note `generate` prints when a large eager run's scenes take the compiled fast path
-    (opt-in: compiled samples are not bitwise `SceneDataset`'s)."""
-    from .dataset.recipe import Recipe
-    from .renderer.plan import compile_pays, make_plan
-
-    if count < COMPILE_HINT_COUNT:
-        return None
-    scene = Recipe.load(recipe, overrides).sample_with_params(0, seed)[0]
-    # where every march already runs as a Dr.Jit kernel by default, inductor has nothing to add
-    if not compile_pays(scene) or all(b == "drjit" for b in make_plan(scene, compile="kernels").summary()["marches"].values()):
-        return None
-    return ("torchvol: note: this recipe's scenes take the compiled fast path: --compile renders them about 5x faster "
-            "once each worker has compiled (about 10 s), within 1e-5 of eager but not bitwise (docs/SPEED.md)")
-
-
 def cmd_generate(args: argparse.Namespace) -> int:
     """`torchvol generate`: a recipe's samples into a dataset; prints the generator's report as
     JSON. -> 0."""
     from .dataset.generate import generate
 
     overrides = _pairs(args.set, "--set")
-    if args.compile != "all":
-        hint = compile_hint(args.recipe, overrides=overrides, seed=args.seed, count=args.count)
-        if hint is not None:
-            print(hint, file=sys.stderr)
     report = generate(args.recipe, count=args.count, out=args.out, seed=args.seed, workers=args.workers,
                       layout=args.format, overrides=overrides, batch=args.batch,
                       shard_size=args.shard_size, threads=args.threads, scheduler=args.scheduler, progress=args.progress,
@@ -293,14 +270,9 @@ def _render_command() -> Command:
         option("--device", default="cpu", help="torch device to render on (default cpu)"),
         option("--chunk-rays", type=int, default=DEFAULT_CHUNK_RAYS,
                help=f"rays per chunk: bounds peak memory, not the result (default {DEFAULT_CHUNK_RAYS})"),
-        (option("--compile", dest="compile", action="store_const", const="all", default="auto",
-                help="also run the voxel walk and the density kernels under torch.compile (--compile-mode all)"),
-         option("--eager", dest="compile", action="store_const", const="off",
-                help="render the eager reference: no Dr.Jit march kernel (by default a volume whose technique has one "
-                "marches in it, within ~1e-5 of eager)"),
-         option("--compile-mode", dest="compile", choices=["auto", "off", "kernels", "exact", "all"],
-                help="auto (default: the Dr.Jit march kernels), off (eager), kernels, exact (also the voxel walk: "
-                "bitwise eager) or all (docs/SPEED.md)")),
+        option("--eager", dest="compile", action="store_const", const="off", default="kernels",
+               help="render the eager reference: no Dr.Jit kernel (by default a technique that has one, a volume's "
+               "march, the voxel walk, the terrain's tracing, runs in it, within ~1e-5 of eager)"),
     ))
 
 
@@ -315,14 +287,9 @@ def _generate_command() -> Command:
         option("--seed", type=int, default=0, help="dataset seed: sample i depends only on (seed, i) (default 0)"),
         option("--workers", type=int, default=1, help="local worker processes (default 1)"),
         option("--threads", type=int, default=None, help="torch threads per worker (default 1: more workers scale better; docs/DATASETS.md, \"Threads on a shared machine\")"),
-        (option("--compile", dest="compile", action="store_const", const="all", default="auto",
-                help="also compile the density and march kernels where that is faster (fbm clouds on the "
-                "arithmetic hash, the template's fused march step, fur's Worley noise): within 1e-5 of eager, not bitwise; pays "
-                "from about 8 samples a worker once inductor's cache is warm"),
-         option("--eager", dest="compile", action="store_const", const="off",
-                help="render the eager reference: no Dr.Jit march kernel, no compiled walk (by default volumes march "
-                "in Dr.Jit kernels, within ~1e-5 of eager, and a worker rendering 512 samples or more compiles the "
-                "voxel walk, bitwise eager's)")),
+        option("--eager", dest="compile", action="store_const", const="off", default="kernels",
+               help="render the eager reference: no Dr.Jit kernel (by default a technique that has one, a volume's "
+               "march, the voxel walk, the terrain's tracing, runs in it, within ~1e-5 of eager), recorded in meta.json"),
         option("--format", choices=["folder", "webdataset"], default="folder", help="output layout (default folder)"),
         option("--set", action="append", default=[], metavar="A.B=V", help="override a recipe key (a value or a distribution)"),
         option("--batch", type=int, default=None, help="samples rendered as one batch (default: as many as fill "
@@ -413,7 +380,7 @@ def _speed_command() -> Command:
         option("--recipes", nargs="+", default=None, metavar="NAME",
                help="bundled recipes whose generation is timed (default: every one; quick: clouds, template-clouds)"),
         option("--count", type=int, default=None, metavar="N",
-               help="samples of a generation row's shorter run (default 16, quick 4; compiled rows 4N)"),
+               help="samples of a generation row's shorter run (default 16, quick 4; rows in kernels 4N)"),
         option("--parts", nargs="+", default=list(PARTS), choices=PARTS, metavar="PART",
                help="sections to run: " + ", ".join(PARTS) + " (default all)"),
     ))

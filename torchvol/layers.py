@@ -9,7 +9,7 @@ and on any import cycle. docs/ARCHITECTURE.md draws the same table.
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("ops", "version", "layers"),  # tensor helpers; the version; this table
     ("schema",),  # validation, key paths, strict models and batch roles, registries, the stacked batch
-    ("runtime",),  # threads, heap, torch.compile settings, progress bars, process tuning
+    ("runtime",),  # threads, heap, the compile setting, progress bars, process tuning
     ("noise",),  # lattice noises and fbm, their arithmetic-hash twins, noise textures
     ("geometry",),  # camera and rays, intersections, bounds, SDFs, per-ray sampling, surface hits
     ("fields", "light"),  # densities | lights, skies, phase functions, the atmosphere

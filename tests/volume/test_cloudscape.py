@@ -27,8 +27,8 @@ from torchvol.light.phase import dual_henyey_greenstein
 from torchvol.noise import lattice as noise
 from torchvol.noise import tiles as noise_tiles
 from torchvol.renderer.plan import make_plan
+from torchvol.runtime.compilation import drjit_available
 from torchvol.schema.batch import stack, take
-from torchvol.volume import drjit_march
 
 F64 = torch.float64
 
@@ -162,7 +162,7 @@ def _awkward_points(field: Cloudscape, n: int, seed: int) -> tuple[torch.Tensor,
     return p.to(torch.float32), s
 
 
-@pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
+@pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
 @settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
 @given(planet_radius=st.sampled_from([None, 300.0, 1000.0]), cloud_type=st.floats(0.0, 1.0),
        coverage=st.floats(0.0, 1.0), erosion=st.floats(0.0, 3.0), scale=st.floats(0.5, 20.0),
@@ -386,7 +386,7 @@ def test_shell_bounds_first_stretch_and_the_ground():
                  atol=1e-9, what="horizontal")
 
 
-@pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
+@pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
 def test_the_shell_interval_traced_by_drjit_is_intersect_shells():
     """`shell_interval` (the shell's ``lanes`` interval, what a kernel's rays and shadow rays take)
     traced by Dr.Jit against `intersect_shell` (the same function on torch columns): rays from

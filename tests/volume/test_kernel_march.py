@@ -3,17 +3,20 @@ march (the reference, `compile="off"`) within the tolerance table on the recipe 
 on every variant it renders; its bytes the same alone and in a batch, for any chunking and thread
 count; the plan taking it by default where it renders the technique and eager elsewhere."""
 
+import os
 from pathlib import Path
 
 import pytest
 import torch
 from conftest import TOL
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol.dataset.recipe import Recipe
-from torchvol.volume import drjit_march
+from torchvol.runtime.compilation import drjit_available
 
-pytestmark = pytest.mark.skipif(not drjit_march.available(torch.zeros(1)), reason="Dr.Jit's LLVM backend is not available")
+pytestmark = pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
 CLOUDS = Path(__file__).resolve().parents[2] / "datasets" / "clouds.toml"
 SIZE = {"image.width": 24, "image.height": 20}
 # kernel against eager, float32: the same samples and formulas, rounded apart by fused multiply-adds
@@ -285,3 +288,188 @@ def test_the_plan_takes_the_kernel_only_where_it_renders_the_technique():
     assert "float64" in wide.stats["plan"]["eager_because"]["volume0"]
     fast = tv.render(_scene(0), compile="kernels").stats["plan"]
     assert fast["marches"] == {"volume0": "drjit"} and "eager_because" not in fast
+
+
+def _template(width=40, height=24, **changes):
+    """The template-clouds preset with `changes` at key paths ("volumes.0.shader.fog", list indices as numbers)."""
+    scene = tv.preset("template-clouds", width=width, height=height).model_dump()
+    for path, value in changes.items():
+        *parents, last = path.split(".")
+        target = scene
+        for key in parents:
+            target = target[int(key)] if key.isdigit() else target[key]
+        target[last] = value
+    return tv.load_scene(scene)
+
+
+TEMPLATE = {
+    "template": {},
+    "camera inside the layer": {"camera.eye": [0.3, 0.5, 0.2], "camera.target": [1.0, 0.7, -3.0]},
+    "camera level with the layer top": {"camera.eye": [0.0, 2.0, 4.0], "camera.target": [0.0, 2.0, 0.0]},
+    "height-graded ambient, no fog": {"volumes.0.shader.ambient_top": [0.9, 0.95, 1.1], "volumes.0.shader.fog": 0.0},
+    "no derivative light": {"volumes.0.shader.light": "none"},
+    "hash dither, count placement, no LOD": {"march.dither": "hash", "march.placement": "count", "march.steps": 24,
+                                             "march.lod": None},
+    "no density": {"volumes.0.density.clouds.bias": -9.0},
+    "opaque: every sample at density 1": {"volumes.0.density.clouds.bias": 9.0, "march.min_transmittance": 0.0},
+    "step limit truncates": {"march.steps": 6},
+    "two scenes' textures, times and looks": {},  # rendered as a batch of two
+}
+# the template against its eager march: the same samples (the sample point rounded once, as eager's
+# addcmul; a count step divided exactly, `ops.lanes.divide`), so the texture's 8-bit filter and the
+# LOD see the same coordinates; left are Dr.Jit's exp in the fog and the order of a few sums.
+# Measured over these variants and at 640×360: at most 4.2e-7 on the image, alpha and depth
+# bitwise (with the point rounded twice, 1.7e-3 at a few pixels: the filter's 1/255 steps)
+TEMPLATE_TOL = 1e-5
+
+
+def _template_scenes(name):
+    if name != "two scenes' textures, times and looks":
+        return _template(**TEMPLATE[name])
+    return [_template(), _template(time=3.5, **{"volumes.0.density.clouds.texture_seed": 7,
+                                                 "volumes.0.density.clouds.wind": [0.2, 0.0, 0.5],
+                                                 "lights.0.direction": [0.3, 0.4, -0.8],
+                                                 "volumes.0.shader.alpha_scale": 0.6})]
+
+
+@pytest.mark.parametrize("name", list(TEMPLATE))
+def test_the_template_matches_its_eager_march(name):
+    """template-clouds (the clouds density's lanes, `fields.clouds.clouds_density`, in the shader
+    look) against the eager generic march: the same samples and density evaluations, every output
+    within `TEMPLATE_TOL` (depth relative)."""
+    kernel, eager = _both(_template_scenes(name))
+    for key in ("image", "radiance", "alpha", "depth"):
+        a, b = getattr(kernel, key), getattr(eager, key)
+        scale = max(1.0, float(b.abs().max())) if key == "depth" else 1.0
+        assert float((a - b).abs().max()) <= TEMPLATE_TOL * scale, f"{name}: {key} off by {float((a - b).abs().max()):.3g}"
+    assert kernel.stats["march_steps"] == eager.stats["march_steps"], name
+    assert kernel.stats["density_evals"] == eager.stats["density_evals"], name
+
+
+def test_the_template_gives_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count():
+    from torchvol.runtime.threads import torch_threads
+
+    scenes = _template_scenes("two scenes' textures, times and looks")
+    with torch_threads(1):
+        alone = [tv.render(s, chunk_rays=211) for s in scenes]
+    with torch_threads(2):
+        batch = tv.render(scenes)
+    for i, one in enumerate(alone):
+        for key in ("image", "depth", "alpha"):
+            assert torch.equal(getattr(batch, key)[i], getattr(one, key)[0]), f"scene {i}: {key}"
+    assert not torch.equal(batch.image[0], batch.image[1])
+
+
+def test_a_render_of_kernels_runs_torch_on_one_thread_and_the_kernel_on_the_callers(monkeypatch):
+    """Every march is the Dr.Jit kernel: torch's ops are glue (rays, compositing, post), run on one
+    thread; the kernel gets the caller's count (`threads.glue_on_one_thread`)."""
+    import drjit as dr
+
+    from torchvol.runtime.threads import torch_threads
+    from torchvol.volume import kernel_march
+
+    seen = []
+    march_look = kernel_march.march_look
+
+    def recording(*args, **kwargs):
+        result = march_look(*args, **kwargs)
+        seen.append((torch.get_num_threads(), dr.thread_count()))
+        return result
+
+    monkeypatch.setattr(kernel_march, "march_look", recording)
+    with torch_threads(2):
+        tv.render(_template(12, 8))
+        assert torch.get_num_threads() == 2
+    assert seen and set(seen) == {(1, 2)}
+
+
+def test_dr_jit_is_available_for_float32_on_the_cpu_only():
+    assert drjit_available() and drjit_available(torch.float32, "cpu")
+    assert not drjit_available(torch.float64)
+
+
+def _hard_points():
+    """[80,004, 3] float32 points from |p| ≤ 2 to 5·10⁷, past the float->int32 overflow, and NaN."""
+    g = torch.Generator().manual_seed(1)
+    return torch.cat([(torch.rand(20000, 3, generator=g) - 0.5) * scale for scale in (4.0, 400.0, 1e5, 1e8)]
+                     + [torch.tensor([[float("nan"), 0, 0], [1e30, 1, 2], [-1e30, 1, 2], [0.5, 0.5, 1e7]])])
+
+
+def _jit(t: torch.Tensor):
+    from drjit.llvm import Float, Int32
+
+    return (Int32 if t.dtype in (torch.int32, torch.int64) else Float)(t.to(torch.int32 if not t.is_floating_point() else
+                                                                            torch.float32).contiguous().numpy())
+
+
+def _back(v) -> torch.Tensor:
+    import numpy as np
+
+    return torch.from_numpy(np.array(v))
+
+
+def _packed(seeds):
+    from torchvol.noise import lattice as noise
+
+    return noise.packed_table(torch.cat([noise.texture_table(noise.default_noise_texture(s)) for s in seeds]))
+
+
+def test_the_templates_texture_noise_and_fbm_are_the_torch_ones_bitwise():
+    """`noise.texture_noise_coords` and `fields.clouds.cloud_fbm` traced by Dr.Jit (one source,
+    `ops.lanes`) give their torch values bitwise: past the float->int32 overflow and at NaN, each
+    point on its own texture of a stacked table, with the LOD's octaves kept by count."""
+    from torchvol.fields import clouds
+    from torchvol.noise import lattice as noise
+
+    packed, p = _packed([0, 5]), _hard_points()
+    base = ((torch.arange(p.shape[0]) % 2) * 65536).to(torch.int32)
+    expected = noise.texture_noise_coords(*p.unbind(1), packed, base)
+    got = _back(noise.texture_noise_coords(*(_jit(c) for c in p.unbind(1)), _jit(packed), _jit(base)))
+    same = (got == expected) | (got.isnan() & expected.isnan())
+    assert same.all(), f"{int((~same).sum())} of {len(p)} differ, first at {p[~same][0].tolist()}"
+    g = torch.Generator().manual_seed(3)
+    p = (torch.rand(30000, 3, generator=g) - 0.5) * 40.0
+    count = torch.randint(1, 6, (p.shape[0],), generator=g, dtype=torch.int32)
+    scales = noise.folded_scales(5, dtype=torch.float32, device="cpu")
+    from drjit.llvm import Float
+
+    for kept in (None, count):
+        expected = clouds.cloud_fbm(*p.unbind(1), packed, base[:p.shape[0]], kept, octaves=5, scales=scales)
+        got = clouds.cloud_fbm(*(_jit(c) for c in p.unbind(1)), _jit(packed), _jit(base[:p.shape[0]]),
+                               None if kept is None else _jit(kept), octaves=5, scales=[Float(float(c)) for c in scales])
+        assert torch.equal(_back(got), expected), f"octaves kept {'all' if kept is None else 'by count'}"
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-3e9, 3e9, allow_nan=False, width=32), min_size=3, max_size=3))
+def test_the_templates_texture_noise_is_bitwise_at_any_float32_point(xyz):
+    from torchvol.noise import lattice as noise
+
+    packed, p = _packed([3]), torch.tensor([xyz], dtype=torch.float32)
+    got = noise.texture_noise_coords(*(_jit(c) for c in p.unbind(1)), _jit(packed), _jit(torch.zeros(1, dtype=torch.int32)))
+    assert torch.equal(_back(got), noise.texture_noise_coords(*p.unbind(1), packed))
+
+
+def _child_render(queue):
+    torch.set_num_threads(1)  # as a DataLoader worker does: torch's OpenMP pool does not survive a fork
+    out = tv.render(_template(8, 6))
+    queue.put((out.stats["plan"]["marches"], out.radiance.numpy().tobytes()))  # bytes: no shared memory to hand over
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork")
+def test_a_child_forked_after_drjit_started_renders_with_it_the_same_bytes():
+    """A DataLoader worker's default start is a fork: a child forked after its parent started
+    Dr.Jit runs the kernels too, and gives the parent's bytes (a sample's bytes must not depend
+    on the worker count)."""
+    import multiprocessing
+
+    parent = tv.render(_template(8, 6))  # Dr.Jit started in this process
+    assert parent.stats["plan"]["marches"] == {"volume0": "drjit"}
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_child_render, args=(queue,))
+    child.start()
+    marches, radiance = queue.get(timeout=60)
+    child.join(60)
+    assert child.exitcode == 0
+    assert marches == {"volume0": "drjit"} and radiance == parent.radiance.numpy().tobytes()

@@ -8,21 +8,14 @@ import torch
 
 import torchvol as tv
 from tests.conftest import assert_close
+from torchvol.runtime.compilation import drjit_available
 from torchvol.voxel.cone import build_mips, mip_table, trace_cones
 from torchvol.voxel.shade import voxel_ao
 from torchvol.voxel.shade_kernel import ao_kernel, cones_kernel, mips_lanes
 from torchvol.voxel.walk import int_table
 
 
-def _drjit() -> bool:
-    try:
-        import drjit as dr
-    except ImportError:
-        return False
-    return bool(dr.has_backend(dr.JitBackend.LLVM))
-
-
-@pytest.mark.skipif(not _drjit(), reason="Dr.Jit's LLVM backend is not available")
+@pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_ao_kernel_is_the_eager_ao(seed):
     """Hits on every face of random cells of two scenes with their own cell ranges, border cells
@@ -53,7 +46,7 @@ def test_the_ao_kernel_is_the_eager_ao(seed):
     assert_close(kernel, eager, atol=1e-6, what="AO")
 
 
-@pytest.mark.skipif(not _drjit(), reason="Dr.Jit's LLVM backend is not available")
+@pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
 @pytest.mark.parametrize("seed, aperture", [(0, 20.0), (1, 60.0)])
 def test_the_cones_kernel_is_the_eager_cone_march(seed, aperture):
     """Cones from random points of two scenes' random mip chains (8³: four levels), in any
@@ -75,7 +68,7 @@ def test_the_cones_kernel_is_the_eager_cone_march(seed, aperture):
     assert_close(k_colour, colour, atol=1e-6 * float(colour.abs().max()), what="radiance")
 
 
-@pytest.mark.skipif(not _drjit(), reason="Dr.Jit's LLVM backend is not available")
+@pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
 def test_the_cone_preset_renders_as_its_eager_reference():
     scene = tv.preset("voxel-cone", width=24, height=18)
     eager, kernel = tv.render(scene, compile="off"), tv.render(scene)

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Literal, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import torch
 from torch.utils.data import Dataset
 
-from ..renderer.plan import batch_mode
 from ..renderer.prepare import group
-from ..runtime.compilation import CompileMode, auto_mode, compile_mode
+from ..runtime.compilation import CompileMode, compile_mode
 from ..runtime.process import tune_process
 from ..schema.validate import fail, integer, is_integer
 from .codec import decode_file
@@ -36,11 +35,10 @@ def epoch_seed(seed: int, epoch: int | None) -> int:
 
 
 def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aovs: Sequence[str] | None = None,
-                   chunk_rays: int | None = None, compile: CompileMode | Literal["auto"] | bool = "auto") -> list[dict]:
+                   chunk_rays: int | None = None, compile: CompileMode | bool | None = "kernels") -> list[dict]:
     """Samples `indices` of `recipe`, rendered as few batches as possible (one per scene structure,
     e.g. one per phase kind a `choice` can give). A sample's values do not depend on its batch.
-    `compile` (`torchvol.runtime.compilation`): "all" compiles a batch's density and march kernels only
-    where that is the fast path (`renderer.plan.compile_pays`), its exact kernels elsewhere."""
+    `compile` (`torchvol.runtime.compilation`): "kernels" (True) or "off" (False, None: eager)."""
     from ..renderer.executor import DEFAULT_CHUNK_RAYS, render
     from .sequence import (  # its flow loads kornia: only when a recipe has frames
         add_flow,
@@ -68,7 +66,7 @@ def render_samples(recipe: Recipe, indices: Sequence[int], *, seed: int = 0, aov
     for positions, batch in group([scenes[k][v] for k, v in flat]):
         members = [flat[i] for i in positions]
         out = render(batch, seed=[render_seed(int(indices[k]), seed) for k, _ in members],
-                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs, compile=batch_mode(compile, batch.scenes[0]),
+                     chunk_rays=chunk_rays or DEFAULT_CHUNK_RAYS, aovs=aovs, compile=compile,
                      keep_context=recipe.volume_label is not None)
         missing = [a for a in aovs if a != "radiance" and a not in out.aovs]
         if missing:
@@ -109,16 +107,14 @@ class SceneDataset(Dataset):
 
     ds[i] depends only on (seed, epoch, i): the same in any process, DataLoader worker or order.
     `epoch` (optional) mixes into the seed so that each epoch draws fresh scenes. `compile`
-    (`torchvol.runtime.compilation`): "auto" (the default) marches with the Dr.Jit kernels and
-    also compiles the voxel walk (bitwise eager) where the dataset holds `AUTO_COMPILE_SAMPLES`
-    samples or more (its length, never what the process rendered before): the same bytes as
-    `torchvol generate`; "off" (False) renders the eager reference; "all" (or True) also inductor's
-    density kernels where that is the fast path, as `torchvol generate --compile` does. A DataLoader's workers: `worker_init_fn=SceneDataset.worker_init_fn` tunes each
-    (`tune_process`)."""
+    (`torchvol.runtime.compilation`): "kernels" (True, the default) runs Dr.Jit's kernels wherever
+    they render a technique, the same bytes as `torchvol generate`; "off" (False, None) renders the
+    eager reference, as `torchvol generate --eager` does. A DataLoader's workers:
+    `worker_init_fn=SceneDataset.worker_init_fn` tunes each (`tune_process`)."""
 
     def __init__(self, recipe: Recipe | str | Path | Mapping, length: int, seed: int = 0, epoch: int | None = None, *,
                  aovs: Sequence[str] | None = None, overrides: Mapping[str, Any] | None = None,
-                 compile: CompileMode | Literal["auto"] | bool = "auto"):
+                 compile: CompileMode | bool | None = "kernels"):
         integer("length", length, low=0)
         integer("seed", seed)
         if epoch is not None and not is_integer(epoch):
@@ -127,7 +123,7 @@ class SceneDataset(Dataset):
         self.length, self.base_seed, self.epoch = length, seed, epoch
         self.seed = epoch_seed(seed, epoch)
         self.aovs = self.recipe.aovs if aovs is None else tuple(aovs)
-        self.compile = compile_mode(compile, auto=True)
+        self.compile = compile_mode(compile)
 
     def __len__(self) -> int:
         return self.length
@@ -143,7 +139,7 @@ class SceneDataset(Dataset):
     def batch(self, indices: Sequence[int]) -> list[dict]:
         """Several samples rendered as one batch (the generator's path); same values as ds[i]."""
         return render_samples(self.recipe, [self._check(i) for i in indices], seed=self.seed, aovs=self.aovs,
-                              compile=auto_mode(self.compile, self.length))
+                              compile=self.compile)
 
     @staticmethod
     def worker_init_fn(worker_id: int) -> None:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
 
-from ..runtime.compilation import CompileMode, auto_mode, compile_mode
+from ..runtime.compilation import CompileMode, compile_mode
 from ..runtime.process import init_worker, tune_process
 from ..runtime.progress import progress as bar
 from ..runtime.threads import torch_threads
@@ -79,7 +79,7 @@ class Task:
     layout: Layout
     batch: int
     shard: int
-    compile: CompileMode = "kernels"  # what renders compiled (torchvol.runtime.compilation)
+    compile: CompileMode = "kernels"  # Dr.Jit's kernels or the eager reference (torchvol.runtime.compilation)
 
 
 def run_task(task: Task) -> list[int]:
@@ -177,19 +177,16 @@ def generate(
     scheduler: str | None = None,
     progress: bool | None = None,
     stop_after: int | None = None,
-    compile: CompileMode | Literal["auto"] | bool = "auto",
+    compile: CompileMode | bool | None = "kernels",
 ) -> dict:
     """Generate (or finish) the dataset in `out`. `workers` local processes (spawned, each with
     `threads` torch threads, tuned by `tune_process`; `workers=1` renders in this process and
     leaves it as it is), `batch` samples rendered together (None: `auto_batch`), or the Dask cluster at `scheduler` (its workers tuned too). `progress`: a bar of samples
     done on stderr (None: only when stderr is a terminal). `stop_after` (testing: simulates a kill)
     stops once that many samples were written, leaving the dataset unfinished. `compile`
-    (`torchvol.runtime.compilation`): "auto" (the default) marches with the Dr.Jit kernels and also
-    compiles the voxel walk (bitwise eager) when a worker's share of the samples still to render is
-    `AUTO_COMPILE_SAMPLES` or more: the bytes are `SceneDataset`'s either way. "all" (or True) also
-    compiles inductor's density and march kernels where that is the fast path
-    (`renderer.plan.compile_pays`); "off" (False) renders the eager reference. Both are recorded in
-    meta.json (their bytes differ), so a resumed run renders as the first did.
+    (`torchvol.runtime.compilation`): "kernels" (True, the default) runs Dr.Jit's kernels wherever
+    they render a technique: the bytes are `SceneDataset`'s; "off" (False, None) renders the eager
+    reference, recorded in meta.json (its bytes differ), so a resumed run renders as the first did.
     Returns {"written": samples rendered now, "count", "out"}."""
     for name, value in (("count", count), ("workers", workers), ("shard_size", shard_size)):
         integer(name, value, low=1)
@@ -200,17 +197,15 @@ def generate(
     integer("seed", seed)
     if layout not in ("folder", "webdataset"):
         fail("layout", layout, "expected folder or webdataset")
-    compile = compile_mode(compile, auto=True)
+    compile = compile_mode(compile)
     recipe = Recipe.load(recipe, overrides)
     batch = auto_batch(recipe, count=count, workers=workers, seed=seed) if batch is None else batch
     out = Path(out)
     open_dataset(out, dataset_meta_bytes(recipe, count=count, seed=seed, layout=layout, shard_size=shard_size,
                                          compile=compile), layout)
-    tasks = plan_tasks(recipe, count=count, seed=seed, out=out, layout=layout, batch=batch, shard_size=shard_size)
+    tasks = [replace(t, compile=compile) for t in
+             plan_tasks(recipe, count=count, seed=seed, out=out, layout=layout, batch=batch, shard_size=shard_size)]
     done = sum(_finished(t) for t in tasks)
-    # "auto": from each worker's share of what is still to render (a resumed run: of what is left)
-    compile = auto_mode(compile, -(-(count - done) // workers))
-    tasks = [replace(t, compile=compile) for t in tasks]
     pending = [t for t in tasks if _finished(t) < len(t.indices)]
     written = 0
     with bar(count, initial=done, unit="sample", desc=f"generate {out.name}",
@@ -239,8 +234,7 @@ def dataset_meta_bytes(recipe: Recipe, *, count: int, seed: int, layout: Layout,
         "conventions": CONVENTIONS,
         **({"frames": recipe.sequence.frames, "sequence": SEQUENCE_CONVENTIONS} if recipe.sequence else {}),
         **dataset_meta(recipe),
-        # only where the bytes differ from eager's; absent otherwise: older datasets keep their meta bytes
-        **({"compiled": True} if compile == "all" else {}),
+        # only where the bytes differ from the kernels'; absent otherwise: older datasets keep their meta bytes
         **({"eager": True} if compile == "off" else {}),
     }
     return json.dumps(meta, sort_keys=True, indent=1).encode() + b"\n"

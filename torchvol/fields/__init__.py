@@ -1,5 +1,5 @@
 """Density fields: the `DENSITIES` registry. Each kind is its schema model (the table under
-`density = { kind = ... }`), its field class (built per batch: `fn(params, times, compiled=...)`,
+`density = { kind = ... }`), its field class (built per batch: `fn(params, times)`,
 called as `field(points [N, 3], scene_index [N], lod [N] | None) -> density [N]`) and its
 capabilities:
 
@@ -9,13 +9,9 @@ capabilities:
 - ``cheap``: a sample costs less than compacting the march's batch (the march keeps finished rays
   in the batch longer);
 - ``octaves``: a sum of octaves that `march.lod` may cut short with distance;
-- ``compiles_fast(volume) -> bool``: a render compiled with ``compile="all"`` is this volume's fast
-  path (one fused kernel: the fbm on the arithmetic hash, fur's Worley noise, the template's cloud
-  layer in the seeds' look); absent: it is not (`renderer.plan.compile_pays`);
-- ``fused_march``: the template's cloud layer, whose whole march in the seeds' look has a fused
-  form (`volume.fused`, `volume.drjit_march`; `renderer.plan.fused_march` decides where it runs);
 - ``lanes = (inputs, density)``: the density written once in lanes (`ops.lanes`), what the Dr.Jit
-  march traces (`volume.kernel_march`): `inputs(field, to)` its per-lane parameters,
+  march traces (`volume.kernel_march`; the template's cloud layer too, in the seeds' look):
+  `inputs(field, to)` its per-lane parameters,
   `density(q, p, count)` its signed density at p (three lanes), `count` octaves kept or None;
   `supports(volume) -> bool` where a kind renders only some of its variants.
 
@@ -27,7 +23,7 @@ from __future__ import annotations
 
 from ..schema.registry import Registry
 from .base import Field
-from .clouds import CloudLayer, CloudsDensity
+from .clouds import CloudLayer, CloudsDensity, clouds_density, clouds_lanes
 from .cloudscape import (
                    Cloudscape,
                    CloudscapeDensity,
@@ -62,14 +58,12 @@ DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lane
 DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True)
 DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density))
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True,
-                   compiles_fast=lambda volume: volume.density.value.hash == "arithmetic",
                    lanes=(fbm_lanes, fbm_density, lambda volume: volume.density.value.noise == "value"))
-DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, fused_march=True,
-                   compiles_fast=lambda volume: volume.shading == "shader" and volume.edge is None)
+DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, lanes=(clouds_lanes, clouds_density))
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, lanes=(explosion_lanes, explosion_density))
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape, lanes=(cloudscape_lanes, cloudscape_density))
 DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True,
                    lanes=(particles_lanes, particles_density, lambda volume: volume.density.value.noise == "value"))
-DENSITIES.register("fur", FurDensity, FurField, compiles_fast=lambda volume: True, lanes=(fur_lanes, fur_density))
+DENSITIES.register("fur", FurDensity, FurField, lanes=(fur_lanes, fur_density))
 
 __all__ = ["DENSITIES", "Field"]

@@ -15,7 +15,7 @@ DENSITY_MAX = 1e12
 
 class Field(Protocol):
     """A density field of B scenes, built by its kind from the batch's `Stacked` parameters
-    (`Kind.fn(params, times, compiled=...)`, `times` (B,) for wind)."""
+    (`Kind.fn(params, times)`, `times` (B,) for wind)."""
 
     # (B,) world length below which the density has no detail of its own (a grid's cell, an fbm's
     # finest octave), or None where there is none to resolve: error-controlled marching never

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Annotated, Any
 
 import numpy as np
@@ -16,8 +17,7 @@ from torch import Tensor
 
 from ..noise import lattice as noise
 from ..ops import lanes
-from ..runtime import compilation
-from ..schema.batch import Stacked, per_scene, take
+from ..schema.batch import Stacked, take
 from ..schema.models import EACH, Strict, Vec3
 
 
@@ -50,19 +50,16 @@ class CloudsDensity(Strict):
 
 
 class CloudLayer:
-    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor):
         self.p = params
-        self.tables = [
+        tables = [
             noise.texture_table(torch.as_tensor(tex) if tex is not None else noise.default_noise_texture(seed), times.device)
             for tex, seed in zip(params.texture, params.texture_seed)
         ]
-        self.compiled = compiled
         # the integer filter's stacked tables (bitwise texture_noise_table, ~4× faster eager): one
         # pass over every scene's points, each at its scene's rows (`noise.texture_rows`); the
-        # fused march step reads them too (volume/fused.py)
-        self.packed = noise.packed_table(torch.cat(self.tables))
-        if compiled:
-            self.kernels = [lambda x, table=table: compilation.compiled(noise.texture_noise_table)(x, table) for table in self.tables]
+        # Dr.Jit march reads them too (`clouds_lanes`)
+        self.packed = noise.packed_table(torch.cat(tables))
         self.shift = params.wind * times[:, None]  # (B, 3)
         self.feature_size = torch.full_like(times, noise.finest_period(params.octaves))
 
@@ -75,17 +72,8 @@ class CloudLayer:
         p, s = self.p, scene_index
         q = points - take(self.shift, s)
         octaves = None if lod is None else p.octaves - lod
-
-        def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
-            kernel = self.kernels[b]
-            return noise.fbm(q_b, lambda x: kernel(x) * 2.0 - 1.0, octaves=p.octaves,
-                             lod=None if octaves is None else octaves[idx])
-
-        if self.compiled:
-            f = per_scene(q, s, len(p), one_scene)
-        else:
-            f = noise.fbm(q, lambda x, r: noise.texture_noise_coords(*x.unbind(1), self.packed, r) * 2.0 - 1.0,
-                          octaves=p.octaves, lod=octaves, rows=noise.texture_rows(s, points.dtype))
+        f = noise.fbm(q, lambda x, r: noise.texture_noise_coords(*x.unbind(1), self.packed, r) * 2.0 - 1.0,
+                      octaves=p.octaves, lod=octaves, rows=noise.texture_rows(s, points.dtype))
         return cloud_density(f, points[:, 1], take(p.bias, s), take(p.density_scale, s))
 
 
@@ -98,11 +86,31 @@ def cloud_density(f, y, bias, density_scale):
 def cloud_fbm(x, y, z, packed, base, count, *, octaves: int, scales: list):
     """`noise.fbm` of the template's texture noise (`CloudLayer`) at points given as coordinates
     `x`, `y`, `z` [N], with its LOD as a mask: octave k ≥ 1 adds where `count` [N] (octaves kept)
-    ≥ k + 1 (None: all). `base` [N]: the points' rows in the stacked `packed` tables. Lanes
-    (`ops.lanes`): the fused march's kernels and the Dr.Jit march trace it. -> [N]."""
+    ≥ k + 1 (None: all), bitwise `noise.fbm`'s compaction. `base` [N]: the points' rows in the
+    stacked `packed` tables. Lanes (`ops.lanes`): what the Dr.Jit march traces (`clouds_density`). -> [N]."""
     f = (noise.texture_noise_coords(x, y, z, packed, base) * 2.0 - 1.0) * 0.5
     for k in range(1, octaves):
         c = scales[k - 1]
         term = (noise.texture_noise_coords(x * c, y * c, z * c, packed, base) * 2.0 - 1.0) * (0.5 * 0.5**k)
         f = f + term if count is None else lanes.where(count >= k + 1, f + term, f)
     return f
+
+
+def clouds_lanes(field: CloudLayer, to) -> SimpleNamespace:
+    """What the cloud layer takes per lane (`to`: `fields.DENSITIES`' ``lanes`` inputs): its
+    shift, bias and scale per lane, its stacked texture tables (`CloudLayer.packed`, int32) with
+    each lane's first row in them, its octave count and scales (the kernel's parameters)."""
+    p = field.p
+    q = SimpleNamespace(shift=to.per_lane(field.shift), bias=to.per_lane(p.bias), density_scale=to.per_lane(p.density_scale),
+                        packed=to.ints(field.packed), base=to.ints(noise.texture_rows(to.scene, torch.float32)),
+                        octaves=int(p.octaves))
+    q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
+    return q
+
+
+def clouds_density(q: SimpleNamespace, p, count):
+    """The cloud layer's signed density in lanes (`ops.lanes`) at p (three lanes), `count` octaves
+    kept per lane or None; `q` from `clouds_lanes`."""
+    f = cloud_fbm(p[0] - q.shift[0], p[1] - q.shift[1], p[2] - q.shift[2], q.packed, q.base, count,
+                  octaves=q.octaves, scales=q.scales)
+    return cloud_density(f, p[1], q.bias, q.density_scale)

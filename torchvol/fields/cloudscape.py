@@ -124,7 +124,7 @@ class Cloudscape:
     distinct seed's base and detail textures flattened one after the other, `texture` (B,) a
     scene's place among them)."""
 
-    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor):
         self.p = params
         seeds = list(dict.fromkeys(int(seed) for seed in params.seed))
         self.texture = torch.tensor([seeds.index(int(seed)) for seed in params.seed], dtype=torch.int32, device=times.device)

@@ -16,7 +16,7 @@ ConstantDensity = Annotated[float, Field(ge=0.0)]
 class Constant:
     feature_size = None
 
-    def __init__(self, value: Tensor, times: Tensor, *, compiled: bool = False):  # value (B,)
+    def __init__(self, value: Tensor, times: Tensor):  # value (B,)
         self.value = value
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:

@@ -45,9 +45,8 @@ class ExplosionDensity(Strict):
 
 
 class ExplosionField:
-    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor):
         self.p = params
-        self.basis = noise.compiled_noise(noise.value_noise) if compiled else noise.value_noise
         self.size = params.radius * (1.0 + params.growth * times.clamp_min(0.0))  # (B,) R(t)
         self.shift = params.offset - params.drift * times[:, None]  # (B, 3)
         # the finest octave's lattice period, in world units (R(t) / frequency per noise cell)
@@ -61,7 +60,7 @@ class ExplosionField:
         p, s = self.p, scene_index
         q = (points - take(p.center, s)) / take(self.size, s)[:, None]
         x = take(p.frequency, s)[:, None] * q + take(self.shift, s)
-        n = seeded_fbm(self.basis, x, s, p, lod)
+        n = seeded_fbm(noise.value_noise, x, s, p, lod)
         return fireball(q.unbind(1), n, take(p.displacement, s), take(p.sharpness, s))
 
 

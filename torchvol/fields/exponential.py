@@ -30,7 +30,7 @@ class ExponentialDensity(Strict):
 class Exponential:
     feature_size = None  # smooth: the step-doubling estimate sees its curvature
 
-    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor):
         self.p = params
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:

@@ -28,8 +28,8 @@ class FbmDensity(Strict):
     frequency: float = Field(1.0, gt=0.0, le=1e6)
     noise: Literal["value", "perlin", "worley"] = "value"
     # how value noise hashes its lattice: "table" (Perlin's permutation gathers, the default) or
-    # "arithmetic" (int32 hash; under render(compile=True) the whole fbm is one fused kernel,
-    # tens of times faster; a different random field with the same statistics: docs/SPEED.md)
+    # "arithmetic" (int32 hash: integer arithmetic, no gathers; a different random field with the
+    # same statistics: docs/SPEED.md)
     hash: Literal["table", "arithmetic"] = "table"
     seed: Annotated[int, EACH] = 0
     amplitude: float = 1.0
@@ -46,12 +46,12 @@ class FbmDensity(Strict):
         return self
 
 
-def seeded_fbm(basis, q: Tensor, s: Tensor, params: Stacked, lod: Tensor | None, *, fused=None) -> Tensor:
+def seeded_fbm(basis, q: Tensor, s: Tensor, params: Stacked, lod: Tensor | None, *, whole=None) -> Tensor:
     """fbm of `basis(x, seed=...)` at `q` [N, 3] of scenes `s` [N], each scene with its own
-    `params.seed` and `params.octaves`, `lod` [N] octaves dropped (None: all) -> [N]. `fused`:
+    `params.seed` and `params.octaves`, `lod` [N] octaves dropped (None: all) -> [N]. `whole`:
     a whole-fbm function with `fastnoise.fbm_value_hashed`'s signature, used instead of `basis`."""
     octaves = None if lod is None else params.octaves - lod
-    if fused is None and len(params) > 1 and basis in SCENE_NOISES:  # one pass over all scenes' points
+    if whole is None and len(params) > 1 and basis in SCENE_NOISES:  # one pass over all scenes' points
         batched, scene_rows = SCENE_NOISES[basis]
         seeds = [int(x) for x in params.seed]
         return noise.fbm(q, lambda x, rows: batched(x, rows, seeds), octaves=params.octaves, lod=octaves,
@@ -59,23 +59,18 @@ def seeded_fbm(basis, q: Tensor, s: Tensor, params: Stacked, lod: Tensor | None,
 
     def one_scene(b: int, idx: Tensor | slice, q_b: Tensor) -> Tensor:
         seed, lod_b = params.seed[b], None if octaves is None else octaves[idx]
-        if fused is not None:
-            return fused(q_b, seed=seed, octaves=params.octaves, lod=lod_b)
+        if whole is not None:
+            return whole(q_b, seed=seed, octaves=params.octaves, lod=lod_b)
         return noise.fbm(q_b, lambda x: basis(x, seed=seed), octaves=params.octaves, lod=lod_b)
 
     return per_scene(q, s, len(params), one_scene)
 
 
 class FbmField:
-    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor):
         self.p = params
-        basis = NOISES[params.noise]
-        self.basis = noise.compiled_noise(basis) if compiled else basis
-        self.fused = fastnoise.fbm_value_hashed if params.hash == "arithmetic" else None
-        # compiled arithmetic hash: the whole signed field is one kernel (eager: the code below is its twin)
-        self.fused_field = compiled and params.hash == "arithmetic"
-        if self.fused_field:
-            self.seeds = fastnoise.mixed_seeds(params.seed, times.device)  # (B,) int32
+        self.basis = NOISES[params.noise]
+        self.whole = fastnoise.fbm_value_hashed if params.hash == "arithmetic" else None
         self.shift = params.wind * times[:, None]  # (B, 3)
         self.feature_size = noise.finest_period(params.octaves) / params.frequency
 
@@ -86,13 +81,8 @@ class FbmField:
         """The fbm field's density before its clamp at 0 (negative: how far from having any): points
         [n, 3], scene_index [n], lod [n] octaves dropped or None -> [n]."""
         p, s = self.p, scene_index
-        if self.fused_field:
-            return fastnoise.fbm_field_hashed(
-                points, s, seeds=self.seeds, octaves=p.octaves, lod=None if lod is None else p.octaves - lod,
-                frequency=p.frequency, shift=self.shift, offset=p.offset, bias=p.bias, amplitude=p.amplitude,
-                radial=p.radial, center=p.center)
         q = take(p.frequency, s)[:, None] * (points - take(self.shift, s)) + take(p.offset, s)
-        f = seeded_fbm(self.basis, q, s, p, lod, fused=self.fused)
+        f = seeded_fbm(self.basis, q, s, p, lod, whole=self.whole)
         per_point = SimpleNamespace(bias=take(p.bias, s), amplitude=take(p.amplitude, s), radial=take(p.radial, s),
                                     center=take(p.center, s).unbind(1))
         return fastnoise.puff(f, *points.unbind(1), per_point)

@@ -12,13 +12,12 @@ from __future__ import annotations
 from types import SimpleNamespace
 from typing import Annotated
 
-import torch
 from pydantic import Field
 from torch import Tensor
 
 from ..noise import lattice as noise
 from ..ops import lanes
-from ..schema.batch import Stacked, per_scene, take
+from ..schema.batch import Stacked, take
 from ..schema.models import EACH, Strict, Vec3
 
 
@@ -36,9 +35,8 @@ class FurDensity(Strict):
 
 
 class FurField:
-    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor):
         self.p = params
-        self.worley = noise.compiled_noise(noise.worley_noise) if compiled else noise.worley_noise
         # a strand's width at its tip, in world units (the finest detail)
         self.feature_size = params.thickness / params.frequency * (params.radius + params.length)
 
@@ -50,15 +48,11 @@ class FurField:
         return take(self.p.scale, scene_index) * self.unscaled(points, scene_index)
 
     def unscaled(self, points: Tensor, scene_index: Tensor) -> Tensor:
-        """max(core, strand), `points` [N, 3] -> [N] (`fur_unscaled` on torch columns; compiled:
-        its Worley noise under torch.compile, scene by scene)."""
+        """max(core, strand), `points` [N, 3] -> [N] (`fur_unscaled` on torch columns)."""
         p, s = self.p, scene_index
-        if self.worley is not noise.worley_noise:
-            worley = lambda q: per_scene(torch.stack(q, 1), s, len(p), lambda b, idx, q_b: self.worley(q_b, seed=p.seed[b]))  # noqa: E731
-        else:
-            perm, values = noise.scene_worley_tables(tuple(int(x) for x in p.seed), str(points.device))
-            rows = noise.scene_rows(s)
-            worley = lambda q: noise.worley_lanes(*q, perm, [v.to(points.dtype) for v in values], rows)  # noqa: E731
+        perm, values = noise.scene_worley_tables(tuple(int(x) for x in p.seed), str(points.device))
+        rows = noise.scene_rows(s)
+        worley = lambda q: noise.worley_lanes(*q, perm, [v.to(points.dtype) for v in values], rows)  # noqa: E731
         q = SimpleNamespace(**{k: lanes.columns(take(getattr(p, k), s)) for k in ("center", "radius", "length", "frequency",
                                                                                   "thickness")})
         return fur_unscaled(q, points.unbind(1), worley)

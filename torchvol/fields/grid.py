@@ -44,7 +44,7 @@ class Grid:
     """The grids of B scenes over their volumes' boxes (`box_min`, `box_max` (B, 3)): the renderer
     hands them over, since a grid spans its volume's box."""
 
-    def __init__(self, params: Stacked, times: Tensor, *, box_min: Tensor, box_max: Tensor, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor, *, box_min: Tensor, box_max: Tensor):
         self.grids = [torch.as_tensor(a, dtype=times.dtype, device=times.device) for a in params.data]
         self.box_min, self.box_max = box_min, box_max
         cells = torch.tensor([a.shape[::-1] for a in params.data], dtype=times.dtype, device=times.device)  # (B, 3) along x, y, z

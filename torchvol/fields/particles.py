@@ -92,10 +92,9 @@ def particle_value(f, r, core, amplitude, edge):
 
 
 class ParticleField:
-    def __init__(self, params: Stacked, times: Tensor, *, compiled: bool = False):
+    def __init__(self, params: Stacked, times: Tensor):
         self.p = params
-        basis = NOISES[params.noise]
-        self.basis = noise.compiled_noise(basis) if compiled else basis
+        self.basis = NOISES[params.noise]
         dtype, device = times.dtype, times.device
         draws = [particle_draws(seed, params.count, dtype) for seed in params.seed]
         d = {k: torch.stack([x[k] for x in draws]).to(device) for k in draws[0]}  # (B, K, ...)

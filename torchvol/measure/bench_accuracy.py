@@ -1,13 +1,14 @@
 """`torchvol bench accuracy`: error against time on the bundled scenes, per knob and per quality level.
 
 Each knob is a curve: the scene as bundled with one setting changed (primary steps, integrator,
-shadow steps, N accumulated passes of k steps, the air's steps, LOD, spp, torch.compile). Each quality level is one row: the scene with every key the
+shadow steps, N accumulated passes of k steps, the air's steps, LOD, spp, the Dr.Jit kernels: `compile`, off being the
+eager reference every other row renders). Each quality level is one row: the scene with every key the
 level decides removed (`reference.at_quality`). Every row of a scene is measured against one
 reference, the same as `torchvol sweep`'s (`reference.Ladder`, at the rows' largest spp with the
 same seeded sub-samples), climbed until its own bound is `factor` times under the smallest error of
 the scene's rows (or under its floor): relative RMSE and PSNR, with the reference's bound beside
-them. Time is the median wall time of `repeat` renders (a compiled render's first call, which
-compiles, is not counted). Writes DIR/accuracy.md (Markdown tables) and DIR/accuracy.png (error
+them. Time is the median wall time of `repeat` renders (a render's first call in kernels, which
+builds them, is not counted). Writes DIR/accuracy.md (Markdown tables) and DIR/accuracy.png (error
 against time, one panel per scene). For physical scenes the `tolerance` knob adds a table of
 `march.tolerance` against fixed step counts in the tolerance's own units (radiance over the light,
 alpha), against the same scene and rays with only the march made exact, with whether each tolerance
@@ -115,7 +116,7 @@ def measure(data: dict, setting: Setting, *, repeat: int, seed: int = 0):
     render that takes over LONG_RENDER_S is timed once (its timing noise is small against it)."""
     scene = load_scene(data, setting.overrides)
     if setting.compile:
-        render(scene, seed=seed, compile=True)  # compilation is not what is measured
+        render(scene, seed=seed, compile=True)  # the kernels' build is not what is measured
     times = []
     while len(times) < repeat and sum(times) < LONG_RENDER_S:
         start = time.perf_counter()

@@ -3,17 +3,16 @@
 A profile, then four tables, every figure a median of `repeat` runs measured in this one run, so ratios hold on
 any machine (absolute times only on a quiet one):
 
-0. Where a render's time goes: torch.profiler's top ops (self CPU time) of `cloud-puff` (physical,
-   table-hash value-noise fbm) and `template-clouds` (texture noise) at 64×64.
+0. Where an eager render's time goes: torch.profiler's top ops (self CPU time) of `cloud-puff`
+   (physical, table-hash value-noise fbm) and `template-clouds` (texture noise) at 64×64.
 1. `template-clouds` on Mesa llvmpipe (the same GLSL template, `torchvol.measure.glsl`) against
-   torchvol eager and compiled (its march one Dr.Jit kernel, `volume.drjit_march`, and on
-   torch.compile's kernels, `volume.fused`), and a physical cloud (`cloud-puff`) with the table hash,
-   the arithmetic hash eager and the arithmetic hash's fused compiled fbm (`torchvol.noise.fast`);
-   each row with its density evaluations per second.
+   torchvol eager and by default (its march one Dr.Jit kernel, `volume.kernel_march.march_look`),
+   and a physical cloud (`cloud-puff`) with the table hash and the arithmetic hash
+   (`torchvol.noise.fast`), eager and by default; each row with its density evaluations per second.
 2. The floor: density evaluations per second of each render's noise alone on the same points
-   (cloud-puff's value-noise fbm: table hash eager, arithmetic hash eager, fused compiled kernel;
-   the template's texture-noise fbm eager, compiled and in Dr.Jit); each render row's time over its floor,
-   the fastest of these kernels run beside each of the row's renders.
+   (cloud-puff's value-noise fbm: table hash eager, arithmetic hash eager and in Dr.Jit; the
+   template's texture-noise fbm eager and in Dr.Jit); each render row's time over its floor, the
+   fastest of these kernels run beside each of the row's renders.
 3. Generation: samples/s of bundled recipes at 128×128 with 1 and 2 workers (`generate`, the
    full path: sampling, batched render, encoding, writes; worker runs include process start-up).
 4. The loaded-machine slowdown: a render in a fresh process alone and while one
@@ -21,12 +20,11 @@ any machine (absolute times only on a quiet one):
 5. The heap: renders in fresh processes with glibc's malloc as `torchvol.runtime.heap` sets it and left
    alone; seconds, page faults and system time per render.
 
-Compile time is excluded from the steady-state rows and reported on its own (first call).
+A kernel's build is excluded from the steady-state rows and reported on its own (first call).
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import platform
@@ -45,7 +43,7 @@ from ..fields.clouds import cloud_fbm
 from ..noise import fast as fastnoise
 from ..noise import lattice as noise
 from ..renderer.executor import render
-from ..runtime.compilation import compile_settings, compiled
+from ..runtime import compilation
 from ..runtime.threads import torch_threads
 from ..scene.model import preset, preset_names
 
@@ -56,12 +54,9 @@ PARTS = ("profile", "render", "floor", "presets", "generate", "loaded", "heap") 
 
 
 def _seconds(fn: Callable[[], object]) -> float:
-    # in dynamo's settings, as a render runs its kernels: a compiled floor kernel called alone
-    # would set them around its call, and pay for it (`compilation.compile_settings`)
-    with compile_settings():
-        start = time.perf_counter()
-        fn()
-        return time.perf_counter() - start
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
 
 
 def _median_time(fn: Callable[[], object], repeat: int) -> float:
@@ -71,7 +66,7 @@ def _median_time(fn: Callable[[], object], repeat: int) -> float:
 class RenderTiming(NamedTuple):
     seconds: float  # median of the timed renders
     evals: int  # density evaluations of one render
-    first_s: float  # the first render (compilation under `compile`), not in the median
+    first_s: float  # the first render (the kernels' build, or Dr.Jit's disk cache), not in the median
     x_floor: float | None  # median over the runs of the render's time over its floor's (None: no floor)
 
 
@@ -127,7 +122,7 @@ def _cloud_puff(width: int, height: int, hash: str) -> dict:
 def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size: tuple[int, int],
                 floor_points: int = 2**20) -> list[dict]:
     """Rows {work, renderer, threads, seconds, evals_per_s, ratio, x_floor, first_s}: template-clouds
-    per size against llvmpipe (compiled also on one thread, as a generator's worker renders), then
+    per size against llvmpipe (by default also on one thread, as a generator's worker renders), then
     cloud-puff at `physical_size` against its table-hash eager render. × floor: against the
     fastest kernel of the render's density on as many threads (`fastest`), run beside each render
     on `floor_points` points."""
@@ -137,7 +132,7 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
     def floor(density: str, n: int) -> Floor:
         kernel = kernels[(fastest(density), density, n)]
         with torch_threads(n):
-            kernel()  # compiles: not in the timed runs
+            kernel()  # builds: not in the timed runs
         return Floor(kernel, floor_points, n)
 
     for width, height in sizes:
@@ -147,89 +142,62 @@ def render_rows(sizes: Sequence[tuple[int, int]], *, repeat: int, physical_size:
             rows.append(dict(work=work, renderer="llvmpipe (GLSL template)", threads=None, seconds=gl, evals_per_s=None,
                              ratio=1.0, x_floor=None, first_s=None))
         scene = preset("template-clouds", width=width, height=height)
-        drjit = fastest("template-clouds") == DRJIT_FBM
-        compiled_name = "torchvol default (Dr.Jit march)" if drjit else "torchvol torch.compile"
-        for compile, n, name in (("off", threads, "torchvol eager"), ("auto" if drjit else "all", threads, compiled_name),
-                                 ("auto" if drjit else "all", 1, f"{compiled_name}, 1 thread"),
-                                 *([("all", threads, "torchvol torch.compile kernels")] if drjit else [])):
-            with torch_threads(n), _drjit_off(name == "torchvol torch.compile kernels"):
+        default = [("kernels", threads, DEFAULT), ("kernels", 1, f"{DEFAULT}, 1 thread")] if compilation.drjit_available() else []
+        for compile, n, name in (("off", threads, "torchvol eager"), *default):
+            with torch_threads(n):
                 t = time_render(scene, compile=compile, repeat=repeat, floor=floor("template-clouds", n))
             rows.append(dict(work=work, renderer=name, threads=n, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
                              ratio=t.seconds / gl if gl else None, x_floor=t.x_floor, first_s=t.first_s))
     width, height = physical_size
     work, base = f"cloud-puff {width}×{height}", None
     for hash, compile, name in (("table", "off", "table hash, eager"), ("arithmetic", "off", "arithmetic hash, eager"),
-                                ("table", "auto", "table hash, default (Dr.Jit march)"),
-                                ("arithmetic", "auto", "arithmetic hash, default (Dr.Jit march)"),
-                                ("arithmetic", "all", "arithmetic hash, fused field compiled")):
-        with _drjit_off(compile == "all"):  # inductor's fused field, the march around it eager
-            t = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat,
-                            floor=floor("cloud-puff", threads))
+                                ("table", "kernels", "table hash, default (Dr.Jit march)"),
+                                ("arithmetic", "kernels", "arithmetic hash, default (Dr.Jit march)")):
+        t = time_render(_cloud_puff(width, height, hash), compile=compile, repeat=repeat, floor=floor("cloud-puff", threads))
         base = base or t.seconds
         rows.append(dict(work=work, renderer=name, threads=threads, seconds=t.seconds, evals_per_s=t.evals / t.seconds,
                          ratio=t.seconds / base, x_floor=t.x_floor, first_s=t.first_s))
     return rows
 
 
-@contextlib.contextmanager
-def _drjit_off(off: bool):
-    """The compiled template march on torch.compile's kernels inside the block where `off`."""
-    from ..volume import drjit_march
-
-    before = os.environ.get(drjit_march.OPT_OUT)
-    if off:
-        os.environ[drjit_march.OPT_OUT] = "0"
-    try:
-        yield
-    finally:
-        if before is None:
-            os.environ.pop(drjit_march.OPT_OUT, None)
-        else:
-            os.environ[drjit_march.OPT_OUT] = before
-
-
-def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table", compile: bool = False) -> list[dict]:
-    """torch.profiler's `top` ops by self CPU time of one render of preset `name` at size×size
-    (after a warm-up render, which compiles under `compile`): rows {op, share, calls}; share of the
-    profiled self CPU time."""
+def profile_rows(name: str, *, size: int, top: int = 6, hash: str = "table") -> list[dict]:
+    """torch.profiler's `top` ops by self CPU time of one eager render of preset `name` at
+    size×size (after a warm-up render): rows {op, share, calls}; share of the profiled self CPU time."""
     from torch.profiler import ProfilerActivity, profile
 
     scene = _cloud_puff(size, size, hash) if name == "cloud-puff" else preset(name, width=size, height=size)
-    render(scene, compile=compile)
+    render(scene, compile="off")
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        render(scene, compile=compile)
+        render(scene, compile="off")
     events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
     total = sum(e.self_cpu_time_total for e in events) or 1.0
     return [dict(op=e.key, share=e.self_cpu_time_total / total, calls=e.count) for e in events[:top]]
 
 
-# each density's fastest kernel (`floor_kernels`), the floor its renders are measured against
-# (the template's: Dr.Jit's where it runs, 1.6-1.9x inductor's; `fastest`)
-DRJIT_FBM = "texture noise, 5 octaves, Dr.Jit kernel"
-FASTEST = {"cloud-puff": "arithmetic hash, fused compiled kernel",
-           "template-clouds": "texture noise, 5 octaves, fused compiled kernel"}
+DEFAULT = "torchvol default (Dr.Jit march)"  # the template's render as `render` runs it
+# each density's floor kernels (`floor_kernels`): eager, and in Dr.Jit where it runs, the fastest
+FLOORS = {"cloud-puff": ("arithmetic hash, eager", "arithmetic hash, Dr.Jit kernel"),
+          "template-clouds": ("texture noise, 5 octaves (integer filter), eager", "texture noise, 5 octaves, Dr.Jit kernel")}
 
 
 def fastest(density: str) -> str:
-    """The name of `density`'s fastest `floor_kernels` kernel on this machine."""
-    from ..volume import drjit_march
-
-    return DRJIT_FBM if density == "template-clouds" and drjit_march.available(torch.zeros(1)) else FASTEST[density]
+    """The name of `density`'s fastest `floor_kernels` kernel on this machine: Dr.Jit's where it runs."""
+    return FLOORS[density][1 if compilation.drjit_available() else 0]
 
 
-def _drjit_fbm(x, y, z, packed, base, *, scales) -> Callable[[], object]:
-    """The template's fbm as `volume.drjit_march` evaluates it, on Dr.Jit copies of the points (made
-    once): each call traces, launches on torch's thread count and waits for the result."""
+def _in_drjit(fn: Callable, *columns: torch.Tensor) -> Callable[[], object]:
+    """`fn` of Dr.Jit copies of `columns` ([N] torch tensors, made once: Float, or Int32 for
+    integers) as one Dr.Jit kernel: each call traces, launches on torch's thread count and waits
+    for the result."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
-
-    points = [Float(c.numpy()) for c in (x, y, z)]
-    table, rows, factors = Int32(packed.numpy()), Int32(base.numpy()), [Float(float(c)) for c in scales]
+    args = [Float(c.to(torch.float32).numpy()) if c.is_floating_point() else Int32(c.to(torch.int32).numpy())
+            for c in columns]
 
     def run():
         dr.set_thread_count(torch.get_num_threads())
-        out = cloud_fbm(*points, table, rows, None, octaves=5, scales=factors)
+        out = fn(*args)
         dr.eval(out)
         dr.sync_thread()
         return out
@@ -239,33 +207,34 @@ def _drjit_fbm(x, y, z, packed, base, *, scales) -> Callable[[], object]:
 
 def floor_kernels(*, points: int, octaves: int = 4) -> dict[tuple[str, str, int], Callable[[], object]]:
     """Each measured render's noise alone on the same `points` random points: cloud-puff's
-    `octaves`-octave value-noise fbm and the template's 5-octave texture-noise fbm
-    (`fields.clouds.cloud_fbm`), eager and as a fused compiled kernel, and the template's in Dr.Jit
-    where it runs (the compiled and Dr.Jit ones also on one
-    thread, the floor of the one-thread render rows). {(kernel, density (the preset whose floor
-    it is), torch threads): fn}; run each on its threads."""
-
+    `octaves`-octave value-noise fbm (table and arithmetic hash) and the template's 5-octave
+    texture-noise fbm (`fields.clouds.cloud_fbm`), eager, and the arithmetic hash's and the
+    template's in Dr.Jit where it runs (also on one thread, the floor of the one-thread render
+    rows). {(kernel, density (the preset whose floor it is), torch threads): fn}; run each on its
+    threads."""
     g = torch.Generator().manual_seed(0)
     p = torch.rand(points, 3, generator=g) * 20.0 - 10.0
     x, y, z = (c.contiguous() for c in p.unbind(1))
     packed = noise.packed_table(noise.texture_table(noise.default_noise_texture(0)))
     base = noise.texture_rows(torch.zeros(points, dtype=torch.long), p.dtype)
     scales = noise.folded_scales(5, dtype=p.dtype, device=p.device)
-    template_fbm = compiled(cloud_fbm)
     n = torch.get_num_threads()
-    return {
+    kernels = {
         ("table hash (noise.fbm over noise.value_noise), eager", "cloud-puff", n):
             lambda: noise.fbm(p, lambda q: noise.value_noise(q, seed=7), octaves=octaves),
-        ("arithmetic hash, eager twin", "cloud-puff", n): lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves),
-        (FASTEST["cloud-puff"], "cloud-puff", n):
-            lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves, compiled=True),
-        ("texture noise, 5 octaves (integer filter), eager", "template-clouds", n):
+        (FLOORS["cloud-puff"][0], "cloud-puff", n): lambda: fastnoise.fbm_value_hashed(p, seed=7, octaves=octaves),
+        (FLOORS["template-clouds"][0], "template-clouds", n):
             lambda: cloud_fbm(x, y, z, packed, base, None, octaves=5, scales=scales),
-        **{(FASTEST["template-clouds"], "template-clouds", k):
-           lambda: template_fbm(x, y, z, packed, base, None, octaves=5, scales=scales) for k in sorted({n, 1})},
-        **({(DRJIT_FBM, "template-clouds", k): _drjit_fbm(x, y, z, packed, base, scales=scales) for k in sorted({n, 1})}
-           if fastest("template-clouds") == DRJIT_FBM else {}),
     }
+    if not compilation.drjit_available():
+        return kernels
+    seed, factors = int(fastnoise.mixed_seeds([7], "cpu")[0]), [float(c) for c in scales]
+    for k in sorted({n, 1}):
+        kernels[(FLOORS["cloud-puff"][1], "cloud-puff", k)] = _in_drjit(
+            lambda *q: fastnoise.fbm_sum(fastnoise.hashed(seed), *q, factors, None, octaves, 0.5), x, y, z)
+        kernels[(FLOORS["template-clouds"][1], "template-clouds", k)] = _in_drjit(
+            lambda *q: cloud_fbm(*q, None, octaves=5, scales=factors), x, y, z, packed, base)
+    return kernels
 
 
 def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
@@ -297,7 +266,7 @@ def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
         return None
     n = torch.get_num_threads()
     if name == "template-clouds":
-        key = (DRJIT_FBM, "template-clouds", n)
+        key = (FLOORS["template-clouds"][1], "template-clouds", n)
         return Floor(kernels[key], points, n) if key in kernels else None
     by_volume, g, parts = out.stats["density_evals_by_volume"], torch.Generator().manual_seed(0), []
     total = sum(by_volume.values())
@@ -326,7 +295,7 @@ def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[di
         scene = preset(name, width=size, height=size)
         out = render(scene, keep_context=True)
         floor = _kernel_floor(out, name, kernels, floor_points)
-        t = time_render(scene, compile="auto", repeat=repeat, floor=floor)
+        t = time_render(scene, compile="kernels", repeat=repeat, floor=floor)
         marches = out.stats["plan"]["marches"]
         eager = _seconds(lambda: render(scene, compile="off")) if "drjit" in marches.values() else None
         rows.append(dict(preset=name, marches=", ".join(sorted(set(marches.values()))) or "none", seconds=t.seconds,
@@ -334,22 +303,34 @@ def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[di
     return rows
 
 
-def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None, batch: int = 4,
-                    layout: str = "folder", compiled: bool = True) -> list[dict]:
+def cli_wall_seconds(path: Path, *, count: int, workers: int, overrides: dict) -> float:
+    """Wall-clock seconds of `torchvol generate` of `count` samples on `workers` workers from a
+    fresh process, as a user runs it: the interpreter's start, importing torch, the render and the
+    process's exit included."""
+    sets = [arg for key, value in overrides.items() for arg in ("--set", f"{key}={value}")]
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "torchvol.cli", "generate", str(path), "--count", str(count), "--out",
+                        str(Path(tmp) / "ds"), "--workers", str(workers), "--no-progress", *sets],
+                       check=True, capture_output=True, cwd=ROOT)
+        return time.perf_counter() - start
+
+
+def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: int, size: int | None,
+                    batch: int | None = None, layout: str = "folder", cli_count: int = 64) -> list[dict]:
     """`generate` of each recipe at size×size (None: the recipe's own size) with each worker count,
-    as it runs by default ("auto": its marches in the Dr.Jit kernels where they have one), eager
-    where that differs, and, with `compiled`, in each compile mode that changes what the recipe's
-    scenes run (`torchvol.runtime.compilation`: "exact" for voxel scenes, "all" where
-    `renderer.plan.compile_pays` and no kernel serves):
+    as it runs by default ("kernels": its marches in the Dr.Jit kernels where they have one), and
+    eager where that differs:
     rows {recipe, workers, mode, seconds, samples_per_s, steady_per_s, first_s, bytes_per_sample}.
-    After a warm-up run (one batch a worker: inductor's on-disk cache is then warm for both timed
-    runs), each is run for N and for 2N samples (N = `count`, 4·`count` compiled or in kernels, whose samples
-    are fast and whose start-up is long): the difference is the steady rate (N / (T₂ − T₁)); what
-    the first run took beyond N samples at that rate is the start-up (worker processes, dynamo's
-    tracing: `first_s`). `samples_per_s`: 2N / T₂."""
+    After a warm-up run (one batch a worker: Dr.Jit's on-disk cache is then warm for both timed
+    runs), each is run for N and for 2N samples (N = `count`, 4·`count` in kernels, whose samples
+    are fast): the difference is the steady rate (N / (T₂ − T₁)); what the first run took beyond N
+    samples at that rate is the start-up (worker processes: `first_s`). `samples_per_s`: 2N / T₂.
+    `batch` None: `generate`'s own (`dataset.generate.auto_batch`). The default rows also give
+    `cli_wall_s`: `cli_count` samples from a fresh process (`cli_wall_seconds`; None: not run)."""
     from ..dataset.generate import generate
     from ..dataset.recipe import Recipe
-    from ..renderer.plan import compile_pays, make_plan
+    from ..renderer.plan import make_plan
 
     rows = []
     overrides = {} if size is None else {"image.width": size, "image.height": size}
@@ -357,16 +338,11 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
         path = ROOT / "datasets" / f"{name}.toml"
         scene = Recipe.load(path, overrides).sample_with_params(0, 0)[0]
         kernels = "drjit" in make_plan(scene, compile="kernels").summary()["marches"].values()
-        modes = [("auto", "default")] + ([("off", "eager")] if kernels else [])  # without a kernel the default is eager
-        if compiled and scene.voxels is not None:
-            modes.append(("exact", "compiled exact"))
-        if compiled and compile_pays(scene) and not kernels:
-            modes.append(("all", "compiled"))
+        modes = [("kernels", "default")] + ([("off", "eager")] if kernels else [])  # without a kernel the default is eager
         for n in workers:
             for compile, label in modes:
-                fast = compile in ("exact", "all") or (compile == "auto" and kernels)
-                seconds, n_samples = [], count * (4 if fast else 1)
-                for k in (batch * n, n_samples, 2 * n_samples):  # warm-up, N, 2N
+                seconds, n_samples = [], count * (4 if compile == "kernels" and kernels else 1)
+                for k in (4 * n, n_samples, 2 * n_samples):  # warm-up, N, 2N
                     with tempfile.TemporaryDirectory() as tmp:
                         start = time.perf_counter()
                         generate(path, count=k, out=Path(tmp) / "ds", workers=n, batch=batch, layout=layout,
@@ -375,10 +351,12 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
                         size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file())
                 # the N extra samples must take a measurable share of the 2N run, or the difference is noise
                 steady = n_samples / (seconds[2] - seconds[1]) if seconds[2] - seconds[1] > 0.1 * seconds[2] else None
+                wall = (cli_wall_seconds(path, count=cli_count, workers=n, overrides=overrides)
+                        if cli_count and compile == "kernels" else None)
                 rows.append(dict(recipe=name, workers=n, mode=label, samples=2 * n_samples,
                                  seconds=seconds[2], samples_per_s=2 * n_samples / seconds[2], steady_per_s=steady,
                                  first_s=None if steady is None else max(seconds[1] - n_samples / steady, 0.0),
-                                 bytes_per_sample=size_bytes / (2 * n_samples)))
+                                 bytes_per_sample=size_bytes / (2 * n_samples), cli_wall_s=wall, cli_count=cli_count))
     return rows
 
 
@@ -420,10 +398,10 @@ def loaded_rows(*, width: int, height: int, repeat: int,
                 configs: Sequence[tuple[int, str, str]] | None = None) -> list[dict]:
     """template-clouds at width×height in a fresh process, alone and with one busy competitor, per
     (torch threads, OMP_WAIT_POLICY, compile mode): rows {threads, policy, compile, alone_s,
-    loaded_s, slowdown}. Compiled, the march is Dr.Jit's kernel where it runs, on its own threads."""
+    loaded_s, slowdown}. In kernels, the march is Dr.Jit's kernel where it runs, on its own threads."""
     cores = os.cpu_count() or 1
     configs = configs or [(cores, "ACTIVE", "off"), (cores, "PASSIVE", "off"), (max(1, cores - 1), "PASSIVE", "off"),
-                          (cores, "PASSIVE", "all")]
+                          (cores, "PASSIVE", "kernels")]
     rows = []
     for threads, policy, compile in configs:
         policy_env = {"OMP_WAIT_POLICY": policy}
@@ -474,7 +452,7 @@ def _header(sections: dict) -> list[str]:
     lines = ["# Speed", "", (f"`torchvol bench speed{' --quick' if sections['quick'] else ''}{count_flag}`, {time.strftime('%Y-%m-%d')}: "
              f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs, "
              f"{platform.processor() or platform.machine()}; GL: {renderer_name()}. Medians of {sections['repeat']} runs; "
-             "compilation (first call) reported apart. Ratios hold on a busy machine; absolute times only on a quiet "
+             "a kernel's build (first call) reported apart. Ratios hold on a busy machine; absolute times only on a quiet "
              "one. `torchvol bench speed --out docs/SPEED.md` writes this page (`--quick`: small sizes, two recipes)."), ""]
     return lines
 
@@ -488,9 +466,8 @@ def _profile_section(sections: dict) -> list[str]:
     lines += ["", "Gathers (the value noise's permutation chain perm[perm[perm[x] + y] + z], 14 per point and "
               "octave; the march's and the DDA's compaction) run as `aten::index_select` (`mathops.take_rows`, 3–5× "
               "faster than `x[ids]`'s `aten::index`); `density.fbm.hash = \"arithmetic\"` replaces the permutation "
-              "with integer arithmetic that inductor fuses (torchvol.noise.fast). In the compiled arithmetic-hash render "
-              "the fused density kernels (`Torch-Compiled Region`, dynamo's guard checks in `TorchDynamo Cache Lookup`) "
-              "sit among the march's small eager ops (docs/VOLUMES.md, \"The fused field\").", ""]
+              "with integer arithmetic (torchvol.noise.fast). These are eager renders (`compile=\"off\"`, the "
+              "reference): by default the march is one Dr.Jit kernel, which torch.profiler does not see into.", ""]
     return lines
 
 
@@ -506,18 +483,14 @@ def _render_section(sections: dict) -> list[str]:
               "render and the ratio taken run by run (the median of the runs' ratios): 1 would be a render that "
               "costs nothing but its noise. "
               "Ratio: time over llvmpipe's (template-clouds) or over the table-hash eager render (cloud-puff). "
-              "By default (`compile=\"auto\"`) template-clouds runs its march as one Dr.Jit kernel per chunk where Dr.Jit's "
-              "LLVM backend runs (torchvol/volume/drjit_march.py: a loop per ray, the light's fbm under a per-ray branch, one "
-              "launch), and cloud-puff its physical march (torchvol/volume/kernel_march.py); \"torch.compile kernels\" "
-              "is the template with `compile=\"all\"` and `TORCHVOL_DRJIT=0`: the fused march step "
-              "(torchvol/volume/fused.py: a step is two compiled kernels over a chunk's rays, the sample's density "
-              "with the previous step's compositing, and the light's density at the lit samples). The template's "
-              "floor is the Dr.Jit fbm, the fastest. \"fused field compiled\": the arithmetic hash's fbm one inductor "
-              "kernel, the physical march around it eager (`TORCHVOL_DRJIT=0`; docs/VOLUMES.md). \"1 thread\": as a generator's worker renders (one torch "
-              "thread each, workers scale by processes): the march's eager glue between kernels (gathers, compaction, "
-              "dynamo's guards: small ops and Python) runs on one thread, where waking a second costs more than it saves, so a second thread speeds the kernels only (docs/VOLUMES.md, \"Two threads\"). "
-              "Density evals/s count the evaluations the eager march makes; "
-              "the fused step evaluates the cloud at every live ray and again towards the light where lit.", ""]
+              "By default (`compile=\"kernels\"`) template-clouds runs its march as one Dr.Jit kernel per chunk where "
+              "Dr.Jit's LLVM backend runs (torchvol/volume/kernel_march.py, `march_look`: a loop per ray, the light's "
+              "fbm under a per-sample branch, one launch), and cloud-puff its physical march (`march`). The floor is "
+              "the Dr.Jit fbm, the fastest. \"1 thread\": as a generator's worker renders (one torch thread each, "
+              "workers scale by processes): the render's eager glue (rays, compositing, post: small ops) runs on one "
+              "thread, where waking a second costs more than it saves, so a second thread speeds the kernels only "
+              "(docs/VOLUMES.md, \"Two threads\"). Density evals/s count the evaluations the eager march makes, "
+              "which the kernel makes too.", ""]
     return lines
 
 
@@ -540,9 +513,9 @@ def _presets_section(sections: dict) -> list[str]:
     lines += [f"| {r['preset']} | {r['marches']} | {r['seconds']:.3f} | {_fmt(r['eager_s'])} | "
               f"{_fmt(None if r['eager_s'] is None else r['eager_s'] / r['seconds'], '.1f')} | {_fmt(r['x_floor'], '.2f')} | "
               f"{_fmt(r['first_s'], '.2f')} |" for r in sections["presets"]]
-    lines += ["", "What `render(scene)` does without flags (`compile=\"auto\"`): a march whose technique has a Dr.Jit "
-              "kernel runs in it (\"drjit\": torchvol/volume/kernel_march.py for physical value-noise fbm media, "
-              "torchvol/volume/drjit_march.py for the template's look), the others eagerly; `stats[\"plan\"][\"marches\"]` "
+    lines += ["", "What `render(scene)` does without flags (`compile=\"kernels\"`): a march whose technique has a Dr.Jit "
+              "kernel runs in it (\"drjit\": torchvol/volume/kernel_march.py, the physical media and the seeds' "
+              "looks), the others eagerly; `stats[\"plan\"][\"marches\"]` "
               "says which. × eager: one eager render (`compile=\"off\"`, the reference) over the default's median. × floor: "
               "the render's time over the time its density evaluations alone take in the Dr.Jit kernel (the same "
               "density function, traced alone, on random points of its bounds' box), run beside each render; only "
@@ -553,22 +526,23 @@ def _presets_section(sections: dict) -> list[str]:
 
 def _generate_section(sections: dict) -> list[str]:
     """The report's section on the generator's throughput: its Markdown lines."""
-    lines = ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | bytes/sample |",
-             "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    cli = next((r["cli_count"] for r in sections["generate"] if r.get("cli_wall_s") is not None), 64)
+    lines = ["## Generation", "", "| recipe | workers | mode | samples | seconds | samples/s | steady samples/s | start-up s | "
+             f"bytes/sample | fresh CLI, {cli} samples: wall s | its samples/s |",
+             "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     lines += [f"| {r['recipe']} | {r['workers']} | {r['mode']} | {r['samples']} | {r['seconds']:.2f} | {r['samples_per_s']:.2f} | "
-              f"{_fmt(r['steady_per_s'], '.2f')} | {_fmt(r['first_s'], '.1f')} | {r['bytes_per_sample']:,.0f} |"
+              f"{_fmt(r['steady_per_s'], '.2f')} | {_fmt(r['first_s'], '.1f')} | {r['bytes_per_sample']:,.0f} | "
+              f"{_fmt(r.get('cli_wall_s'), '.2f')} | {_fmt(None if r.get('cli_wall_s') is None else r['cli_count'] / r['cli_wall_s'], '.1f')} |"
               for r in sections["generate"]]
-    lines += ["", f"Each row generates one batch a worker (warm-up), then N = {sections.get('count', 16)} and 2N samples (N four times as many compiled or in kernels; "
-              "samples, seconds and samples/s are the 2N run's): steady samples/s = N / (T₂ − T₁), start-up = what the "
-              "N run took beyond N samples at that rate (worker processes; dynamo tracing the compiled kernels, "
-              "inductor's on-disk cache being warm; blank where the N extra samples took under a tenth of the 2N "
-              "run: the difference is then noise, not a rate). default: `torchvol generate` without flags (a march whose "
-              "technique has a Dr.Jit kernel runs in it); eager: `--eager`, where that differs. Worker processes are "
-              "forked (one thread each): their start-up is the fork's, not an import of torch. "
-              "compiled exact: `compile=\"exact\"` for voxel recipes (the "
-              "fused DDA walk, bitwise eager; what the default `auto` takes from 512 samples a worker); compiled: "
-              "`torchvol generate --compile` for recipes whose scenes take it (an fbm on the arithmetic hash, the "
-              "template's fused march step, fur); each worker process compiles (traces) on its own.", ""]
+    lines += ["", f"Each row generates one batch a worker (warm-up), then N = {sections.get('count', 16)} and 2N samples "
+              "(N four times as many in kernels; samples, seconds and samples/s are the 2N run's): steady samples/s = "
+              "N / (T₂ − T₁), start-up = what the N run took beyond N samples at that rate (worker processes; blank "
+              "where the N extra samples took under a tenth of the 2N run: the difference is then noise, not a rate). "
+              "default: `torchvol generate` without flags (a march whose technique has a Dr.Jit kernel runs in it); "
+              "eager: `--eager`, where that differs. Worker processes are forked (one thread each): their start-up is "
+              "the fork's, not an import of torch. Fresh CLI: `python -m torchvol.cli generate` of that many samples "
+              "from a new process, timed from outside (the interpreter's start, importing torch, the workers, the "
+              "render and the exit: what a user waits for).", ""]
     return lines
 
 
@@ -615,16 +589,12 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
           recipes: Sequence[str] | None = None, count: int | None = None,
           parts: Sequence[str] = PARTS) -> str:
     """Run the benchmark; returns the Markdown (and writes it to `out` where given). `quick`: small
-    sizes, two recipes, fewer points (about 2 minutes on 2 cores once inductor's cache is warm)."""
+    sizes, two recipes, fewer points (about 2 minutes on 2 cores)."""
     repeat = repeat or (2 if quick else 3)
     sections: dict = {"quick": quick, "repeat": repeat}
     if "profile" in parts:
         size = 32 if quick else 64
         sections["profile"] = {f"{name} {size}×{size}": profile_rows(name, size=size) for name in ("cloud-puff", "template-clouds")}
-        # the fused path: what is left around the compiled density kernel
-        sections["profile"][f"cloud-puff arithmetic compiled {size}×{size}"] = profile_rows(
-            "cloud-puff", size=size, hash="arithmetic", compile=True)
-        sections["profile"][f"template-clouds compiled {size}×{size}"] = profile_rows("template-clouds", size=size, compile=True)
     if "render" in parts:
         sizes = ((160, 90),) if quick else TEMPLATE_SIZES
         sections["render"] = render_rows(sizes, repeat=repeat, physical_size=(48, 48) if quick else (128, 128),
@@ -645,9 +615,9 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
         sections["loaded"] = loaded_rows(width=64 if quick else 320, height=36 if quick else 180, repeat=3 if quick else repeat)
     if "heap" in parts:
         cores = os.cpu_count() or 1
-        works = ([("template-clouds", 64, 36, "all", cores)] if quick else
-                 [("template-clouds", 640, 360, "all", cores), ("template-clouds", 640, 360, "all", 1),
-                  ("voxel-gi", 128, 128, "exact", 1)])
+        works = ([("template-clouds", 64, 36, "kernels", cores)] if quick else
+                 [("template-clouds", 640, 360, "kernels", cores), ("template-clouds", 640, 360, "kernels", 1),
+                  ("voxel-gi", 128, 128, "kernels", 1)])
         sections["heap"] = heap_rows(works, repeat=repeat)
     text = markdown(sections)
     if out is not None:

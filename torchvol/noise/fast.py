@@ -1,40 +1,31 @@
-"""Value-noise fBm with an arithmetic integer hash: the fast twin of ``noise.fbm`` over
-``noise.value_noise`` (``density.fbm.hash = "arithmetic"``).
+"""Value-noise fBm with an arithmetic integer hash (``density.fbm.hash = "arithmetic"``): a twin
+field of ``noise.fbm`` over ``noise.value_noise`` without its gathers.
 
 `noise.value_noise` hashes lattice corners with Perlin's permutation table: three dependent
-gathers per corner, which neither vectorise nor fuse. Here each corner's value comes from int32
+gathers per corner, which do not vectorise. Here each corner's value comes from int32
 multiplies, xors and shifts only (``h = mix32(x·P1 ^ y·P2 ^ z·P3 ^ seed)``, lowbias32 finaliser,
-int32 arithmetic wrapping mod 2**32), so inductor turns a whole fBm (all octaves, trilinear blends
-and the weighted sum) into one fused, vectorised loop (`fbm_value_hashed(..., compiled=True)`).
+int32 arithmetic wrapping mod 2**32), in lanes (`ops.lanes`): the Dr.Jit march traces the whole
+fBm (`fbm_sum`, `fbm_field`) into its kernel as vector arithmetic.
 
-`fbm_value_hashed(..., compiled=False)` is the eager reference twin: ``noise.fbm`` (the seeds'
-float order, Mesa's folded octave scales, LOD compaction) over `value_noise_hashed`. The compiled
-kernel evaluates every octave and masks the ones LOD drops instead of compacting (static shapes),
-which adds exact zeros; tests hold it to the twin. The lattice values are a different random
-field than the table's, with the same distribution (uniform 24-bit values in [0, 1)), so images
-change where a scene switches hash; the statistics do not (tests/test_fastnoise.py).
-
-`fbm_field_hashed` is the fbm field's whole signed density (affine map, fbm, falloff) as one compiled
-kernel, what `fields.fbm.FbmField` runs under compile; `renderer.plan.compile_pays` says where a render compiled is
-the fast path (`generate` uses it).
+`fbm_value_hashed` is the eager form: ``noise.fbm`` (the seeds' float order, Mesa's folded octave
+scales, LOD compaction) over `value_noise_hashed`; `fbm_sum` evaluates every octave and masks the
+ones LOD drops instead of compacting, which adds exact zeros. The lattice values are a different
+random field than the table's, with the same distribution (uniform 24-bit values in [0, 1)), so
+images change where a scene switches hash; the statistics do not (tests/test_fastnoise.py).
 """
 
 from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from types import SimpleNamespace
 
 import torch
 from torch import Tensor
 
 from ..ops import lanes
-from ..ops.mathops import take_rows
-from ..runtime.compilation import compiled
-from ..runtime.threads import threads_for, torch_threads
 from . import lattice as noise
 
-__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_field_hashed"]
+__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_sum", "fbm_field", "mixed_seeds"]
 
 # odd multipliers below 2**31 (xxHash's primes and murmur3's c2): Python ints that stay int32 in torch
 _P = (0x1B873593, 0x27D4EB2F, 0x165667B1)
@@ -68,8 +59,7 @@ def hash_cells(x: Tensor, y: Tensor, z: Tensor, seed: Tensor | int) -> Tensor:
 
 def _value(p: Sequence[Tensor], seed: Tensor | int) -> Tensor:
     """Value noise of points given as their three coordinates (each ``[N]``) with a mixed seed
-    -> ``[N]`` in [0, 1) (`value_noise_hashed`). Coordinates, not ``[N, 3]``: contiguous loads
-    let inductor vectorise the fused loop."""
+    -> ``[N]`` in [0, 1) (`value_noise_hashed`); lanes (`ops.lanes`)."""
     fl = [lanes.floor(c) for c in p]
     u = [(c - f) * (c - f) * (3.0 - 2.0 * (c - f)) for c, f in zip(p, fl)]
     x0, y0, z0 = (lanes.to_int32(f) for f in fl)
@@ -92,7 +82,7 @@ def fbm_sum(basis, x, y, z, scales, lod, octaves: int, gain: float):
     """Every octave of `noise.fbm` in its float order, LOD as a mask, in lanes (`ops.lanes`):
     `basis(x, y, z)` the noise (this module's arithmetic hash, or `noise.value_lanes` over the
     tables); x, y, z each ``[N]``; scales ``[octaves - 1]`` or a list; lod ``[N]`` octaves kept, or None.
-    The body of the compiled graphs and of the Dr.Jit march's densities."""
+    What the Dr.Jit march's densities trace."""
     f = basis(x, y, z) * 0.5
     for k in range(1, octaves):
         s = scales[k - 1]
@@ -106,24 +96,13 @@ def hashed(seed):
     return lambda x, y, z: _value((x, y, z), seed)
 
 
-@functools.cache
-def _compiled_fbm(octaves: int, gain: float):
-    """`fbm_sum` as one compiled graph (octaves and gain are constants of it)."""
-
-    def fused(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None) -> Tensor:
-        return fbm_sum(hashed(seed), x, y, z, scales, lod, octaves, gain)
-
-    # dynamic shapes: the march hands over a different number of active points every step
-    return compiled(fused)
-
-
 def fbm_field(x, y, z, basis, scales, count, q, *, octaves: int, gain: float = 0.5):
     """The fbm field's signed density, lanes (`ops.lanes`: torch [N] or Dr.Jit): `puff` of
     `fbm_sum` over `basis` at frequency·(p − shift) + offset. x, y, z: the points'
     coordinates; basis: `fbm_sum`'s (`hashed(seed)`, seeds from `mixed_seeds`); scales: the octave
     scales (`noise.folded_scales`), a list or [octaves − 1]; count: octaves kept per point or None;
     `q`: the field's per-point parameters, attributes frequency, bias, amplitude, radial and
-    shift, offset, center (three lanes each). What the compiled graph and the Dr.Jit march run."""
+    shift, offset, center (three lanes each). What the Dr.Jit march runs (`fields.fbm.fbm_density`)."""
     u = [q.frequency * (c - q.shift[i]) + q.offset[i] for i, c in enumerate((x, y, z))]
     f = fbm_sum(basis, *u, scales, count, octaves, gain)
     return puff(f, x, y, z, q)
@@ -137,43 +116,6 @@ def puff(f, x, y, z, q):
     return q.bias + q.amplitude * f - q.radial * lanes.length3(x - c[0], y - c[1], z - c[2])
 
 
-@functools.cache
-def _compiled_field(octaves: int, gain: float):
-    """`fbm_field_hashed` as one compiled graph: the fbm with the field's affine map in front and
-    its bias, amplitude and radial falloff after (eagerly these are ~15 small ops per call). The
-    parameters come per point, gathered outside: an indirect load inside the loop costs more."""
-
-    def fused(x: Tensor, y: Tensor, z: Tensor, seed: Tensor, scales: Tensor, lod: Tensor | None, frequency: Tensor,
-              shift: Sequence[Tensor], offset: Sequence[Tensor], bias: Tensor, amplitude: Tensor, radial: Tensor,
-              center: Sequence[Tensor]) -> Tensor:
-        q = SimpleNamespace(frequency=frequency, shift=shift, offset=offset, bias=bias, amplitude=amplitude,
-                            radial=radial, center=center)
-        return fbm_field(x, y, z, hashed(seed), scales, lod, q, octaves=octaves, gain=gain)
-
-    return compiled(fused)
-
-
-@functools.cache
-def _scales(octaves: int, lacunarity: tuple[float, ...], dtype: torch.dtype, device: str) -> Tensor:
-    """Mesa's folded octave scales as one ``[octaves - 1]`` tensor (cached: the march asks every step)."""
-    scales = noise.folded_scales(octaves, lacunarity, dtype=dtype, device=device)
-    return torch.stack(scales) if scales else torch.zeros(0, dtype=dtype, device=device)
-
-
-def _kernel_args(p: Tensor, seed: int, octaves: int, lacunarity: float | Sequence[float], lod: Tensor | None):
-    """The compiled graphs' arguments: x, y, z, seed, scales, lod."""
-    noise._check_points(p)
-    if octaves < 1:
-        raise ValueError(f"octaves: got {octaves!r}; an integer >= 1")
-    lac = (float(lacunarity),) if isinstance(lacunarity, (int, float)) else tuple(float(x) for x in lacunarity)
-    scales = _scales(int(octaves), lac, p.dtype, str(p.device))
-    if lod is not None:
-        lod = torch.as_tensor(lod, device=p.device).expand(p.shape[:1])
-    seed_t = torch.tensor(_seed32(seed), dtype=torch.int32, device=p.device)
-    x, y, z = (c.contiguous() for c in p.unbind(-1))
-    return x, y, z, seed_t, scales, lod
-
-
 def fbm_value_hashed(
     p: Tensor,
     *,
@@ -182,55 +124,13 @@ def fbm_value_hashed(
     lacunarity: float | Sequence[float] = noise.LACUNARITY,
     gain: float = 0.5,
     lod: Tensor | None = None,
-    compiled: bool = False,
 ) -> Tensor:
-    """``noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), ...)`` (fold "mesa").
-
-    p: ``[N, 3]`` points; lod: optional ``[N]`` (or scalar) as in `noise.fbm`. compiled: run the
-    fused kernel under torch.compile (compiled once per octave count, dtype and LOD presence, for
-    all sizes and seeds; inductor's on-disk cache serves later processes; past dynamo's recompile
-    limit, `compilation.VARIANTS`, it runs eagerly: slower, same values). Returns ``[N]``.
-    """
-    if not compiled:
-        return noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), octaves=octaves, lacunarity=lacunarity,
-                         gain=gain, lod=lod)
-    with torch_threads(threads_for(p.shape[0])):
-        return _compiled_fbm(int(octaves), float(gain))(*_kernel_args(p, seed, octaves, lacunarity, lod))
+    """``noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), ...)`` (fold "mesa"). p:
+    ``[N, 3]`` points; lod: optional ``[N]`` (or scalar) as in `noise.fbm`. Returns ``[N]``."""
+    return noise.fbm(p, lambda q: value_noise_hashed(q, seed=seed), octaves=octaves, lacunarity=lacunarity, gain=gain,
+                     lod=lod)
 
 
 def mixed_seeds(seeds: Sequence[int], device) -> Tensor:
-    """Scene seeds as the compiled kernels take them: ``[B]`` int32 of `_seed32` values."""
+    """Scene seeds as the hash takes them: ``[B]`` int32 of `_seed32` values."""
     return torch.tensor([_seed32(int(x)) for x in seeds], dtype=torch.int32, device=device)
-
-
-def fbm_field_hashed(
-    p: Tensor,
-    scene: Tensor,
-    *,
-    seeds: Tensor,
-    octaves: int,
-    frequency: Tensor,
-    shift: Tensor,
-    offset: Tensor,
-    bias: Tensor,
-    amplitude: Tensor,
-    radial: Tensor,
-    center: Tensor,
-    lacunarity: float | Sequence[float] = noise.LACUNARITY,
-    gain: float = 0.5,
-    lod: Tensor | None = None,
-) -> Tensor:
-    """The fbm field's signed density as one compiled kernel: ``bias + amplitude ·
-    fbm_value_hashed(frequency·(p − shift) + offset) − radial·|p − center|`` (`fields.fbm.FbmField`;
-    its eager code over `fbm_value_hashed` is the reference twin), every point with its own scene's
-    parameters. p: ``[N, 3]``; scene ``[N]`` long: each point's scene b; per scene: seeds ``[B]``
-    int32 (`mixed_seeds`), frequency, bias, amplitude, radial ``[B]``, shift, offset, center
-    ``[B, 3]``; lod ``[N]`` octaves kept or None. One call for a whole batch (dynamo's guards cost
-    ~0.5 ms a call; a call per scene was a fifth of a compiled cloud render). Returns ``[N]``."""
-    x, y, z, _, scales, lod = _kernel_args(p, 0, octaves, lacunarity, lod)
-    at = lambda v: take_rows(v, scene)  # noqa: E731  per point: [B] -> [N]
-    cols = lambda v: [at(v[:, i].contiguous()) for i in range(3)]  # noqa: E731  [B, 3] -> 3 × [N]
-    with torch_threads(threads_for(p.shape[0])):
-        return _compiled_field(int(octaves), float(gain))(x, y, z, at(seeds), scales, lod, at(frequency), cols(shift),
-                                                          cols(offset), at(bias), at(amplitude), at(radial),
-                                                          cols(center))

@@ -21,7 +21,6 @@ from torch import Tensor
 
 from ..ops import lanes
 from ..ops.mathops import take_rows
-from ..runtime.compilation import compiled
 
 __all__ = [
     "hash3",
@@ -32,7 +31,6 @@ __all__ = [
     "worley_noise",
     "worley_lanes",
     "scene_worley_tables",
-    "compiled_noise",
     "default_noise_texture",
     "texture_noise",
     "texture_noise_table",
@@ -210,7 +208,7 @@ def _check_points(p: Tensor, name: str = "p") -> None:
 
 def _trilinear(vals: list[Tensor], u: Tensor | Sequence[Tensor]) -> Tensor:
     """Blend 8 corner values (each ``[N]``, `_CORNERS` order) with weights ``u [N, 3]`` (or its
-    three columns, each ``[N]``: what a fused compiled kernel can load contiguously)."""
+    three columns, each ``[N]``: lanes, `ops.lanes`)."""
     ux, uy, uz = u.unbind(-1) if isinstance(u, Tensor) else u
     x00 = lanes.lerp(vals[0], vals[1], ux)
     x10 = lanes.lerp(vals[2], vals[3], ux)
@@ -225,7 +223,7 @@ def value_noise(p: Tensor, *, seed: int = 0) -> Tensor:
     p: ``[N, 3]`` points. Returns ``[N]`` in [0, 1]; at integer points it equals
     ``lattice_values(p.long(), seed)[:, 0]``.
     """
-    return _lattice_noise(value_noise, _value, p, seed)
+    return _lattice_noise(_value_tables, _value, p, seed)
 
 
 def _value_tables(seed: int, device: str) -> tuple[Tensor, Tensor]:
@@ -255,7 +253,7 @@ def perlin_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
     gradient set bounds |value| by ~1.04 in theory; in practice it stays well inside [-1, 1]).
     period: the lattice repeats every `period` cells along each axis (tileable noise); None: 256.
     """
-    return _lattice_noise(perlin_noise, _perlin, p, seed, period=period)
+    return _lattice_noise(_perm_table, _perlin, p, seed, period=period)
 
 
 def _perlin(p: Tensor, perm: Tensor, *, period: int | None = None) -> Tensor:
@@ -280,7 +278,7 @@ def worley_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
     p: ``[N, 3]`` points. Returns ``[N]`` in [0, 1].
     period: feature points repeat every `period` cells along each axis (tileable noise).
     """
-    return _lattice_noise(worley_noise, _worley, p, seed, period=period)
+    return _lattice_noise(_lattice_tables, _worley, p, seed, period=period)
 
 
 def _worley(p: Tensor, perm: Tensor, values: Tensor, *, period: int | None = None) -> Tensor:
@@ -341,29 +339,10 @@ def _perm_table(seed: int, device: str) -> tuple[Tensor]:
     return _lattice_tables(seed, device)[:1]
 
 
-# each lattice noise as its tables (of a seed, on a device) and a kernel over them
-_KERNELS = {value_noise: (_value_tables, _value), perlin_noise: (_perm_table, _perlin), worley_noise: (_lattice_tables, _worley)}
-
-
-def _lattice_noise(basis: Callable, kernel: Callable, p: Tensor, seed: int, **kwargs) -> Tensor:
-    """`basis` at points p [N, 3] as `kernel` (its own, or that compiled) over its tables of `seed`."""
+def _lattice_noise(tables: Callable, kernel: Callable, p: Tensor, seed: int, **kwargs) -> Tensor:
+    """A lattice noise at points p [N, 3]: `kernel` over its `tables` of `seed` (on p's device)."""
     _check_points(p)
-    return kernel(p, *_KERNELS[basis][0](int(seed), str(p.device)), **kwargs)
-
-
-@functools.cache
-def compiled_noise(basis: Callable) -> Callable:
-    """`basis` (`value_noise`, `perlin_noise` or `worley_noise`, with its signature) with its kernel
-    under torch.compile (`compilation.compiled`) and its tables looked up outside it. Compiled
-    whole, dynamo traced through the tables' `lru_cache` (which it ignores, with a warning): a graph
-    break at every call, where the tables were drawn again."""
-    fast = compiled(_KERNELS[basis][1])
-
-    @functools.wraps(basis)
-    def run(p: Tensor, *, seed: int = 0, **kwargs) -> Tensor:
-        return _lattice_noise(basis, fast, p, seed, **kwargs)
-
-    return run
+    return kernel(p, *tables(int(seed), str(p.device)), **kwargs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -454,8 +433,8 @@ def texture_noise(p: Tensor, texture: Tensor, *, filter_bits: int | None = LLVMP
 
 def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = LLVMPIPE_FILTER_BITS,
                         base: Tensor | None = None) -> Tensor:
-    """`texture_noise` on a prepared `texture_table` ``[65536, 2]``: no Python-side caching, so
-    it compiles with torch.compile into one fused kernel. `base` ``[N]`` long: each point's row
+    """`texture_noise` on a prepared `texture_table` ``[65536, 2]`` (its float64 reference:
+    `texture_noise_coords` is bitwise it, in integers). `base` ``[N]`` long: each point's row
     offset into a table of several textures stacked (``[B·65536, 2]``; `torch.cat` of tables)."""
     dtype, dev = p.dtype, p.device
     fl = torch.floor(p)
@@ -486,7 +465,7 @@ def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = L
         # (uv + 0.5) / 256 * (256 << bits): the /256 and *2**k are exact in binary floating point
         s = torch.round((uv + 0.5) * one)
         bad = ~(s.abs() < 2.0**31)  # x86 cvt overflow / NaN -> 0x80000000
-        # the integer steps in float64: exact for these magnitudes, and torch.compile-friendly
+        # the integer steps in float64: exact for these magnitudes
         s = torch.where(bad, torch.full_like(s, -(2.0**31)), s).to(torch.float64)
         s = torch.remainder(s - half + 2.0**31, 2.0**32) - 2.0**31  # int32 wrap of the -0.5 texel shift
         i0 = torch.floor(s / one)
@@ -528,10 +507,10 @@ def texture_rows(scene: Tensor, dtype: torch.dtype) -> Tensor:
 def texture_noise_coords(x, y, z, packed, base=None, *, filter_bits: int = LLVMPIPE_FILTER_BITS):
     """`texture_noise_table` with a fixed-point filter, bit for bit, for points given as their
     coordinates (each ``[N]``) and a `packed_table`, its integer steps in integers (int32 for
-    float32 points, int64 for float64) instead of float64: contiguous loads and integer lanes
-    are what inductor vectorises (`volume.fused`). `base` ``[N]``: rows in stacked tables. Lanes
-    (`ops.lanes`): with Dr.Jit arrays (float32, int32 `packed` and `base`) it is what the template's
-    Dr.Jit march traces, bitwise these values."""
+    float32 points, int64 for float64) instead of float64, ~4× faster eager. `base` ``[N]``: rows
+    in stacked tables. Lanes (`ops.lanes`): with Dr.Jit arrays (float32, int32 `packed` and
+    `base`) it is what the template's Dr.Jit march traces (`fields.clouds.clouds_density`),
+    bitwise these values."""
     bits = int(filter_bits)
     if not 1 <= bits <= 15:
         raise ValueError(f"filter_bits: got {filter_bits!r}; an int in 1..15")

@@ -25,7 +25,6 @@ def take_rows(table: Tensor, index: Tensor) -> Tensor:
     advanced indexing on CPU (torch 2.13, 60k rows: 50 µs against 250 µs; `bench speed`), and the
     march, the DDA and the lattice noises gather at every step."""
     rows = table.index_select(0, index.reshape(-1))
-    # a 1-D index needs no reshape, whose view a compiled kernel taking the rows would guard on
     return rows if index.dim() == 1 else rows.reshape(*index.shape, *table.shape[1:])
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
-from typing import Callable, Literal, Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -34,7 +34,7 @@ from ..light.lights import LIGHTS, LightSource, sun_index
 from ..light.phase import PHASES
 from ..light.sky import SKIES, sun_glow
 from ..post import POST, View
-from ..runtime.compilation import CompileMode, compile_mode, compile_settings
+from ..runtime.compilation import CompileMode, compile_mode
 from ..runtime.threads import glue_on_one_thread
 from ..schema.batch import Stacked, stack, take
 from ..schema.validate import fail, integer, is_integer
@@ -100,24 +100,23 @@ class RenderContext:
     (timer, counts)."""
 
     def __init__(self, batch: Stacked, plan: Plan, *, seeds: Sequence[int], device):
-        # `batch` stacked in the plan's dtype; the plan decided the dtype and what compiles
+        # `batch` stacked in the plan's dtype; the plan decided the dtype and what runs as a kernel
         self.batch, self.plan, self.settings = batch, plan, plan.settings
         self.seeds = torch.tensor([int(x) % 2**32 for x in seeds], dtype=torch.int64, device=device)  # (B,)
-        # the density and march kernels compile only under "all"; the voxel walk under "exact" too
-        self.dtype, self.device, self.compiled = plan.dtype, device, plan.compile == "all"
+        self.dtype, self.device = plan.dtype, device
         self.timer, self.counts = Timer(), Counts()
         self.times = batch.time
         self.lights = [LightSource(LIGHTS[li.kind], li) for li in batch.lights]
         if plan.atmosphere:  # the sun reaches every point of the scene through the air
             self.lights[plan.sun].through = sun_through_air(batch.atmosphere, self.lights[plan.sun])
-        self.volumes = [self._volume(vp, self.compiled) for vp in plan.volumes]
+        self.volumes = [self._volume(vp) for vp in plan.volumes]
         # what a surface's shadow ray sees besides that surface (volumes, the other surface), as the plan says
         shadow_rays = lambda use, p, s, direction, distance: kernel_march.surface_shadows(self, use, p, s, direction, distance)
         self.voxel_surface = self.voxels = self.terrain = None
         if plan.voxels is not None:
             self.voxel_surface = VoxelSurface(
                 batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs}, dtype=plan.dtype,
-                device=device, compiled=plan.compile in ("exact", "all"), drjit=plan.walk == "drjit", time=self.times,
+                device=device, drjit=plan.walk == "drjit", time=self.times,
                 sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s), transmittance=shadow_rays)
             self.voxels = VoxelOccluder(self.voxel_surface.tracer, voxel_shadow_steps(batch.voxels))
         if plan.terrain is not None:
@@ -125,13 +124,13 @@ class RenderContext:
         # the one the scene has, or both as one: each ray the nearer hit (renderer/surfaces.py)
         self.surface = surface_pass(self.voxel_surface, self.terrain, terrain_id(batch))
 
-    def _volume(self, vp: VolumePass, compiled: bool) -> VolumeState:
+    def _volume(self, vp: VolumePass) -> VolumeState:
         params = self.batch.volumes[vp.index]
         bounds, density = BOUNDS[params.bounds.kind], DENSITIES[params.density.kind]
         extra = {}
         if density.caps.get("needs_box"):
             extra = dict(zip(("box_min", "box_max"), bounds.aabb(params.bounds.value)))
-        inner = density.fn(params.density.value, self.times, compiled=compiled, **extra)
+        inner = density.fn(params.density.value, self.times, **extra)
         if params.edge is not None:
             inner = EdgeField(inner, bounds.caps["depth"], params.bounds.value, params.edge)
         state = VolumeState(params, vp, CountedField(inner, self.counts), bounds, PHASES[params.phase.kind],
@@ -343,7 +342,7 @@ def render(
     device: str | torch.device = "cpu",
     dtype: torch.dtype | None = None,
     chunk_rays: int = DEFAULT_CHUNK_RAYS,
-    compile: CompileMode | Literal["auto"] | bool = "auto",
+    compile: CompileMode | bool | None = "kernels",
     progress: Callable[[int], None] | None = None,
     aovs: Sequence[str] = (),
     keep_context: bool = False,
@@ -355,10 +354,9 @@ def render(
     and sub-pixel jitter, hashed per (seed, pixel, sample): a scene renders the same, to the bit,
     alone or anywhere in a batch and for any chunking. `dtype` defaults to the quality level's
     (float64 for reference). `chunk_rays` bounds peak memory. `compile` (`runtime.compilation`):
-    "auto" (the default) and "kernels" march with the Dr.Jit kernels wherever one renders a
-    volume's technique (the canonical output, within ~1e-5 of eager); "exact" also runs the voxel
-    walk under torch.compile (bitwise eager); "all" (True) also inductor's density kernels; "off"
-    (False) is the eager reference. `stats["plan"]["marches"]` says what each march ran on.
+    "kernels" (True, the default) runs Dr.Jit's kernels wherever one renders a technique (the
+    canonical output, within ~1e-5 of eager); "off" (False, None) is the eager reference.
+    `stats["plan"]["marches"]` says what each march ran on.
     `progress(pixels)`, where given, is called after each chunk with the
     pixels it finished (in each of `image.passes` passes). With `image.passes` > 1,
     `stats["accumulation"]` is the mean |change| of the blended radiance after each pass after the
@@ -410,8 +408,7 @@ def run_passes(ctx: RenderContext, camera: Camera, *, chunk_rays: int,
                 jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp,
                                          dtype=ctx.dtype)
                 rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
-            with compile_settings():
-                values = run_chunk(ctx, rays)
+            values = run_chunk(ctx, rays)
             with ctx.timer.section("resolve") if spp > 1 else nullcontext():
                 for key in keys:
                     value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)

@@ -25,20 +25,21 @@ from ..fields import DENSITIES
 from ..geometry.bounds import BOUNDS, SLAB_REACH
 from ..light.lights import LIGHTS, Shadow, sun_index
 from ..post import POST
+from ..runtime import compilation
 from ..runtime.compilation import CompileMode
 from ..scene.model import Scene
 from ..scene.quality import QUALITY, MarchSettings, at_level, march_settings
 from ..schema.batch import Stacked, stack
-from ..volume import drjit_march, kernel_march
+from ..volume import kernel_march
 from ..volume.march import COMPACT_BELOW
 from ..volume.shading import SHADINGS
 from ..voxel.materials import any_ggx
 from .aovs import produced
 
 Strategy = Literal["closed_form", "march", "skip", "tolerance"]
-# what a volume's march runs on: no march (its closed form), eager torch, the template's fused
-# march as torch.compile kernels, or as one Dr.Jit kernel (`volume.fused`, `volume.drjit_march`)
-Backend = Literal["closed_form", "eager", "inductor", "drjit"]
+# what a volume's march (or the voxel walk) runs on: no march (its closed form), eager torch, or one
+# Dr.Jit kernel (`volume.kernel_march`, `voxel.walk`)
+Backend = Literal["closed_form", "eager", "drjit"]
 # torch's threads during a render: the caller's, or one for torch's ops while the Dr.Jit kernel
 # runs on the caller's count (`runtime.threads.glue_on_one_thread`)
 Threads = Literal["caller", "glue_on_one_thread"]
@@ -88,7 +89,6 @@ class VolumePass:
     backend: Backend = "eager"  # what its march runs on
     eager_because: str | None = None  # why it is eager where it is (`march_backend`)
     joint: bool = False  # marched with the other media in the scene's joint pass (`JointPass`), not on its own
-    fused: bool = False  # the template's fused march renders it (`fused_march`), not `volume.kernel_march`
 
     @property
     def step_pass(self) -> str:
@@ -153,17 +153,6 @@ def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None, *, air
     closed = not air and all(v.strategy == "closed_form" for v in members)
     shares = labels is not None and bool({"alpha_volumes", "instance"} & set(labels.names))
     return JointPass(tuple(v.index for v in members), "media.closed_form" if closed else "media.march", shares, air)
-
-
-def walk_backend(compile: str, kernels: bool) -> Backend:
-    """What the voxel DDA walks run on: one Dr.Jit kernel (`voxel.walk.drjit_traverse`) wherever
-    the render runs kernels (`Plan.kernels`); else the compiled walk
-    under "exact" and "all" (`voxel.walk.fused_traverse`), else eagerly. Every one gives the same
-    bits. A walk that records each cell it visits (the fog's and the glow's primary walk) runs
-    compiled under "exact" and "all", else eagerly, whatever this says."""
-    if kernels:
-        return "drjit"
-    return "inductor" if compile in ("exact", "all") else "eager"
 
 
 def joint_backends(volumes: tuple[VolumePass, ...], joint: JointPass) -> tuple[VolumePass, ...]:
@@ -271,11 +260,14 @@ class Plan:
     blend: str = "mean"
     labels: LabelPass | None = None  # the per-medium labels asked for (torchvol.renderer.labels), after the composite
     sun: int | None = None  # the index of the light that is the scene's sun (`lights.sun_index`), None: none
-    compile: str = "off"  # the compile mode the render runs in (`runtime.compilation`)
+    compile: CompileMode = "off"  # the compile mode the render runs in (`runtime.compilation`)
     kernels: bool = False  # Dr.Jit's kernels run in this render: the mode is not "off", Dr.Jit runs for its dtype and device
     dtype: torch.dtype = torch.float32  # the render's float type (the quality level's unless given)
     threads: Threads = "caller"  # torch's thread policy during the render
-    walk: Backend | None = None  # what the voxel DDA walk runs on (`walk_backend`), None: no voxels
+    # what the voxel DDA walks run on: one Dr.Jit kernel (`voxel.walk.drjit_traverse`) wherever the
+    # render runs kernels, else eagerly, the same bits either way (a walk with a per-cell callback,
+    # the glow's, runs eagerly); None: no voxels
+    walk: Backend | None = None
 
     def summary(self) -> dict:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
@@ -346,41 +338,28 @@ def ambient_sky(batch: Stacked, v: int) -> LightPass | None:
                      batch.terrain is not None, batch.voxels is not None)
 
 
-def fused_march(batch: Stacked, vol: Stacked, uses: tuple[LightPass, ...]) -> bool:
-    """Whether volume `vol` (its `Stacked` parameters) is the technique the fused march renders:
-    a density with the ``fused_march`` capability (the template's cloud layer) in the seeds' look,
-    no edge falloff, lit (if at all) by suns (`uses`: its lights)."""
-    return (bool(DENSITIES[vol.density.kind].caps.get("fused_march")) and vol.shading == "shader" and batch.atmosphere is None
-            and SHADINGS[vol.shading].caps["semantics"] == "shader" and vol.edge is None
-            and all(LIGHTS[batch.lights[use.light].kind].caps["directional"] for use in uses))
-
-
-def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: str,
+def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: CompileMode,
                   settings: MarchSettings, dtype: torch.dtype, device: torch.device | str,
-                  ambient: LightPass | None = None, fused: bool = False) -> tuple[Backend, str | None]:
+                  ambient: LightPass | None = None) -> tuple[Backend, str | None]:
     """What volume `vol`'s march runs on, decided once for the render, and why it is eager where
-    it is (None otherwise): one Dr.Jit kernel wherever the compile mode is not "off", Dr.Jit runs
-    for `dtype` on `device` (`drjit_march.available`) and a kernel renders the technique (the
-    template's fused march, `fused`: `fused_march` said so; a physical medium, `kernel_march.supports`); under "all"
-    the template's torch.compile kernels where Dr.Jit cannot run; everything else eagerly."""
+    it is (None otherwise): one Dr.Jit kernel (`volume.kernel_march`) wherever the compile mode is
+    not "off", Dr.Jit runs for `dtype` on `device` (`compilation.drjit_available`) and the kernel
+    renders the technique (`kernel_march.supports`); everything else eagerly."""
     if strategy == "closed_form":
         return "closed_form", None
     if compile == "off":
         return "eager", "compile is off: the eager reference"
     if strategy != "march":
         return "eager", f"the {strategy} strategy has no kernel"
-    like = torch.zeros((), dtype=dtype, device=device)
-    drjit = drjit_march.available(like)
-    why = None if drjit else (f"Dr.Jit renders float32 on the CPU, not {str(dtype).removeprefix('torch.')} on "
-                              f"{like.device.type}" if dtype != torch.float32 or like.device.type != "cpu"
-                              else "Dr.Jit's LLVM backend is not available here")
-    if fused:
-        return ("drjit", None) if drjit else ("inductor", None) if compile == "all" else ("eager", why)
-    why = why or kernel_march.supports(batch, vol, uses, settings, ambient)
-    return ("eager", f"no kernel for {why}" if drjit else why) if why is not None else ("drjit", None)
+    if dtype != torch.float32 or torch.device(device).type != "cpu":
+        return "eager", f"Dr.Jit renders float32 on the CPU, not {str(dtype).removeprefix('torch.')} on {torch.device(device).type}"
+    if not compilation.drjit_available(dtype, device):
+        return "eager", "Dr.Jit's LLVM backend is not available here"
+    why = kernel_march.supports(batch, vol, uses, settings, ambient)
+    return ("drjit", None) if why is None else ("eager", f"no kernel for {why}")
 
 
-def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str = "off",
+def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: CompileMode = "off",
                 dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> VolumePass:
     """The pass of volume `v` of `batch`: its strategy and backend, the lights it sees and their
     shadow passes, and the terms its source adds."""
@@ -405,16 +384,16 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: str
     # a cheap sample (a trilinear lookup) costs less than compacting the batch; fbm octaves do not
     compact_below = COMPACT_BELOW if density.caps.get("cheap") else 1.0
     ambient = vol.ambient is not None
-    how, sky, fused = strategy(batch, vol, settings), ambient_sky(batch, v), fused_march(batch, vol, uses)
+    how, sky = strategy(batch, vol, settings), ambient_sky(batch, v)
     backend, why = march_backend(batch, vol, how, uses, compile=compile, settings=settings, dtype=dtype, device=device,
-                                 ambient=sky, fused=fused)
+                                 ambient=sky)
     return VolumePass(index=v, name=name, strategy=how, shading=vol.shading, lights=uses, backend=backend, eager_because=why,
                       emissive=bool((vol.emission > 0).any()), reach=reach, compact_below=compact_below,
                       emission_map=None if vol.emission_map is None else vol.emission_map.kind,
                       bloom=None if vol.bloom is None else vol.bloom.light,
                       sky_blend=vol.sky_blend is not None, ambient=ambient,
                       ambient_sky=sky,
-                      multiple=vol.multiple_scattering is not None, fused=fused)
+                      multiple=vol.multiple_scattering is not None)
 
 
 def voxel_pass(batch: Stacked) -> VoxelPass | None:
@@ -452,7 +431,7 @@ def terrain_pass(batch: Stacked) -> TerrainPass | None:
                                      for l, li in enumerate(batch.lights) if li.shadow is not None), sky=sky)
 
 
-def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: torch.dtype | None = None,
+def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", dtype: torch.dtype | None = None,
               device: torch.device | str = "cpu") -> Plan:
     """The plan of a batch (a `Stacked` view of scenes at their quality level), or of one scene;
     `aovs`: AOV names asked for beyond those always output (the labels of `torchvol.renderer.labels`);
@@ -470,7 +449,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
     if joint is not None:
         volumes = joint_backends(tuple(replace(v, joint=v.index in joint.volumes) for v in volumes), joint)
     # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
-    kernels = compile != "off" and drjit_march.available(torch.zeros((), dtype=dtype, device=device))
+    kernels = compile != "off" and compilation.drjit_available(dtype, device)
     glue = voxels is None and terrain is None and bool(volumes) and all(v.backend == "drjit" for v in volumes)
     return Plan(
         settings=settings,
@@ -492,30 +471,9 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: str = "off", dtype: t
         compile=compile,
         dtype=dtype,
         threads="glue_on_one_thread" if glue else "caller",
-        walk=None if voxels is None else walk_backend(compile, kernels),
+        walk=None if voxels is None else "drjit" if kernels else "eager",
         kernels=kernels,
     )
 
 
-
-def compile_pays(scene: Scene) -> bool:
-    """Whether `render(scene, compile=True)` is the fast path: the scene has volumes, each with a
-    density whose compiled form is one fused kernel (the registry's ``compiles_fast``), and no
-    voxels or terrain (whose compiled kernels are other trade-offs). Compiled renders match eager
-    ones within 1e-5, not bitwise (tests/test_fastnoise.py, tests/volume/test_fused.py)."""
-    def fast(volume) -> bool:
-        return DENSITIES[volume.density.kind].caps.get("compiles_fast", lambda v: False)(volume)
-
-    volumes = scene.volumes
-    return bool(volumes) and scene.voxels is None and scene.terrain is None and all(fast(v) for v in volumes)
-
-
-def batch_mode(mode: CompileMode, scene: Scene) -> CompileMode:
-    """The mode a batch of `scene`'s structure renders in under `mode`: "all" only where it is the
-    fast path (`compile_pays`), else the exact kernels."""
-    if mode == "all" and not compile_pays(scene):
-        return "exact"
-    return mode
-
-
-__all__ = ["JointPass", "LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "batch_mode", "compile_pays", "make_plan"]
+__all__ = ["JointPass", "LightPass", "Plan", "TerrainPass", "VolumePass", "VoxelPass", "make_plan"]

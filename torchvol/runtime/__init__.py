@@ -1,2 +1,2 @@
-"""Process plumbing: thread counts, the heap, torch.compile settings, progress bars, and the tuning
+"""Process plumbing: thread counts, the heap, the `compile` setting, progress bars, and the tuning
 torchvol applies to its own processes (`runtime.process`)."""

@@ -1,26 +1,19 @@
-"""torch's intra-op thread count around a block or a kernel.
+"""torch's intra-op thread count around a block, and Dr.Jit's around a kernel.
 
 With OpenMP's threads asleep between parallel regions (``OMP_WAIT_POLICY=PASSIVE``, as torchvol's
 processes run: `process.tune_process`; docs/SPEED.md, "One busy competitor"), each parallel region
-wakes them, which on some VMs costs more than a small op's work. A march's eager glue between its compiled kernels (compaction,
-gathers, counts over a wavefront) is such small ops; the kernels are where the arithmetic is. So
-the glue runs on one thread (`torch_threads`) and each kernel on the caller's threads (`on_threads`),
-unless it is small (`threads_for`).
+wakes them, which on some VMs costs more than a small op's work. A render whose arithmetic is in
+Dr.Jit's kernels (on a pool of their own) has only such small ops left in torch, its glue: so the
+glue runs on one thread (`glue_on_one_thread`) and each kernel on the caller's count
+(`kernel_threads`, `set_drjit_threads`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
-from collections.abc import Callable
 from contextvars import ContextVar
 
 import torch
-
-# points below which a compiled density kernel runs on one thread: each call of a kernel on two
-# PASSIVE threads paid ~60 µs to wake the second (a 4-element add: 15 µs on one, 78 µs on two),
-# what a fused fbm takes for ~15,000 points on one thread
-PARALLEL_POINTS = 1 << 14
 
 
 @contextlib.contextmanager
@@ -32,18 +25,6 @@ def torch_threads(threads: int):
         yield
     finally:
         torch.set_num_threads(before)
-
-
-def on_threads(fn: Callable, threads: int) -> Callable:
-    """`fn` called with torch's thread count set to `threads` (`torch_threads` around each call;
-    setting it costs well under a microsecond)."""
-
-    @functools.wraps(fn)
-    def run(*args, **kwargs):
-        with torch_threads(threads):
-            return fn(*args, **kwargs)
-
-    return run
 
 
 # the render's thread count while its torch work runs on one thread (`glue_on_one_thread`)
@@ -77,9 +58,3 @@ def glue_on_one_thread():
             yield
     finally:
         _KERNEL_THREADS.reset(token)
-
-
-def threads_for(points: int) -> int:
-    """Threads for a compiled density kernel over `points` points: one below `PARALLEL_POINTS`,
-    else torch's current count."""
-    return 1 if points < PARALLEL_POINTS else torch.get_num_threads()

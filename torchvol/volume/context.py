@@ -1,7 +1,7 @@
 """What a medium's passes read of the render they run in: a narrow, typed interface.
 
 `renderer.executor.RenderContext` is the one implementation; the volume passes (strategies,
-shadings, shadow rays, the fused march) and the renderer's labels take it as a `VolumeContext`,
+shadings, shadow rays, the Dr.Jit kernels) and the renderer's labels take it as a `VolumeContext`,
 so they see exactly these members and nothing of the executor's.
 """
 

@@ -9,17 +9,19 @@ statistics inside it.
 One source: every per-sample formula here is the eager renderer's own function, written in lanes
 (`ops.lanes`) and traced here with Dr.Jit arrays: the density (its kind's ``lanes`` capability in
 `fields.DENSITIES`: constant, exponential, value-noise fbm, explosion, particles, fur, the
-production cloudscape), the edge fade (`fields.edge.faded` over the bounds' ``lanes`` depth), the
-shadow rays' exits and segments (the bounds' ``lanes`` interval: box, sphere, slab, a planet's
-shell; `volume.shadow.shadow_segments`), the ambient graded by the bounds' ``lanes`` altitude
-(`volume.ambient.ambient_radiance`), the sky blend (`volume.physical.sky_blend`), the sun's grid lookup
+template's cloud layer, the production cloudscape), the edge fade (`fields.edge.faded` over the
+bounds' ``lanes`` depth), the shadow rays' exits and segments (the bounds' ``lanes`` interval: box,
+sphere, slab, a planet's shell; `volume.shadow.shadow_segments`), the ambient graded by the bounds'
+``lanes`` altitude (`volume.ambient.ambient_radiance`), the sky blend (`volume.physical.sky_blend`), the sun's grid lookup
 (`volume.sun_volume.grid_transmittance`), a point light's falloff (`light.lights.point_lanes`)
 and phase (`light.phase`'s ``lanes``), the multiple-scattering octaves
 (`volume.multiple.octave_weights`), the emission colour map and bloom, the step rule
 (`march.StepRule.length`), the integrator's step (`integrate.WEIGHTS`) and the median
 (`march.median_crossing`). What is constant along a ray is computed by the eager code itself
 before the kernel runs: the suns' phase responses (`physical.light_responses`), the dither, the
-pieces, the sun grids, the sky behind each ray (what a sky blend fades towards). The eager march (`compile="off"`) is the reference the kernel is held to
+pieces, the sun grids, the sky behind each ray (what a sky blend fades towards). `march_look` is
+the seeds' alpha loop (the shader look: the template; the surface look: the fur ball) in the same
+way. The eager march (`compile="off"`) is the reference the kernels are held to
 (tests/volume/test_kernel_march.py).
 
 `supports` says which volumes it renders (the plan asks once); the others run eagerly. Numbers a
@@ -98,6 +100,17 @@ def _floats(t: Tensor):
 def _lanes_of(value: Tensor, gather):
     """Per-ray lanes of a per-ray tensor [n] or [n, C] (a list of C lanes)."""
     return gather(value) if value.ndim == 1 else [gather(value[:, c]) for c in range(value.shape[1])]
+
+
+def _per_scene(s: Tensor):
+    """per scene (B,) or (B, C) -> the lanes of rays of scenes `s` [n], gathered in the kernel from
+    the B values: a table of B floats a value, not n floats made and copied in torch first (a
+    look's ~30 values were ~10% of a template render's time around its kernel)."""
+    import drjit as dr
+    from drjit.llvm import Float, UInt32
+
+    scene = UInt32(s.to(torch.int32).cpu().numpy())
+    return lambda x: _lanes_of(x, lambda v: dr.gather(Float, _floats(v), scene))
 
 
 def _field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
@@ -316,7 +329,7 @@ def _ray_lanes(rays, idx: Tensor):
     set_drjit_threads()
     s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
     lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
-    return s, d, lane, lambda x: lane(take(x, s))
+    return s, d, lane, _per_scene(s)
 
 
 def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, evals: dict) -> MarchResult:
@@ -353,7 +366,7 @@ def _look_body(k: SimpleNamespace, solid: SimpleNamespace, par: SimpleNamespace,
 
     def body(t, trans, wsum, wt, median, steps, alive, truncated, evals, red, green, blue):
         dt = st.rule.length(t, k.span)
-        p = [k.origin[c] + t * k.direction[c] for c in range(3)]
+        p = [dr.fma(t, k.direction[c], k.origin[c]) for c in range(3)]  # rounded once, as eager's addcmul
         count = None
         if par.lod is not None and solid.octaves is not None:
             count = solid.octaves - Int32(dr.floor(dr.log2(1.0 + t * par.lod)))
@@ -546,7 +559,7 @@ def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tenso
         return p.new_ones(0)
     set_drjit_threads()
     lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
-    per_ray = lambda x: lane(take(x, s))  # noqa: E731
+    per_ray = _per_scene(s)
     solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in use.occluders}
     grids = None if use.shadow.method != "grid" else {
         j: grids_lanes(sun_grids(ctx, ctx.volumes[j], use.light), s, per_ray, _floats) for j in use.occluders}
@@ -633,7 +646,7 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
             dt = dr.select(first, dt * k.dither, dt)
         dt = lanes.minimum(dt, end - t)
         t_sample = t + 0.5 * dt
-        p = [k.origin[c] + t_sample * k.direction[c] for c in range(3)]
+        p = [dr.fma(t_sample, k.direction[c], k.origin[c]) for c in range(3)]  # rounded once, as eager's addcmul
         sigma, source, sigmas = dr.zeros(Float, dr.width(t)), [dr.zeros(Float, dr.width(t))] * 3, []
         for i, m in enumerate(members):
             if len(members) == 1:  # (a piece has a medium: the one)

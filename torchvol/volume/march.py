@@ -79,7 +79,7 @@ class StepRule:
     def length(self, t, span):
         """`t`: [n] current distance; `span`: [n] t1 − t0 of the ray. -> [n]. Lanes (`ops.lanes`)."""
         if self.placement == "count":
-            return span / self.steps
+            return lanes.divide(span, self.steps)
         if self.placement == "size":
             return lanes.full_like(t, self.step_size)
         return lanes.clamp_min(self.step_growth * t, self.step_size)

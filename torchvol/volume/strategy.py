@@ -17,7 +17,6 @@ from ..schema.batch import take
 from . import kernel_march
 from .composite import VolumePart
 from .context import VolumeContext
-from .fused import march_fused
 from .march import march, march_adaptive
 from .physical import closed_form
 from .skip import macro_grid, occupied_span
@@ -72,7 +71,7 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
         with ctx.timer.section(vol.plan.skip_pass):
             occupied, marched = skipped_span(vol, rays, t0, t1, hit)
     with ctx.timer.section(vol.plan.step_pass):
-        if not skip and vol.plan.backend == "drjit" and not vol.plan.fused:  # one Dr.Jit kernel
+        if not skip and vol.plan.backend == "drjit":  # one Dr.Jit kernel
             if vol.shading.semantics == "shader":
                 res = kernel_march.march_look(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays))
             else:
@@ -82,10 +81,6 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
                     with ctx.timer.section(name):
                         pass
             return _part(ctx, vol, res, t0, hit)
-        if not skip and vol.plan.backend in ("inductor", "drjit"):  # the template's compiled kernels, or one Dr.Jit kernel
-            behind = background if background is not None else rays.origins.new_zeros(len(rays), 3)  # no [sky]: black
-            res = march_fused(ctx, vol, rays, behind, t0, t1, hit, ctx.dither(rays), drjit=vol.plan.backend == "drjit")
-            return _part(ctx, vol, _counted(ctx, res), t0, hit)
         medium = vol.shading.fn(ctx, vol, rays, background)
         res = march(
             t0, t1, marched, medium, rule=st.rule, integrator=st.integrator, semantics=vol.shading.semantics,

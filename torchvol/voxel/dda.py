@@ -134,8 +134,8 @@ def traverse(
 ) -> Hits:
     """Plain DDA. origins, directions [R, 3] (grid coordinates; directions need not be unit);
     lo, hi [3] or [R, 3] long: the cell range [lo, hi); t_min, t_max [R] optional limits.
-    Active rays are compacted every step: finished rays cost nothing (`walk.fused_traverse` is the
-    same walk as one compiled kernel a block of steps)."""
+    Active rays are compacted every step: finished rays cost nothing (`walk.drjit_traverse` is the
+    same walk as one Dr.Jit kernel)."""
     return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, visit=visit)
 
 

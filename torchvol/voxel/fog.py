@@ -1,11 +1,11 @@
 """The voxel fog's extinction: exponential height fog over the cells a primary ray walks through
 (`voxels.fog`), one formula for the eager per-cell callback (`passes/fog.py`) and the table the
-fused walk gathers from (`walk.walk_block`), so the two give the same bits."""
+Dr.Jit walk gathers from (`walk.walk_step`), so the two give the same bits."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -20,23 +20,18 @@ def extinction(y: Tensor, density: Tensor, base: Tensor, scale_height: Tensor) -
 
 @dataclass
 class FogWalk:
-    """The fog a fused walk accumulates (`walk.fused_traverse(..., fog=)`).
+    """The fog the Dr.Jit walk accumulates (`walk.drjit_traverse(..., fog=)`).
 
     A cell's σ depends on its scene and its row of cells alone, so the walk gathers it from
     `table` [B·Y] (σ at the centre of cell row j of scene b at b·Y + j − lo_y) by `rows` [R] long
-    (each ray's b·Y − lo_y): the kernel has no exp of its own, whose last bit inductor's vector
-    code may round otherwise than eager's. Filled by the walk: tau [R], each ray's optical depth
-    to where it ended; visits, one (ray ids [m], cells [m, 3] long, weights [m]) a block: every
-    empty cell visited, in `dda.traverse`'s order, weighted by τ · e^(−τ so far).
-
-    Dr.Jit's walk (`walk.drjit_traverse`) records no visits: it sums the light itself, into
-    `light` [R, 3], from `irradiance(flat cell indices [u]) -> [u, 3]` (the light reaching those
-    cells' centres, asked once for every distinct empty cell the rays visited) times `color` [R, 3]."""
+    (each ray's b·Y − lo_y): the kernel has no exp of its own for σ, which is eager's to the bit.
+    Filled by the walk: tau [R], each ray's optical depth to where it ended, and `light` [R, 3],
+    from `irradiance(flat cell indices [u]) -> [u, 3]` (the light reaching those cells' centres,
+    asked once for every distinct empty cell the rays visited) times `color` [R, 3]."""
 
     rows: Tensor
     table: Tensor
     tau: Tensor | None = None
-    visits: list = field(default_factory=list)
     irradiance: Callable[[Tensor], Tensor] | None = None
     color: Tensor | None = None
     light: Tensor | None = None

@@ -125,9 +125,8 @@ class VoxelGrid:
     materials (B, Z, Y, X) uint8, zero-padded; lo (B, 3) long: cell (i, j, k) of materials[b, 0, 0, 0];
     hi (B, 3) long: end of each scene's range; origin (B, 3) and voxel_size (B,) float: placement.
     `distance` (B, Z, Y, X) uint8 Chebyshev distance field (for hybrid traversal) or None.
-    `flat_materials`, `flat_distance` [B·Z·Y·X]: the same grids flattened (the fused walk's
-    tables), each the tensor the 4-D one views, not a view itself: a compiled kernel guards a
-    view's base, whose equal sizes (Y = Z) dynamo would tie and then compile again."""
+    `flat_materials`, `flat_distance` [B·Z·Y·X]: the same grids flattened (the Dr.Jit walk's
+    tables), each the tensor the 4-D one views."""
 
     materials: Tensor
     lo: Tensor
@@ -172,7 +171,7 @@ class VoxelGrid:
     def flat_base(self, scene: Tensor) -> tuple[Tensor, Tensor]:
         """(base [N] long, strides [2] long): cell (i, j, k) of scene[n] is at
         ``base[n] + (k·Y + j)·X + i`` of the flattened grids (`cell_index` as one sum, for kernels
-        that look cells up themselves: `walk.fused_traverse`)."""
+        that look cells up themselves: `walk.drjit_traverse`)."""
         _, _, Y, X = self.materials.shape
         base = self._flat(-take_rows(self.lo, scene), scene)  # the flat index of cell (0, 0, 0)
         return base, torch.tensor([Y, X], dtype=torch.long, device=scene.device)

@@ -58,12 +58,12 @@ class VoxelSurface:
     shadow ray of LightPass `use` sees besides the voxels (the terrain beside them, where `use.terrain`)."""
 
     def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Mapping[str, int], *, dtype, device,
-                 compiled: bool = False, drjit: bool = False, time: Tensor | None = None, sky: Callable[[Tensor, Tensor], Tensor] | None = None,
+                 drjit: bool = False, time: Tensor | None = None, sky: Callable[[Tensor, Tensor], Tensor] | None = None,
                  transmittance: Callable[..., Tensor] | None = None):
         self.p, self.lights, self.plan = voxels, list(lights), plan
         self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=plan.traversal == "hybrid")
         self.aov_channels = {a: c for a, c in aovs.items() if a in SURFACE_AOVS}
-        self.tracer = VoxelTracer(self.grid, plan.traversal, compiled, drjit)
+        self.tracer = VoxelTracer(self.grid, plan.traversal, drjit)
         direct = DirectLight(voxels, plan, self.lights, self.tracer, transmittance)
         self.shading = Shading(voxels, plan, self.grid, direct, device=device)
         self.secondary = SecondaryRays(voxels, self.tracer, self.shading, sky)

@@ -1,4 +1,4 @@
-"""World rays through a batch's voxel grids: the DDA the plan picked (the compiled walk, the
+"""World rays through a batch's voxel grids: the DDA the plan picked (the Dr.Jit walk, the
 hybrid distance-field skip or the eager walk), shadow rays, and the render's count of DDA steps.
 Every voxel pass traces through one `VoxelTracer`."""
 
@@ -13,7 +13,7 @@ from .fog import FogWalk
 from .grid import VoxelGrid
 from .shade import voxel_ao
 from .shade_kernel import ao_kernel
-from .walk import drjit_traverse, fused_traverse, int_table
+from .walk import drjit_traverse, int_table
 
 __all__ = ["VoxelTracer"]
 
@@ -21,19 +21,18 @@ __all__ = ["VoxelTracer"]
 class VoxelTracer:
     """Traces rays through `grid` (the batch's `VoxelGrid`) by `traversal` ("dda" or "hybrid",
     the plan's): every walk but one with a per-cell callback (`visit`: the glow) as one Dr.Jit
-    kernel where `drjit` (`walk.drjit_traverse`), the others on the compiled walk where
-    `compiled`, else eagerly;
+    kernel where `drjit` (`walk.drjit_traverse`), else eagerly (`dda.traverse`, `dda.hybrid_traverse`);
     `steps_total` the DDA steps counted so far."""
 
-    def __init__(self, grid: VoxelGrid, traversal: str, compiled: bool, drjit: bool = False):
-        self.grid, self.traversal, self.compiled, self.drjit = grid, traversal, compiled, drjit
+    def __init__(self, grid: VoxelGrid, traversal: str, drjit: bool = False):
+        self.grid, self.traversal, self.drjit = grid, traversal, drjit
         self.steps_total = 0
         self._tables: dict = {}  # the grids as Dr.Jit arrays, converted on first use
 
     def traverse(self, o: Tensor, d: Tensor, s: Tensor, *, max_steps: int, t_min=None, t_max=None, visit=None,
                  fog: FogWalk | None = None, plain=False) -> Hits:
         """World rays o, d [n, 3] of scenes s [n] through their grids (t in world units); `visit`
-        the eager walk's per-cell callback, `fog` the compiled walk's fog; `plain`: no hybrid skip."""
+        the eager walk's per-cell callback, `fog` the Dr.Jit walk's fog; `plain`: no hybrid skip."""
         g = self.grid
         og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
         lookup = lambda c, ids: g.lookup(c, take_rows(s, ids))
@@ -43,11 +42,6 @@ class VoxelTracer:
             base, strides = g.flat_base(s)
             return drjit_traverse(og, dg, self._table("table"), base, strides, lo, hi, max_steps=max_steps, t_min=t_min,
                                   t_max=t_max, distance=self._table("distance") if hybrid else None, fog=fog)
-        if self.compiled:
-            base, strides = g.flat_base(s)
-            return fused_traverse(og, dg, g.flat_materials, base, strides, lo, hi, max_steps=max_steps,
-                                  t_min=t_min, t_max=t_max, visit=visit, fog=fog,
-                                  distance=g.flat_distance if hybrid else None)
         if hybrid:
             return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, take_rows(s, ids)), lo, hi,
                                    max_steps=max_steps, t_min=t_min)

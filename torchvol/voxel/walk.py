@@ -1,24 +1,18 @@
-"""The plain DDA walk in blocks of steps, each block one compiled kernel.
+"""The plain DDA walk as one Dr.Jit kernel: `walk_step`, one DDA step of every ray in lanes
+(`ops.lanes`), looped per ray by `drjit_traverse` (`drjit.while_loop`), the grid lookup inside (a
+gather from the flattened material grids).
 
 `dda.traverse` runs a step as ~40 small eager ops on the active rays and compacts them after every
 step; on a 2-core machine those ops, not the arithmetic, are the walk (a 128² voxel-terrain
-primary walk: 84 steps, 310 k ray-steps, 36 ms eager). Here `walk_block` runs `BLOCK` steps of
-every slot at once, the grid lookup inside (a gather from the flattened material grids), finished
-slots frozen by `where`: torch.compile turns it into one fused C++ loop over the slots. Between
-blocks finished slots are written out and dropped.
-
-`walk_block` is pure arithmetic on plain tensors and, eager, the twin of the compiled kernel; both
-give `dda.traverse`'s hits bitwise (the same crossing formula, compares and one division an axis;
-tests/voxel/test_walk.py). A `visit` callback sees the same cells, in the same order and calls,
-as under `dda.traverse`: the block records each step's cells, and the callback runs after it. The
-voxel fog, the one callback on the primary walk of most voxel scenes, is summed inside the kernel
-instead (`fused_traverse(..., fog=)`, `fog.FogWalk`): the same sums in the same order.
+primary walk: 84 steps, 310 k ray-steps, 36 ms eager). The kernel gives `dda.traverse`'s hits
+bitwise (the same crossing formula, compares and one division an axis; tests/voxel/test_walk.py),
+the hybrid distance-field jumps of `dda.hybrid_traverse` and the voxel fog's sums too. A walk that
+calls back at every cell it visits (the glow's) runs `dda.traverse` eagerly.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from types import SimpleNamespace
 
 import numpy as np
@@ -27,59 +21,27 @@ from torch import Tensor
 
 from ..ops import lanes
 from ..ops.mathops import take_rows
-from ..runtime.compilation import exact_kernel
 from ..runtime.threads import set_drjit_threads
-from .dda import Hits, Visit, start, start_lanes
+from .dda import Hits, start, start_lanes
 from .fog import FogWalk
 
-__all__ = ["BLOCK", "drjit_traverse", "fused_traverse", "walk_block", "walk_step"]
-
-# steps a block runs before finished slots are dropped: a block costs about 30 µs of call overhead
-# and a compaction about 10 eager gathers, while a finished slot still rides along in the block
-BLOCK = 8
-MIN_SLOTS = 4
-
-
-def walk_block(state: list[Tensor], rays: list[Tensor], table: Tensor, strides: Tensor, max_steps: Tensor,
-               fog_table: Tensor | None = None, distance: Tensor | None = None, *, steps: int, limited: bool,
-               record: bool, switch: int = 2):
-    """`steps` DDA steps of N slots (`walk_step`, on torch columns).
-
-    state: cx, cy, cz [N] int32, the cell to look up next; t [N], its entry distance; axis [N]
-    int32, its entry axis; n [N] int32, lookups so far; alive [N] bool; t_exit [N], material [N]
-    int32 (0: no hit), the result of finished slots; with fog, fog_tau [N], the fog's optical
-    depth so far. rays: o, d [N, 3] (grid coordinates); lo, hi [N, 3] int32, the cell range; base
-    [N] long, the flat index of cell (0, 0, 0) in the ray's scene (`flat = base + (k·Y + j)·X +
-    i`); t_max [N] (read where `limited`); with fog, its rows [N] long (`fog.FogWalk`).
-    table [M] uint8: the flattened material grids; strides [2] long: (Y, X); max_steps [] int32;
-    fog_table [B·Y] or None (`fog.FogWalk.table`); distance [M] uint8 or None: the grids'
-    Chebyshev distance fields, flattened as `table` (`dda.hybrid_traverse`: a slot in a cell k ≥
-    `switch` cells from any occupied one first jumps across the empty cube around it; a jump
-    counts as a step).
-    -> (the state after the block, records): with `record` each step's visits (each [steps, N]:
-    visited, cx, cy, cz, t_in, t_out, hit), with fog each step's fog visits (empty, cx, cy, cz,
-    tau, fog_tau after it), else None."""
-    o, d, lo, hi, base, t_max, *fog_rows = rays
-    r = SimpleNamespace(o=o.unbind(1), d=d.unbind(1), lo=lo.unbind(1), hi=hi.unbind(1), base=base.to(torch.int32),
-                        t_max=t_max if limited else None, fog_row=fog_rows[0].to(torch.int32) if fog_rows else None)
-    g = SimpleNamespace(table=table, distance=distance, fog=fog_table, y=strides[0], x=strides[1], max_steps=max_steps,
-                        switch=switch)
-    records = []
-    for _ in range(steps):
-        state, step_records = walk_step(state, r, g)
-        if record:
-            records.append(step_records[0])
-        if fog_table is not None:
-            records.append(step_records[1])
-    return state, (tuple(torch.stack(column) for column in zip(*records)) if records else None)
+__all__ = ["drjit_traverse", "int_table", "walk_step"]
 
 
 def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
-    """One DDA step of every slot, in lanes (`ops.lanes`: torch columns, or Dr.Jit arrays in
-    `drjit_traverse`'s loop): the state as `walk_block`'s (a list), the rays `r` (o, d, lo, hi:
-    three lanes each; base, the flat index of cell (0, 0, 0); t_max or None; fog_row or None), the
-    tables `g` (table, distance or None, fog or None, y, x, max_steps, switch). -> (the state
-    after it, (this step's visit record, its fog record or None))."""
+    """One DDA step of every slot, in lanes (`ops.lanes`; Dr.Jit arrays in `drjit_traverse`'s loop).
+
+    state (a list): cx, cy, cz (int32), the cell to look up next; t, its entry distance; axis
+    (int32), its entry axis; n (int32), lookups so far; alive (bool); t_exit, material (int32, 0:
+    no hit), the result of finished slots; with fog, fog_tau, the fog's optical depth so far. The
+    rays `r`: o, d (grid coordinates), lo, hi (int32, the cell range): three lanes each; base, the
+    flat index of cell (0, 0, 0) in the ray's scene (`flat = base + (k·Y + j)·X + i`); t_max or
+    None; fog_row or None (`fog.FogWalk.rows`). The tables `g`: table (the flattened material
+    grids), distance or None (their Chebyshev distance fields: `dda.hybrid_traverse`'s jump from
+    a cell k ≥ `switch` cells from any occupied one across the empty cube around it, a jump
+    counted as a step), fog or None (`fog.FogWalk.table`), y, x (the strides), max_steps, switch.
+    -> (the state after it, (this step's visit record (visited, cx, cy, cz, t_in, t_out, hit),
+    its fog record (empty, cx, cy, cz, tau, fog_tau after it) or None))."""
     cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = state
     zero = lanes.int_like(0, cx)
     if g.distance is not None:
@@ -164,81 +126,21 @@ def _crossing(cell, o, d):
     return lanes.where(zero, math.inf, side)
 
 
-_COMPILED: dict = {}
-
-
-def compiled_block() -> Callable:
-    """`walk_block` under torch.compile (dynamic shapes), built once per process: one graph per
-    (limited, records or jumps) and dtype, up to 16, each for every size; eager where it cannot
-    be compiled (`compilation.exact_kernel`)."""
-    if "block" not in _COMPILED:
-        _COMPILED["block"] = exact_kernel(walk_block, "the voxel walk")
-    return _COMPILED["block"]
-
-
-def fused_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
-                   max_steps: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
-                   visit: Visit | None = None, fog: FogWalk | None = None, distance: Tensor | None = None,
-                   switch: int = 2, compiled: bool = True, block: int = BLOCK) -> Hits:
-    """`dda.traverse` with the lookup a gather from `table` [M] uint8 (the flattened material grids:
-    cell (i, j, k) of ray r is ``table[base[r] + (k·Y + j)·X + i]``, strides = (Y, X) long, every
-    cell of [lo, hi) inside the table) and the steps run `block` at a time by `walk_block`
-    (compiled under `compiled`). origins, directions [R, 3]; base [R] long; lo, hi [3] or [R, 3]
-    long. The same `Hits` as `dda.traverse`, bitwise, and the same `visit` calls. `fog` (not with
-    `visit`): the voxel fog accumulated inside the kernel, filled in as `FogWalk` says.
-    `distance` [M] uint8 (the grids' Chebyshev distance fields, flattened as `table`; not with
-    `visit` or `fog`): `dda.hybrid_traverse`'s walk instead, jumping from cells `switch` or more
-    cells from any occupied one, with its hits and steps."""
-    if (visit is not None) + (fog is not None) + (distance is not None) > 1:
-        raise ValueError("fused_traverse: visit, fog and distance are exclusive (each its own records or steps)")
-    dev = origins.device
-    out, ok, t0, cell0, axis0, lo, hi = start(origins, directions, lo, hi, t_min, t_max)
-    run = compiled_block() if compiled else walk_block
-    flags = {"steps": block, "limited": t_max is not None, "record": visit is not None, "switch": switch}
-    idx = ok.nonzero().squeeze(1)
-    i32 = torch.int32
-    t_first = take_rows(t0, idx)
-    state = [*(x.contiguous() for x in take_rows(cell0, idx).to(i32).unbind(1)), t_first,
-             take_rows(axis0, idx).to(i32), torch.zeros_like(idx, dtype=i32), torch.ones_like(idx, dtype=torch.bool),
-             torch.zeros_like(t_first), torch.zeros_like(idx, dtype=i32)]
-    # t_max is unread when unlimited: any [N] tensor holds its place
-    rays = [take_rows(x, idx) for x in (origins, directions, lo.to(i32), hi.to(i32), base, t0 if t_max is None else t_max)]
-    if fog is not None:
-        fog.tau = origins.new_zeros(origins.shape[0])
-        state.append(torch.zeros_like(t_first))
-        rays.append(take_rows(fog.rows, idx))
-    shared = (table, strides, torch.tensor(max_steps, dtype=i32, device=dev), None if fog is None else fog.table,
-              distance)
-    while idx.numel():
-        result, records = _call(run, state, rays, shared, flags)
-        if visit is not None:
-            _replay(visit, idx, records)
-        if fog is not None:
-            fog.visits.append(_fog_visits(idx, records))
-        alive = result[6]
-        finished = (~alive).nonzero().squeeze(1)
-        if finished.numel():
-            _write_finished(out, fog, take_rows(idx, finished), finished, result)
-        keep = alive.nonzero().squeeze(1)
-        if keep.numel() == idx.numel():
-            state = result
-            continue
-        idx = take_rows(idx, keep)
-        state = [take_rows(v, keep) for v in result]
-        rays = [take_rows(v, keep) for v in rays]
-    return out
-
-
 def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
                    max_steps: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
                    distance: Tensor | None = None, switch: int = 2, fog: FogWalk | None = None) -> Hits:
-    """`fused_traverse` without `visit` as one Dr.Jit kernel: each ray's start (`dda.start_lanes`)
-    and whole walk a loop (`drjit.while_loop`) of `walk_step`, the same functions the eager walks
-    run; float32 rays; `table`, `distance` as `fused_traverse`'s, or already `int_table`s. The same
-    `Hits` as `dda.traverse`, bitwise (tests/voxel/test_walk.py). With `fog`, its τ and its light
-    (`FogWalk.light`, no visits): the walk runs twice, first marking every empty cell it visits,
-    whose light `fog.irradiance` then gives, then summing τ · e^(−τ so far) · that light · colour
-    per ray, in the eager callback's order (its exp Dr.Jit's: within float rounding of eager's)."""
+    """`dda.traverse` as one Dr.Jit kernel: each ray's start (`dda.start_lanes`) and whole walk a
+    loop (`drjit.while_loop`) of `walk_step`, the same functions the eager walks run; the lookup a
+    gather from `table` [M] uint8 (the flattened material grids: cell (i, j, k) of ray r is
+    ``table[base[r] + (k·Y + j)·X + i]``, strides = (Y, X) long, every cell of [lo, hi) inside the
+    table). origins, directions [R, 3] float32; base [R] long; lo, hi [3] or [R, 3] long.
+    `distance` [M] uint8 (the grids' Chebyshev distance fields, flattened as `table`):
+    `dda.hybrid_traverse`'s walk instead, jumping from cells `switch` or more cells from any
+    occupied one, with its hits and steps. `table`, `distance` may be `int_table`s already. The
+    same `Hits` as `dda.traverse`, bitwise (tests/voxel/test_walk.py). With `fog`, its τ and its
+    light (`FogWalk.light`, no visits): the walk runs twice, first marking every empty cell it
+    visits, whose light `fog.irradiance` then gives, then summing τ · e^(−τ so far) · that light ·
+    colour per ray, in the eager callback's order (its exp Dr.Jit's: within float rounding of eager's)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
@@ -331,8 +233,8 @@ def int_table(table):
 
 
 def _write_finished(out: Hits, fog: FogWalk | None, g: Tensor, finished: Tensor, result: list[Tensor]) -> None:
-    """Writes the slots `finished` [F] of a block's `result` state (`walk_block`'s) to their rays
-    `g` [F] in `out` (and the fog's τ in `fog`)."""
+    """Writes the slots `finished` [F] of the walk's final `result` state (`walk_step`'s, as torch
+    tensors) to their rays `g` [F] in `out` (and the fog's τ in `fog`)."""
     cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = result
     cells = torch.stack([take_rows(v, finished) for v in (cx, cy, cz)], 1).long()
     out.cell.index_copy_(0, g, cells)
@@ -348,47 +250,3 @@ def _write_finished(out: Hits, fog: FogWalk | None, g: Tensor, finished: Tensor,
         out.material.index_copy_(0, gh, take_rows(m, hit).long())
         out.axis.index_copy_(0, gh, take_rows(axis, fh).long())
         out.t.index_copy_(0, gh, take_rows(t, fh))
-
-
-def _step_rows(idx: Tensor, visited: Tensor) -> tuple[Tensor, Tensor, list[int]]:
-    """The visits of a block in `dda.traverse`'s order (step by step, slots in order): their flat
-    rows in the [steps, N] records, their ray ids, and how many each step has."""
-    rows = visited.reshape(-1).nonzero().squeeze(1)
-    return rows, take_rows(idx, rows % visited.shape[1]), visited.sum(dim=1).tolist()
-
-
-def _replay(visit: Visit, idx: Tensor, records: tuple) -> None:
-    """Call `visit` once per step of a block with that step's visited slots (`walk_block`'s
-    records), as `dda.traverse` calls it: one gather of the whole block's visits, then a view per
-    step (a gather per step and record was a third of a recorded walk)."""
-    visited, *columns = records
-    rows, ids, counts = _step_rows(idx, visited)
-    cx, cy, cz, t_in, t_out, hit = (take_rows(v.reshape(-1), rows) for v in columns)
-    cells = torch.stack([cx, cy, cz], 1).long()
-    first = 0
-    for count in counts:
-        if count:
-            part = slice(first, first + count)
-            visit(ids[part], cells[part], t_in[part], t_out[part], hit[part])
-            first += count
-
-
-def _fog_visits(idx: Tensor, records: tuple) -> tuple[Tensor, Tensor, Tensor]:
-    """A block's fog visits (`FogWalk.visits`' entries) from `walk_block`'s fog records; the
-    weights' exp runs eagerly, as the callback's does."""
-    empty, *columns = records
-    rows, ids, _ = _step_rows(idx, empty)
-    cx, cy, cz, tau, so_far = (take_rows(v.reshape(-1), rows) for v in columns)
-    return ids, torch.stack([cx, cy, cz], 1).long(), tau * torch.exp(-so_far)
-
-
-def _call(run: Callable, state: list, rays: list, shared: tuple, flags: dict):
-    """`run(state, rays, *shared, **flags)`; fewer than `MIN_SLOTS` slots run repeated up to that
-    many, since a compiled kernel specialises on sizes 0 and 1, and dynamo ties a first size equal
-    to another input's (2: strides; 3: a ray's coordinates) to it: either compiles again later."""
-    n = state[0].shape[0]
-    if n >= MIN_SLOTS:
-        return run(state, rays, *shared, **flags)
-    pad = torch.arange(MIN_SLOTS, device=state[0].device) % n
-    state, records = run(*([x.index_select(0, pad) for x in group] for group in (state, rays)), *shared, **flags)
-    return [x[:n].clone() for x in state], None if records is None else tuple(v[:, :n].clone() for v in records)

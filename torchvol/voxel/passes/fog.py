@@ -32,7 +32,7 @@ class FogGlow:
         return FogGlowRays(self, o, s)
 
     def fog_walk(self, s: Tensor) -> FogWalk:
-        """The fog of rays of scenes s [n] as the fused walk takes it: σ at the centre of every row
+        """The fog of rays of scenes s [n] as the Dr.Jit walk takes it: σ at the centre of every row
         of cells of every scene, computed here as the callback computes it at a cell."""
         g, f = self.tracer.grid, self.p.fog
         B, Y = g.materials.shape[0], g.materials.shape[2]
@@ -85,7 +85,7 @@ class FogGlow:
 class FogGlowRays:
     """What the glow and fog of `owner` gather along primary rays from o [n, 3] of scenes s [n]:
     `glow` [n], the fog's optical depth `fog_tau` [n] and in-scattered light `fog_light` [n, 3].
-    The DDA calls `visit` per cell; fog alone on the compiled walk is accumulated inside the walk's
+    The DDA calls `visit` per cell; fog alone on the Dr.Jit walk is accumulated inside the walk's
     kernel instead (`walked`, the `FogWalk` to hand the walk; `visit` is then None)."""
 
     def __init__(self, owner: FogGlow, o: Tensor, s: Tensor):
@@ -94,8 +94,7 @@ class FogGlowRays:
         self.glow, self.fog_tau, self.fog_light = o.new_zeros(n), o.new_zeros(n), o.new_zeros(n, 3)
         self.visits = []  # (ray ids [m], scenes [m], cells [m, 3], weights [m]) of the fog's visited empty cells
         plan = owner.plan
-        fused = owner.tracer.compiled or owner.tracer.drjit
-        self.walked = owner.fog_walk(s) if fused and plan.fog and not plan.glow else None
+        self.walked = owner.fog_walk(s) if owner.tracer.drjit and plan.fog and not plan.glow else None
         self.visit = self._visit if self.walked is None else None
 
     def _visit(self, ids: Tensor, cells: Tensor, t_in: Tensor, t_out: Tensor, hit: Tensor) -> None:
@@ -119,13 +118,11 @@ class FogGlowRays:
                 self.visits.append((ie, se, ce, tau * torch.exp(-take_rows(self.fog_tau, ie))))
 
     def finish(self) -> None:
-        """After the traversal: the compiled walk's fog, and the fog's in-scattered light."""
+        """After the traversal: the fog's τ and in-scattered light, as the Dr.Jit walk summed them or
+        from the visits the eager walk recorded."""
         if self.walked is not None:
-            self.fog_tau = self.walked.tau
-            if self.walked.light is not None:  # Dr.Jit's walk summed the light itself
-                self.fog_light = self.walked.light
-                return
-            self.visits.extend((ie, take_rows(self.s, ie), ce, weight) for ie, ce, weight in self.walked.visits)
+            self.fog_tau, self.fog_light = self.walked.tau, self.walked.light
+            return
         for ie, se, light in self.owner._fog_light(self.visits):
             self.fog_light.index_add_(0, ie, light * take(self.owner.p.fog.color, se))
 
