@@ -15,16 +15,17 @@ def test_cli_parses_bench_speed():
 
 
 def test_generation_and_loaded_sections_report(tmp_path):
-    rows = bench_speed.generation_rows(["clouds"], workers=(1,), count=1, size=8)
+    rows = bench_speed.generation_rows(["clouds"], workers=(1,), count=8, size=8, cli_count=4)
     assert rows[0]["recipe"] == "clouds" and rows[0]["samples_per_s"] > 0 and rows[0]["bytes_per_sample"] > 0
     assert rows[0]["steady_per_s"] > 0 and rows[0]["first_s"] >= 0
+    assert rows[0]["cli_wall_s"] > 0 and all(r["cli_wall_s"] is None for r in rows if r["mode"] == "eager")
     loaded = bench_speed.loaded_rows(width=8, height=6, repeat=1, configs=[(1, "PASSIVE", "off")])
     assert loaded[0]["slowdown"] > 0
     heap = bench_speed.heap_rows([("template-clouds", 8, 6, "off", 1)], repeat=1)
     assert [r["heap"] for r in heap] == ["glibc's defaults", "torchvol"]
     assert all(r["seconds"] > 0 and r["faults"] >= 0 and r["system_s"] >= 0 for r in heap)
     text = bench_speed.markdown({"quick": True, "repeat": 1, "generate": rows, "loaded": loaded, "heap": heap})
-    assert "| clouds | 1 |" in text and "| 1 | PASSIVE | off |" in text
+    assert "| clouds | 1 |" in text and "| 1 | PASSIVE | off |" in text and "fresh CLI, 4 samples" in text
     assert "## The heap" in text and "| template-clouds 8×6 | off | 1 | torchvol |" in text
 
 
