@@ -40,6 +40,7 @@ from .fields.heightfield import (
 from .geometry.rays import clip_to_ray, intersect_slab
 from .geometry.surface_hit import SurfaceHit
 from .noise import lattice as noise
+from .ops import lanes
 from .schema.batch import Stacked, take
 from .schema.models import EACH, Strict, Vec3, nonneg
 
@@ -176,7 +177,7 @@ def trace_kernel(t: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, T
     from .runtime.threads import set_drjit_threads
 
     set_drjit_threads()
-    floats = lambda x: Float(x.to(torch.float32).contiguous().cpu().numpy())  # noqa: E731
+    floats = lanes.floats_of
     columns = lambda x: floats(x) if x.ndim == 1 else [floats(c) for c in x.unbind(1)]  # noqa: E731
     to = SimpleNamespace(per_lane=lambda v: columns(take(v, s)), scene=s.cpu(), floats=floats,
                          ints=lambda v: Int32(v.to(torch.int32).cpu().numpy()), number=lambda c: dr.opaque(Float, float(c)))

@@ -193,6 +193,20 @@ def to_float(i, like):
     return Float(i)
 
 
+def floats_of(t: torch.Tensor):
+    """A torch tensor [n] as Dr.Jit float32 lanes (a copy, on the CPU): a kernel's input."""
+    from drjit.llvm import Float
+
+    return Float(t.detach().to(torch.float32).contiguous().cpu().numpy())
+
+
+def ints_of(t: torch.Tensor):
+    """A torch integer (or bool) tensor [n] as Dr.Jit int32 lanes (a copy, on the CPU)."""
+    from drjit.llvm import Int32
+
+    return Int32(t.detach().to(torch.int32).contiguous().cpu().numpy())
+
+
 def gather(table, index):
     """`table[index]`: a 1-D table (a torch tensor, or a Dr.Jit array of the lanes' type) at int32
     lanes `index` (values in range)."""
@@ -221,4 +235,4 @@ def length3(x, y, z):
 
 
 __all__ = ["abs", "clamp", "clamp_max", "clamp_min", "columns", "divide", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
-           "int_like", "log2", "maximum", "minimum", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]
+           "floats_of", "int_like", "ints_of", "log2", "maximum", "minimum", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]

@@ -91,10 +91,7 @@ def _has_lanes(vol) -> bool:
     return kind is not None and (len(kind) < 3 or kind[2](vol))
 
 
-def _floats(t: Tensor):
-    from drjit.llvm import Float
-
-    return Float(t.detach().to(torch.float32).contiguous().cpu().numpy())
+_floats = lanes.floats_of
 
 
 def _lanes_of(value: Tensor, gather):

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
 from .cone import cone_step
 from .shade import ao_lanes
@@ -31,8 +32,8 @@ def ao_kernel(table, base: Tensor, strides: Tensor, lo: Tensor, hi: Tensor, cell
     if cell.shape[0] == 0:
         return uv.new_zeros(0)
     set_drjit_threads()
-    ints = lambda x: Int32(x.to(torch.int32).contiguous().cpu().numpy())  # noqa: E731
-    floats = lambda x: Float(x.to(torch.float32).contiguous().cpu().numpy())  # noqa: E731
+    ints = lanes.ints_of
+    floats = lanes.floats_of
     g = SimpleNamespace(base=ints(base), y=int(strides[0]), x=int(strides[1]), lo=[ints(c) for c in lo.unbind(1)],
                         hi=[ints(c) for c in hi.unbind(1)])
 
@@ -72,9 +73,9 @@ def cones_kernel(mips: SimpleNamespace, origin: Tensor, direction: Tensor, s: Te
     if n == 0:
         return origin.new_zeros(0, 3), origin.new_zeros(0)
     set_drjit_threads()
-    floats = lambda x: Float(x.to(torch.float32).contiguous().cpu().numpy())  # noqa: E731
+    floats = lanes.floats_of
     ray = SimpleNamespace(o=[floats(c) for c in origin.unbind(1)], d=[floats(c) for c in direction.unbind(1)],
-                          s=Int32(s.to(torch.int32).cpu().numpy()), ratio=floats(ratio), max_t=floats(max_t))
+                          s=lanes.ints_of(s), ratio=floats(ratio), max_t=floats(max_t))
     limit = dr.opaque(Int32, steps)
     state = (dr.full(Float, 1.0, n), dr.zeros(Float, n), dr.zeros(Float, n), dr.zeros(Float, n), dr.zeros(Float, n),
              dr.full(Bool, True, n), dr.zeros(Int32, n))

@@ -150,8 +150,8 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     if R == 0:
         return start(origins, directions, lo, hi, t_min, t_max)[0]
     set_drjit_threads()
-    floats = lambda x: Float(x.to(torch.float32).contiguous().cpu().numpy())  # noqa: E731
-    ints = lambda x: Int32(x.to(torch.int32).contiguous().cpu().numpy())  # noqa: E731
+    floats = lanes.floats_of
+    ints = lanes.ints_of
     lo, hi = (torch.as_tensor(x, device=origins.device).to(torch.int32).expand(R, 3) for x in (lo, hi))
     r = SimpleNamespace(o=[floats(c) for c in origins.unbind(1)], d=[floats(c) for c in directions.unbind(1)],
                         lo=[ints(c) for c in lo.unbind(1)], hi=[ints(c) for c in hi.unbind(1)], base=ints(base),
@@ -188,7 +188,7 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
     import drjit as dr
     from drjit.llvm import Float, Int32
 
-    r.fog_row, g.fog = Int32(fog.rows.to(torch.int32).cpu().numpy()), Float(fog.table.to(torch.float32).cpu().numpy())
+    r.fog_row, g.fog = lanes.ints_of(fog.rows), lanes.floats_of(fog.table)
     cells = dr.width(g.table)
     seen = dr.zeros(Int32, cells)
 
@@ -227,9 +227,8 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
 def int_table(table):
     """A flattened uint8 grid [M] as a Dr.Jit Int32 array (Dr.Jit gathers 32-bit lanes); one
     already converted as it is (a tracer converts its grids once)."""
-    from drjit.llvm import Int32
 
-    return Int32(table.to(torch.int32).cpu().numpy()) if isinstance(table, Tensor) else table
+    return lanes.ints_of(table) if isinstance(table, Tensor) else table
 
 
 def _write_finished(out: Hits, fog: FogWalk | None, g: Tensor, finished: Tensor, result: list[Tensor]) -> None:
