@@ -255,3 +255,19 @@ def test_the_kernel_trace_is_bitwise_the_eager_trace():
     assert hit.any() and (~hit).any()
     assert torch.equal(hit, k_hit), f"{int((hit != k_hit).sum())} hits differ"
     assert torch.equal(dist, k_dist), f"{int((dist != k_dist).sum())} distances differ, by up to {float((dist - k_dist).abs().max()):.3g}"
+
+
+def test_the_kernel_normal_is_the_eager_normal():
+    """`normal_kernel` (Dr.Jit, the same `normal_lanes`) against `normal` on torch, float32, over
+    two scenes' hills: the same float32 arithmetic, apart from the order of a few roundings."""
+    from torchvol.runtime.compilation import drjit_available
+
+    if not drjit_available():
+        pytest.skip("Dr.Jit's LLVM backend is not available")
+    t = stack([Terrain(seed=3, amplitude=2.0, frequency=0.4), Terrain(seed=5, amplitude=1.0, octaves=6)], dtype=torch.float32)
+    g = torch.Generator().manual_seed(1)
+    p = torch.rand(2000, 3, generator=g) * 20.0 - 10.0
+    s = torch.arange(2000) % 2
+    eager, kernel = T.normal(t, p, s), T.normal_kernel(t, p, s)
+    assert float(eager[:, 1].min()) < 0.9  # slopes, not a flat test
+    assert_close(kernel, eager, atol=1e-5, what="kernel normal")

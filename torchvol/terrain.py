@@ -32,6 +32,7 @@ from torch import Tensor
 
 from .fields.heightfield import (
     height_lanes,
+    normal_lanes,
     onto_surface,
     terrain_lanes,
     trace_lanes,
@@ -39,7 +40,6 @@ from .fields.heightfield import (
 )
 from .geometry.rays import clip_to_ray, intersect_slab
 from .geometry.surface_hit import SurfaceHit
-from .noise import lattice as noise
 from .ops import lanes
 from .schema.batch import Stacked, take
 from .schema.models import EACH, Strict, Vec3, nonneg
@@ -80,9 +80,14 @@ TERRAIN_AOVS = ("normal",)
 
 def height(t: Stacked, xz: Tensor, s: Tensor) -> Tensor:
     """Terrain height [n] at horizontal points `xz` [n, 2] of scenes `s` [n] (`height_lanes` on torch)."""
+    return height_lanes(_torch_lanes(t, s, xz), xz[:, 0], xz[:, 1])
+
+
+def _torch_lanes(t: Stacked, s: Tensor, like: Tensor):
+    """`terrain_lanes` of scenes `s` [n] on torch columns (the eager reference), in `like`'s dtype and device."""
     to = SimpleNamespace(per_lane=lambda v: take(v, s), scene=s, number=lambda c: c,
-                         ints=lambda v: v.to(device=xz.device, dtype=torch.int32), floats=lambda v: v.to(xz))
-    return height_lanes(terrain_lanes(t, to, xz.dtype), xz[:, 0], xz[:, 1])
+                         ints=lambda v: v.to(device=like.device, dtype=torch.int32), floats=lambda v: v.to(like))
+    return terrain_lanes(t, to, like.dtype)
 
 
 def gap(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
@@ -149,14 +154,8 @@ def _onto_surface(t: Stacked, o: Tensor, d: Tensor, s: Tensor, hit: Tensor, dist
 
 
 def normal(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
-    """Unit surface normal [n, 3] at points `p` [n, 3] on the terrain (central differences of the
-    height, a hundredth of the finest octave's period apart)."""
-    e = (0.01 * noise.finest_period(t.octaves)) / take(t.frequency, s)
-    xz = p[:, [0, 2]]
-    dx, dz = torch.stack([e, torch.zeros_like(e)], dim=1), torch.stack([torch.zeros_like(e), e], dim=1)
-    hs = height(t, torch.cat([xz + dx, xz - dx, xz + dz, xz - dz]), s.repeat(4)).view(4, -1)
-    n = torch.stack([-(hs[0] - hs[1]) / (2 * e), torch.ones_like(e), -(hs[2] - hs[3]) / (2 * e)], dim=1)
-    return torch.nn.functional.normalize(n, dim=1)
+    """Unit surface normal [n, 3] at points `p` [n, 3] on the terrain (`normal_lanes` on torch)."""
+    return torch.stack(normal_lanes(_torch_lanes(t, s, p), p[:, 0], p[:, 2]), dim=1)
 
 
 def visibility(t: Stacked, p: Tensor, direction: Tensor, s: Tensor, distance: Tensor, *, steps: int) -> Tensor:
@@ -166,12 +165,9 @@ def visibility(t: Stacked, p: Tensor, direction: Tensor, s: Tensor, distance: Te
     return (~hit).to(p.dtype)
 
 
-def trace_kernel(t: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
-    """`trace` of primary rays `o`, `d` [n, 3] of scenes `s` [n] (no farther than the terrain's
-    reach, the hit refined onto the surface) as one Dr.Jit kernel (`trace_lanes`): float32 on the
-    CPU. -> (hit [n] bool, t [n])."""
+def _kernel_lanes(t: Stacked, s: Tensor):
+    """`terrain_lanes` of scenes `s` [n] as a Dr.Jit kernel takes them, and the torch -> lanes map."""
     import drjit as dr
-    import numpy as np
     from drjit.llvm import Float, Int32
 
     from .runtime.threads import set_drjit_threads
@@ -181,10 +177,32 @@ def trace_kernel(t: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, T
     columns = lambda x: floats(x) if x.ndim == 1 else [floats(c) for c in x.unbind(1)]  # noqa: E731
     to = SimpleNamespace(per_lane=lambda v: columns(take(v, s)), scene=s.cpu(), floats=floats,
                          ints=lambda v: Int32(v.to(torch.int32).cpu().numpy()), number=lambda c: dr.opaque(Float, float(c)))
-    hit, dist = trace_lanes(terrain_lanes(t, to, torch.float32), columns(o), columns(d), math.inf, refine=True)
-    dr.eval(hit, dist)
+    return terrain_lanes(t, to, torch.float32), columns
+
+
+def _to_torch(values, like: Tensor) -> list[Tensor]:
+    """Evaluated Dr.Jit lanes -> torch tensors on `like`'s device."""
+    import drjit as dr
+    import numpy as np
+
+    dr.eval(*values)
     dr.sync_thread()
-    return torch.from_numpy(np.array(hit)).to(o.device), torch.from_numpy(np.array(dist)).to(o)
+    return [torch.from_numpy(np.array(v)).to(like.device) for v in values]
+
+
+def trace_kernel(t: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    """`trace` of primary rays `o`, `d` [n, 3] of scenes `s` [n] (no farther than the terrain's
+    reach, the hit refined onto the surface) as one Dr.Jit kernel (`trace_lanes`): float32 on the
+    CPU. -> (hit [n] bool, t [n])."""
+    q, columns = _kernel_lanes(t, s)
+    hit, dist = _to_torch(trace_lanes(q, columns(o), columns(d), math.inf, refine=True), o)
+    return hit, dist.to(o)
+
+
+def normal_kernel(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
+    """`normal` at points `p` [n, 3] of scenes `s` [n] as one Dr.Jit kernel (`normal_lanes`). -> [n, 3]."""
+    q, columns = _kernel_lanes(t, s)
+    return torch.stack(_to_torch(normal_lanes(q, columns(p[:, 0]), columns(p[:, 2])), p), dim=1).to(p)
 
 
 class TerrainSurface:
@@ -219,7 +237,7 @@ class TerrainSurface:
             sh, th = s[ids], t[ids]
             with section("terrain.shade"):
                 x = o[ids] + th[:, None] * d[ids]
-                nrm = normal(p, x, sh)
+                nrm = normal_kernel(p, x, sh) if self.kernels else normal(p, x, sh)
                 rock = ((1.0 - nrm[:, 1] - take(p.rock_slope, sh)) * 10.0).clamp(0.0, 1.0)[:, None]
                 albedo = torch.lerp(take(p.color, sh), take(p.rock_color, sh), rock)
                 light = take(p.ambient, sh)
@@ -245,4 +263,4 @@ class TerrainSurface:
         return SurfaceHit(hit=hit, t=torch.where(hit, t, torch.full_like(t, torch.inf)), color=color, aovs=aovs)
 
 
-__all__ = ["Terrain", "TerrainSurface", "gap", "height", "normal", "trace", "trace_kernel", "visibility"]
+__all__ = ["Terrain", "TerrainSurface", "gap", "height", "normal", "normal_kernel", "trace", "trace_kernel", "visibility"]

@@ -7,7 +7,7 @@ from conftest import assert_close
 from torchvol.fields.grid import sample_grid
 from torchvol.geometry.rays import intersect_box
 from torchvol.volume.shadow import shadow_transmittance
-from torchvol.volume.sun_volume import sun_frame, sun_transmittance_grid
+from torchvol.volume.sun_volume import grid_layout, sun_frame, sun_transmittance_grid
 
 F64 = torch.float64
 
@@ -36,7 +36,7 @@ def test_homogeneous_box_matches_beer_lambert_to_the_exit(sun):
     counted = lambda p: evaluated.append(p.shape[0]) or ext(p)  # noqa: E731
     chorded = sun_transmittance_grid(counted, lo, hi, torch.tensor(sun, dtype=F64), resolution=96,
                                      chord=lambda o, d: intersect_box(o, d, lo, hi))
-    assert_close(chorded.optical_depth, grid.optical_depth, atol=1e-12, what="optical depth, chords vs every node")
+    assert_close(chorded.atlas, grid.atlas, atol=1e-12, what="optical depth and σ_t, chords vs every node")
     if sun != [0.0, 1.0, 0.0]:  # a tilted sun's table box reaches outside the box, and those nodes are skipped
         assert evaluated[0] < 0.8 * 96 * 96 * 97, f"{evaluated[0]} nodes evaluated: the chords saved nothing"
     # a hard face (density 0 → σ) smears over one cell of an oblique grid: worst near the faces.
@@ -124,11 +124,48 @@ def test_the_lookup_is_grid_samples_bicubic(dtype):
     g = torch.Generator().manual_seed(1)
     points = (lo - 0.3 + (hi - lo + 0.6) * torch.rand(2000, 3, generator=g, dtype=F64).to(dtype))
     sigma = ext(points)
-    m = grid.to_atlas
-    q = (grid.offset + points[:, :1] * m[0] + points[:, 1:2] * m[1] + points[:, 2:3] * m[2]).clamp(grid.low, grid.high)
+    m, n, pad = grid.to_atlas[0], grid.n, 2
+    q = (grid.offset[0] + points[:, :1] * m[0] + points[:, 1:2] * m[1] + points[:, 2:3] * m[2])
+    q = torch.minimum(q.clamp_min(0.0), q.new_tensor([n - 1.0, n - 1.0, grid.planes - 1.0]))
     plane = torch.ceil(q[:, 2])
-    coords = torch.stack([q[:, 0] + plane * grid.plane_stride, q[:, 1]], dim=1).reshape(1, 1, -1, 2)
-    tau, feet = torch.nn.functional.grid_sample(grid.atlas, coords, mode="bicubic", padding_mode="border",
+    # the planes side by side, each with a replicated border (what the border rule reads past an edge)
+    planes = grid.atlas.reshape(2, n, grid.planes, n).permute(2, 0, 1, 3)
+    atlas = torch.nn.functional.pad(planes, (pad,) * 4, mode="replicate").permute(1, 2, 0, 3).reshape(1, 2, n + 2 * pad, -1)
+    x, y = q[:, 0] + pad + plane * (n + 2 * pad), q[:, 1] + pad
+    coords = torch.stack([x / (atlas.shape[-1] - 1), y / (atlas.shape[-2] - 1)], dim=1).reshape(1, 1, -1, 2) * 2.0 - 1.0
+    tau, feet = torch.nn.functional.grid_sample(atlas, coords, mode="bicubic", padding_mode="border",
                                                 align_corners=True).reshape(2, -1)
     expected = torch.exp(-(tau.clamp_min(0.0) + 0.5 * (plane - q[:, 2]) * grid.plane_gap * (sigma + feet.clamp_min(0.0))))
-    assert_close(grid.lookup(points, sigma), expected, atol=1e-12 if dtype == F64 else 2e-6, what="lanes lookup vs grid_sample")
+    # float32: grid_sample's coordinates, normalised over the whole atlas, round the fraction
+    # within a plane to ~1e-5 of a texel; the lookup's, within the plane, to ~1e-7
+    assert_close(grid.lookup(points, sigma), expected, atol=1e-12 if dtype == F64 else 5e-6, what="lanes lookup vs grid_sample")
+
+
+def test_the_kernel_builds_the_eager_tables():
+    """`density_lanes.sun_grid_kernel` (the default) against `grid_atlas` (the reference) on a
+    batch of two scenes with different suns: the same nodes evaluated, the tables within float
+    rounding (the nodes' points are one fused multiply-add in both; τ is summed in float64 in both)."""
+    import torchvol as tv
+    from torchvol.scene.presets import preset_dict
+    from torchvol.volume.sun_volume import grid_atlas
+
+    scenes = []
+    for sun in ([0.3, 0.6, 0.75], [-0.5, 0.4, 0.2]):
+        scene = preset_dict("multi-layer", width=24, height=16)
+        scene["lights"][0].update(direction=sun, shadow={"method": "grid", "resolution": 40})
+        scenes.append(scene)
+    out = tv.render(scenes, keep_context=True)
+    assert out.stats["plan"]["marches"] == {"volume0": "drjit", "volume1": "drjit"}
+    for vol in out.context.volumes:
+        grid = vol.sun_grids[0]
+        lo, hi = vol.bounds.aabb(vol.params.bounds.value)
+        eager, nodes = [], 0
+        for b in range(2):
+            owner = lambda q, b=b: torch.full((q.shape[0],), b, dtype=torch.long)  # noqa: E731
+            layout = grid_layout(lo[b], hi[b], out.context.lights[0].direction[b], resolution=40,
+                                 chord=lambda o, d, owner=owner: vol.intersect(o, d, owner(o)))
+            eager.append(grid_atlas(lambda q, b=b, owner=owner: vol.params.sigma_t[b] * vol.field(q, owner(q)), layout))
+            nodes += int(layout.count.sum())
+        expected = torch.cat(eager)
+        assert nodes > 0
+        assert_close(grid.atlas, expected, atol=1e-5 * float(expected.abs().max()), what=f"{vol.plan.name}'s kernel-built sun grid")

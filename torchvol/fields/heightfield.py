@@ -36,6 +36,16 @@ def height_lanes(q: SimpleNamespace, x, z):
     return q.base + q.amplitude * f
 
 
+def normal_lanes(q: SimpleNamespace, x, z) -> list:
+    """The unit surface normal (three lanes) at horizontal lanes `x`, `z` on the terrain: central
+    differences of the height, a hundredth of the finest octave's period apart; `q` from `terrain_lanes`."""
+    e = (0.01 * noise.finest_period(q.octaves)) / q.frequency
+    slope_x = -(height_lanes(q, x + e, z) - height_lanes(q, x - e, z)) / (2.0 * e)
+    slope_z = -(height_lanes(q, x, z + e) - height_lanes(q, x, z - e)) / (2.0 * e)
+    length = lanes.sqrt(slope_x * slope_x + 1.0 + slope_z * slope_z)  # ≥ 1: no division by 0
+    return [slope_x / length, 1.0 / length, slope_z / length]
+
+
 def trace_step(q: SimpleNamespace, o, d, t, last_t, last_g, first):
     """One sphere-tracing step of `trace` at distance `t` along rays `o`, `d` (three lanes each),
     lanes (`ops.lanes`): the gap there; the hit rule (under ε·(1 + t)); where a step crossed the
@@ -100,4 +110,4 @@ def visible_lanes(q: SimpleNamespace, p, direction, distance):
     return dr.select(hit, dr.zeros(type(p[0]), dr.width(hit)), dr.full(type(p[0]), 1.0, dr.width(hit)))
 
 
-__all__ = ["height_lanes", "onto_surface", "terrain_lanes", "trace_lanes", "trace_step", "visible_lanes"]
+__all__ = ["height_lanes", "normal_lanes", "onto_surface", "terrain_lanes", "trace_lanes", "trace_step", "visible_lanes"]

@@ -257,9 +257,9 @@ def floor_rows(*, points: int, repeat: int, octaves: int = 4) -> list[dict]:
 def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
     """The floor of a render `out` (rendered with `keep_context`) whose every march is a Dr.Jit
     kernel: its densities alone in the Dr.Jit kernel on `points` points, each volume's share of
-    them its share of the render's evaluations (`kernel_march.density_kernel` over its bounds'
+    them its share of the render's evaluations (`density_lanes.density_kernel` over its bounds'
     box, a layer's heights 20 units across: a slab, a planet's shell; the template's Dr.Jit fbm), None elsewhere."""
-    from ..volume import kernel_march
+    from ..volume import density_lanes
 
     marches = list(out.stats["plan"]["marches"].values())
     if not marches or any(m != "drjit" for m in marches):
@@ -280,7 +280,7 @@ def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
             lo, hi = torch.tensor([[-10.0, float(heights[0]), -10.0]]), torch.tensor([[10.0, float(heights[1]), 10.0]])
         else:
             lo, hi = vol.bounds.caps["aabb"](b)
-        parts.append(kernel_march.density_kernel(vol, lo[0] + (hi[0] - lo[0]) * torch.rand(count, 3, generator=g)))
+        parts.append(density_lanes.density_kernel(vol, lo[0] + (hi[0] - lo[0]) * torch.rand(count, 3, generator=g)))
     for kernel in parts:
         kernel()  # builds: not in the timed runs
     return Floor(lambda: [kernel() for kernel in parts], points, n)

@@ -32,7 +32,6 @@ parameters (`drjit.opaque`), so one kernel serves a whole dataset; Dr.Jit caches
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -40,16 +39,20 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..fields import DENSITIES
-from ..fields.base import DENSITY_MAX
-from ..fields.edge import EdgeField, faded
 from ..fields.heightfield import terrain_lanes, visible_lanes
-from ..geometry.bounds import BOUNDS, bounds_lanes
+from ..geometry.bounds import BOUNDS
 from ..light.lights import point_lanes
 from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
-from ..schema.batch import take
 from .ambient import ambient_lanes, ambient_radiance
+from .density_lanes import (
+    crossing,
+    has_lanes,
+    lanes_inputs,
+    lanes_of,
+    per_scene_lanes,
+    writes_in_lanes,
+)
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
 from .march import MarchResult, median_crossing
@@ -57,7 +60,7 @@ from .multiple import octave_weights
 from .physical import light_responses, sky_blend
 from .shader_look import ambient_light, derivative_light, look_lanes, shaded
 from .shadow import occluder_transmittance, shadow_segments, sun_grids
-from .sun_volume import grid_transmittance, grids_lanes
+from .sun_volume import grid_transmittance
 from .surface_look import look_normal, surface_colour, surface_lanes
 
 
@@ -72,115 +75,23 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     blend, emission, its colour map and bloom; `settings` the render's `MarchSettings`."""
     passes = [u for u in uses if u.shadow is not None] + ([] if ambient is None else [ambient])
     checks = [
-        (_has_lanes(vol), f"the {vol.density.kind} density"),
+        (has_lanes(vol), f"the {vol.density.kind} density"),
         ("lanes" in BOUNDS[vol.bounds.kind].caps, f"{vol.bounds.kind} bounds"),
         (vol.shading in ("physical", "shader", "surface"), f"the {vol.shading} shading"),
         (batch.atmosphere is None, "the [atmosphere]"),
         (settings.tolerance is None, "the error-controlled march"),
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
-        (all(_has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
+        (all(has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
              for u in passes for j in u.occluders), "shadows through a volume not written in lanes"),
         (not any(u.voxels for u in passes), "shadows through the voxels"),
     ]
     return next((why for ok, why in checks if not ok), None)
 
 
-def _has_lanes(vol) -> bool:
-    """Whether the volume's density kind is written in lanes for this variant (`fields.DENSITIES`)."""
-    kind = DENSITIES[vol.density.kind].caps.get("lanes")
-    return kind is not None and (len(kind) < 3 or kind[2](vol))
-
-
-_floats = lanes.floats_of
-
-
-def _lanes_of(value: Tensor, gather):
-    """Per-ray lanes of a per-ray tensor [n] or [n, C] (a list of C lanes)."""
-    return gather(value) if value.ndim == 1 else [gather(value[:, c]) for c in range(value.shape[1])]
-
-
-def _per_scene(s: Tensor):
-    """per scene (B,) or (B, C) -> the lanes of rays of scenes `s` [n], gathered in the kernel from
-    the B values: a table of B floats a value, not n floats made and copied in torch first (a
-    look's ~30 values were ~10% of a template render's time around its kernel)."""
-    import drjit as dr
-    from drjit.llvm import Float, UInt32
-
-    scene = UInt32(s.to(torch.int32).cpu().numpy())
-    return lambda x: _lanes_of(x, lambda v: dr.gather(Float, _floats(v), scene))
-
-
-def _field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
-    """What the volume's density takes per lane, for points of scenes `s` [n] (`per_ray`: per
-    scene -> per lane): its kind's lanes inputs (`fields.DENSITIES`' ``lanes``), the bounds', the edge's."""
-
-    inner, edge = _inner_and_edge(vol)
-    inputs, density = DENSITIES[vol.params.density.kind].caps["lanes"][:2]
-    return SimpleNamespace(
-        field=inputs(inner, _to(s, per_ray)), field_density=density, bounds=bounds_lanes(vol.params.bounds.value, per_ray),
-        edge=None if edge is None else SimpleNamespace(width=per_ray(edge.width),
-                                                       base=None if edge.base is None else per_ray(edge.base)))
-
-
-def _to(s: Tensor, per_ray) -> SimpleNamespace:
-    """How lanes inputs are made for lanes of scenes `s` [n] (`fields.DENSITIES`' ``lanes``):
-    per scene -> per lane (`per_lane`), int and float tables, numbers as kernel parameters."""
-    import drjit as dr
-    from drjit.llvm import Float, Int32
-
-    return SimpleNamespace(per_lane=per_ray, scene=s.cpu(), ints=lambda t: Int32(t.to(torch.int32).numpy()),
-                           floats=lambda t: Float(t.to(torch.float32).numpy()), number=lambda c: dr.opaque(Float, float(c)))
-
-
-def _density(k: SimpleNamespace, vol) -> Callable:
-    """The volume's density over its `_field_inputs` `k`: density(p, count) at lanes `p` (three),
-    `count` octaves kept or None: the field clamped at 0, faded at the edge and capped, as
-    `renderer.stats.CountedField` reads it."""
-    depth_in = vol.bounds.caps["lanes"][1]
-
-    def density(p, count):
-        raw = lanes.clamp_min(k.field_density(k.field, p, count), 0.0)
-        if k.edge is not None:
-            depth = depth_in(k.bounds, p)
-            if k.edge.base is not None:
-                depth = lanes.minimum(depth, p[1] - k.edge.base)
-            raw = faded(raw, depth, k.edge.width)
-        return lanes.clamp_max(raw, DENSITY_MAX)
-
-    return density
-
-
-def _solid(vol, s: Tensor, per_ray) -> SimpleNamespace:
-    """Volume `vol` as a ray crossing it sees it, for lanes of scenes `s` [n]: its density
-    (`_density`), its bounds' interval(p, direction) -> (near, far), σ_t per lane, its reach and index."""
-    import drjit as dr
-    from drjit.llvm import Float
-
-    k = _field_inputs(vol, s, per_ray)
-    interval = vol.bounds.caps["lanes"][0]
-    return SimpleNamespace(density=_density(k, vol), interval=lambda p, d: interval(k.bounds, p, d),
-                           sigma_t=per_ray(vol.params.sigma_t), reach=dr.opaque(Float, min(vol.plan.reach, 3e38)),
-                           index=vol.plan.index, octaves=getattr(k.field, "octaves", None))
-
-
-def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
-    """The volume's density alone at `points` [N, 3] of scene 0, as one Dr.Jit kernel: the march's
-    floor (`torchvol bench speed`: what the march would cost if nothing but its density did).
-    -> a function that evaluates it once, returning [N]."""
-    import drjit as dr
-
-    s = torch.zeros(points.shape[0], dtype=torch.long)
-    density = _density(_field_inputs(vol, s, lambda x: _lanes_of(take(x, s), _floats)), vol)
-    p = _lanes_of(points, _floats)
-
-    def run() -> Tensor:
-        set_drjit_threads()
-        out = density(p, None)
-        dr.eval(out)
-        dr.sync_thread()
-        return torch.from_numpy(np.array(out))
-
-    return run
+def _grid_lanes(ctx, j: int, light: int, s: Tensor, per_ray) -> SimpleNamespace:
+    """Volume `j`'s sun grids towards `light` (`shadow.sun_grids`) as `grid_transmittance` takes
+    them for lanes of scenes `s` [n]."""
+    return sun_grids(ctx, ctx.volumes[j], light).lanes(s, per_ray, lanes.floats_of, lanes.ints_of)
 
 
 def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> SimpleNamespace:
@@ -199,7 +110,7 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> Sim
             continue
         resp = [resp] if resp.ndim == 2 else list(resp.unbind(1))
         grids = None if use.shadow is None or use.shadow.method != "grid" else {
-            j: grids_lanes(sun_grids(ctx, ctx.volumes[j], use.light), s, per_ray, _floats) for j in (vol.plan.index, *use.occluders)}
+            j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in (vol.plan.index, *use.occluders)}
         k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(light.direction), use=use,
                                         grids=grids))
     if any(light.response is None for light in k.lights):
@@ -260,9 +171,9 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
         present=[Bool(x.cpu().numpy()) for x in pieces], active=[[bools(a) for a in v] for v in active.unbind(1)])
     needed = {v.plan.index for v in vols} | {j for v in vols for u in v.plan.lights + (v.plan.ambient_sky,)
                                                if u is not None for j in u.occluders}
-    solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
+    solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
     par = _parameters(ctx.settings)
-    terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, _to(s, per_ray), torch.float32)
+    terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)
     behind = [0.0] * 3 if background is None else lane(background.index_select(0, idx))
     members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray, behind)),
                                medium=_medium(m, v, par, solids, terrain, count)) for v in vols]
@@ -309,7 +220,7 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
         k.lights.append(SimpleNamespace(direction=per_ray(light.direction), irradiance=per_ray(light.radiant))
                         if light.directional else
                         SimpleNamespace(position=per_ray(light.params.position), radiant=per_ray(light.radiant)))
-    solid, par, n = _solid(vol, s, per_ray), _parameters(st), len(idx)
+    solid, par, n = crossing(vol, s, per_ray), _parameters(st), len(idx)
     zero = dr.zeros(Float, n)
     state = (lane(start), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
              dr.full(Bool, False, n), dr.zeros(Int32, n), zero, zero, zero)
@@ -325,8 +236,8 @@ def _ray_lanes(rays, idx: Tensor):
 
     set_drjit_threads()
     s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
-    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
-    return s, d, lane, _per_scene(s)
+    lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
+    return s, d, lane, per_scene_lanes(s)
 
 
 def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, evals: dict) -> MarchResult:
@@ -420,7 +331,7 @@ def _parameters(st) -> SimpleNamespace:
 
 def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain, count: int) -> SimpleNamespace:
     """The per-sample functions of member `vol` over its inputs `k` (`_member_inputs`), the
-    parameters `par`, the volumes a ray may cross `solids` (`_solid`, by index) and the terrain
+    parameters `par`, the volumes a ray may cross `solids` (`solid`, by index) and the terrain
     (`fields.heightfield.terrain_lanes`, None: none):
     density(p, count), in_scatter(p, sigma_t) -> (three lanes, `count` lanes of evaluations per volume)."""
     import drjit as dr
@@ -480,7 +391,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
 
 
 def optical_depth(solid, p, direction, exit_t, sigma_scale, steps, growth=1.0, first_step=None):
-    """∫ σ_t along `direction` from `p` to `exit_t` (lanes) through `solid` (`_solid`), σ_t =
+    """∫ σ_t along `direction` from `p` to `exit_t` (lanes) through `solid` (`solid`), σ_t =
     `sigma_scale` × its density, over `shadow.shadow_segments`."""
     import drjit as dr
     from drjit.llvm import Float
@@ -527,8 +438,7 @@ def occluders_supported(ctx, use) -> bool:
     """Whether `occluders` renders what LightPass `use` asks of `shadow.occluder_transmittance`
     besides the voxels: every occluding volume written in lanes, float32 on the CPU (the plan's
     `kernels`)."""
-    return ctx.plan.kernels and all(_has_lanes(ctx.volumes[j].params) and "lanes" in ctx.volumes[j].bounds.caps
-                                    for j in use.occluders)
+    return ctx.plan.kernels and all(writes_in_lanes(ctx.volumes[j]) for j in use.occluders)
 
 
 def surface_shadows(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
@@ -555,12 +465,12 @@ def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tenso
     if p.shape[0] == 0:
         return p.new_ones(0)
     set_drjit_threads()
-    lane = lambda x: _lanes_of(x, _floats)  # noqa: E731
-    per_ray = _per_scene(s)
-    solids = {j: _solid(ctx.volumes[j], s, per_ray) for j in use.occluders}
+    lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
+    per_ray = per_scene_lanes(s)
+    solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in use.occluders}
     grids = None if use.shadow.method != "grid" else {
-        j: grids_lanes(sun_grids(ctx, ctx.volumes[j], use.light), s, per_ray, _floats) for j in use.occluders}
-    terrain = terrain_lanes(ctx.terrain.p, _to(s, per_ray), torch.float32) if use.terrain else None
+        j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in use.occluders}
+    terrain = terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32) if use.terrain else None
     evals = {j: dr.zeros(Int32, p.shape[0]) for j in use.occluders}
     finite = torch.isfinite(distance)
     far = None if not bool(finite.any()) else lane(torch.where(finite, distance, torch.full_like(distance, 3e38)))
@@ -675,10 +585,4 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
     return body
 
 
-def _inner_and_edge(vol):
-    """The volume's density field and its `Edge` tables (None: no edge fade) under its counted field."""
-    field = vol.field.inner
-    return (field.inner, field.edge) if isinstance(field, EdgeField) else (field, None)
-
-
-__all__ = ["density_kernel", "march", "march_look", "occluders", "occluders_supported", "supports", "surface_shadows"]
+__all__ = ["march", "march_look", "occluders", "occluders_supported", "supports", "surface_shadows"]

@@ -13,7 +13,7 @@ from torch import Tensor
 
 from ..geometry.camera import Rays
 from ..ops import lanes
-from ..schema.batch import per_scene, take
+from ..schema.batch import take
 from .ambient import ambient_in_scatter
 from .composite import VolumePart
 from .context import VolumeContext
@@ -96,8 +96,7 @@ def light_transmittance(ctx: VolumeContext, vol, use, p: Tensor, s: Tensor, sigm
     direction = take(light.direction, s) if toward is None else toward.direction
     distance = p.new_full((p.shape[0],), math.inf) if toward is None else toward.distance
     if shadow.method == "grid":
-        grids = sun_grids(ctx, vol, use.light)
-        own = per_scene(p, s, len(grids), lambda b, i, q: grids[b].lookup(q, sigma_t[i]))
+        own = sun_grids(ctx, vol, use.light).lookup(p, sigma_t, s)
     else:
         exit_t = torch.minimum(vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach), distance)
         own = shadow_transmittance(

@@ -11,9 +11,10 @@ from torch import Tensor
 
 from ..geometry.rays import clip_to_ray
 from ..ops import lanes
-from ..schema.batch import per_scene, take
+from ..schema.batch import take
 from .context import VolumeContext
-from .sun_volume import SunGrid, sun_transmittance_grid
+from .density_lanes import sun_grid_kernel, writes_in_lanes
+from .sun_volume import SunGrid, grid_atlas, grid_layout, sun_grid
 
 
 def shadow_segments(exit_distance, *, steps: int, growth: float = 1.0, first_step: float | None = None) -> list:
@@ -83,8 +84,8 @@ def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direct
         with ctx.timer.section(f"{use.name}.volume{j}"):
             sj, entry = s[ids], torch.addcmul(p[ids], t0[ids, None], direction[ids])
             if use.shadow.method == "grid":  # the other volume's sun grid, looked up where the ray enters it
-                grids, sigma = sun_grids(ctx, other, use.light), take(other.params.sigma_t, sj) * other.field(entry, sj)
-                through = per_scene(entry, sj, len(grids), lambda b, i, q: grids[b].lookup(q, sigma[i]))
+                sigma = take(other.params.sigma_t, sj) * other.field(entry, sj)
+                through = sun_grids(ctx, other, use.light).lookup(entry, sigma, sj)
             else:
                 through = shadow_transmittance(
                     entry, direction[ids], t1[ids] - t0[ids],
@@ -99,22 +100,27 @@ def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direct
     return out
 
 
-def sun_grids(ctx: VolumeContext, vol, light: int) -> list[SunGrid]:
-    """Transmittance to sun `light` through the volume, one grid per scene, built on first use and
-    kept for every chunk of the render."""
+def sun_grids(ctx: VolumeContext, vol, light: int) -> SunGrid:
+    """Transmittance to sun `light` through the volume, a table per scene of the batch, built on
+    first use and kept for every chunk of the render: as one Dr.Jit kernel where the plan runs
+    kernels and the volume is written in lanes (`density_lanes.sun_grid_kernel`), else eagerly
+    (`sun_volume.grid_atlas`, the reference)."""
     if light not in vol.sun_grids:
         resolution = ctx.lights[light].params.shadow.resolution
         direction = ctx.lights[light].direction
         lo, hi = vol.bounds.aabb(vol.params.bounds.value)
-        grids = []
-        for b in range(len(vol.params)):
-            def owner(q: Tensor, b: int = b) -> Tensor:
-                return torch.full((q.shape[0],), b, dtype=torch.long, device=q.device)
 
-            def extinction(q: Tensor, b: int = b) -> Tensor:  # called on nodes inside the bounds only
-                return vol.params.sigma_t[b] * vol.field(q, owner(q))
+        def owner(q: Tensor, b: int) -> Tensor:
+            return torch.full((q.shape[0],), b, dtype=torch.long, device=q.device)
 
-            grids.append(sun_transmittance_grid(extinction, lo[b], hi[b], direction[b], resolution=resolution,
-                                                chord=lambda o, d, b=b: vol.intersect(o, d, owner(o, b))))
-        vol.sun_grids[light] = grids
+        layouts = [grid_layout(lo[b], hi[b], direction[b], resolution=resolution,
+                               chord=lambda o, d, b=b: vol.intersect(o, d, owner(o, b))) for b in range(len(vol.params))]
+        if ctx.plan.kernels and writes_in_lanes(vol):
+            atlas, evals = sun_grid_kernel(vol, layouts)
+            ctx.counts.density_evals += evals
+            vol.field.evals += evals
+        else:  # (the field counts its evaluations; called on nodes inside the bounds only)
+            atlas = torch.cat([grid_atlas(lambda q, b=b: vol.params.sigma_t[b] * vol.field(q, owner(q, b)), layout)
+                               for b, layout in enumerate(layouts)])
+        vol.sun_grids[light] = sun_grid(layouts, atlas)
     return vol.sun_grids[light]
