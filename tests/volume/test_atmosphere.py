@@ -182,11 +182,15 @@ def test_the_air_leaves_a_scene_without_air_unchanged_and_costs_nothing_when_abs
             "lights": [{"direction": [0.3, 0.6, -0.4]}],
             "volumes": [{"bounds": {"sphere": {"center": [0.0, 3.0, 0.0], "radius": 1.0}}, "sigma_t": 3.0, "albedo": 0.8}],
             "march": {"closed_form": False}}  # (the air varies along a ray: a volume in it is marched)
-    alone = tv.render(base, compile="off")  # the eager march: what the joint march of air and medium is held to, bitwise
-    assert "atmosphere" not in alone.stats["passes"] and "atmosphere" not in make_plan(tv.load_scene(base)).names()
-    clear = tv.render({**base, "atmosphere": {"rayleigh": [0.0, 0.0, 0.0], "mie": 0.0, "steps": 2, "light_steps": 1}})
-    assert torch.equal(clear.radiance, alone.radiance) and torch.equal(clear.depth, alone.depth)
-    assert clear.stats["passes"] == ["rays", "atmosphere", "media.march", "composite"]
+    clear_air = {**base, "atmosphere": {"rayleigh": [0.0, 0.0, 0.0], "mie": 0.0, "steps": 2, "light_steps": 1}}
+    # the joint march of air and medium is held to the volume's march alone, bitwise: eager and in
+    # the Dr.Jit kernel (pieces of air alone add nothing, the air's transmittance is 1)
+    for compile in ("off", "kernels"):
+        alone = tv.render(base, compile=compile)
+        assert "atmosphere" not in alone.stats["passes"] and "atmosphere" not in make_plan(tv.load_scene(base)).names()
+        clear = tv.render(clear_air, compile=compile)
+        assert torch.equal(clear.radiance, alone.radiance) and torch.equal(clear.depth, alone.depth), compile
+        assert clear.stats["passes"] == ["rays", "atmosphere", "media.march", "composite"]
     # thick air: the volume fades into the air's colour, its depth and alpha are kept
     hazy = tv.render({**base, "atmosphere": {"rayleigh": [0.05, 0.1, 0.2], "mie": 0.05, "steps": 8, "light_steps": 2}})
     assert torch.equal(hazy.depth, alone.depth) and torch.equal(hazy.alpha, alone.alpha)

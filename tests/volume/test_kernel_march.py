@@ -136,9 +136,9 @@ FOG = {"bounds": {"box": {"min": [-2.0, -1.5, -2.0], "max": [2.0, 0.3, 2.0]}}, "
 
 
 def _media(volumes, lights=(SUN,), **extra):
+    sky = {} if "atmosphere" in extra else {"sky": {"kind": "constant", "radiance": [0.3, 0.4, 0.6]}}  # (the air's own)
     return {"image": {"width": 24, "height": 20}, "camera": {"eye": [0.3, 0.6, -3.5], "target": [0.0, 0.0, 0.0], "fov_y": 50.0},
-            "sky": {"kind": "constant", "radiance": [0.3, 0.4, 0.6]}, "lights": list(lights), "volumes": list(volumes),
-            "march": {"steps": 24}, **extra}
+            **sky, "lights": list(lights), "volumes": list(volumes), "march": {"steps": 24}, **extra}
 
 
 JOINT = {
@@ -166,6 +166,60 @@ def test_media_sharing_space_match_the_eager_joint_march(name):
     assert shares <= KERNEL_TOL["radiance"], f"{name}: each medium's share of alpha off by {float(shares):.3g}"
     assert kernel.stats["density_evals_by_volume"] == eager.stats["density_evals_by_volume"]
     assert kernel.stats["march_steps"] == eager.stats["march_steps"]
+
+
+# a small planet's air (ground y = 0) thick enough to tint a scene of a few units; media lifted above it
+AIR = {"planet_radius": 2000.0, "atmosphere_height": 40.0, "rayleigh": [0.02, 0.045, 0.11], "mie": 0.05,
+       "rayleigh_height": 8.0, "mie_height": 1.5, "steps": 6, "light_steps": 3}
+PUFF_UP = {**PUFF, "bounds": {"sphere": {"center": [0.0, 3.0, 0.0], "radius": 1.0}}}
+FOG_UP = {**FOG, "bounds": {"box": {"min": [-2.0, 1.5, -2.0], "max": [2.0, 3.3, 2.0]}},
+          "density": {"exponential": {"value": 1.0, "base": 1.5, "scale_height": 0.6}}}
+UP = {"eye": [0.3, 3.6, -3.5], "target": [0.0, 3.0, 0.0], "fov_y": 50.0}
+IN_THE_AIR = {
+    "a cloud in fog": _media([PUFF_UP, FOG_UP], atmosphere=AIR, camera=UP),
+    "down onto the ground, a point light": _media(
+        [PUFF_UP, FOG_UP], lights=[SUN, {"kind": "point", "position": [0.5, 4.2, -0.5], "intensity": 2.0, "shadow": {"steps": 3}}],
+        atmosphere=AIR, camera={**UP, "eye": [0.3, 7.0, -4.0], "target": [0.0, 0.0, 1.0]}),
+    "one volume, octaves, sky light": _media(
+        [{**PUFF_UP, "ambient": {"radiance": [0.2, 0.3, 0.5], "visibility": "march", "steps": 2},
+          "multiple_scattering": {"octaves": 3}}],
+        atmosphere=AIR, camera=UP),
+}
+
+
+@pytest.mark.parametrize("name", list(IN_THE_AIR))
+def test_media_in_the_air_match_the_eager_joint_march(name):
+    """The [atmosphere]'s air a medium of the kernel's joint march: its in-scatter, its
+    transmittance in front of every source, its pieces alone in its own step count, the sun
+    reaching each sample through it."""
+    kernel, eager = _both(IN_THE_AIR[name], aovs=["alpha_volumes"])
+    assert kernel.stats["plan"]["air"] == "drjit" and eager.stats["plan"]["air"] == "eager"
+    _close(kernel, eager, name)
+    shares = (kernel.aovs["alpha_volumes"] - eager.aovs["alpha_volumes"]).abs().max()
+    assert shares <= KERNEL_TOL["radiance"], f"{name}: each medium's share of alpha off by {float(shares):.3g}"
+    assert kernel.stats["density_evals_by_volume"] == eager.stats["density_evals_by_volume"]
+    assert kernel.stats["march_steps"] == eager.stats["march_steps"]
+    # the air is seen: without it the picture differs by far more than the tolerance
+    bare = tv.render({k: v for k, v in IN_THE_AIR[name].items() if k != "atmosphere"})
+    assert (bare.radiance - kernel.radiance).abs().max() > 100 * KERNEL_TOL["radiance"]
+
+
+@pytest.mark.parametrize("view", ["space", "ground", "air"])
+def test_the_atmosphere_preset_matches_the_eager_march(view):
+    scene = tv.preset("atmosphere", width=32, height=24, view=view)
+    kernel, eager = tv.render(scene), tv.render(scene, compile="off")
+    assert kernel.stats["plan"]["air"] == "drjit" and eager.stats["plan"]["air"] == "eager"
+    _close(kernel, eager, f"atmosphere, {view}")
+    assert kernel.stats["march_steps"] == eager.stats["march_steps"] > 0
+
+
+def test_the_air_gives_the_same_bytes_alone_in_a_batch_and_for_any_chunking():
+    scenes = [IN_THE_AIR["a cloud in fog"], _media([{**PUFF_UP, "sigma_t": 3.0}, {**FOG_UP, "sigma_t": 0.3}],
+                                                   atmosphere={**AIR, "mie": 0.2}, camera={**UP, "eye": [-0.5, 4.0, -3.0]})]
+    batch = tv.render(scenes, seed=[1, 2])
+    for b, scene in enumerate(scenes):
+        alone = tv.render(scene, seed=1 + b, chunk_rays=57)
+        assert torch.equal(alone.radiance[0], batch.radiance[b]) and torch.equal(alone.depth[0], batch.depth[b])
 
 
 def test_the_joint_kernel_gives_the_same_bytes_alone_in_a_batch_and_for_any_chunking():

@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from types import SimpleNamespace
 
 import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from ..geometry.rays import intersect_sphere
+from ..geometry.rays import intersect_sphere, sphere_interval
+from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
 from .phase import mie_cornette_shanks
@@ -76,35 +78,109 @@ def gather_air(layer: Stacked, s: Tensor) -> Air:
                scale_heights=take(torch.stack([layer.rayleigh_height, layer.mie_height], dim=1), s))
 
 
+def air_lanes(air: Air, lane=lambda x: x) -> SimpleNamespace:
+    """An `Air` as the lanes functions take it (`ops.lanes`): one lane a value (`lane`: a tensor
+    [n] -> lanes; the columns themselves for the eager code), `rayleigh` three, `heights` two
+    (Rayleigh's, Mie's scale heights)."""
+    return SimpleNamespace(planet_radius=lane(air.planet_radius), top_radius=lane(air.top_radius),
+                           rayleigh=[lane(x) for x in air.rayleigh.unbind(1)], mie=lane(air.mie),
+                           heights=[lane(x) for x in air.scale_heights.unbind(1)], mie_g=lane(air.mie_g))
+
+
+def density_lanes(p, q: SimpleNamespace) -> list:
+    """The seeds' `density(p, H) = exp(−max(|p| − R, 0) / H)` at `p` (three lanes, planet frame)
+    for both scale heights of `q` (`air_lanes`) -> two lanes (Rayleigh, Mie)."""
+    height = lanes.clamp_min(lanes.length3(*p) - q.planet_radius, 0.0)
+    return [lanes.exp(-height / h) for h in q.heights]
+
+
+def optic_depth_lanes(start, direction, length, q: SimpleNamespace, steps: int) -> list:
+    """The seeds' `opticDepth(from, to)`: ∫ density from `start` along unit `direction` (three lanes
+    each, planet frame) for `length` (a lane), the midpoint rule with `steps` steps -> two lanes
+    (Rayleigh, Mie) in density × length."""
+    ds = lanes.divide(length, steps)
+    depth = [lanes.full_like(length, 0.0)] * 2
+    for j in range(steps):
+        step = density_lanes([start[c] + ((j + 0.5) * ds) * direction[c] for c in range(3)], q)
+        depth = [depth[k] + step[k] * ds for k in range(2)]
+    return depth
+
+
+def extinction_lanes(depth, q: SimpleNamespace) -> list:
+    """Optical thickness per colour (three lanes) of optic depths `depth` (two lanes: Rayleigh, Mie)."""
+    mie = MIE_EXTINCTION * q.mie * depth[1]
+    return [q.rayleigh[c] * depth[0] + mie for c in range(3)]
+
+
+def sun_path_lanes(p, sun_dir, q: SimpleNamespace):
+    """From `p` towards the sun `sun_dir` (three lanes each, planet frame; unit): the distance to
+    the top of the atmosphere (0 outside it, going away) and whether the planet blocks the sun."""
+    centre = (0.0, 0.0, 0.0)
+    _, top = sphere_interval(p, sun_dir, centre, q.top_radius)
+    near, far = sphere_interval(p, sun_dir, centre, q.planet_radius)
+    return lanes.clamp_min(top, 0.0), (near > 0) & (near <= far)  # a miss is (inf, -inf): not in the way
+
+
+def sun_transmittance_lanes(p, sun_dir, q: SimpleNamespace, light_steps: int) -> list:
+    """The air's transmittance (three lanes) from `p` to the sun `sun_dir` (three lanes each, planet
+    frame; unit): the nested optical-depth march, 0 where the planet is in the way."""
+    length, blocked = sun_path_lanes(p, sun_dir, q)
+    tau = extinction_lanes(optic_depth_lanes(p, sun_dir, length, q, light_steps), q)
+    return [lanes.where(blocked, 0.0, lanes.exp(-x)) for x in tau]
+
+
+def scattering_lanes(density, cos, q: SimpleNamespace) -> list:
+    """σ_s·p(θ) per colour (three lanes) of the air at densities `density` (two lanes) for the
+    cosine `cos` between the view ray and the sun: Rayleigh's and Mie's (Cornette-Shanks) summed."""
+    rayleigh = density[0] * rayleigh_phase(cos)
+    mie = density[1] * (q.mie * mie_cornette_shanks(cos, q.mie_g))
+    return [rayleigh * q.rayleigh[c] + mie for c in range(3)]
+
+
+def air_source_lanes(p, direction, sun_dir, sun, q: SimpleNamespace, light_steps: int) -> list:
+    """The sun's light scattered by the air towards the camera per unit length (three lanes) at `p`
+    (planet frame) of a ray along `direction`, the sun `sun_dir` (unit) of irradiance `sun` (three
+    lanes each): σ_s·p(θ)·E·T_sun."""
+    cos = direction[0] * sun_dir[0] + direction[1] * sun_dir[1] + direction[2] * sun_dir[2]
+    scatter = scattering_lanes(density_lanes(p, q), cos, q)
+    trans = sun_transmittance_lanes(p, sun_dir, q, light_steps)
+    return [sun[c] * trans[c] * scatter[c] for c in range(3)]
+
+
+def depth_transmittance_lanes(t, enter, span, nodes: int, fetch) -> list:
+    """exp(−τ) at distance `t` along a ray whose optical depth is tabulated at `nodes` + 1 even
+    nodes over [enter, enter + span] (lanes; span > 0), linearly between them: `fetch(i)` gives
+    node i's τ (three lanes) for int32 lanes i."""
+    u = lanes.clamp((t - enter) / span, 0.0, 1.0) * nodes
+    lo = lanes.minimum(lanes.floor(u), float(nodes - 1))
+    index = lanes.to_int32(lo)
+    a, b = fetch(index), fetch(index + 1)
+    return [lanes.exp(-lanes.lerp(a[c], b[c], u - lo)) for c in range(3)]
+
+
+def _columns(x: list) -> Tensor:
+    return torch.stack(x, dim=1)
+
+
 def densities(points: Tensor, air: Air) -> Tensor:
-    """The seeds' `density(p, H) = exp(−max(|p| − R, 0) / H)` for both scale heights: `points` [n, 3]
-    relative to the planet's centre -> [n, 2] (Rayleigh, Mie)."""
-    height = (points.norm(dim=1) - air.planet_radius).clamp_min(0.0)
-    return torch.exp(-height[:, None] / air.scale_heights)
+    """`density_lanes` of `points` [n, 3] (planet frame) -> [n, 2] (Rayleigh, Mie)."""
+    return _columns(density_lanes(points.unbind(1), air_lanes(air)))
 
 
 def optic_depth(start: Tensor, direction: Tensor, length: Tensor, air: Air, steps: int) -> Tensor:
-    """The seeds' `opticDepth(from, to)`: ∫ density over the segment from `start` [n, 3] (planet
-    frame) along unit `direction` [n, 3] for `length` [n], by the midpoint rule with `steps` steps
-    -> [n, 2] (Rayleigh, Mie) in density × length."""
-    ds = length / steps
-    depth = start.new_zeros(start.shape[0], 2)
-    for j in range(steps):
-        depth = depth + densities(start + ((j + 0.5) * ds)[:, None] * direction, air) * ds[:, None]
-    return depth
+    """`optic_depth_lanes` from `start` [n, 3] (planet frame) along unit `direction` [n, 3] for
+    `length` [n] -> [n, 2] (Rayleigh, Mie)."""
+    return _columns(optic_depth_lanes(start.unbind(1), direction.unbind(1), length, air_lanes(air), steps))
 
 
 def extinction(depth: Tensor, air: Air) -> Tensor:
     """Optical thickness per colour [n, 3] of optic depths `depth` [n, 2] (Rayleigh, Mie)."""
-    return air.rayleigh * depth[:, :1] + (MIE_EXTINCTION * air.mie * depth[:, 1])[:, None]
+    return _columns(extinction_lanes(depth.unbind(1), air_lanes(air)))
 
 
 def sun_path(points: Tensor, sun_dir: Tensor, air: Air) -> tuple[Tensor, Tensor]:
-    """From `points` [n, 3] (planet frame) towards the sun `sun_dir` [n, 3]: the distance to the top
-    of the atmosphere [n] (0 outside it, going away) and whether the planet blocks the sun [n]."""
-    _, top = intersect_sphere(points, sun_dir, torch.zeros_like(points), air.top_radius)
-    near, far = intersect_sphere(points, sun_dir, torch.zeros_like(points), air.planet_radius)
-    return top.clamp_min(0.0), (near > 0) & (near <= far)  # a miss is (inf, -inf): not in the way
+    """`sun_path_lanes` of `points`, `sun_dir` [n, 3] -> (distance [n], blocked [n])."""
+    return sun_path_lanes(points.unbind(1), sun_dir.unbind(1), air_lanes(air))
 
 
 def single_scatter(origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, sun_dir: Tensor, air: Air, *,
@@ -114,19 +190,23 @@ def single_scatter(origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, 
     `light_steps` towards the sun `sun_dir` [n, 3] (unit). -> (in-scatter [n, 3] per unit sun
     irradiance, seen from t0; transmittance [n, 3] from t0 to t1). t1 ≤ t0 gives (0, 1)."""
     dt = (t1 - t0).clamp_min(0.0) / steps
-    cos = (directions * sun_dir).sum(dim=1)
-    optical = torch.zeros_like(air.scale_heights)
-    sums = directions.new_zeros(directions.shape[0], 2, 3)  # Rayleigh's and Mie's attenuated sums
+    q, d, sun = air_lanes(air), directions.unbind(1), sun_dir.unbind(1)
+    cos = d[0] * sun[0] + d[1] * sun[1] + d[2] * sun[2]
+    optical = [torch.zeros_like(dt)] * 2
+    sums = [[torch.zeros_like(dt)] * 3 for _ in range(2)]  # Rayleigh's and Mie's attenuated sums
     for i in range(steps):
-        p = origins + (t0 + (i + 0.5) * dt)[:, None] * directions
-        step = densities(p, air) * dt[:, None]
-        optical = optical + step
-        length, blocked = sun_path(p, sun_dir, air)
-        attenuation = torch.exp(-extinction(optical + optic_depth(p, sun_dir, length, air, light_steps), air))
-        sums = sums + (attenuation * ~blocked[:, None])[:, None, :] * step[:, :, None]
-    inscatter = (sums[:, 0] * air.rayleigh * rayleigh_phase(cos)[:, None]
-                 + sums[:, 1] * (air.mie * mie_cornette_shanks(cos, air.mie_g))[:, None])
-    return inscatter, torch.exp(-extinction(optical, air))
+        t = t0 + (i + 0.5) * dt
+        p = [origins[:, c] + t * d[c] for c in range(3)]
+        step = [x * dt for x in density_lanes(p, q)]
+        optical = [optical[k] + step[k] for k in range(2)]
+        length, blocked = sun_path_lanes(p, sun, q)
+        toward = optic_depth_lanes(p, sun, length, q, light_steps)
+        tau = extinction_lanes([optical[k] + toward[k] for k in range(2)], q)
+        attenuation = [torch.where(blocked, 0.0, torch.exp(-x)) for x in tau]
+        sums = [[sums[k][c] + attenuation[c] * step[k] for c in range(3)] for k in range(2)]
+    rayleigh, mie = rayleigh_phase(cos), q.mie * mie_cornette_shanks(cos, q.mie_g)
+    inscatter = [sums[0][c] * q.rayleigh[c] * rayleigh + sums[1][c] * mie for c in range(3)]
+    return _columns(inscatter), _columns([torch.exp(-x) for x in extinction_lanes(optical, q)])
 
 
 def _segments(mask: Tensor, origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, sun_dir: Tensor, air: Air,
@@ -176,10 +256,8 @@ def shell_span(origins: Tensor, directions: Tensor, air: Air) -> tuple[Tensor, T
 
 
 def sun_transmittance(points: Tensor, sun_dir: Tensor, air: Air, light_steps: int) -> Tensor:
-    """The air's transmittance [n, 3] from `points` [n, 3] (planet frame) to the sun `sun_dir`
-    [n, 3] (unit): the nested optical-depth march, 0 where the planet is in the way."""
-    length, blocked = sun_path(points, sun_dir, air)
-    return torch.exp(-extinction(optic_depth(points, sun_dir, length, air, light_steps), air)) * ~blocked[:, None]
+    """`sun_transmittance_lanes` of `points`, `sun_dir` [n, 3] (planet frame; unit) -> [n, 3]."""
+    return _columns(sun_transmittance_lanes(points.unbind(1), sun_dir.unbind(1), air_lanes(air), light_steps))
 
 
 def ground_radiance(points: Tensor, sun_dir: Tensor, sun: Tensor, albedo: Tensor, air: Air, light_steps: int) -> Tensor:
@@ -215,25 +293,20 @@ class AirPath:
 
     def transmittance(self, rows: Tensor, t: Tensor) -> Tensor:
         """The air's transmittance [m, 3] from the camera to distance `t` [m] along rays `rows` [m]
-        (the table interpolated linearly: exact where the air is homogeneous)."""
-        k = self.depth.shape[1] - 1
+        (`depth_transmittance_lanes`: the table interpolated linearly, exact where the air is
+        homogeneous)."""
         enter, span = self.enter[rows], (self.leave[rows] - self.enter[rows]).clamp_min(torch.finfo(t.dtype).tiny)
-        u = ((t - enter) / span).clamp(0.0, 1.0) * k
-        lo = u.floor().clamp(max=k - 1).long()
-        table = self.depth[rows]
-        a, b = table.gather(1, lo[:, None, None].expand(-1, 1, 3))[:, 0], table.gather(1, (lo + 1)[:, None, None].expand(-1, 1, 3))[:, 0]
-        return torch.exp(-torch.lerp(a, b, (u - lo)[:, None]))
+        table = self.depth[rows]  # [m, K + 1, 3]
+        fetch = lambda i: table.gather(1, i.long()[:, None, None].expand(-1, 1, 3))[:, 0].unbind(1)  # noqa: E731
+        return _columns(depth_transmittance_lanes(t, enter, span, self.depth.shape[1] - 1, fetch))
 
     def source(self, rows: Tensor, t: Tensor) -> Tensor:
         """The sun's light scattered by the air towards the camera per unit length [m, 3] at
         distance `t` [m] along rays `rows` [m] (not yet attenuated on the way to the camera)."""
-        air, d, sun_dir = rows_of(self.air, rows), self.directions[rows], self.sun_dir[rows]
+        d = self.directions[rows]
         p = self.origins[rows] + t[:, None] * d
-        density = densities(p, air)
-        cos = (d * sun_dir).sum(dim=1)
-        scatter = (density[:, :1] * air.rayleigh * rayleigh_phase(cos)[:, None]
-                   + (density[:, 1] * air.mie * mie_cornette_shanks(cos, air.mie_g))[:, None])
-        return self.sun[rows] * sun_transmittance(p, sun_dir, air, self.light_steps) * scatter
+        return _columns(air_source_lanes(p.unbind(1), d.unbind(1), self.sun_dir[rows].unbind(1),
+                                         self.sun[rows].unbind(1), air_lanes(rows_of(self.air, rows)), self.light_steps))
 
 
 def air_path(origins: Tensor, directions: Tensor, sun_dir: Tensor, sun: Tensor, air: Air, *, steps: int,

@@ -142,6 +142,7 @@ class JointPass:
     name: str
     shares: bool = False
     air: bool = False
+    backend: Backend = "eager"  # "drjit": the whole joint march is one kernel (`joint_backends`)
 
 
 def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None, *, air: bool) -> JointPass | None:
@@ -155,22 +156,27 @@ def joint_pass(volumes: tuple[VolumePass, ...], labels: LabelPass | None, *, air
     return JointPass(tuple(v.index for v in members), "media.closed_form" if closed else "media.march", shares, air)
 
 
-def joint_backends(volumes: tuple[VolumePass, ...], joint: JointPass) -> tuple[VolumePass, ...]:
-    """The volumes with their backends in the joint march: one Dr.Jit kernel marches every medium
-    of a ray where each member's march is one and there is no air (`volume.kernel_march`); else
-    the members march eagerly together, each saying why."""
+def joint_backends(volumes: tuple[VolumePass, ...], joint: JointPass, *, air_kernel: bool) -> tuple[
+        tuple[VolumePass, ...], JointPass]:
+    """The volumes with their backends in the joint march, and the joint pass with its own: one
+    Dr.Jit kernel marches every medium of a ray, the air too (where `air_kernel`: the render runs
+    kernels, none error-controlled), where each member's march is one (`volume.kernel_march`);
+    else the members march eagerly together, each saying why."""
     members = [volumes[i] for i in joint.volumes]
     slow = next((v for v in members if v.backend != "drjit"), None)
-    if not joint.air and (slow is None or all(v.backend == "closed_form" for v in members)):
-        return volumes
+    if slow is None and (air_kernel or not joint.air):
+        return volumes, replace(joint, backend="drjit")
+    if not joint.air and all(v.backend == "closed_form" for v in members):
+        return volumes, joint
     closed = "in closed form, which the kernel does not mix with marches"
-    why = ("marched with the [atmosphere]'s air, which has no kernel" if joint.air
+    why = ("marched with the [atmosphere]'s air, which has no kernel here" if slow is None
            else f"marched with {slow.name} ({slow.eager_because or closed})")
 
     def because(v: VolumePass) -> str:  # a member with no kernel of its own says so
-        return v.eager_because if v.backend == "eager" else closed if v.backend == "closed_form" and not joint.air else why
+        return v.eager_because if v.backend == "eager" else closed if v.backend == "closed_form" else why
 
-    return tuple(replace(v, backend="eager", eager_because=because(v)) if v.index in joint.volumes else v for v in volumes)
+    return tuple(replace(v, backend="eager", eager_because=because(v)) if v.index in joint.volumes else v
+                 for v in volumes), joint
 
 
 @dataclass(frozen=True)
@@ -277,6 +283,7 @@ class Plan:
         return {"passes": self.names(), "sun": self.sun, "marches": {v.name: v.backend for v in self.volumes},
                 **({"eager_because": eager} if eager else {}),
                 **({"joint": [self.volumes[v].name for v in self.joint.volumes]} if self.joint is not None else {}),
+                **({"air": self.joint.backend} if self.joint is not None and self.joint.air else {}),
                 **({"walk": self.walk} if self.walk is not None else {}),
                 "threads": self.threads, "compile": self.compile, "dtype": str(self.dtype).removeprefix("torch.")}
 
@@ -446,10 +453,12 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", 
                     for v in range(len(batch.volumes)))
     labels = label_pass(batch, aovs)
     joint = joint_pass(volumes, labels, air=batch.atmosphere is not None)
-    if joint is not None:
-        volumes = joint_backends(tuple(replace(v, joint=v.index in joint.volumes) for v in volumes), joint)
     # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
     kernels = compile != "off" and compilation.drjit_available(dtype, device)
+    if joint is not None:
+        air_kernel = kernels and dtype == torch.float32 and torch.device(device).type == "cpu" and settings.tolerance is None
+        volumes, joint = joint_backends(tuple(replace(v, joint=v.index in joint.volumes) for v in volumes), joint,
+                                        air_kernel=air_kernel)
     glue = voxels is None and terrain is None and bool(volumes) and all(v.backend == "drjit" for v in volumes)
     return Plan(
         settings=settings,

@@ -205,8 +205,9 @@ def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tens
     t0, t1, hit = spans(ctx, vols, rays, t_limit, air)
     start, end, active = pieces(t0, t1, hit)
     first = torch.where(hit, t0, torch.full_like(t0, math.inf)).amin(dim=0)  # (the air's entry too)
-    if air is None and all(vol.plan.backend == "drjit" for vol in vols):  # one Dr.Jit kernel
-        res = kernel_march.march(ctx, vols, rays, background, start, end, active, ctx.dither(rays), shares=shares)
+    if ctx.plan.joint is not None and ctx.plan.joint.backend == "drjit":  # one Dr.Jit kernel
+        res = kernel_march.march(ctx, vols, rays, background, start, end, active, ctx.dither(rays), shares=shares,
+                                 air=air)
         if bool(active.any()):  # the members' per-sample passes ran inside it, their time in its own
             for name in (n for vol in vols for n in vol.plan.sample_passes):
                 with ctx.timer.section(name):

@@ -41,6 +41,14 @@ from torch import Tensor
 
 from ..fields.heightfield import terrain_lanes, visible_lanes
 from ..geometry.bounds import BOUNDS
+from ..light.atmosphere import (
+    AirPath,
+    air_lanes,
+    air_source_lanes,
+    depth_transmittance_lanes,
+    rows_of,
+    sun_transmittance_lanes,
+)
 from ..light.lights import point_lanes
 from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
@@ -78,7 +86,7 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
         (has_lanes(vol), f"the {vol.density.kind} density"),
         ("lanes" in BOUNDS[vol.bounds.kind].caps, f"{vol.bounds.kind} bounds"),
         (vol.shading in ("physical", "shader", "surface"), f"the {vol.shading} shading"),
-        (batch.atmosphere is None, "the [atmosphere]"),
+        (batch.atmosphere is None or vol.shading == "physical", "a look under the [atmosphere]"),
         (settings.tolerance is None, "the error-controlled march"),
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
         (all(has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
@@ -112,7 +120,7 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> Sim
         grids = None if use.shadow is None or use.shadow.method != "grid" else {
             j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in (vol.plan.index, *use.occluders)}
         k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(light.direction), use=use,
-                                        grids=grids))
+                                        grids=grids, through=light.through is not None))
     if any(light.response is None for light in k.lights):
         inputs, k.phase = vol.phase.caps["lanes"]
         k.phase_params = inputs(vol.params.phase.value, SimpleNamespace(per_lane=per_ray))
@@ -140,7 +148,7 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> Sim
 
 
 def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor, active: Tensor,
-          dither: Tensor | None, *, shares: bool = False) -> MarchResult:
+          dither: Tensor | None, *, shares: bool = False, air: AirPath | None = None) -> MarchResult:
     """The fixed march of the physical volumes `vols` (`supports` said yes for each) along a
     chunk's `rays` [R] (the sky behind them `background` [R, 3], None: black; what a sky blend
     fades towards) as one Dr.Jit kernel: each ray's span cut into pieces [start, end] [P, R]
@@ -148,27 +156,35 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     `active` [P, V, R]; in each piece σ_t and the sources of the media present summed, as
     `joint.summed_medium` does, and the piece marched by the render's step rule from its own
     start, its first step dithered by `dither` [R] (the fraction) or not (None). `shares`: the
-    radiance has V channels more, each medium's σ_t integrated (`joint.Joint.shares`). -> the
+    radiance has V channels more, each medium's σ_t integrated (`joint.Joint.shares`). `air`: the
+    `[atmosphere]` along the rays (`AirPath`), row V of `active`, as `joint.summed_medium` adds
+    it (its in-scatter where present, every source seen through the air in front of it, a piece
+    of air alone in the atmosphere's own step count), the suns' light reaching each volume's
+    samples through it (`light.atmosphere.sun_transmittance_lanes`). -> the
     whole ray's `march.march` result; its steps, truncations (one per piece a step limit cut) and
     each volume's density evaluations counted in the render's stats."""
     import drjit as dr
     from drjit.llvm import Bool, Float, Int32
 
     count = len(ctx.volumes)
-    idx = active.any(dim=1).any(dim=0).nonzero().squeeze(1)
+    held = active.any(dim=1)  # [P, R]: a medium in the piece, the air too
+    idx = held.any(dim=0).nonzero().squeeze(1)
+    air_on = None if air is None else active[:, -1]  # [P, R]
+    active = active if air is None else active[:, :-1]
     result = MarchResult.empty(start[0], 3 + (len(vols) if shares else 0))
     if idx.shape[0] == 0:
         return result
     s, d, lane, per_ray = _ray_lanes(rays, idx)
     bools = lambda x: Bool(x.index_select(0, idx).cpu().numpy())  # noqa: E731
     # the first piece with a medium on each ray
-    pieces = active.any(dim=1)[:, idx]  # [P, n]
+    pieces = held[:, idx]  # [P, n]
     first_piece = torch.where(pieces, torch.arange(pieces.shape[0])[:, None], pieces.shape[0]).amin(dim=0)
     k = SimpleNamespace(
         origin=lane(rays.origins.index_select(0, idx)), direction=lane(d),
         dither=None if dither is None else lane(dither.index_select(0, idx)),
         start=[lane(x.index_select(0, idx)) for x in start], end=[lane(x.index_select(0, idx)) for x in end],
-        present=[Bool(x.cpu().numpy()) for x in pieces], active=[[bools(a) for a in v] for v in active.unbind(1)])
+        present=[Bool(x.cpu().numpy()) for x in pieces], active=[[bools(a) for a in v] for v in active.unbind(1)],
+        air=None if air is None else _air_inputs(air, idx, lane, air_on, active))
     needed = {v.plan.index for v in vols} | {j for v in vols for u in v.plan.lights + (v.plan.ambient_sky,)
                                                if u is not None for j in u.occluders}
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
@@ -176,7 +192,7 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)
     behind = [0.0] * 3 if background is None else lane(background.index_select(0, idx))
     members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray, behind)),
-                               medium=_medium(m, v, par, solids, terrain, count)) for v in vols]
+                               medium=_medium(m, v, par, solids, terrain, count, k.air)) for v in vols]
     n = len(idx)
     zero, q0 = dr.zeros(Float, n), Int32(first_piece.to(torch.int32).numpy())
     t0 = lane(start[:, idx].gather(0, first_piece.clamp_max(start.shape[0] - 1)[None]).squeeze(0))
@@ -228,6 +244,40 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
     dr.eval(out)
     dr.sync_thread()
     return _written(ctx, result, idx, out[1:6], out[7], out[9:], {vol.plan.index: out[8]})
+
+
+def _air_inputs(air: AirPath, idx: Tensor, lane, on: Tensor, active: Tensor) -> SimpleNamespace:
+    """The air along the kernel's rays `idx` [n] as lanes: its values (`air_lanes`), the rays'
+    origins in the planet frame, the sun's direction and irradiance; where it is (`on` [P, R]) and
+    alone (no volume of `active` [P, V, R] there), a Bool lane a piece; its optical-depth table,
+    three flat tables of a ray's K + 1 nodes in a row, their span and count (`AirPath.depth`)."""
+    import drjit as dr
+    from drjit.llvm import Bool, Float, Int32
+
+    rows = lambda x: x.index_select(0, idx)  # noqa: E731
+    bools = lambda x: [Bool(rows(piece).cpu().numpy()) for piece in x]  # noqa: E731
+    nodes, table, enter = air.depth.shape[1] - 1, rows(air.depth), rows(air.enter)
+    span = (rows(air.leave) - enter).clamp_min(torch.finfo(enter.dtype).tiny)
+    return SimpleNamespace(
+        q=air_lanes(rows_of(air.air, idx), lane), origin=lane(rows(air.origins)), sun_dir=lane(rows(air.sun_dir)),
+        sun=lane(rows(air.sun)), on=bools(on), alone=bools(on & ~active.any(dim=1)), enter=lane(enter), span=lane(span),
+        nodes=nodes, light_steps=air.light_steps, row=dr.arange(Int32, len(idx)) * (nodes + 1),
+        table=[Float(table[:, :, c].reshape(-1).to(torch.float32).cpu().numpy()) for c in range(3)])
+
+
+def _air_sample(a: SimpleNamespace, here, t_sample, direction):
+    """The air's in-scatter where `here` (0 elsewhere) and its transmittance from the camera, three
+    lanes each, at `t_sample` along `direction` (`_air_inputs` `a`): `AirPath.source` and
+    `.transmittance` in lanes."""
+    import drjit as dr
+    from drjit.llvm import Float
+
+    width = dr.width(t_sample)
+    p = [a.origin[c] + t_sample * direction[c] for c in range(3)]
+    source = dr.if_stmt((), here, lambda: tuple(air_source_lanes(p, direction, a.sun_dir, a.sun, a.q, a.light_steps)),
+                        lambda: tuple(dr.zeros(Float, width) for _ in range(3)))
+    fetch = lambda i: [dr.gather(Float, a.table[c], a.row + i) for c in range(3)]  # noqa: E731
+    return list(source), depth_transmittance_lanes(t_sample, a.enter, a.span, a.nodes, fetch)
 
 
 def _ray_lanes(rays, idx: Tensor):
@@ -329,10 +379,12 @@ def _parameters(st) -> SimpleNamespace:
         min_transmittance=dr.opaque(Float, st.min_transmittance), max_iterations=dr.opaque(Int32, st.rule.max_iterations))
 
 
-def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain, count: int) -> SimpleNamespace:
+def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain, count: int,
+            air: SimpleNamespace | None = None) -> SimpleNamespace:
     """The per-sample functions of member `vol` over its inputs `k` (`_member_inputs`), the
-    parameters `par`, the volumes a ray may cross `solids` (`solid`, by index) and the terrain
-    (`fields.heightfield.terrain_lanes`, None: none):
+    parameters `par`, the volumes a ray may cross `solids` (`solid`, by index), the terrain
+    (`fields.heightfield.terrain_lanes`, None: none) and the air the sun shines through
+    (`_air_inputs`, None: none):
     density(p, count), in_scatter(p, sigma_t) -> (three lanes, `count` lanes of evaluations per volume)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
@@ -341,11 +393,9 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
 
     def transmittance(p, direction, sigma_scale, shadow, occluders, terrain, evals, distance=None, sigma_t=None,
                       grids=None):
-        """From lanes `p` along `direction` (three lanes) out of the bounds or to the light at
-        `distance` (None: a sun), σ_t = `sigma_scale` × density, over `shadow`'s segments
-        (`shadow.shadow_transmittance`'s march) or looked up in the sun's grid (`grids`, by
-        volume; `sigma_t` the extinction at p), times what the `occluders` and the `terrain`
-        (None: not asked) let through (`_through_others`), evaluations added to `evals`."""
+        """From lanes `p` along `direction` out of the bounds or to the light at `distance` (None: a
+        sun), σ_t = `sigma_scale` × density: `shadow.shadow_transmittance`'s march, or the sun's grid
+        (`grids`; `sigma_t` at p), times what `occluders` and `terrain` let through; `evals` added to."""
         if shadow.method == "grid":
             through = grid_transmittance(grids[own.index], p, sigma_t)
         else:
@@ -366,17 +416,18 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
         for light in k.lights:
             response, direction, distance = light.response, getattr(light, "direction", None), None
             if response is None:  # a point light: `physical.response` at this sample
-                direction, irradiance, distance = point_lanes(light.position, light.radiant, p)
-                cos = k.direction[0] * direction[0] + k.direction[1] * direction[1] + k.direction[2] * direction[2]
-                response = [[e * k.phase(k.phase_params, cos, 1.0) for e in irradiance]]
-                response += [[e * (a * k.phase(k.phase_params, cos, c)) for e in irradiance] for a, c in k.octave_scales]
+                direction, distance, response = _point_response(k, light, p)
             use = light.use
             trans = None if use.shadow is None else transmittance(
                 p, direction, k.sigma_t, use.shadow, use.occluders, terrain if use.terrain else None, evals, distance,
                 sigma_t, light.grids)
             weights = octave_weights(sigma_s, trans, k.exponents if vol.plan.multiple else [])
-            out = [out[c] + sum((response[i][c] * weights[i] for i in range(1, len(weights))),
-                                response[0][c] * weights[0]) for c in range(3)]
+            radiance = [sum((response[i][c] * weights[i] for i in range(1, len(weights))), response[0][c] * weights[0])
+                        for c in range(3)]
+            if air is not None and getattr(light, "through", False):  # the air on the sun's way to p
+                through = sun_transmittance_lanes([p[0], p[1] + air.q.planet_radius, p[2]], direction, air.q, air.light_steps)
+                radiance = [radiance[c] * through[c] for c in range(3)]
+            out = [out[c] + radiance[c] for c in range(3)]
         if vol.plan.ambient:
             amb = [a * sigma_s for a in ambient_radiance(k.ambient, p)]
             sky = vol.plan.ambient_sky
@@ -388,6 +439,16 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
         return out, evals
 
     return SimpleNamespace(density=own.density, in_scatter=in_scatter, octaves=own.octaves)
+
+
+def _point_response(k: SimpleNamespace, light: SimpleNamespace, p):
+    """A point light's direction, distance and `physical.response` (per octave, three lanes each)
+    at lanes `p` seen along the ray (`_member_inputs` `k`)."""
+    direction, irradiance, distance = point_lanes(light.position, light.radiant, p)
+    cos = k.direction[0] * direction[0] + k.direction[1] * direction[1] + k.direction[2] * direction[2]
+    response = [[e * k.phase(k.phase_params, cos, 1.0) for e in irradiance]]
+    response += [[e * (a * k.phase(k.phase_params, cos, c)) for e in irradiance] for a, c in k.octave_scales]
+    return direction, distance, response
 
 
 def optical_depth(solid, p, direction, exit_t, sigma_scale, steps, growth=1.0, first_step=None):
@@ -549,6 +610,9 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
         evals, radiance = list(rest[:count]), list(rest[count:])
         start, end = _pick(k.start, q), _pick(k.end, q)
         dt = st.rule.length(t, end - start)
+        alone = None if k.air is None else _pick(k.air.alone, q)
+        if alone is not None:  # the air alone: smooth, in the atmosphere's own step count
+            dt = dr.select(alone, lanes.divide(end - start, k.air.nodes), dt)
         if k.dither is not None:  # only a piece's first segment is dithered
             dt = dr.select(first, dt * k.dither, dt)
         dt = lanes.minimum(dt, end - t)
@@ -556,7 +620,7 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
         p = [dr.fma(t_sample, k.direction[c], k.origin[c]) for c in range(3)]  # rounded once, as eager's addcmul
         sigma, source, sigmas = dr.zeros(Float, dr.width(t)), [dr.zeros(Float, dr.width(t))] * 3, []
         for i, m in enumerate(members):
-            if len(members) == 1:  # (a piece has a medium: the one)
+            if len(members) == 1 and k.air is None:  # (a piece has a medium: the one)
                 sig, src, ev = sample(m, p, t_sample, dt)
             else:
                 width = dr.width(t)
@@ -566,6 +630,9 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
             sigma, source = sigma + sig, [source[c] + src[c] for c in range(3)]
             evals = [e + x for e, x in zip(evals, ev)]
             sigmas.append(sig)
+        if k.air is not None:  # its in-scatter (σ_t 0: its extinction is the factor below) where present
+            inscatter, seen = _air_sample(k.air, _pick(k.air.on, q), t_sample, k.direction)
+            source = [(source[c] + inscatter[c]) * seen[c] for c in range(3)]
         weight, seg_trans = WEIGHTS[st.integrator](sigma, dt)
         radiance = [r + trans * (x * weight) for r, x in zip(radiance, source + (sigmas if shares else []))]
         w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
@@ -573,7 +640,8 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
         t_next, piece_steps = t + dt, piece_steps + 1
         inside = t_next < end
         going = new_trans >= par.min_transmittance if st.min_transmittance > 0 else dr.full(Bool, True, dr.width(t))
-        last = piece_steps >= par.max_iterations
+        limit = par.max_iterations if alone is None else dr.select(alone, Int32(k.air.nodes + 1), par.max_iterations)
+        last = piece_steps >= limit
         truncated = truncated + dr.select(inside & going & last, Int32(1), Int32(0))
         done = ~inside | last
         after = _next_piece(k.present, q)
