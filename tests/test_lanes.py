@@ -62,6 +62,14 @@ def test_lerp_where_minimum_clamp_and_gather_agree_bitwise():
     assert torch.equal(_back(lanes.gather(_jit(table), _jit(index))), lanes.gather(table, index))
 
 
+def test_remainder_is_floor_modulo_in_both():
+    i = torch.arange(-1000, 1000, dtype=torch.int32) * 7919
+    for n in (1, 5, 12, 256, 300):
+        want = torch.remainder(i, n)
+        assert torch.equal(lanes.remainder(i, n), want) and torch.equal(_back(lanes.remainder(_jit(i), n)), want), n
+    assert int(lanes.remainder(i, 5).min()) == 0
+
+
 def test_a_python_number_keeps_its_precision_in_float64():
     x = torch.zeros(3, dtype=torch.float64)
     third = 1.0 / 3.0

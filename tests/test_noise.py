@@ -1,5 +1,6 @@
 """torchvol.noise: determinism, ranges, continuity, lattice identities, LOD, texture trick."""
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
@@ -16,9 +17,9 @@ from torchvol.noise.lattice import (
     scene_rows,
     texture_noise,
     value_noise,
-    value_noise_scenes,
     worley_noise,
 )
+from torchvol.runtime.compilation import drjit_available
 
 DTYPES = [torch.float32, torch.float64]
 TEX = default_noise_texture(0)
@@ -101,11 +102,19 @@ def test_lattice_hash_is_a_period_256_permutation_chain():
     assert not torch.equal(h, lattice_hash(cells, 6))
 
 
-def test_corner_hashes_are_lattice_hash_of_the_corners():
+@pytest.mark.parametrize("period", [None, 5, 300])
+@pytest.mark.parametrize("offsets", [(0, 1), (-1, 0, 1)])
+def test_the_shared_chain_is_lattice_hash_of_each_cell(offsets, period):
+    """`_lattice_chain` over `_cells` (a cell's 8 corners, the 27 cells around): each hash is
+    `lattice_hash` of its cell, wrapped by the period first, in x-fastest order."""
     cells = torch.randint(-1000, 1000, (500, 3), generator=torch.Generator().manual_seed(3))
-    perm = noise._lattice_tables(7, "cpu")[0].to(torch.int32)
-    for corner, h in zip(noise._CORNERS, noise._corner_hashes(cells, perm), strict=True):
-        assert torch.equal(h.long(), lattice_hash(cells + torch.tensor(corner), 7)), corner
+    perm = noise.scene_lattice_tables((7,), "cpu")[0]
+    hashes = noise._lattice_chain(perm, *noise._cells(cells.double().unbind(1), offsets, period=period))
+    neighbours = [(dx, dy, dz) for dz in offsets for dy in offsets for dx in offsets]
+    assert offsets != (0, 1) or neighbours == noise._CORNERS
+    for off, h in zip(neighbours, hashes, strict=True):
+        c = cells + torch.tensor(off)
+        assert torch.equal(h.long(), lattice_hash(c if period is None else torch.remainder(c, period), 7)), off
 
 
 def test_perlin_zero_at_lattice_points():
@@ -117,6 +126,76 @@ def test_worley_zero_at_feature_point():
     cell = torch.tensor([[3, -4, 5]])
     feat = lattice_values(cell, 11, torch.float64)
     assert worley_noise(cell.double() + feat, seed=11).item() < 1e-12
+
+
+# Ken Perlin's 12 edge gradients, indexed by the corner's hash mod 12
+GRADS = torch.tensor([(1, 1, 0), (-1, 1, 0), (1, -1, 0), (-1, -1, 0), (1, 0, 1), (-1, 0, 1), (1, 0, -1), (-1, 0, -1),
+                      (0, 1, 1), (0, -1, 1), (0, 1, -1), (0, -1, -1)], dtype=torch.float64)
+
+
+def _wrapped(cells, period):
+    return cells if period is None else torch.remainder(cells, period)
+
+
+def _perlin_reference(p, seed, period=None):
+    """Gradient noise from its definition, in float64 [N]: each corner's gradient GRADS[lattice_hash
+    mod 12] dotted with the offset from the corner, weighted by the product of the quintic fades."""
+    p = p.double()
+    cell, f = torch.floor(p).long(), p - torch.floor(p)
+    corners = torch.tensor(noise._CORNERS)  # [8, 3]
+    h = lattice_hash(_wrapped(cell[:, None] + corners, period), seed)  # [N, 8]
+    dots = (GRADS[h % 12] * (f[:, None] - corners)).sum(-1)
+    u = (f * f * f * (f * (f * 6 - 15) + 10))[:, None]  # [N, 1, 3]
+    weights = torch.where(corners.bool(), u, 1 - u).prod(-1)  # [N, 8]
+    return (weights * dots).sum(-1)
+
+
+def _worley_reference(p, seed, period=None):
+    """F1 from its definition, in float64 [N]: the nearest of the 27 cells' feature points
+    cell + lattice_values(cell), clamped to 1."""
+    p = p.double()
+    cell, best = torch.floor(p).long(), torch.full(p.shape[:1], float("inf"), dtype=torch.float64)
+    for dz in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                c = cell + torch.tensor([dx, dy, dz])
+                best = torch.minimum(best, (c + lattice_values(_wrapped(c, period), seed, torch.float64) - p).square().sum(-1))
+    return best.sqrt().clamp_max(1.0)
+
+
+def _lattice_test_points(n, dtype, seed):
+    """[n + 300, 3] points across 600 cells, negative coordinates included, and 300 lattice points."""
+    g = torch.Generator().manual_seed(seed)
+    cells = torch.randint(-300, 300, (300, 3), generator=g)
+    return torch.cat([points(n, dtype, scale=300.0, seed=seed), cells.to(dtype)])
+
+
+REFERENCES = {"perlin": _perlin_reference, "worley": _worley_reference}
+
+
+@pytest.mark.parametrize("period", [None, 6])
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("name", sorted(REFERENCES))
+def test_gradient_and_worley_noise_follow_their_definition(name, dtype, period):
+    """The lanes noise (what eager and the Dr.Jit march run) against an independent float64 oracle
+    over `lattice_hash` / `lattice_values`: the seed's tables, whole cells, the period."""
+    fn = {"perlin": perlin_noise, "worley": worley_noise}[name]
+    tol = 1e-12 if dtype == torch.float64 else 2e-6
+    for seed in (0, 5, 2**40 + 3):
+        p = _lattice_test_points(3000, dtype, seed)
+        err = (fn(p, seed=seed, period=period).double() - REFERENCES[name](p, seed, period)).abs()
+        assert float(err.max()) <= tol, f"seed {seed}: off by {float(err.max()):.3g} at {p[int(err.argmax())].tolist()}"
+
+
+def test_the_gradient_rule_is_perlins_table():
+    """`_gradient_dot`'s selects give GRADS[h mod 12] · d for every hash of three stacked blocks."""
+    h = torch.arange(3 * 512, dtype=torch.int32)
+    d = torch.randn(3, h.shape[0], generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    assert torch.equal(noise._gradient_dot(h, *d), (GRADS[(h.long() & 255) % 12] * d.T).sum(-1))
+
+
+SCENE_NOISES = {"value": (value_noise, noise.value_noise_scenes), "perlin": (perlin_noise, noise.perlin_noise_scenes),
+                "worley": (worley_noise, noise.worley_noise_scenes)}
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -131,19 +210,51 @@ def test_fbm_lod_equals_fewer_octaves(dtype):
         assert torch.equal(got[m], want), f"lod {L}"
 
 
+@pytest.mark.parametrize("name", sorted(SCENE_NOISES))
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_value_noise_of_several_scenes_is_bitwise_each_scenes_own(dtype):
+def test_noise_of_several_scenes_is_bitwise_each_scenes_own(dtype, name):
     """One pass over every scene's points (stacked tables), and the same through fbm's compaction."""
+    one, scenes = SCENE_NOISES[name]
     n, seeds = 4000, [7, 0, 2**40 + 3, 7]
     p = points(n, dtype, scale=300.0, seed=8)  # past the 256-cell period, negative cells included
     g = torch.Generator().manual_seed(9)
     scene, lod = torch.randint(0, len(seeds), (n,), generator=g), torch.randint(1, 6, (n,), generator=g)
-    got = value_noise_scenes(p, scene_rows(scene), seeds)
-    got_fbm = fbm(p, lambda q, rows: value_noise_scenes(q, rows, seeds), lod=lod, rows=scene_rows(scene))
+    got = scenes(p, scene_rows(scene), seeds)
+    got_fbm = fbm(p, lambda q, rows: scenes(q, rows, seeds), lod=lod, rows=scene_rows(scene))
     for b, seed in enumerate(seeds):
         m = scene == b
-        assert torch.equal(got[m], value_noise(p[m], seed=seed)), f"scene {b}"
-        assert torch.equal(got_fbm[m], fbm(p[m], lambda q: value_noise(q, seed=seed), lod=lod[m])), f"fbm, scene {b}"
+        assert torch.equal(got[m], one(p[m], seed=seed)), f"scene {b}"
+        assert torch.equal(got_fbm[m], fbm(p[m], lambda q: one(q, seed=seed), lod=lod[m])), f"fbm, scene {b}"
+
+
+@pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
+@pytest.mark.parametrize(("name", "period"), [("value", None), ("perlin", None), ("perlin", 5), ("worley", None),
+                                            ("worley", 5)])
+def test_the_lanes_noise_traced_by_drjit_is_the_eager_noise(name, period):
+    """The lattice noises as the Dr.Jit march traces them (`value_lanes`, `perlin_lanes`,
+    `worley_lanes` on Dr.Jit arrays, several scenes' tables stacked) against the eager noise of
+    each point's own seed: bitwise, but for Worley's square root (Dr.Jit's, within an ulp)."""
+    from drjit.llvm import Float, Int32
+
+    seeds = (7, 0, 2**40 + 3)
+    p = _lattice_test_points(20000, torch.float32, seed=2)
+    scene = torch.randint(0, len(seeds), (p.shape[0],), generator=torch.Generator().manual_seed(4))
+    perm, columns = noise.scene_lattice_tables(seeds, "cpu")
+    xyz, perm, rows = [Float(c.numpy()) for c in p.unbind(1)], Int32(perm.numpy()), Int32(scene_rows(scene).numpy())
+    values = [Float(c.float().numpy()) for c in columns]
+    kw = {} if period is None else {"period": period}
+    got = torch.from_numpy(np.array({"value": lambda: noise.value_lanes(*xyz, perm, values[0], rows),
+                                     "perlin": lambda: noise.perlin_lanes(*xyz, perm, rows, **kw),
+                                     "worley": lambda: noise.worley_lanes(*xyz, perm, values, rows, **kw)}[name]()))
+    one = SCENE_NOISES[name][0]
+    eager = torch.empty_like(got)
+    for b, seed in enumerate(seeds):
+        m = scene == b
+        eager[m] = one(p[m], seed=seed, **kw)
+    if name == "worley":
+        torch.testing.assert_close(got, eager, rtol=0.0, atol=1.2e-7)
+    else:
+        assert torch.equal(got, eager), f"largest difference {float((got - eager).abs().max())}"
 
 
 def test_fbm_compaction_evaluates_only_needed_points():

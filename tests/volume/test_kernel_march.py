@@ -59,6 +59,8 @@ def test_recipe_samples_match_the_eager_march(index):
 
 VARIANTS = {
     "the table hash": {"volumes.0.density.fbm.hash": "table"},
+    "fbm of gradient (Perlin) noise": {"volumes.0.density.fbm.hash": "table", "volumes.0.density.fbm.noise": "perlin"},
+    "fbm of Worley noise": {"volumes.0.density.fbm.hash": "table", "volumes.0.density.fbm.noise": "worley"},
     "constant density": {"volumes.0.density": {"constant": 1.0}},
     "exponential density in a slab": {"volumes.0.bounds": {"slab": {"y_min": -1.0, "y_max": 0.5}}, "volumes.0.sigma_t": 2.0,
                                       "volumes.0.density": {"exponential": {"value": 1.0, "base": -1.0, "scale_height": 0.5}}},
@@ -95,9 +97,11 @@ def test_every_variant_the_kernel_renders_matches_the_eager_march(name):
     _close(kernel, eager, name)
 
 
-@pytest.mark.parametrize("hash_", ["arithmetic", "table"])
-def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count(hash_):
-    scenes = [_scene(i, **{"volumes.0.density.fbm.hash": hash_}) for i in range(3)]
+@pytest.mark.parametrize(("hash_", "kind"), [("arithmetic", "value"), ("table", "value"), ("table", "perlin"),
+                                             ("table", "worley")])
+def test_the_same_bytes_alone_in_a_batch_for_any_chunking_and_thread_count(hash_, kind):
+    """Each scene's noise from its own seed's tables, whatever the scenes beside it."""
+    scenes = [_scene(i, **{"volumes.0.density.fbm.hash": hash_, "volumes.0.density.fbm.noise": kind}) for i in range(3)]
     batch = tv.render(scenes, seed=[5, 6, 7])
     for b, scene in enumerate(scenes):
         alone = tv.render(scene, seed=5 + b, chunk_rays=97)
@@ -231,18 +235,19 @@ def test_the_joint_kernel_gives_the_same_bytes_alone_in_a_batch_and_for_any_chun
         assert torch.equal(alone.radiance[0], batch.radiance[b]) and torch.equal(alone.depth[0], batch.depth[b])
 
 
-def _particles(seed: int, combine: str):
+def _particles(seed: int, combine: str, kind: str = "value"):
     return {**PUFF, "bounds": {"box": {"min": [-1.5, -1.2, -1.2], "max": [1.5, 1.2, 1.2]}},
             "density": {"particles": {"count": 7, "seed": seed, "region_min": [-0.8, -0.5, -0.5], "region_max": [0.8, 0.5, 0.5],
-                                      "radius": [0.3, 0.6], "core": -0.2, "amplitude": 2.0, "octaves": 3, "combine": combine}}}
+                                      "radius": [0.3, 0.6], "core": -0.2, "amplitude": 2.0, "octaves": 3, "combine": combine,
+                                      "noise": kind}}}
 
 
-@pytest.mark.parametrize("combine", ["sum", "max"])
-def test_particles_match_eager_and_give_the_same_bytes_alone_and_in_a_batch(combine):
-    scenes = [_media([_particles(seed, combine)]) for seed in (3, 4)]
+@pytest.mark.parametrize(("combine", "kind"), [("sum", "value"), ("max", "value"), ("sum", "perlin"), ("max", "worley")])
+def test_particles_match_eager_and_give_the_same_bytes_alone_and_in_a_batch(combine, kind):
+    scenes = [_media([_particles(seed, combine, kind)]) for seed in (3, 4)]
     for scene in scenes:
         kernel, eager = _both(scene)
-        _close(kernel, eager, f"particles, {combine}")
+        _close(kernel, eager, f"particles, {combine}, {kind} noise")
         assert kernel.stats["density_evals"] == eager.stats["density_evals"]
     batch = tv.render(scenes, seed=[1, 2])
     for b, scene in enumerate(scenes):
@@ -322,21 +327,29 @@ def test_voxel_terrain_samples_march_their_cloud_layer_in_the_kernel(index):
     _close(kernel, eager, f"voxel-terrain sample {index}")
 
 
+# a density without lanes, marched eagerly (a grid's lookup, its march skipping empty space)
+GRID = {"grid": {"data": [[[0.2, 0.9], [0.5, 0.0]], [[1.0, 0.3], [0.7, 0.4]]]}}
+
+
 def test_a_joint_member_without_a_kernel_marches_every_member_eagerly():
-    perlin = {**FOG, "density": {"fbm": {"noise": "perlin", "octaves": 2}}}
-    out = tv.render(_media([PUFF, perlin], lights=[{**SUN, "shadow": None}]))
+    grid = {**FOG, "density": GRID}
+    out = tv.render(_media([PUFF, grid], lights=[{**SUN, "shadow": None}]))
     assert out.stats["plan"]["marches"] == {"volume0": "eager", "volume1": "eager"}
-    assert out.stats["plan"]["eager_because"] == {"volume0": "marched with volume1 (no kernel for the fbm density)",
-                                                  "volume1": "no kernel for the fbm density"}
+    assert out.stats["plan"]["eager_because"] == {"volume0": "marched with volume1 (the skip strategy has no kernel)",
+                                                  "volume1": "the skip strategy has no kernel"}
     # a shadow ray through it: the other volume's own march has no kernel either
-    shadowed = tv.render(_media([PUFF, perlin])).stats["plan"]["eager_because"]
+    shadowed = tv.render(_media([PUFF, grid])).stats["plan"]["eager_because"]
     assert shadowed["volume0"] == "no kernel for shadows through a volume not written in lanes"
 
 
 def test_the_plan_takes_the_kernel_only_where_it_renders_the_technique():
-    perlin = tv.render(_scene(0, **{"volumes.0.density.fbm": {"noise": "perlin", "octaves": 3}}))
-    assert perlin.stats["plan"]["marches"] == {"volume0": "eager"}  # Perlin's gradient noise has no kernel yet
-    assert perlin.stats["plan"]["eager_because"] == {"volume0": "no kernel for the fbm density"}
+    for kind in ("value", "perlin", "worley"):  # fbm of every noise in the kernel
+        fbm = tv.render(_scene(0, **{"volumes.0.density.fbm": {"noise": kind, "octaves": 3}})).stats["plan"]
+        assert fbm["marches"] == {"volume0": "drjit"} and "eager_because" not in fbm, kind
+    grid = tv.render(_scene(0, **{"volumes.0.bounds": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}},
+                                  "volumes.0.density": GRID}))
+    assert grid.stats["plan"]["marches"] == {"volume0": "eager"}
+    assert grid.stats["plan"]["eager_because"] == {"volume0": "the skip strategy has no kernel"}
     wide = tv.render(_scene(0), dtype=torch.float64)
     assert wide.stats["plan"]["marches"] == {"volume0": "eager"}  # float64: the reference
     assert "float64" in wide.stats["plan"]["eager_because"]["volume0"]

@@ -57,13 +57,11 @@ DENSITIES = Registry("density")
 DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lanes=(constant_lanes, constant_density))
 DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True)
 DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density))
-DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True,
-                   lanes=(fbm_lanes, fbm_density, lambda volume: volume.density.value.noise == "value"))
+DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True, lanes=(fbm_lanes, fbm_density))
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, lanes=(clouds_lanes, clouds_density))
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, lanes=(explosion_lanes, explosion_density))
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape, lanes=(cloudscape_lanes, cloudscape_density))
-DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True,
-                   lanes=(particles_lanes, particles_density, lambda volume: volume.density.value.noise == "value"))
+DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True, lanes=(particles_lanes, particles_density))
 DENSITIES.register("fur", FurDensity, FurField, lanes=(fur_lanes, fur_density))
 
 __all__ = ["DENSITIES", "Field"]

@@ -25,7 +25,7 @@ from ..noise.fast import fbm_sum
 from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import EACH, Strict, Vec3
-from .fbm import seeded_fbm, value_basis
+from .fbm import noise_basis, seeded_fbm
 
 
 class ExplosionDensity(Strict):
@@ -72,11 +72,12 @@ def fireball(q, n, displacement, sharpness):
 
 def explosion_lanes(field: ExplosionField, to) -> SimpleNamespace:
     """What the explosion takes per lane (`to.per_lane`: per scene -> lanes), its noise basis and
-    octave scales (`fields.fbm.value_basis`, `to.number`)."""
+    octave scales (`fields.fbm.noise_basis`, `to.number`)."""
     p = field.p
     q = SimpleNamespace(center=to.per_lane(p.center), size=to.per_lane(field.size), frequency=to.per_lane(p.frequency),
                         shift=to.per_lane(field.shift), displacement=to.per_lane(p.displacement),
-                        sharpness=to.per_lane(p.sharpness), octaves=int(p.octaves), basis=value_basis(p.seed, "table", to))
+                        sharpness=to.per_lane(p.sharpness), octaves=int(p.octaves),
+                        basis=noise_basis("value", p.seed, "table", to))
     q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
     return q
 

@@ -17,7 +17,9 @@ from ..schema.models import EACH, Strict, Vec3
 
 NOISES = {"value": noise.value_noise, "perlin": noise.perlin_noise, "worley": noise.worley_noise}
 # a noise's twin over several scenes at once (points, their scenes' rows, the seeds), bitwise each scene's own
-SCENE_NOISES = {noise.value_noise: (noise.value_noise_scenes, noise.scene_rows)}
+SCENE_NOISES = {noise.value_noise: (noise.value_noise_scenes, noise.scene_rows),
+                noise.perlin_noise: (noise.perlin_noise_scenes, noise.scene_rows),
+                noise.worley_noise: (noise.worley_noise_scenes, noise.scene_rows)}
 
 
 class FbmDensity(Strict):
@@ -90,24 +92,31 @@ class FbmField:
 
 def fbm_lanes(field: FbmField, to) -> SimpleNamespace:
     """What the fbm takes per lane: its parameters (`to.per_lane`: per scene -> lanes), its noise
-    basis over the lanes' scenes (`value_basis`) and its octave scales (`to.number`)."""
+    basis over the lanes' scenes (`noise_basis`) and its octave scales (`to.number`)."""
     p = field.p
     q = SimpleNamespace(frequency=to.per_lane(p.frequency), shift=to.per_lane(field.shift), offset=to.per_lane(p.offset),
                         bias=to.per_lane(p.bias), amplitude=to.per_lane(p.amplitude), radial=to.per_lane(p.radial),
                         center=to.per_lane(p.center), octaves=int(p.octaves))
     q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
-    q.basis = value_basis(p.seed, p.hash, to)
+    q.basis = noise_basis(p.noise, p.seed, p.hash, to)
     return q
 
 
-def value_basis(seeds, hash: str, to):
-    """Value noise of the lanes' scenes (`to.scene`, each with its seed of `seeds`) as `fbm_sum`'s
-    basis: the arithmetic hash's mixed seeds, or the scenes' permutation tables stacked, each
-    lane's chain in its scene's block (`to.ints`, `to.floats`: a table as the backend's array)."""
+def noise_basis(kind: str, seeds, hash: str, to):
+    """The noise `kind` ("value", "perlin", "worley") of the lanes' scenes (`to.scene`, each with
+    its seed of `seeds`) as `fbm_sum`'s basis: value noise of the arithmetic hash's mixed seeds, or
+    a lattice noise over the scenes' tables stacked (`noise.scene_lattice_tables`), each lane's
+    chain in its scene's block (`to.ints`, `to.floats`: a table as the backend's array)."""
     if hash == "arithmetic":
         return fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(seeds, "cpu"), to.scene)))
-    perm, first = noise._scene_lattice_tables(tuple(int(x) for x in seeds), "cpu")
-    perm, first, rows = to.ints(perm), to.floats(first), to.ints(noise.scene_rows(to.scene))
+    perm, columns = noise.scene_lattice_tables(tuple(int(x) for x in seeds), "cpu")
+    perm, rows = to.ints(perm), to.ints(noise.scene_rows(to.scene))
+    if kind == "perlin":
+        return lambda x, y, z: noise.perlin_lanes(x, y, z, perm, rows)
+    if kind == "worley":
+        values = [to.floats(c) for c in columns]
+        return lambda x, y, z: noise.worley_lanes(x, y, z, perm, values, rows)
+    first = to.floats(columns[0])
     return lambda x, y, z: noise.value_lanes(x, y, z, perm, first, rows)
 
 

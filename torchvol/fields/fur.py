@@ -50,7 +50,7 @@ class FurField:
     def unscaled(self, points: Tensor, scene_index: Tensor) -> Tensor:
         """max(core, strand), `points` [N, 3] -> [N] (`fur_unscaled` on torch columns)."""
         p, s = self.p, scene_index
-        perm, values = noise.scene_worley_tables(tuple(int(x) for x in p.seed), str(points.device))
+        perm, values = noise.scene_lattice_tables(tuple(int(x) for x in p.seed), str(points.device))
         rows = noise.scene_rows(s)
         worley = lambda q: noise.worley_lanes(*q, perm, [v.to(points.dtype) for v in values], rows)  # noqa: E731
         q = SimpleNamespace(**{k: lanes.columns(take(getattr(p, k), s)) for k in ("center", "radius", "length", "frequency",
@@ -75,7 +75,7 @@ def fur_lanes(field: FurField, to) -> SimpleNamespace:
     p = field.p
     q = SimpleNamespace(**{k: to.per_lane(getattr(p, k)) for k in ("center", "radius", "length", "frequency", "thickness",
                                                                     "scale")})
-    perm, values = noise.scene_worley_tables(tuple(int(x) for x in p.seed), "cpu")
+    perm, values = noise.scene_lattice_tables(tuple(int(x) for x in p.seed), "cpu")
     q.perm, q.values, q.rows = to.ints(perm), [to.floats(v) for v in values], to.ints(noise.scene_rows(to.scene))
     return q
 

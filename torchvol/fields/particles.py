@@ -24,7 +24,7 @@ from ..noise import lattice as noise
 from ..ops import lanes
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
-from .fbm import NOISES, seeded_fbm, value_basis
+from .fbm import NOISES, noise_basis, seeded_fbm
 
 MAX_PARTICLES = 256
 
@@ -158,7 +158,7 @@ def particles_lanes(field: ParticleField, to) -> SimpleNamespace:
                         centers=to.floats(field.centers.reshape(-1)), radii=to.floats(field.radii.reshape(-1)),
                         offsets=to.floats(field.offsets.reshape(-1)), frequency=to.per_lane(p.frequency),
                         core=to.per_lane(p.core), amplitude=to.per_lane(p.amplitude), edge=to.per_lane(p.edge),
-                        basis=value_basis(p.seed, "table", to))
+                        basis=noise_basis(p.noise, p.seed, "table", to))
     q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
     return q
 

@@ -29,8 +29,14 @@ __all__ = [
     "value_noise",
     "perlin_noise",
     "worley_noise",
+    "value_lanes",
+    "perlin_lanes",
     "worley_lanes",
-    "scene_worley_tables",
+    "value_noise_scenes",
+    "perlin_noise_scenes",
+    "worley_noise_scenes",
+    "scene_lattice_tables",
+    "scene_rows",
     "default_noise_texture",
     "texture_noise",
     "texture_noise_table",
@@ -110,53 +116,80 @@ def _hash(cells: Tensor, perm: Tensor) -> Tensor:
     return take_rows(perm, take_rows(perm, take_rows(perm, c[..., 0]) + c[..., 1]) + c[..., 2])
 
 
-def _corner_hashes(cells: Tensor, perm: Tensor) -> list[Tensor]:
-    """`lattice_hash` of the 8 corners (`_CORNERS` order) of cells [N, 3] in a doubled
-    permutation `perm` [512] int32 -> 8 × [N] int32.
+def _cells(floors, offsets: Sequence[int], rows=None, period: int | None = None) -> list[list]:
+    """Per axis, the lattice coordinates in [0, 256) (int32 lanes) of the cells `offsets` away
+    along it from the cells whose lowest corners are `floors` (three float lanes, floor(p)), wrapped
+    every `period` cells first (None: by the lattice's own 256 alone), each lane's `rows` (its block
+    of stacked tables, None: 0) added along x: what `_lattice_chain` takes."""
+    axes = []
+    for a, lo in enumerate(floors):
+        c = lanes.to_int32(lo)
+        cells = [c + o if o else c for o in offsets]
+        cells = [(x if period is None else lanes.remainder(x, period)) & 255 for x in cells]
+        axes.append(cells if a or rows is None else [x + rows for x in cells])
+    return axes
 
-    Perlin's chain shares its prefixes: perm[x] for 2 x's, perm[· + y] for 4 (x, y), perm[· + z]
-    for 8: 14 gathers of N instead of 24, and the doubled table absorbs the corner's +1 (every
-    index stays below 512), so no [N, 8, 3] corner cells are formed. Bitwise `lattice_hash`."""
-    return _corner_chain(perm, *(cells & 255).to(torch.int32).unbind(-1))
 
+def _lattice_chain(perm, xs: list, ys: list, zs: list) -> list:
+    """Perlin's chain perm[perm[perm[x] + y] + z] in a doubled permutation `perm` (int32, several
+    scenes' stacked as `scene_lattice_tables` stacks them) for every cell of xs × ys × zs (`_cells`)
+    -> their hashes (int32 lanes, x fastest: `_CORNERS`' order for the offsets (0, 1)).
 
-def _corner_chain(perm: Tensor, x: Tensor, y: Tensor, z: Tensor) -> list[Tensor]:
-    """Perlin's chain for the 8 corners of cells x, y, z [N] int32 in a doubled table `perm` (lanes)."""
-    px = [lanes.gather(perm, x + i) for i in (0, 1)]
-    pxy = [lanes.gather(perm, px[i] + (y + j)) for j in (0, 1) for i in (0, 1)]
-    return [lanes.gather(perm, pxy[i] + (z + k)) for k in (0, 1) for i in range(4)]
+    The chain shares its prefixes: perm[x] once per x, perm[· + y] once per (x, y), so a cell's 8
+    corners take 14 gathers instead of 24 and the 27 cells around a point 39 instead of 81; every
+    index stays below 512 (the doubled table), within its scene's block. Bitwise `lattice_hash`."""
+    px = [lanes.gather(perm, x) for x in xs]
+    pxy = [lanes.gather(perm, h + y) for y in ys for h in px]
+    return [lanes.gather(perm, h + z) for z in zs for h in pxy]
 
 
 @functools.lru_cache(maxsize=16)
-def _scene_lattice_tables(seeds: tuple[int, ...], device: str) -> tuple[Tensor, Tensor]:
+def scene_lattice_tables(seeds: tuple[int, ...], device: str) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor]]:
     """`_lattice_tables` of several seeds stacked in blocks of 512 rows: block b holds seed b's
     doubled permutation plus 512·b (so a chained lookup never leaves its block, and the final
-    hash is already a row of the block) and, in its first 256 rows, the first value column."""
-    perms, firsts = [], []
+    hash is already a row of the block) and, in its first 256 rows, the three lattice-value
+    columns -> (perm [512·B] int32, columns 3 × [512·B] float64). Value noise reads the first
+    column, Worley's feature points all three, Perlin's gradients the hash alone; a point's block
+    starts at its `scene_rows`."""
+    perms, columns = [], [[], [], []]
     for b, seed in enumerate(seeds):
         perm, values = _lattice_tables(int(seed), device)
         perms.append(perm + 512 * b)
-        firsts.append(torch.cat([values[:, 0], values.new_zeros(256)]))
-    return torch.cat(perms).to(torch.int32), torch.cat(firsts)
+        for c in range(3):
+            columns[c].append(torch.cat([values[:, c], values.new_zeros(256)]))
+    return torch.cat(perms).to(torch.int32), tuple(torch.cat(col) for col in columns)
 
 
 def scene_rows(scene: Tensor) -> Tensor:
-    """Scene indices [N] -> the first rows [N] int32 of their blocks in `value_noise_scenes`."""
+    """Scene indices [N] -> the first rows [N] int32 of their blocks in `scene_lattice_tables`."""
     return scene.to(torch.int32) * 512
 
 
-def value_noise_scenes(p: Tensor, rows: Tensor, seeds: Sequence[int]) -> Tensor:
+def value_noise_scenes(p: Tensor, rows: Tensor | None, seeds: Sequence[int]) -> Tensor:
     """`value_noise` of points p [N, 3], each with the seed of its scene (rows [N] from
-    `scene_rows`, seeds: one per scene) -> [N]: one pass over every scene's points instead of one
-    per scene, bitwise ``value_noise(p[i], seed=seeds[scene[i]])``."""
+    `scene_rows`, None: every point of the first; seeds: one per scene) -> [N]: one pass over every
+    scene's points instead of one per scene, bitwise ``value_noise(p[i], seed=seeds[scene[i]])``."""
+    perm, columns = _scene_tables(p, seeds)
+    return value_lanes(*p.unbind(-1), perm, columns[0].to(p.dtype), rows)
+
+
+def perlin_noise_scenes(p: Tensor, rows: Tensor | None, seeds: Sequence[int], *, period: int | None = None) -> Tensor:
+    """`perlin_noise` of points p [N, 3], each with the seed of its scene, as `value_noise_scenes`
+    -> [N], bitwise ``perlin_noise(p[i], seed=seeds[scene[i]], period=period)``."""
+    return perlin_lanes(*p.unbind(-1), _scene_tables(p, seeds)[0], rows, period=period)
+
+
+def worley_noise_scenes(p: Tensor, rows: Tensor | None, seeds: Sequence[int], *, period: int | None = None) -> Tensor:
+    """`worley_noise` of points p [N, 3], each with the seed of its scene, as `value_noise_scenes`
+    -> [N], bitwise ``worley_noise(p[i], seed=seeds[scene[i]], period=period)``."""
+    perm, columns = _scene_tables(p, seeds)
+    return worley_lanes(*p.unbind(-1), perm, [c.to(p.dtype) for c in columns], rows, period=period)
+
+
+def _scene_tables(p: Tensor, seeds: Sequence[int]) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor]]:
+    """`scene_lattice_tables` of `seeds` on the device of points p [N, 3] (checked)."""
     _check_points(p)
-    return _value(p, *_scene_lattice_tables(tuple(int(s) for s in seeds), str(p.device)), rows)
-
-
-def _value(p: Tensor, perm: Tensor, first: Tensor, rows: Tensor | None = None) -> Tensor:
-    """Value noise at p [N, 3] from a doubled permutation `perm` (int32) and lattice values
-    `first`, each point's chain starting at its row (rows [N], None: 0) -> [N]."""
-    return value_lanes(*p.unbind(-1), perm, first.to(p.dtype), rows)
+    return scene_lattice_tables(tuple(int(s) for s in seeds), str(p.device))
 
 
 def value_lanes(x, y, z, perm, first, rows=None):
@@ -164,10 +197,8 @@ def value_lanes(x, y, z, perm, first, rows=None):
     from a doubled permutation `perm` (int32) and lattice values `first` (the points' float type),
     each point's chain starting at its row `rows` (None: 0): what the Dr.Jit march traces."""
     fl = [lanes.floor(c) for c in (x, y, z)]
-    f = [c - lo for c, lo in zip((x, y, z), fl)]
-    u = [g * g * (3.0 - 2.0 * g) for g in f]
-    cx, cy, cz = (lanes.to_int32(lo) & 255 for lo in fl)
-    return _trilinear([lanes.gather(first, h) for h in _corner_chain(perm, cx if rows is None else cx + rows, cy, cz)], u)
+    u = [g * g * (3.0 - 2.0 * g) for g in (c - lo for c, lo in zip((x, y, z), fl))]
+    return _trilinear([lanes.gather(first, h) for h in _lattice_chain(perm, *_cells(fl, (0, 1), rows))], u)
 
 
 def lattice_values(cells: Tensor, seed: int, dtype: torch.dtype) -> Tensor:
@@ -195,12 +226,6 @@ def _u32_to_unit(h: Tensor, dtype: torch.dtype) -> Tensor:
 _CORNERS = [(i & 1, (i >> 1) & 1, (i >> 2) & 1) for i in range(8)]
 
 
-def _cell_frac(p: Tensor) -> tuple[Tensor, Tensor]:
-    """p ``[N, 3]`` -> (integer cell ``[N, 3]`` int64, fraction ``[N, 3]`` in [0, 1))."""
-    fl = torch.floor(p)
-    return fl.to(torch.int64), p - fl
-
-
 def _check_points(p: Tensor, name: str = "p") -> None:
     if p.ndim != 2 or p.shape[-1] != 3 or not p.is_floating_point():
         raise ValueError(f"{name}: got shape {tuple(p.shape)}, dtype {p.dtype}; float tensor [N, 3]")
@@ -223,27 +248,7 @@ def value_noise(p: Tensor, *, seed: int = 0) -> Tensor:
     p: ``[N, 3]`` points. Returns ``[N]`` in [0, 1]; at integer points it equals
     ``lattice_values(p.long(), seed)[:, 0]``.
     """
-    return _lattice_noise(_value_tables, _value, p, seed)
-
-
-def _value_tables(seed: int, device: str) -> tuple[Tensor, Tensor]:
-    """`_value`'s tables of `seed`: the doubled permutation (int32) and `lattice_values`' first column."""
-    perm, values = _lattice_tables(seed, device)
-    return perm.to(torch.int32), values[:, 0]
-
-
-# Ken Perlin's 12 edge gradients (indexed by hash mod 12)
-_GRADS = [
-    (1, 1, 0), (-1, 1, 0), (1, -1, 0), (-1, -1, 0),
-    (1, 0, 1), (-1, 0, 1), (1, 0, -1), (-1, 0, -1),
-    (0, 1, 1), (0, -1, 1), (0, 1, -1), (0, -1, -1),
-]  # fmt: skip
-
-
-def _wrap(cells: Tensor, period: int | None) -> Tensor:
-    """Integer cells taken mod `period` (None: unchanged): a noise hashed on wrapped cells repeats
-    every `period` units along each axis."""
-    return cells if period is None else torch.remainder(cells, int(period))
+    return value_noise_scenes(p, None, [seed])
 
 
 def perlin_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tensor:
@@ -253,21 +258,34 @@ def perlin_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
     gradient set bounds |value| by ~1.04 in theory; in practice it stays well inside [-1, 1]).
     period: the lattice repeats every `period` cells along each axis (tileable noise); None: 256.
     """
-    return _lattice_noise(_perm_table, _perlin, p, seed, period=period)
+    return perlin_noise_scenes(p, None, [seed], period=period)
 
 
-def _perlin(p: Tensor, perm: Tensor, *, period: int | None = None) -> Tensor:
-    """`perlin_noise` at p [N, 3] from `_lattice_tables`' `perm` [512] (int64)."""
-    cell, f = _cell_frac(p)
-    corners = torch.tensor(_CORNERS, dtype=torch.int64, device=p.device)  # [8, 3]
-    grads = torch.tensor(_GRADS, dtype=p.dtype, device=p.device)  # [12, 3]
-    h = (torch.stack(_corner_hashes(cell, perm.to(torch.int32)), dim=1)
-         if period is None else _hash(_wrap(cell[:, None, :] + corners, period), perm))  # [N, 8]
-    g = take_rows(grads, h % 12)  # [N, 8, 3]
-    d = f[:, None, :] - corners.to(p.dtype)  # [N, 8, 3]
-    dots = (g * d).sum(-1)  # [N, 8]
-    u = f * f * f * (f * (f * 6.0 - 15.0) + 10.0)
-    return _trilinear(list(dots.unbind(-1)), u)
+def perlin_lanes(x, y, z, perm, rows=None, *, period: int | None = None):
+    """`perlin_noise` in lanes (`ops.lanes`: torch [N] or Dr.Jit) at points x, y, z (|p| < 2**31)
+    from a doubled permutation `perm` (int32; several scenes' stacked as `scene_lattice_tables`
+    stacks them), each lane's chain starting at its row `rows` (None: 0), the lattice repeating
+    every `period` cells (None: 256): the 8 corners' edge gradients dotted with the point's offset
+    from each corner, blended with the quintic fade. What the Dr.Jit march traces."""
+    fl = [lanes.floor(c) for c in (x, y, z)]
+    f = [c - lo for c, lo in zip((x, y, z), fl)]
+    d = [(g, g - 1.0) for g in f]  # the offset from the corner below and from the one above, per axis
+    dots = [_gradient_dot(h, *(d[a][corner[a]] for a in range(3)))
+            for h, corner in zip(_lattice_chain(perm, *_cells(fl, (0, 1), rows, period)), _CORNERS)]
+    return _trilinear(dots, [g * g * g * (g * (g * 6.0 - 15.0) + 10.0) for g in f])
+
+
+def _gradient_dot(h, dx, dy, dz):
+    """The dot product of Ken Perlin's edge gradient number h mod 12 with (dx, dy, dz), of hashes
+    `h` (int32 lanes; ``& 255`` drops a stacked table's block offset 512·b) without a gather:
+    gradient i of (1, 1, 0), (-1, 1, 0), (1, -1, 0), (-1, -1, 0), (1, 0, 1), (-1, 0, 1), (1, 0, -1),
+    (-1, 0, -1), (0, 1, 1), (0, -1, 1), (0, 1, -1), (0, -1, -1) is ±u ± v with u = dx for i < 8
+    else dy, v = dy for i < 4 else dz, u negated where bit 0 of i is set, v where bit 1 is. Both
+    terms are exact, so the sum rounds once, as the three products' sum does."""
+    i = (h & 255) % 12
+    u = lanes.where(i < 8, dx, dy)
+    v = lanes.where(i < 4, dy, dz)
+    return lanes.where((i & 1) == 0, u, -u) + lanes.where((i & 2) == 0, v, -v)
 
 
 def worley_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tensor:
@@ -278,71 +296,26 @@ def worley_noise(p: Tensor, *, seed: int = 0, period: int | None = None) -> Tens
     p: ``[N, 3]`` points. Returns ``[N]`` in [0, 1].
     period: feature points repeat every `period` cells along each axis (tileable noise).
     """
-    return _lattice_noise(_lattice_tables, _worley, p, seed, period=period)
+    return worley_noise_scenes(p, None, [seed], period=period)
 
 
-def _worley(p: Tensor, perm: Tensor, values: Tensor, *, period: int | None = None) -> Tensor:
-    """`worley_noise` at p [N, 3] from `_lattice_tables`' `perm` [512] and `values` [256, 3]
-    (`worley_lanes` where the noise does not tile)."""
-    if period is None:
-        return worley_lanes(*p.unbind(-1), perm.to(torch.int32), [v.to(p.dtype) for v in values.unbind(1)])
-    cell, f = _cell_frac(p)
-    best = torch.full(p.shape[:1], float("inf"), dtype=p.dtype, device=p.device)
-    for dz in (-1, 0, 1):  # loop over the 27 neighbour offsets, vectorised over points
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                off = torch.tensor([dx, dy, dz], dtype=torch.int64, device=p.device)
-                c = cell + off
-                feat = _values(_wrap(c, period), perm, values, p.dtype)
-                d = off.to(p.dtype) + feat - f  # [N, 3]
-                best = torch.minimum(best, (d * d).sum(-1))
-    return best.sqrt().clamp(0.0, 1.0)
+# the 27 cells around a point's cell, as `_lattice_chain` orders them (x fastest)
+_NEIGHBOURS = [(dx, dy, dz) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
 
 
-def worley_lanes(x, y, z, perm, values, rows=None):
-    """`worley_noise` in lanes (`ops.lanes`) at points x, y, z: the distance to the nearest of the
-    feature points of the 27 cells around, clamped to [0, 1]. `perm`: doubled permutations (int32;
-    several scenes' stacked as `scene_worley_tables` stacks them), `values`: the feature points'
-    three offset tables in the same rows, `rows`: each lane's block (None: 0)."""
+def worley_lanes(x, y, z, perm, values, rows=None, *, period: int | None = None):
+    """`worley_noise` in lanes (`ops.lanes`) at points x, y, z (|p| < 2**31): the distance to the
+    nearest of the feature points of the 27 cells around, clamped to [0, 1]. `perm`: doubled
+    permutations (int32; several scenes' stacked as `scene_lattice_tables` stacks them), `values`:
+    the feature points' three offset columns in the same rows (the points' float type), `rows`:
+    each lane's block (None: 0), `period`: the feature points repeat every `period` cells (None: 256)."""
     fl = [lanes.floor(c) for c in (x, y, z)]
     f = [c - lo for c, lo in zip((x, y, z), fl)]
-    cell = [lanes.to_int32(lo) for lo in fl]
     best = math.inf
-    for dz in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                off = (dx, dy, dz)
-                c = [(cell[a] + off[a]) & 255 for a in range(3)]
-                x0 = c[0] if rows is None else c[0] + rows
-                h = lanes.gather(perm, lanes.gather(perm, lanes.gather(perm, x0) + c[1]) + c[2])
-                d = [(off[a] + lanes.gather(values[a], h)) - f[a] for a in range(3)]
-                best = lanes.minimum(best, d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    for h, off in zip(_lattice_chain(perm, *_cells(fl, (-1, 0, 1), rows, period)), _NEIGHBOURS):
+        d = [(off[a] + lanes.gather(values[a], h)) - f[a] for a in range(3)]
+        best = lanes.minimum(best, d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
     return lanes.clamp(lanes.sqrt(best), 0.0, 1.0)
-
-
-@functools.lru_cache(maxsize=16)
-def scene_worley_tables(seeds: tuple[int, ...], device: str) -> tuple[Tensor, list[Tensor]]:
-    """`_lattice_tables` of several seeds stacked in blocks of 512 rows (as `_scene_lattice_tables`:
-    block b's permutation plus 512·b), with the three feature-offset columns in the blocks' first
-    256 rows: `worley_lanes`' tables (rows from `scene_rows`)."""
-    perms, columns = [], [[], [], []]
-    for b, seed in enumerate(seeds):
-        perm, values = _lattice_tables(int(seed), device)
-        perms.append(perm + 512 * b)
-        for c in range(3):
-            columns[c].append(torch.cat([values[:, c], values.new_zeros(256)]))
-    return torch.cat(perms).to(torch.int32), [torch.cat(col) for col in columns]
-
-
-def _perm_table(seed: int, device: str) -> tuple[Tensor]:
-    """`_perlin`'s table of `seed`: the doubled permutation."""
-    return _lattice_tables(seed, device)[:1]
-
-
-def _lattice_noise(tables: Callable, kernel: Callable, p: Tensor, seed: int, **kwargs) -> Tensor:
-    """A lattice noise at points p [N, 3]: `kernel` over its `tables` of `seed` (on p's device)."""
-    _check_points(p)
-    return kernel(p, *tables(int(seed), str(p.device)), **kwargs)
 
 
 # --------------------------------------------------------------------------------------------

@@ -184,6 +184,17 @@ def to_int32(x):
     return Int32(x)
 
 
+def remainder(i, n: int):
+    """i mod n of int lanes `i` and a positive int `n`, in [0, n) as torch.remainder (floor
+    division's remainder; Dr.Jit's ``%`` truncates towards 0, so a negative remainder is shifted)."""
+    if _is_torch(i):
+        return torch.remainder(i, n)
+    import drjit as dr
+
+    r = i % n
+    return dr.select(r < 0, r + n, r)
+
+
 def to_float(i, like):
     """Int lanes `i` as floats of `like`'s type."""
     if _is_torch(i):
@@ -235,4 +246,4 @@ def length3(x, y, z):
 
 
 __all__ = ["abs", "clamp", "clamp_max", "clamp_min", "columns", "divide", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
-           "floats_of", "int_like", "ints_of", "log2", "maximum", "minimum", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]
+           "floats_of", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]

@@ -75,8 +75,8 @@ from .surface_look import look_normal, surface_colour, surface_lanes
 def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
     light passes `uses` and sky-visibility pass `ambient` (None: none), or None where it can: a
-    density written in lanes (constant, exponential, value-noise fbm of either hash, explosion,
-    particles and fur of value noise, the cloudscape) in bounds written in lanes (sphere, box,
+    density written in lanes (constant, exponential, fbm of value noise of either hash, gradient
+    or Worley noise, explosion, particles of any noise, fur, the cloudscape) in bounds written in lanes (sphere, box,
     slab, shell), physically shaded or in the seeds' looks, by any integrator, lit by suns and point
     lights with shadows (marched, or the sun's grid) through it and through the other volumes (each
     written in lanes too) and past the terrain, sky light (graded by altitude or not), a sky
