@@ -236,13 +236,17 @@ def skip_cases() -> dict[str, list[dict]]:
             "batch of two grids": [base(), base(puff_grid(24, seed=5))]}
 
 
+@pytest.mark.parametrize("compile", ["kernels", "off"])
 @pytest.mark.parametrize("case", list(skip_cases()))
-def test_skipping_empty_space_changes_the_cost_not_the_image(case, monkeypatch):
+def test_skipping_empty_space_changes_the_cost_not_the_image(case, compile, monkeypatch):
+    """In the Dr.Jit kernel (the default) and in the eager march alike."""
     scenes = skip_cases()[case]
-    skipped = tv.render(scenes)
+    skipped = tv.render(scenes, compile=compile)
     decide = plan.strategy  # the plan decides: the same march without the skip pass
     monkeypatch.setattr(plan, "strategy", lambda *a: "march" if decide(*a) == "skip" else decide(*a))
-    full = tv.render(scenes)
+    full = tv.render(scenes, compile=compile)
+    backend = "eager" if compile == "off" or not drjit_available() else "drjit"
+    assert skipped.stats["plan"]["marches"] == full.stats["plan"]["marches"] == {"volume0": backend}
     assert "volume0.skip" in skipped.stats["passes"] and "volume0.skip" not in full.stats["passes"]
     assert skipped.stats["march_steps"] < 0.85 * full.stats["march_steps"], (skipped.stats["march_steps"], full.stats["march_steps"])
     assert_close(skipped.radiance, full.radiance, atol=2e-6, what="radiance")

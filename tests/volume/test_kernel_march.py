@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol.dataset.recipe import Recipe
+from torchvol.measure.mitsuba import puff_grid
 from torchvol.runtime.compilation import drjit_available
 
 pytestmark = pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
@@ -175,6 +176,67 @@ def test_the_joint_kernel_gives_the_same_bytes_alone_in_a_batch_and_for_any_chun
     for b, scene in enumerate(scenes):
         alone = tv.render(scene, seed=1 + b, chunk_rays=53)
         assert torch.equal(alone.radiance[0], batch.radiance[b]) and torch.equal(alone.depth[0], batch.depth[b])
+
+
+MEDIA = CLOUDS.parent / "media.toml"
+
+
+@pytest.mark.parametrize("index", [6, 10, 14])
+def test_media_samples_of_a_grid_density_march_in_the_kernel(index):
+    """media.toml's grid samples (a 4³ blob, empty space skipped): the kernel, over the occupied
+    span of each ray as the eager march is (`march.occupied_start`), the eager march's samples."""
+    scene = Recipe.load(MEDIA, SIZE).sample_with_params(index, 0)[0]
+    assert scene.volumes[0].density.kind == "grid", "the recipe's draws moved: pick its grid samples again"
+    kernel, eager = _both(scene)
+    _close(kernel, eager, f"media.toml sample {index}")
+    assert "volume0.skip" in kernel.stats["passes"]
+    assert kernel.stats["march_steps"] == eager.stats["march_steps"]
+
+
+GRID = {"bounds": {"box": {"min": [-1.1, -0.8, -0.9], "max": [1.0, 0.9, 1.2]}}, "sigma_t": 8.0, "albedo": 0.9,
+        "density": {"grid": {"data": puff_grid(12)}}, "phase": {"hg": {"g": 0.5}}}
+GRIDS = {
+    "a shadowed sun": _media([GRID]),
+    "size placement, no dither": _media([GRID], march={"step_size": 0.04, "dither": "none"}),
+    "camera inside, early stop, Riemann": {**_media([GRID], march={"steps": 24, "min_transmittance": 0.05,
+                                                                   "integrator": "riemann"}),
+                                           "camera": {"eye": [0.1, 0.05, -0.3], "target": [0.3, 0.1, 1.0], "fov_y": 70.0}},
+    "a point light, emission, an edge fade": _media(
+        [{**GRID, "emission": [0.3, 0.1, 0.0], "edge": {"width": 0.2}}],
+        lights=[SUN, {"kind": "point", "position": [0.2, 0.3, -0.2], "intensity": 2.0, "shadow": {"steps": 3}}]),
+    "grid shadows, sky light marched": _media([{**GRID, "ambient": {"visibility": "march", "steps": 2}}],
+                                              lights=[{**SUN, "shadow": {"method": "grid", "resolution": 32}}]),
+    "in fog: the joint march over its occupied span": _media([GRID, FOG]),
+}
+
+
+@pytest.mark.parametrize("name", list(GRIDS))
+def test_grid_media_match_the_eager_march(name):
+    """A grid's density in lanes (`fields.grid.grid_density`), its empty space skipped in the
+    kernel as in the eager march: the same march steps, every output within the tolerance table.
+    (Eager counts more density evaluations: for a cheap field it keeps finished rays in its batch
+    a while, evaluated at zero-length steps; the kernel evaluates what it samples.)"""
+    kernel, eager = _both(GRIDS[name])
+    _close(kernel, eager, name)
+    assert float(kernel.alpha.max()) > 0.5 and "volume0.skip" in kernel.stats["passes"]
+    assert kernel.stats["march_steps"] == eager.stats["march_steps"]
+    assert 0 < kernel.stats["density_evals"] <= eager.stats["density_evals"]
+
+
+@pytest.mark.parametrize("with_fbm", [False, True], ids=["alone", "beside an fbm"])
+def test_grids_of_other_shapes_give_the_same_bytes_alone_and_in_a_batch(with_fbm):
+    """Scenes of one batch may hold grids of other shapes (`data` is per scene): the kernel looks
+    each lane up in its own scene's grid of the batch's one table; with an fbm beside it, the
+    joint march."""
+    other = {**GRID, "sigma_t": 5.0, "density": {"grid": {"data": puff_grid(10, seed=3)[:, 2:8]}}}
+    extra = [[PUFF], [{**PUFF, "density": {"fbm": {"octaves": 3, "seed": 9}}}]] if with_fbm else [[], []]
+    scenes = [_media([GRID, *extra[0]]), _media([other, *extra[1]], lights=[{**SUN, "direction": [-0.4, 0.8, 0.1]}])]
+    kernel, eager = _both(scenes, seed=[1, 2])
+    _close(kernel, eager, "a batch of two grids")
+    for b, scene in enumerate(scenes):
+        alone = tv.render(scene, seed=1 + b, chunk_rays=53)
+        assert torch.equal(alone.radiance[0], kernel.radiance[b]) and torch.equal(alone.depth[0], kernel.depth[b])
+    assert not torch.equal(kernel.alpha[0], kernel.alpha[1])
 
 
 def _particles(seed: int, combine: str):

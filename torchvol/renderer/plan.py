@@ -349,7 +349,7 @@ def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[
         return "closed_form", None
     if compile == "off":
         return "eager", "compile is off: the eager reference"
-    if strategy != "march":
+    if strategy not in ("march", "skip"):
         return "eager", f"the {strategy} strategy has no kernel"
     if dtype != torch.float32 or torch.device(device).type != "cpu":
         return "eager", f"Dr.Jit renders float32 on the CPU, not {str(dtype).removeprefix('torch.')} on {torch.device(device).type}"

@@ -55,7 +55,7 @@ from .density_lanes import (
 )
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
-from .march import MarchResult, median_crossing
+from .march import MarchResult, median_crossing, occupied_start
 from .multiple import octave_weights
 from .physical import light_responses, sky_blend
 from .shader_look import ambient_light, derivative_light, look_lanes, shaded
@@ -140,7 +140,7 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> Sim
 
 
 def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor, active: Tensor,
-          dither: Tensor | None, *, shares: bool = False) -> MarchResult:
+          dither: Tensor | None, *, shares: bool = False, occupied: tuple[Tensor, Tensor] | None = None) -> MarchResult:
     """The fixed march of the physical volumes `vols` (`supports` said yes for each) along a
     chunk's `rays` [R] (the sky behind them `background` [R, 3], None: black; what a sky blend
     fades towards) as one Dr.Jit kernel: each ray's span cut into pieces [start, end] [P, R]
@@ -148,9 +148,12 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     `active` [P, V, R]; in each piece σ_t and the sources of the media present summed, as
     `joint.summed_medium` does, and the piece marched by the render's step rule from its own
     start, its first step dithered by `dither` [R] (the fraction) or not (None). `shares`: the
-    radiance has V channels more, each medium's σ_t integrated (`joint.Joint.shares`). -> the
-    whole ray's `march.march` result; its steps, truncations (one per piece a step limit cut) and
-    each volume's density evaluations counted in the render's stats."""
+    radiance has V channels more, each medium's σ_t integrated (`joint.Joint.shares`).
+    `occupied` = (t_first, t_last) [R] (one piece): σ_t is 0 outside that span, so each ray
+    starts at the full march's last segment boundary before it and stops past it, as
+    `march.march(occupied=...)` does (`march.occupied_start`). -> the whole ray's `march.march`
+    result; its steps, truncations (one per piece a step limit cut) and each volume's density
+    evaluations counted in the render's stats."""
     import drjit as dr
     from drjit.llvm import Bool, Float, Int32
 
@@ -169,6 +172,13 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
         dither=None if dither is None else lane(dither.index_select(0, idx)),
         start=[lane(x.index_select(0, idx)) for x in start], end=[lane(x.index_select(0, idx)) for x in end],
         present=[Bool(x.cpu().numpy()) for x in pieces], active=[[bools(a) for a in v] for v in active.unbind(1)])
+    t0 = start[:, idx].gather(0, first_piece.clamp_max(start.shape[0] - 1)[None]).squeeze(0)
+    first, k.stop = dr.full(Bool, True, len(idx)), None  # (None: a piece stops at its end)
+    if occupied is not None:
+        assert start.shape[0] == 1, "march(occupied=...) is one piece's"
+        t0, t_stop, dithered = occupied_start(start[0, idx], end[0, idx], occupied[0][idx], occupied[1][idx],
+                                              rule=ctx.settings.rule, frac=None if dither is None else dither[idx])
+        k.stop, first = lane(t_stop), first if dithered is None else Bool(dithered.cpu().numpy())
     needed = {v.plan.index for v in vols} | {j for v in vols for u in v.plan.lights + (v.plan.ambient_sky,)
                                                if u is not None for j in u.occluders}
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
@@ -179,9 +189,8 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
                                medium=_medium(m, v, par, solids, terrain, count)) for v in vols]
     n = len(idx)
     zero, q0 = dr.zeros(Float, n), Int32(first_piece.to(torch.int32).numpy())
-    t0 = lane(start[:, idx].gather(0, first_piece.clamp_max(start.shape[0] - 1)[None]).squeeze(0))
-    state = (t0, q0, dr.zeros(Int32, n), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n),
-             dr.full(Bool, True, n), dr.zeros(Int32, n), dr.full(Bool, True, n),
+    state = (lane(t0), q0, dr.zeros(Int32, n), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n),
+             dr.full(Bool, True, n), dr.zeros(Int32, n), first,
              *(dr.zeros(Int32, n) for _ in range(count)), *(zero for _ in range(3 + (len(vols) if shares else 0))))
     out = dr.while_loop(state, lambda *x: x[8], _body(k, members, par, ctx.settings, count, shares), mode="symbolic")
     dr.eval(out)
@@ -571,7 +580,7 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
         w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
         median = dr.select((trans > 0.5) & (new_trans <= 0.5), median_crossing(t, trans, sigma, dt), median)
         t_next, piece_steps = t + dt, piece_steps + 1
-        inside = t_next < end
+        inside = t_next < (end if k.stop is None else k.stop)
         going = new_trans >= par.min_transmittance if st.min_transmittance > 0 else dr.full(Bool, True, dr.width(t))
         last = piece_steps >= par.max_iterations
         truncated = truncated + dr.select(inside & going & last, Int32(1), Int32(0))
