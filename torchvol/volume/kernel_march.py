@@ -9,7 +9,7 @@ statistics inside it.
 One source: every per-sample formula here is the eager renderer's own function, written in lanes
 (`ops.lanes`) and traced here with Dr.Jit arrays: the density (its kind's ``lanes`` capability in
 `fields.DENSITIES`: constant, exponential, value-noise fbm, explosion, particles, fur, the
-template's cloud layer, the production cloudscape), the edge fade (`fields.edge.faded` over the
+template's cloud layer, the production cloudscape, a grid), the edge fade (`fields.edge.faded` over the
 bounds' ``lanes`` depth), the shadow rays' exits and segments (the bounds' ``lanes`` interval: box,
 sphere, slab, a planet's shell; `volume.shadow.shadow_segments`), the ambient graded by the bounds'
 ``lanes`` altitude (`volume.ambient.ambient_radiance`), the sky blend (`volume.physical.sky_blend`), the sun's grid lookup
@@ -19,7 +19,8 @@ and phase (`light.phase`'s ``lanes``), the multiple-scattering octaves
 (`march.StepRule.length`), the integrator's step (`integrate.WEIGHTS`) and the median
 (`march.median_crossing`). What is constant along a ray is computed by the eager code itself
 before the kernel runs: the suns' phase responses (`physical.light_responses`), the dither, the
-pieces, the sun grids, the sky behind each ray (what a sky blend fades towards). `march_look` is
+pieces, a grid's occupied span (`volume.skip`: empty space skipped as the eager march skips it),
+the sun grids, the sky behind each ray (what a sky blend fades towards). `march_look` is
 the seeds' alpha loop (the shader look: the template; the surface look: the fur ball) in the same
 way. The eager march (`compile="off"`) is the reference the kernels are held to
 (tests/volume/test_kernel_march.py).
@@ -68,11 +69,12 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
     light passes `uses` and sky-visibility pass `ambient` (None: none), or None where it can: a
     density written in lanes (constant, exponential, value-noise fbm of either hash, explosion,
-    particles and fur of value noise, the cloudscape) in bounds written in lanes (sphere, box,
-    slab, shell), physically shaded or in the seeds' looks, by any integrator, lit by suns and point
-    lights with shadows (marched, or the sun's grid) through it and through the other volumes (each
-    written in lanes too) and past the terrain, sky light (graded by altitude or not), a sky
-    blend, emission, its colour map and bloom; `settings` the render's `MarchSettings`."""
+    particles and fur of value noise, the cloudscape, a grid, its empty space skipped) in bounds
+    written in lanes (sphere, box, slab, shell), physically shaded or in the seeds' looks, by any
+    integrator, lit by suns and point lights with shadows (marched, or the sun's grid) through it
+    and through the other volumes (each written in lanes too) and past the terrain, sky light
+    (graded by altitude or not), a sky blend, emission, its colour map and bloom; `settings` the
+    render's `MarchSettings`."""
     passes = [u for u in uses if u.shadow is not None] + ([] if ambient is None else [ambient])
     checks = [
         (has_lanes(vol), f"the {vol.density.kind} density"),
