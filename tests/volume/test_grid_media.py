@@ -236,10 +236,9 @@ def skip_cases() -> dict[str, list[dict]]:
             "batch of two grids": [base(), base(puff_grid(24, seed=5))]}
 
 
-@pytest.mark.parametrize("compile", ["kernels", "off"])
-@pytest.mark.parametrize("case", list(skip_cases()))
+@pytest.mark.parametrize("case, compile", [(case, "off") for case in skip_cases()] + [("size placement", "kernels")])
 def test_skipping_empty_space_changes_the_cost_not_the_image(case, compile, monkeypatch):
-    """In the Dr.Jit kernel (the default) and in the eager march alike."""
+    """In the eager march, and in the Dr.Jit kernel where it skips too (`plan.kernel_strategy`)."""
     scenes = skip_cases()[case]
     skipped = tv.render(scenes, compile=compile)
     decide = plan.strategy  # the plan decides: the same march without the skip pass

@@ -396,6 +396,17 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: Com
                       multiple=vol.multiple_scattering is not None)
 
 
+def kernel_strategy(v: VolumePass, settings: MarchSettings) -> VolumePass:
+    """Volume pass `v` with the skip dropped where the Dr.Jit kernel marches it alone by count
+    placement: there the skipped march keeps the full march's step lattice, so skipping changes no
+    sample but the empty ones (σ = 0), which cost the kernel less than the eager skip pass does
+    (docs/VOLUMES.md, "Grid media"). Elsewhere the kernel skips as eager does: a joint march's
+    pieces are the occupied spans, and size placement's step limit counts from the span's start."""
+    if v.strategy == "skip" and v.backend == "drjit" and not v.joint and settings.rule.placement == "count":
+        return replace(v, strategy="march")
+    return v
+
+
 def voxel_pass(batch: Stacked) -> VoxelPass | None:
     """The voxel surface's pass (None: no voxels): its traversal, the effects its scenes turn on and
     one shadow pass per light where `voxels.shadow` is set."""
@@ -448,6 +459,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", 
     joint = joint_pass(volumes, labels, air=batch.atmosphere is not None)
     if joint is not None:
         volumes = joint_backends(tuple(replace(v, joint=v.index in joint.volumes) for v in volumes), joint)
+    volumes = tuple(kernel_strategy(v, settings) for v in volumes)
     # where every march is Dr.Jit's kernel on its own pool, torch's ops are glue: one thread
     kernels = compile != "off" and compilation.drjit_available(dtype, device)
     glue = voxels is None and terrain is None and bool(volumes) and all(v.backend == "drjit" for v in volumes)
