@@ -9,8 +9,8 @@ statistics inside it.
 One source: every per-sample formula here is the eager renderer's own function, written in lanes
 (`ops.lanes`) and traced here with Dr.Jit arrays: the density (its kind's ``lanes`` capability in
 `fields.DENSITIES`: constant, exponential, value-noise fbm, explosion, particles, fur, the
-template's cloud layer, the production cloudscape, a grid), the edge fade (`fields.edge.faded` over the
-bounds' ``lanes`` depth), the shadow rays' exits and segments (the bounds' ``lanes`` interval: box,
+template's cloud layer, the production cloudscape, a grid), the edge fade (`fields.edge.faded`
+over the bounds' ``lanes`` depth), the shadow rays' exits and segments (the bounds' ``lanes`` interval: box,
 sphere, slab, a planet's shell; `volume.shadow.shadow_segments`), the ambient graded by the bounds'
 ``lanes`` altitude (`volume.ambient.ambient_radiance`), the sky blend (`volume.physical.sky_blend`), the sun's grid lookup
 (`volume.sun_volume.grid_transmittance`), a point light's falloff (`light.lights.point_lanes`)
