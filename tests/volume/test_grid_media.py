@@ -2,6 +2,7 @@
 full march, the sun grid and the fast render against the exact float64 reference."""
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,7 +12,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.fields.grid import grid_occupancy, sample_grid
+from torchvol.fields.grid import (
+    Grid,
+    grid_density,
+    grid_lanes,
+    grid_occupancy,
+    sample_grid,
+)
 from torchvol.geometry.rays import intersect_box
 from torchvol.light.phase import henyey_greenstein
 from torchvol.measure.mitsuba import (
@@ -22,9 +29,12 @@ from torchvol.measure.mitsuba import (
     sigma_for,
     torchvol_scene,
 )
+from torchvol.ops import lanes
 from torchvol.renderer import plan
 from torchvol.renderer.executor import camera_for
-from torchvol.schema.batch import stack
+from torchvol.runtime.compilation import drjit_available
+from torchvol.schema.batch import stack, take
+from torchvol.volume.density_lanes import lanes_inputs, per_scene_lanes
 from torchvol.volume.exact import grid_optical_depth, grid_single_scatter
 from torchvol.volume.skip import macro_grid, occupied_span
 from torchvol.volume.sun_volume import sun_transmittance_grid
@@ -129,6 +139,77 @@ def test_occupied_span_in_a_box_thin_along_one_axis(thin_axis):
     assert hit.sum() > 32 and not outside.any(), f"{int(hit.sum())} rays hit; density outside the span: {int(outside.sum())} points"
 
 
+def _two_grids(dtype):
+    """A `Grid` of two scenes' grids of other shapes (one a single cell along x) in other boxes,
+    and points [N, 3] of its scenes [N]: random in and around each box, on its faces, edges and
+    corners exactly, at every cell centre, just outside a face, far away, infinite and NaN."""
+    g = torch.Generator().manual_seed(11)
+    arrays = [torch.rand(5, 3, 7, generator=g, dtype=F64), torch.rand(2, 6, 1, generator=g, dtype=F64) + 0.5]
+    lo = torch.tensor([[-1.0, -0.5, -0.8], [0.1, 0.2, 0.3]], dtype=dtype)
+    hi = torch.tensor([[1.0, 0.7, 0.6], [0.9, 1.2, 0.35]], dtype=dtype)
+    field = Grid(stack([tv.load_scene({"volumes": [{"density": {"grid": {"data": a.numpy()}}}]}).volumes[0].density.value
+                        for a in arrays], dtype=dtype), torch.zeros(2, dtype=dtype), box_min=lo, box_max=hi)
+    units, scenes = [], []
+    for b, a in enumerate(arrays):
+        cells = torch.tensor(a.shape[::-1], dtype=dtype)
+        centres = torch.cartesian_prod(*[(torch.arange(int(n), dtype=dtype) + 0.5) / n for n in cells])
+        face = torch.rand(3000, 3, generator=g, dtype=dtype)
+        axis = torch.arange(3000) % 3
+        face[torch.arange(3000), axis] = (torch.arange(3000) // 3 % 2).to(dtype)  # on a face: 0 or 1 along one axis
+        corners = torch.randint(0, 2, (64, 3), generator=g).to(dtype)
+        outside = face.clone()
+        outside[torch.arange(3000), axis] += torch.where(outside[torch.arange(3000), axis] > 0, 1e-3, -1e-3).to(dtype)
+        odd = torch.tensor([[1e7, 0.5, 0.5], [-1e30, 0.5, 0.5], [0.5, math.inf, 0.5], [0.5, 0.5, -math.inf],
+                            [math.nan, 0.5, 0.5]], dtype=dtype)
+        u = torch.cat([torch.rand(20000, 3, generator=g, dtype=dtype) * 1.4 - 0.2, face, corners, centres, outside, odd])
+        units.append(u)
+        scenes.append(torch.full((u.shape[0],), b))
+    s = torch.cat(scenes)
+    p = take(lo, s) + torch.cat(units) * take(hi - lo, s)
+    return field, p, s, torch.cat(units)
+
+
+def _sample_grid_per_scene(field: Grid, p, s):
+    out = torch.empty(p.shape[0], dtype=p.dtype)
+    for b in range(len(field.grids)):
+        out[s == b] = sample_grid(field.grids[b], field.box_min[b], field.box_max[b], p[s == b])
+    return out
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_the_grid_in_lanes_is_grid_sample_bitwise_on_torch(dtype):
+    """`grid_density` on torch columns against the eager field's `grid_sample` (`sample_grid`),
+    two scenes of other shapes in one table: bitwise, on the faces and outside too. A cell centre
+    reads its own cell's value; a face the edge cells' (border padding), a hair outside it 0."""
+    field, p, s, unit = _two_grids(dtype)
+    to = SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, s)), scene=s, floats=lambda t: t, ints=lambda t: t)
+    got = grid_density(grid_lanes(field, to), list(p.unbind(1)), None)
+    expected = _sample_grid_per_scene(field, p, s)
+    assert torch.equal(got, expected), f"{int((got != expected).sum())} differ, by up to {float((got - expected).abs().max()):.3g}"
+    inside = ((unit >= 0) & (unit <= 1)).all(dim=1)
+    assert bool((got[~inside] == 0).all()) and bool((got[inside] > 0).all())  # the test's grids are > 0 in scene 1
+    for b, a in enumerate(field.grids):
+        n = a.numel()
+        at_centres = (s == b).nonzero().squeeze(1)[20000 + 3000 + 64:][:n]  # `cartesian_prod` order: x slowest
+        i, j, k = torch.meshgrid(*[torch.arange(m) for m in a.shape[::-1]], indexing="ij")
+        assert_close(got[at_centres], a[k.reshape(-1), j.reshape(-1), i.reshape(-1)], atol=10 * torch.finfo(dtype).eps,
+                     what=f"scene {b}'s values at its cell centres")  # (a centre's position rounds)
+
+
+@pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
+def test_the_grid_in_lanes_traced_by_drjit_is_grid_sample_bitwise():
+    """`grid_density` traced by Dr.Jit over the inputs a kernel builds (`density_lanes.lanes_inputs`:
+    the batch's grids one table, each lane's scene's offset and cells) against `sample_grid`."""
+    import numpy as np
+    from drjit.llvm import Float
+
+    field, p, s, _ = _two_grids(torch.float32)
+    q = grid_lanes(field, lanes_inputs(s, per_scene_lanes(s)))
+    got = torch.from_numpy(np.array(grid_density(q, [Float(c.contiguous().numpy()) for c in p.unbind(1)], None)))
+    expected = _sample_grid_per_scene(field, p, s)
+    assert torch.equal(got, expected), f"{int((got != expected).sum())} differ, by up to {float((got - expected).abs().max()):.3g}"
+
+
 def parity_rays(size: int):
     scene = tv.load_scene(torchvol_scene(puff_grid(32), 1.0, size=size, spp=1))
     return camera_for(stack([scene], dtype=F64)).rays()
@@ -155,13 +236,16 @@ def skip_cases() -> dict[str, list[dict]]:
             "batch of two grids": [base(), base(puff_grid(24, seed=5))]}
 
 
-@pytest.mark.parametrize("case", list(skip_cases()))
-def test_skipping_empty_space_changes_the_cost_not_the_image(case, monkeypatch):
+@pytest.mark.parametrize("case, compile", [(case, "off") for case in skip_cases()] + [("size placement", "kernels")])
+def test_skipping_empty_space_changes_the_cost_not_the_image(case, compile, monkeypatch):
+    """In the eager march, and in the Dr.Jit kernel where it skips too (`plan.kernel_strategy`)."""
     scenes = skip_cases()[case]
-    skipped = tv.render(scenes)
+    skipped = tv.render(scenes, compile=compile)
     decide = plan.strategy  # the plan decides: the same march without the skip pass
     monkeypatch.setattr(plan, "strategy", lambda *a: "march" if decide(*a) == "skip" else decide(*a))
-    full = tv.render(scenes)
+    full = tv.render(scenes, compile=compile)
+    backend = "eager" if compile == "off" or not drjit_available() else "drjit"
+    assert skipped.stats["plan"]["marches"] == full.stats["plan"]["marches"] == {"volume0": backend}
     assert "volume0.skip" in skipped.stats["passes"] and "volume0.skip" not in full.stats["passes"]
     assert skipped.stats["march_steps"] < 0.85 * full.stats["march_steps"], (skipped.stats["march_steps"], full.stats["march_steps"])
     assert_close(skipped.radiance, full.radiance, atol=2e-6, what="radiance")

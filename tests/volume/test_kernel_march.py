@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol.dataset.recipe import Recipe
+from torchvol.measure.mitsuba import puff_grid
 from torchvol.runtime.compilation import drjit_available
 
 pytestmark = pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
@@ -235,6 +236,78 @@ def test_the_joint_kernel_gives_the_same_bytes_alone_in_a_batch_and_for_any_chun
         assert torch.equal(alone.radiance[0], batch.radiance[b]) and torch.equal(alone.depth[0], batch.depth[b])
 
 
+MEDIA = CLOUDS.parent / "media.toml"
+
+
+@pytest.mark.parametrize("index", [6, 10, 14])
+def test_media_samples_of_a_grid_density_march_in_the_kernel(index):
+    """media.toml's grid samples (a 4³ blob): its density in lanes (`fields.grid.grid_density`)."""
+    scene = Recipe.load(MEDIA, SIZE).sample_with_params(index, 0)[0]
+    assert scene.volumes[0].density.kind == "grid", "the recipe's draws moved: pick its grid samples again"
+    kernel, eager = _both(scene)
+    _close(kernel, eager, f"media.toml sample {index}")
+
+
+GRID = {"bounds": {"box": {"min": [-1.1, -0.8, -0.9], "max": [1.0, 0.9, 1.2]}}, "sigma_t": 8.0, "albedo": 0.9,
+        "density": {"grid": {"data": puff_grid(12)}}, "phase": {"hg": {"g": 0.5}}}
+GRIDS = {
+    "a shadowed sun": _media([GRID]),
+    "size placement": _media([GRID], march={"step_size": 0.04}),
+    "size placement, a step limit cuts, no dither": _media([GRID], march={"placement": "size", "step_size": 0.03,
+                                                                                    "steps": 40, "dither": "none"}),
+    "camera inside, early stop, Riemann": {**_media([GRID], march={"steps": 24, "min_transmittance": 0.05,
+                                                                   "integrator": "riemann"}),
+                                           "camera": {"eye": [0.1, 0.05, -0.3], "target": [0.3, 0.1, 1.0], "fov_y": 70.0}},
+    "a point light, emission, an edge fade": _media(
+        [{**GRID, "emission": [0.3, 0.1, 0.0], "edge": {"width": 0.2}}],
+        lights=[SUN, {"kind": "point", "position": [0.2, 0.3, -0.2], "intensity": 2.0, "shadow": {"steps": 3}}]),
+    "grid shadows, sky light marched": _media([{**GRID, "ambient": {"visibility": "march", "steps": 2}}],
+                                              lights=[{**SUN, "shadow": {"method": "grid", "resolution": 32}}]),
+    "in fog: the joint march over its occupied span": _media([GRID, FOG]),
+}
+
+
+# where the kernel skips empty space too (`plan.kernel_strategy`): a volume alone by count
+# placement marches its whole chord on the skipped march's lattice
+SKIPPED_IN_KERNEL = {"size placement", "size placement, a step limit cuts, no dither",
+                     "in fog: the joint march over its occupied span"}
+
+
+@pytest.mark.parametrize("name", list(GRIDS))
+def test_grid_media_match_the_eager_march(name):
+    """A grid's density in lanes (`fields.grid.grid_density`), every output within the tolerance
+    table of the eager march, which skips empty space. Where the kernel skips it too it starts and
+    stops each ray where eager does (`march.occupied_start`): the same march steps (eager counts
+    more density evaluations: for a cheap field it keeps finished rays in its batch a while,
+    evaluated at zero-length steps); elsewhere it samples the empty space too."""
+    kernel, eager = _both(GRIDS[name])
+    _close(kernel, eager, name)
+    assert float(kernel.alpha.max()) > 0.5 and "volume0.skip" in eager.stats["passes"]
+    skips = "volume0.skip" in kernel.stats["plan"]["passes"]
+    assert skips == (name in SKIPPED_IN_KERNEL)
+    if skips:
+        assert kernel.stats["march_steps"] == eager.stats["march_steps"]
+        assert 0 < kernel.stats["density_evals"] <= eager.stats["density_evals"]
+    else:
+        assert kernel.stats["march_steps"] > eager.stats["march_steps"]
+
+
+@pytest.mark.parametrize("with_fbm", [False, True], ids=["alone", "beside an fbm"])
+def test_grids_of_other_shapes_give_the_same_bytes_alone_and_in_a_batch(with_fbm):
+    """Scenes of one batch may hold grids of other shapes (`data` is per scene): the kernel looks
+    each lane up in its own scene's grid of the batch's one table; with an fbm beside it, the
+    joint march."""
+    other = {**GRID, "sigma_t": 5.0, "density": {"grid": {"data": puff_grid(10, seed=3)[:, 2:8]}}}
+    extra = [[PUFF], [{**PUFF, "density": {"fbm": {"octaves": 3, "seed": 9}}}]] if with_fbm else [[], []]
+    scenes = [_media([GRID, *extra[0]]), _media([other, *extra[1]], lights=[{**SUN, "direction": [-0.4, 0.8, 0.1]}])]
+    kernel, eager = _both(scenes, seed=[1, 2])
+    _close(kernel, eager, "a batch of two grids")
+    for b, scene in enumerate(scenes):
+        alone = tv.render(scene, seed=1 + b, chunk_rays=53)
+        assert torch.equal(alone.radiance[0], kernel.radiance[b]) and torch.equal(alone.depth[0], kernel.depth[b])
+    assert not torch.equal(kernel.alpha[0], kernel.alpha[1])
+
+
 def _particles(seed: int, combine: str, kind: str = "value"):
     return {**PUFF, "bounds": {"box": {"min": [-1.5, -1.2, -1.2], "max": [1.5, 1.2, 1.2]}},
             "density": {"particles": {"count": 7, "seed": seed, "region_min": [-0.8, -0.5, -0.5], "region_max": [0.8, 0.5, 0.5],
@@ -327,29 +400,22 @@ def test_voxel_terrain_samples_march_their_cloud_layer_in_the_kernel(index):
     _close(kernel, eager, f"voxel-terrain sample {index}")
 
 
-# a density without lanes, marched eagerly (a grid's lookup, its march skipping empty space)
-GRID = {"grid": {"data": [[[0.2, 0.9], [0.5, 0.0]], [[1.0, 0.3], [0.7, 0.4]]]}}
-
-
 def test_a_joint_member_without_a_kernel_marches_every_member_eagerly():
-    grid = {**FOG, "density": GRID}
-    out = tv.render(_media([PUFF, grid], lights=[{**SUN, "shadow": None}]))
+    # a homogeneous box under an unshadowed sun has a closed form, which the kernel does not mix with marches
+    box = {**FOG, "density": {"constant": 1.0}}
+    out = tv.render(_media([PUFF, box], lights=[{**SUN, "shadow": None}], march={"steps": 24, "closed_form": True}))
     assert out.stats["plan"]["marches"] == {"volume0": "eager", "volume1": "eager"}
-    assert out.stats["plan"]["eager_because"] == {"volume0": "marched with volume1 (the skip strategy has no kernel)",
-                                                  "volume1": "the skip strategy has no kernel"}
-    # a shadow ray through it: the other volume's own march has no kernel either
-    shadowed = tv.render(_media([PUFF, grid])).stats["plan"]["eager_because"]
-    assert shadowed["volume0"] == "no kernel for shadows through a volume not written in lanes"
+    closed = "in closed form, which the kernel does not mix with marches"
+    assert out.stats["plan"]["eager_because"] == {"volume0": f"marched with volume1 ({closed})", "volume1": closed}
 
 
 def test_the_plan_takes_the_kernel_only_where_it_renders_the_technique():
     for kind in ("value", "perlin", "worley"):  # fbm of every noise in the kernel
         fbm = tv.render(_scene(0, **{"volumes.0.density.fbm": {"noise": kind, "octaves": 3}})).stats["plan"]
         assert fbm["marches"] == {"volume0": "drjit"} and "eager_because" not in fbm, kind
-    grid = tv.render(_scene(0, **{"volumes.0.bounds": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}},
-                                  "volumes.0.density": GRID}))
-    assert grid.stats["plan"]["marches"] == {"volume0": "eager"}
-    assert grid.stats["plan"]["eager_because"] == {"volume0": "the skip strategy has no kernel"}
+    adaptive = tv.render(_scene(0, **{"march.tolerance": 1e-2})).stats["plan"]
+    assert adaptive["marches"] == {"volume0": "eager"}
+    assert adaptive["eager_because"] == {"volume0": "the tolerance strategy has no kernel"}
     wide = tv.render(_scene(0), dtype=torch.float64)
     assert wide.stats["plan"]["marches"] == {"volume0": "eager"}  # float64: the reference
     assert "float64" in wide.stats["plan"]["eager_because"]["volume0"]

@@ -45,7 +45,7 @@ from .exponential import (
 )
 from .fbm import FbmDensity, FbmField, fbm_density, fbm_lanes
 from .fur import FurDensity, FurField, fur_density, fur_lanes
-from .grid import Grid, GridDensity
+from .grid import Grid, GridDensity, grid_density, grid_lanes
 from .particles import (
                    ParticleField,
                    ParticlesDensity,
@@ -55,7 +55,7 @@ from .particles import (
 
 DENSITIES = Registry("density")
 DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lanes=(constant_lanes, constant_density))
-DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True)
+DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True, lanes=(grid_lanes, grid_density))
 DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density))
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True, lanes=(fbm_lanes, fbm_density))
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, lanes=(clouds_lanes, clouds_density))

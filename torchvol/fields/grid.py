@@ -1,16 +1,23 @@
 """A cell-centred density grid spanning a box: trilinear, clamped to the edge inside, 0 outside.
 
 grid[k, j, i] is the value at the centre of cell (i, j, k) (i along x, j along y, k along z), which
-is `grid_sample`'s align_corners=False convention with border padding.
+is `grid_sample`'s align_corners=False convention with border padding. The eager field calls
+`grid_sample` (`sample_grid`); the kernels trace `grid_density`, the same lookup written in lanes
+with `grid_sample`'s own arithmetic (its index, clip, weights and sum in its order), over the
+batch's grids flattened into one table (`grid_lanes`).
 """
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..noise.lattice import _CORNERS
+from ..ops import lanes
 from ..ops.grid_ops import dilate
 from ..schema.batch import Stacked, per_scene
 from ..schema.models import GridSource
@@ -42,13 +49,19 @@ def grid_occupancy(grid: Tensor) -> Tensor:
 
 class Grid:
     """The grids of B scenes over their volumes' boxes (`box_min`, `box_max` (B, 3)): the renderer
-    hands them over, since a grid spans its volume's box."""
+    hands them over, since a grid spans its volume's box. A batch may hold grids of different
+    shapes (`data` is a per-scene value): `flat` [Σ cells] holds them one after the other, each
+    scene's from `first` (B,) int32, `grids` (D, H, W) views of it; `cells` (B, 3) their cells
+    along x, y, z."""
 
     def __init__(self, params: Stacked, times: Tensor, *, box_min: Tensor, box_max: Tensor):
-        self.grids = [torch.as_tensor(a, dtype=times.dtype, device=times.device) for a in params.data]
+        sizes = [a.size for a in params.data]
+        self.flat = torch.cat([torch.as_tensor(a, dtype=times.dtype, device=times.device).reshape(-1) for a in params.data])
+        self.grids = [part.view(a.shape) for part, a in zip(self.flat.split(sizes), params.data)]
+        self.first = torch.tensor([0, *np.cumsum(sizes)[:-1]], dtype=torch.int32, device=times.device)
         self.box_min, self.box_max = box_min, box_max
-        cells = torch.tensor([a.shape[::-1] for a in params.data], dtype=times.dtype, device=times.device)  # (B, 3) along x, y, z
-        self.feature_size = ((box_max - box_min) / cells).amin(dim=1)
+        self.cells = torch.tensor([a.shape[::-1] for a in params.data], dtype=times.dtype, device=times.device)
+        self.feature_size = ((box_max - box_min) / self.cells).amin(dim=1)
 
     def occupancy(self, b: int) -> Tensor:
         """Scene b's `grid_occupancy`: computed on demand, the skip pass keeps what it builds from it."""
@@ -61,3 +74,39 @@ class Grid:
         )
 
     signed = __call__  # never clamped: the density is its own signed value
+
+
+def grid_lanes(field: Grid, to) -> SimpleNamespace:
+    """What the lookup takes per lane (`to`: as `fields.DENSITIES`' ``lanes`` inputs): the batch's
+    grids as one table (`to.floats`), the first cell of each lane's scene in it (`to.ints`), its
+    cells along x, y, z and its box (three lanes each, `to.per_lane`)."""
+    return SimpleNamespace(table=to.floats(field.flat), first=to.ints(field.first[to.scene]), cells=to.per_lane(field.cells),
+                           box_min=to.per_lane(field.box_min), box_max=to.per_lane(field.box_max))
+
+
+def grid_density(q, p, count):
+    """The grid's value at p (three lanes), `q` from `grid_lanes` (`count` does not apply), in
+    lanes (`ops.lanes`) as `sample_grid` computes it, operation for operation: the point in the
+    box's unit cube, `grid_sample`'s source index ((2u − 1 + 1)·n − 1)/2, clipped to [0, n − 1]
+    (border padding: the edge cell's value from its centre out to the face), the 8 corners'
+    weights as products of their axes' and the sum in `grid_sample`'s corner order; 0 outside
+    the box, its faces inside. A corner past the last cell (at the clipped n − 1 exactly) has
+    weight 0: its index is clamped to the last cell, where `grid_sample` skips it."""
+    inside, index, weights = None, [], []
+    for a in range(3):
+        unit = (p[a] - q.box_min[a]) / (q.box_max[a] - q.box_min[a])
+        x = (((2.0 * unit - 1.0) + 1.0) * q.cells[a] - 1.0) * 0.5
+        # clipped with selects: NaN goes to 0, so every gather stays in the table (`inside` zeroes it)
+        x = lanes.where(x < q.cells[a] - 1.0, lanes.where(x > 0.0, x, 0.0), q.cells[a] - 1.0)
+        lo = lanes.floor(x)
+        i = lanes.to_int32(lo)
+        index.append((i, lanes.minimum(i + 1, lanes.to_int32(q.cells[a]) - 1)))
+        weights.append((lo + 1.0 - x, x - lo))
+        ok = (unit >= 0.0) & (unit <= 1.0)
+        inside = ok if inside is None else inside & ok
+    width, height = lanes.to_int32(q.cells[0]), lanes.to_int32(q.cells[1])
+    total = 0.0
+    for cx, cy, cz in _CORNERS:
+        at = q.first + (index[2][cz] * height + index[1][cy]) * width + index[0][cx]
+        total = total + lanes.gather(q.table, at) * (weights[0][cx] * weights[1][cy] * weights[2][cz])
+    return lanes.where(inside, total, 0.0)

@@ -356,7 +356,7 @@ def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[
         return "closed_form", None
     if compile == "off":
         return "eager", "compile is off: the eager reference"
-    if strategy != "march":
+    if strategy not in ("march", "skip"):
         return "eager", f"the {strategy} strategy has no kernel"
     if dtype != torch.float32 or torch.device(device).type != "cpu":
         return "eager", f"Dr.Jit renders float32 on the CPU, not {str(dtype).removeprefix('torch.')} on {torch.device(device).type}"
@@ -401,6 +401,17 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: Com
                       sky_blend=vol.sky_blend is not None, ambient=ambient,
                       ambient_sky=sky,
                       multiple=vol.multiple_scattering is not None)
+
+
+def kernel_strategy(v: VolumePass, settings: MarchSettings) -> VolumePass:
+    """Volume pass `v` with the skip dropped where the Dr.Jit kernel marches it alone by count
+    placement: there the skipped march keeps the full march's step lattice, so skipping changes no
+    sample but the empty ones (σ = 0), which cost the kernel less than the eager skip pass does
+    (docs/VOLUMES.md, "Grid media"). Elsewhere the kernel skips as eager does: a joint march's
+    pieces are the occupied spans, and size placement's step limit counts from the span's start."""
+    if v.strategy == "skip" and v.backend == "drjit" and not v.joint and settings.rule.placement == "count":
+        return replace(v, strategy="march")
+    return v
 
 
 def voxel_pass(batch: Stacked) -> VoxelPass | None:
@@ -459,6 +470,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", 
         air_kernel = kernels and dtype == torch.float32 and torch.device(device).type == "cpu" and settings.tolerance is None
         volumes, joint = joint_backends(tuple(replace(v, joint=v.index in joint.volumes) for v in volumes), joint,
                                         air_kernel=air_kernel)
+    volumes = tuple(kernel_strategy(v, settings) for v in volumes)
     glue = voxels is None and terrain is None and bool(volumes) and all(v.backend == "drjit" for v in volumes)
     return Plan(
         settings=settings,

@@ -9,8 +9,8 @@ statistics inside it.
 One source: every per-sample formula here is the eager renderer's own function, written in lanes
 (`ops.lanes`) and traced here with Dr.Jit arrays: the density (its kind's ``lanes`` capability in
 `fields.DENSITIES`: constant, exponential, value-noise fbm, explosion, particles, fur, the
-template's cloud layer, the production cloudscape), the edge fade (`fields.edge.faded` over the
-bounds' ``lanes`` depth), the shadow rays' exits and segments (the bounds' ``lanes`` interval: box,
+template's cloud layer, the production cloudscape, a grid), the edge fade (`fields.edge.faded`
+over the bounds' ``lanes`` depth), the shadow rays' exits and segments (the bounds' ``lanes`` interval: box,
 sphere, slab, a planet's shell; `volume.shadow.shadow_segments`), the ambient graded by the bounds'
 ``lanes`` altitude (`volume.ambient.ambient_radiance`), the sky blend (`volume.physical.sky_blend`), the sun's grid lookup
 (`volume.sun_volume.grid_transmittance`), a point light's falloff (`light.lights.point_lanes`)
@@ -19,7 +19,8 @@ and phase (`light.phase`'s ``lanes``), the multiple-scattering octaves
 (`march.StepRule.length`), the integrator's step (`integrate.WEIGHTS`) and the median
 (`march.median_crossing`). What is constant along a ray is computed by the eager code itself
 before the kernel runs: the suns' phase responses (`physical.light_responses`), the dither, the
-pieces, the sun grids, the sky behind each ray (what a sky blend fades towards). `march_look` is
+pieces, a grid's occupied span (`volume.skip`: empty space skipped as the eager march skips it),
+the sun grids, the sky behind each ray (what a sky blend fades towards). `march_look` is
 the seeds' alpha loop (the shader look: the template; the surface look: the fur ball) in the same
 way. The eager march (`compile="off"`) is the reference the kernels are held to
 (tests/volume/test_kernel_march.py).
@@ -63,7 +64,7 @@ from .density_lanes import (
 )
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
-from .march import MarchResult, median_crossing
+from .march import MarchResult, median_crossing, occupied_start
 from .multiple import octave_weights
 from .physical import light_responses, sky_blend
 from .shader_look import ambient_light, derivative_light, look_lanes, shaded
@@ -75,12 +76,13 @@ from .surface_look import look_normal, surface_colour, surface_lanes
 def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     """Why the kernel cannot render volume `vol` (its `Stacked` parameters) of `batch` with its
     light passes `uses` and sky-visibility pass `ambient` (None: none), or None where it can: a
-    density written in lanes (constant, exponential, fbm of value noise of either hash, gradient
-    or Worley noise, explosion, particles of any noise, fur, the cloudscape) in bounds written in lanes (sphere, box,
-    slab, shell), physically shaded or in the seeds' looks, by any integrator, lit by suns and point
-    lights with shadows (marched, or the sun's grid) through it and through the other volumes (each
-    written in lanes too) and past the terrain, sky light (graded by altitude or not), a sky
-    blend, emission, its colour map and bloom; `settings` the render's `MarchSettings`."""
+    density written in lanes (constant, exponential, fbm of any noise: value noise of either hash,
+    gradient or Worley noise; explosion, particles of any noise, fur, the cloudscape, a grid, its
+    empty space skipped) in bounds written in lanes (sphere, box, slab, shell), physically shaded
+    or in the seeds' looks, by any integrator, lit by suns and point lights with shadows (marched,
+    or the sun's grid) through it and through the other volumes (each written in lanes too) and
+    past the terrain, sky light (graded by altitude or not), a sky blend, emission, its colour map
+    and bloom; `settings` the render's `MarchSettings`."""
     passes = [u for u in uses if u.shadow is not None] + ([] if ambient is None else [ambient])
     checks = [
         (has_lanes(vol), f"the {vol.density.kind} density"),
@@ -148,7 +150,8 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> Sim
 
 
 def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor, active: Tensor,
-          dither: Tensor | None, *, shares: bool = False, air: AirPath | None = None) -> MarchResult:
+          dither: Tensor | None, *, shares: bool = False, air: AirPath | None = None,
+          occupied: tuple[Tensor, Tensor] | None = None) -> MarchResult:
     """The fixed march of the physical volumes `vols` (`supports` said yes for each) along a
     chunk's `rays` [R] (the sky behind them `background` [R, 3], None: black; what a sky blend
     fades towards) as one Dr.Jit kernel: each ray's span cut into pieces [start, end] [P, R]
@@ -160,9 +163,11 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     `[atmosphere]` along the rays (`AirPath`), row V of `active`, as `joint.summed_medium` adds
     it (its in-scatter where present, every source seen through the air in front of it, a piece
     of air alone in the atmosphere's own step count), the suns' light reaching each volume's
-    samples through it (`light.atmosphere.sun_transmittance_lanes`). -> the
-    whole ray's `march.march` result; its steps, truncations (one per piece a step limit cut) and
-    each volume's density evaluations counted in the render's stats."""
+    samples through it (`light.atmosphere.sun_transmittance_lanes`). `occupied` = (t_first,
+    t_last) [R] (one piece): σ_t is 0 outside that span, so each ray starts at the full march's
+    last segment boundary before it and stops past it, as `march.march(occupied=...)` does
+    (`march.occupied_start`). -> the whole ray's `march.march` result; its steps, truncations (one
+    per piece a step limit cut) and each volume's density evaluations counted in the render's stats."""
     import drjit as dr
     from drjit.llvm import Bool, Float, Int32
 
@@ -185,6 +190,13 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
         start=[lane(x.index_select(0, idx)) for x in start], end=[lane(x.index_select(0, idx)) for x in end],
         present=[Bool(x.cpu().numpy()) for x in pieces], active=[[bools(a) for a in v] for v in active.unbind(1)],
         air=None if air is None else _air_inputs(air, idx, lane, air_on, active))
+    t0 = start[:, idx].gather(0, first_piece.clamp_max(start.shape[0] - 1)[None]).squeeze(0)
+    first, k.stop = dr.full(Bool, True, len(idx)), None  # (None: a piece stops at its end)
+    if occupied is not None:
+        assert start.shape[0] == 1, "march(occupied=...) is one piece's"
+        t0, t_stop, dithered = occupied_start(start[0, idx], end[0, idx], occupied[0][idx], occupied[1][idx],
+                                              rule=ctx.settings.rule, frac=None if dither is None else dither[idx])
+        k.stop, first = lane(t_stop), first if dithered is None else Bool(dithered.cpu().numpy())
     needed = {v.plan.index for v in vols} | {j for v in vols for u in v.plan.lights + (v.plan.ambient_sky,)
                                                if u is not None for j in u.occluders}
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
@@ -195,9 +207,8 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
                                medium=_medium(m, v, par, solids, terrain, count, k.air)) for v in vols]
     n = len(idx)
     zero, q0 = dr.zeros(Float, n), Int32(first_piece.to(torch.int32).numpy())
-    t0 = lane(start[:, idx].gather(0, first_piece.clamp_max(start.shape[0] - 1)[None]).squeeze(0))
-    state = (t0, q0, dr.zeros(Int32, n), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n),
-             dr.full(Bool, True, n), dr.zeros(Int32, n), dr.full(Bool, True, n),
+    state = (lane(t0), q0, dr.zeros(Int32, n), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n),
+             dr.full(Bool, True, n), dr.zeros(Int32, n), first,
              *(dr.zeros(Int32, n) for _ in range(count)), *(zero for _ in range(3 + (len(vols) if shares else 0))))
     out = dr.while_loop(state, lambda *x: x[8], _body(k, members, par, ctx.settings, count, shares), mode="symbolic")
     dr.eval(out)
@@ -638,7 +649,7 @@ def _body(k: SimpleNamespace, members: list, par: SimpleNamespace, st, count: in
         w, new_trans = trans * (1.0 - seg_trans), trans * seg_trans
         median = dr.select((trans > 0.5) & (new_trans <= 0.5), median_crossing(t, trans, sigma, dt), median)
         t_next, piece_steps = t + dt, piece_steps + 1
-        inside = t_next < end
+        inside = t_next < (end if k.stop is None else k.stop)
         going = new_trans >= par.min_transmittance if st.min_transmittance > 0 else dr.full(Bool, True, dr.width(t))
         limit = par.max_iterations if alone is None else dr.select(alone, Int32(k.air.nodes + 1), par.max_iterations)
         last = piece_steps >= limit

@@ -226,8 +226,7 @@ def _march_start(t0: Tensor, t1: Tensor, ids: Tensor, *, rule: StepRule, semanti
     if occupied is not None:
         if semantics != "segments" or rule.placement == "adaptive":
             raise ValueError("march(occupied=...) needs segments with count or size placement")
-        t, t_stop, first = _occupied_start(t, t_start, t_end, span, occupied[0][ids], occupied[1][ids], rule=rule,
-                                           first=first, frac=frac)
+        t, t_stop, first = occupied_start(t_start, t_end, occupied[0][ids], occupied[1][ids], rule=rule, frac=frac)
     # the active rays' state, one row per quantity: compacting it is one gather
     state = t.new_zeros(_RADIANCE + channels, t.shape[0])
     state[_T], state[_T_END], state[_T_STOP], state[_SPAN] = t, t_end, t_stop, span
@@ -235,18 +234,19 @@ def _march_start(t0: Tensor, t1: Tensor, ids: Tensor, *, rule: StepRule, semanti
     return state, first, frac
 
 
-def _occupied_start(t: Tensor, t_start: Tensor, t_end: Tensor, span: Tensor, t_first: Tensor, t_last: Tensor, *,
-                    rule: StepRule, first: Tensor | None, frac: Tensor | None):
-    """Where a ray whose σ_t is 0 outside [t_first, t_last] (each [n]) starts and stops: the last
-    segment boundary before t_first, and t_last. -> (t [n], t_stop [n], first [n] bool or None)."""
-    delta = rule.length(t, span).clamp_min(torch.finfo(t.dtype).tiny)  # uniform: boundaries t0, b1 = t0 + frac·Δ, b1 + Δ, ...
+def occupied_start(t_start: Tensor, t_end: Tensor, t_first: Tensor, t_last: Tensor, *, rule: StepRule,
+                   frac: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Where a ``segments`` march over [t_start, t_end] (each [n]; its first segment `frac` [n] of
+    a step, None: whole) starts and stops when σ_t is 0 outside [t_first, t_last] (each [n]): the
+    last segment boundary of the full march before t_first, and t_last. -> (t [n], t_stop [n],
+    whether its first segment is still the dithered one [n] bool, or None without dither)."""
+    # uniform steps: boundaries t0, b1 = t0 + frac·Δ, b1 + Δ, ...
+    delta = rule.length(t_start, t_end - t_start).clamp_min(torch.finfo(t_start.dtype).tiny)
     b1 = t_start + (delta * frac if frac is not None else delta)
     j = torch.floor((t_first - b1) / delta)
     later = j >= 0  # t_first lies past b1: start at the boundary b1 + jΔ just before it
-    t = torch.where(later, b1 + j.clamp_min(0) * delta, t)
-    if first is not None:
-        first = ~later
-    return t, torch.minimum(t_last, t_end), first
+    t = torch.where(later, b1 + j.clamp_min(0) * delta, t_start)
+    return t, torch.minimum(t_last, t_end), None if frac is None else ~later
 
 
 def _march_step(state: Tensor, ids: Tensor, medium: Medium, step: int, *, rule: StepRule, semantics: str,

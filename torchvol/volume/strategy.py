@@ -71,12 +71,13 @@ def run_march(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, t_
         with ctx.timer.section(vol.plan.skip_pass):
             occupied, marched = skipped_span(vol, rays, t0, t1, hit)
     with ctx.timer.section(vol.plan.step_pass):
-        if not skip and vol.plan.backend == "drjit":  # one Dr.Jit kernel
+        if vol.plan.backend == "drjit":  # one Dr.Jit kernel
             if vol.shading.semantics == "shader":
                 res = kernel_march.march_look(ctx, vol, rays, background, t0, t1, hit, ctx.dither(rays))
             else:
-                res = kernel_march.march(ctx, [vol], rays, background, t0[None], t1[None], hit[None, None], ctx.dither(rays))
-            if bool(hit.any()):  # its per-sample passes ran inside the kernel, their time in its own
+                res = kernel_march.march(ctx, [vol], rays, background, t0[None], t1[None], marched[None, None],
+                                         ctx.dither(rays), occupied=occupied)
+            if bool(marched.any()):  # its per-sample passes ran inside the kernel, their time in its own
                 for name in vol.plan.sample_passes:
                     with ctx.timer.section(name):
                         pass
