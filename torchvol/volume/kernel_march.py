@@ -180,7 +180,6 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     if idx.shape[0] == 0:
         return result
     s, d, lane, per_ray = _ray_lanes(rays, idx)
-    bools = lambda x: Bool(x.index_select(0, idx).cpu().numpy())  # noqa: E731
     # the first piece with a medium on each ray
     pieces = held[:, idx]  # [P, n]
     first_piece = torch.where(pieces, torch.arange(pieces.shape[0])[:, None], pieces.shape[0]).amin(dim=0)
@@ -188,15 +187,11 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
         origin=lane(rays.origins.index_select(0, idx)), direction=lane(d),
         dither=None if dither is None else lane(dither.index_select(0, idx)),
         start=[lane(x.index_select(0, idx)) for x in start], end=[lane(x.index_select(0, idx)) for x in end],
-        present=[Bool(x.cpu().numpy()) for x in pieces], active=[[bools(a) for a in v] for v in active.unbind(1)],
+        present=[Bool(x.cpu().numpy()) for x in pieces],
+        active=[[Bool(a.index_select(0, idx).cpu().numpy()) for a in v] for v in active.unbind(1)],
         air=None if air is None else _air_inputs(air, idx, lane, air_on, active))
     t0 = start[:, idx].gather(0, first_piece.clamp_max(start.shape[0] - 1)[None]).squeeze(0)
-    first, k.stop = dr.full(Bool, True, len(idx)), None  # (None: a piece stops at its end)
-    if occupied is not None:
-        assert start.shape[0] == 1, "march(occupied=...) is one piece's"
-        t0, t_stop, dithered = occupied_start(start[0, idx], end[0, idx], occupied[0][idx], occupied[1][idx],
-                                              rule=ctx.settings.rule, frac=None if dither is None else dither[idx])
-        k.stop, first = lane(t_stop), first if dithered is None else Bool(dithered.cpu().numpy())
+    t0, first = _first_segment(ctx, k, idx, t0, start, end, dither, occupied, lane)
     needed = {v.plan.index for v in vols} | {j for v in vols for u in v.plan.lights + (v.plan.ambient_sky,)
                                                if u is not None for j in u.occluders}
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
@@ -255,6 +250,23 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
     dr.eval(out)
     dr.sync_thread()
     return _written(ctx, result, idx, out[1:6], out[7], out[9:], {vol.plan.index: out[8]})
+
+
+def _first_segment(ctx, k: SimpleNamespace, idx: Tensor, t0: Tensor, start: Tensor, end: Tensor,
+                   dither: Tensor | None, occupied: tuple[Tensor, Tensor] | None, lane):
+    """Where the rays `idx` [n] start (`t0` [n]: their first piece's start) and whether their first
+    segment is dithered (a Bool lane); with `occupied` (`march`), where the skipped march starts and
+    stops them (`march.occupied_start`), the stop set as `k.stop` (None: a piece stops at its end)."""
+    import drjit as dr
+    from drjit.llvm import Bool
+
+    first, k.stop = dr.full(Bool, True, len(idx)), None
+    if occupied is not None:
+        assert start.shape[0] == 1, "march(occupied=...) is one piece's"
+        t0, t_stop, dithered = occupied_start(start[0, idx], end[0, idx], occupied[0][idx], occupied[1][idx],
+                                              rule=ctx.settings.rule, frac=None if dither is None else dither[idx])
+        k.stop, first = lane(t_stop), first if dithered is None else Bool(dithered.cpu().numpy())
+    return t0, first
 
 
 def _air_inputs(air: AirPath, idx: Tensor, lane, on: Tensor, active: Tensor) -> SimpleNamespace:
