@@ -3,6 +3,7 @@ march (the reference, `compile="off"`) within the tolerance table on the recipe 
 on every variant it renders; its bytes the same alone and in a batch, for any chunking and thread
 count; the plan taking it by default where it renders the technique and eager elsewhere."""
 
+import math
 import os
 from pathlib import Path
 
@@ -216,6 +217,19 @@ def test_the_atmosphere_preset_matches_the_eager_march(view):
     assert kernel.stats["plan"]["air"] == "drjit" and eager.stats["plan"]["air"] == "eager"
     _close(kernel, eager, f"atmosphere, {view}")
     assert kernel.stats["march_steps"] == eager.stats["march_steps"] > 0
+
+
+@pytest.mark.parametrize("sun_elevation", [35.0, 2.0, -4.0])
+def test_the_atmosphere_sky_in_the_kernel_matches_the_eager_sky(sun_elevation):
+    """The `atmosphere` sky's per-pixel march (`light.atmosphere.single_scatter_lanes`) traced by
+    Dr.Jit: every direction, up, along the horizon and down to the ground, a sun high, low and set."""
+    scene = {"image": {"width": 24, "height": 20}, "camera": {"eye": [0.0, 0.0, 0.0], "target": [0.0, 0.2, 1.0], "fov_y": 120.0},
+             "sky": {"kind": "atmosphere", "atmosphere": {"eye_height": 200.0, "mie": 5e-5}},
+             "lights": [{"direction": [0.0, math.sin(math.radians(sun_elevation)), math.cos(math.radians(sun_elevation))]}]}
+    kernel, eager = tv.render(scene), tv.render(scene, compile="off")
+    assert kernel.stats["plan"]["sky"] == "drjit" and eager.stats["plan"]["sky"] == "eager"
+    _close(kernel, eager, f"the atmosphere sky, sun at {sun_elevation}°")
+    assert float(eager.radiance.max()) > 0
 
 
 def test_the_air_gives_the_same_bytes_alone_in_a_batch_and_for_any_chunking():

@@ -22,12 +22,14 @@ import math
 from dataclasses import dataclass, fields
 from types import SimpleNamespace
 
+import numpy as np
 import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
 from ..geometry.rays import intersect_sphere, sphere_interval
 from ..ops import lanes
+from ..runtime.threads import set_drjit_threads
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
 from .phase import mie_cornette_shanks
@@ -183,30 +185,55 @@ def sun_path(points: Tensor, sun_dir: Tensor, air: Air) -> tuple[Tensor, Tensor]
     return sun_path_lanes(points.unbind(1), sun_dir.unbind(1), air_lanes(air))
 
 
+def single_scatter_lanes(origins, directions, t0, t1, sun_dir, q: SimpleNamespace, *, steps: int,
+                         light_steps: int) -> tuple[list, list]:
+    """`single_scatter` in lanes (`ops.lanes`): `origins`, `directions`, `sun_dir` three lanes each
+    (planet frame; unit directions), `t0`, `t1` lanes, the air `q` (`air_lanes`). -> (in-scatter,
+    transmittance), three lanes each."""
+    dt = lanes.divide(lanes.clamp_min(t1 - t0, 0.0), steps)
+    d, sun = directions, sun_dir
+    cos = d[0] * sun[0] + d[1] * sun[1] + d[2] * sun[2]
+    optical = [lanes.full_like(dt, 0.0)] * 2
+    sums = [[lanes.full_like(dt, 0.0)] * 3 for _ in range(2)]  # Rayleigh's and Mie's attenuated sums
+    for i in range(steps):
+        t = t0 + (i + 0.5) * dt
+        p = [origins[c] + t * d[c] for c in range(3)]
+        step = [x * dt for x in density_lanes(p, q)]
+        optical = [optical[k] + step[k] for k in range(2)]
+        length, blocked = sun_path_lanes(p, sun, q)
+        toward = optic_depth_lanes(p, sun, length, q, light_steps)
+        tau = extinction_lanes([optical[k] + toward[k] for k in range(2)], q)
+        attenuation = [lanes.where(blocked, 0.0, lanes.exp(-x)) for x in tau]
+        sums = [[sums[k][c] + attenuation[c] * step[k] for c in range(3)] for k in range(2)]
+    rayleigh, mie = rayleigh_phase(cos), q.mie * mie_cornette_shanks(cos, q.mie_g)
+    inscatter = [sums[0][c] * q.rayleigh[c] * rayleigh + sums[1][c] * mie for c in range(3)]
+    return inscatter, [lanes.exp(-x) for x in extinction_lanes(optical, q)]
+
+
 def single_scatter(origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, sun_dir: Tensor, air: Air, *,
                    steps: int, light_steps: int) -> tuple[Tensor, Tensor]:
     """Single scattering of the sun by the air on the segment [t0, t1] [n] of rays `origins`,
     `directions` [n, 3] (planet frame, unit directions), `steps` midpoint samples, each with
     `light_steps` towards the sun `sun_dir` [n, 3] (unit). -> (in-scatter [n, 3] per unit sun
     irradiance, seen from t0; transmittance [n, 3] from t0 to t1). t1 ≤ t0 gives (0, 1)."""
-    dt = (t1 - t0).clamp_min(0.0) / steps
-    q, d, sun = air_lanes(air), directions.unbind(1), sun_dir.unbind(1)
-    cos = d[0] * sun[0] + d[1] * sun[1] + d[2] * sun[2]
-    optical = [torch.zeros_like(dt)] * 2
-    sums = [[torch.zeros_like(dt)] * 3 for _ in range(2)]  # Rayleigh's and Mie's attenuated sums
-    for i in range(steps):
-        t = t0 + (i + 0.5) * dt
-        p = [origins[:, c] + t * d[c] for c in range(3)]
-        step = [x * dt for x in density_lanes(p, q)]
-        optical = [optical[k] + step[k] for k in range(2)]
-        length, blocked = sun_path_lanes(p, sun, q)
-        toward = optic_depth_lanes(p, sun, length, q, light_steps)
-        tau = extinction_lanes([optical[k] + toward[k] for k in range(2)], q)
-        attenuation = [torch.where(blocked, 0.0, torch.exp(-x)) for x in tau]
-        sums = [[sums[k][c] + attenuation[c] * step[k] for c in range(3)] for k in range(2)]
-    rayleigh, mie = rayleigh_phase(cos), q.mie * mie_cornette_shanks(cos, q.mie_g)
-    inscatter = [sums[0][c] * q.rayleigh[c] * rayleigh + sums[1][c] * mie for c in range(3)]
-    return _columns(inscatter), _columns([torch.exp(-x) for x in extinction_lanes(optical, q)])
+    inscatter, trans = single_scatter_lanes(origins.unbind(1), directions.unbind(1), t0, t1, sun_dir.unbind(1),
+                                            air_lanes(air), steps=steps, light_steps=light_steps)
+    return _columns(inscatter), _columns(trans)
+
+
+def single_scatter_kernel(origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, sun_dir: Tensor, air: Air, *,
+                          steps: int, light_steps: int) -> Tensor:
+    """`single_scatter`'s in-scatter [n, 3] as one Dr.Jit kernel over the rays (float32 on the CPU;
+    the same lanes function, traced): the atmosphere sky's per-pixel march."""
+    import drjit as dr
+
+    set_drjit_threads()
+    cols = lambda x: [lanes.floats_of(c) for c in x.unbind(1)]  # noqa: E731
+    inscatter, _ = single_scatter_lanes(cols(origins), cols(directions), lanes.floats_of(t0), lanes.floats_of(t1),
+                                        cols(sun_dir), air_lanes(air, lanes.floats_of), steps=steps,
+                                        light_steps=light_steps)
+    dr.eval(inscatter)
+    return torch.stack([torch.from_numpy(np.array(x)) for x in inscatter], dim=1).to(origins)
 
 
 def _segments(mask: Tensor, origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, sun_dir: Tensor, air: Air,

@@ -17,7 +17,7 @@ from ..ops.mathops import pow_
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
 from ..schema.registry import Registry
-from .atmosphere import Air, AirLayer, gather_air, single_scatter
+from .atmosphere import Air, AirLayer, gather_air, single_scatter, single_scatter_kernel
 
 
 class Glow(Strict):
@@ -80,29 +80,33 @@ def sun_glow(directions: Tensor, sun_dir: Tensor, color: Tensor, power: Tensor) 
 
 
 def atmosphere_sky(directions: Tensor, sun_dir: Tensor, air: Air, *, eye_height: Tensor, sun_intensity: Tensor,
-                   steps: int, light_steps: int) -> Tensor:
+                   steps: int, light_steps: int, kernel: bool = False) -> Tensor:
     """Single-scattering Rayleigh + Mie sky (seed 000, variant 2) seen from `eye_height` [R] above
     the planet of `air` (per ray): `volume.atmosphere.single_scatter` up to the top of the
-    atmosphere, or to the ground (black) for rays towards it. `directions`, `sun_dir`: [R, 3] unit
-    (sun towards the sun); `sun_intensity` [R]. Returns radiance [R, 3]."""
+    atmosphere, or to the ground (black) for rays towards it, as one Dr.Jit kernel where `kernel`
+    (`single_scatter_kernel`). `directions`, `sun_dir`: [R, 3] unit (sun towards the sun);
+    `sun_intensity` [R]. Returns radiance [R, 3]."""
     centre = torch.zeros_like(directions)
     origin = torch.zeros_like(directions)
     origin[:, 1] = air.planet_radius + eye_height
     _, t_top = intersect_sphere(origin, directions, centre, air.top_radius)
     g_near, _ = intersect_sphere(origin, directions, centre, air.planet_radius)
     t_end = torch.where(g_near > 0, torch.minimum(g_near, t_top), t_top).clamp_min(0.0)
-    inscatter, _ = single_scatter(origin, directions, torch.zeros_like(t_end), t_end, sun_dir, air, steps=steps,
-                                  light_steps=light_steps)
+    scatter = single_scatter_kernel if kernel else lambda *a, **k: single_scatter(*a, **k)[0]
+    inscatter = scatter(origin, directions, torch.zeros_like(t_end), t_end, sun_dir, air, steps=steps,
+                        light_steps=light_steps)
     return sun_intensity[:, None] * inscatter
 
 
-def _atmosphere(sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor) -> Tensor:
+def _atmosphere(sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor, *, kernel: bool = False) -> Tensor:
     atm = sky.atmosphere
     return atmosphere_sky(directions, take(sun, s), gather_air(atm, s), eye_height=take(atm.eye_height, s),
-                          sun_intensity=take(atm.sun_intensity, s), steps=atm.steps, light_steps=atm.light_steps)
+                          sun_intensity=take(atm.sun_intensity, s), steps=atm.steps, light_steps=atm.light_steps,
+                          kernel=kernel)
 
 
 SKIES = Registry("sky")
 SKIES.register("constant", ConstantSky, lambda sky, d, s, sun: take(sky.radiance, s))
 SKIES.register("gradient", GradientSky, lambda sky, d, s, sun: gradient_sky(d, take(sky.horizon, s), take(sky.slope, s)))
-SKIES.register("atmosphere", AtmosphereSky, _atmosphere, needs_sun=True)
+# `kernel`: the kind's fn(..., kernel=True) runs as a Dr.Jit kernel (where the render runs kernels)
+SKIES.register("atmosphere", AtmosphereSky, _atmosphere, needs_sun=True, kernel=True)

@@ -286,6 +286,11 @@ def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
     return Floor(lambda: [kernel() for kernel in parts], points, n)
 
 
+def backends(summary: dict) -> list[str]:
+    """What each march of a render ran on (its plan's `summary`): its volumes', then the air's."""
+    return list(summary["marches"].values()) + ([summary["air"]] if "air" in summary else [])
+
+
 def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[dict]:
     """Every preset at size×size as `render` runs it by default: rows {preset, marches (what each
     march ran on), seconds, first_s, eager_s (one eager render, where a march ran as a kernel),
@@ -296,9 +301,9 @@ def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[di
         out = render(scene, keep_context=True)
         floor = _kernel_floor(out, name, kernels, floor_points)
         t = time_render(scene, compile="kernels", repeat=repeat, floor=floor)
-        marches = out.stats["plan"]["marches"]
-        eager = _seconds(lambda: render(scene, compile="off")) if "drjit" in marches.values() else None
-        rows.append(dict(preset=name, marches=", ".join(sorted(set(marches.values()))) or "none", seconds=t.seconds,
+        marches = backends(out.stats["plan"])
+        eager = _seconds(lambda: render(scene, compile="off")) if "drjit" in marches else None
+        rows.append(dict(preset=name, marches=", ".join(sorted(set(marches))) or "none", seconds=t.seconds,
                          first_s=t.first_s, eager_s=eager, x_floor=t.x_floor))
     return rows
 
@@ -337,7 +342,7 @@ def generation_rows(recipes: Sequence[str], *, workers: Sequence[int], count: in
     for name in recipes:
         path = ROOT / "datasets" / f"{name}.toml"
         scene = Recipe.load(path, overrides).sample_with_params(0, 0)[0]
-        kernels = "drjit" in make_plan(scene, compile="kernels").summary()["marches"].values()
+        kernels = "drjit" in backends(make_plan(scene, compile="kernels").summary())
         modes = [("kernels", "default")] + ([("off", "eager")] if kernels else [])  # without a kernel the default is eager
         for n in workers:
             for compile, label in modes:

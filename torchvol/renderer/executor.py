@@ -177,7 +177,11 @@ def sky_radiance(ctx: RenderContext, rays: Rays) -> Tensor:
 def sky_toward(ctx: RenderContext, directions: Tensor, s: Tensor) -> Tensor:
     """The sky [n, 3] seen along unit directions [n, 3] of scenes s [n] (with the halo)."""
     sky = ctx.batch.sky
-    base = SKIES[ctx.plan.sky].fn(sky, directions, s, ctx.sun())
+    kind = SKIES[ctx.plan.sky]
+    if ctx.plan.sky_backend == "drjit":
+        base = kind.fn(sky, directions, s, ctx.sun(), kernel=True)
+    else:
+        base = kind.fn(sky, directions, s, ctx.sun())
     if ctx.plan.halo:
         base = base + sun_glow(directions, take(ctx.sun(), s), take(sky.halo.color, s), take(sky.halo.power, s))
     return base

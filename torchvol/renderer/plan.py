@@ -24,6 +24,7 @@ import torch
 from ..fields import DENSITIES
 from ..geometry.bounds import BOUNDS, SLAB_REACH
 from ..light.lights import LIGHTS, Shadow, sun_index
+from ..light.sky import SKIES
 from ..post import POST
 from ..runtime import compilation
 from ..runtime.compilation import CompileMode
@@ -274,6 +275,9 @@ class Plan:
     # render runs kernels, else eagerly, the same bits either way (a walk with a per-cell callback,
     # the glow's, runs eagerly); None: no voxels
     walk: Backend | None = None
+    # what a sky whose kind has a kernel (`SKIES`' ``kernel``: the atmosphere's per-pixel march) runs
+    # on: "drjit" where the render runs kernels, else "eager"; None: no sky, or a kind with no march
+    sky_backend: Backend | None = None
 
     def summary(self) -> dict:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
@@ -285,6 +289,7 @@ class Plan:
                 **({"joint": [self.volumes[v].name for v in self.joint.volumes]} if self.joint is not None else {}),
                 **({"air": self.joint.backend} if self.joint is not None and self.joint.air else {}),
                 **({"walk": self.walk} if self.walk is not None else {}),
+                **({"sky": self.sky_backend} if self.sky_backend is not None else {}),
                 "threads": self.threads, "compile": self.compile, "dtype": str(self.dtype).removeprefix("torch.")}
 
     def volume_names(self) -> list[str]:
@@ -493,6 +498,8 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", 
         dtype=dtype,
         threads="glue_on_one_thread" if glue else "caller",
         walk=None if voxels is None else "drjit" if kernels else "eager",
+        sky_backend=None if batch.sky is None or not SKIES[batch.sky.kind].caps.get("kernel") else
+        "drjit" if kernels else "eager",
         kernels=kernels,
     )
 
