@@ -180,9 +180,7 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     if idx.shape[0] == 0:
         return result
     s, d, lane, per_ray = _ray_lanes(rays, idx)
-    # the first piece with a medium on each ray
     pieces = held[:, idx]  # [P, n]
-    first_piece = torch.where(pieces, torch.arange(pieces.shape[0])[:, None], pieces.shape[0]).amin(dim=0)
     k = SimpleNamespace(
         origin=lane(rays.origins.index_select(0, idx)), direction=lane(d),
         dither=None if dither is None else lane(dither.index_select(0, idx)),
@@ -190,8 +188,8 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
         present=[Bool(x.cpu().numpy()) for x in pieces],
         active=[[Bool(a.index_select(0, idx).cpu().numpy()) for a in v] for v in active.unbind(1)],
         air=None if air is None else _air_inputs(air, idx, lane, air_on, active))
-    t0 = start[:, idx].gather(0, first_piece.clamp_max(start.shape[0] - 1)[None]).squeeze(0)
-    t0, first = _first_segment(ctx, k, idx, t0, start, end, dither, occupied, lane)
+    q0 = _next_piece(k.present, dr.full(Int32, -1, len(idx)))  # the first piece with a medium on each ray
+    t0, first = _first_segment(ctx, k, idx, _pick(k.start, q0), start, end, dither, occupied, lane)
     needed = {v.plan.index for v in vols} | {j for v in vols for u in v.plan.lights + (v.plan.ambient_sky,)
                                                if u is not None for j in u.occluders}
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
@@ -201,8 +199,8 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray, behind)),
                                medium=_medium(m, v, par, solids, terrain, count, k.air)) for v in vols]
     n = len(idx)
-    zero, q0 = dr.zeros(Float, n), Int32(first_piece.to(torch.int32).numpy())
-    state = (lane(t0), q0, dr.zeros(Int32, n), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n),
+    zero = dr.zeros(Float, n)
+    state = (t0, q0, dr.zeros(Int32, n), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n),
              dr.full(Bool, True, n), dr.zeros(Int32, n), first,
              *(dr.zeros(Int32, n) for _ in range(count)), *(zero for _ in range(3 + (len(vols) if shares else 0))))
     out = dr.while_loop(state, lambda *x: x[8], _body(k, members, par, ctx.settings, count, shares), mode="symbolic")
@@ -252,11 +250,12 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
     return _written(ctx, result, idx, out[1:6], out[7], out[9:], {vol.plan.index: out[8]})
 
 
-def _first_segment(ctx, k: SimpleNamespace, idx: Tensor, t0: Tensor, start: Tensor, end: Tensor,
+def _first_segment(ctx, k: SimpleNamespace, idx: Tensor, t0, start: Tensor, end: Tensor,
                    dither: Tensor | None, occupied: tuple[Tensor, Tensor] | None, lane):
-    """Where the rays `idx` [n] start (`t0` [n]: their first piece's start) and whether their first
-    segment is dithered (a Bool lane); with `occupied` (`march`), where the skipped march starts and
-    stops them (`march.occupied_start`), the stop set as `k.stop` (None: a piece stops at its end)."""
+    """Where the rays `idx` [n] start (`t0`, a lane: their first piece's start) and whether their
+    first segment is dithered (a Bool lane); with `occupied` (`march`), where the skipped march
+    starts and stops them (`march.occupied_start`), the stop set as `k.stop` (None: a piece stops
+    at its end)."""
     import drjit as dr
     from drjit.llvm import Bool
 
@@ -265,7 +264,7 @@ def _first_segment(ctx, k: SimpleNamespace, idx: Tensor, t0: Tensor, start: Tens
         assert start.shape[0] == 1, "march(occupied=...) is one piece's"
         t0, t_stop, dithered = occupied_start(start[0, idx], end[0, idx], occupied[0][idx], occupied[1][idx],
                                               rule=ctx.settings.rule, frac=None if dither is None else dither[idx])
-        k.stop, first = lane(t_stop), first if dithered is None else Bool(dithered.cpu().numpy())
+        t0, k.stop, first = lane(t0), lane(t_stop), first if dithered is None else Bool(dithered.cpu().numpy())
     return t0, first
 
 
