@@ -17,7 +17,10 @@ def test_cli_parses_bench_speed():
 def test_generation_and_loaded_sections_report(tmp_path):
     rows = bench_speed.generation_rows(["clouds"], workers=(1,), count=8, size=8, cli_count=4)
     assert rows[0]["recipe"] == "clouds" and rows[0]["samples_per_s"] > 0 and rows[0]["bytes_per_sample"] > 0
-    assert rows[0]["steady_per_s"] > 0 and rows[0]["first_s"] >= 0
+    # the steady rate is blank (None) where the N extra samples took under a tenth of the 2N run:
+    # timing noise on a busy machine (the suite's other workers) can make it so
+    steady, first = rows[0]["steady_per_s"], rows[0]["first_s"]
+    assert (steady is None and first is None) or (steady > 0 and first >= 0), (steady, first)
     assert rows[0]["cli_wall_s"] > 0 and all(r["cli_wall_s"] is None for r in rows if r["mode"] == "eager")
     loaded = bench_speed.loaded_rows(width=8, height=6, repeat=1, configs=[(1, "PASSIVE", "off")])
     assert loaded[0]["slowdown"] > 0
