@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 from conftest import assert_close
 
@@ -158,6 +159,23 @@ def test_voxel_shadow_rays_see_the_volumes(one_thread):
     assert under.sum() > 10 and beside.sum() > 10
     ratio = direct[under].mean() / direct[beside].mean()
     assert_close(ratio, math.exp(-sigma * thickness), atol=1e-4, what="floor under the box / beside it")
+
+
+@pytest.mark.parametrize("compile", ["kernels", "off"])
+def test_voxel_shadow_rays_cross_the_volumes_only_where_light_reaches(compile, one_thread):
+    # a roof over the floor's left half and an absorbing slab high above both, out of the view: every
+    # density evaluation is a shadow ray's, and only the faces the voxels leave lit send one
+    def floor_and_roof(cells):
+        return ((cells[:, 1] == 0) | ((cells[:, 1] == 3) & (cells[:, 0] < 0))).long()
+
+    scene = voxel_floor_scene({"bounds": {"box": {"min": [-8.0, 10.0, -8.0], "max": [8.0, 10.5, 8.0]}},
+                               "sigma_t": 1.3, "albedo": 0.0}, cells_min=(-4, 0, -4), cells_max=(4, 4, 4))
+    scene["voxels"]["occupancy"]["function"]["fn"] = floor_and_roof
+    scene["camera"] = {"eye": [0.0, 6.0, -12.0], "target": [0.0, 0.0, 0.0], "fov_y": 40.0}
+    out = tv.render(scene, aovs=["shadow"], compile=compile)
+    surface, shadow = out.depth[0, 0] > 0, out.aovs["shadow"][0, 0]
+    assert (surface & (shadow == 0)).sum() > 10 and (shadow > 0).sum() > 10  # faces under the roof, and lit ones
+    assert out.stats["density_evals"] == 4 * int((shadow > 0).sum())
 
 
 def test_volume_shadow_rays_see_the_voxels_without_a_terrain(one_thread):

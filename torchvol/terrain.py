@@ -208,7 +208,8 @@ def normal_kernel(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
 class TerrainSurface:
     """One batch's terrain (`params`: the batch's `Stacked` terrain) lit by `lights`; `plan` the
     batch's `TerrainPass`; `aovs` the AOV names to output; `transmittance(use, p, s, direction,
-    distance) -> [n]` what a shadow ray of LightPass `use` sees (volumes and terrain)."""
+    distance, times=None) -> [n]` `times` × what a shadow ray of LightPass `use` sees (volumes and
+    terrain), traced only where `times` > 0."""
 
     def __init__(self, params: Stacked, lights: Sequence, plan, aovs: Sequence[str],
                  transmittance: Callable[..., Tensor], kernels: bool = False):
@@ -255,7 +256,7 @@ class TerrainSurface:
                 if l in shadows:
                     use = shadows[l]
                     with section(use.name):
-                        lit = lit * self.transmittance(use, start, sh, toward.direction, toward.distance)
+                        lit = self.transmittance(use, start, sh, toward.direction, toward.distance, lit)
                 light = light + toward.irradiance * lit[:, None]
             color[ids] = albedo * light
             for k in self.aov_names:

@@ -111,7 +111,8 @@ class RenderContext:
             self.lights[plan.sun].through = sun_through_air(batch.atmosphere, self.lights[plan.sun])
         self.volumes = [self._volume(vp) for vp in plan.volumes]
         # what a surface's shadow ray sees besides that surface (volumes, the other surface), as the plan says
-        shadow_rays = lambda use, p, s, direction, distance: kernel_march.surface_shadows(self, use, p, s, direction, distance)
+        shadow_rays = lambda use, p, s, direction, distance, times=None: kernel_march.surface_shadows(
+            self, use, p, s, direction, distance, times)
         self.voxel_surface = self.voxels = self.terrain = None
         if plan.voxels is not None:
             self.voxel_surface = VoxelSurface(

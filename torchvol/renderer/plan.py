@@ -63,11 +63,12 @@ class LightPass:
     voxels: bool = False
 
     def names(self) -> list[str]:
-        """Its passes in `stats`: its own, then one per occluding volume, the terrain and the voxels."""
+        """Its passes in `stats`, in the order they run: its own, the terrain, the voxels, then one
+        per occluding volume (marched only where the terrain and the voxels let light through)."""
         if self.name is None:
             return []
-        return ([self.name] + [f"{self.name}.volume{j}" for j in self.occluders]
-                + ([f"{self.name}.terrain"] if self.terrain else []) + ([f"{self.name}.voxels"] if self.voxels else []))
+        return ([self.name] + ([f"{self.name}.terrain"] if self.terrain else []) + ([f"{self.name}.voxels"] if self.voxels else [])
+                + [f"{self.name}.volume{j}" for j in self.occluders])
 
 
 @dataclass(frozen=True)

@@ -494,13 +494,15 @@ def _through_others(solids: dict, occluders, terrain, p, direction, distance, sh
     import drjit as dr
     from drjit.llvm import Float, Int32
 
-    through = 1.0
+    # the terrain first: a volume is marched only where the terrain and the volumes before it let
+    # light through (as eager does)
+    through = 1.0 if terrain is None else visible_lanes(terrain, p, direction, math.inf if distance is None else distance)
     for j in occluders:
         other = solids[j]
         near, far = other.interval(p, direction)
         t0 = lanes.clamp_min(near, 0.0)
         t1 = lanes.minimum(far, other.reach if distance is None else lanes.minimum(distance, other.reach))
-        crosses = t1 > t0
+        crosses = (t1 > t0) if isinstance(through, float) else (t1 > t0) & (through > 0.0)
         entry = [p[c] + t0 * direction[c] for c in range(3)]
         zero = lambda: dr.zeros(Float, dr.width(t0))  # noqa: E731
         if shadow.method == "grid":
@@ -512,8 +514,6 @@ def _through_others(solids: dict, occluders, terrain, p, direction, distance, sh
                          zero)
         through = through * lanes.exp(-tau)
         evals[j] = evals[j] + dr.select(crosses, Int32(shadow.steps), Int32(0))
-    if terrain is not None:
-        through = through * visible_lanes(terrain, p, direction, math.inf if distance is None else distance)
     return through
 
 
@@ -524,17 +524,40 @@ def occluders_supported(ctx, use) -> bool:
     return ctx.plan.kernels and all(writes_in_lanes(ctx.volumes[j]) for j in use.occluders)
 
 
-def surface_shadows(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
-    """`shadow.occluder_transmittance` of a surface's shadow or sky ray (LightPass `use`), its
-    volumes and the terrain as one Dr.Jit kernel (`occluders`) where `occluders_supported`,
-    their passes listed (their time their caller's), the voxels' walk then its own. -> [n]."""
+def surface_shadows(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor,
+                    times: Tensor | None = None) -> Tensor:
+    """`times` [n] (None: 1; the light already reaching the points, their n·l or the voxels'
+    visibility) × `shadow.occluder_transmittance` of a surface's shadow or sky ray (LightPass
+    `use`), traced only where that light is > 0. Its volumes and the terrain as one Dr.Jit kernel
+    (`occluders`) where `occluders_supported`, their passes listed (their time their caller's),
+    the voxels' walk first, the kernel only for the rays it lets through. -> [n]."""
+    out = p.new_ones(p.shape[0]) if times is None else times.clone()
+    ids = None if times is None else (times > 0).nonzero().squeeze(1)
+    rays = lambda: [x if ids is None else x[ids] for x in (p, s, direction, distance)]  # noqa: E731
     if not (use.occluders or use.terrain) or not occluders_supported(ctx, use):
-        return occluder_transmittance(ctx, use, p, s, direction, distance)
-    out = occluders(ctx, use, p, s, direction, distance)
-    for name in use.names()[1:len(use.occluders) + 1 + use.terrain]:
+        through = occluder_transmittance(ctx, use, *rays())
+    else:
+        listed = [n for n in use.names()[1:] if not n.endswith(".voxels")]  # in the order eager runs them
+        _list(ctx, listed[:use.terrain])
+        if use.voxels:  # the voxels' walk first (0 or 1), the kernel only where it lets light through
+            voxels = occluder_transmittance(ctx, replace(use, occluders=(), terrain=False), *rays())
+            if ids is None:
+                out, ids = out * voxels, (voxels > 0).nonzero().squeeze(1)
+            else:
+                out[ids], ids = out[ids] * voxels, ids[voxels > 0]
+        through = occluders(ctx, use, *rays())
+        _list(ctx, listed[use.terrain:])
+    if ids is None:
+        return out * through
+    out[ids] = through * out[ids]
+    return out
+
+
+def _list(ctx, names: list[str]) -> None:
+    """Passes `names` in `stats`, run inside a kernel their caller times."""
+    for name in names:
         with ctx.timer.section(name):
             pass
-    return out * occluder_transmittance(ctx, replace(use, occluders=(), terrain=False), p, s, direction, distance)
 
 
 def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:

@@ -73,12 +73,20 @@ def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direct
     whatever its shading), marched over its chord in `use.shadow.steps` equal steps (exact for homogeneous media)
     or, with `shadow.method = "grid"`, looked up in that volume's sun grid where the ray enters
     it, times 0 where the terrain blocks it (`use.terrain`) and where the voxels do (`use.voxels`)
-    -> [n]. Each is its own pass, reported only where some shadow ray crosses it."""
+    -> [n]. The terrain's and the voxels' visibility (0 or 1) come first: a volume is marched only
+    where they let light through. Each is its own pass, reported only where some shadow ray crosses it."""
+    # the blockers first: a volume is marched only where the terrain and the voxels let light through
     out = p.new_ones(p.shape[0])
+    if use.terrain:
+        with ctx.timer.section(f"{use.name}.terrain"):
+            out = out * ctx.terrain.visibility(p, direction, s, distance)
+    if use.voxels:
+        with ctx.timer.section(f"{use.name}.voxels"):
+            out = out * ctx.voxels.visibility(p, direction, s, distance)
     for j in use.occluders:
         other = ctx.volumes[j]
         t0, t1, crosses = clip_to_ray(*other.intersect(p, direction, s), torch.minimum(distance, p.new_tensor(other.plan.reach)))
-        ids = crosses.nonzero().squeeze(1)
+        ids = (crosses & (out > 0)).nonzero().squeeze(1)
         if ids.numel() == 0:
             continue
         with ctx.timer.section(f"{use.name}.volume{j}"):
@@ -91,12 +99,6 @@ def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direct
                     entry, direction[ids], t1[ids] - t0[ids],
                     lambda q, owner: take(other.params.sigma_t, sj[owner]) * other.field(q, sj[owner]), steps=use.shadow.steps)
             out[ids] = out[ids] * through
-    if use.terrain:
-        with ctx.timer.section(f"{use.name}.terrain"):
-            out = out * ctx.terrain.visibility(p, direction, s, distance)
-    if use.voxels:
-        with ctx.timer.section(f"{use.name}.voxels"):
-            out = out * ctx.voxels.visibility(p, direction, s, distance)
     return out
 
 

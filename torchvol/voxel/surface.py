@@ -54,8 +54,9 @@ class VoxelSurface:
     """One batch's voxel grids and shading parameters (`voxels`: the batch's `Stacked` voxels),
     lit by `lights`; `plan` the batch's `VoxelPass`; `aovs` the AOVs to output, name -> channels; `time` (B,) the
     scenes' times (water waves); `sky(directions [n, 3], s [n]) -> [n, 3]` what secondary rays that
-    leave the grid see (None: black); `transmittance(use, p, s, direction, distance) -> [n]` what a
-    shadow ray of LightPass `use` sees besides the voxels (the terrain beside them, where `use.terrain`)."""
+    leave the grid see (None: black); `transmittance(use, p, s, direction, distance, times=None) -> [n]`
+    `times` × what a shadow ray of LightPass `use` sees besides the voxels (the terrain beside them,
+    where `use.terrain`), traced only where `times` > 0."""
 
     def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Mapping[str, int], *, dtype, device,
                  drjit: bool = False, time: Tensor | None = None, sky: Callable[[Tensor, Tensor], Tensor] | None = None,

@@ -50,7 +50,7 @@ class DirectLight:
                     vis = self.tracer.visibility(start, s, source, p.shadow.steps, at_start)
                 if use.terrain or use.occluders:  # the media and the terrain beside the voxels (their own passes)
                     at_start = source.toward(start, s) if at_start is None else at_start
-                    vis = vis * self.transmittance(use, start, s, at_start.direction, at_start.distance)
+                    vis = self.transmittance(use, start, s, at_start.direction, at_start.distance, vis)
                 if point.shadow is None:
                     point.shadow = vis[:, None]
             light = light + self.material.fn(point.normal, toward.direction, toward.irradiance, vis)
