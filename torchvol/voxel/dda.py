@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Callable, Optional
 
 import torch
@@ -112,12 +113,55 @@ def start(o: Tensor, d: Tensor, lo, hi, t_min: Tensor | None, t_max: Tensor | No
     return out, ok, t0, cell0, axis0, lo, hi
 
 
-def _crossings(cell: Tensor, o: Tensor, d: Tensor) -> Tensor:
-    """Distance [N, 3] to each axis' next plane (inf where d = 0)."""
+def _sign(d):
+    """sign(d) as int32 lanes: 1, −1, or 0 where d = 0."""
+    return lanes.to_int32(d > 0) - lanes.to_int32(d < 0)
+
+
+def next_cell_lanes(cells: tuple, o: tuple, d: tuple):
+    """One DDA step's crossings and tie rule (the module notes), per column, in lanes (`ops.lanes`:
+    torch columns in `traverse`, Dr.Jit arrays in `walk.walk_step`): cells, o, d three lanes each
+    (int32 or long, float, float). -> (the axis crossed (int32), the distance to it, the next cell's three
+    int32 lanes)."""
+    (cx, cy, cz), (ox, oy, oz), (dx, dy, dz) = cells, o, d
+    sx, sy, sz = (_crossing(c, oc, dc) for c, oc, dc in ((cx, ox, dx), (cy, oy, dy), (cz, oz, dz)))
+    x_first, y_before_z = (sx <= sy) & (sx <= sz), sy <= sz
+    ax = lanes.to_int32(~x_first) * (1 + lanes.to_int32(~y_before_z))  # 0: x first, else 1 (y) or 2 (z)
+    t_next = lanes.minimum(lanes.minimum(sx, sy), sz)
+    nx = cx + lanes.to_int32(ax == 0) * _sign(dx)
+    ny = cy + lanes.to_int32(ax == 1) * _sign(dy)
+    nz = cz + lanes.to_int32(ax == 2) * _sign(dz)
+    return ax, t_next, nx, ny, nz
+
+
+def jump_lanes(r, t, cells: tuple, rays: SimpleNamespace):
+    """`hybrid_traverse`'s jump, per column, in lanes (torch columns or Dr.Jit arrays): across the empty cube [cell − r, cell + r]
+    to the last cube cell on the ray (the caller keeps it where no jump is due). r (int32), t;
+    cells three int32 lanes; `rays`' o, d, lo, hi. -> (the exit distance, the three cells)."""
+    exits = []
+    for a, c in enumerate(cells):
+        da = rays.d[a]
+        zero = da == 0
+        far = lanes.to_float(lanes.where(da > 0, c + r + 1, c - r), da)
+        exits.append(lanes.where(zero, math.inf, (far - rays.o[a]) / lanes.where(zero, 1.0, da)))
+    t_new = lanes.maximum(lanes.minimum(lanes.minimum(exits[0], exits[1]), exits[2]), t)
+    moved = []
+    for a, c in enumerate(cells):
+        da = rays.d[a]
+        p = rays.o[a] + t_new * da
+        before = lanes.to_int32(lanes.where(da > 0, -lanes.floor(-p) - 1.0, lanes.floor(p)))
+        moved.append(lanes.minimum(lanes.maximum(before, lanes.maximum(c - r, rays.lo[a])),
+                                   lanes.minimum(c + r, rays.hi[a] - 1)))
+    return t_new, *moved
+
+
+def _crossing(cell, o, d):
+    """The distance to one axis' next plane (inf where d = 0), lanes; recomputed from the origin at
+    every step (no accumulated drift)."""
     zero = d == 0
-    plane = (cell + (d > 0).to(torch.long)).to(d.dtype)
-    side = (plane - o) / torch.where(zero, torch.ones_like(d), d)
-    return torch.where(zero, torch.full_like(side, torch.inf), side)
+    plane = lanes.to_float(cell + lanes.to_int32(d > 0), d)
+    side = (plane - o) / lanes.where(zero, 1.0, d)
+    return lanes.where(zero, math.inf, side)
 
 
 def traverse(
@@ -164,25 +208,12 @@ def hybrid_traverse(
     return _walk(origins, directions, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max, distance=distance, switch=switch)
 
 
-def dda_step(cell: Tensor, o: Tensor, d: Tensor, step: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """One branchless DDA step of N rays: cells [N, 3] long, o/d [N, 3], step = sign(d) [N, 3] long
-    -> (axis [N], crossing distance [N], next cell [N, 3]); exactly one axis, the first nearest
-    (argmin's choice, spelled out per column: argmin over 3 columns is the slowest op of a step)."""
-    sx, sy, sz = _crossings(cell, o, d).unbind(1)
-    x_first, y_before_z = (sx <= sy) & (sx <= sz), sy <= sz
-    ax = torch.where(x_first, 0, torch.where(y_before_z, 1, 2))
-    t_next = torch.minimum(torch.minimum(sx, sy), sz)
-    new = cell + (ax[:, None] == torch.arange(3, device=cell.device)) * step
-    return ax, t_next, new
-
-
 def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance=None, switch=2) -> Hits:
     out, ok, t0, cell0, axis0, lo, hi = start(o, d, lo, hi, t_min, t_max)
     idx = ok.nonzero().squeeze(1)
     # the active rays' state; `take_rows` (index_select) compacts it, 3–5× faster than x[ids]
     cell, t, axis, oa, da, loa, hia = (take_rows(x, idx) for x in (cell0, t0, axis0, o, d, lo, hi))
     tmax_a = None if t_max is None else take_rows(t_max, idx)
-    stepv = torch.sign(da).to(torch.long)
     n = torch.zeros_like(idx)  # steps taken by each active ray
     while idx.numel():
         if distance is not None:
@@ -191,21 +222,16 @@ def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance
             if j.numel():
                 # jump across the empty cube [cell - r, cell + r] (r = k - 1) to the last cube cell on
                 # the ray; the DDA step below then leaves the cube with the usual tie rule
-                r = (k[j] - 1).unsqueeze(1)
-                cj, oj, dj = cell[j], oa[j], da[j]
-                zero = dj == 0
-                far = torch.where(dj > 0, cj + r + 1, cj - r).to(o.dtype)
-                tx = torch.where(zero, torch.full_like(far, torch.inf), (far - oj) / torch.where(zero, torch.ones_like(far), dj))
-                t_new = torch.maximum(tx.min(dim=1).values, t[j])
-                p = oj + t_new[:, None] * dj
-                before = torch.where(dj > 0, torch.ceil(p) - 1, torch.floor(p)).to(torch.long)
-                before = torch.minimum(torch.maximum(before, torch.maximum(cj - r, loa[j])), torch.minimum(cj + r, hia[j] - 1))
-                cell[j], t[j] = before, t_new
+                rays = SimpleNamespace(**{name: take_rows(x, j).unbind(1) for name, x in
+                                          (("o", oa), ("d", da), ("lo", loa), ("hi", hia))})
+                t_new, *moved = jump_lanes(take_rows(k, j) - 1, take_rows(t, j), take_rows(cell, j).unbind(1), rays)
+                cell[j], t[j] = torch.stack(moved, 1).long(), t_new
                 n[j] += 1
         mat = lookup(cell, idx).to(torch.long)
         n += 1
         hit = mat > 0
-        ax, t_next, new = dda_step(cell, oa, da, stepv)
+        ax, t_next, *new = next_cell_lanes(cell.unbind(1), oa.unbind(1), da.unbind(1))
+        ax, new = ax.long(), torch.stack(new, 1)
         if visit is not None:
             visit(idx, cell, t, torch.where(hit, t, t_next), hit)
         if bool(hit.any()):
@@ -227,8 +253,8 @@ def _walk(o, d, lookup, lo, hi, *, max_steps, t_min, t_max, visit=None, distance
             out.t_exit.index_copy_(0, g, take_rows(torch.where(inside, t, t_next), dn))
             out.cell.index_copy_(0, g, take_rows(cell, dn))
         keep = keep.nonzero().squeeze(1)
-        idx, cell, t, axis, oa, da, loa, hia, stepv, n = (
-            take_rows(x, keep) for x in (idx, new, t_next, ax, oa, da, loa, hia, stepv, n))
+        idx, cell, t, axis, oa, da, loa, hia, n = (
+            take_rows(x, keep) for x in (idx, new, t_next, ax, oa, da, loa, hia, n))
         if tmax_a is not None:
             tmax_a = take_rows(tmax_a, keep)
     return out

@@ -4,15 +4,16 @@ gather from the flattened material grids).
 
 `dda.traverse` runs a step as ~40 small eager ops on the active rays and compacts them after every
 step; on a 2-core machine those ops, not the arithmetic, are the walk (a 128² voxel-terrain
-primary walk: 84 steps, 310 k ray-steps, 36 ms eager). The kernel gives `dda.traverse`'s hits
-bitwise (the same crossing formula, compares and one division an axis; tests/voxel/test_walk.py),
-the hybrid distance-field jumps of `dda.hybrid_traverse` and the voxel fog's sums too. A walk that
+primary walk: 84 steps, 310 k ray-steps, 36 ms eager). A step's crossings, tie rule and
+distance-field jump are written once, in lanes (`dda.next_cell_lanes`, `dda.jump_lanes`): the
+eager walk runs them on torch columns, the kernel on Dr.Jit arrays, so the kernel gives
+`dda.traverse`'s and `dda.hybrid_traverse`'s hits bitwise (tests/voxel/test_walk.py), and the
+voxel fog's sums too. A walk that
 calls back at every cell it visits (the glow's) runs `dda.traverse` eagerly.
 """
 
 from __future__ import annotations
 
-import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -22,7 +23,7 @@ from torch import Tensor
 from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..runtime.threads import set_drjit_threads
-from .dda import Hits, start, start_lanes
+from .dda import Hits, jump_lanes, next_cell_lanes, start, start_lanes
 from .fog import FogWalk
 
 __all__ = ["drjit_traverse", "int_table", "walk_step"]
@@ -48,14 +49,14 @@ def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
         flat = r.base + (cz * g.y + cy) * g.x + cx
         k = lanes.to_int32(lanes.gather(g.distance, lanes.where(alive, flat, zero)))
         jump = alive & (k >= g.switch)
-        t_new, jx, jy, jz = _jump(k - 1, t, (cx, cy, cz), r)
+        t_new, jx, jy, jz = jump_lanes(k - 1, t, (cx, cy, cz), r)
         cx, cy, cz = lanes.where(jump, jx, cx), lanes.where(jump, jy, cy), lanes.where(jump, jz, cz)
         t, n = lanes.where(jump, t_new, t), n + lanes.to_int32(jump)
     flat = r.base + (cz * g.y + cy) * g.x + cx
     mat = lanes.to_int32(lanes.gather(g.table, lanes.where(alive, flat, zero)))
     n = n + lanes.to_int32(alive)
     hit = alive & (mat > 0)
-    ax, t_next, nx, ny, nz = _next_cell((cx, cy, cz), r.o, r.d)
+    ax, t_next, nx, ny, nz = next_cell_lanes((cx, cy, cz), r.o, r.d)
     t_out = lanes.where(hit, t, t_next)
     visit = (alive, cx, cy, cz, t, t_out, hit)
     fog = None
@@ -75,55 +76,6 @@ def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
     cx, cy, cz = lanes.where(keep, nx, cx), lanes.where(keep, ny, cy), lanes.where(keep, nz, cz)
     t, axis = lanes.where(keep, t_next, t), lanes.where(keep, ax, axis)
     return [cx, cy, cz, t, axis, n, keep, t_exit, material, *fog_tau], (visit, fog)
-
-
-def _sign(d):
-    """sign(d) as int32 lanes: 1, −1, or 0 where d = 0."""
-    return lanes.to_int32(d > 0) - lanes.to_int32(d < 0)
-
-
-def _next_cell(cells: tuple, o: tuple, d: tuple):
-    """`dda.dda_step`'s crossings and tie rule, per column, lanes: cells, o, d three lanes each
-    (int32, float, float). -> (the axis crossed (int32), the distance to it, the next cell's three
-    int32 lanes)."""
-    (cx, cy, cz), (ox, oy, oz), (dx, dy, dz) = cells, o, d
-    sx, sy, sz = (_crossing(c, oc, dc) for c, oc, dc in ((cx, ox, dx), (cy, oy, dy), (cz, oz, dz)))
-    x_first, y_before_z = (sx <= sy) & (sx <= sz), sy <= sz
-    ax = lanes.to_int32(~x_first) * (1 + lanes.to_int32(~y_before_z))  # 0: x first, else 1 (y) or 2 (z)
-    t_next = lanes.minimum(lanes.minimum(sx, sy), sz)
-    nx = cx + lanes.to_int32(ax == 0) * _sign(dx)
-    ny = cy + lanes.to_int32(ax == 1) * _sign(dy)
-    nz = cz + lanes.to_int32(ax == 2) * _sign(dz)
-    return ax, t_next, nx, ny, nz
-
-
-def _jump(r, t, cells: tuple, rays: SimpleNamespace):
-    """`dda.hybrid_traverse`'s jump, per column, lanes: across the empty cube [cell − r, cell + r]
-    to the last cube cell on the ray (the caller keeps it where no jump is due). r (int32), t;
-    cells three int32 lanes; `rays`' o, d, lo, hi. -> (the exit distance, the three cells)."""
-    exits = []
-    for a, c in enumerate(cells):
-        da = rays.d[a]
-        zero = da == 0
-        far = lanes.to_float(lanes.where(da > 0, c + r + 1, c - r), da)
-        exits.append(lanes.where(zero, math.inf, (far - rays.o[a]) / lanes.where(zero, 1.0, da)))
-    t_new = lanes.maximum(lanes.minimum(lanes.minimum(exits[0], exits[1]), exits[2]), t)
-    moved = []
-    for a, c in enumerate(cells):
-        da = rays.d[a]
-        p = rays.o[a] + t_new * da
-        before = lanes.to_int32(lanes.where(da > 0, -lanes.floor(-p) - 1.0, lanes.floor(p)))
-        moved.append(lanes.minimum(lanes.maximum(before, lanes.maximum(c - r, rays.lo[a])),
-                                   lanes.minimum(c + r, rays.hi[a] - 1)))
-    return t_new, *moved
-
-
-def _crossing(cell, o, d):
-    """`dda._crossings` for one axis, lanes: the distance to the next plane (inf where d = 0)."""
-    zero = d == 0
-    plane = lanes.to_float(cell + lanes.to_int32(d > 0), d)
-    side = (plane - o) / lanes.where(zero, 1.0, d)
-    return lanes.where(zero, math.inf, side)
 
 
 def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
