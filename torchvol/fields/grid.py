@@ -1,10 +1,11 @@
 """A cell-centred density grid spanning a box: trilinear, clamped to the edge inside, 0 outside.
 
 grid[k, j, i] is the value at the centre of cell (i, j, k) (i along x, j along y, k along z), which
-is `grid_sample`'s align_corners=False convention with border padding. The eager field calls
-`grid_sample` (`sample_grid`); the kernels trace `grid_density`, the same lookup written in lanes
-with `grid_sample`'s own arithmetic (its index, clip, weights and sum in its order), over the
-batch's grids flattened into one table (`grid_lanes`).
+is `grid_sample`'s align_corners=False convention with border padding. The lookup is written once,
+in lanes (`grid_density`, `grid_sample`'s own arithmetic: its index, clip, weights and sum in its
+order) over the batch's grids flattened into one table (`grid_lanes`): the eager field runs it on
+torch columns, the kernels trace it. `sample_grid` (torch's `grid_sample` itself) is the outside
+oracle the tests hold it to bitwise, and the exact references' lookup (`volume/exact.py`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from torch import Tensor
 from ..noise.lattice import _CORNERS
 from ..ops import lanes
 from ..ops.grid_ops import dilate
-from ..schema.batch import Stacked, per_scene
+from ..schema.batch import Stacked, take
 from ..schema.models import GridSource
 
 
@@ -68,10 +69,11 @@ class Grid:
         return grid_occupancy(self.grids[b])
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
-        return per_scene(
-            points, scene_index, len(self.grids),
-            lambda b, _, p: sample_grid(self.grids[b], self.box_min[b], self.box_max[b], p),
-        )
+        """The density at points [n, 3] of scenes scene_index [n] -> [n]: `grid_density` on torch
+        columns, the lookup the kernels trace."""
+        to = SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, scene_index)), scene=scene_index,
+                             floats=lambda t: t, ints=lambda t: t)
+        return grid_density(grid_lanes(self, to), list(points.unbind(1)), None)
 
     signed = __call__  # never clamped: the density is its own signed value
 
