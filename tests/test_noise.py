@@ -372,12 +372,12 @@ def _hard_points(dtype):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_integer_texture_noise_is_the_float64_one_bitwise(dtype):
     """`noise.texture_noise_coords` (int32/int64 steps, stacked tables: the template's eager noise
-    and what its Dr.Jit march traces) against `noise.texture_noise_table` (float64 steps): every
+    and what its Dr.Jit march traces) against `noise.texture_noise_reference` (float64 steps): every
     value equal, also past the float->int32 overflow and at NaN."""
     tables, packed = _stacked_tables([0, 5])
     p = _hard_points(dtype)
     s = torch.arange(p.shape[0]) % 2
-    expected = torch.where(s == 0, noise.texture_noise_table(p, tables[0]), noise.texture_noise_table(p, tables[1]))
+    expected = torch.where(s == 0, noise.texture_noise_reference(p, tables[0]), noise.texture_noise_reference(p, tables[1]))
     got = noise.texture_noise_coords(*p.unbind(1), packed, s * 65536)
     same = (got == expected) | (got.isnan() & expected.isnan())
     assert same.all(), f"{int((~same).sum())} of {len(p)} differ, first at {p[~same][0].tolist()}"
@@ -388,4 +388,4 @@ def test_integer_texture_noise_is_the_float64_one_bitwise(dtype):
 def test_integer_texture_noise_is_bitwise_at_any_float32_point(xyz):
     tables, packed = _stacked_tables([3])
     p = torch.tensor([xyz], dtype=torch.float32)
-    assert torch.equal(noise.texture_noise_coords(*p.unbind(1), packed), noise.texture_noise_table(p, tables[0]))
+    assert torch.equal(noise.texture_noise_coords(*p.unbind(1), packed), noise.texture_noise_reference(p, tables[0]))

@@ -39,7 +39,7 @@ __all__ = [
     "scene_rows",
     "default_noise_texture",
     "texture_noise",
-    "texture_noise_table",
+    "texture_noise_reference",
     "texture_table",
     "fbm",
     "finest_period",
@@ -401,14 +401,17 @@ def texture_noise(p: Tensor, texture: Tensor, *, filter_bits: int | None = LLVMP
     * ``None`` — ideal GL_LINEAR: exact float bilinear weights ``fract(uv)`` on texels / 255.
     """
     _check_points(p)
-    return texture_noise_table(p, texture_table(texture, p.device), filter_bits=filter_bits)
+    table = texture_table(texture, p.device)
+    if filter_bits is None:
+        return texture_noise_reference(p, table, filter_bits=None)
+    return texture_noise_coords(*p.unbind(1), packed_table(table), filter_bits=filter_bits)
 
 
-def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = LLVMPIPE_FILTER_BITS,
-                        base: Tensor | None = None) -> Tensor:
-    """`texture_noise` on a prepared `texture_table` ``[65536, 2]`` (its float64 reference:
-    `texture_noise_coords` is bitwise it, in integers). `base` ``[N]`` long: each point's row
-    offset into a table of several textures stacked (``[B·65536, 2]``; `torch.cat` of tables)."""
+def texture_noise_reference(p: Tensor, table: Tensor, *, filter_bits: int | None = LLVMPIPE_FILTER_BITS) -> Tensor:
+    """`texture_noise` on a prepared `texture_table` ``[65536, 2]``, the slow, obvious form: the
+    fixed-point filter's integer steps as exact float64 arithmetic (`texture_noise_coords`, what
+    renders, is bitwise it in integers; tests/test_noise.py), and the ideal filter
+    (``filter_bits=None``)."""
     dtype, dev = p.dtype, p.device
     fl = torch.floor(p)
     f = p - fl
@@ -422,7 +425,7 @@ def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = L
         x0, y0 = i0[:, 0] & 255, i0[:, 1] & 255
         x1, y1 = (x0 + 1) & 255, (y0 + 1) & 255
         def fetch(y: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
-            v = table[y * 256 + x if base is None else y * 256 + x + base].to(dtype) / 255.0
+            v = table[y * 256 + x].to(dtype) / 255.0
             return v[:, 0], v[:, 1]
 
         (g00, r00), (g01, r01) = fetch(y0, x0), fetch(y0, x1)
@@ -446,7 +449,7 @@ def texture_noise_table(p: Tensor, table: Tensor, *, filter_bits: int | None = L
         x0, y0 = torch.remainder(i0[:, 0], 256.0), torch.remainder(i0[:, 1], 256.0)
         x1, y1 = torch.remainder(x0 + 1.0, 256.0), torch.remainder(y0 + 1.0, 256.0)
         wx, wy = w[:, 0:1], w[:, 1:2]
-        at = lambda y, x: take_rows(table, (y * 256.0 + x).long() if base is None else (y * 256.0 + x).long() + base)  # noqa: E731  [N, 2] (G, R)
+        at = lambda y, x: take_rows(table, (y * 256.0 + x).long())  # noqa: E731  [N, 2] (G, R)
 
         def lerp(a: Tensor, b: Tensor, wt: Tensor) -> Tensor:  # a + ((w (b − a) + half) >> bits)
             return torch.floor((a * (one - wt) + b * wt + half) / one)
@@ -478,9 +481,9 @@ def texture_rows(scene: Tensor, dtype: torch.dtype) -> Tensor:
 
 
 def texture_noise_coords(x, y, z, packed, base=None, *, filter_bits: int = LLVMPIPE_FILTER_BITS):
-    """`texture_noise_table` with a fixed-point filter, bit for bit, for points given as their
-    coordinates (each ``[N]``) and a `packed_table`, its integer steps in integers (int32 for
-    float32 points, int64 for float64) instead of float64, ~4× faster eager. `base` ``[N]``: rows
+    """`texture_noise` with a fixed-point filter for points given as their coordinates (each
+    ``[N]``) and a `packed_table`, its integer steps in integers (int32 for float32 points, int64
+    for float64): bitwise `texture_noise_reference`'s float64 steps, ~4× faster eager. `base` ``[N]``: rows
     in stacked tables. Lanes (`ops.lanes`): with Dr.Jit arrays (float32, int32 `packed` and
     `base`) it is what the template's Dr.Jit march traces (`fields.clouds.clouds_density`),
     bitwise these values."""
