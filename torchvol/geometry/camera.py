@@ -23,6 +23,8 @@ from typing import Iterator, Sequence
 import torch
 from torch import Tensor
 
+from ..ops.mathops import take_rows
+
 __all__ = ["Camera", "Rays", "strata_shape"]
 
 
@@ -355,15 +357,19 @@ class Camera:
             offsets = centres[sample] if spp > 1 else centres.expand(ids.shape[0], 2)
         px = col.to(dtype) + offsets[:, 0].to(dtype)
         py = row.to(dtype) + offsets[:, 1].to(dtype)
-        K = self.K[b]  # [n, 3, 3]
-        yc = (py - K[:, 1, 2]) / K[:, 1, 1]
-        xc = (px - K[:, 0, 2] - K[:, 0, 1] * yc) / K[:, 0, 0]
+        # each camera's five intrinsics and rotation rows gathered per ray (index_select, not K[b]:
+        # a [n, 3, 3] copy of every matrix was a third of a 256² cloudscape's glue)
+        fx, skew, cx, fy, cy = take_rows(self.K.reshape(-1, 9)[:, [0, 1, 2, 4, 5]], b).unbind(1)
+        yc = (py - cy) / fy
+        xc = (px - cx - skew * yc) / fx
         d_cam = torch.stack([xc, yc, torch.ones_like(xc)], dim=-1)  # [n, 3]
         forward_cos = torch.rsqrt((d_cam * d_cam).sum(-1))  # d_z = 1
-        d_world = (d_cam[:, None, :] @ self.rotation[b])[:, 0]  # row vectors: (R^T d)^T = d^T R
+        rows = take_rows(self.rotation.reshape(-1, 9), b)  # [n, 9]: R's rows, x, y, z
+        # d^T R, row vectors ((R^T d)^T), summed as the batched matmul sums it (bitwise), d_z = 1
+        d_world = xc[:, None] * rows[:, 0:3] + yc[:, None] * rows[:, 3:6] + rows[:, 6:9]
         directions = d_world / torch.linalg.vector_norm(d_world, dim=-1, keepdim=True)
         return Rays(
-            origins=self.eye[b],
+            origins=take_rows(self.eye, b),
             directions=directions,
             scene_index=b,
             pixel=torch.stack([col, row], dim=-1),
