@@ -91,8 +91,13 @@ def air_lanes(air: Air, lane=lambda x: x) -> SimpleNamespace:
 
 def density_lanes(p, q: SimpleNamespace) -> list:
     """The seeds' `density(p, H) = exp(−max(|p| − R, 0) / H)` at `p` (three lanes, planet frame)
-    for both scale heights of `q` (`air_lanes`) -> two lanes (Rayleigh, Mie)."""
-    height = lanes.clamp_min(lanes.length3(*p) - q.planet_radius, 0.0)
+    for both scale heights of `q` (`air_lanes`) -> two lanes (Rayleigh, Mie). The height as
+    (|p|² − R²)/(|p| + R), |p|² − R² = x² + z² + (y − R)(y + R): |p| − R cancels to an ulp of R
+    (0.5 m at Earth's radius in float32, 4e-4 of Mie's scale height), and Dr.Jit's sqrt rounds
+    that ulp otherwise than torch's; the quotient leaves |p| in the denominator alone."""
+    r = q.planet_radius
+    excess = p[0] * p[0] + p[2] * p[2] + (p[1] - r) * (p[1] + r)
+    height = lanes.clamp_min(excess / (lanes.length3(*p) + r), 0.0)
     return [lanes.exp(-height / h) for h in q.heights]
 
 
@@ -164,20 +169,10 @@ def _columns(x: list) -> Tensor:
     return torch.stack(x, dim=1)
 
 
-def densities(points: Tensor, air: Air) -> Tensor:
-    """`density_lanes` of `points` [n, 3] (planet frame) -> [n, 2] (Rayleigh, Mie)."""
-    return _columns(density_lanes(points.unbind(1), air_lanes(air)))
-
-
 def optic_depth(start: Tensor, direction: Tensor, length: Tensor, air: Air, steps: int) -> Tensor:
     """`optic_depth_lanes` from `start` [n, 3] (planet frame) along unit `direction` [n, 3] for
     `length` [n] -> [n, 2] (Rayleigh, Mie)."""
     return _columns(optic_depth_lanes(start.unbind(1), direction.unbind(1), length, air_lanes(air), steps))
-
-
-def extinction(depth: Tensor, air: Air) -> Tensor:
-    """Optical thickness per colour [n, 3] of optic depths `depth` [n, 2] (Rayleigh, Mie)."""
-    return _columns(extinction_lanes(depth.unbind(1), air_lanes(air)))
 
 
 def sun_path(points: Tensor, sun_dir: Tensor, air: Air) -> tuple[Tensor, Tensor]:
@@ -282,17 +277,23 @@ def shell_span(origins: Tensor, directions: Tensor, air: Air) -> tuple[Tensor, T
     return enter, torch.minimum(leave, ground), ground
 
 
-def sun_transmittance(points: Tensor, sun_dir: Tensor, air: Air, light_steps: int) -> Tensor:
-    """`sun_transmittance_lanes` of `points`, `sun_dir` [n, 3] (planet frame; unit) -> [n, 3]."""
+def sun_transmittance(points: Tensor, sun_dir: Tensor, air: Air, light_steps: int, *, kernel: bool = False) -> Tensor:
+    """`sun_transmittance_lanes` of `points`, `sun_dir` [n, 3] (planet frame; unit) -> [n, 3];
+    `kernel`: as one Dr.Jit kernel (float32 on the CPU), else eagerly."""
+    if kernel:
+        return _traced(lambda lane: sun_transmittance_lanes([lane(c) for c in points.unbind(1)], [lane(c) for c in sun_dir.unbind(1)],
+                                                            air_lanes(air, lane), light_steps), points)
     return _columns(sun_transmittance_lanes(points.unbind(1), sun_dir.unbind(1), air_lanes(air), light_steps))
 
 
-def ground_radiance(points: Tensor, sun_dir: Tensor, sun: Tensor, albedo: Tensor, air: Air, light_steps: int) -> Tensor:
+def ground_radiance(points: Tensor, sun_dir: Tensor, sun: Tensor, albedo: Tensor, air: Air, light_steps: int, *,
+                    kernel: bool = False) -> Tensor:
     """The planet's ground at `points` [n, 3] (planet frame, on the surface): Lambertian of `albedo`
-    [n, 3], lit by the sun (`sun_dir` [n, 3], irradiance `sun` [n, 3]) through the air. -> [n, 3]."""
+    [n, 3], lit by the sun (`sun_dir` [n, 3], irradiance `sun` [n, 3]) through the air (its march
+    towards the sun a Dr.Jit kernel where `kernel`). -> [n, 3]."""
     normal = points / points.norm(dim=1, keepdim=True)
     cos = (normal * sun_dir).sum(dim=1).clamp_min(0.0)
-    return albedo / math.pi * sun * sun_transmittance(points, sun_dir, air, light_steps) * cos[:, None]
+    return albedo / math.pi * sun * sun_transmittance(points, sun_dir, air, light_steps, kernel=kernel) * cos[:, None]
 
 
 def rows_of(air: Air, rows: Tensor) -> Air:
@@ -304,7 +305,8 @@ def rows_of(air: Air, rows: Tensor) -> Air:
 class AirPath:
     """The air along a chunk's camera rays, as a medium of their march (`volume.joint`): `origins`
     (planet frame), `directions` [n, 3]; `enter`, `leave`, `ground` [n] (`shell_span`); the optical
-    depth from the camera at K + 1 even nodes over [enter, leave] (`depth` [n, K + 1, 3]); the
+    depth from the camera at K + 1 even nodes over [enter, leave] (`depth` [3, n, K + 1], a table a
+    colour, a ray's nodes in a row: the march kernel reads each flat, a ray's nodes in one cache line); the
     sun's direction and irradiance [n, 3]; the air [n] and its `light_steps`."""
 
     origins: Tensor
@@ -323,9 +325,9 @@ class AirPath:
         (`depth_transmittance_lanes`: the table interpolated linearly, exact where the air is
         homogeneous)."""
         enter, span = self.enter[rows], (self.leave[rows] - self.enter[rows]).clamp_min(torch.finfo(t.dtype).tiny)
-        table = self.depth[rows]  # [m, K + 1, 3]
-        fetch = lambda i: table.gather(1, i.long()[:, None, None].expand(-1, 1, 3))[:, 0].unbind(1)  # noqa: E731
-        return _columns(depth_transmittance_lanes(t, enter, span, self.depth.shape[1] - 1, fetch))
+        tables = [c.index_select(0, rows) for c in self.depth]  # 3 × [m, K + 1]
+        fetch = lambda i: [table.gather(1, i.long()[:, None])[:, 0] for table in tables]  # noqa: E731
+        return _columns(depth_transmittance_lanes(t, enter, span, self.depth.shape[2] - 1, fetch))
 
     def source(self, rows: Tensor, t: Tensor) -> Tensor:
         """The sun's light scattered by the air towards the camera per unit length [m, 3] at
@@ -336,16 +338,55 @@ class AirPath:
                                          self.sun[rows].unbind(1), air_lanes(rows_of(self.air, rows)), self.light_steps))
 
 
+def depth_table_lanes(o, d, enter, dt, q: SimpleNamespace, steps: int) -> list:
+    """The optical depth (three lanes) from `enter` at `steps` + 1 even nodes `dt` apart along rays
+    `o`, `d` (three lanes each, planet frame; `enter`, `dt` lanes; `q` from `air_lanes`), each
+    step's by the midpoint rule -> [node][colour] lanes, node 0 zero."""
+    depth = [[lanes.full_like(dt, 0.0)] * 3]
+    for i in range(steps):
+        t = enter + (i + 0.5) * dt
+        density = density_lanes([o[c] + t * d[c] for c in range(3)], q)
+        tau = extinction_lanes([x * dt for x in density], q)
+        depth.append([depth[-1][c] + tau[c] for c in range(3)])
+    return depth
+
+
 def air_path(origins: Tensor, directions: Tensor, sun_dir: Tensor, sun: Tensor, air: Air, *, steps: int,
-             light_steps: int) -> AirPath:
+             light_steps: int, kernel: bool = False) -> AirPath:
     """The `AirPath` of world rays `origins`, `directions` [n, 3] lit by the sun `sun_dir` [n, 3]
-    (irradiance `sun` [n, 3]): the optical depth tabulated at `steps` + 1 nodes (the midpoint rule
-    between them), `light_steps` for the march towards the sun."""
+    (irradiance `sun` [n, 3]): the optical depth tabulated at `steps` + 1 nodes (`depth_table_lanes`),
+    `light_steps` for the march towards the sun. `kernel`: the table as one Dr.Jit kernel (float32
+    on the CPU: the joint march's kernel reads it), else eagerly."""
     o = planet_frame(origins, air)
     enter, leave, ground = shell_span(origins, directions, air)
     dt = (leave - enter).clamp_min(0.0) / steps
-    depth = [torch.zeros_like(o)]
-    for i in range(steps):
-        p = o + (enter + (i + 0.5) * dt)[:, None] * directions
-        depth.append(depth[-1] + extinction(densities(p, air) * dt[:, None], air))
-    return AirPath(o, directions, enter, leave, ground, torch.stack(depth, dim=1), sun_dir, sun, air, light_steps)
+    if kernel:
+        depth = _depth_table_kernel(o, directions, enter, dt, air, steps)
+    else:
+        nodes = depth_table_lanes(o.unbind(1), directions.unbind(1), enter, dt, air_lanes(air), steps)
+        depth = torch.stack([torch.stack([node[c] for node in nodes], dim=1) for c in range(3)])
+    return AirPath(o, directions, enter, leave, ground, depth, sun_dir, sun, air, light_steps)
+
+
+def _depth_table_kernel(o: Tensor, d: Tensor, enter: Tensor, dt: Tensor, air: Air, steps: int) -> Tensor:
+    """`depth_table_lanes` of rays `o`, `d` [n, 3] (`enter`, `dt` [n]) as one Dr.Jit kernel ->
+    [3, n, K + 1]."""
+    import drjit as dr
+
+    set_drjit_threads()
+    lane = lanes.floats_of
+    nodes = depth_table_lanes([lane(c) for c in o.unbind(1)], [lane(c) for c in d.unbind(1)], lane(enter), lane(dt),
+                              air_lanes(air, lane), steps)
+    dr.eval(nodes)
+    return torch.from_numpy(np.stack([np.stack([np.array(node[c]) for node in nodes], axis=1) for c in range(3)])).to(o)
+
+
+def _traced(fn, like: Tensor) -> Tensor:
+    """`fn(lane)` (`lane`: a tensor [n] -> Dr.Jit float32 lanes) run as one Dr.Jit kernel: its list
+    of lanes back as one tensor [n, C] of `like`'s dtype and device."""
+    import drjit as dr
+
+    set_drjit_threads()
+    out = fn(lanes.floats_of)
+    dr.eval(out)
+    return torch.from_numpy(np.stack([np.array(x) for x in out], axis=1)).to(like)

@@ -257,7 +257,7 @@ def air_along(ctx: RenderContext, rays: Rays) -> AirPath:
     """The `[atmosphere]`'s air along a chunk's rays, lit by the scene's sun (`AirPath`)."""
     atm, s, sun = ctx.batch.atmosphere, rays.scene_index, ctx.lights[ctx.plan.sun]
     return air_path(rays.origins, rays.directions, take(sun.direction, s), take(sun.radiant, s), gather_air(atm, s),
-                    steps=atm.steps, light_steps=atm.light_steps)
+                    steps=atm.steps, light_steps=atm.light_steps, kernel=ctx.plan.joint.backend == "drjit")
 
 
 def behind_the_air(ctx: RenderContext, air: AirPath, s: Tensor, behind: Tensor | None, surf) -> tuple[Tensor, Tensor]:
@@ -275,7 +275,8 @@ def behind_the_air(ctx: RenderContext, air: AirPath, s: Tensor, behind: Tensor |
         p = air.origins[ids] + air.ground[ids, None] * air.directions[ids]
         atm = ctx.batch.atmosphere
         behind = behind.index_put((ids,), ground_radiance(p, air.sun_dir[ids], air.sun[ids], take(atm.ground, s[ids]),
-                                                          rows_of(air.air, ids), air.light_steps))
+                                                          rows_of(air.air, ids), air.light_steps,
+                                                          kernel=ctx.plan.joint.backend == "drjit"))
     t_end = torch.where(on_surface, surf.t if surf is not None else air.leave, air.leave)
     return behind * air.transmittance(rows, t_end), torch.where(ground, air.ground, torch.zeros_like(air.ground))
 

@@ -278,13 +278,13 @@ def _air_inputs(air: AirPath, idx: Tensor, lane, on: Tensor, active: Tensor) -> 
 
     rows = lambda x: x.index_select(0, idx)  # noqa: E731
     bools = lambda x: [Bool(rows(piece).cpu().numpy()) for piece in x]  # noqa: E731
-    nodes, table, enter = air.depth.shape[1] - 1, rows(air.depth), rows(air.enter)
+    nodes, enter = air.depth.shape[2] - 1, rows(air.enter)
     span = (rows(air.leave) - enter).clamp_min(torch.finfo(enter.dtype).tiny)
     return SimpleNamespace(
         q=air_lanes(rows_of(air.air, idx), lane), origin=lane(rows(air.origins)), sun_dir=lane(rows(air.sun_dir)),
         sun=lane(rows(air.sun)), on=bools(on), alone=bools(on & ~active.any(dim=1)), enter=lane(enter), span=lane(span),
         nodes=nodes, light_steps=air.light_steps, row=dr.arange(Int32, len(idx)) * (nodes + 1),
-        table=[Float(table[:, :, c].reshape(-1).to(torch.float32).cpu().numpy()) for c in range(3)])
+        table=[Float(rows(c).reshape(-1).to(torch.float32).cpu().numpy()) for c in air.depth])
 
 
 def _air_sample(a: SimpleNamespace, here, t_sample, direction):
