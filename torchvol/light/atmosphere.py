@@ -106,11 +106,12 @@ def optic_depth_lanes(start, direction, length, q: SimpleNamespace, steps: int) 
     each, planet frame) for `length` (a lane), the midpoint rule with `steps` steps -> two lanes
     (Rayleigh, Mie) in density × length."""
     ds = lanes.divide(length, steps)
-    depth = [lanes.full_like(length, 0.0)] * 2
-    for j in range(steps):
-        step = density_lanes([start[c] + ((j + 0.5) * ds) * direction[c] for c in range(3)], q)
-        depth = [depth[k] + step[k] * ds for k in range(2)]
-    return depth
+
+    def step(j, depth):
+        density = density_lanes([start[c] + ((j + 0.5) * ds) * direction[c] for c in range(3)], q)
+        return [depth[k] + density[k] * ds for k in range(2)]
+
+    return lanes.fori(steps, [lanes.full_like(length, 0.0)] * 2, step)
 
 
 def extinction_lanes(depth, q: SimpleNamespace) -> list:
@@ -188,9 +189,9 @@ def single_scatter_lanes(origins, directions, t0, t1, sun_dir, q: SimpleNamespac
     dt = lanes.divide(lanes.clamp_min(t1 - t0, 0.0), steps)
     d, sun = directions, sun_dir
     cos = d[0] * sun[0] + d[1] * sun[1] + d[2] * sun[2]
-    optical = [lanes.full_like(dt, 0.0)] * 2
-    sums = [[lanes.full_like(dt, 0.0)] * 3 for _ in range(2)]  # Rayleigh's and Mie's attenuated sums
-    for i in range(steps):
+
+    def sample(i, state):  # state: the optical depth so far (2), Rayleigh's and Mie's attenuated sums (3 each)
+        optical, sums = state[:2], [state[2:5], state[5:8]]
         t = t0 + (i + 0.5) * dt
         p = [origins[c] + t * d[c] for c in range(3)]
         step = [x * dt for x in density_lanes(p, q)]
@@ -199,7 +200,10 @@ def single_scatter_lanes(origins, directions, t0, t1, sun_dir, q: SimpleNamespac
         toward = optic_depth_lanes(p, sun, length, q, light_steps)
         tau = extinction_lanes([optical[k] + toward[k] for k in range(2)], q)
         attenuation = [lanes.where(blocked, 0.0, lanes.exp(-x)) for x in tau]
-        sums = [[sums[k][c] + attenuation[c] * step[k] for c in range(3)] for k in range(2)]
+        return optical + [sums[k][c] + attenuation[c] * step[k] for k in range(2) for c in range(3)]
+
+    state = lanes.fori(steps, [lanes.full_like(dt, 0.0)] * 8, sample)
+    optical, sums = state[:2], [state[2:5], state[5:8]]
     rayleigh, mie = rayleigh_phase(cos), q.mie * mie_cornette_shanks(cos, q.mie_g)
     inscatter = [sums[0][c] * q.rayleigh[c] * rayleigh + sums[1][c] * mie for c in range(3)]
     return inscatter, [lanes.exp(-x) for x in extinction_lanes(optical, q)]

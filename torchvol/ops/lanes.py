@@ -229,6 +229,25 @@ def gather(table, index):
     return dr.gather(type(table), table, UInt32(index))
 
 
+def fori(count: int, state: list, body):
+    """`state` after `count` steps of `state = body(i, state)`, i = 0, 1, ... as a float (`state`: a
+    flat list of lanes). On torch a Python loop; on Dr.Jit one symbolic loop (`drjit.while_loop`),
+    the body traced once rather than `count` times: a kernel's tracing and its code shrink by the
+    count, the same values (i is a float lane there, exact for any count below 2**24)."""
+    if _is_torch(*state) or _is_number(*state):
+        for i in range(count):
+            state = body(float(i), state)
+        return state
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    width = max(dr.width(x) for x in state)
+    start = (dr.zeros(Int32, width), *state)
+    out = dr.while_loop(start, lambda i, *_: i < count,
+                        lambda i, *x: (i + 1, *body(Float(i), list(x))), mode="symbolic")
+    return list(out[1:])
+
+
 def columns(x):
     """A per-point torch tensor as lanes: [n] as it is, [n, C] as its C columns."""
     return x if x.ndim == 1 else list(x.unbind(1))
@@ -246,4 +265,4 @@ def length3(x, y, z):
 
 
 __all__ = ["abs", "clamp", "clamp_max", "clamp_min", "columns", "divide", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
-           "floats_of", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]
+           "floats_of", "fori", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]
