@@ -68,7 +68,7 @@ from .march import MarchResult, median_crossing, occupied_start
 from .multiple import octave_weights
 from .physical import light_responses, sky_blend
 from .shader_look import ambient_light, derivative_light, look_lanes, shaded
-from .shadow import occluder_transmittance, shadow_segments, sun_grids
+from .shadow import occluder_transmittance, segment_end, segment_reach, sun_grids
 from .sun_volume import grid_transmittance
 from .surface_look import look_normal, surface_colour, surface_lanes
 
@@ -475,14 +475,20 @@ def _point_response(k: SimpleNamespace, light: SimpleNamespace, p):
 
 def optical_depth(solid, p, direction, exit_t, sigma_scale, steps, growth=1.0, first_step=None):
     """∫ σ_t along `direction` from `p` to `exit_t` (lanes) through `solid` (`solid`), σ_t =
-    `sigma_scale` × its density, over `shadow.shadow_segments`."""
+    `sigma_scale` × its density, over `shadow.shadow_segments` (one loop in the kernel)."""
     import drjit as dr
-    from drjit.llvm import Float
+    from drjit.llvm import Float, UInt32
 
-    tau = dr.zeros(Float, dr.width(exit_t))
-    for mid, length in shadow_segments(exit_t, steps=steps, growth=growth, first_step=first_step):
-        tau = tau + sigma_scale * solid.density([p[c] + mid * direction[c] for c in range(3)], None) * length
-    return tau
+    reach = Float(segment_reach(steps=steps, growth=growth, first_step=first_step))
+
+    def segment(k, state):  # one Dr.Jit loop, not `steps` copies of the density traced
+        tau, start = state
+        end = segment_end(exit_t, dr.gather(Float, reach, UInt32(k)), first_step)
+        mid = 0.5 * (start + end)
+        return [tau + sigma_scale * solid.density([p[c] + mid * direction[c] for c in range(3)], None) * (end - start), end]
+
+    zero = dr.zeros(Float, dr.width(exit_t))
+    return lanes.fori(steps, [zero, zero], segment)[0]
 
 
 def _through_others(solids: dict, occluders, terrain, p, direction, distance, shadow, grids, evals):

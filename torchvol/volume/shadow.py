@@ -25,15 +25,29 @@ def shadow_segments(exit_distance, *, steps: int, growth: float = 1.0, first_ste
     (exact for homogeneous media), otherwise they start at `first_step` and are cut at the exit.
     Returns [(midpoint, length)] of the `steps` segments, each a lane.
     """
-    rel = [growth**k for k in range(steps)]
-    total = sum(rel)
-    out, start, reach = [], lanes.full_like(exit_distance, 0.0), 0.0
-    for k in range(steps):
-        reach = reach + (rel[k] / total if first_step is None else first_step * rel[k])
-        end = lanes.minimum(exit_distance * reach if first_step is None else reach, exit_distance)
+    out, start = [], lanes.full_like(exit_distance, 0.0)
+    for reach in segment_reach(steps=steps, growth=growth, first_step=first_step):
+        end = segment_end(exit_distance, reach, first_step)
         out.append((0.5 * (start + end), end - start))
         start = end
     return out
+
+
+def segment_reach(*, steps: int, growth: float = 1.0, first_step: float | None = None) -> list[float]:
+    """Where each of `shadow_segments`' segments ends, before the cut at the exit: a fraction of
+    the exit distance (`first_step` None) or a distance."""
+    rel = [growth**k for k in range(steps)]
+    total = sum(rel)
+    out, reach = [], 0.0
+    for k in range(steps):
+        reach = reach + (rel[k] / total if first_step is None else first_step * rel[k])
+        out.append(reach)
+    return out
+
+
+def segment_end(exit_distance, reach, first_step: float | None):
+    """A segment's end (lanes) from its `segment_reach` value `reach` (a number, or a lane of them)."""
+    return lanes.minimum(exit_distance * reach if first_step is None else reach, exit_distance)
 
 
 def shadow_distances(
