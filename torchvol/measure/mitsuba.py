@@ -53,14 +53,15 @@ def torchvol_scene(grid: np.ndarray, sigma: float, *, size: int, spp: int = 16, 
 
 
 def render_mitsuba(grid: np.ndarray, sigma: float, *, size: int, spp: int, variant: str = "scalar_rgb",
-                   seed: int = 0) -> tuple[np.ndarray, float]:
-    """Mitsuba's single-scattering render (H, W, 3) and its wall time in seconds."""
+                   seed: int = 0, max_depth: int = 2) -> tuple[np.ndarray, float]:
+    """Mitsuba's render (H, W, 3) and its wall time in seconds: `volpath` with `max_depth` (2:
+    single scattering; B + 1: light scattered at most B times, torchvol's `[path].bounces` = B)."""
     import mitsuba as mi
 
     mi.set_variant(variant)
     scene = mi.load_dict({
         "type": "scene",
-        "integrator": {"type": "volpath", "max_depth": 2},
+        "integrator": {"type": "volpath", "max_depth": max_depth, "rr_depth": 10 * max_depth},
         "sensor": {"type": "perspective", "fov": FOV, "fov_axis": "y",
                    "to_world": mi.ScalarTransform4f().look_at(origin=list(EYE), target=list(TARGET), up=[0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"},

@@ -39,7 +39,7 @@ from ..runtime.threads import glue_on_one_thread
 from ..schema.batch import Stacked, stack, take
 from ..schema.validate import fail, integer, is_integer
 from ..terrain import TerrainSurface
-from ..volume import kernel_march
+from ..volume import kernel_march, path
 from ..volume.ambient import sky_mean
 from ..volume.composite import Media, composite_volumes, finish
 from ..volume.joint import march_joint
@@ -105,6 +105,7 @@ class RenderContext:
         self.seeds = torch.tensor([int(x) % 2**32 for x in seeds], dtype=torch.int64, device=device)  # (B,)
         self.dtype, self.device = plan.dtype, device
         self.timer, self.counts = Timer(), Counts()
+        self.path_media = None  # the paths' media (`volume.path.Media`), made on the first chunk
         self.times = batch.time
         self.lights = [LightSource(LIGHTS[li.kind], li) for li in batch.lights]
         if plan.atmosphere:  # the sun reaches every point of the scene through the air
@@ -220,6 +221,9 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
         out = finish(volumes, behind, surf, rays.forward_cos, ctx.settings.depth_threshold)
         if ground is not None:
             out = on_the_ground(out, ground, rays)
+    if plan.path is not None:
+        with ctx.timer.section("path"):
+            out["radiance"] = path_radiance(ctx, rays, background)
     if plan.labels is not None:
         out.update(label_rays(ctx, rays, media, volumes, surf))
     if plan.flare:
@@ -251,6 +255,18 @@ def march_media(ctx: RenderContext, rays: Rays, background: Tensor | None, t_lim
             parts.append(part)
             members.append((v,))
     return Media(parts, members, shares)
+
+
+def path_radiance(ctx: RenderContext, rays: Rays, background: Tensor | None) -> Tensor:
+    """The chunk's radiance [n, 3] path-traced through the physical media (`[path]`, `volume.path`):
+    the sky `background` [n, 3] (None: black) where a camera ray leaves them, the sky where a
+    scattered path does."""
+    if ctx.path_media is None:
+        ctx.path_media = path.media(ctx.volumes, ctx.dtype)
+    bounces, samples = ctx.plan.path
+    sky = None if ctx.plan.sky is None else lambda d, s: sky_toward(ctx, d, s)
+    return path.radiance(ctx.path_media, ctx.lights, rays, background, sky, bounces=bounces, samples=samples,
+                         keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp))
 
 
 def air_along(ctx: RenderContext, rays: Rays) -> AirPath:
@@ -446,6 +462,7 @@ def render_stats(ctx: RenderContext, acc: Accumulator | None, *, rays: int, tota
         **({"error_estimate": ctx.counts.error_estimate} if plan.settings.tolerance is not None else {}),
         **({"voxel_steps": ctx.voxel_surface.steps_total} if plan.voxels is not None else {}),
         **({"accumulation": acc.changes} if acc is not None else {}),
+        **({"path": vars(ctx.path_media.counts)} if ctx.path_media is not None else {}),
         "dtype": str(ctx.dtype).removeprefix("torch."),
     }
 

@@ -279,6 +279,7 @@ class Plan:
     # what a sky whose kind has a kernel (`SKIES`' ``kernel``: the atmosphere's per-pixel march) runs
     # on: "drjit" where the render runs kernels, else "eager"; None: no sky, or a kind with no march
     sky_backend: Backend | None = None
+    path: tuple[int, int] | None = None  # `[path]`: (bounces, samples); None: the media are marched alone
 
     def summary(self) -> dict:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
@@ -291,6 +292,7 @@ class Plan:
                 **({"air": self.joint.backend} if self.joint is not None and self.joint.air else {}),
                 **({"walk": self.walk} if self.walk is not None else {}),
                 **({"sky": self.sky_backend} if self.sky_backend is not None else {}),
+                **({"path": {"bounces": self.path[0], "samples": self.path[1], "backend": "eager"}} if self.path else {}),
                 "threads": self.threads, "compile": self.compile, "dtype": str(self.dtype).removeprefix("torch.")}
 
     def volume_names(self) -> list[str]:
@@ -306,7 +308,7 @@ class Plan:
         first: the voxels see it behind them, `renderer.surfaces`)."""
         voxels, terrain = (self.voxels.names() if self.voxels else []), (self.terrain.names() if self.terrain else [])
         return (["rays"] + (["sky"] if self.sky else []) + (terrain + voxels if voxels and terrain else voxels + terrain)
-                + self.volume_names() + ["composite"]
+                + self.volume_names() + ["composite"] + (["path"] if self.path else [])
                 + (self.labels.pass_names() if self.labels else [])
                 + (["post.flare"] if self.flare else [])
                 + (["resolve"] if self.spp > 1 else []) + (["accumulate"] if self.passes > 1 else [])
@@ -502,6 +504,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", 
         sky_backend=None if batch.sky is None or not SKIES[batch.sky.kind].caps.get("kernel") else
         "drjit" if kernels else "eager",
         kernels=kernels,
+        path=None if batch.path is None else (batch.path.bounces, batch.path.samples),
     )
 
 

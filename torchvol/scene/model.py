@@ -414,6 +414,14 @@ class Voxels(Strict):
         return self
 
 
+class PathSettings(Strict):
+    """`[path]`: the physical media path-traced with every order of scattering up to `bounces`
+    scattering events a path (1: single scattering), `samples` paths a pixel (a sub-sample)."""
+
+    bounces: int = Field(256, ge=1, le=100_000)
+    samples: int = Field(64, ge=1, le=1_000_000)
+
+
 class Scene(Strict):
     time: float = 0.0
     image: Image = Field(default_factory=Image)
@@ -426,6 +434,7 @@ class Scene(Strict):
     atmosphere: AtmosphereMedium | None = None  # the scene inside a planet's air (a medium of the march)
     march: Annotated[March, SHARED] = Field(default_factory=March)
     post: Post = Field(default_factory=Post)
+    path: Annotated[PathSettings, SHARED] | None = None  # path-traced multiple scattering of the physical media
 
     @model_validator(mode="after")
     def _shadow_grid_needs_a_sun_and_finite_bounds(self):
@@ -438,6 +447,20 @@ class Scene(Strict):
                     if not BOUNDS[vol.bounds.kind].caps["finite"]:
                         refuse(f"lights[{l}].shadow.method", "grid",
                                f"'grid' needs box or sphere bounds and volumes[{v}] is a {vol.bounds.kind} (use 'march')")
+        return self
+
+    @model_validator(mode="after")
+    def _path_traces_physical_media_alone(self):
+        if self.path is None:
+            return self
+        for key in ("voxels", "terrain", "atmosphere"):
+            if getattr(self, key) is not None:
+                refuse("path", "<path>", f"path tracing renders physical media alone; this scene has [{key}]")
+        for v, vol in enumerate(self.volumes):
+            if vol.shading != "physical":
+                refuse("path", "<path>", f"path tracing renders physical media; volumes[{v}].shading is {vol.shading!r}")
+            if vol.bloom is not None:
+                refuse("path", "<path>", f"volumes[{v}].bloom is an artistic glow, not light a path can meet; remove it")
         return self
 
     @model_validator(mode="after")

@@ -1,0 +1,141 @@
+"""Path tracing of physical media (`[path]`, torchvol/volume/path.py).
+
+Analytic oracles: the volume furnace (a camera deep inside a homogeneous, isotropic, emissive
+medium sees (e/σ_t)·Σ_{k=0..B} a^k with B bounces); `bounces = 1` is the single-scattering
+integral the march computes (a sun through a heterogeneous grid cloud; a point light inside a
+homogeneous box). Noise is estimated from independent renders (a batch of scenes with different
+seeds), never assumed."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import torchvol as tv
+from torchvol.measure.mitsuba import puff_grid, sigma_for, torchvol_scene
+from torchvol.schema.validate import SceneError
+from torchvol.volume.path import hg_cos
+
+F64 = torch.float64
+
+
+def _furnace(albedo: float, bounces: int, *, sigma: float = 2.0, e: float = 0.7, samples: int = 32) -> dict:
+    return {"image": {"width": 4, "height": 4}, "camera": {"eye": [0, 0, 0], "target": [0, 0, 1], "fov_y": 40},
+            "volumes": [{"bounds": {"sphere": {"center": [0, 0, 0], "radius": 400.0}}, "density": {"constant": 1.0},
+                         "sigma_t": sigma, "albedo": albedo, "emission": [e, e, e]}],
+            "path": {"bounces": bounces, "samples": samples}}
+
+
+def _mean_and_error(values: torch.Tensor) -> tuple[float, float]:
+    """The mean of independent estimates and its standard error."""
+    values = values.double().reshape(-1)
+    return float(values.mean()), float(values.std() / math.sqrt(values.numel()))
+
+
+@pytest.mark.parametrize(("albedo", "bounces"), [(0.0, 4), (0.5, 3), (0.9, 12), (1.0, 6),
+                                               pytest.param(0.99, 256, marks=pytest.mark.slow)])
+def test_the_volume_furnace(albedo, bounces, one_thread):
+    """Every pixel is an independent estimate of (e/σ_t)·Σ_{k=0..B} a^k: the image's mean is within
+    five standard errors (estimated from the pixels) of it; exact where no path is random."""
+    sigma, e = 2.0, 0.7
+    out = tv.render(_furnace(albedo, bounces, sigma=sigma, e=e), dtype=F64)
+    expected = e / sigma * sum(albedo**k for k in range(bounces + 1))
+    mean, error = _mean_and_error(out.radiance)
+    assert abs(mean - expected) <= 5.0 * error + 1e-6 * expected, (
+        f"furnace a={albedo} B={bounces}: {mean:.6g} against {expected:.6g} (standard error {error:.3g})")
+
+
+def _single_scattering_check(scene: dict, samples: int, seeds: int = 4) -> None:
+    """`bounces = 1` against the march (fine steps, float64): the means of `seeds` independent
+    path-traced images (a batch of the scene with different seeds) within five standard errors."""
+    march = tv.render(scene, dtype=F64)
+    traced = tv.render([{**scene, "path": {"bounces": 1, "samples": samples}}] * seeds, seed=list(range(seeds)), dtype=F64)
+    means = traced.radiance.double().mean(dim=(1, 2, 3))
+    mean, error = _mean_and_error(means)
+    expected = float(march.radiance.double().mean())
+    assert abs(mean - expected) <= 5.0 * error, f"single scattering: path {mean:.6g} ± {error:.2g}, march {expected:.6g}"
+    assert error < 0.05 * expected  # the check is sharp enough to fail
+
+
+def test_one_bounce_is_the_marched_single_scattering_of_a_sun_through_a_cloud(one_thread):
+    grid = puff_grid(12)
+    scene = torchvol_scene(grid, sigma_for(grid, 4.0), size=6, spp=1, shadow_steps=64)
+    scene["march"] = {"quality": "high", "steps": 192}
+    _single_scattering_check(scene, samples=48)
+
+
+def test_one_bounce_is_the_marched_single_scattering_of_a_point_light(one_thread):
+    scene = {"image": {"width": 6, "height": 6}, "camera": {"eye": [0, 0.2, -3], "target": [0, 0, 0], "fov_y": 35},
+             "lights": [{"kind": "point", "position": [0.3, 1.8, -0.2], "intensity": 6.0, "shadow": {"steps": 64}}],
+             "volumes": [{"bounds": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}, "density": {"constant": 1.0},
+                          "sigma_t": 1.5, "albedo": 0.8, "phase": {"hg": {"g": 0.4}}}],
+             "march": {"quality": "high", "steps": 192, "closed_form": False}}
+    _single_scattering_check(scene, samples=48)
+
+
+def test_every_order_adds_light_and_the_plan_says_so(one_thread):
+    grid = puff_grid(12)
+    scene = torchvol_scene(grid, sigma_for(grid, 6.0), size=5, spp=1)
+    one = tv.render({**scene, "path": {"bounces": 1, "samples": 16}}, dtype=F64)
+    every = tv.render({**scene, "path": {"bounces": 64, "samples": 16}}, dtype=F64)
+    assert float(every.radiance.mean()) > 1.5 * float(one.radiance.mean())
+    assert every.stats["plan"]["path"] == {"bounces": 64, "samples": 16, "backend": "eager"}
+    assert "path" in every.stats["passes"] and every.stats["path"]["truncated"] == 0
+
+
+def test_a_batch_renders_each_scene_as_alone(one_thread):
+    scene = _furnace(0.8, 8, samples=4)
+    scene["lights"] = [{"direction": [0.3, 1.0, 0.2], "intensity": 2.0}]
+    scene["volumes"][0]["bounds"] = {"box": {"min": [-1, -1, -1], "max": [1, 1, 3]}}
+    other = {**scene, "volumes": [{**scene["volumes"][0], "sigma_t": 0.7}]}
+    batch = tv.render([scene, other], seed=[3, 5])
+    for b, (sc, seed) in enumerate(((scene, 3), (other, 5))):
+        alone = tv.render(sc, seed=seed)
+        assert torch.equal(batch.radiance[b], alone.radiance[0]), f"scene {b} differs alone"
+    again = tv.render(scene, seed=4)
+    assert not torch.equal(again.radiance, tv.render(scene, seed=3).radiance)  # the seed drives the paths
+
+
+@pytest.mark.slow
+@settings(max_examples=12, deadline=None)
+@given(sigma=st.sampled_from([0.0, 1e-3, 1.0, 50.0, 1e4, 1e7]), albedo=st.sampled_from([0.0, 0.5, 1.0]),
+       g=st.sampled_from([-0.999, -0.5, 0.0, 0.9, 0.999]), kind=st.sampled_from(["hg", "dual_hg", "mie", "rayleigh", "isotropic"]),
+       density=st.sampled_from([{"constant": 1.0}, {"exponential": {"value": 1.0, "base": -1.0, "scale_height": 0.3}}]))
+def test_random_media_give_finite_images(sigma, albedo, g, kind, density):
+    phase = {"hg": {"hg": {"g": g}}, "mie": {"mie": {"g": g}}, "rayleigh": "rayleigh", "isotropic": "isotropic",
+             "dual_hg": {"dual_hg": {"g_forward": abs(g), "g_backward": -abs(g), "weight": 0.3}}}[kind]
+    scene = {"image": {"width": 3, "height": 3}, "camera": {"eye": [0, 0, -3], "target": [0, 0, 0], "fov_y": 50},
+             "sky": {"kind": "constant", "radiance": [0.2, 0.3, 0.5]},
+             "lights": [{"direction": [0.2, 1.0, -0.3], "intensity": 3.0},
+                        {"kind": "point", "position": [0.0, 0.5, 0.0], "intensity": 1.0}],
+             "volumes": [{"bounds": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}, "density": density,
+                          "sigma_t": sigma, "albedo": albedo, "phase": phase, "emission": [0.1, 0.1, 0.1]}],
+             "path": {"bounces": 6, "samples": 2}}
+    out = tv.render(scene)
+    assert torch.isfinite(out.radiance).all() and torch.isfinite(out.image).all()
+    assert out.stats["path"]["truncated"] == 0
+
+
+@pytest.mark.parametrize("g", [-0.999, -0.6, 0.0, 0.3, 0.95, 0.999])
+def test_hg_samples_follow_the_phase_function(g):
+    """The drawn cosines' mean is HG's mean cosine g, and a histogram matches the density."""
+    u = (torch.arange(200_000, dtype=F64) + 0.5) / 200_000
+    cos = hg_cos(torch.full_like(u, g), u)
+    assert abs(float(cos.mean()) - g) < 2e-3
+    assert float(cos.min()) >= -1.0 and float(cos.max()) <= 1.0
+
+
+@pytest.mark.parametrize("key", ["voxels", "terrain"])
+def test_path_tracing_refuses_what_it_cannot_trace_yet(key):
+    scene = _furnace(0.5, 2)
+    scene[key] = {} if key == "terrain" else {"occupancy": {"sdf": {"shape": {"sphere": {"radius": 1.0}}}}}
+    with pytest.raises(SceneError, match="path"):
+        tv.render(scene)
+    looks = _furnace(0.5, 2)
+    looks["volumes"][0]["shading"] = "shader"
+    with pytest.raises(SceneError, match="path"):
+        tv.render(looks)
