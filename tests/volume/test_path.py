@@ -139,3 +139,21 @@ def test_path_tracing_refuses_what_it_cannot_trace_yet(key):
     looks["volumes"][0]["shading"] = "shader"
     with pytest.raises(SceneError, match="path"):
         tv.render(looks)
+
+
+def test_the_kernel_tracks_as_eager_does(one_thread):
+    """The tracking as a Dr.Jit kernel (float32 on the CPU) and eagerly: the same lanes function and
+    the same draws, so the same paths up to float rounding; the plan says which ran."""
+    pytest.importorskip("drjit")
+    grid = puff_grid(12)
+    scene = torchvol_scene(grid, sigma_for(grid, 6.0), size=6, spp=1)
+    scene["path"] = {"bounces": 16, "samples": 16}
+    kernel, eager = tv.render(scene), tv.render(scene, compile="off")
+    assert kernel.stats["plan"]["path"]["backend"] == "drjit" and eager.stats["plan"]["path"]["backend"] == "eager"
+    gap = (kernel.radiance - eager.radiance).abs()
+    assert float(gap.mean()) < 1e-3 * float(eager.radiance.mean()), f"kernel and eager paths differ by {float(gap.mean()):.3g} on average"
+    # the paths' own evaluations (each render's total less its march's), counted alike
+    marched = {mode: tv.render({k: v for k, v in scene.items() if k != "path"}, compile=mode).stats["density_evals"]
+               for mode in ("kernels", "off")}
+    traced = kernel.stats["density_evals"] - marched["kernels"], eager.stats["density_evals"] - marched["off"]
+    assert traced[0] > 0 and traced[0] == pytest.approx(traced[1], rel=1e-3)

@@ -25,7 +25,7 @@ from torch import Tensor
 from ..ops import lanes
 from . import lattice as noise
 
-__all__ = ["hash_cells", "value_noise_hashed", "fbm_value_hashed", "fbm_sum", "fbm_field", "mixed_seeds"]
+__all__ = ["hash32", "hash_cells", "hash_pair", "value_noise_hashed", "fbm_value_hashed", "fbm_sum", "fbm_field", "mixed_seeds"]
 
 # odd multipliers below 2**31 (xxHash's primes and murmur3's c2): Python ints that stay int32 in torch
 _P = (0x1B873593, 0x27D4EB2F, 0x165667B1)
@@ -49,12 +49,24 @@ def _seed32(seed: int) -> int:
     return int(h)
 
 
+def hash32(x, y, z, seed):
+    """The 32-bit hash (int32 bits) of integer cells (x, y, z), each int32 lanes or ints (values
+    taken mod 2**32), and a mixed seed (`_seed32`): lanes (`ops.lanes`)."""
+    return _mix32((x * _P[0]) ^ (y * _P[1]) ^ (z * _P[2]) ^ seed)
+
+
+def hash_pair(a, b, seed):
+    """The 32-bit hash (int32 bits) of an integer pair, two chained lowbias32 rounds (the first of
+    `a` and the seed, the second of that and `b`): counter-based random numbers, where one round
+    over a product sum left consecutive counters correlated. Lanes (`ops.lanes`)."""
+    return _mix32(_mix32(a ^ seed) ^ b)
+
+
 def hash_cells(x: Tensor, y: Tensor, z: Tensor, seed: Tensor | int) -> Tensor:
     """Uniform values in [0, 1) of integer lattice cells (x, y, z), each ``[N]`` int32 (values
     taken mod 2**32), and a mixed seed (`_seed32`; int or 0-dim int32 tensor) -> ``[N]`` int32 in
     [0, 2**24): the hash's top 24 bits."""
-    h = _mix32((x * _P[0]) ^ (y * _P[1]) ^ (z * _P[2]) ^ seed)
-    return (h >> 8) & 0xFFFFFF
+    return (hash32(x, y, z, seed) >> 8) & 0xFFFFFF
 
 
 def _value(p: Sequence[Tensor], seed: Tensor | int) -> Tensor:

@@ -248,6 +248,20 @@ def fori(count: int, state: list, body):
     return list(out[1:])
 
 
+def while_loop(state: list, cond, body) -> list:
+    """`state = body(state)` while any lane of `cond(state)` holds (`state`: a flat list of lanes;
+    `body` must leave the lanes where `cond` is false as they are). On torch a Python loop over
+    whole tensors; on Dr.Jit one symbolic loop (`drjit.while_loop`), each lane running until its
+    own `cond` fails."""
+    if _is_torch(*state):
+        while bool(cond(*state).any()):
+            state = list(body(*state))
+        return state
+    import drjit as dr
+
+    return list(dr.while_loop(tuple(state), cond, lambda *x: tuple(body(*x)), mode="symbolic"))
+
+
 def columns(x):
     """A per-point torch tensor as lanes: [n] as it is, [n, C] as its C columns."""
     return x if x.ndim == 1 else list(x.unbind(1))
@@ -265,4 +279,4 @@ def length3(x, y, z):
 
 
 __all__ = ["abs", "clamp", "clamp_max", "clamp_min", "columns", "divide", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
-           "floats_of", "fori", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where"]
+           "floats_of", "fori", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where", "while_loop"]

@@ -261,9 +261,9 @@ def path_radiance(ctx: RenderContext, rays: Rays, background: Tensor | None) -> 
     """The chunk's radiance [n, 3] path-traced through the physical media (`[path]`, `volume.path`):
     the sky `background` [n, 3] (None: black) where a camera ray leaves them, the sky where a
     scattered path does."""
+    bounces, samples, backend = ctx.plan.path
     if ctx.path_media is None:
-        ctx.path_media = path.media(ctx.volumes, ctx.dtype)
-    bounces, samples = ctx.plan.path
+        ctx.path_media = path.media(ctx.volumes, ctx.dtype, kernel=backend == "drjit")
     sky = None if ctx.plan.sky is None else lambda d, s: sky_toward(ctx, d, s)
     return path.radiance(ctx.path_media, ctx.lights, rays, background, sky, bounces=bounces, samples=samples,
                          keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp))

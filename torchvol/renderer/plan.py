@@ -32,6 +32,7 @@ from ..scene.model import Scene
 from ..scene.quality import QUALITY, MarchSettings, at_level, march_settings
 from ..schema.batch import Stacked, stack
 from ..volume import kernel_march
+from ..volume.density_lanes import has_lanes
 from ..volume.march import COMPACT_BELOW
 from ..volume.shading import SHADINGS
 from ..voxel.materials import any_ggx
@@ -279,7 +280,7 @@ class Plan:
     # what a sky whose kind has a kernel (`SKIES`' ``kernel``: the atmosphere's per-pixel march) runs
     # on: "drjit" where the render runs kernels, else "eager"; None: no sky, or a kind with no march
     sky_backend: Backend | None = None
-    path: tuple[int, int] | None = None  # `[path]`: (bounces, samples); None: the media are marched alone
+    path: tuple[int, int, Backend] | None = None  # `[path]`: (bounces, samples, the tracking's backend); None: no paths
 
     def summary(self) -> dict:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
@@ -292,7 +293,7 @@ class Plan:
                 **({"air": self.joint.backend} if self.joint is not None and self.joint.air else {}),
                 **({"walk": self.walk} if self.walk is not None else {}),
                 **({"sky": self.sky_backend} if self.sky_backend is not None else {}),
-                **({"path": {"bounces": self.path[0], "samples": self.path[1], "backend": "eager"}} if self.path else {}),
+                **({"path": dict(zip(("bounces", "samples", "backend"), self.path))} if self.path else {}),
                 "threads": self.threads, "compile": self.compile, "dtype": str(self.dtype).removeprefix("torch.")}
 
     def volume_names(self) -> list[str]:
@@ -457,6 +458,14 @@ def terrain_pass(batch: Stacked) -> TerrainPass | None:
                                      for l, li in enumerate(batch.lights) if li.shadow is not None), sky=sky)
 
 
+def path_backend(batch: Stacked, kernels: bool, dtype: torch.dtype, device) -> Backend:
+    """Where `[path]`'s tracking runs: Dr.Jit's kernel where the render runs kernels in float32 on
+    the CPU and every volume's density and bounds are written in lanes, else eagerly."""
+    lanes_everywhere = all(has_lanes(v) and "lanes" in BOUNDS[v.bounds.kind].caps for v in batch.volumes)
+    cpu32 = dtype == torch.float32 and torch.device(device).type == "cpu"
+    return "drjit" if kernels and cpu32 and lanes_everywhere else "eager"
+
+
 def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", dtype: torch.dtype | None = None,
               device: torch.device | str = "cpu") -> Plan:
     """The plan of a batch (a `Stacked` view of scenes at their quality level), or of one scene;
@@ -504,7 +513,7 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", 
         sky_backend=None if batch.sky is None or not SKIES[batch.sky.kind].caps.get("kernel") else
         "drjit" if kernels else "eager",
         kernels=kernels,
-        path=None if batch.path is None else (batch.path.bounces, batch.path.samples),
+        path=None if batch.path is None else (batch.path.bounces, batch.path.samples, path_backend(batch, kernels, dtype, device)),
     )
 
 

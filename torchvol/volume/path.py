@@ -28,7 +28,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ..noise.lattice import hash3
+from ..noise import fast
+from ..ops import lanes
 from ..schema.batch import take
 
 ROULETTE_AFTER = 3  # scatterings before Russian roulette may end a path
@@ -36,7 +37,7 @@ MARGIN = 1.5  # an estimated majorant: the largest lattice sample times this
 LATTICE = 24  # samples a side of the lattice an estimated majorant comes from
 MAX_TENTATIVE = 100_000  # tentative collisions a tracking call takes at most (then it stops: counted)
 FADE = 0.05  # a ratio-tracked transmittance below this plays Russian roulette
-_KEY, _DRAW = 0x7A17, 0x5CA7
+_KEY, _DRAW = 0x7A17, 0x5CA7  # the hashes' seeds (already int32 values)
 
 
 @dataclass
@@ -55,26 +56,40 @@ class Media:
     vols: list
     majorants: list[Tensor]
     counts: PathCounts = field(default_factory=PathCounts)
+    kernel: bool = False  # the tracking as Dr.Jit kernels (`path_kernel`), else eagerly
+
+
+def uniform_lanes(key, count):
+    """Draw `count` of the paths of keys `key` (int32 lanes): a uniform value in [0, 1) from the
+    top 24 bits of their hash (`noise.fast.hash_pair`), lanes (`ops.lanes`): eager and the kernel
+    draw the same numbers."""
+    return lanes.to_float((fast.hash_pair(key, count, _DRAW) >> 8) & 0xFFFFFF, _float_like(key)) * 2.0**-24
+
+
+def _float_like(key):
+    """A float lane of `key`'s backend (float32: both backends draw 24-bit values)."""
+    return key.new_zeros((), dtype=torch.float32) if isinstance(key, Tensor) else 0.0
 
 
 class Draws:
-    """Uniform numbers in [0, 1) for paths of keys `key` [n] (long): draw k of path i is a hash of
-    (key[i], k), its counter advanced per draw."""
+    """The eager tracer's draws: `uniform_lanes` for paths `ids` of keys `key` [n] (int32), each
+    path's counter advanced per draw."""
 
     def __init__(self, key: Tensor, dtype: torch.dtype):
         self.key, self.count, self.dtype = key, torch.zeros_like(key), dtype
 
     def __call__(self, ids: Tensor) -> Tensor:
-        cells = torch.stack([self.key[ids], self.count[ids], torch.zeros_like(ids)], dim=1)
-        self.count.index_add_(0, ids, torch.ones_like(ids))
-        return hash3(cells, _DRAW, dtype=self.dtype)
+        u = uniform_lanes(self.key[ids], self.count[ids]).to(self.dtype)
+        self.count.index_add_(0, ids, torch.ones_like(self.count[ids]))
+        return u
 
 
 def path_keys(keys: Tensor, sample: int, samples: int) -> Tensor:
-    """Each ray's path key [n] for path `sample` of `samples`: a hash of its ray key [n, 3] (pixel
-    column·spp + sub-sample, row, scene seed) with the sample, as a 32-bit integer."""
-    cells = torch.stack([keys[:, 0] * samples + sample, keys[:, 1], keys[:, 2]], dim=1)
-    return (hash3(cells, _KEY, dtype=torch.float64) * 2.0**32).to(torch.long)
+    """Each ray's path key [n] (int32) for path `sample` of `samples`: the hash of its ray key [n, 3]
+    (pixel column·spp + sub-sample, row, scene seed) with the sample."""
+    k = keys.to(torch.int64)
+    bits = lambda v: (torch.remainder(v + 2**31, 2**32) - 2**31).to(torch.int32)  # noqa: E731  its int32 bits
+    return fast.hash32(bits(k[:, 0] * samples + sample), bits(k[:, 1]), bits(k[:, 2]), _KEY)
 
 
 def majorant(vol, dtype: torch.dtype) -> Tensor:
@@ -113,9 +128,10 @@ def _lattice_maximum(vol, dtype: torch.dtype) -> Tensor:
     return torch.stack(out)
 
 
-def media(vols: list, dtype: torch.dtype) -> Media:
-    """The paths' `Media` of the render's physically shaded volume states `vols`."""
-    return Media(vols, [majorant(v, dtype) for v in vols])
+def media(vols: list, dtype: torch.dtype, *, kernel: bool = False) -> Media:
+    """The paths' `Media` of the render's physically shaded volume states `vols` (`kernel`: their
+    tracking in Dr.Jit kernels)."""
+    return Media(vols, [majorant(v, dtype) for v in vols], kernel=kernel)
 
 
 def _intervals(m: Media, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor):
@@ -132,68 +148,91 @@ def _intervals(m: Media, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor):
     return torch.stack(t0), torch.stack(t1), total
 
 
-def _extinctions(m: Media, x: Tensor, s: Tensor, t: Tensor, t0: Tensor, t1: Tensor) -> Tensor:
-    """σ_t [V, n] of each volume at points x [n, 3] (distance t [n] along their rays, inside a
-    volume's span [t0, t1] [V, n]; 0 outside it)."""
-    out = x.new_zeros(len(m.vols), x.shape[0])
-    for v, vol in enumerate(m.vols):
-        inside = ((t >= t0[v]) & (t < t1[v])).nonzero().squeeze(1)
-        if inside.numel():
-            si = s[inside]
-            out[v, inside] = take(vol.params.sigma_t, si) * vol.field(x[inside], si)
-    return out
+def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: bool, steps: int) -> list:
+    """Weighted delta tracking (`collide`) or ratio tracking along rays `o`, `d` (three lanes each)
+    through volumes spanning [t0[v], t1[v]] (lanes a volume; empty: t0 = t1), their majorants
+    summing to `total`, `sigma(v, x, mask)` volume v's σ_t at points x (three lanes) where `mask`
+    (0 elsewhere), drawing `uniform_lanes(key, count)`: lanes (`ops.lanes`), the eager tracer's
+    and the kernel's one source. -> [t of the real collision (inf: none), its volume (int, −1:
+    none), its σ_t, the weight (the transmittance, ratio tracking), the counters after, whether a
+    lane stopped at `steps` tentative collisions, its tentative collisions above the majorant, each
+    volume's density evaluations]."""
+    first, end = None, None
+    for a, b in zip(t0, t1):
+        entry = lanes.where(b > a, a, math.inf)
+        first = entry if first is None else lanes.minimum(first, entry)
+        end = b if end is None else lanes.maximum(end, b)
+    t = lanes.where(total > 0.0, first, math.inf)
+    none = count * 0 - 1
+
+    def body(t, weight, hit, vol, sig_hit, count, live, n, above, *evals):
+        u = uniform_lanes(key, count)
+        count = count + lanes.to_int32(live)
+        t = lanes.where(live, t - lanes.log(1.0 - u) / total, t)
+        on = live & (t < end)
+        x = [o[c] + t * d[c] for c in range(3)]
+        masks = [on & (t >= t0[v]) & (t < t1[v]) for v in range(len(t0))]
+        sig = [sigma(v, x, mask) for v, mask in enumerate(masks)]
+        evals = [e + lanes.to_int32(mask) for e, mask in zip(evals, masks)]
+        sig_sum = sum(sig[1:], sig[0])
+        null = total - sig_sum
+        above = above + lanes.to_int32(on & (null < 0.0))
+        if not collide:  # the transmittance: a product of null fractions, faded out by roulette
+            weight = lanes.where(on, weight * null / total, weight)
+            low = on & (lanes.abs(weight) < FADE)
+            u = uniform_lanes(key, count)
+            count = count + lanes.to_int32(low)
+            weight = lanes.where(low, lanes.where(u < 0.5, 2.0 * weight, 0.0), weight)
+            return t, weight, hit, vol, sig_hit, count, on & (weight != 0.0), n + 1, above, *evals
+        width = sig_sum + lanes.abs(null)  # σ_t + |σ_n|: σ̄ below the majorant
+        u = uniform_lanes(key, count)
+        count = count + lanes.to_int32(on)
+        real = on & (u * width < sig_sum)
+        weight = lanes.where(on, weight * lanes.where(real | (null >= 0.0), width, -width) / total, weight)
+        pick = uniform_lanes(key, count) * sig_sum  # the volume: by its share of σ_t
+        count = count + lanes.to_int32(real)
+        k, chosen, acc = count * 0, sig[0], sig[0]
+        for v in range(1, len(sig)):
+            past = acc <= pick
+            k, chosen, acc = lanes.where(past, v, k), lanes.where(past, sig[v], chosen), acc + sig[v]
+        return (t, weight, lanes.where(real, t, hit), lanes.where(real, k, vol), lanes.where(real, chosen, sig_hit),
+                count, on & ~real, n + 1, above, *evals)
+
+    state = [t, lanes.full_like(t, 1.0), lanes.full_like(t, math.inf), none, lanes.full_like(t, 0.0), count, t < end,
+             count * 0, count * 0] + [count * 0 for _ in t0]
+    t, weight, hit, vol, sig_hit, count, live, n, above, *evals = lanes.while_loop(state, lambda *x: x[6] & (x[7] < steps), body)
+    return [hit, vol, sig_hit, weight, count, live, above, *evals]
 
 
 def _track(m: Media, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, draw: Draws, ids: Tensor, *, collide: bool):
-    """Weighted delta tracking (`collide`) or ratio tracking along rays o, d [n, 3] of scenes s [n]
-    up to t_max [n] through every medium, drawing for paths `ids` [n]. -> (t [n]: where a real
-    collision happened, inf where the ray left; the volume [n] (−1: none); σ_t of that volume
-    there [n]; the weight [n]: the tracking's weight, or the transmittance for ratio tracking)."""
-    n = o.shape[0]
+    """`track_lanes` of rays o, d [n, 3] of scenes s [n] up to t_max [n] for paths `ids` [n] of
+    `draw`: eagerly on torch columns, or as one Dr.Jit kernel (`m.kernel`). -> (t [n] of the real
+    collision, inf: none; its volume [n] long, −1: none; its σ_t [n]; the weight [n])."""
+    if o.shape[0] == 0:
+        return t_max.clone(), torch.zeros_like(ids), t_max.clone(), t_max.clone()
     t0, t1, total = _intervals(m, o, d, s, t_max)
-    t = torch.where(total > 0, t0.masked_fill(t1 <= t0, math.inf).amin(dim=0), torch.full_like(total, math.inf))
-    end = t1.amax(dim=0)
-    hit_t, vol, sigma, weight = torch.full_like(t, math.inf), torch.full((n,), -1, dtype=torch.long), t.new_zeros(n), t.new_ones(n)
-    live = (t < end).nonzero().squeeze(1)
-    for _ in range(MAX_TENTATIVE):
-        if not live.numel():
-            break
-        t[live] = t[live] - torch.log1p(-draw(ids[live])) / total[live]
-        live = live[t[live] < end[live]]
-        if not live.numel():
-            break
-        sig = _extinctions(m, o[live] + t[live, None] * d[live], s[live], t[live], t0[:, live], t1[:, live])
-        sig_sum, bound = sig.sum(dim=0), total[live]
-        m.counts.above_majorant += int((sig_sum > bound).sum())
-        null = bound - sig_sum
-        if not collide:  # ratio tracking: the transmittance's product of null fractions
-            weight[live] = weight[live] * null / bound
-            _fade(weight, live, draw, ids)
-            live = live[weight[live] != 0]
-            continue
-        p_real = sig_sum / (sig_sum + null.abs())
-        real = draw(ids[live]) < p_real
-        # a real collision's weight (σ_t + |σ_n|)/σ̄, a null one's sign(σ_n) times it: 1 and 1 below the majorant
-        scale = (sig_sum + null.abs()) / bound
-        weight[live] = weight[live] * torch.where(real, scale, torch.sign(null) * scale)
-        done = live[real]
-        if done.numel():
-            pick = draw(ids[done]) * sig_sum[real]  # the volume: by its share of σ_t
-            k = (sig[:, real].cumsum(dim=0) <= pick[None]).sum(dim=0).clamp_max(len(m.vols) - 1)
-            hit_t[done], vol[done], sigma[done] = t[done], k, sig[:, real].gather(0, k[None])[0]
-        live = live[~real]
+    if m.kernel:
+        from .path_kernel import track_kernel
+
+        hit, vol, sigma, weight, count, live, above, *_ = track_kernel(m, o, d, s, t0, t1, total, draw.key[ids], draw.count[ids],
+                                                             collide=collide)
     else:
-        m.counts.truncated += int(live.numel())
-    return hit_t, vol, sigma, weight
+        x_of = lambda x, rows: torch.stack([c[rows] for c in x], dim=1)  # noqa: E731
 
+        def sigma(v, x, mask):
+            out, rows = x[0].new_zeros(x[0].shape), mask.nonzero().squeeze(1)
+            if rows.numel():
+                vol = m.vols[v]
+                out[rows] = take(vol.params.sigma_t, s[rows]) * vol.field(x_of(x, rows), s[rows])
+            return out
 
-def _fade(weight: Tensor, live: Tensor, draw: Draws, ids: Tensor) -> None:
-    """Russian roulette on a ratio-tracked transmittance under FADE: kept at twice its value with
-    probability ½, else 0 (unbiased; a dense medium's shadow ray then ends in a few steps)."""
-    low = live[weight[live].abs() < FADE]
-    if low.numel():
-        keep = draw(ids[low]) < 0.5
-        weight[low] = torch.where(keep, 2.0 * weight[low], torch.zeros_like(weight[low]))
+        hit, vol, sigma, weight, count, live, above, *_ = track_lanes(o.unbind(1), d.unbind(1), list(t0), list(t1), total, sigma,
+                                                           draw.key[ids], draw.count[ids], collide=collide,
+                                                           steps=MAX_TENTATIVE)
+    draw.count[ids] = count
+    m.counts.truncated += int(live.sum())
+    m.counts.above_majorant += int(above.sum())
+    return hit, vol.long(), sigma, weight
 
 
 def transmittance(m: Media, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, draw: Draws, ids: Tensor) -> Tensor:
