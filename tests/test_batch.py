@@ -65,6 +65,14 @@ BASES: dict[str, dict] = {
         "post": {"tonemap": "smoothstep", "exposure": 1.3, "smoothstep_edges": [0.05, 0.9], "vignette": 0.4,
                  "fog": {"color": [0.6, 0.6, 0.7], "density": 0.2}},
     },
+    "path": {
+        "image": SMALL,
+        "camera": CAMERA,
+        "lights": [SUN],
+        "volumes": [{"bounds": {"box": {"min": [-0.6, -0.5, -0.6], "max": [0.6, 0.5, 0.6]}}, "density": {"constant": 0.8},
+                     "sigma_t": 2.5, "albedo": 0.8}],
+        "path": {"bounces": 3, "samples": 2},
+    },
     "closed form": {
         "image": {**SMALL, "spp": 2},
         "camera": {**CAMERA, "fov_y": None, "focal": 1.2},

@@ -68,6 +68,8 @@ floor = _unary("floor", None, "Rounded down to an integer value (still a float).
 ceil = _unary("ceil", None, "Rounded up to an integer value (still a float).")
 isfinite = _unary("isfinite", math.isfinite, "Neither infinite nor NaN.")
 abs = _unary("abs", math.fabs, "|x|.")  # noqa: A001  the lane form of the builtin
+sin = _unary("sin", math.sin, "The sine.")
+cos = _unary("cos", math.cos, "The cosine.")
 round = _unary("round", None, "To the nearest integer value, ties to even (torch.round, drjit.round).")  # noqa: A001  the lane form of the builtin
 
 
@@ -278,5 +280,5 @@ def length3(x, y, z):
     return sqrt(x * x + y * y + z * z)
 
 
-__all__ = ["abs", "clamp", "clamp_max", "clamp_min", "columns", "divide", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
-           "floats_of", "fori", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where", "while_loop"]
+__all__ = ["abs", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
+           "floats_of", "fori", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "sin", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where", "while_loop"]

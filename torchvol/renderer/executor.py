@@ -39,7 +39,7 @@ from ..runtime.threads import glue_on_one_thread
 from ..schema.batch import Stacked, stack, take
 from ..schema.validate import fail, integer, is_integer
 from ..terrain import TerrainSurface
-from ..volume import kernel_march, path
+from ..volume import kernel_march, path, path_kernel
 from ..volume.ambient import sky_mean
 from ..volume.composite import Media, composite_volumes, finish
 from ..volume.joint import march_joint
@@ -263,10 +263,11 @@ def path_radiance(ctx: RenderContext, rays: Rays, background: Tensor | None) -> 
     scattered path does."""
     bounces, samples, backend = ctx.plan.path
     if ctx.path_media is None:
-        ctx.path_media = path.media(ctx.volumes, ctx.dtype, kernel=backend == "drjit")
+        ctx.path_media = path.media(ctx.volumes, ctx.dtype)
     sky = None if ctx.plan.sky is None else lambda d, s: sky_toward(ctx, d, s)
     return path.radiance(ctx.path_media, ctx.lights, rays, background, sky, bounces=bounces, samples=samples,
-                         keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp))
+                         keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp),
+                         trace=path_kernel.trace_kernel if backend == "drjit" else None)
 
 
 def air_along(ctx: RenderContext, rays: Rays) -> AirPath:

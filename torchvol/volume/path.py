@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable
+from types import SimpleNamespace
 
 import torch
 from torch import Tensor
@@ -31,6 +31,7 @@ from torch import Tensor
 from ..noise import fast
 from ..ops import lanes
 from ..schema.batch import take
+from .emission import EMISSION_MAPS
 
 ROULETTE_AFTER = 3  # scatterings before Russian roulette may end a path
 MARGIN = 1.5  # an estimated majorant: the largest lattice sample times this
@@ -56,7 +57,6 @@ class Media:
     vols: list
     majorants: list[Tensor]
     counts: PathCounts = field(default_factory=PathCounts)
-    kernel: bool = False  # the tracking as Dr.Jit kernels (`path_kernel`), else eagerly
 
 
 def uniform_lanes(key, count):
@@ -69,19 +69,6 @@ def uniform_lanes(key, count):
 def _float_like(key):
     """A float lane of `key`'s backend (float32: both backends draw 24-bit values)."""
     return key.new_zeros((), dtype=torch.float32) if isinstance(key, Tensor) else 0.0
-
-
-class Draws:
-    """The eager tracer's draws: `uniform_lanes` for paths `ids` of keys `key` [n] (int32), each
-    path's counter advanced per draw."""
-
-    def __init__(self, key: Tensor, dtype: torch.dtype):
-        self.key, self.count, self.dtype = key, torch.zeros_like(key), dtype
-
-    def __call__(self, ids: Tensor) -> Tensor:
-        u = uniform_lanes(self.key[ids], self.count[ids]).to(self.dtype)
-        self.count.index_add_(0, ids, torch.ones_like(self.count[ids]))
-        return u
 
 
 def path_keys(keys: Tensor, sample: int, samples: int) -> Tensor:
@@ -128,24 +115,9 @@ def _lattice_maximum(vol, dtype: torch.dtype) -> Tensor:
     return torch.stack(out)
 
 
-def media(vols: list, dtype: torch.dtype, *, kernel: bool = False) -> Media:
-    """The paths' `Media` of the render's physically shaded volume states `vols` (`kernel`: their
-    tracking in Dr.Jit kernels)."""
-    return Media(vols, [majorant(v, dtype) for v in vols], kernel=kernel)
-
-
-def _intervals(m: Media, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor):
-    """Each volume's span [t0, t1] [V, n] along rays o, d [n, 3] of scenes s [n] up to t_max [n]
-    (empty: t0 = t1), and the rays' summed majorant [n] over the volumes they cross."""
-    t0, t1, total = [], [], o.new_zeros(o.shape[0])
-    for v, maj in zip(m.vols, m.majorants):
-        near, far = v.intersect(o, d, s)
-        a, b = near.clamp_min(0.0), torch.minimum(torch.minimum(far, t_max), o.new_tensor(v.plan.reach))
-        crosses = b > a
-        t0.append(torch.where(crosses, a, torch.zeros_like(a)))
-        t1.append(torch.where(crosses, b, torch.zeros_like(b)))
-        total = total + torch.where(crosses, take(maj, s), torch.zeros_like(a))
-    return torch.stack(t0), torch.stack(t1), total
+def media(vols: list, dtype: torch.dtype) -> Media:
+    """The paths' `Media` of the render's physically shaded volume states `vols`."""
+    return Media(vols, [majorant(v, dtype) for v in vols])
 
 
 def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: bool, steps: int) -> list:
@@ -204,194 +176,230 @@ def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: 
     return [hit, vol, sig_hit, weight, count, live, above, *evals]
 
 
-def _track(m: Media, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, draw: Draws, ids: Tensor, *, collide: bool):
-    """`track_lanes` of rays o, d [n, 3] of scenes s [n] up to t_max [n] for paths `ids` [n] of
-    `draw`: eagerly on torch columns, or as one Dr.Jit kernel (`m.kernel`). -> (t [n] of the real
-    collision, inf: none; its volume [n] long, −1: none; its σ_t [n]; the weight [n])."""
-    if o.shape[0] == 0:
-        return t_max.clone(), torch.zeros_like(ids), t_max.clone(), t_max.clone()
-    t0, t1, total = _intervals(m, o, d, s, t_max)
-    if m.kernel:
-        from .path_kernel import track_kernel
-
-        hit, vol, sigma, weight, count, live, above, *_ = track_kernel(m, o, d, s, t0, t1, total, draw.key[ids], draw.count[ids],
-                                                             collide=collide)
-    else:
-        x_of = lambda x, rows: torch.stack([c[rows] for c in x], dim=1)  # noqa: E731
-
-        def sigma(v, x, mask):
-            out, rows = x[0].new_zeros(x[0].shape), mask.nonzero().squeeze(1)
-            if rows.numel():
-                vol = m.vols[v]
-                out[rows] = take(vol.params.sigma_t, s[rows]) * vol.field(x_of(x, rows), s[rows])
-            return out
-
-        hit, vol, sigma, weight, count, live, above, *_ = track_lanes(o.unbind(1), d.unbind(1), list(t0), list(t1), total, sigma,
-                                                           draw.key[ids], draw.count[ids], collide=collide,
-                                                           steps=MAX_TENTATIVE)
-    draw.count[ids] = count
-    m.counts.truncated += int(live.sum())
-    m.counts.above_majorant += int(above.sum())
-    return hit, vol.long(), sigma, weight
-
-
-def transmittance(m: Media, o: Tensor, d: Tensor, s: Tensor, t_max: Tensor, draw: Draws, ids: Tensor) -> Tensor:
-    """Ratio-tracked transmittance [n] through every medium along rays o, d [n, 3] of scenes s [n]
-    up to t_max [n] (an unbiased estimate; negative where a density exceeds its majorant)."""
-    return _track(m, o, d, s, t_max, draw, ids, collide=False)[3]
-
-
-def _basis(d: Tensor) -> tuple[Tensor, Tensor]:
-    """Two unit vectors [n, 3] completing unit d [n, 3] to an orthonormal basis (Duff et al. 2017)."""
-    x, y, z = d.unbind(1)
-    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+def _basis(d: list) -> tuple[list, list]:
+    """Two unit vectors (three lanes each) completing unit d (three lanes) to an orthonormal basis
+    (Duff et al. 2017), lanes."""
+    x, y, z = d
+    sign = lanes.where(z >= 0.0, 1.0, -1.0)
     a = -1.0 / (sign + z)
     b = x * y * a
-    return (torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], dim=1),
-            torch.stack([b, sign + y * y * a, -y], dim=1))
+    return [1.0 + sign * x * x * a, sign * b, -sign * x], [b, sign + y * y * a, -y]
 
 
-def _turn(d: Tensor, cos: Tensor, u: Tensor) -> Tensor:
-    """The unit direction [n, 3] at angle acos(cos) [n] from d [n, 3], azimuth 2π·u [n]."""
+def _turn(d: list, cos, u) -> list:
+    """The unit direction (three lanes) at angle acos(cos) from d (three lanes), azimuth 2π·u, lanes."""
     t1, t2 = _basis(d)
-    sin = (1.0 - cos * cos).clamp_min(0.0).sqrt()
+    sin = lanes.sqrt(lanes.clamp_min(1.0 - cos * cos, 0.0))
     phi = 2.0 * math.pi * u
-    return (sin * torch.cos(phi))[:, None] * t1 + (sin * torch.sin(phi))[:, None] * t2 + cos[:, None] * d
+    c, s_ = sin * lanes.cos(phi), sin * lanes.sin(phi)
+    return [c * t1[i] + s_ * t2[i] + cos * d[i] for i in range(3)]
 
 
-def hg_cos(g: Tensor, u: Tensor) -> Tensor:
-    """cos θ [n] drawn from Henyey-Greenstein g [n] by inverting its CDF at u [n] (|g| < 1e-3:
-    isotropic)."""
-    small = g.abs() < 1e-3
-    gs = torch.where(small, torch.ones_like(g), g)
+def hg_cos(g, u):
+    """cos θ drawn from Henyey-Greenstein g by inverting its CDF at u (|g| < 1e-3: isotropic), lanes."""
+    small = lanes.abs(g) < 1e-3
+    gs = lanes.where(small, 1.0, g)
     q = (1.0 - gs * gs) / (1.0 - gs + 2.0 * gs * u)
-    cos = (1.0 + gs * gs - q * q) / (2.0 * gs)
-    return torch.where(small, 1.0 - 2.0 * u, cos).clamp(-1.0, 1.0)
+    return lanes.clamp(lanes.where(small, 1.0 - 2.0 * u, (1.0 + gs * gs - q * q) / (2.0 * gs)), -1.0, 1.0)
 
 
-def sample_phase(vol, d: Tensor, s: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-    """A new direction [n, 3] scattered from d [n, 3] by the volume's phase function at points of
-    scenes s [n] (u [n, 3] uniform), and its weight p/pdf [n]: HG and its dual lobe drawn exactly,
-    Mie's Cornette-Shanks through its HG, Rayleigh and isotropic uniformly."""
-    from ..light.phase import henyey_greenstein
-
-    kind, p = vol.params.phase.kind, vol.params.phase.value
-    if kind == "hg" or kind == "mie":
-        g = take(p.g, s)
-    elif kind == "dual_hg":
-        g = torch.where(u[:, 2] < take(p.weight, s), take(p.g_backward, s), take(p.g_forward, s))
-    else:
-        g = torch.zeros_like(u[:, 0])
-    cos = hg_cos(g, u[:, 0])
-    weight = torch.ones_like(cos)
-    if kind in ("mie", "rayleigh"):  # not drawn exactly: the phase over the proposal's density
-        proposal = henyey_greenstein(cos, g)
-        weight = vol.phase.fn(p, cos, s) / proposal
-    return _turn(d, cos, u[:, 1]), weight
-
-
-def _by_volume(vols: list, vol: Tensor, fn: Callable[[object, Tensor], Tensor], like: Tensor) -> Tensor:
-    """fn(volume state, rows) [m, ...] for the rows of each volume index in `vol` [n], put together
-    [n, ...] (`like` gives the trailing shape and dtype)."""
-    out = like.new_zeros(like.shape)
-    for v, state in enumerate(vols):
-        rows = (vol == v).nonzero().squeeze(1)
-        if rows.numel():
-            out[rows] = fn(state, rows)
+def _pick(vol, values: list):
+    """values[vol] per lane (`vol` int lanes, −1 or out of range: values[0]), lanes."""
+    out = values[0]
+    for v in range(1, len(values)):
+        out = lanes.where(vol == v, values[v], out)
     return out
 
 
+def _phase_sample(q, vol, d: list, u: list):
+    """A direction scattered from d by the phase function of each lane's volume (u three uniform
+    lanes) and its weight p/pdf: HG and its dual lobe drawn exactly, Mie through its HG, Rayleigh
+    and isotropic uniformly."""
+    from ..light.phase import henyey_greenstein
+
+    g = _pick(vol, [lanes.where(u[2] < m.lobe[2], m.lobe[1], m.lobe[0]) for m in q.vols])
+    cos = hg_cos(g, u[0])
+    weight = _pick(vol, [m.phase(cos) / henyey_greenstein(cos, g) if m.weighted else lanes.full_like(cos, 1.0)
+                         for m in q.vols])
+    return _turn(d, cos, u[1]), weight
+
+
+def _spans(q, o: list, d: list, alive, t_max=None):
+    """Each volume's span [t0, t1] along rays o, d (empty: t0 = t1 = 0; not `alive`: empty) up to
+    t_max (None: no limit) and the majorants summed over the volumes crossed, lanes."""
+    t0, t1, total = [], [], None
+    for m in q.vols:
+        near, far = m.interval(o, d)
+        a = lanes.clamp_min(near, 0.0)
+        b = lanes.minimum(far, m.reach if t_max is None else lanes.minimum(t_max, m.reach))
+        crosses = alive & (b > a)
+        t0.append(lanes.where(crosses, a, 0.0))
+        t1.append(lanes.where(crosses, b, 0.0))
+        part = lanes.where(crosses, m.majorant, 0.0)
+        total = part if total is None else total + part
+    return t0, t1, total
+
+
+def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
+    """One path a lane from o along d (three lanes each; `key` int32 lanes), the module's
+    estimator, lanes (`ops.lanes`): eagerly on torch columns, as one Dr.Jit kernel in
+    `path_kernel`. `q` (`path_inputs`): the volumes (their interval, reach, majorant, σ_t,
+    albedo, emission, phase) and the lights, per lane. -> [radiance (3), throughput (3) and
+    direction (3) where it left the media, whether it left, its scatterings, tentative collisions
+    past the step limit and above a majorant, each volume's density evaluations]."""
+    one = lanes.full_like(o[0], 1.0)
+    zero_i, alive = key * 0, one > 0.0
+    V = len(q.vols)
+
+    def body(*state):
+        o, d, beta, out = list(state[0:3]), list(state[3:6]), list(state[6:9]), list(state[9:12])
+        count, k, alive, gone, cut, above, *evals = state[12:]
+        t0, t1, total = _spans(q, o, d, alive)
+        hit, vol, sig, w, count, live, extra, *ev = track_lanes(o, d, t0, t1, total, q.sigma, key, count,
+                                                                collide=True, steps=MAX_TENTATIVE)
+        cut, above, evals = cut + lanes.to_int32(live), above + extra, [a + b for a, b in zip(evals, ev)]
+        beta = [lanes.where(alive, b * w, b) for b in beta]
+        left = alive & (vol < 0)
+        gone, alive = gone | left, alive & ~left
+        t = lanes.where(alive, hit, 0.0)
+        x = [o[c] + t * d[c] for c in range(3)]
+        emitted = _emitted(q, vol, x, sig)
+        out = [lanes.where(alive, out[c] + beta[c] * emitted[c], out[c]) for c in range(3)]
+        alive = alive & (k < bounces)
+        albedo = _pick(vol, [m.albedo for m in q.vols])
+        beta = [lanes.where(alive, b * albedo, b) for b in beta]
+        for light in q.lights:  # next-event estimation
+            direction, irradiance, distance = light.toward(x)
+            cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
+            phase = _pick(vol, [m.phase(cos) for m in q.vols])
+            s0, s1, tot = _spans(q, x, direction, alive, distance)
+            _, _, _, through, count, live, extra, *ev = track_lanes(x, direction, s0, s1, tot, q.sigma, key, count,
+                                                                    collide=False, steps=MAX_TENTATIVE)
+            cut, above, evals = cut + lanes.to_int32(live), above + extra, [a + b for a, b in zip(evals, ev)]
+            out = [lanes.where(alive, out[c] + beta[c] * irradiance[c] * (phase * through), out[c]) for c in range(3)]
+        u = []
+        for _ in range(3):
+            u.append(uniform_lanes(key, count))
+            count = count + lanes.to_int32(alive)
+        turned, weight = _phase_sample(q, vol, d, u)
+        d = [lanes.where(alive, turned[c], d[c]) for c in range(3)]
+        beta = [lanes.where(alive, b * weight, b) for b in beta]
+        o = [lanes.where(alive, x[c], o[c]) for c in range(3)]
+        k = k + lanes.to_int32(alive)
+        beta, alive, count = _roulette(beta, alive & (k >= ROULETTE_AFTER), alive, key, count)
+        return (*o, *d, *beta, *out, count, k, alive, gone, cut, above, *evals)
+
+    state = [*o, *d, one, one, one, one * 0.0, one * 0.0, one * 0.0, zero_i, zero_i, alive, ~alive, zero_i, zero_i]
+    state = lanes.while_loop(state + [zero_i] * V, lambda *x: x[14], body)
+    return [*state[9:12], *state[6:9], *state[3:6], state[15], state[13], state[16], state[17], *state[18:]]
+
+
+def _emitted(q, vol, x: list, sig) -> list:
+    """σe/σ_t (three lanes) at a real collision at x in each lane's volume (σ_t `sig` there):
+    `emission` · density plus the emission map, over σ_t."""
+    out = [None] * 3
+    for v, m in enumerate(q.vols):
+        density = sig / lanes.clamp_min(m.sigma_t, 1e-30)
+        source = [m.emission[c] * density for c in range(3)]
+        if m.glow is not None:
+            source = [a + b for a, b in zip(source, m.glow(x, density))]
+        values = [c / lanes.clamp_min(sig, 1e-30) for c in source]
+        out = values if v == 0 else [lanes.where(vol == v, values[c], out[c]) for c in range(3)]
+    return out
+
+
+def _roulette(beta: list, play, alive, key, count):
+    """Russian roulette where `play`: a path goes on with probability q = min(1, max |throughput|)
+    (at least 0.05), its throughput over q. -> (throughput, alive, counters)."""
+    q = lanes.clamp(lanes.maximum(lanes.maximum(lanes.abs(beta[0]), lanes.abs(beta[1])), lanes.abs(beta[2])), 0.05, 1.0)
+    u = uniform_lanes(key, count)
+    count = count + lanes.to_int32(play)
+    survive = ~play | (u < q)
+    return [lanes.where(play & survive, b / q, b) for b in beta], alive & survive, count
+
+
+def path_inputs(m: Media, lights: list, s: Tensor, per_ray, volume) -> SimpleNamespace:
+    """What `trace_lanes` takes for paths of scenes `s` [n]: `per_ray` (per scene -> lanes) and
+    `volume(v, state)` (its interval(o, d), σ_t at points where a mask holds, its emission map's
+    glow(x, density) or None: the backend's) -> the volumes' and lights' lanes."""
+    vols = []
+    for v, state in enumerate(m.vols):
+        p = state.params
+        kind, fn = p.phase.kind, state.phase.caps["lanes"]
+        phase_q = fn[0](p.phase.value, SimpleNamespace(per_lane=per_ray))
+        g = phase_q if kind in ("hg", "mie") else (phase_q if kind == "dual_hg" else 0.0)
+        lobe = (g[0], g[1], g[2]) if kind == "dual_hg" else (g, g, 0.0)
+        interval, glow = volume(v, state)
+        vols.append(SimpleNamespace(interval=interval, reach=min(state.plan.reach, 3e38), majorant=per_ray(m.majorants[v]),
+                                    sigma_t=per_ray(p.sigma_t), albedo=per_ray(p.albedo), emission=per_ray(p.emission),
+                                    glow=glow, lobe=lobe, weighted=kind in ("mie", "rayleigh"),
+                                    phase=lambda cos, fn=fn, q=phase_q: fn[1](q, cos, 1.0)))
+    return SimpleNamespace(vols=vols, lights=[_light(li, per_ray) for li in lights])
+
+
+def _light(light, per_ray) -> SimpleNamespace:
+    """A light's toward(x) -> (direction, irradiance (three lanes each), distance) in lanes."""
+    from ..light.lights import point_lanes
+
+    radiant = per_ray(light.radiant)
+    if light.directional:
+        direction = per_ray(light.direction)
+        return SimpleNamespace(toward=lambda x: (direction, radiant, math.inf))
+    position = per_ray(light.params.position)
+    return SimpleNamespace(toward=lambda x: point_lanes(position, radiant, x))
+
+
 def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bounces: int, samples: int,
-             keys: Tensor) -> Tensor:
+             keys: Tensor, trace=None) -> Tensor:
     """The path-traced radiance [n, 3] of camera `rays` [n]: the mean of `samples` paths a ray
     (`keys` [n, 3]: `geometry.sampling.ray_keys`), each of at most `bounces` scatterings, lit by
     `lights` (the render's `LightSource`s), seeing `background` [n, 3] (None: black) where the camera
     ray leaves the media and `sky(directions [m, 3], s [m]) -> [m, 3]` (None: black) where a
-    scattered path does."""
-    total = rays.origins.new_zeros(len(rays), 3)
+    scattered path does. `trace(m, lights, rays, key, bounces)` runs one sample's paths (None:
+    `trace_eager`; `path_kernel.trace_kernel`: one Dr.Jit kernel)."""
+    s, total = rays.scene_index, rays.origins.new_zeros(len(rays), 3)
+    run = trace_eager if trace is None else trace
     for k in range(samples):
-        total = total + _trace(m, lights, rays, background, sky, bounces, Draws(path_keys(keys, k, samples), rays.origins.dtype))
+        out, beta, direction, gone, scattered, cut, above = run(m, lights, rays, path_keys(keys, k, samples), bounces)
+        m.counts.truncated += int(cut.sum())
+        m.counts.above_majorant += int(above.sum())
+        first, later = (gone & (scattered == 0)).nonzero().squeeze(1), (gone & (scattered > 0)).nonzero().squeeze(1)
+        if background is not None and first.numel():
+            out[first] = out[first] + beta[first] * background[first]
+        if sky is not None and later.numel():
+            out[later] = out[later] + beta[later] * sky(direction[later], s[later])
+        total = total + out
     return total / samples
 
 
-def _trace(m: Media, lights: list, rays, background, sky, bounces: int, draw: Draws) -> Tensor:
-    """One path a ray [n, 3] (the module's estimator)."""
+def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int) -> list:
+    """`trace_lanes` on torch columns for rays [n] (paths of keys `key` [n]) -> its results as
+    tensors ([n, 3] for the three-lane ones)."""
     s = rays.scene_index
-    o, d = rays.origins.clone(), rays.directions.clone()
-    beta, out = o.new_ones(o.shape[0], 3), o.new_zeros(o.shape[0], 3)
-    ids = torch.arange(o.shape[0], device=o.device)
-    for k in range(bounces + 1):
-        t, vol, sigma, weight = _track(m, o[ids], d[ids], s[ids], torch.full_like(o[ids, 0], math.inf), draw, ids,
-                                       collide=True)
-        beta[ids] = beta[ids] * weight[:, None]
-        left, ids, t, vol, sigma = _leave(out, beta, ids, vol < 0, t, vol, sigma)
-        seen = (None if background is None else background[left]) if k == 0 else (
-            None if sky is None else sky(d[left], s[left]))
-        if seen is not None and left.numel():
-            out[left] = out[left] + beta[left] * seen
-        if not ids.numel():
-            break
-        x, si = o[ids] + t[:, None] * d[ids], s[ids]
-        out[ids] = out[ids] + beta[ids] * _by_volume(m.vols, vol, lambda v, r: _emitted(v, x[r], si[r], sigma[r]), x)
-        if k == bounces:
-            break
-        beta[ids] = beta[ids] * _by_volume(m.vols, vol, lambda v, r: take(v.params.albedo, si[r]), t)[:, None]
-        out[ids] = out[ids] + beta[ids] * _next_event(m, lights, x, d[ids], si, vol, draw, ids)
-        u = torch.stack([draw(ids) for _ in range(3)], dim=1)
-        turned = _by_volume(m.vols, vol, lambda v, r: torch.cat(_sampled(v, d[ids[r]], si[r], u[r]), dim=1), x.new_zeros(len(ids), 4))
-        o[ids], d[ids] = x, turned[:, :3]
-        beta[ids] = beta[ids] * turned[:, 3:]
-        if k + 1 >= ROULETTE_AFTER:
-            ids = _roulette(beta, ids, draw)
-    return out
+    per_ray = lambda x: lanes.columns(take(x, s))  # noqa: E731
+
+    def volume(v, state):
+        def interval(o, d):
+            return state.intersect(torch.stack(o, dim=1), torch.stack(d, dim=1), s)
+
+        glow = None
+        if state.plan.emission_map is not None:
+            fn = EMISSION_MAPS[state.plan.emission_map].fn
+            glow = lambda x, density: lanes.columns(fn(state.params.emission_map.value, torch.stack(x, dim=1), density, s))  # noqa: E731
+        return interval, glow
+
+    def sigma(v, x, mask):
+        out, rows = x[0].new_zeros(x[0].shape), mask.nonzero().squeeze(1)
+        if rows.numel():
+            state = m.vols[v]
+            out[rows] = take(state.params.sigma_t, s[rows]) * state.field(torch.stack([c[rows] for c in x], dim=1), s[rows])
+        return out
+
+    q = path_inputs(m, lights, s, per_ray, volume)
+    q.sigma = sigma
+    res = trace_lanes(q, list(rays.origins.unbind(1)), list(rays.directions.unbind(1)), key, bounces=bounces)
+    return [torch.stack(res[0:3], 1), torch.stack(res[3:6], 1), torch.stack(res[6:9], 1), res[9], res[10], res[11], res[12]]
 
 
-def _leave(out: Tensor, beta: Tensor, ids: Tensor, gone: Tensor, t: Tensor, vol: Tensor, sigma: Tensor):
-    """Splits paths `ids` [n] into those that left the media (`gone` [n]) and the others, with
-    their t, volume and σ_t. -> (the paths that left, the others, their t, volume, σ_t)."""
-    stay = ~gone
-    return ids[gone], ids[stay], t[stay], vol[stay], sigma[stay]
-
-
-def _sampled(vol, d: Tensor, s: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-    direction, weight = sample_phase(vol, d, s, u)
-    return direction, weight[:, None]
-
-
-def _emitted(vol, x: Tensor, s: Tensor, sigma: Tensor) -> Tensor:
-    """What a real collision at x [m, 3] (σ_t `sigma` [m] there) in `vol` collects of its emission:
-    σe/σ_t [m, 3], σe the physical march's emission source (emission · density, its emission map)."""
-    from .emission import EMISSION_MAPS
-
-    sigma_t = take(vol.params.sigma_t, s)
-    density = sigma / sigma_t.clamp_min(torch.finfo(sigma.dtype).tiny)
-    source = take(vol.params.emission, s) * density[:, None]
-    if vol.plan.emission_map is not None:
-        source = source + EMISSION_MAPS[vol.plan.emission_map].fn(vol.params.emission_map.value, x, density, s)
-    return source / sigma.clamp_min(torch.finfo(sigma.dtype).tiny)[:, None]
-
-
-def _next_event(m: Media, lights: list, x: Tensor, d: Tensor, s: Tensor, vol: Tensor, draw: Draws, ids: Tensor) -> Tensor:
-    """Σ over `lights` of E · p(θ) · T towards the light [m, 3] at x [m, 3] of paths `ids` [m]
-    arriving along d [m, 3] in volumes `vol` [m] (T ratio-tracked through every medium)."""
-    out = x.new_zeros(x.shape[0], 3)
-    for light in lights:
-        toward = light.toward(x, s)
-        cos = (d * toward.direction).sum(dim=1)
-        phase = _by_volume(m.vols, vol, lambda v, r: v.phase.fn(v.params.phase.value, cos[r], s[r]), cos)
-        through = transmittance(m, x, toward.direction, s, toward.distance, draw, ids)
-        out = out + toward.irradiance * (phase * through)[:, None]
-    return out
-
-
-def _roulette(beta: Tensor, ids: Tensor, draw: Draws) -> Tensor:
-    """Russian roulette: path i goes on with probability q = min(1, max |throughput|) (at least
-    0.05), its throughput divided by q. -> the paths that go on."""
-    q = beta[ids].abs().amax(dim=1).clamp(0.05, 1.0)
-    on = draw(ids) < q
-    kept = ids[on]
-    beta[kept] = beta[kept] / q[on][:, None]
-    return kept
-
-
-__all__ = ["Draws", "Media", "PathCounts", "hg_cos", "majorant", "media", "path_keys", "radiance", "sample_phase", "transmittance"]
+__all__ = ["Media", "PathCounts", "hg_cos", "majorant", "media", "path_inputs", "path_keys", "radiance", "trace_eager", "trace_lanes",
+           "track_lanes", "uniform_lanes"]

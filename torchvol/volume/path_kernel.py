@@ -1,6 +1,7 @@
-"""The path tracer's tracking (`path.track_lanes`) as one Dr.Jit kernel per call: every path's
-delta or ratio tracking a loop per lane, each volume's density in lanes (`density_lanes.crossing`),
-the draws the same hash as eager's. Where a volume's density has no lanes form, eager tracks."""
+"""The path tracer's paths (`path.trace_lanes`) as one Dr.Jit kernel a sample: every path a loop
+per lane over its scatterings, its delta and ratio tracking loops inside it, each volume's density
+in lanes (`density_lanes.crossing`), the draws the same hash as eager's. The plan runs it where
+every volume's density and bounds are written in lanes, in float32 on the CPU."""
 
 from __future__ import annotations
 
@@ -10,40 +11,53 @@ from torch import Tensor
 
 from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
-from .density_lanes import crossing, lanes_of, per_scene_lanes, writes_in_lanes
-from .path import MAX_TENTATIVE, track_lanes
+from .density_lanes import crossing, lanes_of, per_scene_lanes
+from .emission import EMISSION_MAPS
+from .path import path_inputs, trace_lanes
 
 
-def supported(vols: list) -> bool:
-    """Whether every volume's density and bounds are written in lanes (the kernel can track)."""
-    return all(writes_in_lanes(v) for v in vols)
-
-
-def track_kernel(m, o: Tensor, d: Tensor, s: Tensor, t0: Tensor, t1: Tensor, total: Tensor, key: Tensor, count: Tensor,
-                 *, collide: bool) -> list[Tensor]:
-    """`track_lanes` of rays o, d [n, 3] of scenes s [n] (spans t0, t1 [V, n], majorant sums
-    `total` [n]) for paths of keys `key` and counters `count` [n] (int32) in `m` (`path.Media`), as
-    one Dr.Jit kernel; each volume's evaluations counted. -> its results as tensors."""
+def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int) -> list[Tensor]:
+    """`trace_lanes` of camera `rays` [n] (paths of keys `key` [n], int32) through the media `m`
+    (`path.Media`) lit by `lights`, as one Dr.Jit kernel; each volume's evaluations counted.
+    -> the results as tensors ([n, 3] for the three-lane ones), as `path.trace_eager` gives them."""
     import drjit as dr
 
     set_drjit_threads()
+    s = rays.scene_index
     per_ray = per_scene_lanes(s)
-    solids = [crossing(v, s, per_ray) for v in m.vols]
+    solids = [crossing(state, s, per_ray) for state in m.vols]
+
+    def volume(v, state):
+        glow = None
+        if state.plan.emission_map is not None:
+            inputs, fn = EMISSION_MAPS[state.plan.emission_map].caps["lanes"]
+            table = inputs(state.params.emission_map.value, lanes_to(per_ray))
+            glow = lambda x, density: fn(table, x, density)  # noqa: E731
+        return solids[v].interval, glow
 
     def sigma(v, x, mask):
         return dr.if_stmt((), mask, lambda: solids[v].sigma_t * solids[v].density(x, None),
                           lambda: dr.zeros(type(x[0]), dr.width(x[0])))
 
+    q = path_inputs(m, lights, s, per_ray, volume)
+    q.sigma = sigma
     lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
-    out = track_lanes(lane(o), lane(d), [lane(x) for x in t0], [lane(x) for x in t1], lane(total), sigma,
-                      lanes.ints_of(key), lanes.ints_of(count), collide=collide, steps=MAX_TENTATIVE)
-    dr.eval(out)
+    res = trace_lanes(q, lane(rays.origins), lane(rays.directions), lanes.ints_of(key), bounces=bounces)
+    dr.eval(res)
     dr.sync_thread()
-    for v, e in zip(m.vols, out[7:]):
-        n = int(np.array(e).astype(np.int64).sum())
-        v.field.counts.density_evals += n
-        v.field.evals += n
-    return [torch.from_numpy(np.array(x)).to(o.device) for x in out[:7]]
+    for state, evals in zip(m.vols, res[13:]):
+        n = int(np.array(evals).astype(np.int64).sum())
+        state.field.counts.density_evals += n
+        state.field.evals += n
+    out = [torch.from_numpy(np.array(x)).to(rays.origins.device) for x in res[:13]]
+    return [torch.stack(out[0:3], 1), torch.stack(out[3:6], 1), torch.stack(out[6:9], 1), out[9], out[10], out[11], out[12]]
 
 
-__all__ = ["supported", "track_kernel"]
+def lanes_to(per_ray):
+    """The `to` a lanes input builder takes: per scene -> lanes."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(per_lane=per_ray)
+
+
+__all__ = ["trace_kernel"]
