@@ -61,14 +61,16 @@ def main() -> None:
     parser.add_argument("--paths", type=int, default=64, help="paths a pixel in each pass")
     parser.add_argument("--passes", type=int, default=4)
     parser.add_argument("--bounces", type=int, default=255)
+    parser.add_argument("--optical-depth", type=float, default=10.0, help="the cloud's largest optical depth")
     args = parser.parse_args()
     grid = puff_grid(32)
-    sigma = sigma_for(grid)
-    print(f"parity cloud, {args.size}², every order up to {args.bounces} scatterings, {args.passes} passes of "
+    sigma = sigma_for(grid, args.optical_depth)
+    print(f"parity cloud (max optical depth {args.optical_depth:g}), {args.size}², every order up to {args.bounces} scatterings, {args.passes} passes of "
           f"{args.paths} paths a pixel, torch threads {torch.get_num_threads()}\n")
     print("| renderer | one pass s | mean | relative RMSE of a pass | time to 1% s |")
     print("| --- | ---: | ---: | ---: | ---: |")
-    for name, run in (("torchvol [path]", torchvol_passes), ("Mitsuba 3 volpath scalar_rgb", mitsuba_passes)):
+    runs = (("torchvol [path]", torchvol_passes), ("Mitsuba 3 volpath scalar_rgb", mitsuba_passes))
+    for name, run in runs:
         images, seconds = run(grid, sigma, size=args.size, paths=args.paths, passes=args.passes, bounces=args.bounces)
         rmse = debiased_relative_rmse(images[0], images[1:])
         raw = rmse["rmse"] if rmse["rmse"] > 0 else rmse["raw"]

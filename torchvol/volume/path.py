@@ -34,6 +34,7 @@ from ..schema.batch import take
 from .emission import EMISSION_MAPS
 
 ROULETTE_AFTER = 3  # scatterings before Russian roulette may end a path
+ROULETTE_SCALE = 4.0  # a path goes on with probability min(1, this × its throughput) (tools/bench_path.py)
 MARGIN = 1.5  # an estimated majorant: the largest lattice sample times this
 LATTICE = 24  # samples a side of the lattice an estimated majorant comes from
 MAX_TENTATIVE = 100_000  # tentative collisions a tracking call takes at most (then it stops: counted)
@@ -309,9 +310,9 @@ def _emitted(q, vol, x: list, sig) -> list:
 
 
 def _roulette(beta: list, play, alive, key, count):
-    """Russian roulette where `play`: a path goes on with probability q = min(1, max |throughput|)
-    (at least 0.05), its throughput over q. -> (throughput, alive, counters)."""
-    q = lanes.clamp(lanes.maximum(lanes.maximum(lanes.abs(beta[0]), lanes.abs(beta[1])), lanes.abs(beta[2])), 0.05, 1.0)
+    """Russian roulette where `play`: a path goes on with probability q = min(1, ROULETTE_SCALE ×
+    max |throughput|) (at least 0.05), its throughput over q. -> (throughput, alive, counters)."""
+    q = lanes.clamp(lanes.maximum(lanes.maximum(lanes.abs(beta[0]), lanes.abs(beta[1])), lanes.abs(beta[2])) * ROULETTE_SCALE, 0.05, 1.0)
     u = uniform_lanes(key, count)
     count = count + lanes.to_int32(play)
     survive = ~play | (u < q)
