@@ -459,8 +459,6 @@ class Scene(Strict):
         for v, vol in enumerate(self.volumes):
             if vol.shading != "physical":
                 refuse("path", "<path>", f"path tracing renders physical media; volumes[{v}].shading is {vol.shading!r}")
-            if vol.bloom is not None:
-                refuse("path", "<path>", f"volumes[{v}].bloom is an artistic glow, not light a path can meet; remove it")
         return self
 
     @model_validator(mode="after")
