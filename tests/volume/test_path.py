@@ -157,3 +157,22 @@ def test_the_kernel_tracks_as_eager_does(one_thread):
                for mode in ("kernels", "off")}
     traced = kernel.stats["density_evals"] - marched["kernels"], eager.stats["density_evals"] - marched["off"]
     assert traced[0] > 0 and traced[0] == pytest.approx(traced[1], rel=1e-3)
+
+
+PATH_PRESETS = ["cloud-puff", "homogeneous-box", "explosion", "fire", "cloudscape", "multi-layer", "particles", "god-rays"]
+REFUSED = {"atmosphere": "atmosphere", "fur-ball": "shading", "terrain-clouds": "terrain", "template-clouds": "shading"}
+
+
+@pytest.mark.parametrize("name", PATH_PRESETS + sorted(REFUSED))
+def test_every_preset_with_physical_media_path_traces(name, one_thread):
+    """The presets whose media are physical render with `[path]` (finite, the plan saying so);
+    the others are refused at the boundary, naming `path` and why."""
+    scene = tv.preset(name, width=6, height=6).model_dump()
+    scene["path"] = {"bounces": 4, "samples": 1}
+    if name in REFUSED:
+        with pytest.raises(SceneError, match=f"path.*{REFUSED[name]}"):
+            tv.render(scene)
+        return
+    out = tv.render(scene)
+    assert torch.isfinite(out.radiance).all() and float(out.radiance.sum()) > 0
+    assert out.stats["plan"]["path"]["bounces"] == 4 and "path" in out.stats["passes"]
