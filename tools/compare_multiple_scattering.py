@@ -24,7 +24,15 @@ from pathlib import Path
 import numpy as np
 
 import torchvol as tv
-from torchvol.measure.mitsuba import EYE, FOV, IRRADIANCE, SUN, TARGET, relative_rmse
+from torchvol.measure.mitsuba import (
+    EYE,
+    FOV,
+    IRRADIANCE,
+    SUN,
+    TARGET,
+    relative_rmse,
+    render_mitsuba_sphere,
+)
 
 CASES = [(5.0, 0.9), (10.0, 0.95), (20.0, 0.99)]  # (σ_t·d through the centre, albedo)
 G = 0.8
@@ -45,21 +53,7 @@ def mitsuba_image(sigma_t: float, albedo: float, *, size: int, spp: int, max_dep
     path = None if cache is None else cache / f"ms-{sigma_t}-{albedo}-{size}-{spp}-{max_depth}.npy"
     if path is not None and path.is_file():
         return np.load(path)
-    import mitsuba as mi
-
-    mi.set_variant("scalar_rgb")
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "volpath", "max_depth": max_depth, "rr_depth": 10 * max_depth},
-        "sensor": {"type": "perspective", "fov": FOV, "fov_axis": "y",
-                   "to_world": mi.ScalarTransform4f().look_at(origin=list(EYE), target=list(TARGET), up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-                   "sampler": {"type": "independent", "sample_count": spp}},
-        "sun": {"type": "directional", "direction": [-v for v in SUN], "irradiance": {"type": "rgb", "value": [IRRADIANCE] * 3}},
-        "cloud": {"type": "sphere", "radius": 1.0, "bsdf": {"type": "null"},
-                  "interior": {"type": "homogeneous", "albedo": albedo, "sigma_t": sigma_t, "phase": {"type": "hg", "g": G}}},
-    })
-    image = np.array(mi.render(scene))[..., :3]
+    image, _ = render_mitsuba_sphere(sigma_t, albedo, G, size=size, spp=spp, max_depth=max_depth)
     if path is not None:
         cache.mkdir(parents=True, exist_ok=True)
         np.save(path, image)

@@ -52,10 +52,11 @@ def torchvol_scene(grid: np.ndarray, sigma: float, *, size: int, spp: int = 16, 
     }
 
 
-def render_mitsuba(grid: np.ndarray, sigma: float, *, size: int, spp: int, variant: str = "scalar_rgb",
-                   seed: int = 0, max_depth: int = 2) -> tuple[np.ndarray, float]:
-    """Mitsuba's render (H, W, 3) and its wall time in seconds: `volpath` with `max_depth` (2:
-    single scattering; B + 1: light scattered at most B times, torchvol's `[path].bounces` = B)."""
+def _render(cloud: dict, *, size: int, spp: int, variant: str, seed: int, max_depth: int) -> tuple[np.ndarray, float]:
+    """Mitsuba's render (H, W, 3) of the comparison's camera and sun and the medium `cloud` (a
+    shape dict, its `interior` the medium) and its wall time: `volpath` with `max_depth` (2:
+    single scattering; B + 1: light scattered at most B times, torchvol's `[path].bounces` = B;
+    no roulette before 10 × max_depth)."""
     import mitsuba as mi
 
     mi.set_variant(variant)
@@ -68,15 +69,34 @@ def render_mitsuba(grid: np.ndarray, sigma: float, *, size: int, spp: int, varia
                             "pixel_format": "rgb"},
                    "sampler": {"type": "independent", "sample_count": spp}},
         "sun": {"type": "directional", "direction": [-v for v in SUN], "irradiance": {"type": "rgb", "value": [IRRADIANCE] * 3}},
-        "cloud": {"type": "cube", "bsdf": {"type": "null"},
-                  "interior": {"type": "heterogeneous", "albedo": 0.9, "scale": sigma,
-                               "sigma_t": {"type": "gridvolume", "grid": mi.VolumeGrid(np.ascontiguousarray(grid[..., None], dtype=np.float32)),
-                                           "to_world": mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2.0)},
-                               "phase": {"type": "hg", "g": 0.8}}},
+        "cloud": cloud(mi) if callable(cloud) else cloud,
     })
     start = time.perf_counter()
     image = np.array(mi.render(scene, seed=seed))[..., :3]
     return image, time.perf_counter() - start
+
+
+def render_mitsuba(grid: np.ndarray, sigma: float, *, size: int, spp: int, variant: str = "scalar_rgb",
+                   seed: int = 0, max_depth: int = 2) -> tuple[np.ndarray, float]:
+    """Mitsuba's render (H, W, 3) of the parity cloud and its wall time in seconds (`_render`)."""
+    def cloud(mi):
+        grid_volume = mi.VolumeGrid(np.ascontiguousarray(grid[..., None], dtype=np.float32))
+        return {"type": "cube", "bsdf": {"type": "null"},
+                "interior": {"type": "heterogeneous", "albedo": 0.9, "scale": sigma,
+                             "sigma_t": {"type": "gridvolume", "grid": grid_volume,
+                                         "to_world": mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2.0)},
+                             "phase": {"type": "hg", "g": 0.8}}}
+
+    return _render(cloud, size=size, spp=spp, variant=variant, seed=seed, max_depth=max_depth)
+
+
+def render_mitsuba_sphere(sigma_t: float, albedo: float, g: float, *, size: int, spp: int, variant: str = "scalar_rgb",
+                          seed: int = 0, max_depth: int = 2) -> tuple[np.ndarray, float]:
+    """Mitsuba's render (H, W, 3) of a homogeneous HG `g` sphere of radius 1 at the origin (σ_t,
+    albedo) under the comparison's sun, and its wall time (`_render`)."""
+    cloud = {"type": "sphere", "radius": 1.0, "bsdf": {"type": "null"},
+             "interior": {"type": "homogeneous", "albedo": albedo, "sigma_t": sigma_t, "phase": {"type": "hg", "g": g}}}
+    return _render(cloud, size=size, spp=spp, variant=variant, seed=seed, max_depth=max_depth)
 
 
 def relative_rmse(image: np.ndarray, reference: np.ndarray) -> float:
