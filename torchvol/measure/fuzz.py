@@ -3,7 +3,7 @@
 A scene is drawn from the bundled presets that hold media (each a combination of techniques: fire,
 explosion, particles, fur, cloudscapes in shells, the seeds' looks, the atmosphere, god rays,
 terrain, layers), mixed with media of other presets (so they overlap), given extras (a terrain,
-the atmosphere, fog and god rays, accumulation, labels) and hard cases (a camera inside a medium or
+the atmosphere, fog and god rays, accumulation, labels, `[path]` where it can trace them) and hard cases (a camera inside a medium or
 under the ground, numbers pushed to zero, to huge values and to the edges of their ranges,
 phases with g near ±1). A render must then give no NaN, no Inf, no exception but a `ValueError`
 that names a key (`"{path}: got {value!r}; ..."`), and every output in range: image and alpha in
@@ -25,6 +25,7 @@ import torch
 SOURCES = ("atmosphere", "cloud-puff", "cloudscape", "explosion", "fire", "fur-ball", "god-rays",
            "homogeneous-box", "multi-layer", "particles", "template-clouds", "terrain-clouds")
 LABELS = ["optical_thickness", "alpha_volumes", "instance"]
+PATH_SHARE = 0.3  # of the scenes a path can trace (physical media alone): traced with `[path]`
 # a SceneError names the key first: "volumes[0].sigma_t: got -1.0; ..."
 NAMES_A_KEY = re.compile(r"^[A-Za-z_][\w\[\].]*: got ")
 EDGES = (0.0, 1e-9, 1e-3, 10.0, 1e6, 1e12)
@@ -95,6 +96,9 @@ def _extras(rng: np.random.Generator, scene: dict) -> None:
     if rng.random() < 0.1:
         scene["image"] = {**scene.get("image", {}), "passes": 2}
         scene["march"] = {**scene.get("march", {}), "dither": "hash"}
+    traceable = not any(k in scene for k in ("terrain", "atmosphere", "voxels"))
+    if traceable and all(v.get("shading", "physical") == "physical" for v in scene.get("volumes", [])) and rng.random() < PATH_SHARE:
+        scene["path"] = {"bounces": int(rng.integers(1, 9)), "samples": int(rng.integers(1, 3))}
 
 
 def _rebind_blooms(scene: dict) -> None:

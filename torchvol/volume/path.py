@@ -11,9 +11,12 @@ past `ROULETTE_AFTER` scatterings without bias. So `bounces = B` sums the light 
 most B times: B = 1 is the single-scattering integral the physical march computes.
 
 Majorants (`majorant`): exact where the density has a known bound (constant, grid, exponential),
-else the largest of a lattice of samples over the volume's box times `MARGIN`. The tracking is
-weighted (Kutz et al. 2017): where a density exceeds its majorant the estimate stays unbiased,
-only noisier, and `stats["path"]["above_majorant"]` counts those collisions.
+else the largest of a lattice of samples over the volume's box times `MARGIN`. Where a density
+exceeds an estimated majorant, the tracking takes it at the majorant (a real collision for sure,
+a null fraction of 0): biased there but never negative, and `stats["path"]["above_majorant"]`
+counts those collisions, so a render that relied on it says so. (Weighted tracking, Kutz et al.
+2017, stays unbiased with negative weights: it gave negative pixels in the fuzz, a cloudscape
+shell whose 24³ lattice missed its clouds.)
 
 Random numbers are a counter-based hash of (scene seed, pixel, sample, draw): a path's numbers
 depend on nothing else, so a sample's bytes do not depend on the batch, chunking or threads.
@@ -122,7 +125,7 @@ def media(vols: list, dtype: torch.dtype) -> Media:
 
 
 def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: bool, steps: int) -> list:
-    """Weighted delta tracking (`collide`) or ratio tracking along rays `o`, `d` (three lanes each)
+    """Delta tracking (`collide`) or ratio tracking along rays `o`, `d` (three lanes each)
     through volumes spanning [t0[v], t1[v]] (lanes a volume; empty: t0 = t1), their majorants
     summing to `total`, `sigma(v, x, mask)` volume v's σ_t at points x (three lanes) where `mask`
     (0 elsewhere), drawing `uniform_lanes(key, count)`: lanes (`ops.lanes`), the eager tracer's
@@ -151,17 +154,15 @@ def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: 
         null = total - sig_sum
         above = above + lanes.to_int32(on & (null < 0.0))
         if not collide:  # the transmittance: a product of null fractions, faded out by roulette
-            weight = lanes.where(on, weight * null / total, weight)
-            low = on & (lanes.abs(weight) < FADE)
+            weight = lanes.where(on, weight * lanes.clamp_min(null, 0.0) / total, weight)  # 0 above the majorant
+            low = on & (weight < FADE)
             u = uniform_lanes(key, count)
             count = count + lanes.to_int32(low)
             weight = lanes.where(low, lanes.where(u < 0.5, 2.0 * weight, 0.0), weight)
             return t, weight, hit, vol, sig_hit, count, on & (weight != 0.0), n + 1, above, *evals
-        width = sig_sum + lanes.abs(null)  # σ_t + |σ_n|: σ̄ below the majorant
         u = uniform_lanes(key, count)
         count = count + lanes.to_int32(on)
-        real = on & (u * width < sig_sum)
-        weight = lanes.where(on, weight * lanes.where(real | (null >= 0.0), width, -width) / total, weight)
+        real = on & (u * total < sig_sum)  # for sure above the majorant
         pick = uniform_lanes(key, count) * sig_sum  # the volume: by its share of σ_t
         count = count + lanes.to_int32(real)
         k, chosen, acc = count * 0, sig[0], sig[0]
