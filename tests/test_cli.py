@@ -93,3 +93,18 @@ def test_help_describes_every_option_and_lists_the_presets(capsys):
         for name in tv.preset_names():
             assert f"  {name} " in text, name
         assert "sigma_t" in text and "noise_texture" in text and "traversal" in text
+
+
+def test_an_override_adds_an_optional_table_a_scene_left_out():
+    """`--set path.bounces=4` on a preset without `[path]` (its dump holds path = None) adds the
+    table, as it adds one that is absent; a bad value is refused naming the key."""
+    from torchvol.schema.keypath import set_path
+
+    data = {"path": None, "image": {"width": 8}}
+    set_path(data, "path.bounces", 4)
+    set_path(data, "atmosphere.steps", 3)
+    assert data["path"] == {"bounces": 4} and data["atmosphere"] == {"steps": 3}
+    scene = tv.load_scene("cloud-puff", overrides={"path.bounces": 4, "path.samples": 2})
+    assert scene.path.bounces == 4 and scene.path.samples == 2
+    with pytest.raises(ValueError, match="path.bounces"):
+        tv.load_scene("cloud-puff", overrides={"path.bounces": 0})

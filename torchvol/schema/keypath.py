@@ -55,7 +55,7 @@ def set_path(data: dict, dotted: str, value: Any) -> None:
         if last:
             node[part] = value
         else:
-            if isinstance(node, dict) and part not in node:
+            if isinstance(node, dict) and node.get(part) is None:  # absent, or an optional table left out (None)
                 node[part] = {}
             node = node[part]
 
