@@ -243,11 +243,8 @@ def fori(count: int, state: list, body):
     import drjit as dr
     from drjit.llvm import Float, Int32
 
-    width = max(dr.width(x) for x in state)
-    start = (dr.zeros(Int32, width), *state)
-    out = dr.while_loop(start, lambda i, *_: i < count,
-                        lambda i, *x: (i + 1, *body(Float(i), list(x))), mode="symbolic")
-    return list(out[1:])
+    start = [dr.zeros(Int32, max(dr.width(x) for x in state)), *state]
+    return while_loop(start, lambda i, *_: i < count, lambda i, *x: (i + 1, *body(Float(i), list(x))))[1:]
 
 
 def while_loop(state: list, cond, body) -> list:

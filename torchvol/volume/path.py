@@ -34,6 +34,7 @@ from torch import Tensor
 from ..noise import fast
 from ..ops import lanes
 from ..schema.batch import take
+from .density_lanes import inner_and_edge
 from .emission import EMISSION_MAPS
 
 ROULETTE_AFTER = 3  # scatterings before Russian roulette may end a path
@@ -87,9 +88,7 @@ def majorant(vol, dtype: torch.dtype) -> Tensor:
     """An upper bound (B,) of the volume's σ_t over its bounds: exact for constant, grid and
     exponential densities; else `MARGIN` × the largest σ_t on a `LATTICE`³ lattice of its box."""
     p, kind = vol.params, vol.params.density.kind
-    inner = vol.field.inner
-    while hasattr(inner, "inner"):  # an edge fade only lowers the density
-        inner = inner.inner
+    inner = inner_and_edge(vol)[0]  # an edge fade only lowers the density
     if kind == "constant":
         bound = p.density.value.to(dtype)
     elif kind == "grid":
