@@ -32,6 +32,15 @@ def test_generation_and_loaded_sections_report(tmp_path):
     assert "## The heap" in text and "| template-clouds 8×6 | off | 1 | torchvol |" in text
 
 
+def test_baseline_times_a_commit_in_its_own_worktree():
+    # HEAD's worktree: the committed code, run from its own checkout (not this one's imports)
+    rows = bench_speed.baseline_rows(["clouds", "no-such-recipe"], "HEAD", workers=1, count=2, size=8)
+    assert [r["recipe"] for r in rows] == ["clouds"], rows  # a recipe the commit lacks is left out
+    assert rows[0]["then_s"] > 0 and rows[0]["now_s"] > 0 and rows[0]["gain"] == rows[0]["then_s"] / rows[0]["now_s"]
+    text = bench_speed.markdown({"quick": True, "repeat": 1, "baseline": rows})
+    assert "## Against `HEAD`'s default" in text and "| clouds |" in text
+
+
 @pytest.mark.slow  # every preset, eager and in kernels
 def test_speed_quick_logic_on_tiny_sizes(tmp_path):
     from torchvol.runtime.compilation import drjit_available

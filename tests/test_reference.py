@@ -1,4 +1,5 @@
-"""References: the rung ladder, its bound measured against a finer rung, climbing, the cache."""
+"""References: the rung ladder, its bound measured against a finer rung, climbing, the cache; the
+path-traced ladder of every order of scattering."""
 
 import importlib
 
@@ -8,10 +9,14 @@ import torch
 from torchvol.measure.reference import (
     BOUND_FLOOR,
     FLOAT32_MIN_TOLERANCE,
+    PATH_BOUNCES,
+    PATH_MAX_RUNG,
     Ladder,
+    every_order_applies,
     image_error,
     rung_scene,
     rung_tolerance,
+    with_every_order,
 )
 from torchvol.scene.presets import preset_dict
 from torchvol.scene.quality import QUALITY
@@ -75,3 +80,25 @@ def test_rung_scenes():
     terrain, _ = rung_scene(preset_dict("voxel-terrain", width=16, height=12), 2, spp=1)
     assert terrain["voxels"]["max_steps"] == 4 * QUALITY["reference"].voxel_max_steps
     assert terrain["voxels"]["shadow"]["steps"] == 4 * QUALITY["reference"].voxel_shadow_steps
+
+
+def test_a_path_traced_ladder_bounds_its_noise(tmp_path, one_thread):
+    """Every order of scattering, path-traced: rung k has 4^k times rung 0's paths a pixel, so its
+    noise, estimated from rungs k − 1 and k, bounds its distance to a rung with 16× more paths (its
+    noise a quarter of rung k's: the distance is rung k's own noise, within 3%), and not loosely."""
+    ladder = Ladder(with_every_order(PUFF), spp=2, cache=tmp_path)
+    assert ladder.traced and ladder.max_rung == PATH_MAX_RUNG
+    ref, finest = ladder.reference(), ladder.rung(3)["image"]
+    distance = image_error(ref.image, finest)["rmse"]
+    assert ref.dtype == "float32" and distance <= ref.bound <= 3.0 * distance, (distance, ref.bound)
+    scene, _ = rung_scene(with_every_order(PUFF), 2, spp=2)
+    assert scene["path"] == {"bounces": PATH_BOUNCES, "samples": 8 * 16}  # 16 paths a pixel on rung 0, 4× a rung
+
+
+def test_which_scenes_get_an_every_order_reference():
+    assert every_order_applies(PUFF)  # octaves: an approximation of the orders past the first
+    single = {**PUFF, "volumes": [{k: v for k, v in PUFF["volumes"][0].items() if k != "multiple_scattering"}]}
+    assert not every_order_applies(single) and every_order_applies(single, "always")
+    assert not every_order_applies(PUFF, "never")
+    assert not every_order_applies(preset_dict("voxel-terrain", width=8, height=8), "always")  # paths cannot trace voxels
+    assert not every_order_applies(with_every_order(PUFF), "always")  # already path-traced

@@ -11,6 +11,7 @@ from PIL import Image
 from torchvol.cli import main
 from torchvol.measure.reference import BOUND_FLOOR, reference_overrides
 from torchvol.measure.sweep import (
+    EVERY_ORDER,
     MEASURED,
     is_approximation,
     split_values,
@@ -39,8 +40,11 @@ def test_scene_sweep_end_to_end(tmp_path, capsys, one_thread):
     printed = capsys.readouterr().out
     assert str(out / "results.csv") in printed and "verdict: " in printed
     rows = read(out / "results.csv")
-    assert list(rows[0]) == ["sample", "march.steps", "volumes[0].sigma_t", *MEASURED]
+    assert list(rows[0]) == ["sample", "march.steps", "volumes[0].sigma_t", *MEASURED, *EVERY_ORDER]
     assert len(rows) == 4 and {r["sample"] for r in rows} == {"0"}
+    # cloud-puff's octaves: also against every order of scattering, path-traced, its noise bounded
+    for r in rows:
+        assert float(r["every_order_rel_rmse"]) > 0.02 and 0 < float(r["every_order_bound"]) < float(r["every_order_rmse"]), r
     for r in rows:
         assert float(r["time_s"]) > 0 and int(r["density_evals"]) > 0
         assert float(r["rmse"]) > 0 and math.isfinite(float(r["psnr"])) and bounded(r)

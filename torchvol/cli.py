@@ -154,7 +154,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     levels = [] if args.levels is None else [v.strip() for v in args.levels.split(",") if v.strip()]
     kw = {} if args.max_error is None else {"max_error": args.max_error}
     report = sweep(args.source, params, out=args.out, seed=args.seed, overrides=_pairs(args.set, "--set"),
-                   samples=args.samples, levels=levels, factor=args.factor, cache=args.cache, progress=args.progress, **kw)
+                   samples=args.samples, levels=levels, factor=args.factor, cache=args.cache, progress=args.progress,
+                   every_order=args.every_order, **kw)
     print("wrote " + ", ".join(report["written"]))
     print("verdict: " + report["verdict"])
     return 0
@@ -180,7 +181,8 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
     """`torchvol bench speed`: the speed report, printed (and written to --out). -> 0."""
     from .measure.bench_speed import speed
 
-    print(speed(args.out, quick=args.quick, repeat=args.repeat, recipes=args.recipes, count=args.count, parts=args.parts))
+    print(speed(args.out, quick=args.quick, repeat=args.repeat, recipes=args.recipes, count=args.count, parts=args.parts,
+                baseline=args.baseline))
     return 0
 
 
@@ -321,6 +323,7 @@ def _stats_command() -> Command:
 
 
 def _sweep_command() -> Command:
+    from .measure.reference import EVERY_ORDER_MODES
     from .measure.sweep import QUANTISATION_RMSE
     from .scene.quality import QUALITY
 
@@ -343,6 +346,9 @@ def _sweep_command() -> Command:
         option("--factor", type=float, default=10.0, help="how far under each error the reference's bound must be (default 10)"),
         option("--cache", default=None, help="folder of cached references (default OUT/references)"),
         option("--seed", type=int, default=0, help="render seed (a recipe: the dataset seed of its samples) (default 0)"),
+        option("--every-order", default="auto", choices=EVERY_ORDER_MODES,
+               help="also measure against a path-traced reference with every order of scattering: auto (scenes whose "
+                    "volumes have multiple-scattering octaves), always (every scene [path] can trace), never"),
     ))
 
 
@@ -367,7 +373,7 @@ def _accuracy_command() -> Command:
 
 
 def _speed_command() -> Command:
-    from .measure.bench_speed import PARTS
+    from .measure.bench_speed import BASELINE, PARTS
 
     return Command(("bench", "speed"), cmd_bench_speed, progress=False,
                    help="llvmpipe vs eager vs fast renders, the fbm floor, generation samples/s, loaded-machine "
@@ -383,6 +389,9 @@ def _speed_command() -> Command:
                help="samples of a generation row's shorter run (default 16, quick 4; rows in kernels 4N)"),
         option("--parts", nargs="+", default=list(PARTS), choices=PARTS, metavar="PART",
                help="sections to run: " + ", ".join(PARTS) + " (default all)"),
+        option("--baseline", default=BASELINE, metavar="REV",
+               help="the commit whose default generation the baseline part times each recipe against, in a git "
+                    f"worktree (default {BASELINE}: the commit issue 32 was filed on)"),
     ))
 
 

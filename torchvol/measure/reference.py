@@ -15,7 +15,10 @@ quality levels decide removed (`at_quality`). Rung k:
   evaluations a pixel, the grid about resolution³ in all (so small images march, large ones use
   the grid, until its resolution would pass the cap);
 - doubles every step limit with k: voxel DDA, voxel and fog shadow rays, atmosphere samples;
-- renders in float32 while the tolerance is at least FLOAT32_MIN_TOLERANCE, in float64 below it.
+- renders in float32 while the tolerance is at least FLOAT32_MIN_TOLERANCE, in float64 below it;
+- path-traces a scene with a `[path]` table (`with_every_order` gives one: every order of
+  scattering, PATH_BOUNCES scatterings a path) with 4^k times rung 0's paths a pixel (rung 1:
+  PATH_PATHS), in float32 (the kernel: noise, not rounding, is its error).
 
 Samples per pixel and the render seed are the caller's: renders measured against a reference use
 the same seeded sub-samples, so what is left of their error is that of their approximations.
@@ -25,9 +28,13 @@ rung j): where each rung cuts the error by a ratio q, the error left in rung k i
 geometric series, d_k·q/(1 − q). q is the measured ratio d_k / d_(k−1), taken no lower than 1/2
 (the bound is then d_k itself: the ladder is built to cut the error 2-4× a rung, but convergence
 slows on sharp-edged clouds, where a tighter q underestimated the error) and no higher than 0.9;
-at rung 1, with one difference known, q = 1/2. A `Ladder` starts at rung 1 and climbs (`settle`)
+at rung 1, with one difference known, q = 1/2. A path-traced rung's error is its noise, not a
+series: rungs k − 1 and k are independent with variances 4σ² and σ², so d_k² estimates 5σ², and
+its bound is PATH_BOUND_SCALE·d_k/√5 (the estimate is tight over many pixels; the margin covers
+it and the paths cut at PATH_BOUNCES). A `Ladder` starts at rung 1 and climbs (`settle`)
 until its bound is `factor` times
-under the smallest error it is asked to measure (or under BOUND_FLOOR, or at MAX_RUNG). Rungs are
+under the smallest error it is asked to measure (or under BOUND_FLOOR, or at MAX_RUNG; a path-traced
+ladder at PATH_MAX_RUNG). Rungs are
 cached on disk, keyed by a hash of the rung's scene, dtype and seed; the figures behind these
 constants are in docs/QUALITY.md.
 """
@@ -66,6 +73,12 @@ MAX_GRID_RESOLUTION = 384  # a 768 grid would hold 1.8 GB of float32 nodes; fine
 MAX_SHADOW_STEPS = 4096  # the schema's limits
 MAX_ATMOSPHERE_STEPS = 1024
 MAX_FOG_SHADOW_STEPS = 10_000
+PATH_BOUNCES = 256  # scatterings a path of an every-order reference (the schema's limit: every order that matters)
+PATH_PATHS = 64  # paths a pixel of a path-traced ladder's rung 1 (16 on rung 0, 4× more a rung)
+PATH_MAX_RUNG = 3  # 1024 paths a pixel: ~1 min at 64² for cloud-puff on 2 cores (docs/QUALITY.md)
+PATH_BOUND_SCALE = 1.5
+EVERY_ORDER_FACTOR = 2.0  # an every-order reference climbs until its bound is half the error (its noise taken out of it)
+EVERY_ORDER_MODES = ("auto", "always", "never")
 
 
 def reference_overrides(base: Mapping, quality: Quality = "reference") -> dict:
@@ -98,6 +111,36 @@ def at_quality(data: Mapping, quality: Quality) -> dict:
         for key in ("steps", "light_steps"):
             atmosphere.pop(key, None)
     return data
+
+
+def with_every_order(data: Mapping) -> dict:
+    """A scene dict path-traced with every order of scattering (`[path]`, PATH_BOUNCES scatterings;
+    its paths a pixel the ladder's), without the approximations paths leave out (octaves, sky
+    light, bloom)."""
+    out = copy.deepcopy(dict(data))
+    out["path"] = {"bounces": PATH_BOUNCES, "samples": 1}
+    for volume in out.get("volumes") or []:  # what paths leave out: settings of them share one reference (cache)
+        for key in ("multiple_scattering", "ambient", "bloom"):
+            volume.pop(key, None)
+    return out
+
+
+def every_order_applies(data: Mapping, mode: str = "auto") -> bool:
+    """Whether a scene dict gets an every-order (path-traced) reference beside its own: "never"
+    not; "always" where `[path]` can trace it (physical media alone); "auto" where it can and a
+    volume has multiple-scattering octaves (an approximation of the orders past the first)."""
+    from ..schema.validate import SceneError
+
+    if mode == "never" or data.get("path") is not None:
+        return False
+    scene = load_scene(data)
+    if mode == "auto" and not any(v.multiple_scattering is not None for v in scene.volumes):
+        return False
+    try:
+        load_scene(with_every_order(data))
+    except SceneError:
+        return False
+    return True
 
 
 def image_error(image: Tensor, reference: Tensor) -> dict[str, float]:
@@ -137,6 +180,8 @@ def rung_scene(data: Mapping, k: int, *, spp: int) -> tuple[dict, torch.dtype]:
         if light.get("shadow") is not None:
             light["shadow"] = {"method": "grid", "resolution": resolution} if grid else {"method": "march", "steps": steps}
     out.setdefault("image", {})["spp"] = spp
+    if out.get("path") is not None:  # paths: 4× more a rung, in the kernel's float32
+        out["path"] = {**out["path"], "samples": max(1, math.ceil(PATH_PATHS / 4 / spp)) * 4**k}
     voxels = out.get("voxels")
     if voxels:
         voxels["max_steps"] = level.voxel_max_steps * scale
@@ -150,7 +195,7 @@ def rung_scene(data: Mapping, k: int, *, spp: int) -> tuple[dict, torch.dtype]:
         out["sky"]["atmosphere"] = {**(out["sky"].get("atmosphere") or {}), **finer}
     if scene.atmosphere is not None:
         out["atmosphere"] = {**out["atmosphere"], **finer}
-    return out, torch.float64 if tolerance < FLOAT32_MIN_TOLERANCE else torch.float32
+    return out, torch.float64 if tolerance < FLOAT32_MIN_TOLERANCE and out.get("path") is None else torch.float32
 
 
 def _hashable(obj: Any) -> Any:
@@ -192,7 +237,9 @@ def cached_render(data: Mapping, *, seed: int, dtype: torch.dtype | None, cache:
 class Reference:
     """Rung `rung` of a ladder: `image`, `radiance`, `alpha` (1, C, H, W); `bound`, the RMSE of
     `image` against the converged image at most (where refining halves the error);
-    `tolerance` and `dtype` it was marched at; `time_s` its render time (when first rendered)."""
+    `tolerance` and `dtype` it was marched at; `time_s` its render time (when first rendered);
+    `noise` the RMSE of its own noise (a path-traced rung's; 0 for a march), which `error_against`
+    takes out of an error measured against it."""
 
     image: Tensor
     radiance: Tensor
@@ -202,6 +249,15 @@ class Reference:
     tolerance: float
     dtype: str
     time_s: float
+    noise: float = 0.0
+
+    def error_against(self, image: Tensor) -> dict[str, float]:
+        """`image_error` of `image` against this reference, its own noise taken out of the RMSE:
+        E[RMSE²] = error² + noise² where the noise is independent of the image."""
+        raw = image_error(image, self.image)
+        rms = image_error(torch.zeros_like(self.image), self.image)["rmse"]
+        rmse = math.sqrt(max(raw["rmse"] ** 2 - self.noise**2, 0.0))
+        return {"rmse": rmse, "rel_rmse": rmse / rms if rms > 0 else math.inf}
 
 
 class Ladder:
@@ -214,6 +270,8 @@ class Ladder:
         self.data, self.seed, self.spp, self.cache = copy.deepcopy(dict(data)), seed, spp, cache
         self.on_render, self.on_chunk = on_render, on_chunk
         self.k = 1
+        self.traced = self.data.get("path") is not None  # rungs of more paths (their noise the error), else finer marches
+        self.max_rung = PATH_MAX_RUNG if self.traced else MAX_RUNG
         self._rungs: dict[int, dict[str, Any]] = {}
 
     def rung(self, k: int) -> dict[str, Any]:
@@ -231,23 +289,25 @@ class Ladder:
     def reference(self) -> Reference:
         """The current rung, with its bound (rendering it and the rungs under it as needed)."""
         steps = [image_error(self.rung(j - 1)["image"], self.rung(j)["image"])["rmse"] for j in range(1, self.k + 1)]
-        if self.k == 1:
-            ratio = 0.5
+        fine, noise = self.rung(self.k), 0.0
+        if self.traced:  # independent rungs of σ² and 4σ²: d_k² estimates 5σ²
+            noise = steps[-1] / math.sqrt(5.0)
+            bound = PATH_BOUND_SCALE * noise
         else:
-            ratio = steps[-1] / steps[-2] if steps[-2] > 0 else math.inf
+            ratio = 0.5 if self.k == 1 else (steps[-1] / steps[-2] if steps[-2] > 0 else math.inf)
             ratio = min(max(ratio, MIN_RATIO), MAX_RATIO)
-        fine = self.rung(self.k)
+            bound = steps[-1] * ratio / (1.0 - ratio)
         return Reference(image=fine["image"], radiance=fine["radiance"], alpha=fine["alpha"],
-                         bound=steps[-1] * ratio / (1.0 - ratio), rung=self.k, tolerance=rung_tolerance(self.k),
-                         dtype=fine["dtype"], time_s=fine["time_s"])
+                         bound=bound, rung=self.k, tolerance=rung_tolerance(self.k),
+                         dtype=fine["dtype"], time_s=fine["time_s"], noise=noise)
 
     def settle(self, images: Sequence[Tensor], *, factor: float) -> Reference:
         """The first reference, from the current rung up, whose bound is `factor` times under the
         smallest error of `images` (each (1, 3, H, W)) against it, or under BOUND_FLOOR; the last
-        rung (MAX_RUNG) where none is. The ladder stays on that rung for later calls."""
+        rung (`max_rung`) where none is. The ladder stays on that rung for later calls."""
         while True:
             ref = self.reference()
             smallest = min(image_error(image, ref.image)["rmse"] for image in images)
-            if ref.bound <= max(smallest / factor, BOUND_FLOOR) or self.k >= MAX_RUNG:
+            if ref.bound <= max(smallest / factor, BOUND_FLOOR) or self.k >= self.max_rung:
                 return ref
             self.k += 1

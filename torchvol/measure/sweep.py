@@ -13,7 +13,10 @@ Writes to DIR, as it goes (an interrupted sweep keeps what it measured; a re-run
   sweep.json         what is swept; a re-run into DIR must sweep the same (else it is refused)
   results.csv        a row per setting and sample, appended as measured: time, density evaluations,
                      RMSE, relative RMSE and PSNR against the reference, and the reference's own
-                     bound (in RMSE), rung, tolerance and dtype
+                     bound (in RMSE), rung, tolerance and dtype; where the scene gets one
+                     (`every_order`), RMSE and relative RMSE against its every-order reference
+                     (path-traced, `reference.with_every_order`: what single scattering and
+                     the octaves leave out), that reference's bound and rung
   images/            each setting's render of sample 0 (float32 .npy), for the figures
   references/        the reference rungs (a cache keyed by a hash of each rung's scene)
 and at the end:
@@ -32,7 +35,7 @@ import re
 import statistics
 import sys
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Literal, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -45,14 +48,16 @@ from ..schema.keypath import path_str, set_path
 from ..schema.validate import fail, finite, integer
 from ..version import __version__
 from . import figures
-from .reference import Ladder, at_quality, image_error
+from .reference import EVERY_ORDER_FACTOR, EVERY_ORDER_MODES, Ladder, at_quality, every_order_applies, image_error, with_every_order
 
+EveryOrder = Literal["auto", "always", "never"]
 QUANTISATION_RMSE = 1.0 / (255.0 * math.sqrt(12.0))  # 8-bit rounding's RMSE: smaller errors vanish in a stored PNG
 MEASURED = ("time_s", "density_evals", "rmse", "rel_rmse", "psnr", "reference_bound", "reference_rung",
             "reference_tolerance", "reference_dtype")
+EVERY_ORDER = ("every_order_rmse", "every_order_rel_rmse", "every_order_bound", "every_order_rung")  # blank: none
 _APPROXIMATION = re.compile(
     r"march\.(?!max_distance$).+|image\.spp|lights\[\d+\]\.shadow\.(steps|growth|first_step|method|resolution)"
-    r"|voxels\.(max_steps|traversal|shadow\.steps|fog\.shadow_steps)|(sky\.)?atmosphere\.(steps|light_steps)")
+    r"|voxels\.(max_steps|traversal|shadow\.steps|fog\.shadow_steps)|(sky\.)?atmosphere\.(steps|light_steps)|path\.samples")
 
 
 def split_values(text: str) -> list[str]:
@@ -167,7 +172,7 @@ def _resume(out: Path, meta: dict, columns: list[str]) -> dict[tuple, dict]:
     if not results.is_file():
         return {}
     with open(results, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if all(r.get(c) not in (None, "") for c in MEASURED)]
+        rows = [r for r in csv.DictReader(f) if all(r.get(c) not in (None, "") for c in MEASURED) and None not in r.values()]
     if rows and list(rows[0]) != columns:
         fail("out", str(out), "holds a results.csv with other columns; use a new folder")
     partial = results.with_suffix(".partial")
@@ -180,7 +185,9 @@ def _resume(out: Path, meta: dict, columns: list[str]) -> dict[tuple, dict]:
         for c in ("time_s", "rmse", "rel_rmse", "psnr", "reference_bound", "reference_tolerance"):
             r[c] = float(r[c])
         r["density_evals"], r["reference_rung"], r["sample"] = int(r["density_evals"]), int(r["reference_rung"]), int(r["sample"])
-    return {(r["sample"], tuple(r[k] for k in columns[1:len(columns) - len(MEASURED)])): r for r in rows}
+        for c in EVERY_ORDER:
+            r[c] = "" if r[c] == "" else (int(r[c]) if c == "every_order_rung" else float(r[c]))
+    return {(r["sample"], tuple(r[k] for k in columns[1:len(columns) - len(MEASURED) - len(EVERY_ORDER)])): r for r in rows}
 
 
 def _append(path: Path, row: Mapping, columns: list[str]) -> None:
@@ -195,15 +202,19 @@ def _append(path: Path, row: Mapping, columns: list[str]) -> None:
 def sweep(source: Any, params: Mapping[str, Sequence[Any]], *, out: str | Path, seed: int = 0,
           overrides: Mapping[str, Any] | None = None, samples: int | None = None, levels: Sequence[str] = (),
           factor: float = 10.0, max_error: float = QUANTISATION_RMSE, cache: str | Path | None = None,
-          progress: bool | None = None) -> dict:
+          progress: bool | None = None, every_order: EveryOrder = "auto") -> dict:
     """Sweep `params` ({key path: [values]}) over `source` (a scene, preset name or recipe, plus
     `overrides`); `samples`: draw that many samples of a recipe (required where it draws values).
     `factor`: how far under each error the reference's bound must be; `max_error`: the RMSE the
     verdict's setting must stay within (default: 8-bit quantisation's). `cache`: the reference
     rungs' folder (default DIR/references). `progress`: a bar on stderr (None: on a terminal only).
+    `every_order`: which scenes are also measured against a path-traced reference with every order
+    of scattering (`reference.every_order_applies`: "auto", those with multiple-scattering octaves).
     Returns {"rows", "summary", "verdict", "written"}; see the module docstring for the files."""
     levels = list(levels)
     _check(params, samples, levels, factor, max_error)
+    if every_order not in EVERY_ORDER_MODES:
+        fail("every_order", every_order, "expected one of " + ", ".join(EVERY_ORDER_MODES))
     recipe = Recipe.load(source, overrides)
     if recipe.dists and samples is None:
         fail("samples", None, "the source draws values from distributions (a recipe): give the number of samples to draw")
@@ -213,10 +224,10 @@ def sweep(source: Any, params: Mapping[str, Sequence[Any]], *, out: str | Path, 
     for values in settings:  # every setting validated, with its key paths, before any rendering
         load_scene(setting_data(first, values))
     keys = list(params) + (["march.quality"] if levels and "march.quality" not in params else [])
-    columns = ["sample", *keys, *MEASURED]
+    columns = ["sample", *keys, *MEASURED, *EVERY_ORDER]
     out = Path(out)
     meta = {"format": "torchvol-sweep", "version": __version__, "source": recipe.describe(), "params": dict(params),
-            "levels": levels, "seed": seed, "samples": samples, "factor": factor}
+            "levels": levels, "seed": seed, "samples": samples, "factor": factor, "every_order": every_order}
     done = _resume(out, meta, columns)
     cache = out / "references" if cache is None else Path(cache)
     (out / "images").mkdir(exist_ok=True)
@@ -224,7 +235,7 @@ def sweep(source: Any, params: Mapping[str, Sequence[Any]], *, out: str | Path, 
     for values in settings:
         groups.setdefault(repr({k: v for k, v in values.items() if not is_approximation(k)}), []).append(values)
     rows = _measure_all(recipe, settings, groups, keys, columns, done, first=first, count=count, seed=seed,
-                        samples=samples, out=out, cache=cache, factor=factor, progress=progress)
+                        samples=samples, out=out, cache=cache, factor=factor, progress=progress, every_order=every_order)
     ordered = [rows[_row_key(keys, i, v)] for i in range(count) for v in settings]
     summary = summarise(ordered, settings, keys)
     _write_csv(out / "summary.csv", summary)
@@ -242,9 +253,9 @@ def _row_key(keys: Sequence[str], index: int, values: Mapping) -> tuple:
 
 def _measure_all(recipe: Recipe, settings: list[dict], groups: dict[str, list[dict]], keys: list[str], columns: list[str],
                  done: dict[tuple, dict], *, first: dict, count: int, seed: int, samples: int | None, out: Path,
-                 cache: Path, factor: float, progress: bool | None) -> dict[tuple, dict]:
+                 cache: Path, factor: float, progress: bool | None, every_order: EveryOrder) -> dict[tuple, dict]:
     """Renders each of `count` samples at every setting not `done`, against one reference ladder
-    per group of `groups`, appending each row to results.csv (sample 0's images to images/).
+    per group of `groups` (and one every-order ladder where `every_order` gives it one), appending each row to results.csv (sample 0's images to images/).
     -> every row, `done`'s too, by `_row_key`."""
     from ..renderer.executor import render
 
@@ -261,15 +272,20 @@ def _measure_all(recipe: Recipe, settings: list[dict], groups: dict[str, list[di
                     continue
                 scene_values = {k: v for k, v in group[0].items() if not is_approximation(k)}
                 spp = max(at_level(load_scene(setting_data(data, v))).image.spp for v in group)
-                ladder = Ladder(setting_data(data, scene_values), seed=seed_of_sample, spp=spp, cache=cache,
+                scene_data = setting_data(data, scene_values)
+                ladder = Ladder(scene_data, seed=seed_of_sample, spp=spp, cache=cache,
                                 on_render=lambda k, tol: shown.set_postfix_str(f"sample {index}: reference rung {k}, tolerance {tol:.1e}"))
+                every = (Ladder(with_every_order(scene_data), seed=seed_of_sample, spp=spp, cache=cache,
+                                on_render=lambda k, tol: shown.set_postfix_str(f"sample {index}: every-order reference rung {k}"))
+                         if every_order_applies(scene_data, every_order) else None)
                 for values in todo:
                     scene = load_scene(setting_data(data, values))
                     if not warmed:  # a first render pays one-off costs (allocator, threads): not the setting's
                         render(load_scene(scene.model_dump(), {"image.width": 8, "image.height": 8}), seed=seed_of_sample)
                         warmed = True
                     shown.set_postfix_str(f"sample {index}: {label(values)}")
-                    row, image = _measure(scene, values, index, keys, seed=seed_of_sample, ladder=ladder, factor=factor)
+                    row, image = _measure(scene, values, index, keys, seed=seed_of_sample, ladders=(ladder, every),
+                                          factor=factor)
                     if index == 0:
                         np.save(out / "images" / f"{settings.index(values):03d}.npy", image.numpy())
                     _append(out / "results.csv", row, columns)
@@ -278,19 +294,25 @@ def _measure_all(recipe: Recipe, settings: list[dict], groups: dict[str, list[di
     return rows
 
 
-def _measure(scene, values: Mapping, index: int, keys: Sequence[str], *, seed: int, ladder: Ladder,
-             factor: float) -> tuple[dict, torch.Tensor]:
-    """Renders `scene` (sample `index` at the setting `values`) and measures it against `ladder`'s
-    reference. -> (its results row, its image (3, H, W))."""
+def _measure(scene, values: Mapping, index: int, keys: Sequence[str], *, seed: int,
+             ladders: tuple[Ladder, Ladder | None], factor: float) -> tuple[dict, torch.Tensor]:
+    """Renders `scene` (sample `index` at the setting `values`) and measures it against the
+    references of `ladders` (its own; its every-order one or None). -> (its results row, its image
+    (3, H, W))."""
     from ..renderer.executor import render
 
     result = render(scene, seed=seed)
-    ref = ladder.settle([result.image], factor=factor)
+    ref = ladders[0].settle([result.image], factor=factor)
     error = image_error(result.image, ref.image)
+    every = dict.fromkeys(EVERY_ORDER, "")
+    if ladders[1] is not None:
+        truth = ladders[1].settle([result.image], factor=EVERY_ORDER_FACTOR)
+        measured = truth.error_against(result.image)
+        every = dict(zip(EVERY_ORDER, (measured["rmse"], measured["rel_rmse"], truth.bound, truth.rung)))
     row = {"sample": index, **{k: _cell(values[k]) if k in values else "" for k in keys},
            "time_s": result.stats["total_s"], "density_evals": result.stats["density_evals"],
            **error, "reference_bound": ref.bound, "reference_rung": ref.rung,
-           "reference_tolerance": ref.tolerance, "reference_dtype": ref.dtype}
+           "reference_tolerance": ref.tolerance, "reference_dtype": ref.dtype, **every}
     return row, result.image[0]
 
 
@@ -310,8 +332,15 @@ def summarise(rows: Sequence[dict], settings: Sequence[dict], keys: Sequence[str
                     "rmse_mean": statistics.fmean(errors), "rmse_std": spread(errors), "rmse_max": max(errors),
                     "rel_rmse_mean": statistics.fmean(r["rel_rmse"] for r in mine),
                     "reference_bound_max": max(r["reference_bound"] for r in mine),
+                    "every_order_rel_rmse_mean": _mean_or_blank([r["every_order_rel_rmse"] for r in mine]),
                     "density_evals_mean": statistics.fmean(r["density_evals"] for r in mine)})
     return out
+
+
+def _mean_or_blank(values: list) -> float | str:
+    """The mean of the values measured (blank: none)."""
+    measured = [v for v in values if v != ""]
+    return statistics.fmean(measured) if measured else ""
 
 
 def _write_csv(path: Path, rows: Sequence[dict]) -> None:

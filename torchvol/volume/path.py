@@ -77,11 +77,14 @@ def _float_like(key):
 
 
 def path_keys(keys: Tensor, sample: int, samples: int) -> Tensor:
-    """Each ray's path key [n] (int32) for path `sample` of `samples`: the hash of its ray key [n, 3]
-    (pixel column·spp + sub-sample, row, scene seed) with the sample."""
+    """Each ray's path key [n] (int32) for path `sample` of `samples`: its ray key [n, 3] (pixel
+    column·spp + sub-sample, row, scene seed) hashed, then hashed with the sample under a seed of
+    the sample count, so renders of different sample counts draw independent paths (a reference
+    ladder's rungs, `measure.reference`)."""
     k = keys.to(torch.int64)
     bits = lambda v: (torch.remainder(v + 2**31, 2**32) - 2**31).to(torch.int32)  # noqa: E731  its int32 bits
-    return fast.hash32(bits(k[:, 0] * samples + sample), bits(k[:, 1]), bits(k[:, 2]), _KEY)
+    ray = fast.hash32(bits(k[:, 0]), bits(k[:, 1]), bits(k[:, 2]), _KEY)
+    return fast.hash_pair(ray, sample, int(bits(torch.tensor(_KEY + samples * 0x9E3779B1))))
 
 
 def majorant(vol, dtype: torch.dtype) -> Tensor:
