@@ -48,7 +48,15 @@ from ..schema.keypath import path_str, set_path
 from ..schema.validate import fail, finite, integer
 from ..version import __version__
 from . import figures
-from .reference import EVERY_ORDER_FACTOR, EVERY_ORDER_MODES, Ladder, at_quality, every_order_applies, image_error, with_every_order
+from .reference import (
+    EVERY_ORDER_FACTOR,
+    EVERY_ORDER_MODES,
+    Ladder,
+    at_quality,
+    every_order_applies,
+    image_error,
+    with_every_order,
+)
 
 EveryOrder = Literal["auto", "always", "never"]
 QUANTISATION_RMSE = 1.0 / (255.0 * math.sqrt(12.0))  # 8-bit rounding's RMSE: smaller errors vanish in a stored PNG
