@@ -101,4 +101,5 @@ def test_which_scenes_get_an_every_order_reference():
     assert not every_order_applies(single) and every_order_applies(single, "always")
     assert not every_order_applies(PUFF, "never")
     assert not every_order_applies(preset_dict("voxel-terrain", width=8, height=8), "always")  # paths cannot trace voxels
+    assert every_order_applies(preset_dict("terrain-clouds", width=8, height=8))  # octaves over a terrain paths trace
     assert not every_order_applies(with_every_order(PUFF), "always")  # already path-traced

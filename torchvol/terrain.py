@@ -37,6 +37,7 @@ from .fields.heightfield import (
     terrain_lanes,
     trace_lanes,
     trace_step,
+    visible_lanes,
 )
 from .geometry.rays import clip_to_ray, intersect_slab
 from .geometry.surface_hit import SurfaceHit
@@ -205,6 +206,53 @@ def normal_kernel(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
     return torch.stack(_to_torch(normal_lanes(q, columns(p[:, 0]), columns(p[:, 2])), p), dim=1).to(p)
 
 
+def _look(t: Stacked, per_lane) -> SimpleNamespace:
+    """The terrain's Lambert albedo at a unit normal (`color` blended to `rock_color` where
+    1 − n.y passes `rock_slope`) and where a shadow or bounce ray leaves a hit at distance `t`:
+    `shadow_offset` plus the hit rule's width there off the surface, lanes (`per_lane`: per scene
+    -> lanes). The marched shading's and the path tracer's one source."""
+    color, rock_color, slope = per_lane(t.color), per_lane(t.rock_color), per_lane(t.rock_slope)
+    offset, epsilon = per_lane(t.shadow_offset), per_lane(t.epsilon)
+
+    def albedo(n: list) -> list:
+        rock = lanes.clamp((1.0 - n[1] - slope) * 10.0, 0.0, 1.0)
+        return [lanes.lerp(a, b, rock) for a, b in zip(color, rock_color)]
+
+    def lift(x: list, n: list, dist) -> list:
+        off = offset + 2.0 * epsilon * (1.0 + dist)  # clear of the hit rule's width at this distance
+        return [x[c] + off * n[c] for c in range(3)]
+
+    return SimpleNamespace(albedo=albedo, lift=lift)
+
+
+def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool) -> SimpleNamespace:
+    """The terrain as the path tracer's opaque surface (`volume.path`) for rays of scenes `s` [n],
+    lanes (`per_lane`: per scene -> lanes; `kernel`: Dr.Jit's, else torch columns like `like`):
+    `hit(o, d, t_max)` -> the refined hit's t (inf: none), `normal(x)`, and `_look`'s `albedo(n)`,
+    `lift(x, n, t)`, `visible(p, direction, distance)` -> 1 or 0."""
+    q = _kernel_lanes(t, s)[0] if kernel else _torch_lanes(t, s, like)
+    look = _look(t, per_lane)
+    if kernel:
+        def hit(o, d, t_max):
+            found, dist = trace_lanes(q, o, d, t_max, refine=True)
+            return lanes.where(found, dist, math.inf)
+
+        visible = lambda p, direction, distance: visible_lanes(q, p, direction, distance)  # noqa: E731
+    else:  # eagerly `trace`, which compacts finished rays out of its loop (the same step and rules)
+        stack = lambda x: torch.stack(x, dim=1)  # noqa: E731
+        reach = lambda x: x if isinstance(x, Tensor) else torch.full_like(like, x)  # noqa: E731
+
+        def hit(o, d, t_max):
+            found, dist = trace(t, stack(o), stack(d), s, reach(t_max), steps=int(t.steps), refine=True)
+            return torch.where(found, dist, math.inf)
+
+        def visible(p, direction, distance):
+            return visibility(t, stack(p), stack(direction), s, reach(distance), steps=int(t.steps))
+
+    return SimpleNamespace(hit=hit, normal=lambda x: normal_lanes(q, x[0], x[2]), albedo=look.albedo, lift=look.lift,
+                           visible=visible)
+
+
 class TerrainSurface:
     """One batch's terrain (`params`: the batch's `Stacked` terrain) lit by `lights`; `plan` the
     batch's `TerrainPass`; `aovs` the AOV names to output; `transmittance(use, p, s, direction,
@@ -239,11 +287,10 @@ class TerrainSurface:
             with section("terrain.shade"):
                 x = o[ids] + th[:, None] * d[ids]
                 nrm = normal_kernel(p, x, sh) if self.kernels else normal(p, x, sh)
-                rock = ((1.0 - nrm[:, 1] - take(p.rock_slope, sh)) * 10.0).clamp(0.0, 1.0)[:, None]
-                albedo = torch.lerp(take(p.color, sh), take(p.rock_color, sh), rock)
+                look = _look(p, lambda v: lanes.columns(take(v, sh)))
+                albedo = torch.stack(look.albedo(nrm.unbind(1)), dim=1)
                 light = take(p.ambient, sh)
-                # clear of the hit rule's width at this distance (the hit is on the surface, refined)
-                start = x + (take(p.shadow_offset, sh) + 2.0 * take(p.epsilon, sh) * (1.0 + th))[:, None] * nrm
+                start = torch.stack(look.lift(x.unbind(1), nrm.unbind(1), th), dim=1)
             if self.plan.sky is not None:  # the sky light's visibility: straight up through the volumes
                 with section(self.plan.sky.name):
                     up = torch.zeros_like(start)
@@ -264,4 +311,4 @@ class TerrainSurface:
         return SurfaceHit(hit=hit, t=torch.where(hit, t, torch.full_like(t, torch.inf)), color=color, aovs=aovs)
 
 
-__all__ = ["Terrain", "TerrainSurface", "gap", "height", "normal", "normal_kernel", "trace", "trace_kernel", "visibility"]
+__all__ = ["Terrain", "TerrainSurface", "gap", "height", "normal", "normal_kernel", "path_surface", "trace", "trace_kernel", "visibility"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Callable, Sequence
 
 import torch
@@ -38,7 +39,7 @@ from ..runtime.compilation import CompileMode, compile_mode
 from ..runtime.threads import glue_on_one_thread
 from ..schema.batch import Stacked, stack, take
 from ..schema.validate import fail, integer, is_integer
-from ..terrain import TerrainSurface
+from ..terrain import TerrainSurface, path_surface
 from ..volume import kernel_march, path, path_kernel
 from ..volume.ambient import sky_mean
 from ..volume.composite import Media, composite_volumes, finish
@@ -263,7 +264,8 @@ def path_radiance(ctx: RenderContext, rays: Rays, background: Tensor | None) -> 
     scattered path does."""
     bounces, samples, backend = ctx.plan.path
     if ctx.path_media is None:
-        ctx.path_media = path.media(ctx.volumes, ctx.dtype)
+        terrain = ctx.batch.terrain
+        ctx.path_media = path.media(ctx.volumes, ctx.dtype, None if terrain is None else partial(path_surface, terrain))
     sky = None if ctx.plan.sky is None else lambda d, s: sky_toward(ctx, d, s)
     return path.radiance(ctx.path_media, ctx.lights, rays, background, sky, bounces=bounces, samples=samples,
                          keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp),

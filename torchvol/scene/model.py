@@ -453,9 +453,9 @@ class Scene(Strict):
     def _path_traces_physical_media_alone(self):
         if self.path is None:
             return self
-        for key in ("voxels", "terrain", "atmosphere"):
+        for key in ("voxels", "atmosphere"):
             if getattr(self, key) is not None:
-                refuse("path", "<path>", f"path tracing renders physical media alone; this scene has [{key}]")
+                refuse("path", "<path>", f"path tracing renders physical media and the terrain; this scene has [{key}]")
         for v, vol in enumerate(self.volumes):
             if vol.shading != "physical":
                 refuse("path", "<path>", f"path tracing renders physical media; volumes[{v}].shading is {vol.shading!r}")

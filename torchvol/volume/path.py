@@ -6,7 +6,9 @@ collision collects the medium's emission (σe/σt), then, while it has scattered
 `bounces` times, the light of every light source by next-event estimation (the phase function
 times the light's irradiance times the transmittance towards it, by ratio tracking through every
 medium), and scatters: its throughput times the albedo, a new direction drawn from the phase
-function. A path that leaves the media sees the sky. Russian roulette ends paths of low throughput
+function. Where the scene has an opaque surface (the terrain, `Media.surface`), it stops the
+flight and every shadow ray; a path that meets it takes each light's a·E·cos θ (the marched
+surfaces' convention) and bounces cosine-weighted. A path that leaves the media sees the sky. Russian roulette ends paths of low throughput
 past `ROULETTE_AFTER` scatterings without bias. So `bounces = B` sums the light that scattered at
 most B times: B = 1 is the single-scattering integral the physical march computes.
 
@@ -27,6 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from types import SimpleNamespace
+from typing import Callable
 
 import torch
 from torch import Tensor
@@ -57,11 +60,14 @@ class PathCounts:
 @dataclass
 class Media:
     """The physically shaded volumes a path meets (`vols`, the render's volume states), each
-    one's majorant of σ_t per scene (`majorants` (B,)), and the render's counts."""
+    one's majorant of σ_t per scene (`majorants` (B,)), the render's counts, and the scene's opaque
+    surface or None: `surface(s [n], per_ray, like [n], kernel)` -> its lanes for rays of scenes s
+    (`terrain.path_surface`'s hit, normal, albedo, lift, visible)."""
 
     vols: list
     majorants: list[Tensor]
     counts: PathCounts = field(default_factory=PathCounts)
+    surface: Callable | None = None
 
 
 def uniform_lanes(key, count):
@@ -88,8 +94,9 @@ def path_keys(keys: Tensor, sample: int, samples: int) -> Tensor:
 
 
 def majorant(vol, dtype: torch.dtype) -> Tensor:
-    """An upper bound (B,) of the volume's σ_t over its bounds: exact for constant, grid and
-    exponential densities; else `MARGIN` × the largest σ_t on a `LATTICE`³ lattice of its box."""
+    """An upper bound (B,) of the volume's σ_t over its bounds: exact for constant, grid,
+    exponential and fbm densities (an fbm in a box: the lattice's where lower); else `MARGIN` × the
+    largest σ_t on a `LATTICE`³ lattice of its box."""
     p, kind = vol.params, vol.params.density.kind
     inner = inner_and_edge(vol)[0]  # an edge fade only lowers the density
     if kind == "constant":
@@ -100,6 +107,11 @@ def majorant(vol, dtype: torch.dtype) -> Tensor:
         e = p.density.value
         low = vol.bounds.caps["height_range"](p.bounds.value)[:, 0].to(dtype)
         bound = e.value.to(dtype) * torch.exp(((e.base - low) / e.scale_height).clamp(max=math.log(1e12)))
+    elif kind == "fbm":  # an fbm's basis noises lie in [−1, 1] and its octave weights sum under 1
+        f = p.density.value
+        bound = (f.bias + f.amplitude.abs()).clamp_min(0.0).to(dtype)
+        if vol.bounds.caps["aabb"] is not None:  # a box's lattice is tighter (fewer null collisions)
+            bound = torch.minimum(bound, _lattice_maximum(vol, dtype) * MARGIN)
     else:
         bound = _lattice_maximum(vol, dtype) * MARGIN
     return p.sigma_t.to(dtype) * bound.clamp(max=1e12)
@@ -121,9 +133,10 @@ def _lattice_maximum(vol, dtype: torch.dtype) -> Tensor:
     return torch.stack(out)
 
 
-def media(vols: list, dtype: torch.dtype) -> Media:
-    """The paths' `Media` of the render's physically shaded volume states `vols`."""
-    return Media(vols, [majorant(v, dtype) for v in vols])
+def media(vols: list, dtype: torch.dtype, surface: Callable | None = None) -> Media:
+    """The paths' `Media` of the render's physically shaded volume states `vols` and its opaque
+    `surface` (`Media.surface`) or None."""
+    return Media(vols, [majorant(v, dtype) for v in vols], surface=surface)
 
 
 def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: bool, steps: int) -> list:
@@ -248,7 +261,8 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
     """One path a lane from o along d (three lanes each; `key` int32 lanes), the module's
     estimator, lanes (`ops.lanes`): eagerly on torch columns, as one Dr.Jit kernel in
     `path_kernel`. `q` (`path_inputs`): the volumes (their interval, reach, majorant, σ_t,
-    albedo, emission, phase) and the lights, per lane. -> [radiance (3), throughput (3) and
+    albedo, emission, phase), the lights, per lane, and the opaque surface (`Media.surface`'s
+    lanes) or None. -> [radiance (3), throughput (3) and
     direction (3) where it left the media, whether it left, its scatterings, tentative collisions
     past the step limit and above a majorant, each volume's density evaluations]."""
     one = lanes.full_like(o[0], 1.0)
@@ -258,20 +272,24 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
     def body(*state):
         o, d, beta, out = list(state[0:3]), list(state[3:6]), list(state[6:9]), list(state[9:12])
         count, k, alive, gone, cut, above, *evals = state[12:]
-        t0, t1, total = _spans(q, o, d, alive)
+        wall = None if q.surface is None else q.surface.hit(o, d, math.inf)  # the surface's hit t (inf: none)
+        t0, t1, total = _spans(q, o, d, alive, wall)
         hit, vol, sig, w, count, live, extra, *ev = track_lanes(o, d, t0, t1, total, q.sigma, key, count,
                                                                 collide=True, steps=MAX_TENTATIVE)
         cut, above, evals = cut + lanes.to_int32(live), above + extra, [a + b for a, b in zip(evals, ev)]
         beta = [lanes.where(alive, b * w, b) for b in beta]
         left = alive & (vol < 0)
+        face = None if wall is None else left & (wall < math.inf)  # a path that met the surface bounces off it
+        left = left if face is None else left & ~face
         gone, alive = gone | left, alive & ~left
-        t = lanes.where(alive, hit, 0.0)
+        t = lanes.where(alive, hit if face is None else lanes.where(face, wall, hit), 0.0)
         x = [o[c] + t * d[c] for c in range(3)]
         emitted = _emitted(q, vol, x, sig)
-        out = [lanes.where(alive, out[c] + beta[c] * emitted[c], out[c]) for c in range(3)]
+        lit = alive if face is None else alive & ~face  # (a surface emits nothing)
+        out = [lanes.where(lit, out[c] + beta[c] * emitted[c], out[c]) for c in range(3)]
         alive = alive & (k < bounces)
-        albedo = _pick(vol, [m.albedo for m in q.vols])
-        beta = [lanes.where(alive, b * albedo, b) for b in beta]
+        albedo, normal, x = _collision(q, vol, x, face, wall)
+        beta = [lanes.where(alive, b * a, b) for b, a in zip(beta, albedo)]
         for light in q.lights:  # next-event estimation
             direction, irradiance, distance = light.toward(x)
             cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
@@ -280,12 +298,15 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
             _, _, _, through, count, live, extra, *ev = track_lanes(x, direction, s0, s1, tot, q.sigma, key, count,
                                                                     collide=False, steps=MAX_TENTATIVE)
             cut, above, evals = cut + lanes.to_int32(live), above + extra, [a + b for a, b in zip(evals, ev)]
+            if face is not None:  # on the surface Lambert's cosine; every shadow ray also meets the surface
+                phase = lanes.where(face, _facing(normal, direction), phase)
+                through = through * lanes.where(alive, q.surface.visible(x, direction, distance), 0.0)
             out = [lanes.where(alive, out[c] + beta[c] * irradiance[c] * (phase * through), out[c]) for c in range(3)]
         u = []
         for _ in range(3):
             u.append(uniform_lanes(key, count))
             count = count + lanes.to_int32(alive)
-        turned, weight = _phase_sample(q, vol, d, u)
+        turned, weight = _scatter(q, vol, d, u, face, normal)
         d = [lanes.where(alive, turned[c], d[c]) for c in range(3)]
         beta = [lanes.where(alive, b * weight, b) for b in beta]
         o = [lanes.where(alive, x[c], o[c]) for c in range(3)]
@@ -296,6 +317,34 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
     state = [*o, *d, one, one, one, one * 0.0, one * 0.0, one * 0.0, zero_i, zero_i, alive, ~alive, zero_i, zero_i]
     state = lanes.while_loop(state + [zero_i] * V, lambda *x: x[14], body)
     return [*state[9:12], *state[6:9], *state[3:6], state[15], state[13], state[16], state[17], *state[18:]]
+
+
+def _collision(q, vol, x: list, face, wall):
+    """At a path's collision x (three lanes): its albedo (three lanes: its volume's, the surface's
+    where it met the surface, `face`; None: no surface), the surface's normal there (None: no
+    surface) and where it goes on from (off the surface, `lift`, `wall` the hit's distance)."""
+    albedo = [_pick(vol, [m.albedo for m in q.vols])] * 3
+    if face is None:
+        return albedo, None, x
+    normal = q.surface.normal(x)
+    albedo = [lanes.where(face, a, b) for a, b in zip(q.surface.albedo(normal), albedo)]
+    return albedo, normal, [lanes.where(face, a, b) for a, b in zip(q.surface.lift(x, normal, wall), x)]
+
+
+def _scatter(q, vol, d: list, u: list, face, normal: list | None):
+    """The direction a path scatters to from d (three lanes) and its weight: the phase function of
+    its volume (`_phase_sample`), or where it met the surface (`face`; None: no surface) cosine-
+    weighted about the `normal`: Lambert's BRDF·cos/pdf is the albedo, already taken."""
+    turned, weight = _phase_sample(q, vol, d, u)
+    if face is None:
+        return turned, weight
+    bounce = _turn(normal, lanes.sqrt(u[0]), u[1])
+    return [lanes.where(face, a, b) for a, b in zip(bounce, turned)], lanes.where(face, 1.0, weight)
+
+
+def _facing(normal: list, direction: list):
+    """max(0, n·l) of unit lanes `normal` and `direction` (three lanes each)."""
+    return lanes.clamp_min(normal[0] * direction[0] + normal[1] * direction[1] + normal[2] * direction[2], 0.0)
 
 
 def _emitted(q, vol, x: list, sig) -> list:
@@ -338,7 +387,7 @@ def path_inputs(m: Media, lights: list, s: Tensor, per_ray, volume) -> SimpleNam
                                     sigma_t=per_ray(p.sigma_t), albedo=per_ray(p.albedo), emission=per_ray(p.emission),
                                     glow=glow, lobe=lobe, weighted=kind in ("mie", "rayleigh"),
                                     phase=lambda cos, fn=fn, q=phase_q: fn[1](q, cos, 1.0)))
-    return SimpleNamespace(vols=vols, lights=[_light(li, per_ray) for li in lights])
+    return SimpleNamespace(vols=vols, lights=[_light(li, per_ray) for li in lights], surface=None)
 
 
 def _light(light, per_ray) -> SimpleNamespace:
@@ -401,6 +450,8 @@ def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int) -> list
 
     q = path_inputs(m, lights, s, per_ray, volume)
     q.sigma = sigma
+    if m.surface is not None:
+        q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=False)
     res = trace_lanes(q, list(rays.origins.unbind(1)), list(rays.directions.unbind(1)), key, bounces=bounces)
     return [torch.stack(res[0:3], 1), torch.stack(res[3:6], 1), torch.stack(res[6:9], 1), res[9], res[10], res[11], res[12]]
 

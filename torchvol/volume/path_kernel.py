@@ -41,6 +41,8 @@ def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int) -> list[Tenso
 
     q = path_inputs(m, lights, s, per_ray, volume)
     q.sigma = sigma
+    if m.surface is not None:
+        q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=True)
     lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
     res = trace_lanes(q, lane(rays.origins), lane(rays.directions), lanes.ints_of(key), bounces=bounces)
     dr.eval(res)
