@@ -78,6 +78,36 @@ def test_one_bounce_is_the_marched_single_scattering_of_a_point_light(one_thread
     _single_scattering_check(scene, samples=48)
 
 
+def test_a_point_lights_furnace(one_thread):
+    """A point light of intensity I at the centre of a sphere that scatters and never absorbs
+    (albedo 1): all its power leaves the sphere, symmetrically about the light, and the part that
+    scattered, 1 − e^{−τ} (τ the optical depth from the centre out; the rest is the light itself, a
+    point no pixel sees),
+    gives a camera at distance D the irradiance (1 − e^{−τ})·I/D² whatever the phase function
+    and the orders: Σ L·cos θ·dΩ over the image (cos⁴θ/f² a pixel). Each seed's image is an
+    independent estimate; their mean within five standard errors. The light's 1/r² peak inside
+    the medium is what a collision's next event cannot average (7% off over four seeds)."""
+    distance, size, fov, seeds = 4.0, 24, 34.0, 12
+    # σ_t·(1 − r) (fbm with no noise): τ from the centre = σ_t/2, the limb fades out, so the pixels'
+    # jittered sub-samples there add no noise of their own
+    cone = {"fbm": {"amplitude": 0.0, "bias": 1.0, "radial": 1.0, "octaves": 1}}
+    scene = {"image": {"width": size, "height": size, "spp": 4},
+             "camera": {"eye": [0, 0, -distance], "target": [0, 0, 0], "fov_y": fov},
+             "lights": [{"kind": "point", "position": [0, 0, 0], "intensity": 1.0}],
+             "volumes": [{"bounds": {"sphere": {"center": [0, 0, 0], "radius": 1.0}}, "density": cone,
+                          "sigma_t": 4.0, "albedo": 1.0, "phase": {"hg": {"g": 0.5}}}],
+             "path": {"bounces": 256, "samples": 256}}
+    out = tv.render([scene] * seeds, seed=list(range(seeds)))
+    f = (size / 2) / math.tan(math.radians(fov) / 2)
+    centre = torch.arange(size, dtype=F64) + 0.5 - size / 2
+    cos = f / torch.sqrt(f * f + centre[:, None] ** 2 + centre[None, :] ** 2)
+    irradiance = (out.radiance.double().mean(dim=1) * cos**4 / f**2).sum(dim=(1, 2))
+    mean, error = _mean_and_error(irradiance)
+    expected = (1.0 - math.exp(-2.0)) / distance**2
+    assert abs(mean - expected) <= 5.0 * error and error < 0.025 * expected, (  # collision next events: 4%
+        f"point light's furnace: {mean:.5g} ± {error:.2g} against (1 − e^(−τ))·I/D² = {expected:.5g}")
+
+
 def test_every_order_adds_light_and_the_plan_says_so(one_thread):
     grid = puff_grid(12)
     scene = torchvol_scene(grid, sigma_for(grid, 6.0), size=5, spp=1)

@@ -70,6 +70,7 @@ isfinite = _unary("isfinite", math.isfinite, "Neither infinite nor NaN.")
 abs = _unary("abs", math.fabs, "|x|.")  # noqa: A001  the lane form of the builtin
 sin = _unary("sin", math.sin, "The sine.")
 cos = _unary("cos", math.cos, "The cosine.")
+tan = _unary("tan", math.tan, "The tangent.")
 round = _unary("round", None, "To the nearest integer value, ties to even (torch.round, drjit.round).")  # noqa: A001  the lane form of the builtin
 
 
@@ -84,6 +85,24 @@ def expm1(x):
     um1 = u - 1.0
     kahan = um1 * x / dr.log(dr.select(u == 1.0, 2.0, u))
     return dr.select(u == 1.0, x, dr.select(um1 == -1.0, -1.0, dr.select(dr.isinf(u), u, kahan)))
+
+
+def atan(x):
+    """The arctangent, in [−π/2, π/2]. Dr.Jit's own does not compile under this machine's LLVM 15
+    (a constant-pool load it cannot select): Cephes' atanf there, its range reduced to
+    |x| ≤ tan(π/8) and a degree-9 odd polynomial (relative error ~1e-7)."""
+    if _is_number(x):
+        return math.atan(x)
+    if _is_torch(x):
+        return torch.atan(x)
+    a = abs(x)
+    big = a > 2.414213562373095  # tan(3π/8)
+    mid = (a > 0.41421356237309503) & ~big  # tan(π/8)
+    r = where(big, -1.0 / a, where(mid, (a - 1.0) / (a + 1.0), a))
+    z = r * r
+    y = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z - 3.33329491539e-1) * z * r + r
+    out = where(big, math.pi / 2, where(mid, math.pi / 4, 0.0)) + y
+    return where(x < 0.0, -out, out)
 
 
 def minimum(a, b):
@@ -277,5 +296,5 @@ def length3(x, y, z):
     return sqrt(x * x + y * y + z * z)
 
 
-__all__ = ["abs", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
-           "floats_of", "fori", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "sin", "smoothstep01", "sqrt", "tiny", "to_float", "to_int32", "where", "while_loop"]
+__all__ = ["abs", "atan", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
+           "floats_of", "fori", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "sin", "smoothstep01", "sqrt", "tan", "tiny", "to_float", "to_int32", "where", "while_loop"]

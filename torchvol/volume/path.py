@@ -271,12 +271,13 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
 
     def body(*state):
         o, d, beta, out = list(state[0:3]), list(state[3:6]), list(state[6:9]), list(state[9:12])
-        count, k, alive, gone, cut, above, *evals = state[12:]
+        count, k, alive, gone, *tally = state[12:]
         wall = None if q.surface is None else q.surface.hit(o, d, math.inf)  # the surface's hit t (inf: none)
+        out, count, tally = _lights_along(q, o, d, alive & (k < bounces), beta, out, wall, key, count, tally)
         t0, t1, total = _spans(q, o, d, alive, wall)
         hit, vol, sig, w, count, live, extra, *ev = track_lanes(o, d, t0, t1, total, q.sigma, key, count,
                                                                 collide=True, steps=MAX_TENTATIVE)
-        cut, above, evals = cut + lanes.to_int32(live), above + extra, [a + b for a, b in zip(evals, ev)]
+        tally = _tallied(tally, live, extra, ev)
         beta = [lanes.where(alive, b * w, b) for b in beta]
         left = alive & (vol < 0)
         face = None if wall is None else left & (wall < math.inf)  # a path that met the surface bounces off it
@@ -290,18 +291,7 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
         alive = alive & (k < bounces)
         albedo, normal, x = _collision(q, vol, x, face, wall)
         beta = [lanes.where(alive, b * a, b) for b, a in zip(beta, albedo)]
-        for light in q.lights:  # next-event estimation
-            direction, irradiance, distance = light.toward(x)
-            cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
-            phase = _pick(vol, [m.phase(cos) for m in q.vols])
-            s0, s1, tot = _spans(q, x, direction, alive, distance)
-            _, _, _, through, count, live, extra, *ev = track_lanes(x, direction, s0, s1, tot, q.sigma, key, count,
-                                                                    collide=False, steps=MAX_TENTATIVE)
-            cut, above, evals = cut + lanes.to_int32(live), above + extra, [a + b for a, b in zip(evals, ev)]
-            if face is not None:  # on the surface Lambert's cosine; every shadow ray also meets the surface
-                phase = lanes.where(face, _facing(normal, direction), phase)
-                through = through * lanes.where(alive, q.surface.visible(x, direction, distance), 0.0)
-            out = [lanes.where(alive, out[c] + beta[c] * irradiance[c] * (phase * through), out[c]) for c in range(3)]
+        out, count, tally = _lights_at(q, x, d, vol, alive, face, normal, beta, out, key, count, tally)
         u = []
         for _ in range(3):
             u.append(uniform_lanes(key, count))
@@ -312,11 +302,100 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
         o = [lanes.where(alive, x[c], o[c]) for c in range(3)]
         k = k + lanes.to_int32(alive)
         beta, alive, count = _roulette(beta, alive & (k >= ROULETTE_AFTER), alive, key, count)
-        return (*o, *d, *beta, *out, count, k, alive, gone, cut, above, *evals)
+        return (*o, *d, *beta, *out, count, k, alive, gone, *tally)
 
     state = [*o, *d, one, one, one, one * 0.0, one * 0.0, one * 0.0, zero_i, zero_i, alive, ~alive, zero_i, zero_i]
     state = lanes.while_loop(state + [zero_i] * V, lambda *x: x[14], body)
     return [*state[9:12], *state[6:9], *state[3:6], state[15], state[13], state[16], state[17], *state[18:]]
+
+
+def _tallied(tally: list, live, extra, evals: list) -> list:
+    """The path's counters [trackings cut, tentative collisions above a majorant, each volume's
+    density evaluations] after a tracking (`track_lanes`'s `live`, its above-majorant count and
+    evaluations)."""
+    cut, above, *before = tally
+    return [cut + lanes.to_int32(live), above + extra, *[a + b for a, b in zip(before, evals)]]
+
+
+def _shadow(q, x: list, direction: list, distance, on, key, count, tally, *, occluded: bool = True):
+    """The transmittance from x (three lanes) along `direction` up to `distance` through every
+    medium, ratio-tracked, times the surface's visibility (where the scene has one and the ray
+    may be `occluded`), where `on` (else 0). -> (it, the counters, the tally)."""
+    s0, s1, tot = _spans(q, x, direction, on, distance)
+    _, _, _, through, count, live, extra, *ev = track_lanes(x, direction, s0, s1, tot, q.sigma, key, count,
+                                                            collide=False, steps=MAX_TENTATIVE)
+    if q.surface is not None and occluded:
+        through = through * lanes.where(on, q.surface.visible(x, direction, distance), 0.0)
+    return through, count, _tallied(tally, live, extra, ev)
+
+
+def _lights_at(q, x: list, d: list, vol, alive, face, normal, beta: list, out: list, key, count, tally):
+    """Next-event estimation at the collisions x (three lanes) of paths flying along d: each sun's
+    E·p(θ)·T in a medium (its phase function) or a·E·cos θ·T on the surface (`face`; the albedo
+    already in `beta`); a point light's only on the surface (in the media `_lights_along` takes
+    it). -> (the radiance `out` plus it, the counters, the tally)."""
+    for light in q.lights:
+        at = alive if light.position is None else (None if face is None else alive & face)
+        if at is None:
+            continue
+        direction, irradiance, distance = light.toward(x)
+        cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
+        phase = _pick(vol, [m.phase(cos) for m in q.vols])
+        if face is not None:
+            phase = lanes.where(face, _facing(normal, direction), phase)
+        through, count, tally = _shadow(q, x, direction, distance, at, key, count, tally)
+        out = [lanes.where(at, out[c] + beta[c] * irradiance[c] * (phase * through), out[c]) for c in range(3)]
+    return out, count, tally
+
+
+def _lights_along(q, o: list, d: list, on, beta: list, out: list, wall, key, count, tally):
+    """Each point light's single scattering along the whole flight from o along d (three lanes
+    each) where `on`: one point y of the media's span drawn ∝ 1/r² to the light (`equiangular`),
+    Σ σ_s·p(θ) there times I/r², the transmittance o→y and y→light, over its density. Its 1/r²
+    peak makes a collision's next event (`_lights_at`) a heavy-tailed estimate near the light,
+    infinite variance inside a medium; this one is bounded. -> (out plus it, the counters, the tally)."""
+    for light in q.lights:
+        if light.position is None:
+            continue
+        t0, t1, _ = _spans(q, o, d, on, wall)
+        start, end = None, None
+        for a, b in zip(t0, t1):
+            start = lanes.where(b > a, a, math.inf) if start is None else lanes.minimum(start, lanes.where(b > a, a, math.inf))
+            end = b if end is None else lanes.maximum(end, b)
+        at = on & (end > start)
+        u = uniform_lanes(key, count)
+        count = count + lanes.to_int32(at)
+        t, density = equiangular(o, d, light.position, lanes.where(at, start, 0.0), lanes.where(at, end, 1.0), u)
+        y = [o[c] + t * d[c] for c in range(3)]
+        direction, irradiance, distance = light.toward(y)
+        cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
+        masks = [at & (t >= a) & (t < b) for a, b in zip(t0, t1)]
+        scatter = None
+        for v, (m, mask) in enumerate(zip(q.vols, masks)):
+            term = m.albedo * q.sigma(v, y, mask) * m.phase(cos)
+            scatter = term if scatter is None else scatter + term
+        tally = tally[:2] + [e + lanes.to_int32(mask) for e, mask in zip(tally[2:], masks)]
+        before, count, tally = _shadow(q, o, d, t, at, key, count, tally, occluded=False)  # (y is short of the surface)
+        after, count, tally = _shadow(q, y, direction, distance, at, key, count, tally)
+        weight = scatter * before * after / density
+        out = [lanes.where(at, out[c] + beta[c] * irradiance[c] * weight, out[c]) for c in range(3)]
+    return out, count, tally
+
+
+def equiangular(o: list, d: list, c: list, start, end, u):
+    """A distance t in [start, end] along rays o, d (three lanes each, d unit) drawn with density
+    ∝ 1/r², r the distance to the point c (Kulla & Fajardo 2012: uniform in the angle the ray
+    subtends at c), at uniform lanes u, and that density. The ray's distance to c is taken at least
+    `POINT_RADIUS` (the lights' own floor under r), so a ray through the light stays finite."""
+    from ..light.lights import POINT_RADIUS
+
+    v = [c[i] - o[i] for i in range(3)]
+    closest = v[0] * d[0] + v[1] * d[1] + v[2] * d[2]
+    gap = lanes.clamp_min(lanes.length3(*[v[i] - closest * d[i] for i in range(3)]), POINT_RADIUS)
+    a, b = lanes.atan((start - closest) / gap), lanes.atan((end - closest) / gap)
+    t = lanes.clamp(closest + gap * lanes.tan(a + u * (b - a)), start, end)
+    along = t - closest
+    return t, gap / (lanes.clamp_min(b - a, 1e-30) * (gap * gap + along * along))
 
 
 def _collision(q, vol, x: list, face, wall):
@@ -397,9 +476,9 @@ def _light(light, per_ray) -> SimpleNamespace:
     radiant = per_ray(light.radiant)
     if light.directional:
         direction = per_ray(light.direction)
-        return SimpleNamespace(toward=lambda x: (direction, radiant, math.inf))
+        return SimpleNamespace(toward=lambda x: (direction, radiant, math.inf), position=None)
     position = per_ray(light.params.position)
-    return SimpleNamespace(toward=lambda x: point_lanes(position, radiant, x))
+    return SimpleNamespace(toward=lambda x: point_lanes(position, radiant, x), position=position)
 
 
 def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bounces: int, samples: int,
