@@ -229,7 +229,8 @@ def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool)
     """The terrain as the path tracer's opaque surface (`volume.path`) for rays of scenes `s` [n],
     lanes (`per_lane`: per scene -> lanes; `kernel`: Dr.Jit's, else torch columns like `like`):
     `hit(o, d, t_max)` -> the refined hit's t (inf: none), `normal(x)`, and `_look`'s `albedo(n)`,
-    `lift(x, n, t)`, `visible(p, direction, distance)` -> 1 or 0."""
+    `lift(x, n, t)`, `visible(p, direction, distance)` -> 1 or 0; `direct` = 1: a light's
+    a·E·cos θ, as the marched terrain shades it."""
     q = _kernel_lanes(t, s)[0] if kernel else _torch_lanes(t, s, like)
     look = _look(t, per_lane)
     if kernel:
@@ -250,7 +251,7 @@ def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool)
             return visibility(t, stack(p), stack(direction), s, reach(distance), steps=int(t.steps))
 
     return SimpleNamespace(hit=hit, normal=lambda x: normal_lanes(q, x[0], x[2]), albedo=look.albedo, lift=look.lift,
-                           visible=visible)
+                           visible=visible, direct=1.0)
 
 
 class TerrainSurface:

@@ -253,18 +253,24 @@ def planet_frame(origins: Tensor, air: Air) -> Tensor:
                                   torch.zeros_like(air.planet_radius)], dim=1)
 
 
-def ground_distance(origins: Tensor, directions: Tensor, planet_radius: Tensor) -> Tensor:
-    """Distance [n] along world rays `origins`, `directions` [n, 3] (unit) to the planet's surface
-    in front of them (radius `planet_radius` [n], centre (0, −R, 0)); inf where they miss it or
-    start below it. The ray/sphere roots with c = |o − centre|² − R² written |o|² + 2R·y: no
-    cancellation near the ground (the sphere test in the planet's frame, R² ≈ 4e13 in float32, puts
-    a camera 2 m up at 1.5–2.5 m)."""
-    c = (origins * origins).sum(dim=1) + 2.0 * planet_radius * origins[:, 1]
-    b = (origins * directions).sum(dim=1) + planet_radius * directions[:, 1]
+def ground_distance_lanes(o, d, planet_radius):
+    """Distance along world rays `o`, `d` (three lanes each, d unit) to the planet's surface in
+    front of them (radius `planet_radius`, centre (0, −R, 0)); inf where they miss it or start
+    below it, lanes (`ops.lanes`). The ray/sphere roots with c = |o − centre|² − R² written
+    |o|² + 2R·y: no cancellation near the ground (the sphere test in the planet's frame, R² ≈ 4e13
+    in float32, puts a camera 2 m up at 1.5–2.5 m)."""
+    c = (o[0] * o[0] + o[1] * o[1] + o[2] * o[2]) + 2.0 * planet_radius * o[1]
+    b = (o[0] * d[0] + o[1] * d[1] + o[2] * d[2]) + planet_radius * d[1]
     disc = b * b - c
     hit = (c > 0) & (b < 0) & (disc >= 0)  # above the ground, heading down, meeting the sphere
-    q = torch.where(hit, disc.clamp_min(0.0).sqrt() - b, torch.ones_like(b))  # −b + √disc > 0: no cancellation
-    return torch.where(hit, c / q, torch.full_like(b, math.inf))
+    q = lanes.where(hit, lanes.sqrt(lanes.clamp_min(disc, 0.0)) - b, 1.0)  # −b + √disc > 0: no cancellation
+    return lanes.where(hit, c / q, math.inf)
+
+
+def ground_distance(origins: Tensor, directions: Tensor, planet_radius: Tensor) -> Tensor:
+    """`ground_distance_lanes` of world rays `origins`, `directions` [n, 3] (unit), the planet's
+    radius `planet_radius` [n] -> [n]."""
+    return ground_distance_lanes(origins.unbind(1), directions.unbind(1), planet_radius)
 
 
 def shell_span(origins: Tensor, directions: Tensor, air: Air) -> tuple[Tensor, Tensor, Tensor]:

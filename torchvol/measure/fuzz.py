@@ -25,7 +25,7 @@ import torch
 SOURCES = ("atmosphere", "cloud-puff", "cloudscape", "explosion", "fire", "fur-ball", "god-rays",
            "homogeneous-box", "multi-layer", "particles", "template-clouds", "terrain-clouds")
 LABELS = ["optical_thickness", "alpha_volumes", "instance"]
-PATH_SHARE = 0.3  # of the scenes a path can trace (physical media, a terrain): traced with `[path]`
+PATH_SHARE = 0.3  # of the scenes a path can trace (physical media, a terrain or the atmosphere): traced with `[path]`
 # a SceneError names the key first: "volumes[0].sigma_t: got -1.0; ..."
 NAMES_A_KEY = re.compile(r"^[A-Za-z_][\w\[\].]*: got ")
 EDGES = (0.0, 1e-9, 1e-3, 10.0, 1e6, 1e12)
@@ -96,7 +96,7 @@ def _extras(rng: np.random.Generator, scene: dict) -> None:
     if rng.random() < 0.1:
         scene["image"] = {**scene.get("image", {}), "passes": 2}
         scene["march"] = {**scene.get("march", {}), "dither": "hash"}
-    traceable = not any(k in scene for k in ("atmosphere", "voxels"))
+    traceable = "voxels" not in scene and not ("terrain" in scene and "atmosphere" in scene)  # (one opaque surface)
     if traceable and all(v.get("shading", "physical") == "physical" for v in scene.get("volumes", [])) and rng.random() < PATH_SHARE:
         scene["path"] = {"bounces": int(rng.integers(1, 9)), "samples": int(rng.integers(1, 3))}
 

@@ -265,7 +265,8 @@ def path_radiance(ctx: RenderContext, rays: Rays, background: Tensor | None) -> 
     bounces, samples, backend = ctx.plan.path
     if ctx.path_media is None:
         terrain = ctx.batch.terrain
-        ctx.path_media = path.media(ctx.volumes, ctx.dtype, None if terrain is None else partial(path_surface, terrain))
+        ctx.path_media = path.media(ctx.volumes, ctx.dtype, None if terrain is None else partial(path_surface, terrain),
+                                    air=ctx.batch.atmosphere)
     sky = None if ctx.plan.sky is None else lambda d, s: sky_toward(ctx, d, s)
     return path.radiance(ctx.path_media, ctx.lights, rays, background, sky, bounces=bounces, samples=samples,
                          keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp),

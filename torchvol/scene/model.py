@@ -453,9 +453,11 @@ class Scene(Strict):
     def _path_traces_physical_media_alone(self):
         if self.path is None:
             return self
-        for key in ("voxels", "atmosphere"):
-            if getattr(self, key) is not None:
-                refuse("path", "<path>", f"path tracing renders physical media and the terrain; this scene has [{key}]")
+        if self.voxels is not None:
+            refuse("path", "<path>", "path tracing renders physical media, the terrain and the atmosphere; this scene has [voxels]")
+        if self.terrain is not None and self.atmosphere is not None:
+            refuse("path", "<path>", "path tracing takes one opaque surface, the terrain or the atmosphere's ground; "
+                   "this scene has both")
         for v, vol in enumerate(self.volumes):
             if vol.shading != "physical":
                 refuse("path", "<path>", f"path tracing renders physical media; volumes[{v}].shading is {vol.shading!r}")

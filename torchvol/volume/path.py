@@ -34,6 +34,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from ..geometry.rays import sphere_interval
 from ..noise import fast
 from ..ops import lanes
 from ..schema.batch import take
@@ -60,14 +61,16 @@ class PathCounts:
 @dataclass
 class Media:
     """The physically shaded volumes a path meets (`vols`, the render's volume states), each
-    one's majorant of σ_t per scene (`majorants` (B,)), the render's counts, and the scene's opaque
+    one's majorant of σ_t per scene (`majorants` (B,)), the render's counts, the scene's opaque
     surface or None: `surface(s [n], per_ray, like [n], kernel)` -> its lanes for rays of scenes s
-    (`terrain.path_surface`'s hit, normal, albedo, lift, visible)."""
+    (`terrain.path_surface`'s hit, normal, albedo, lift, visible, direct), and its `[atmosphere]`
+    (`air_media`: two more media and the planet's ground as the surface) or None."""
 
     vols: list
     majorants: list[Tensor]
     counts: PathCounts = field(default_factory=PathCounts)
     surface: Callable | None = None
+    air: object | None = None  # the batch's `[atmosphere]` (Stacked) or None: `air_media`
 
 
 def uniform_lanes(key, count):
@@ -133,10 +136,75 @@ def _lattice_maximum(vol, dtype: torch.dtype) -> Tensor:
     return torch.stack(out)
 
 
-def media(vols: list, dtype: torch.dtype, surface: Callable | None = None) -> Media:
-    """The paths' `Media` of the render's physically shaded volume states `vols` and its opaque
-    `surface` (`Media.surface`) or None."""
-    return Media(vols, [majorant(v, dtype) for v in vols], surface=surface)
+def media(vols: list, dtype: torch.dtype, surface: Callable | None = None, air=None) -> Media:
+    """The paths' `Media` of the render's physically shaded volume states `vols`, its opaque
+    `surface` (`Media.surface`) or None and its `[atmosphere]` (Stacked) or None."""
+    return Media(vols, [majorant(v, dtype) for v in vols], surface=surface, air=air)
+
+
+def hero_channels(keys: Tensor, sample: int) -> Tensor:
+    """Each ray's colour [n] (int32 0, 1, 2) for its path `sample`, where a medium's extinction
+    differs per colour (the air's Rayleigh): the path tracks that colour's σ alone and counts its
+    radiance three times in that colour (`trace_lanes`), unbiased. Stratified: a ray's colours
+    cycle from a start hashed from its key [n, 3], so any three consecutive samples take each
+    colour once (drawn independently, a pixel's colours came out unequal: noise in hue)."""
+    start = torch.remainder(path_keys(keys, 0, 1).to(torch.int64), 3)
+    return ((start + sample) % 3).to(torch.int32)
+
+
+def air_media(layer, per_ray, channel) -> tuple[list, SimpleNamespace]:
+    """The `[atmosphere]` (`layer`, the batch's Stacked table) as media and surface of the paths
+    (`per_ray`: per scene -> lanes; `channel`: each path's colour, `hero_channels`), in the scene's
+    frame (ground y = 0, the planet's centre (0, −R, 0)): Rayleigh (albedo 1, its σ of the path's
+    colour, its phase) and Mie (extinction `MIE_EXTINCTION` × its scattering, Cornette-Shanks,
+    drawn through the HG of its g) with the march's exponential densities (`density_lanes`, at
+    most 1: the majorant is the ground's σ), and the planet's ground, a Lambertian sphere (the
+    march's albedo/π: `direct`) that stops flights and shadow rays."""
+    from ..light.atmosphere import MIE_EXTINCTION, density_lanes, ground_distance_lanes
+    from ..light.phase import mie_cornette_shanks, rayleigh
+
+    radius, top = per_ray(layer.planet_radius), per_ray(layer.planet_radius + layer.atmosphere_height)
+    q = SimpleNamespace(planet_radius=radius, heights=[per_ray(layer.rayleigh_height), per_ray(layer.mie_height)])
+    frame = lambda x: [x[0], x[1] + radius, x[2]]  # noqa: E731  the planet's frame
+    colours = per_ray(layer.rayleigh)
+    sigmas = [_pick(channel, colours), MIE_EXTINCTION * per_ray(layer.mie)]
+    g, ground = per_ray(layer.mie_g), per_ray(layer.ground)
+
+    def medium(k, albedo, phase, lobe):
+        def sigma(x, mask):
+            return lanes.where(mask, sigmas[k] * density_lanes(frame(x), q)[k], 0.0)
+
+        return SimpleNamespace(interval=lambda o, d: sphere_interval(frame(o), d, (0.0, 0.0, 0.0), top), reach=3e38,
+                               majorant=sigmas[k], sigma_t=sigmas[k], albedo=albedo, emission=[0.0] * 3, glow=None,
+                               lobe=lobe, weighted=True, phase=phase, sigma=sigma)
+
+    air = [medium(0, 1.0, rayleigh, (0.0, 0.0, 0.0)), medium(1, 1.0 / MIE_EXTINCTION, lambda c: mie_cornette_shanks(c, g), (g, g, 0.0))]
+
+    def normal(x):
+        p = frame(x)
+        length = lanes.length3(*p)
+        return [c / length for c in p]
+
+    blocked = lambda p, direction, distance: ground_distance_lanes(p, direction, radius) < distance  # noqa: E731
+    surface = SimpleNamespace(hit=lambda o, d, t_max: ground_distance_lanes(o, d, radius), normal=normal,
+                              albedo=lambda n: ground, direct=1.0 / math.pi,
+                              lift=lambda x, n, t: [x[c] + (1e-4 * (1.0 + t)) * n[c] for c in range(3)],
+                              visible=lambda p, direction, distance: lanes.where(blocked(p, direction, distance), 0.0, 1.0))
+    return air, surface
+
+
+def with_air(q: SimpleNamespace, m: Media, channel, per_ray) -> SimpleNamespace:
+    """`q` (`path_inputs`, its `sigma`) with the scene's `[atmosphere]` added where it has one: the
+    air's media after the volumes, the ground as the surface, each path's colour `channel` (int
+    lanes, `hero_channels`)."""
+    if m.air is None:
+        return q
+    q.channel = channel
+    air, q.surface = air_media(m.air, per_ray, channel)
+    first, own = len(q.vols), q.sigma
+    q.vols = q.vols + air
+    q.sigma = lambda v, x, mask: own(v, x, mask) if v < first else q.vols[v].sigma(x, mask)
+    return q
 
 
 def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: bool, steps: int) -> list:
@@ -306,7 +374,16 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
 
     state = [*o, *d, one, one, one, one * 0.0, one * 0.0, one * 0.0, zero_i, zero_i, alive, ~alive, zero_i, zero_i]
     state = lanes.while_loop(state + [zero_i] * V, lambda *x: x[14], body)
-    return [*state[9:12], *state[6:9], *state[3:6], state[15], state[13], state[16], state[17], *state[18:]]
+    out, beta = _in_channel(q.channel, state[9:12]), _in_channel(q.channel, state[6:9])
+    return [*out, *beta, *state[3:6], state[15], state[13], state[16], state[17], *state[18:]]
+
+
+def _in_channel(channel, values: list) -> list:
+    """Three lanes as a path of colour `channel` (`hero_channels`) counts them: 3× in its colour,
+    0 in the others (None: all colours tracked, as they are)."""
+    if channel is None:
+        return values
+    return [v * lanes.where(channel == c, 3.0, 0.0) for c, v in enumerate(values)]
 
 
 def _tallied(tally: list, live, extra, evals: list) -> list:
@@ -342,7 +419,7 @@ def _lights_at(q, x: list, d: list, vol, alive, face, normal, beta: list, out: l
         cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
         phase = _pick(vol, [m.phase(cos) for m in q.vols])
         if face is not None:
-            phase = lanes.where(face, _facing(normal, direction), phase)
+            phase = lanes.where(face, q.surface.direct * _facing(normal, direction), phase)
         through, count, tally = _shadow(q, x, direction, distance, at, key, count, tally)
         out = [lanes.where(at, out[c] + beta[c] * irradiance[c] * (phase * through), out[c]) for c in range(3)]
     return out, count, tally
@@ -466,7 +543,7 @@ def path_inputs(m: Media, lights: list, s: Tensor, per_ray, volume) -> SimpleNam
                                     sigma_t=per_ray(p.sigma_t), albedo=per_ray(p.albedo), emission=per_ray(p.emission),
                                     glow=glow, lobe=lobe, weighted=kind in ("mie", "rayleigh"),
                                     phase=lambda cos, fn=fn, q=phase_q: fn[1](q, cos, 1.0)))
-    return SimpleNamespace(vols=vols, lights=[_light(li, per_ray) for li in lights], surface=None)
+    return SimpleNamespace(vols=vols, lights=[_light(li, per_ray) for li in lights], surface=None, channel=None)
 
 
 def _light(light, per_ray) -> SimpleNamespace:
@@ -487,12 +564,13 @@ def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bo
     (`keys` [n, 3]: `geometry.sampling.ray_keys`), each of at most `bounces` scatterings, lit by
     `lights` (the render's `LightSource`s), seeing `background` [n, 3] (None: black) where the camera
     ray leaves the media and `sky(directions [m, 3], s [m]) -> [m, 3]` (None: black) where a
-    scattered path does. `trace(m, lights, rays, key, bounces)` runs one sample's paths (None:
+    scattered path does. `trace(m, lights, rays, key, bounces, channel)` runs one sample's paths (None:
     `trace_eager`; `path_kernel.trace_kernel`: one Dr.Jit kernel)."""
     s, total = rays.scene_index, rays.origins.new_zeros(len(rays), 3)
     run = trace_eager if trace is None else trace
     for k in range(samples):
-        out, beta, direction, gone, scattered, cut, above = run(m, lights, rays, path_keys(keys, k, samples), bounces)
+        channel = None if m.air is None else hero_channels(keys, k)
+        out, beta, direction, gone, scattered, cut, above = run(m, lights, rays, path_keys(keys, k, samples), bounces, channel)
         m.counts.truncated += int(cut.sum())
         m.counts.above_majorant += int(above.sum())
         first, later = (gone & (scattered == 0)).nonzero().squeeze(1), (gone & (scattered > 0)).nonzero().squeeze(1)
@@ -504,9 +582,10 @@ def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bo
     return total / samples
 
 
-def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int) -> list:
-    """`trace_lanes` on torch columns for rays [n] (paths of keys `key` [n]) -> its results as
-    tensors ([n, 3] for the three-lane ones)."""
+def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int, channel: Tensor | None = None) -> list:
+    """`trace_lanes` on torch columns for rays [n] (paths of keys `key` [n], colours `channel` [n]
+    where the scene has air, `hero_channels`) -> its results as tensors ([n, 3] for the three-lane
+    ones)."""
     s = rays.scene_index
     per_ray = lambda x: lanes.columns(take(x, s))  # noqa: E731
 
@@ -531,9 +610,10 @@ def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int) -> list
     q.sigma = sigma
     if m.surface is not None:
         q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=False)
+    q = with_air(q, m, channel, per_ray)
     res = trace_lanes(q, list(rays.origins.unbind(1)), list(rays.directions.unbind(1)), key, bounces=bounces)
     return [torch.stack(res[0:3], 1), torch.stack(res[3:6], 1), torch.stack(res[6:9], 1), res[9], res[10], res[11], res[12]]
 
 
-__all__ = ["Media", "PathCounts", "hg_cos", "majorant", "media", "path_inputs", "path_keys", "radiance", "trace_eager", "trace_lanes",
+__all__ = ["Media", "PathCounts", "air_media", "hero_channels", "hg_cos", "majorant", "media", "path_inputs", "path_keys", "radiance", "trace_eager", "trace_lanes",
            "track_lanes", "uniform_lanes"]

@@ -13,11 +13,12 @@ from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
 from .density_lanes import crossing, lanes_of, per_scene_lanes
 from .emission import EMISSION_MAPS
-from .path import path_inputs, trace_lanes
+from .path import path_inputs, trace_lanes, with_air
 
 
-def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int) -> list[Tensor]:
-    """`trace_lanes` of camera `rays` [n] (paths of keys `key` [n], int32) through the media `m`
+def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int, channel: Tensor | None = None) -> list[Tensor]:
+    """`trace_lanes` of camera `rays` [n] (paths of keys `key` [n], int32; colours `channel` [n]
+    where the scene has air, `path.hero_channels`) through the media `m`
     (`path.Media`) lit by `lights`, as one Dr.Jit kernel; each volume's evaluations counted.
     -> the results as tensors ([n, 3] for the three-lane ones), as `path.trace_eager` gives them."""
     import drjit as dr
@@ -43,6 +44,7 @@ def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int) -> list[Tenso
     q.sigma = sigma
     if m.surface is not None:
         q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=True)
+    q = with_air(q, m, None if channel is None else lanes.ints_of(channel), per_ray)
     lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
     res = trace_lanes(q, lane(rays.origins), lane(rays.directions), lanes.ints_of(key), bounces=bounces)
     dr.eval(res)
