@@ -92,7 +92,7 @@ def test_a_path_traced_ladder_bounds_its_noise(tmp_path, one_thread):
     distance = image_error(ref.image, finest)["rmse"]
     assert ref.dtype == "float32" and distance <= ref.bound <= 3.0 * distance, (distance, ref.bound)
     scene, _ = rung_scene(with_every_order(PUFF), 2, spp=2)
-    assert scene["path"] == {"bounces": PATH_BOUNCES, "samples": 8 * 16}  # 16 paths a pixel on rung 0, 4× a rung
+    assert scene["path"] == {"bounces": PATH_BOUNCES, "samples": 8 * 16, "single": "paths"}  # 16 paths a pixel on rung 0, 4× a rung
 
 
 def test_which_scenes_get_an_every_order_reference():

@@ -3,7 +3,8 @@
     python tools/path_error.py [--preset cloud-puff] [--size 64] [--reference-paths 2048] [--passes 4]
 
 The preset's march as it is (single scattering, its sky light and Wrenninge octaves), without its
-octaves, and as plain single scattering, and `[path]` at several paths a pixel, each against the
+octaves, and as plain single scattering, and `[path]` at several paths a pixel (every order
+path-traced, and `single = "march"`: the march's single scattering plus the paths' other orders), each against the
 preset path-traced with every order of scattering (bounces 256): the reference is the mean of
 `--passes` independent renders of `--reference-paths` paths a pixel, and each error is the
 relative RMSE against the converged render with the reference's own noise subtracted
@@ -58,7 +59,7 @@ def main() -> None:
     args = parser.parse_args()
     scene = tv.preset(args.preset, width=args.size, height=args.size).model_dump()
     start = time.perf_counter()
-    passes = np.stack([tv.render({**scene, "path": {"bounces": 256, "samples": args.reference_paths}}, seed=100 + k)
+    passes = np.stack([tv.render({**scene, "path": {"bounces": 256, "samples": args.reference_paths, "single": "paths"}}, seed=100 + k)
                        .radiance[0].permute(1, 2, 0).double().numpy() for k in range(args.passes)])
     print(f"{args.preset} at {args.size}²: reference = {args.passes} × {args.reference_paths} paths a pixel, "
           f"{time.perf_counter() - start:.0f} s; torch threads {torch.get_num_threads()}\n")
@@ -66,7 +67,9 @@ def main() -> None:
     print("| --- | ---: | ---: | ---: |")
     reference_mean = passes.mean()
     rows = [(name, variant) for name, variant in variants(scene).items()]
-    rows += [(f"`[path]`, {n} paths a pixel", {**scene, "path": {"bounces": 256, "samples": n}}) for n in (4, 16, 64, 256)]
+    rows += [(f"`[path]`, {n} paths a pixel{' on the march' if single == 'march' else ''}",
+              {**scene, "path": {"bounces": 256, "samples": n, "single": single}})
+             for single in ("paths", "march") for n in (4, 16, 64, 256)]
     for name, variant in rows:
         image, seconds = timed(variant)
         err = debiased_relative_rmse(image, passes)

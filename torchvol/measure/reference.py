@@ -118,7 +118,7 @@ def with_every_order(data: Mapping) -> dict:
     its paths a pixel the ladder's), without the approximations paths leave out (octaves, sky
     light, bloom)."""
     out = copy.deepcopy(dict(data))
-    out["path"] = {"bounces": PATH_BOUNCES, "samples": 1}
+    out["path"] = {"bounces": PATH_BOUNCES, "samples": 1, "single": "paths"}  # unbiased: no march in it
     for volume in out.get("volumes") or []:  # what paths leave out: settings of them share one reference (cache)
         for key in ("multiple_scattering", "ambient", "bloom"):
             volume.pop(key, None)

@@ -224,7 +224,8 @@ def run_chunk(ctx: RenderContext, rays: Rays) -> dict[str, Tensor]:
             out = on_the_ground(out, ground, rays)
     if plan.path is not None:
         with ctx.timer.section("path"):
-            out["radiance"] = path_radiance(ctx, rays, background)
+            traced = path_radiance(ctx, rays, background)
+            out["radiance"] = out["radiance"] + traced if plan.path[3] == "march" else traced
     if plan.labels is not None:
         out.update(label_rays(ctx, rays, media, volumes, surf))
     if plan.flare:
@@ -261,12 +262,12 @@ def march_media(ctx: RenderContext, rays: Rays, background: Tensor | None, t_lim
 def path_radiance(ctx: RenderContext, rays: Rays, background: Tensor | None) -> Tensor:
     """The chunk's radiance [n, 3] path-traced through the physical media (`[path]`, `volume.path`):
     the sky `background` [n, 3] (None: black) where a camera ray leaves them, the sky where a
-    scattered path does."""
-    bounces, samples, backend = ctx.plan.path
+    scattered path does; with `single = "march"` only what the march leaves out (`Media.marched_first`)."""
+    bounces, samples, backend, single = ctx.plan.path
     if ctx.path_media is None:
         terrain = ctx.batch.terrain
         ctx.path_media = path.media(ctx.volumes, ctx.dtype, None if terrain is None else partial(path_surface, terrain),
-                                    air=ctx.batch.atmosphere)
+                                    air=ctx.batch.atmosphere, marched_first=single == "march")
     sky = None if ctx.plan.sky is None else lambda d, s: sky_toward(ctx, d, s)
     return path.radiance(ctx.path_media, ctx.lights, rays, background, sky, bounces=bounces, samples=samples,
                          keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp),

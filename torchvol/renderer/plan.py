@@ -280,7 +280,7 @@ class Plan:
     # what a sky whose kind has a kernel (`SKIES`' ``kernel``: the atmosphere's per-pixel march) runs
     # on: "drjit" where the render runs kernels, else "eager"; None: no sky, or a kind with no march
     sky_backend: Backend | None = None
-    path: tuple[int, int, Backend] | None = None  # `[path]`: (bounces, samples, the tracking's backend); None: no paths
+    path: tuple[int, int, Backend, str] | None = None  # `[path]`: (bounces, samples, the tracking's backend, single); None: no paths
 
     def summary(self) -> dict:
         """What the plan decided, JSON-safe (`stats["plan"]`): the passes in order, the sun, each
@@ -293,7 +293,7 @@ class Plan:
                 **({"air": self.joint.backend} if self.joint is not None and self.joint.air else {}),
                 **({"walk": self.walk} if self.walk is not None else {}),
                 **({"sky": self.sky_backend} if self.sky_backend is not None else {}),
-                **({"path": dict(zip(("bounces", "samples", "backend"), self.path))} if self.path else {}),
+                **({"path": dict(zip(("bounces", "samples", "backend", "single"), self.path))} if self.path else {}),
                 "threads": self.threads, "compile": self.compile, "dtype": str(self.dtype).removeprefix("torch.")}
 
     def volume_names(self) -> list[str]:
@@ -513,7 +513,8 @@ def make_plan(batch: Stacked | Scene, aovs=(), *, compile: CompileMode = "off", 
         sky_backend=None if batch.sky is None or not SKIES[batch.sky.kind].caps.get("kernel") else
         "drjit" if kernels else "eager",
         kernels=kernels,
-        path=None if batch.path is None else (batch.path.bounces, batch.path.samples, path_backend(batch, kernels, dtype, device)),
+        path=None if batch.path is None else (batch.path.bounces, batch.path.samples, path_backend(batch, kernels, dtype, device),
+                                              batch.path.single),
     )
 
 

@@ -416,10 +416,14 @@ class Voxels(Strict):
 
 class PathSettings(Strict):
     """`[path]`: the physical media path-traced with every order of scattering up to `bounces`
-    scattering events a path (1: single scattering), `samples` paths a pixel (a sub-sample)."""
+    scattering events a path (1: single scattering), `samples` paths a pixel (a sub-sample).
+    `single`: "paths" (every order path-traced, unbiased) or "march" (the lights' single
+    scattering, the emission and the background marched, noise-free, and the paths add the
+    rest: the orders past the first and the sky's light scattered)."""
 
     bounces: int = Field(256, ge=1, le=100_000)
     samples: int = Field(64, ge=1, le=1_000_000)
+    single: Literal["paths", "march"] = "paths"
 
 
 class Scene(Strict):

@@ -49,7 +49,9 @@ QUALITY: dict[str, Level] = {
 def at_level(scene: Scene) -> Scene:
     """The scene with every key its quality level decides filled in (`image.spp`, lights'
     `shadow.steps`, `voxels.shadow.steps`, `voxels.max_steps`, `voxels.fog.shadow_steps`,
-    `sky.atmosphere.steps` and `.light_steps`, `atmosphere.steps` and `.light_steps`); idempotent. Everything after this sees plain ints."""
+    `sky.atmosphere.steps` and `.light_steps`, `atmosphere.steps` and `.light_steps`), and with
+    `[path]` without the march's stand-ins for the orders it traces (`_without_stand_ins`);
+    idempotent. Everything after this sees plain ints."""
     level = QUALITY[scene.march.quality]
     update: dict = {}
     if scene.image.spp is None:
@@ -76,7 +78,23 @@ def at_level(scene: Scene) -> Scene:
         update["sky"] = scene.sky.model_copy(update={"atmosphere": _atmosphere_steps(atm, level)})
     if scene.atmosphere is not None and (scene.atmosphere.steps is None or scene.atmosphere.light_steps is None):
         update["atmosphere"] = _atmosphere_steps(scene.atmosphere, level)
+    update.update(_without_stand_ins(scene))
     return scene.model_copy(update=update) if update else scene
+
+
+def _without_stand_ins(scene: Scene) -> dict:
+    """With `[path]` the paths trace the orders past the first: the march's stand-ins for them (a
+    volume's octaves, sky ambient and bloom, the terrain's ambient) are dropped, so they cost
+    nothing and `single = "march"` adds the paths to the plain single scattering. -> the update."""
+    if scene.path is None:
+        return {}
+    update: dict = {}
+    stand_ins = ("multiple_scattering", "ambient", "bloom")
+    if any(getattr(v, key, None) is not None for v in scene.volumes for key in stand_ins):
+        update["volumes"] = [v.model_copy(update=dict.fromkeys(stand_ins)) for v in scene.volumes]
+    if scene.terrain is not None and any(scene.terrain.ambient):
+        update["terrain"] = scene.terrain.model_copy(update={"ambient": (0.0, 0.0, 0.0)})
+    return update
 
 
 def _atmosphere_steps(layer, level: Level):

@@ -71,6 +71,7 @@ class Media:
     counts: PathCounts = field(default_factory=PathCounts)
     surface: Callable | None = None
     air: object | None = None  # the batch's `[atmosphere]` (Stacked) or None: `air_media`
+    marched_first: bool = False  # `[path] single = "march"`: the paths leave out what the march gives
 
 
 def uniform_lanes(key, count):
@@ -136,10 +137,11 @@ def _lattice_maximum(vol, dtype: torch.dtype) -> Tensor:
     return torch.stack(out)
 
 
-def media(vols: list, dtype: torch.dtype, surface: Callable | None = None, air=None) -> Media:
+def media(vols: list, dtype: torch.dtype, surface: Callable | None = None, air=None, *, marched_first: bool = False) -> Media:
     """The paths' `Media` of the render's physically shaded volume states `vols`, its opaque
-    `surface` (`Media.surface`) or None and its `[atmosphere]` (Stacked) or None."""
-    return Media(vols, [majorant(v, dtype) for v in vols], surface=surface, air=air)
+    `surface` (`Media.surface`) or None, its `[atmosphere]` (Stacked) or None, and whether the
+    march gives the single scattering (`Media.marched_first`)."""
+    return Media(vols, [majorant(v, dtype) for v in vols], surface=surface, air=air, marched_first=marched_first)
 
 
 def hero_channels(keys: Tensor, sample: int) -> Tensor:
@@ -325,12 +327,14 @@ def _spans(q, o: list, d: list, alive, t_max=None):
     return t0, t1, total
 
 
-def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
+def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool = False) -> list:
     """One path a lane from o along d (three lanes each; `key` int32 lanes), the module's
     estimator, lanes (`ops.lanes`): eagerly on torch columns, as one Dr.Jit kernel in
     `path_kernel`. `q` (`path_inputs`): the volumes (their interval, reach, majorant, σ_t,
     albedo, emission, phase), the lights, per lane, and the opaque surface (`Media.surface`'s
-    lanes) or None. -> [radiance (3), throughput (3) and
+    lanes) or None. `marched_first`: what the march gives is left out: the light of the lights
+    and the emission at a path's first collision, and (in `radiance`) the camera ray's
+    background. -> [radiance (3), throughput (3) and
     direction (3) where it left the media, whether it left, its scatterings, tentative collisions
     past the step limit and above a majorant, each volume's density evaluations]."""
     one = lanes.full_like(o[0], 1.0)
@@ -341,7 +345,8 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
         o, d, beta, out = list(state[0:3]), list(state[3:6]), list(state[6:9]), list(state[9:12])
         count, k, alive, gone, *tally = state[12:]
         wall = None if q.surface is None else q.surface.hit(o, d, math.inf)  # the surface's hit t (inf: none)
-        out, count, tally = _lights_along(q, o, d, alive & (k < bounces), beta, out, wall, key, count, tally)
+        later = k > 0 if marched_first else k >= 0  # the scatterings the paths add light from
+        out, count, tally = _lights_along(q, o, d, alive & (k < bounces) & later, beta, out, wall, key, count, tally)
         t0, t1, total = _spans(q, o, d, alive, wall)
         hit, vol, sig, w, count, live, extra, *ev = track_lanes(o, d, t0, t1, total, q.sigma, key, count,
                                                                 collide=True, steps=MAX_TENTATIVE)
@@ -354,12 +359,12 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int) -> list:
         t = lanes.where(alive, hit if face is None else lanes.where(face, wall, hit), 0.0)
         x = [o[c] + t * d[c] for c in range(3)]
         emitted = _emitted(q, vol, x, sig)
-        lit = alive if face is None else alive & ~face  # (a surface emits nothing)
+        lit = (alive if face is None else alive & ~face) & later  # (a surface emits nothing)
         out = [lanes.where(lit, out[c] + beta[c] * emitted[c], out[c]) for c in range(3)]
         alive = alive & (k < bounces)
         albedo, normal, x = _collision(q, vol, x, face, wall)
         beta = [lanes.where(alive, b * a, b) for b, a in zip(beta, albedo)]
-        out, count, tally = _lights_at(q, x, d, vol, alive, face, normal, beta, out, key, count, tally)
+        out, count, tally = _lights_at(q, x, d, vol, alive & later, face, normal, beta, out, key, count, tally)
         u = []
         for _ in range(3):
             u.append(uniform_lanes(key, count))
@@ -574,7 +579,7 @@ def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bo
         m.counts.truncated += int(cut.sum())
         m.counts.above_majorant += int(above.sum())
         first, later = (gone & (scattered == 0)).nonzero().squeeze(1), (gone & (scattered > 0)).nonzero().squeeze(1)
-        if background is not None and first.numel():
+        if background is not None and first.numel() and not m.marched_first:
             out[first] = out[first] + beta[first] * background[first]
         if sky is not None and later.numel():
             out[later] = out[later] + beta[later] * sky(direction[later], s[later])
@@ -611,7 +616,8 @@ def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int, channel
     if m.surface is not None:
         q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=False)
     q = with_air(q, m, channel, per_ray)
-    res = trace_lanes(q, list(rays.origins.unbind(1)), list(rays.directions.unbind(1)), key, bounces=bounces)
+    res = trace_lanes(q, list(rays.origins.unbind(1)), list(rays.directions.unbind(1)), key, bounces=bounces,
+                      marched_first=m.marched_first)
     return [torch.stack(res[0:3], 1), torch.stack(res[3:6], 1), torch.stack(res[6:9], 1), res[9], res[10], res[11], res[12]]
 
 

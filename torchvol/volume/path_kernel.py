@@ -46,7 +46,8 @@ def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int, channel: Tens
         q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=True)
     q = with_air(q, m, None if channel is None else lanes.ints_of(channel), per_ray)
     lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
-    res = trace_lanes(q, lane(rays.origins), lane(rays.directions), lanes.ints_of(key), bounces=bounces)
+    res = trace_lanes(q, lane(rays.origins), lane(rays.directions), lanes.ints_of(key), bounces=bounces,
+                      marched_first=m.marched_first)
     dr.eval(res)
     dr.sync_thread()
     for state, evals in zip(m.vols, res[13:]):
