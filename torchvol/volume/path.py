@@ -218,11 +218,7 @@ def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: 
     none), its σ_t, the weight (the transmittance, ratio tracking), the counters after, whether a
     lane stopped at `steps` tentative collisions, its tentative collisions above the majorant, each
     volume's density evaluations]."""
-    first, end = None, None
-    for a, b in zip(t0, t1):
-        entry = lanes.where(b > a, a, math.inf)
-        first = entry if first is None else lanes.minimum(first, entry)
-        end = b if end is None else lanes.maximum(end, b)
+    first, end = _extent(t0, t1)
     t = lanes.where(total > 0.0, first, math.inf)
     none = count * 0 - 1
 
@@ -261,6 +257,17 @@ def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: 
              count * 0, count * 0] + [count * 0 for _ in t0]
     t, weight, hit, vol, sig_hit, count, live, n, above, *evals = lanes.while_loop(state, lambda *x: x[6] & (x[7] < steps), body)
     return [hit, vol, sig_hit, weight, count, live, above, *evals]
+
+
+def _extent(t0: list, t1: list):
+    """Where rays first enter any of the volumes spanning [t0[v], t1[v]] (lanes; inf: none) and
+    where they last leave one."""
+    first, end = None, None
+    for a, b in zip(t0, t1):
+        entry = lanes.where(b > a, a, math.inf)
+        first = entry if first is None else lanes.minimum(first, entry)
+        end = b if end is None else lanes.maximum(end, b)
+    return first, end
 
 
 def _basis(d: list) -> tuple[list, list]:
@@ -440,10 +447,7 @@ def _lights_along(q, o: list, d: list, on, beta: list, out: list, wall, key, cou
         if light.position is None:
             continue
         t0, t1, _ = _spans(q, o, d, on, wall)
-        start, end = None, None
-        for a, b in zip(t0, t1):
-            start = lanes.where(b > a, a, math.inf) if start is None else lanes.minimum(start, lanes.where(b > a, a, math.inf))
-            end = b if end is None else lanes.maximum(end, b)
+        start, end = _extent(t0, t1)
         at = on & (end > start)
         u = uniform_lanes(key, count)
         count = count + lanes.to_int32(at)
