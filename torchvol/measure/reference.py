@@ -55,7 +55,7 @@ import torch
 from torch import Tensor
 
 from ..scene.model import load_scene
-from ..scene.quality import QUALITY, Quality, march_settings
+from ..scene.quality import PATH_STAND_INS, QUALITY, Quality, march_settings
 from ..version import __version__
 from ..volume.shading import SHADINGS
 
@@ -120,7 +120,7 @@ def with_every_order(data: Mapping) -> dict:
     out = copy.deepcopy(dict(data))
     out["path"] = {"bounces": PATH_BOUNCES, "samples": 1, "single": "paths"}  # unbiased: no march in it
     for volume in out.get("volumes") or []:  # what paths leave out: settings of them share one reference (cache)
-        for key in ("multiple_scattering", "ambient", "bloom"):
+        for key in PATH_STAND_INS:
             volume.pop(key, None)
     return out
 

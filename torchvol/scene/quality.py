@@ -46,6 +46,9 @@ QUALITY: dict[str, Level] = {
 }
 
 
+PATH_STAND_INS = ("multiple_scattering", "ambient", "bloom")  # a volume's approximations of what paths trace
+
+
 def at_level(scene: Scene) -> Scene:
     """The scene with every key its quality level decides filled in (`image.spp`, lights'
     `shadow.steps`, `voxels.shadow.steps`, `voxels.max_steps`, `voxels.fog.shadow_steps`,
@@ -89,9 +92,8 @@ def _without_stand_ins(scene: Scene) -> dict:
     if scene.path is None:
         return {}
     update: dict = {}
-    stand_ins = ("multiple_scattering", "ambient", "bloom")
-    if any(getattr(v, key, None) is not None for v in scene.volumes for key in stand_ins):
-        update["volumes"] = [v.model_copy(update=dict.fromkeys(stand_ins)) for v in scene.volumes]
+    if any(getattr(v, key, None) is not None for v in scene.volumes for key in PATH_STAND_INS):
+        update["volumes"] = [v.model_copy(update=dict.fromkeys(PATH_STAND_INS)) for v in scene.volumes]
     if scene.terrain is not None and any(scene.terrain.ambient):
         update["terrain"] = scene.terrain.model_copy(update={"ambient": (0.0, 0.0, 0.0)})
     return update

@@ -3,17 +3,20 @@
 Each camera ray sends `[path].samples` paths. A path flies through every medium of the scene at
 once by delta tracking against a majorant per medium (their sum along the ray), and at each real
 collision collects the medium's emission (σe/σt), then, while it has scattered fewer than
-`bounces` times, the light of every light source by next-event estimation (the phase function
-times the light's irradiance times the transmittance towards it, by ratio tracking through every
-medium), and scatters: its throughput times the albedo, a new direction drawn from the phase
-function. Where the scene has an opaque surface (the terrain, `Media.surface`), it stops the
-flight and every shadow ray; a path that meets it takes each light's a·E·cos θ (the marched
-surfaces' convention) and bounces cosine-weighted. A path that leaves the media sees the sky. Russian roulette ends paths of low throughput
-past `ROULETTE_AFTER` scatterings without bias. So `bounces = B` sums the light that scattered at
-most B times: B = 1 is the single-scattering integral the physical march computes.
+`bounces` times, the light of every sun by next-event estimation (the phase function times the
+light's irradiance times the transmittance towards it, by ratio tracking through every medium),
+and scatters: its throughput times the albedo, a new direction drawn from the phase function.
+Each point light it takes along each flight instead, at a point drawn ∝ 1/r² (`equiangular`).
+Where the scene has an opaque surface (the terrain, `Media.surface`, or the `[atmosphere]`'s
+ground, whose air `air_media` adds as two media), it stops the flight and every shadow ray; a
+path that meets it takes each light's a·E·cos θ and bounces cosine-weighted. A path that leaves
+the media sees the sky. Russian roulette ends paths of low throughput past `ROULETTE_AFTER`
+scatterings without bias. So `bounces = B` sums the light that scattered at most B times: B = 1
+is the single-scattering integral the physical march computes; with `Media.marched_first` the
+paths leave that integral to the march (`[path] single = "march"`).
 
-Majorants (`majorant`): exact where the density has a known bound (constant, grid, exponential),
-else the largest of a lattice of samples over the volume's box times `MARGIN`. Where a density
+Majorants (`majorant`): exact where the density has a known bound (constant, grid, exponential,
+fbm), else the largest of a lattice of samples over the volume's box times `MARGIN`. Where a density
 exceeds an estimated majorant, the tracking takes it at the majorant (a real collision for sure,
 a null fraction of 0): biased there but never negative, and `stats["path"]["above_majorant"]`
 counts those collisions, so a render that relied on it says so. (Weighted tracking, Kutz et al.
@@ -351,10 +354,11 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
     def body(*state):
         o, d, beta, out = list(state[0:3]), list(state[3:6]), list(state[6:9]), list(state[9:12])
         count, k, alive, gone, *tally = state[12:]
-        wall = None if q.surface is None else q.surface.hit(o, d, math.inf)  # the surface's hit t (inf: none)
-        later = k > 0 if marched_first else k >= 0  # the scatterings the paths add light from
-        out, count, tally = _lights_along(q, o, d, alive & (k < bounces) & later, beta, out, wall, key, count, tally)
+        # the surface's hit t (inf: none); a finished path's walk ends at once (t_max 0)
+        wall = None if q.surface is None else q.surface.hit(o, d, lanes.where(alive, math.inf, 0.0))
+        later = k > 0 if marched_first else alive  # the scatterings the paths add light from
         t0, t1, total = _spans(q, o, d, alive, wall)
+        out, count, tally = _lights_along(q, o, d, (t0, t1), alive & (k < bounces) & later, beta, out, key, count, tally)
         hit, vol, sig, w, count, live, extra, *ev = track_lanes(o, d, t0, t1, total, q.sigma, key, count,
                                                                 collide=True, steps=MAX_TENTATIVE)
         tally = _tallied(tally, live, extra, ev)
@@ -413,8 +417,8 @@ def _shadow(q, x: list, direction: list, distance, on, key, count, tally, *, occ
     s0, s1, tot = _spans(q, x, direction, on, distance)
     _, _, _, through, count, live, extra, *ev = track_lanes(x, direction, s0, s1, tot, q.sigma, key, count,
                                                             collide=False, steps=MAX_TENTATIVE)
-    if q.surface is not None and occluded:
-        through = through * lanes.where(on, q.surface.visible(x, direction, distance), 0.0)
+    if q.surface is not None and occluded:  # (a ray not `on` ends its walk at once: distance 0)
+        through = through * lanes.where(on, q.surface.visible(x, direction, lanes.where(on, distance, 0.0)), 0.0)
     return through, count, _tallied(tally, live, extra, ev)
 
 
@@ -437,18 +441,20 @@ def _lights_at(q, x: list, d: list, vol, alive, face, normal, beta: list, out: l
     return out, count, tally
 
 
-def _lights_along(q, o: list, d: list, on, beta: list, out: list, wall, key, count, tally):
+def _lights_along(q, o: list, d: list, spans: tuple, on, beta: list, out: list, key, count, tally):
     """Each point light's single scattering along the whole flight from o along d (three lanes
     each) where `on`: one point y of the media's span drawn ∝ 1/r² to the light (`equiangular`),
     Σ σ_s·p(θ) there times I/r², the transmittance o→y and y→light, over its density. Its 1/r²
     peak makes a collision's next event (`_lights_at`) a heavy-tailed estimate near the light,
-    infinite variance inside a medium; this one is bounded. -> (out plus it, the counters, the tally)."""
-    for light in q.lights:
-        if light.position is None:
-            continue
-        t0, t1, _ = _spans(q, o, d, on, wall)
-        start, end = _extent(t0, t1)
-        at = on & (end > start)
+    infinite variance inside a medium; this one is bounded. `spans`: each volume's (t0, t1) along
+    the flight (`_spans`). -> (out plus it, the counters, the tally)."""
+    points = [light for light in q.lights if light.position is not None]
+    if not points:
+        return out, count, tally
+    t0, t1 = spans
+    start, end = _extent(t0, t1)
+    at = on & (end > start)
+    for light in points:
         u = uniform_lanes(key, count)
         count = count + lanes.to_int32(at)
         t, density = equiangular(o, d, light.position, lanes.where(at, start, 0.0), lanes.where(at, end, 1.0), u)
