@@ -8,6 +8,7 @@ seeds), never assumed."""
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -177,6 +178,33 @@ def test_a_batch_renders_each_scene_as_alone(one_thread):
     assert not torch.equal(again.radiance, tv.render(scene, seed=3).radiance)  # the seed drives the paths
 
 
+def _differing(name: str) -> tuple[dict, dict]:
+    """Two scenes of one structure, at an odd size, whose per-scene values differ: the terrain's
+    seed and colour and a point light's position, or the air's coefficients, ground and sun."""
+    scene = tv.preset(name, width=9, height=5, **({"view": "ground"} if name == "atmosphere" else {})).model_dump()
+    scene["path"] = {"bounces": 5, "samples": 2}
+    other = copy.deepcopy(scene)
+    if name == "terrain-clouds":
+        for sc, x in ((scene, 1.0), (other, -2.0)):
+            sc["lights"].append({"kind": "point", "position": [x, 2.0, 1.0], "intensity": 20.0})
+        other["terrain"].update(seed=11, color=[0.5, 0.2, 0.1])
+        other["volumes"][0]["sigma_t"] = 9.0
+    else:
+        other["atmosphere"].update(ground=[0.6, 0.5, 0.4], mie=5e-5, rayleigh=[1e-5, 2e-5, 4e-5])
+        other["lights"][0]["direction"] = [0.0, 0.02, 1.0]
+    return scene, other
+
+
+@pytest.mark.parametrize("name", ["terrain-clouds", "atmosphere"])
+def test_surfaces_and_air_render_each_scene_of_a_batch_as_alone(name, one_thread):
+    scenes = _differing(name)
+    batch = tv.render(list(scenes), seed=[3, 5])
+    for b, (sc, seed) in enumerate(zip(scenes, (3, 5))):
+        alone = tv.render(sc, seed=seed)
+        assert torch.equal(batch.radiance[b], alone.radiance[0]), f"{name}: scene {b} differs alone"
+    assert not torch.equal(batch.radiance[0], batch.radiance[1])
+
+
 @pytest.mark.slow
 @settings(max_examples=12, deadline=None)
 @given(sigma=st.sampled_from([0.0, 1e-3, 1.0, 50.0, 1e4, 1e7]), albedo=st.sampled_from([0.0, 0.5, 1.0]),
@@ -195,6 +223,32 @@ def test_random_media_give_finite_images(sigma, albedo, g, kind, density):
     out = tv.render(scene)
     assert torch.isfinite(out.radiance).all() and torch.isfinite(out.image).all()
     assert out.stats["path"]["truncated"] == 0
+
+
+@pytest.mark.slow
+@settings(max_examples=16, deadline=None)
+@given(surface=st.sampled_from(["terrain", "atmosphere"]), sigma=st.sampled_from([0.0, 1e-3, 2.0, 1e4, 1e7]),
+       albedo=st.sampled_from([0.0, 0.7, 1.0]), g=st.sampled_from([-0.999, 0.0, 0.999]),
+       sun_y=st.sampled_from([-0.3, 0.0, 1e-4, 1.0]), single=st.sampled_from(["paths", "march"]),
+       point=st.sampled_from([None, [0.0, -0.5, 0.0], [0.0, 0.8, 0.0]]))
+def test_random_surfaces_and_air_give_finite_images(surface, sigma, albedo, g, sun_y, single, point):
+    """A medium over the terrain (flat to steep, the sun grazing or below it, a point light under
+    the ground or in the medium) or in the air over the planet: finite, non-negative radiance,
+    depth ≥ 0, whatever the density, albedo, phase and `single`."""
+    scene = {"image": {"width": 4, "height": 3}, "camera": {"eye": [0, 1.5, -3], "target": [0, 0, 0], "fov_y": 60},
+             "lights": [{"direction": [0.3, sun_y, 0.2], "intensity": 3.0}]
+             + ([{"kind": "point", "position": point, "intensity": 2.0}] if point is not None else []),
+             "volumes": [{"bounds": {"box": {"min": [-1, 0.2, -1], "max": [1, 1.2, 1]}}, "density": {"constant": 1.0},
+                          "sigma_t": sigma, "albedo": albedo, "phase": {"hg": {"g": g}}}],
+             "path": {"bounces": 6, "samples": 2, "single": single}}
+    if surface == "terrain":
+        scene["terrain"] = {"amplitude": 0.0 if sigma < 1.0 else 2.0, "frequency": 1.5, "steps": 32}
+        scene["sky"] = {"kind": "constant", "radiance": [0.2, 0.3, 0.5]}
+    else:
+        scene["atmosphere"] = {"planet_radius": 6.36e6, "atmosphere_height": 6e4}
+    out = tv.render(scene)
+    assert torch.isfinite(out.radiance).all() and (out.radiance >= 0).all(), "non-finite or negative radiance"
+    assert (out.depth >= 0).all() and torch.isfinite(out.image).all()
 
 
 @pytest.mark.parametrize("g", [-0.999, -0.6, 0.0, 0.3, 0.95, 0.999])
