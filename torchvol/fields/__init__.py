@@ -21,6 +21,8 @@ functions, so B scenes of one structure evaluate in one call.
 
 from __future__ import annotations
 
+import torch
+
 from ..schema.registry import Registry
 from .base import Field
 from .clouds import CloudLayer, CloudsDensity, clouds_density, clouds_lanes
@@ -57,10 +59,14 @@ DENSITIES = Registry("density")
 DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lanes=(constant_lanes, constant_density))
 DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True, lanes=(grid_lanes, grid_density))
 DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density))
-DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True, lanes=(fbm_lanes, fbm_density))
+# `bound`: an upper bound (B,) of the density from its parameters (the path tracer's majorant):
+# an fbm's basis noises lie in [−1, 1] and its octave weights sum under 1; a cloudscape's remap is a smoothstep
+DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True, lanes=(fbm_lanes, fbm_density),
+                   bound=lambda f: f.bias + f.amplitude.abs())
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, lanes=(clouds_lanes, clouds_density))
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, lanes=(explosion_lanes, explosion_density))
-DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape, lanes=(cloudscape_lanes, cloudscape_density))
+DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape, lanes=(cloudscape_lanes, cloudscape_density),
+                   bound=lambda c: torch.ones_like(c.coverage))
 DENSITIES.register("particles", ParticlesDensity, ParticleField, octaves=True, lanes=(particles_lanes, particles_density))
 DENSITIES.register("fur", FurDensity, FurField, lanes=(fur_lanes, fur_density))
 

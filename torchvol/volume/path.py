@@ -101,11 +101,17 @@ def path_keys(keys: Tensor, sample: int, samples: int) -> Tensor:
 
 
 def majorant(vol, dtype: torch.dtype) -> Tensor:
-    """An upper bound (B,) of the volume's σ_t over its bounds: exact for constant, grid,
-    exponential and fbm densities (an fbm in a box: the lattice's where lower); else `MARGIN` × the
-    largest σ_t on a `LATTICE`³ lattice of its box."""
+    """An upper bound (B,) of the volume's σ_t over its bounds: exact for constant, grid and
+    exponential densities and for a density kind that declares one (`DENSITIES`' ``bound``: fbm,
+    cloudscape); else `MARGIN` × the largest σ_t on a `LATTICE`³ lattice of its box, and where a
+    kind declares a bound and has a box, the lower of the two, the declared one where the lattice
+    saw no density at all (a thin layer in a wide box: a cloudscape shell's 24³ lattice missed its
+    clouds, and a majorant of 0 tracks nothing, with no collision above it to count)."""
+    from ..fields import DENSITIES
+
     p, kind = vol.params, vol.params.density.kind
     inner = inner_and_edge(vol)[0]  # an edge fade only lowers the density
+    declared = DENSITIES[kind].caps.get("bound")
     if kind == "constant":
         bound = p.density.value.to(dtype)
     elif kind == "grid":
@@ -114,13 +120,15 @@ def majorant(vol, dtype: torch.dtype) -> Tensor:
         e = p.density.value
         low = vol.bounds.caps["height_range"](p.bounds.value)[:, 0].to(dtype)
         bound = e.value.to(dtype) * torch.exp(((e.base - low) / e.scale_height).clamp(max=math.log(1e12)))
-    elif kind == "fbm":  # an fbm's basis noises lie in [−1, 1] and its octave weights sum under 1
-        f = p.density.value
-        bound = (f.bias + f.amplitude.abs()).clamp_min(0.0).to(dtype)
-        if vol.bounds.caps["aabb"] is not None:  # a box's lattice is tighter (fewer null collisions)
-            bound = torch.minimum(bound, _lattice_maximum(vol, dtype) * MARGIN)
+    elif vol.bounds.caps["aabb"] is None and declared is not None:
+        bound = declared(p.density.value).to(dtype).clamp_min(0.0)
     else:
-        bound = _lattice_maximum(vol, dtype) * MARGIN
+        seen = _lattice_maximum(vol, dtype) * MARGIN
+        if declared is None:
+            bound = seen
+        else:
+            known = declared(p.density.value).to(seen).clamp_min(0.0)
+            bound = torch.where(seen > 0, torch.minimum(known, seen), known)
     return p.sigma_t.to(dtype) * bound.clamp(max=1e12)
 
 
