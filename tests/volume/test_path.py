@@ -80,6 +80,36 @@ def test_one_bounce_is_the_marched_single_scattering_of_a_point_light(one_thread
     _single_scattering_check(scene, samples=48)
 
 
+@pytest.mark.parametrize("lit", [False, True])
+def test_one_bounce_blends_into_the_sky_as_the_march_does(lit, one_thread):
+    """A volume's `sky_blend` (the source at distance t mixed into σt·sky by 1 − e^{−k t²}) on the
+    paths: a collision on the camera ray gathers (1 − w) of its light and adds w·sky behind the
+    ray; w from ~0.3 to ~0.9 across the box, under a gradient sky. Unlit, an emitting absorber:
+    one bounce is the march. Lit by a sun and a point light: the light they add to one bounce (the
+    paths' sky scattered once, which the march leaves out, cancels) is the march's."""
+    scene = {"image": {"width": 6, "height": 6}, "camera": {"eye": [0, 0.2, -3], "target": [0, 0, 0], "fov_y": 35},
+             "sky": {"kind": "gradient", "horizon": [0.9, 0.6, 0.3], "slope": [-0.5, 0.0, 0.6]},
+             "lights": [{"direction": [0.4, 1.0, -0.3], "intensity": 0.0}],
+             "volumes": [{"bounds": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}}, "density": {"constant": 1.0},
+                          "sigma_t": 1.5, "albedo": 0.0, "emission": [0.6, 0.3, 0.1], "sky_blend": 0.12}],
+             "march": {"quality": "high", "steps": 192, "closed_form": False}}
+    if not lit:
+        _single_scattering_check(scene, samples=48)
+        unblended = tv.render({**scene, "volumes": [{**scene["volumes"][0], "sky_blend": None}]}, dtype=F64)
+        assert float((tv.render(scene, dtype=F64).radiance - unblended.radiance).abs().mean()) > 0.05  # the blend shows
+        return
+    scene["volumes"][0].update(albedo=0.8, phase={"hg": {"g": 0.4}})
+    lit_scene = {**scene, "lights": [{"direction": [0.4, 1.0, -0.3], "intensity": 2.0, "shadow": {"steps": 64}},
+                                     {"kind": "point", "position": [0.3, 1.8, -0.2], "intensity": 6.0, "shadow": {"steps": 64}}]}
+    seeds, added = 4, {}
+    for name, sc in (("march", None), ("paths", {"bounces": 1, "samples": 32})):
+        a, b = ([{**x, "path": sc}] * seeds for x in (lit_scene, scene))
+        added[name] = (tv.render(a, seed=list(range(seeds)), dtype=F64).radiance - tv.render(b, seed=list(range(seeds)), dtype=F64).radiance).mean(dim=(1, 2, 3))
+    mean, error = _mean_and_error(added["paths"])
+    expected = float(added["march"].mean())
+    assert abs(mean - expected) <= 5.0 * error and error < 0.05 * expected, f"the lights' light: path {mean:.6g} ± {error:.2g}, march {expected:.6g}"
+
+
 def test_a_point_lights_furnace(one_thread):
     """A point light of intensity I at the centre of a sphere that scatters and never absorbs
     (albedo 1): all its power leaves the sphere, symmetrically about the light, and the part that
@@ -355,11 +385,14 @@ def test_path_tracing_refuses_what_it_cannot_trace_yet(keys):
 
 def test_the_kernel_tracks_as_eager_does(one_thread):
     """The tracking as a Dr.Jit kernel (float32 on the CPU) and eagerly: the same lanes function and
-    the same draws, so the same paths up to float rounding; the plan says which ran."""
+    the same draws, so the same paths up to float rounding; the plan says which ran. (Under a
+    sky, blended into it with distance: `sky_blend`'s share taken alike.)"""
     pytest.importorskip("drjit")
     grid = puff_grid(12)
     scene = torchvol_scene(grid, sigma_for(grid, 6.0), size=6, spp=1)
     scene["path"] = {"bounces": 16, "samples": 16}
+    scene["sky"] = {"kind": "gradient", "horizon": [0.9, 0.6, 0.3], "slope": [-0.5, 0.0, 0.6]}
+    scene["volumes"][0]["sky_blend"] = 0.02
     kernel, eager = tv.render(scene), tv.render(scene, compile="off")
     assert kernel.stats["plan"]["path"]["backend"] == "drjit" and eager.stats["plan"]["path"]["backend"] == "eager"
     gap = (kernel.radiance - eager.radiance).abs()

@@ -43,6 +43,7 @@ from ..ops import lanes
 from ..schema.batch import take
 from .density_lanes import inner_and_edge
 from .emission import EMISSION_MAPS
+from .physical import sky_blend_weight
 
 ROULETTE_AFTER = 3  # scatterings before Russian roulette may end a path
 ROULETTE_SCALE = 4.0  # a path goes on with probability min(1, this × its throughput) (tools/bench_path.py)
@@ -189,7 +190,7 @@ def air_media(layer, per_ray, channel) -> tuple[list, SimpleNamespace]:
 
         return SimpleNamespace(interval=lambda o, d: sphere_interval(frame(o), d, (0.0, 0.0, 0.0), top), reach=3e38,
                                majorant=sigmas[k], sigma_t=sigmas[k], albedo=albedo, emission=[0.0] * 3, glow=None,
-                               lobe=lobe, weighted=True, phase=phase, sigma=sigma)
+                               lobe=lobe, weighted=True, phase=phase, sigma=sigma, blend=None)
 
     air = [medium(0, 1.0, rayleigh, (0.0, 0.0, 0.0)), medium(1, 1.0 / MIE_EXTINCTION, lambda c: mie_cornette_shanks(c, g), (g, g, 0.0))]
 
@@ -366,7 +367,8 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
         wall = None if q.surface is None else q.surface.hit(o, d, lanes.where(alive, math.inf, 0.0))
         later = k > 0 if marched_first else alive  # the scatterings the paths add light from
         t0, t1, total = _spans(q, o, d, alive, wall)
-        out, count, tally = _lights_along(q, o, d, (t0, t1), alive & (k < bounces) & later, beta, out, key, count, tally)
+        out, count, tally = _lights_along(q, o, d, (t0, t1), alive & (k < bounces) & later, alive & (k == 0), beta, out,
+                                          key, count, tally)
         hit, vol, sig, w, count, live, extra, *ev = track_lanes(o, d, t0, t1, total, q.sigma, key, count,
                                                                 collide=True, steps=MAX_TENTATIVE)
         tally = _tallied(tally, live, extra, ev)
@@ -377,6 +379,7 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
         gone, alive = gone | left, alive & ~left
         t = lanes.where(alive, hit if face is None else lanes.where(face, wall, hit), 0.0)
         x = [o[c] + t * d[c] for c in range(3)]
+        beta, out = _blended(q, vol, t, alive & (k == 0) if face is None else alive & (k == 0) & ~face, later, beta, out)
         emitted = _emitted(q, vol, x, sig)
         lit = (alive if face is None else alive & ~face) & later  # (a surface emits nothing)
         out = [lanes.where(lit, out[c] + beta[c] * emitted[c], out[c]) for c in range(3)]
@@ -449,13 +452,14 @@ def _lights_at(q, x: list, d: list, vol, alive, face, normal, beta: list, out: l
     return out, count, tally
 
 
-def _lights_along(q, o: list, d: list, spans: tuple, on, beta: list, out: list, key, count, tally):
+def _lights_along(q, o: list, d: list, spans: tuple, on, camera, beta: list, out: list, key, count, tally):
     """Each point light's single scattering along the whole flight from o along d (three lanes
     each) where `on`: one point y of the media's span drawn ∝ 1/r² to the light (`equiangular`),
     Σ σ_s·p(θ) there times I/r², the transmittance o→y and y→light, over its density. Its 1/r²
     peak makes a collision's next event (`_lights_at`) a heavy-tailed estimate near the light,
     infinite variance inside a medium; this one is bounded. `spans`: each volume's (t0, t1) along
-    the flight (`_spans`). -> (out plus it, the counters, the tally)."""
+    the flight (`_spans`); `camera`: the flight is the camera ray's (where a volume's sky blend
+    takes its share, `_blended`). -> (out plus it, the counters, the tally)."""
     points = [light for light in q.lights if light.position is not None]
     if not points:
         return out, count, tally
@@ -473,6 +477,8 @@ def _lights_along(q, o: list, d: list, spans: tuple, on, beta: list, out: list, 
         scatter = None
         for v, (m, mask) in enumerate(zip(q.vols, masks)):
             term = m.albedo * q.sigma(v, y, mask) * m.phase(cos)
+            if m.blend is not None:
+                term = term * lanes.where(camera, 1.0 - sky_blend_weight(m.blend, t), 1.0)
             scatter = term if scatter is None else scatter + term
         tally = tally[:2] + [e + lanes.to_int32(mask) for e, mask in zip(tally[2:], masks)]
         before, count, tally = _shadow(q, o, d, t, at, key, count, tally, occluded=False)  # (y is short of the surface)
@@ -526,6 +532,20 @@ def _facing(normal: list, direction: list):
     return lanes.clamp_min(normal[0] * direction[0] + normal[1] * direction[1] + normal[2] * direction[2], 0.0)
 
 
+def _blended(q, vol, t, camera, later, beta: list, out: list):
+    """The sky blend (`physical.sky_blend`) at collisions on the camera ray (`camera`) at distance
+    t in a volume that has one: the march's source there is mix(S, σt·sky, w), so the collision's
+    estimate S/σt becomes (1 − w)·S/σt + w·sky behind the ray (`q.behind`): the throughput of
+    everything the path gathers from here on times 1 − w, and w·sky added where the paths give
+    that light (`later`; on `single = "march"` the march gives it). -> (beta, out)."""
+    if all(m.blend is None for m in q.vols):
+        return beta, out
+    w = lanes.where(camera, _pick(vol, [0.0 if m.blend is None else sky_blend_weight(m.blend, t) for m in q.vols]), 0.0)
+    gain = camera & later
+    out = [lanes.where(gain, out[c] + beta[c] * w * q.behind[c], out[c]) for c in range(3)]
+    return [b * (1.0 - w) for b in beta], out
+
+
 def _emitted(q, vol, x: list, sig) -> list:
     """σe/σ_t (three lanes) at a real collision at x in each lane's volume (σ_t `sig` there):
     `emission` · density plus the emission map, over σ_t."""
@@ -565,8 +585,9 @@ def path_inputs(m: Media, lights: list, s: Tensor, per_ray, volume) -> SimpleNam
         vols.append(SimpleNamespace(interval=interval, reach=min(state.plan.reach, 3e38), majorant=per_ray(m.majorants[v]),
                                     sigma_t=per_ray(p.sigma_t), albedo=per_ray(p.albedo), emission=per_ray(p.emission),
                                     glow=glow, lobe=lobe, weighted=kind in ("mie", "rayleigh"),
+                                    blend=per_ray(p.sky_blend) if state.plan.sky_blend else None,
                                     phase=lambda cos, fn=fn, q=phase_q: fn[1](q, cos, 1.0)))
-    return SimpleNamespace(vols=vols, lights=[_light(li, per_ray) for li in lights], surface=None, channel=None)
+    return SimpleNamespace(vols=vols, lights=[_light(li, per_ray) for li in lights], surface=None, channel=None, behind=None)
 
 
 def _light(light, per_ray) -> SimpleNamespace:
@@ -586,14 +607,16 @@ def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bo
     """The path-traced radiance [n, 3] of camera `rays` [n]: the mean of `samples` paths a ray
     (`keys` [n, 3]: `geometry.sampling.ray_keys`), each of at most `bounces` scatterings, lit by
     `lights` (the render's `LightSource`s), seeing `background` [n, 3] (None: black) where the camera
-    ray leaves the media and `sky(directions [m, 3], s [m]) -> [m, 3]` (None: black) where a
-    scattered path does. `trace(m, lights, rays, key, bounces, channel)` runs one sample's paths (None:
+    ray leaves the media (and its volumes' sky blend takes) and `sky(directions [m, 3], s [m]) ->
+    [m, 3]` (None: black) where a scattered path does. `trace(m, lights, rays, key, bounces,
+    channel, background)` runs one sample's paths (None:
     `trace_eager`; `path_kernel.trace_kernel`: one Dr.Jit kernel)."""
     s, total = rays.scene_index, rays.origins.new_zeros(len(rays), 3)
     run = trace_eager if trace is None else trace
     for k in range(samples):
         channel = None if m.air is None else hero_channels(keys, k)
-        out, beta, direction, gone, scattered, cut, above = run(m, lights, rays, path_keys(keys, k, samples), bounces, channel)
+        out, beta, direction, gone, scattered, cut, above = run(m, lights, rays, path_keys(keys, k, samples), bounces, channel,
+                                                                background)
         m.counts.truncated += int(cut.sum())
         m.counts.above_majorant += int(above.sum())
         first, later = (gone & (scattered == 0)).nonzero().squeeze(1), (gone & (scattered > 0)).nonzero().squeeze(1)
@@ -605,10 +628,11 @@ def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bo
     return total / samples
 
 
-def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int, channel: Tensor | None = None) -> list:
+def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int, channel: Tensor | None = None,
+                behind: Tensor | None = None) -> list:
     """`trace_lanes` on torch columns for rays [n] (paths of keys `key` [n], colours `channel` [n]
-    where the scene has air, `hero_channels`) -> its results as tensors ([n, 3] for the three-lane
-    ones)."""
+    where the scene has air, `hero_channels`; the sky `behind` each ray [n, 3], None: black) -> its
+    results as tensors ([n, 3] for the three-lane ones)."""
     s = rays.scene_index
     per_ray = lambda x: lanes.columns(take(x, s))  # noqa: E731
 
@@ -630,7 +654,7 @@ def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int, channel
         return out
 
     q = path_inputs(m, lights, s, per_ray, volume)
-    q.sigma = sigma
+    q.sigma, q.behind = sigma, [0.0] * 3 if behind is None else lanes.columns(behind)
     if m.surface is not None:
         q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=False)
     q = with_air(q, m, channel, per_ray)

@@ -16,9 +16,11 @@ from .emission import EMISSION_MAPS
 from .path import path_inputs, trace_lanes, with_air
 
 
-def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int, channel: Tensor | None = None) -> list[Tensor]:
+def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int, channel: Tensor | None = None,
+                 behind: Tensor | None = None) -> list[Tensor]:
     """`trace_lanes` of camera `rays` [n] (paths of keys `key` [n], int32; colours `channel` [n]
-    where the scene has air, `path.hero_channels`) through the media `m`
+    where the scene has air, `path.hero_channels`; the sky `behind` each ray [n, 3], None: black)
+    through the media `m`
     (`path.Media`) lit by `lights`, as one Dr.Jit kernel; each volume's evaluations counted.
     -> the results as tensors ([n, 3] for the three-lane ones), as `path.trace_eager` gives them."""
     import drjit as dr
@@ -40,12 +42,12 @@ def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int, channel: Tens
         return dr.if_stmt((), mask, lambda: solids[v].sigma_t * solids[v].density(x, None),
                           lambda: dr.zeros(type(x[0]), dr.width(x[0])))
 
+    lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
     q = path_inputs(m, lights, s, per_ray, volume)
-    q.sigma = sigma
+    q.sigma, q.behind = sigma, [0.0] * 3 if behind is None else lane(behind)
     if m.surface is not None:
         q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=True)
     q = with_air(q, m, None if channel is None else lanes.ints_of(channel), per_ray)
-    lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
     res = trace_lanes(q, lane(rays.origins), lane(rays.directions), lanes.ints_of(key), bounces=bounces,
                       marched_first=m.marched_first)
     dr.eval(res)

@@ -154,8 +154,14 @@ def sky_blend(source, sky, sigma_t, k, t) -> list:
     numbers) with distance `t`: by 1 − e^(−k·t²), towards σt·sky, which integrates to the sky
     seen through the sample's opacity; `sigma_t` its extinction, `k` the volume's ``sky_blend``.
     Lanes (`ops.lanes`): eager and the kernel's sample alike. -> three lanes."""
-    w = -lanes.expm1(-k * t * t)
+    w = sky_blend_weight(k, t)
     return [lanes.lerp(source[c], sigma_t * sky[c], w) for c in range(3)]
+
+
+def sky_blend_weight(k, t):
+    """How far a sample at distance `t` along its camera ray blends into the sky, 1 − e^(−k·t²)
+    (`k` the volume's ``sky_blend``); lanes: the march's blend and the paths' (`volume.path`)."""
+    return -lanes.expm1(-k * t * t)
 
 
 def exact_segment(source: Tensor, sigma_t: Tensor, a: Tensor, length: Tensor,
