@@ -194,7 +194,7 @@ def test_a_thin_layer_in_a_wide_box_is_tracked(one_thread):
     scene = tv.preset("cloudscape", width=6, height=6).model_dump()
     scene.update(sky={"kind": "constant", "radiance": [1.0, 1.0, 1.0]}, lights=[{"direction": [0, 1, 0], "intensity": 0.0}])
     scene["image"]["spp"] = 1
-    scene["volumes"][0].update(albedo=0.0, ambient=None, multiple_scattering=None)
+    scene["volumes"][0].update(albedo=0.0, ambient=None, multiple_scattering=None, sky_blend=None)  # the field alone
     seeds = 4
     traced = tv.render([{**scene, "path": {"bounces": 1, "samples": 64}}] * seeds, seed=list(range(seeds)), keep_context=True)
     ctx = traced.context
@@ -223,6 +223,19 @@ def test_every_order_adds_light_and_the_plan_says_so(one_thread):
     assert float(every.radiance.mean()) > 1.5 * float(one.radiance.mean())
     assert every.stats["plan"]["path"] == {"bounces": 64, "samples": 16, "backend": "eager", "single": "paths"}
     assert "path" in every.stats["passes"] and every.stats["path"]["truncated"] == 0
+
+
+def test_paths_alone_run_the_march_unlit(one_thread):
+    """With `single = "paths"` the paths give all the light: the march runs unlit (no shadow pass of
+    the volume or the terrain; the stats say so), and its depth and alpha are the lit march's."""
+    scene = tv.preset("terrain-clouds", width=8, height=6).model_dump()
+    lit = tv.render(scene)
+    traced = tv.render({**scene, "path": {"bounces": 2, "samples": 1}})
+    assert {"volume0.shadow0", "terrain.shadow0"} <= set(lit.stats["passes"])
+    assert not [p for p in traced.stats["passes"] if "shadow" in p], traced.stats["passes"]
+    assert torch.equal(traced.depth, lit.depth) and torch.equal(traced.alpha, lit.alpha)
+    on_march = tv.render({**scene, "path": {"bounces": 2, "samples": 1, "single": "march"}})
+    assert "volume0.shadow0" in on_march.stats["passes"]
 
 
 def test_a_batch_renders_each_scene_as_alone(one_thread):
@@ -397,9 +410,10 @@ def test_the_kernel_tracks_as_eager_does(one_thread):
     assert kernel.stats["plan"]["path"]["backend"] == "drjit" and eager.stats["plan"]["path"]["backend"] == "eager"
     gap = (kernel.radiance - eager.radiance).abs()
     assert float(gap.mean()) < 1e-3 * float(eager.radiance.mean()), f"kernel and eager paths differ by {float(gap.mean()):.3g} on average"
-    # the paths' own evaluations (each render's total less its march's), counted alike
-    marched = {mode: tv.render({k: v for k, v in scene.items() if k != "path"}, compile=mode).stats["density_evals"]
-               for mode in ("kernels", "off")}
+    # the paths' own evaluations (each render's total less its march's, which runs unlit: the
+    # paths give all the light), counted alike
+    unlit = {**{k: v for k, v in scene.items() if k != "path"}, "lights": []}
+    marched = {mode: tv.render(unlit, compile=mode).stats["density_evals"] for mode in ("kernels", "off")}
     traced = kernel.stats["density_evals"] - marched["kernels"], eager.stats["density_evals"] - marched["off"]
     assert traced[0] > 0 and traced[0] == pytest.approx(traced[1], rel=1e-3)
 

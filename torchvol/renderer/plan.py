@@ -381,7 +381,7 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: Com
     shadow passes, and the terms its source adds."""
     vol, name = batch.volumes[v], f"volume{v}"
     shading = SHADINGS[vol.shading]
-    lights = list(enumerate(batch.lights))
+    lights = list(enumerate(batch.lights)) if _lit_by_the_march(batch) else []
     if shading.caps["lights"] == "first":  # the shader look's derivative light
         uses = tuple(LightPass(l, f"{name}.derivative_light", None) for l, _ in lights[:1] if vol.shader.light == "derivative")
     elif shading.caps["lights"] == "unshadowed":  # lit inside the march pass, no shadow pass
@@ -443,6 +443,13 @@ def voxel_pass(batch: Stacked) -> VoxelPass | None:
                      reflections=vx.reflections.bounces if vx.reflections is not None and any_ggx(vx.materials) else 0)
 
 
+def _lit_by_the_march(batch: Stacked) -> bool:
+    """Whether the march's light counts: with `[path] single = "paths"` the paths give all of it,
+    so the march runs unlit, for what the labels take (alpha, depth, the optical thickness), and
+    its volumes' and terrain's shadow rays cost nothing."""
+    return batch.path is None or batch.path.single != "paths"
+
+
 def terrain_pass(batch: Stacked) -> TerrainPass | None:
     """The terrain's pass (None: no terrain), with a shadow pass per shadowed light that sees the
     terrain, every volume and the voxels (where the scene has them), and, where the scene has
@@ -450,6 +457,8 @@ def terrain_pass(batch: Stacked) -> TerrainPass | None:
     if batch.terrain is None:
         return None
     terrain, sky = batch.terrain, None
+    if not _lit_by_the_march(batch):
+        return TerrainPass(shadows=(), sky=None)
     if terrain.ambient_visibility == "march" and batch.volumes:  # over no volume the sky is always seen
         sky = LightPass(None, "terrain.ambient", Shadow(steps=terrain.ambient_steps), shadow_occluders(batch),
                         voxels=batch.voxels is not None)
