@@ -100,6 +100,7 @@ def test_which_scenes_get_an_every_order_reference():
     single = {**PUFF, "volumes": [{k: v for k, v in PUFF["volumes"][0].items() if k != "multiple_scattering"}]}
     assert not every_order_applies(single) and every_order_applies(single, "always")
     assert not every_order_applies(PUFF, "never")
-    assert not every_order_applies(preset_dict("voxel-terrain", width=8, height=8), "always")  # paths cannot trace voxels
+    assert every_order_applies(preset_dict("voxel-terrain", width=8, height=8), "always")  # Lambert voxel faces
+    assert not every_order_applies(preset_dict("voxel-water", width=8, height=8), "always")  # paths cannot trace water
     assert every_order_applies(preset_dict("terrain-clouds", width=8, height=8))  # octaves over a terrain paths trace
     assert not every_order_applies(with_every_order(PUFF), "always")  # already path-traced

@@ -228,15 +228,15 @@ def _look(t: Stacked, per_lane) -> SimpleNamespace:
 def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool) -> SimpleNamespace:
     """The terrain as the path tracer's opaque surface (`volume.path`) for rays of scenes `s` [n],
     lanes (`per_lane`: per scene -> lanes; `kernel`: Dr.Jit's, else torch columns like `like`):
-    `hit(o, d, t_max)` -> the refined hit's t (inf: none), `normal(x)`, and `_look`'s `albedo(n)`,
-    `lift(x, n, t)`, `visible(p, direction, distance)` -> 1 or 0; `direct` = 1: a light's
-    a·E·cos θ, as the marched terrain shades it."""
+    `hit(o, d, t_max)` -> (the refined hit's t (inf: none), no facts), `normal(x, facts)`, and
+    `_look`'s `albedo(n, facts)`, `lift(x, n, t)`, `visible(p, direction, distance)` -> 1 or 0; it
+    emits nothing (`emitted` None); `direct` = 1: a light's a·E·cos θ, as the marched terrain shades it."""
     q = _kernel_lanes(t, s)[0] if kernel else _torch_lanes(t, s, like)
     look = _look(t, per_lane)
     if kernel:
         def hit(o, d, t_max):
             found, dist = trace_lanes(q, o, d, t_max, refine=True)
-            return lanes.where(found, dist, math.inf)
+            return lanes.where(found, dist, math.inf), []
 
         visible = lambda p, direction, distance: visible_lanes(q, p, direction, distance)  # noqa: E731
     else:  # eagerly `trace`, which compacts finished rays out of its loop (the same step and rules)
@@ -245,13 +245,13 @@ def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool)
 
         def hit(o, d, t_max):
             found, dist = trace(t, stack(o), stack(d), s, reach(t_max), steps=int(t.steps), refine=True)
-            return torch.where(found, dist, math.inf)
+            return torch.where(found, dist, math.inf), []
 
         def visible(p, direction, distance):
             return visibility(t, stack(p), stack(direction), s, reach(distance), steps=int(t.steps))
 
-    return SimpleNamespace(hit=hit, normal=lambda x: normal_lanes(q, x[0], x[2]), albedo=look.albedo, lift=look.lift,
-                           visible=visible, direct=1.0)
+    return SimpleNamespace(hit=hit, normal=lambda x, facts: normal_lanes(q, x[0], x[2]),
+                           albedo=lambda n, facts: look.albedo(n), emitted=None, lift=look.lift, visible=visible, direct=1.0)
 
 
 class TerrainSurface:

@@ -382,7 +382,7 @@ def test_the_ground_shadows_and_bounces_paths(one_thread):
     assert float(gap.max()) < 1e-4, f"kernel and eager paths differ by up to {float(gap.max()):.3g}"
 
 
-@pytest.mark.parametrize("keys", [("voxels",), ("terrain", "atmosphere")])
+@pytest.mark.parametrize("keys", [("voxels", "terrain"), ("voxels", "atmosphere"), ("terrain", "atmosphere")])
 def test_path_tracing_refuses_what_it_cannot_trace_yet(keys):
     scene = _furnace(0.5, 2)
     tables = {"voxels": {"occupancy": {"sdf": {"shape": {"sphere": {"radius": 1.0}}}}}, "terrain": {}, "atmosphere": {}}

@@ -127,7 +127,7 @@ def with_every_order(data: Mapping) -> dict:
 
 def every_order_applies(data: Mapping, mode: str = "auto") -> bool:
     """Whether a scene dict gets an every-order (path-traced) reference beside its own: "never"
-    not; "always" where `[path]` can trace it (physical media, a terrain); "auto" where it can and a
+    not; "always" where `[path]` can trace it (physical media, a terrain, Lambert voxels); "auto" where it can and a
     volume has multiple-scattering octaves (an approximation of the orders past the first)."""
     from ..schema.validate import SceneError
 

@@ -46,6 +46,7 @@ from ..volume.composite import Media, composite_volumes, finish
 from ..volume.joint import march_joint
 from ..volume.shading import SHADINGS
 from ..volume.strategy import STRATEGIES
+from ..voxel.path_surface import path_surface as voxel_path_surface
 from ..voxel.surface import VoxelSurface
 from .accumulate import Accumulator, pass_seeds
 from .aovs import AOVS, RESOLVE
@@ -265,9 +266,12 @@ def path_radiance(ctx: RenderContext, rays: Rays, background: Tensor | None) -> 
     scattered path does; with `single = "march"` only what the march leaves out (`Media.marched_first`)."""
     bounces, samples, backend, single = ctx.plan.path
     if ctx.path_media is None:
-        terrain = ctx.batch.terrain
-        ctx.path_media = path.media(ctx.volumes, ctx.dtype, None if terrain is None else partial(path_surface, terrain),
-                                    air=ctx.batch.atmosphere, marched_first=single == "march")
+        terrain, voxels, surface = ctx.batch.terrain, ctx.batch.voxels, None
+        if terrain is not None:
+            surface = partial(path_surface, terrain)
+        elif voxels is not None:
+            surface = partial(voxel_path_surface, voxels, ctx.voxel_surface.grid)
+        ctx.path_media = path.media(ctx.volumes, ctx.dtype, surface, air=ctx.batch.atmosphere, marched_first=single == "march")
     sky = None if ctx.plan.sky is None else lambda d, s: sky_toward(ctx, d, s)
     return path.radiance(ctx.path_media, ctx.lights, rays, background, sky, bounces=bounces, samples=samples,
                          keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp),

@@ -434,7 +434,7 @@ def voxel_pass(batch: Stacked) -> VoxelPass | None:
     # the terrain beside them
     shadows = tuple(LightPass(l, f"voxels.shadow{l}", li.shadow or Shadow(steps=QUALITY[batch.march.quality].shadow_steps),
                               shadow_occluders(batch), batch.terrain is not None)
-                    for l, li in enumerate(batch.lights)) if vx.shadow is not None else ()
+                    for l, li in enumerate(batch.lights)) if vx.shadow is not None and _lit_by_the_march(batch) else ()
     return VoxelPass(traversal=vx.traversal, rounded=vx.rounded is not None, ao=vx.ao is not None, shadows=shadows,
                      glow=vx.glow is not None, fog=vx.fog is not None, texture=vx.texture is not None,
                      emission=any(bool((m.emission > 0).any()) for m in vx.materials),
@@ -446,7 +446,7 @@ def voxel_pass(batch: Stacked) -> VoxelPass | None:
 def _lit_by_the_march(batch: Stacked) -> bool:
     """Whether the march's light counts: with `[path] single = "paths"` the paths give all of it,
     so the march runs unlit, for what the labels take (alpha, depth, the optical thickness), and
-    its volumes' and terrain's shadow rays cost nothing."""
+    its volumes', terrain's and voxels' shadow rays cost nothing."""
     return batch.path is None or batch.path.single != "paths"
 
 

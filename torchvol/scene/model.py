@@ -426,6 +426,23 @@ class PathSettings(Strict):
     single: Literal["paths", "march"] = "paths"
 
 
+
+# voxel keys whose look a path has no physical version of yet (`voxel.path_surface`)
+PATH_REFUSED_VOXEL_KEYS = ("reflections", "texture", "glow", "rounded", "fog", "water")
+
+
+def _voxels_a_path_traces(voxels) -> None:
+    """Refuses, under `[path]`, the voxel keys a path cannot trace (Lambert faces of the materials'
+    colour and emission, nothing else): each names its key."""
+    for key in PATH_REFUSED_VOXEL_KEYS:
+        if getattr(voxels, key) is not None:
+            refuse(f"voxels.{key}", "<set>", "path tracing renders voxel faces as Lambert surfaces of their "
+                   "materials' colour and emission; remove it or [path]")
+    for m, material in enumerate(voxels.materials):
+        if material.roughness < 1.0 or material.metallic > 0.0:
+            refuse(f"voxels.materials[{m}]", {"roughness": material.roughness, "metallic": material.metallic},
+                   "path tracing renders Lambert materials (roughness 1, metallic 0)")
+
 class Scene(Strict):
     time: float = 0.0
     image: Image = Field(default_factory=Image)
@@ -457,11 +474,12 @@ class Scene(Strict):
     def _path_traces_physical_media_alone(self):
         if self.path is None:
             return self
+        surfaces = [k for k in ("voxels", "terrain", "atmosphere") if getattr(self, k) is not None]
+        if len(surfaces) > 1:
+            refuse("path", "<path>", "path tracing takes one opaque surface, the voxels, the terrain or the atmosphere's "
+                   f"ground; this scene has {' and '.join(surfaces)}")
         if self.voxels is not None:
-            refuse("path", "<path>", "path tracing renders physical media, the terrain and the atmosphere; this scene has [voxels]")
-        if self.terrain is not None and self.atmosphere is not None:
-            refuse("path", "<path>", "path tracing takes one opaque surface, the terrain or the atmosphere's ground; "
-                   "this scene has both")
+            _voxels_a_path_traces(self.voxels)
         for v, vol in enumerate(self.volumes):
             if vol.shading != "physical":
                 refuse("path", "<path>", f"path tracing renders physical media; volumes[{v}].shading is {vol.shading!r}")

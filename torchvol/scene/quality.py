@@ -9,7 +9,7 @@ from typing import Literal
 import torch
 
 from ..volume.march import MarchSettings, StepRule
-from .model import March, Scene
+from .model import March, Scene, VoxelShadow
 
 Quality = Literal["draft", "default", "high", "reference"]
 
@@ -56,6 +56,8 @@ def at_level(scene: Scene) -> Scene:
     `[path]` without the march's stand-ins for the orders it traces (`_without_stand_ins`);
     idempotent. Everything after this sees plain ints."""
     level = QUALITY[scene.march.quality]
+    dropped = _without_stand_ins(scene)  # first: the levels fill in what it adds (the voxels' shadow)
+    scene = scene.model_copy(update=dropped) if dropped else scene
     update: dict = {}
     if scene.image.spp is None:
         update["image"] = scene.image.model_copy(update={"spp": level.spp})
@@ -81,14 +83,14 @@ def at_level(scene: Scene) -> Scene:
         update["sky"] = scene.sky.model_copy(update={"atmosphere": _atmosphere_steps(atm, level)})
     if scene.atmosphere is not None and (scene.atmosphere.steps is None or scene.atmosphere.light_steps is None):
         update["atmosphere"] = _atmosphere_steps(scene.atmosphere, level)
-    update.update(_without_stand_ins(scene))
     return scene.model_copy(update=update) if update else scene
 
 
 def _without_stand_ins(scene: Scene) -> dict:
     """With `[path]` the paths trace the orders past the first: the march's stand-ins for them (a
-    volume's octaves, sky ambient and bloom, the terrain's ambient) are dropped, so they cost
-    nothing and `single = "march"` adds the paths to the plain single scattering. -> the update."""
+    volume's octaves, sky ambient and bloom, the terrain's ambient, the voxels' ambient, AO, GI and
+    face tones) are dropped, so they cost nothing and `single = "march"` adds the paths to the
+    plain single scattering (the voxels' faces shadowed, as the paths' are). -> the update."""
     if scene.path is None:
         return {}
     update: dict = {}
@@ -96,6 +98,10 @@ def _without_stand_ins(scene: Scene) -> dict:
         update["volumes"] = [v.model_copy(update=dict.fromkeys(PATH_STAND_INS)) for v in scene.volumes]
     if scene.terrain is not None and any(scene.terrain.ambient):
         update["terrain"] = scene.terrain.model_copy(update={"ambient": (0.0, 0.0, 0.0)})
+    if scene.voxels is not None:  # Lambert faces, shadowed as the paths' are
+        vx = scene.voxels
+        update["voxels"] = vx.model_copy(update={"ambient": (0.0, 0.0, 0.0), "ao": None, "gi": None, "face_tones": (1.0, 1.0, 1.0),
+                                                 "shadow": VoxelShadow() if vx.shadow is None else vx.shadow})
     return update
 
 

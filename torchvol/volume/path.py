@@ -7,7 +7,7 @@ collision collects the medium's emission (σe/σt), then, while it has scattered
 light's irradiance times the transmittance towards it, by ratio tracking through every medium),
 and scatters: its throughput times the albedo, a new direction drawn from the phase function.
 Each point light it takes along each flight instead, at a point drawn ∝ 1/r² (`equiangular`).
-Where the scene has an opaque surface (the terrain, `Media.surface`, or the `[atmosphere]`'s
+Where the scene has an opaque surface (the terrain or the voxels, `Media.surface`, or the `[atmosphere]`'s
 ground, whose air `air_media` adds as two media), it stops the flight and every shadow ray; a
 path that meets it takes each light's a·E·cos θ and bounces cosine-weighted. A path that leaves
 the media sees the sky. Russian roulette ends paths of low throughput past `ROULETTE_AFTER`
@@ -67,7 +67,8 @@ class Media:
     """The physically shaded volumes a path meets (`vols`, the render's volume states), each
     one's majorant of σ_t per scene (`majorants` (B,)), the render's counts, the scene's opaque
     surface or None: `surface(s [n], per_ray, like [n], kernel)` -> its lanes for rays of scenes s
-    (`terrain.path_surface`'s hit, normal, albedo, lift, visible, direct), and its `[atmosphere]`
+    (`terrain.path_surface`'s, `voxel.path_surface`'s: hit -> (t, facts), normal(x, facts),
+    albedo(n, facts), emitted(facts) or None, lift, visible, direct), and its `[atmosphere]`
     (`air_media`: two more media and the planet's ground as the surface) or None."""
 
     vols: list
@@ -200,8 +201,9 @@ def air_media(layer, per_ray, channel) -> tuple[list, SimpleNamespace]:
         return [c / length for c in p]
 
     blocked = lambda p, direction, distance: ground_distance_lanes(p, direction, radius) < distance  # noqa: E731
-    surface = SimpleNamespace(hit=lambda o, d, t_max: ground_distance_lanes(o, d, radius), normal=normal,
-                              albedo=lambda n: ground, direct=1.0 / math.pi,
+    surface = SimpleNamespace(hit=lambda o, d, t_max: (ground_distance_lanes(o, d, radius), []),
+                              normal=lambda x, facts: normal(x), albedo=lambda n, facts: ground, emitted=None,
+                              direct=1.0 / math.pi,
                               lift=lambda x, n, t: [x[c] + (1e-4 * (1.0 + t)) * n[c] for c in range(3)],
                               visible=lambda p, direction, distance: lanes.where(blocked(p, direction, distance), 0.0, 1.0))
     return air, surface
@@ -212,6 +214,8 @@ def with_air(q: SimpleNamespace, m: Media, channel, per_ray) -> SimpleNamespace:
     air's media after the volumes, the ground as the surface, each path's colour `channel` (int
     lanes, `hero_channels`)."""
     if m.air is None:
+        if not m.vols:  # (`path_inputs`' vacuum)
+            q.sigma = lambda v, x, mask: q.vols[v].sigma(x, mask)
         return q
     q.channel = channel
     air, q.surface = air_media(m.air, per_ray, channel)
@@ -333,7 +337,7 @@ def _phase_sample(q, vol, d: list, u: list):
 def _spans(q, o: list, d: list, alive, t_max=None):
     """Each volume's span [t0, t1] along rays o, d (empty: t0 = t1 = 0; not `alive`: empty) up to
     t_max (None: no limit) and the majorants summed over the volumes crossed, lanes."""
-    t0, t1, total = [], [], None
+    t0, t1, total = [], [], lanes.full_like(o[0], 0.0)
     for m in q.vols:
         near, far = m.interval(o, d)
         a = lanes.clamp_min(near, 0.0)
@@ -341,8 +345,7 @@ def _spans(q, o: list, d: list, alive, t_max=None):
         crosses = alive & (b > a)
         t0.append(lanes.where(crosses, a, 0.0))
         t1.append(lanes.where(crosses, b, 0.0))
-        part = lanes.where(crosses, m.majorant, 0.0)
-        total = part if total is None else total + part
+        total = total + lanes.where(crosses, m.majorant, 0.0)
     return t0, t1, total
 
 
@@ -364,7 +367,7 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
         o, d, beta, out = list(state[0:3]), list(state[3:6]), list(state[6:9]), list(state[9:12])
         count, k, alive, gone, *tally = state[12:]
         # the surface's hit t (inf: none); a finished path's walk ends at once (t_max 0)
-        wall = None if q.surface is None else q.surface.hit(o, d, lanes.where(alive, math.inf, 0.0))
+        wall, facts = (None, None) if q.surface is None else q.surface.hit(o, d, lanes.where(alive, math.inf, 0.0))
         later = k > 0 if marched_first else alive  # the scatterings the paths add light from
         t0, t1, total = _spans(q, o, d, alive, wall)
         out, count, tally = _lights_along(q, o, d, (t0, t1), alive & (k < bounces) & later, alive & (k == 0), beta, out,
@@ -381,10 +384,13 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
         x = [o[c] + t * d[c] for c in range(3)]
         beta, out = _blended(q, vol, t, alive & (k == 0) if face is None else alive & (k == 0) & ~face, later, beta, out)
         emitted = _emitted(q, vol, x, sig)
-        lit = (alive if face is None else alive & ~face) & later  # (a surface emits nothing)
+        lit = (alive if face is None else alive & ~face) & later
         out = [lanes.where(lit, out[c] + beta[c] * emitted[c], out[c]) for c in range(3)]
+        if face is not None and q.surface.emitted is not None:  # an emitting surface (the voxels' materials)
+            glow, lit = q.surface.emitted(facts), alive & face & later
+            out = [lanes.where(lit, out[c] + beta[c] * glow[c], out[c]) for c in range(3)]
         alive = alive & (k < bounces)
-        albedo, normal, x = _collision(q, vol, x, face, wall)
+        albedo, normal, x = _collision(q, vol, x, face, wall, facts)
         beta = [lanes.where(alive, b * a, b) for b, a in zip(beta, albedo)]
         out, count, tally = _lights_at(q, x, d, vol, alive & later, face, normal, beta, out, key, count, tally)
         u = []
@@ -504,15 +510,16 @@ def equiangular(o: list, d: list, c: list, start, end, u):
     return t, gap / (lanes.clamp_min(b - a, 1e-30) * (gap * gap + along * along))
 
 
-def _collision(q, vol, x: list, face, wall):
+def _collision(q, vol, x: list, face, wall, facts):
     """At a path's collision x (three lanes): its albedo (three lanes: its volume's, the surface's
     where it met the surface, `face`; None: no surface), the surface's normal there (None: no
-    surface) and where it goes on from (off the surface, `lift`, `wall` the hit's distance)."""
+    surface) and where it goes on from (off the surface, `lift`, `wall` the hit's distance; `facts`
+    what the surface's `hit` knew of it)."""
     albedo = [_pick(vol, [m.albedo for m in q.vols])] * 3
     if face is None:
         return albedo, None, x
-    normal = q.surface.normal(x)
-    albedo = [lanes.where(face, a, b) for a, b in zip(q.surface.albedo(normal), albedo)]
+    normal = q.surface.normal(x, facts)
+    albedo = [lanes.where(face, a, b) for a, b in zip(q.surface.albedo(normal, facts), albedo)]
     return albedo, normal, [lanes.where(face, a, b) for a, b in zip(q.surface.lift(x, normal, wall), x)]
 
 
@@ -573,7 +580,8 @@ def _roulette(beta: list, play, alive, key, count):
 def path_inputs(m: Media, lights: list, s: Tensor, per_ray, volume) -> SimpleNamespace:
     """What `trace_lanes` takes for paths of scenes `s` [n]: `per_ray` (per scene -> lanes) and
     `volume(v, state)` (its interval(o, d), σ_t at points where a mask holds, its emission map's
-    glow(x, density) or None: the backend's) -> the volumes' and lights' lanes."""
+    glow(x, density) or None: the backend's) -> the volumes' and lights' lanes. A scene of a
+    surface alone gets a vacuum (`_vacuum`), so the tracking keeps its shape."""
     vols = []
     for v, state in enumerate(m.vols):
         p = state.params
@@ -587,7 +595,17 @@ def path_inputs(m: Media, lights: list, s: Tensor, per_ray, volume) -> SimpleNam
                                     glow=glow, lobe=lobe, weighted=kind in ("mie", "rayleigh"),
                                     blend=per_ray(p.sky_blend) if state.plan.sky_blend else None,
                                     phase=lambda cos, fn=fn, q=phase_q: fn[1](q, cos, 1.0)))
+    if not vols and m.air is None:
+        vols.append(_vacuum(per_ray(torch.zeros(int(s.max()) + 1 if s.numel() else 1, device=s.device))))
     return SimpleNamespace(vols=vols, lights=[_light(li, per_ray) for li in lights], surface=None, channel=None, behind=None)
+
+
+def _vacuum(zero) -> SimpleNamespace:
+    """A medium no ray crosses (its interval empty, σ_t 0; `zero` lanes of 0), for paths in a
+    scene of a surface alone (`with_air` gives it its σ_t)."""
+    return SimpleNamespace(interval=lambda o, d: (zero, zero - 1.0), reach=3e38, majorant=zero, sigma_t=zero, albedo=zero,
+                           emission=[zero] * 3, glow=None, lobe=(zero, zero, zero), weighted=False, blend=None,
+                           phase=lambda cos: cos * 0.0 + 1.0 / (4.0 * math.pi), sigma=lambda x, mask: x[0] * 0.0)
 
 
 def _light(light, per_ray) -> SimpleNamespace:

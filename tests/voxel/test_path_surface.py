@@ -1,0 +1,129 @@
+"""Voxels under `[path]` (torchvol/voxel/path_surface.py): Lambert faces of the materials' colour
+and emission that stop flights and shadow rays.
+
+Analytic oracles: the furnace room (a closed room of albedo a emitting e shows e·Σ_{k=0..B} a^k,
+as voxel GI's does); a flat voxel floor under a sun and a constant sky S is a·(E·cos θ + S) for
+any bounce count, as the marched faces with ambient S; one bounce under a cloud is the march's
+single scattering."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import assert_close
+from test_gi import room
+
+import torchvol as tv
+from torchvol.schema.validate import SceneError
+
+F64 = torch.float64
+
+
+def _mean_and_error(values: torch.Tensor) -> tuple[float, float]:
+    values = values.double().reshape(-1)
+    return float(values.mean()), float(values.std() / math.sqrt(values.numel()))
+
+
+@pytest.mark.parametrize("shape", ["box", "L"])
+@pytest.mark.parametrize("a, e, bounces", [(0.5, 0.2, 2), (0.8, 0.1, 6)])
+def test_the_furnace_room(shape, a, e, bounces, one_thread):
+    """Every path meets walls only; past `ROULETTE_AFTER` scatterings roulette makes paths differ,
+    unbiased: the image's mean within five standard errors (exact before)."""
+    scene = room([{"color": [a] * 3, "emission": [e] * 3}], shape=shape)
+    scene["path"] = {"bounces": bounces, "samples": 8}
+    out = tv.render(scene)
+    expected = e * sum(a**k for k in range(bounces + 1))
+    mean, error = _mean_and_error(out.radiance)
+    assert bool((out.depth > 0).all()), "the camera must see walls only"
+    assert abs(mean - expected) <= 5.0 * error + 1e-6, f"furnace room: {mean:.6g} ± {error:.2g} against {expected:.6g}"
+    assert out.stats["plan"]["path"]["backend"] == "drjit"
+    eager = tv.render(scene, compile="off")
+    gap = float((eager.radiance - out.radiance).abs().max())
+    assert gap < 1e-5, f"kernel and eager paths differ by {gap:.3g}"
+
+
+def _floor(*, albedo: float = 0.4, sky: float = 0.25, medium: dict | None = None) -> dict:
+    """A voxel floor (top face at y = 0) of one colour under a slanted sun and a constant sky, the
+    camera looking down at it at 45°; `medium` a box over it."""
+    scene = {"image": {"width": 6, "height": 6}, "camera": {"eye": [0.3, 3, -3], "target": [0.3, 0, 0], "fov_y": 30},
+             "sky": {"kind": "constant", "radiance": [sky] * 3},
+             "lights": [{"direction": [0.3, 1.0, 0.2], "intensity": 2.0, "shadow": {"steps": 64}}],
+             "voxels": {"occupancy": {"sdf": {"shape": {"box": {"center": [0.0, -1.0, 0.0], "half_size": [12.0, 1.0, 12.0]}},
+                                              "material": 1}},
+                        "cells": {"min": [-12, -2, -12], "max": [12, 1, 12]}, "materials": [[albedo] * 3],
+                        "ambient": [sky] * 3, "face_tones": [1.0, 1.0, 1.0], "shadow": {}},
+             "march": {"quality": "high", "steps": 192, "closed_form": False}}
+    if medium is not None:
+        scene["volumes"] = [{"bounds": {"box": {"min": [-2, 0.3, -2], "max": [2, 1.3, 2]}}, **medium}]
+    return scene
+
+
+def test_a_voxel_floor_under_a_sun_and_a_sky_is_lambert_shaded(one_thread):
+    """Every path meets the floor, takes the sun's a·E·cos θ and bounces into the sky S, whatever
+    its direction: a·(E·cos θ + S), for 1 and 4 bounces, as the marched faces (ambient S) give it."""
+    a, sky = 0.4, 0.25
+    scene = _floor(albedo=a, sky=sky)
+    expected = a * (2.0 / math.sqrt(0.3**2 + 1.0 + 0.2**2) + sky)
+    for bounces in (1, 4):
+        out = tv.render({**scene, "path": {"bounces": bounces, "samples": 2}})
+        assert_close(out.radiance, expected, atol=1e-5, what=f"path-traced voxel floor, {bounces} bounces")
+    assert_close(tv.render(scene).radiance, expected, atol=1e-5, what="marched voxel floor")
+
+
+def test_one_bounce_over_voxels_is_the_marched_single_scattering(one_thread):
+    """A cloud over the floor, lit by a sun, no sky: one bounce takes the cloud's single scattering
+    and the floor's direct light through the cloud's shadow, as the march does; on the march
+    (`single = "march"`) one bounce is the march itself."""
+    scene = _floor(sky=0.0, medium={"density": {"constant": 1.0}, "sigma_t": 1.2, "albedo": 0.8, "phase": {"hg": {"g": 0.5}}})
+    march = tv.render(scene, dtype=F64)
+    seeds = 4
+    traced = tv.render([{**scene, "path": {"bounces": 1, "samples": 48}}] * seeds, seed=list(range(seeds)))
+    mean, error = _mean_and_error(traced.radiance.double().mean(dim=(1, 2, 3)))
+    expected = float(march.radiance.double().mean())
+    assert abs(mean - expected) <= 5.0 * error and error < 0.05 * expected, (
+        f"single scattering over voxels: path {mean:.6g} ± {error:.2g}, march {expected:.6g}")
+    one = tv.render({**scene, "path": {"bounces": 1, "samples": 2, "single": "march"}})
+    assert torch.equal(one.radiance, tv.render(scene).radiance)
+
+
+def test_shadows_stop_at_the_voxels(one_thread):
+    """A roof over part of the floor (x < 2, 5 above it), no sky, one bounce: where the roof stands
+    between the floor and the sun (x < 0.5 under this sun) the floor is black, elsewhere a·E·cos θ;
+    the marched faces agree pixel by pixel."""
+    scene = _floor(sky=0.0)
+    scene["voxels"]["occupancy"] = {"sdf": {"shape": {"union": [
+        {"box": {"center": [0.0, -1.0, 0.0], "half_size": [12.0, 1.0, 12.0]}},
+        {"box": {"center": [-5.0, 6.0, 0.0], "half_size": [7.0, 1.0, 12.0]}}]}, "material": 1}}
+    scene["voxels"]["cells"] = {"min": [-12, -2, -12], "max": [12, 8, 12]}
+    scene["camera"] = {"eye": [0.3, 2, -3], "target": [0.3, 0, 0], "fov_y": 30}
+    out = tv.render({**scene, "path": {"bounces": 1, "samples": 2}})
+    lit = 0.4 * 2.0 / math.sqrt(0.3**2 + 1.0 + 0.2**2)
+    values = out.radiance[0, 0]
+    assert float(values.min()) == 0.0 and abs(float(values.max()) - lit) < 1e-5, "shadowed and lit floor both in view"
+    assert_close(out.radiance, tv.render(scene).radiance, atol=1e-5, what="path-traced against marched shadows")
+
+
+@pytest.mark.parametrize("key, value", [("reflections", {"bounces": 1}), ("glow", {}), ("rounded", {}),
+                                        ("fog", {"density": 0.1}), ("water", {"level": 0.0})])
+def test_what_a_path_cannot_trace_is_refused(key, value):
+    scene = {**_floor(), "path": {"bounces": 2, "samples": 1}}
+    scene["voxels"] = {**scene["voxels"], key: value}
+    with pytest.raises(SceneError, match=f"voxels.{key}"):
+        tv.render(scene)
+    shiny = {**_floor(), "path": {"bounces": 2, "samples": 1}}
+    shiny["voxels"] = {**shiny["voxels"], "materials": [{"color": [0.5] * 3, "roughness": 0.3}]}
+    with pytest.raises(SceneError, match="materials"):
+        tv.render(shiny)
+
+
+@pytest.mark.parametrize("name", ["voxel-gi", "voxel-carved-box", "voxel-cone"])
+def test_voxel_presets_path_trace(name, one_thread):
+    """The voxel presets whose looks a path has (their stand-ins dropped) render under `[path]`:
+    finite, non-negative, the plan saying so, no shadow pass of the march."""
+    scene = tv.preset(name, width=6, height=6).model_dump()
+    scene["path"] = {"bounces": 4, "samples": 1}
+    out = tv.render(scene)
+    assert torch.isfinite(out.radiance).all() and float(out.radiance.min()) >= 0.0 and float(out.radiance.sum()) > 0
+    assert "path" in out.stats["passes"] and not [p for p in out.stats["passes"] if "shadow" in p or "gi" in p]

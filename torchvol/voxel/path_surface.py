@@ -1,0 +1,103 @@
+"""The voxels as the path tracer's opaque surface (`volume.path`, `[path]`).
+
+A path meets the voxels where the DDA walk (`walk.walk_step`, the same step, tie rule and
+distance-field jump as every other walk) first finds an occupied cell; the face it entered by
+gives the normal (`shade.face_normal`'s rule: −sign(d) on the entry axis), the cell's material its
+Lambert albedo (`color`) and the light its faces emit (`emission`). Shadow rays are the same walk,
+up to the light. Written once in lanes: torch columns for the eager tracer, Dr.Jit arrays inside
+the path kernel (`volume.path_kernel`), a loop nested in the path's loop.
+
+Under `[path]` the marched look's stand-ins are dropped (`scene.quality.at_level`): `ambient`,
+`ao`, `gi` and the face tones; what a path cannot trace yet is refused by the schema (GGX
+materials, reflections, textures, glow, rounded voxels, the voxel fog, water).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import torch
+from torch import Tensor
+
+from ..ops import lanes
+from ..ops.mathops import take_rows
+from ..schema.batch import Stacked
+from .dda import start_lanes
+from .grid import VoxelGrid
+from .materials import material_table
+from .walk import int_table, walk_step
+
+__all__ = ["path_surface"]
+
+LIFT = 1e-4  # a bounce or shadow ray leaves a face this many voxels (plus as much of its distance) off it
+
+
+def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Tensor, *, kernel: bool) -> SimpleNamespace:
+    """The voxel grids of scenes `s` [n] as the path tracer's surface, lanes (`per_lane`: per scene
+    -> lanes; `kernel`: Dr.Jit arrays, else torch columns like `like`): `hit(o, d, t_max)` -> (the
+    first occupied cell's entry t (inf: none), its facts: the face's normal (three lanes) and the
+    material id), `normal(x, facts)`, `albedo(n, facts)`, `emitted(facts)`, `lift(x, n, t)`,
+    `visible(p, direction, distance)` -> 1 or 0; `direct` = 1: a light's a·E·cos θ, as the marched
+    voxel faces and voxel GI take it."""
+    ints = lanes.ints_of if kernel else (lambda x: x.to(torch.int32))
+    floats = lanes.floats_of if kernel else (lambda x: x.to(like.dtype))
+    r, g = _walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel)
+    materials = material_table(voxels.materials)  # (B, M, 3)
+    count = materials.color.shape[1]
+    first = ints((s * count).to(torch.int32))  # each lane's scene's first row of the tables
+    colour = [floats(c.reshape(-1)) for c in materials.color.unbind(2)]
+    glow = [floats(c.reshape(-1)) for c in materials.emission.unbind(2)]
+
+    def walk(o: list, d: list, t_max):
+        """The walk of world rays o, d (three lanes each) up to t_max -> (hit, t, entry axis, material)."""
+        ray = SimpleNamespace(**vars(r), o=[(o[c] - r.origin[c]) / r.size for c in range(3)],
+                              d=[d[c] / r.size for c in range(3)], t_max=t_max)
+        ok, t0, cell, axis = start_lanes(ray.o, ray.d, ray.lo, ray.hi, None, t_max)
+        zero = lanes.int_like(0, cell[0])
+        state = [*cell, t0, axis, zero, ok, t0 * 0.0, zero]
+        cx, cy, cz, t, axis, n, alive, t_exit, material = lanes.while_loop(
+            state, lambda *x: x[6], lambda *x: walk_step(list(x), ray, g)[0])
+        return material > 0, t, axis, material
+
+    def hit(o: list, d: list, t_max):
+        found, t, axis, material = walk(o, d, t_max)
+        normal = [lanes.where(axis == c, lanes.where(d[c] > 0.0, -1.0, 1.0), 0.0) for c in range(3)]
+        return lanes.where(found, t, float("inf")), [*normal, material]
+
+    def row(facts: list):  # the material's row of the tables (id 0, no hit: the first material, unused)
+        return first + lanes.clamp(facts[3] - 1, 0, count - 1)
+
+    def lift(x: list, n: list, dist) -> list:
+        off = LIFT * (r.size + dist)
+        return [x[c] + off * n[c] for c in range(3)]
+
+    def visible(p: list, direction: list, distance):
+        return lanes.where(walk(p, direction, distance)[0], 0.0, 1.0)
+
+    return SimpleNamespace(hit=hit, normal=lambda x, facts: facts[:3],
+                           albedo=lambda n, facts: [lanes.gather(c, row(facts)) for c in colour],
+                           emitted=lambda facts: [lanes.gather(c, row(facts)) for c in glow],
+                           lift=lift, visible=visible, direct=1.0)
+
+
+def _walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *, kernel: bool):
+    """`walk.walk_step`'s rays (each lane's cell range, flat base and placement; the rays' own o, d
+    and t_max are the walk's) and tables (the grids, their distance fields where the traversal is
+    hybrid, the strides and step limit), as lanes of rays of scenes `s` [n]."""
+    base, strides = grid.flat_base(s)
+    rows = [take_rows(x, s).to(torch.int32) for x in (grid.lo, grid.hi)]
+    r = SimpleNamespace(lo=[ints(c) for c in rows[0].unbind(1)], hi=[ints(c) for c in rows[1].unbind(1)], base=ints(base),
+                        origin=per_lane(grid.origin), size=per_lane(grid.voxel_size), fog_row=None)
+    if kernel:
+        import drjit as dr
+        from drjit.llvm import Int32
+
+        steps = dr.opaque(Int32, int(voxels.max_steps))
+        table = int_table(grid.flat_materials)
+        distance = None if grid.flat_distance is None else int_table(grid.flat_distance)
+    else:
+        steps, table = int(voxels.max_steps), grid.flat_materials.to(torch.int32)
+        distance = None if grid.flat_distance is None else grid.flat_distance.to(torch.int32)
+    g = SimpleNamespace(table=table, distance=distance, fog=None, y=int(strides[0]), x=int(strides[1]), max_steps=steps,
+                        switch=2)
+    return r, g
