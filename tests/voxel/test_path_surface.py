@@ -127,3 +127,16 @@ def test_voxel_presets_path_trace(name, one_thread):
     out = tv.render(scene)
     assert torch.isfinite(out.radiance).all() and float(out.radiance.min()) >= 0.0 and float(out.radiance.sum()) > 0
     assert "path" in out.stats["passes"] and not [p for p in out.stats["passes"] if "shadow" in p or "gi" in p]
+
+
+def test_a_batch_renders_each_voxel_scene_as_alone(one_thread):
+    """Scenes of other grids, materials and cell ranges in one batch: each renders as alone (the
+    walk's per-lane range, base and placement; its material rows)."""
+    a = {**room([{"color": [0.5, 0.4, 0.3], "emission": [0.2] * 3}], shape="L", size=(7, 5)), "path": {"bounces": 3, "samples": 2}}
+    b = {**_floor(albedo=0.7), "image": {"width": 7, "height": 5}, "path": {"bounces": 3, "samples": 2}}
+    b["voxels"] = {**b["voxels"], "origin": [0.5, 0.0, -0.25], "voxel_size": 0.5}
+    a.update(lights=b["lights"], march=b["march"], sky={"kind": "constant", "radiance": [0.3, 0.2, 0.1]})
+    batch = tv.render([a, b], seed=[1, 2])
+    for i, (scene, seed) in enumerate(((a, 1), (b, 2))):
+        alone = tv.render(scene, seed=seed)
+        assert torch.equal(batch.radiance[i], alone.radiance[0]), f"scene {i} differs alone"
