@@ -251,7 +251,8 @@ def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool)
             return visibility(t, stack(p), stack(direction), s, reach(distance), steps=int(t.steps))
 
     return SimpleNamespace(hit=hit, normal=lambda x, facts: normal_lanes(q, x[0], x[2]),
-                           albedo=lambda n, facts: look.albedo(n), emitted=None, lift=look.lift, visible=visible, direct=1.0)
+                           albedo=lambda n, facts: look.albedo(n), emitted=None,
+                           lift=lambda x, n, dist, facts: look.lift(x, n, dist), visible=visible, direct=lambda facts: 1.0)
 
 
 class TerrainSurface:

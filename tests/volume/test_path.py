@@ -52,11 +52,12 @@ def test_the_volume_furnace(albedo, bounces, one_thread):
         f"furnace a={albedo} B={bounces}: {mean:.6g} against {expected:.6g} (standard error {error:.3g})")
 
 
-def _single_scattering_check(scene: dict, samples: int, seeds: int = 4) -> None:
-    """`bounces = 1` against the march (fine steps, float64): the means of `seeds` independent
-    path-traced images (a batch of the scene with different seeds) within five standard errors."""
-    march = tv.render(scene, dtype=F64)
-    traced = tv.render([{**scene, "path": {"bounces": 1, "samples": samples}}] * seeds, seed=list(range(seeds)), dtype=F64)
+def _single_scattering_check(scene: dict, samples: int, seeds: int = 4, dtype: torch.dtype = F64) -> None:
+    """`bounces = 1` against the march (fine steps, float64 unless `dtype`): the means of `seeds`
+    independent path-traced images (a batch of the scene with different seeds) within five
+    standard errors."""
+    march = tv.render(scene, dtype=dtype)
+    traced = tv.render([{**scene, "path": {"bounces": 1, "samples": samples}}] * seeds, seed=list(range(seeds)), dtype=dtype)
     means = traced.radiance.double().mean(dim=(1, 2, 3))
     mean, error = _mean_and_error(means)
     expected = float(march.radiance.double().mean())
@@ -382,18 +383,23 @@ def test_the_ground_shadows_and_bounces_paths(one_thread):
     assert float(gap.max()) < 1e-4, f"kernel and eager paths differ by up to {float(gap.max()):.3g}"
 
 
-@pytest.mark.parametrize("keys", [("voxels", "terrain"), ("voxels", "atmosphere"), ("terrain", "atmosphere")])
-def test_path_tracing_refuses_what_it_cannot_trace_yet(keys):
-    scene = _furnace(0.5, 2)
-    tables = {"voxels": {"occupancy": {"sdf": {"shape": {"sphere": {"radius": 1.0}}}}}, "terrain": {}, "atmosphere": {}}
-    scene.update({key: tables[key] for key in keys})
-    scene["lights"] = [{"direction": [0.0, 1.0, 0.0]}]
-    with pytest.raises(SceneError, match="path"):
-        tv.render(scene)
+def test_path_tracing_refuses_what_it_cannot_trace_yet():
     looks = _furnace(0.5, 2)
     looks["volumes"][0]["shading"] = "shader"
     with pytest.raises(SceneError, match="path"):
         tv.render(looks)
+
+
+def test_a_terrain_under_the_air_is_the_marched_single_scattering(one_thread):
+    """The terrain and the planet's ground together (`path.surfaces`, the terrain over the ground as
+    the march puts it): one bounce at sunset from the ground is the march's single scattering (the
+    air's, the terrain's direct light through it)."""
+    scene = tv.preset("atmosphere", width=6, height=6, view="air").model_dump()
+    scene["camera"].update(eye=(0.0, 2000.0, 0.0), target=(0.0, 0.0, 8000.0))  # 2 km up, the terrain ahead
+    scene["atmosphere"].update(steps=256, light_steps=64)
+    scene["terrain"] = {"amplitude": 300.0, "frequency": 0.0005, "color": [0.3, 0.25, 0.2], "rock_color": [0.3, 0.25, 0.2],
+                        "ambient": [0.0, 0.0, 0.0], "steps": 256, "max_distance": 50000.0}
+    _single_scattering_check(scene, samples=160, dtype=torch.float32)  # (the kernels: eagerly it takes 80 s)
 
 
 def test_the_kernel_tracks_as_eager_does(one_thread):

@@ -140,3 +140,22 @@ def test_a_batch_renders_each_voxel_scene_as_alone(one_thread):
     for i, (scene, seed) in enumerate(((a, 1), (b, 2))):
         alone = tv.render(scene, seed=seed)
         assert torch.equal(batch.radiance[i], alone.radiance[0]), f"scene {i} differs alone"
+
+
+def test_voxels_on_a_terrain_are_shaded_as_the_march_shades_them(one_thread):
+    """Voxels standing on a flat terrain (`path.surfaces`: each ray the nearer, as the march's
+    surface pass), a sun, no sky, one bounce: every path takes its surface's a·E·cos θ through the
+    other surface's shadow, exactly as the marched surfaces do, pixel by pixel."""
+    scene = _floor(sky=0.0)
+    del scene["sky"]
+    scene["voxels"]["occupancy"] = {"sdf": {"shape": {"box": {"center": [-0.5, 1.0, 0.5], "half_size": [1.0, 1.0, 1.0]}},
+                                            "material": 1}}
+    scene["voxels"]["cells"] = {"min": [-3, 0, -2], "max": [2, 3, 3]}
+    scene["terrain"] = {"amplitude": 0.0, "color": [0.6, 0.5, 0.3], "rock_color": [0.6, 0.5, 0.3], "ambient": [0.0, 0.0, 0.0],
+                        "steps": 64}
+    scene["camera"] = {"eye": [2.5, 3, -3.5], "target": [-0.3, 0.5, 0.3], "fov_y": 45}
+    scene["image"] = {"width": 12, "height": 10}
+    out = tv.render({**scene, "path": {"bounces": 1, "samples": 1}})
+    march = tv.render(scene)
+    assert {float(v) for v in out.radiance[0, 0].unique()} > {0.0}, "both surfaces and a shadow in view"
+    assert_close(out.radiance, march.radiance, atol=1e-4, what="voxels on a terrain, path-traced against marched")

@@ -266,16 +266,25 @@ def path_radiance(ctx: RenderContext, rays: Rays, background: Tensor | None) -> 
     scattered path does; with `single = "march"` only what the march leaves out (`Media.marched_first`)."""
     bounces, samples, backend, single = ctx.plan.path
     if ctx.path_media is None:
-        terrain, voxels, surface = ctx.batch.terrain, ctx.batch.voxels, None
-        if terrain is not None:
-            surface = partial(path_surface, terrain)
-        elif voxels is not None:
-            surface = partial(voxel_path_surface, voxels, ctx.voxel_surface.grid)
-        ctx.path_media = path.media(ctx.volumes, ctx.dtype, surface, air=ctx.batch.atmosphere, marched_first=single == "march")
+        terrain, voxels = ctx.batch.terrain, ctx.batch.voxels
+        makers = ([] if terrain is None else [partial(path_surface, terrain)]) + (
+            [] if voxels is None else [partial(voxel_path_surface, voxels, ctx.voxel_surface.grid)])
+        ctx.path_media = path.media(ctx.volumes, ctx.dtype, path_surfaces(makers), air=ctx.batch.atmosphere,
+                                    marched_first=single == "march")
     sky = None if ctx.plan.sky is None else lambda d, s: sky_toward(ctx, d, s)
     return path.radiance(ctx.path_media, ctx.lights, rays, background, sky, bounces=bounces, samples=samples,
                          keys=ray_keys(rays, seeds=ctx.seeds, spp=ctx.batch.image.spp),
                          trace=path_kernel.trace_kernel if backend == "drjit" else None)
+
+
+def path_surfaces(makers: list) -> Callable | None:
+    """The scene's opaque surfaces (each `Media.surface`'s maker: the terrain's, the voxels') as
+    the paths' one (`path.surfaces`: each ray the nearer, as the march's `surface_pass`), None: none."""
+    if not makers:
+        return None
+    if len(makers) == 1:
+        return makers[0]
+    return lambda *args, **kw: path.surfaces(makers[0](*args, **kw), makers[1](*args, **kw))
 
 
 def air_along(ctx: RenderContext, rays: Rays) -> AirPath:

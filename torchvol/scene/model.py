@@ -474,10 +474,6 @@ class Scene(Strict):
     def _path_traces_physical_media_alone(self):
         if self.path is None:
             return self
-        surfaces = [k for k in ("voxels", "terrain", "atmosphere") if getattr(self, k) is not None]
-        if len(surfaces) > 1:
-            refuse("path", "<path>", "path tracing takes one opaque surface, the voxels, the terrain or the atmosphere's "
-                   f"ground; this scene has {' and '.join(surfaces)}")
         if self.voxels is not None:
             _voxels_a_path_traces(self.voxels)
         for v, vol in enumerate(self.volumes):

@@ -68,7 +68,8 @@ class Media:
     one's majorant of σ_t per scene (`majorants` (B,)), the render's counts, the scene's opaque
     surface or None: `surface(s [n], per_ray, like [n], kernel)` -> its lanes for rays of scenes s
     (`terrain.path_surface`'s, `voxel.path_surface`'s: hit -> (t, facts), normal(x, facts),
-    albedo(n, facts), emitted(facts) or None, lift, visible, direct), and its `[atmosphere]`
+    albedo(n, facts), emitted(facts) or None, lift(x, n, t, facts), visible, direct(facts);
+    several as one: `surfaces`), and its `[atmosphere]`
     (`air_media`: two more media and the planet's ground as the surface) or None."""
 
     vols: list
@@ -203,22 +204,47 @@ def air_media(layer, per_ray, channel) -> tuple[list, SimpleNamespace]:
     blocked = lambda p, direction, distance: ground_distance_lanes(p, direction, radius) < distance  # noqa: E731
     surface = SimpleNamespace(hit=lambda o, d, t_max: (ground_distance_lanes(o, d, radius), []),
                               normal=lambda x, facts: normal(x), albedo=lambda n, facts: ground, emitted=None,
-                              direct=1.0 / math.pi,
-                              lift=lambda x, n, t: [x[c] + (1e-4 * (1.0 + t)) * n[c] for c in range(3)],
+                              direct=lambda facts: 1.0 / math.pi,
+                              lift=lambda x, n, t, facts: [x[c] + (1e-4 * (1.0 + t)) * n[c] for c in range(3)],
                               visible=lambda p, direction, distance: lanes.where(blocked(p, direction, distance), 0.0, 1.0))
     return air, surface
 
 
+def surfaces(a: SimpleNamespace, b: SimpleNamespace, *, over: bool = False) -> SimpleNamespace:
+    """Two opaque surfaces of the paths as one (`Media.surface`'s lanes): a ray meets the nearer
+    (`over`: `a` wherever it meets `a`, as the march puts a scene's surface over the planet's
+    ground), its facts saying which and holding both's; a shadow ray must pass both."""
+    def hit(o: list, d: list, t_max):
+        ta, fa = a.hit(o, d, t_max)
+        tb, fb = b.hit(o, d, t_max if over else lanes.minimum(ta, t_max))  # b's walk ends at a's hit
+        first = (ta < math.inf) if over else (ta <= tb)
+        return lanes.where(first, ta, tb), (first, fa, fb)
+
+    def either(f, x, y) -> list:  # three lanes each, `a`'s where it was met
+        return [lanes.where(f[0], p, q) for p, q in zip(x, y)]
+
+    def emitted(f) -> list:
+        return either(f, *([0.0] * 3 if s.emitted is None else s.emitted(g) for s, g in ((a, f[1]), (b, f[2]))))
+
+    return SimpleNamespace(hit=hit, normal=lambda x, f: either(f, a.normal(x, f[1]), b.normal(x, f[2])),
+                           albedo=lambda n, f: either(f, a.albedo(n, f[1]), b.albedo(n, f[2])),
+                           emitted=None if a.emitted is None and b.emitted is None else emitted,
+                           lift=lambda x, n, t, f: either(f, a.lift(x, n, t, f[1]), b.lift(x, n, t, f[2])),
+                           visible=lambda p, d, dist: a.visible(p, d, dist) * b.visible(p, d, dist),
+                           direct=lambda f: lanes.where(f[0], a.direct(f[1]), b.direct(f[2])))
+
+
 def with_air(q: SimpleNamespace, m: Media, channel, per_ray) -> SimpleNamespace:
     """`q` (`path_inputs`, its `sigma`) with the scene's `[atmosphere]` added where it has one: the
-    air's media after the volumes, the ground as the surface, each path's colour `channel` (int
-    lanes, `hero_channels`)."""
+    air's media after the volumes, the ground as a surface (under the scene's own), each path's
+    colour `channel` (int lanes, `hero_channels`)."""
     if m.air is None:
         if not m.vols:  # (`path_inputs`' vacuum)
             q.sigma = lambda v, x, mask: q.vols[v].sigma(x, mask)
         return q
     q.channel = channel
-    air, q.surface = air_media(m.air, per_ray, channel)
+    air, ground = air_media(m.air, per_ray, channel)
+    q.surface = ground if q.surface is None else surfaces(q.surface, ground, over=True)
     first, own = len(q.vols), q.sigma
     q.vols = q.vols + air
     q.sigma = lambda v, x, mask: own(v, x, mask) if v < first else q.vols[v].sigma(x, mask)
@@ -392,7 +418,7 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
         alive = alive & (k < bounces)
         albedo, normal, x = _collision(q, vol, x, face, wall, facts)
         beta = [lanes.where(alive, b * a, b) for b, a in zip(beta, albedo)]
-        out, count, tally = _lights_at(q, x, d, vol, alive & later, face, normal, beta, out, key, count, tally)
+        out, count, tally = _lights_at(q, x, d, vol, alive & later, face, normal, facts, beta, out, key, count, tally)
         u = []
         for _ in range(3):
             u.append(uniform_lanes(key, count))
@@ -439,7 +465,7 @@ def _shadow(q, x: list, direction: list, distance, on, key, count, tally, *, occ
     return through, count, _tallied(tally, live, extra, ev)
 
 
-def _lights_at(q, x: list, d: list, vol, alive, face, normal, beta: list, out: list, key, count, tally):
+def _lights_at(q, x: list, d: list, vol, alive, face, normal, facts, beta: list, out: list, key, count, tally):
     """Next-event estimation at the collisions x (three lanes) of paths flying along d: each sun's
     E·p(θ)·T in a medium (its phase function) or a·E·cos θ·T on the surface (`face`; the albedo
     already in `beta`); a point light's only on the surface (in the media `_lights_along` takes
@@ -452,7 +478,7 @@ def _lights_at(q, x: list, d: list, vol, alive, face, normal, beta: list, out: l
         cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
         phase = _pick(vol, [m.phase(cos) for m in q.vols])
         if face is not None:
-            phase = lanes.where(face, q.surface.direct * _facing(normal, direction), phase)
+            phase = lanes.where(face, q.surface.direct(facts) * _facing(normal, direction), phase)
         through, count, tally = _shadow(q, x, direction, distance, at, key, count, tally)
         out = [lanes.where(at, out[c] + beta[c] * irradiance[c] * (phase * through), out[c]) for c in range(3)]
     return out, count, tally
@@ -520,7 +546,7 @@ def _collision(q, vol, x: list, face, wall, facts):
         return albedo, None, x
     normal = q.surface.normal(x, facts)
     albedo = [lanes.where(face, a, b) for a, b in zip(q.surface.albedo(normal, facts), albedo)]
-    return albedo, normal, [lanes.where(face, a, b) for a, b in zip(q.surface.lift(x, normal, wall), x)]
+    return albedo, normal, [lanes.where(face, a, b) for a, b in zip(q.surface.lift(x, normal, wall, facts), x)]
 
 
 def _scatter(q, vol, d: list, u: list, face, normal: list | None):

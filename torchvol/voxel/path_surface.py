@@ -77,7 +77,7 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     return SimpleNamespace(hit=hit, normal=lambda x, facts: facts[:3],
                            albedo=lambda n, facts: [lanes.gather(c, row(facts)) for c in colour],
                            emitted=lambda facts: [lanes.gather(c, row(facts)) for c in glow],
-                           lift=lift, visible=visible, direct=1.0)
+                           lift=lambda x, n, dist, facts: lift(x, n, dist), visible=visible, direct=lambda facts: 1.0)
 
 
 def _walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *, kernel: bool):
