@@ -301,13 +301,15 @@ def test_random_media_give_finite_images(sigma, albedo, g, kind, density):
 
 @pytest.mark.slow
 @settings(max_examples=16, deadline=None)
-@given(surface=st.sampled_from(["terrain", "atmosphere"]), sigma=st.sampled_from([0.0, 1e-3, 2.0, 1e4, 1e7]),
+@given(surface=st.sampled_from(["terrain", "atmosphere", "voxels", "voxels+terrain", "terrain+atmosphere"]),
+       sigma=st.sampled_from([0.0, 1e-3, 2.0, 1e4, 1e7]),
        albedo=st.sampled_from([0.0, 0.7, 1.0]), g=st.sampled_from([-0.999, 0.0, 0.999]),
        sun_y=st.sampled_from([-0.3, 0.0, 1e-4, 1.0]), single=st.sampled_from(["paths", "march"]),
        point=st.sampled_from([None, [0.0, -0.5, 0.0], [0.0, 0.8, 0.0]]))
 def test_random_surfaces_and_air_give_finite_images(surface, sigma, albedo, g, sun_y, single, point):
     """A medium over the terrain (flat to steep, the sun grazing or below it, a point light under
-    the ground or in the medium) or in the air over the planet: finite, non-negative radiance,
+    the ground or in the medium), over voxels (an emitting block through the medium's box), both,
+    or in the air over the planet (a terrain under it or not): finite, non-negative radiance,
     depth ≥ 0, whatever the density, albedo, phase and `single`."""
     scene = {"image": {"width": 4, "height": 3}, "camera": {"eye": [0, 1.5, -3], "target": [0, 0, 0], "fov_y": 60},
              "lights": [{"direction": [0.3, sun_y, 0.2], "intensity": 3.0}]
@@ -315,11 +317,17 @@ def test_random_surfaces_and_air_give_finite_images(surface, sigma, albedo, g, s
              "volumes": [{"bounds": {"box": {"min": [-1, 0.2, -1], "max": [1, 1.2, 1]}}, "density": {"constant": 1.0},
                           "sigma_t": sigma, "albedo": albedo, "phase": {"hg": {"g": g}}}],
              "path": {"bounces": 6, "samples": 2, "single": single}}
-    if surface == "terrain":
+    if "terrain" in surface:
         scene["terrain"] = {"amplitude": 0.0 if sigma < 1.0 else 2.0, "frequency": 1.5, "steps": 32}
-        scene["sky"] = {"kind": "constant", "radiance": [0.2, 0.3, 0.5]}
-    else:
+    if "voxels" in surface:
+        scene["voxels"] = {"occupancy": {"sdf": {"shape": {"box": {"center": [0.0, 0.5, 0.0], "half_size": [0.5, 1.0, 0.5]}},
+                                                 "material": 1}},
+                           "cells": {"min": [-2, -1, -2], "max": [2, 2, 2]}, "voxel_size": 0.5,
+                           "materials": [{"color": [albedo] * 3, "emission": [0.3, 0.2, 0.1]}]}
+    if "atmosphere" in surface:
         scene["atmosphere"] = {"planet_radius": 6.36e6, "atmosphere_height": 6e4}
+    else:
+        scene["sky"] = {"kind": "constant", "radiance": [0.2, 0.3, 0.5]}
     out = tv.render(scene)
     assert torch.isfinite(out.radiance).all() and (out.radiance >= 0).all(), "non-finite or negative radiance"
     assert (out.depth >= 0).all() and torch.isfinite(out.image).all()

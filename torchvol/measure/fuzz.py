@@ -96,8 +96,7 @@ def _extras(rng: np.random.Generator, scene: dict) -> None:
     if rng.random() < 0.1:
         scene["image"] = {**scene.get("image", {}), "passes": 2}
         scene["march"] = {**scene.get("march", {}), "dither": "hash"}
-    traceable = "voxels" not in scene and not ("terrain" in scene and "atmosphere" in scene)  # (one opaque surface)
-    if traceable and all(v.get("shading", "physical") == "physical" for v in scene.get("volumes", [])) and rng.random() < PATH_SHARE:
+    if all(v.get("shading", "physical") == "physical" for v in scene.get("volumes", [])) and rng.random() < PATH_SHARE:
         scene["path"] = {"bounces": int(rng.integers(1, 9)), "samples": int(rng.integers(1, 3)),
                          "single": str(rng.choice(["paths", "march"]))}
 
