@@ -128,8 +128,10 @@ class Cloudscape:
         self.p = params
         seeds = list(dict.fromkeys(int(seed) for seed in params.seed))
         self.texture = torch.tensor([seeds.index(int(seed)) for seed in params.seed], dtype=torch.int32, device=times.device)
-        self.base = torch.cat([noise_tiles.base_texture(seed).reshape(-1) for seed in seeds]).to(times)
-        self.detail = torch.cat([noise_tiles.detail_texture(seed).reshape(-1) for seed in seeds]).to(times)
+        # one seed: the cached texture itself, not a copy (8 MB: ~3 ms a render)
+        join = lambda parts: parts[0] if len(parts) == 1 else torch.cat(parts)  # noqa: E731
+        self.base = join([noise_tiles.base_texture(seed).reshape(-1) for seed in seeds]).to(times)
+        self.detail = join([noise_tiles.detail_texture(seed).reshape(-1) for seed in seeds]).to(times)
         self.shift = params.wind * times[:, None]  # (B, 3)
         # the detail texture's node spacing: finer than any shape the trilinear lookups can hold
         self.feature_size = torch.minimum(params.scale / noise_tiles.BASE_SIZE, params.detail_scale / noise_tiles.DETAIL_SIZE)
