@@ -79,11 +79,22 @@ def intersect_box(origins: Tensor, directions: Tensor, box_min, box_max) -> tupl
 def sphere_interval(o, d, center, radius):
     """The sphere ``|p - center| <= radius`` along rays o + t d (d unit), in lanes: o, d, center
     three lanes each, radius one -> (t_near, t_far), misses (+inf, -inf). `intersect_sphere`'s body."""
+    return _sphere_roots(*_about(o, d, center), radius)
+
+
+def _about(o, d, center):
+    """What every sphere about `center` shares along rays o + t d (lanes): b = (o − center)·d,
+    |o − center|² and the squared distance of the ray's closest approach."""
     oc = [o[i] - center[i] for i in range(3)]
     b = oc[0] * d[0] + oc[1] * d[1] + oc[2] * d[2]
-    c = (oc[0] * oc[0] + oc[1] * oc[1] + oc[2] * oc[2]) - radius * radius
     perp = [oc[i] - b * d[i] for i in range(3)]
-    disc = lanes.maximum(radius * radius - (perp[0] * perp[0] + perp[1] * perp[1] + perp[2] * perp[2]), -c)
+    return b, oc[0] * oc[0] + oc[1] * oc[1] + oc[2] * oc[2], perp[0] * perp[0] + perp[1] * perp[1] + perp[2] * perp[2]
+
+
+def _sphere_roots(b, oc2, perp2, radius):
+    """`sphere_interval` of radius `radius` from `_about`'s b, |o − center|² and closest approach²."""
+    c = oc2 - radius * radius
+    disc = lanes.maximum(radius * radius - perp2, -c)
     miss = disc < 0
     s = lanes.sqrt(lanes.clamp_min(disc, 0.0))
     q = -(b + lanes.where(b < 0, -s, s))  # |q| = |b| + s: no cancellation (b = ±0: the roots are ±s either way)
@@ -111,9 +122,10 @@ def shell_interval(o, d, center, ground, inner, outer):
     """The first stretch ahead of rays o + t d (d unit) inside the shell ``inner <= |p - center| <=
     outer`` over an opaque ground sphere of radius ``ground`` (<= inner), in lanes: o, d, center
     three lanes each, the radii one -> (t_near, t_far), misses (+inf, -inf). `intersect_shell`'s body."""
-    n_out, f_out = sphere_interval(o, d, center, outer)
-    n_in, f_in = sphere_interval(o, d, center, inner)
-    n_gr, _ = sphere_interval(o, d, center, ground)
+    shared = _about(o, d, center)  # the three spheres share their centre
+    n_out, f_out = _sphere_roots(*shared, outer)
+    n_in, f_in = _sphere_roots(*shared, inner)
+    n_gr, _ = _sphere_roots(*shared, ground)
     start = lanes.clamp_min(n_out, 0.0)
     start = lanes.where((n_in <= start) & (start < f_in), f_in, start)  # starts below the layer
     end = lanes.where(n_in > start, lanes.minimum(f_out, n_in), f_out)  # comes down onto the layer's floor
