@@ -40,6 +40,7 @@ from .fields.heightfield import (
     visible_lanes,
 )
 from .geometry.rays import clip_to_ray, intersect_slab
+from .geometry.scatter import lambert_bounce, lambert_reflect
 from .geometry.surface_hit import SurfaceHit
 from .ops import lanes
 from .schema.batch import Stacked, take
@@ -230,7 +231,8 @@ def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool)
     lanes (`per_lane`: per scene -> lanes; `kernel`: Dr.Jit's, else torch columns like `like`):
     `hit(o, d, t_max)` -> (the refined hit's t (inf: none), no facts), `normal(x, facts)`, and
     `_look`'s `albedo(n, facts)`, `lift(x, n, t)`, `visible(p, direction, distance)` -> 1 or 0; it
-    emits nothing (`emitted` None); `direct` = 1: a light's a·E·cos θ, as the marched terrain shades it."""
+    emits nothing (`emitted` None); Lambert (`geometry.scatter.lambert_reflect` of 1: a light's a·E·cos θ,
+    as the marched terrain shades it; `lambert_bounce`)."""
     q = _kernel_lanes(t, s)[0] if kernel else _torch_lanes(t, s, like)
     look = _look(t, per_lane)
     if kernel:
@@ -252,7 +254,8 @@ def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool)
 
     return SimpleNamespace(hit=hit, normal=lambda x, facts: normal_lanes(q, x[0], x[2]),
                            albedo=lambda n, facts: look.albedo(n), emitted=None,
-                           lift=lambda x, n, dist, facts: look.lift(x, n, dist), visible=visible, direct=lambda facts: 1.0)
+                           lift=lambda x, n, dist, facts: look.lift(x, n, dist), visible=visible,
+                           reflect=lambert_reflect(1.0), bounce=lambert_bounce)
 
 
 class TerrainSurface:

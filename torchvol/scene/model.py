@@ -428,20 +428,16 @@ class PathSettings(Strict):
 
 
 # voxel keys whose look a path has no physical version of yet (`voxel.path_surface`)
-PATH_REFUSED_VOXEL_KEYS = ("reflections", "texture", "glow", "rounded", "fog", "water")
+PATH_REFUSED_VOXEL_KEYS = ("texture", "glow", "rounded", "fog", "water")
 
 
 def _voxels_a_path_traces(voxels) -> None:
-    """Refuses, under `[path]`, the voxel keys a path cannot trace (Lambert faces of the materials'
-    colour and emission, nothing else): each names its key."""
+    """Refuses, under `[path]`, the voxel keys a path cannot trace (faces of the materials' colour,
+    GGX and emission, nothing else): each names its key."""
     for key in PATH_REFUSED_VOXEL_KEYS:
         if getattr(voxels, key) is not None:
-            refuse(f"voxels.{key}", "<set>", "path tracing renders voxel faces as Lambert surfaces of their "
-                   "materials' colour and emission; remove it or [path]")
-    for m, material in enumerate(voxels.materials):
-        if material.roughness < 1.0 or material.metallic > 0.0:
-            refuse(f"voxels.materials[{m}]", {"roughness": material.roughness, "metallic": material.metallic},
-                   "path tracing renders Lambert materials (roughness 1, metallic 0)")
+            refuse(f"voxels.{key}", "<set>", "path tracing renders voxel faces of their materials' colour, "
+                   "GGX and emission; remove it or [path]")
 
 class Scene(Strict):
     time: float = 0.0

@@ -88,8 +88,8 @@ def at_level(scene: Scene) -> Scene:
 
 def _without_stand_ins(scene: Scene) -> dict:
     """With `[path]` the paths trace the orders past the first: the march's stand-ins for them (a
-    volume's octaves, sky ambient and bloom, the terrain's ambient, the voxels' ambient, AO, GI and
-    face tones) are dropped, so they cost nothing and `single = "march"` adds the paths to the
+    volume's octaves, sky ambient and bloom, the terrain's ambient, the voxels' ambient, AO, GI,
+    mirror reflections and face tones) are dropped, so they cost nothing and `single = "march"` adds the paths to the
     plain single scattering (the voxels' faces shadowed, as the paths' are). -> the update."""
     if scene.path is None:
         return {}
@@ -100,7 +100,8 @@ def _without_stand_ins(scene: Scene) -> dict:
         update["terrain"] = scene.terrain.model_copy(update={"ambient": (0.0, 0.0, 0.0)})
     if scene.voxels is not None:  # Lambert faces, shadowed as the paths' are
         vx = scene.voxels
-        update["voxels"] = vx.model_copy(update={"ambient": (0.0, 0.0, 0.0), "ao": None, "gi": None, "face_tones": (1.0, 1.0, 1.0),
+        update["voxels"] = vx.model_copy(update={"ambient": (0.0, 0.0, 0.0), "ao": None, "gi": None, "reflections": None,
+                                                 "face_tones": (1.0, 1.0, 1.0),
                                                  "shadow": VoxelShadow() if vx.shadow is None else vx.shadow})
     return update
 

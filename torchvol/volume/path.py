@@ -38,6 +38,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.rays import sphere_interval
+from ..geometry.scatter import lambert_bounce, lambert_reflect, turn
 from ..noise import fast
 from ..ops import lanes
 from ..schema.batch import take
@@ -68,7 +69,9 @@ class Media:
     one's majorant of σ_t per scene (`majorants` (B,)), the render's counts, the scene's opaque
     surface or None: `surface(s [n], per_ray, like [n], kernel)` -> its lanes for rays of scenes s
     (`terrain.path_surface`'s, `voxel.path_surface`'s: hit -> (t, facts), normal(x, facts),
-    albedo(n, facts), emitted(facts) or None, lift(x, n, t, facts), visible, direct(facts);
+    albedo(n, facts), emitted(facts) or None, lift(x, n, t, facts), visible, reflect(facts, n,
+    view, light) -> three lanes (π·BRDF·cos over the albedo: `lambert_reflect`), bounce(facts, n,
+    d, u) -> (direction, three weights) (`lambert_bounce`);
     several as one: `surfaces`), and its `[atmosphere]`
     (`air_media`: two more media and the planet's ground as the surface) or None."""
 
@@ -204,7 +207,7 @@ def air_media(layer, per_ray, channel) -> tuple[list, SimpleNamespace]:
     blocked = lambda p, direction, distance: ground_distance_lanes(p, direction, radius) < distance  # noqa: E731
     surface = SimpleNamespace(hit=lambda o, d, t_max: (ground_distance_lanes(o, d, radius), []),
                               normal=lambda x, facts: normal(x), albedo=lambda n, facts: ground, emitted=None,
-                              direct=lambda facts: 1.0 / math.pi,
+                              reflect=lambert_reflect(1.0 / math.pi), bounce=lambert_bounce,
                               lift=lambda x, n, t, facts: [x[c] + (1e-4 * (1.0 + t)) * n[c] for c in range(3)],
                               visible=lambda p, direction, distance: lanes.where(blocked(p, direction, distance), 0.0, 1.0))
     return air, surface
@@ -231,7 +234,14 @@ def surfaces(a: SimpleNamespace, b: SimpleNamespace, *, over: bool = False) -> S
                            emitted=None if a.emitted is None and b.emitted is None else emitted,
                            lift=lambda x, n, t, f: either(f, a.lift(x, n, t, f[1]), b.lift(x, n, t, f[2])),
                            visible=lambda p, d, dist: a.visible(p, d, dist) * b.visible(p, d, dist),
-                           direct=lambda f: lanes.where(f[0], a.direct(f[1]), b.direct(f[2])))
+                           reflect=lambda f, n, v, l: either(f, a.reflect(f[1], n, v, l), b.reflect(f[2], n, v, l)),
+                           bounce=lambda f, n, d, u: _either_bounce(f, a.bounce(f[1], n, d, u), b.bounce(f[2], n, d, u)))
+
+
+def _either_bounce(f, x: tuple, y: tuple) -> tuple:
+    """`surfaces`' bounce: (direction, weight) of `a` where it was met, else of `b`."""
+    pick = lambda p, q: [lanes.where(f[0], i, j) for i, j in zip(p, q)]  # noqa: E731
+    return pick(x[0], y[0]), pick(x[1], y[1])
 
 
 def with_air(q: SimpleNamespace, m: Media, channel, per_ray) -> SimpleNamespace:
@@ -312,25 +322,6 @@ def _extent(t0: list, t1: list):
     return first, end
 
 
-def _basis(d: list) -> tuple[list, list]:
-    """Two unit vectors (three lanes each) completing unit d (three lanes) to an orthonormal basis
-    (Duff et al. 2017), lanes."""
-    x, y, z = d
-    sign = lanes.where(z >= 0.0, 1.0, -1.0)
-    a = -1.0 / (sign + z)
-    b = x * y * a
-    return [1.0 + sign * x * x * a, sign * b, -sign * x], [b, sign + y * y * a, -y]
-
-
-def _turn(d: list, cos, u) -> list:
-    """The unit direction (three lanes) at angle acos(cos) from d (three lanes), azimuth 2π·u, lanes."""
-    t1, t2 = _basis(d)
-    sin = lanes.sqrt(lanes.clamp_min(1.0 - cos * cos, 0.0))
-    phi = 2.0 * math.pi * u
-    c, s_ = sin * lanes.cos(phi), sin * lanes.sin(phi)
-    return [c * t1[i] + s_ * t2[i] + cos * d[i] for i in range(3)]
-
-
 def hg_cos(g, u):
     """cos θ drawn from Henyey-Greenstein g by inverting its CDF at u (|g| < 1e-3: isotropic), lanes."""
     small = lanes.abs(g) < 1e-3
@@ -357,7 +348,7 @@ def _phase_sample(q, vol, d: list, u: list):
     cos = hg_cos(g, u[0])
     weight = _pick(vol, [m.phase(cos) / henyey_greenstein(cos, g) if m.weighted else lanes.full_like(cos, 1.0)
                          for m in q.vols])
-    return _turn(d, cos, u[1]), weight
+    return turn(d, cos, u[1]), weight
 
 
 def _spans(q, o: list, d: list, alive, t_max=None):
@@ -423,9 +414,9 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
         for _ in range(3):
             u.append(uniform_lanes(key, count))
             count = count + lanes.to_int32(alive)
-        turned, weight = _scatter(q, vol, d, u, face, normal)
+        turned, weight = _scatter(q, vol, d, u, face, normal, facts)
         d = [lanes.where(alive, turned[c], d[c]) for c in range(3)]
-        beta = [lanes.where(alive, b * weight, b) for b in beta]
+        beta = [lanes.where(alive, b * w, b) for b, w in zip(beta, weight)]
         o = [lanes.where(alive, x[c], o[c]) for c in range(3)]
         k = k + lanes.to_int32(alive)
         beta, alive, count = _roulette(beta, alive & (k >= ROULETTE_AFTER), alive, key, count)
@@ -476,11 +467,12 @@ def _lights_at(q, x: list, d: list, vol, alive, face, normal, facts, beta: list,
             continue
         direction, irradiance, distance = light.toward(x)
         cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
-        phase = _pick(vol, [m.phase(cos) for m in q.vols])
-        if face is not None:
-            phase = lanes.where(face, q.surface.direct(facts) * _facing(normal, direction), phase)
+        phase = [_pick(vol, [m.phase(cos) for m in q.vols])] * 3
+        if face is not None:  # the surface's reflectance towards where the path came from
+            reflected = q.surface.reflect(facts, normal, [-c for c in d], direction)
+            phase = [lanes.where(face, r, p) for r, p in zip(reflected, phase)]
         through, count, tally = _shadow(q, x, direction, distance, at, key, count, tally)
-        out = [lanes.where(at, out[c] + beta[c] * irradiance[c] * (phase * through), out[c]) for c in range(3)]
+        out = [lanes.where(at, out[c] + beta[c] * irradiance[c] * (phase[c] * through), out[c]) for c in range(3)]
     return out, count, tally
 
 
@@ -549,20 +541,16 @@ def _collision(q, vol, x: list, face, wall, facts):
     return albedo, normal, [lanes.where(face, a, b) for a, b in zip(q.surface.lift(x, normal, wall, facts), x)]
 
 
-def _scatter(q, vol, d: list, u: list, face, normal: list | None):
-    """The direction a path scatters to from d (three lanes) and its weight: the phase function of
-    its volume (`_phase_sample`), or where it met the surface (`face`; None: no surface) cosine-
-    weighted about the `normal`: Lambert's BRDF·cos/pdf is the albedo, already taken."""
+def _scatter(q, vol, d: list, u: list, face, normal: list | None, facts):
+    """The direction a path scatters to from d (three lanes) and its weight (three lanes): the
+    phase function of its volume (`_phase_sample`), or where it met the surface (`face`; None: no
+    surface) the surface's `bounce` about the `normal` (`lambert_bounce`: BRDF·cos/pdf is the
+    albedo, already taken)."""
     turned, weight = _phase_sample(q, vol, d, u)
     if face is None:
-        return turned, weight
-    bounce = _turn(normal, lanes.sqrt(u[0]), u[1])
-    return [lanes.where(face, a, b) for a, b in zip(bounce, turned)], lanes.where(face, 1.0, weight)
-
-
-def _facing(normal: list, direction: list):
-    """max(0, n·l) of unit lanes `normal` and `direction` (three lanes each)."""
-    return lanes.clamp_min(normal[0] * direction[0] + normal[1] * direction[1] + normal[2] * direction[2], 0.0)
+        return turned, [weight] * 3
+    bounce, gain = q.surface.bounce(facts, normal, d, u)
+    return [lanes.where(face, a, b) for a, b in zip(bounce, turned)], [lanes.where(face, g, weight) for g in gain]
 
 
 def _blended(q, vol, t, camera, later, beta: list, out: list):

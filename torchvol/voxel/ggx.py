@@ -2,7 +2,8 @@
 (Trowbridge-Reitz) distribution, Smith height-correlated visibility and Schlick Fresnel (F0 0.04
 for dielectrics, the albedo for metals), plus the Lambert diffuse weighted (1 − F(n·v))(1 − metallic).
 
-Plain functions on cosines [n] (or [n, 1] against colours [n, 3]). Safe in float32 and float64 at
+Plain functions on cosines [n] (or [n, 1] against colours [n, 3]), or on lanes (`ops.lanes`:
+`reflectance_lanes`, the marched faces' `ggx_reflect` and the path tracer's one source). Safe in float32 and float64 at
 the hard cases: roughness 0 clamps alpha = roughness² to `ALPHA_MIN` (a very sharp lobe, not a
 delta), and grazing cosines are clamped to `COS_MIN` so nothing divides by zero.
 
@@ -16,14 +17,16 @@ import math
 import torch
 from torch import Tensor
 
+from ..ops import lanes
+
 ALPHA_MIN = 2e-3  # roughness 0: alpha² = 4e-6 keeps D finite in float32 (peak 1/(π α²) ≈ 8e4)
 COS_MIN = 1e-4  # grazing: n·v, n·l floor (Filament's choice) keeps the visibility term finite
 F0_DIELECTRIC = 0.04
 
 
 def alpha_of(roughness: Tensor) -> Tensor:
-    """Perceptual roughness [n] -> GGX alpha = roughness², floored at `ALPHA_MIN`."""
-    return (roughness * roughness).clamp_min(ALPHA_MIN)
+    """Perceptual roughness [n] (or lanes) -> GGX alpha = roughness², floored at `ALPHA_MIN`."""
+    return lanes.clamp_min(roughness * roughness, ALPHA_MIN)
 
 
 def d_ggx(n_h: Tensor, alpha: Tensor) -> Tensor:
@@ -37,15 +40,15 @@ def v_smith(n_v: Tensor, n_l: Tensor, alpha: Tensor) -> Tensor:
     """Smith height-correlated visibility V = G / (4 (n·l)(n·v)) =
     0.5 / (n·l √((n·v)²(1 − α²) + α²) + n·v √((n·l)²(1 − α²) + α²)); cosines clamped to COS_MIN."""
     a2 = alpha * alpha
-    n_v, n_l = n_v.clamp_min(COS_MIN), n_l.clamp_min(COS_MIN)
-    gv = n_l * torch.sqrt(n_v * n_v * (1.0 - a2) + a2)
-    gl = n_v * torch.sqrt(n_l * n_l * (1.0 - a2) + a2)
+    n_v, n_l = lanes.clamp_min(n_v, COS_MIN), lanes.clamp_min(n_l, COS_MIN)
+    gv = n_l * lanes.sqrt(n_v * n_v * (1.0 - a2) + a2)
+    gl = n_v * lanes.sqrt(n_l * n_l * (1.0 - a2) + a2)
     return 0.5 / (gv + gl)
 
 
 def f_schlick(f0: Tensor, cos: Tensor) -> Tensor:
     """Schlick Fresnel F0 + (1 − F0)(1 − cos)⁵; f0 [n, 3] (or [n]), cos [n, 1] (or [n]) clamped to [0, 1]."""
-    x = 1.0 - cos.clamp(0.0, 1.0)
+    x = 1.0 - lanes.clamp(cos, 0.0, 1.0)
     x2 = x * x
     return f0 + (1.0 - f0) * (x2 * x2 * x)
 
@@ -62,18 +65,30 @@ def ggx_reflect(normal: Tensor, view: Tensor, light_dir: Tensor, albedo: Tensor,
 
     normal, view (towards the eye), light_dir (towards the light) [n, 3] unit; albedo [n, 3];
     roughness, metallic [n]. Diffuse (1 − F(n·v))(1 − metallic) · albedo / π + specular D · V · F(v·h)."""
-    h = view + light_dir
-    h = h / torch.linalg.vector_norm(h, dim=-1, keepdim=True).clamp_min(1e-12)  # v = −l: any h, n·l ≤ 0 there
-    n_l = (normal * light_dir).sum(-1)
-    n_v = (normal * view).sum(-1)
-    n_h = (normal * h).sum(-1).clamp(0.0, 1.0)
-    v_h = (view * h).sum(-1)
-    alpha, f0 = alpha_of(roughness), f0_of(albedo, metallic)
-    spec = (d_ggx(n_h, alpha) * v_smith(n_v, n_l, alpha))[:, None] * f_schlick(f0, v_h[:, None])
-    # the diffuse keeps what the specular lobe as a whole does not reflect towards v: 1 − F(n·v)
-    # (the seed's Fresnel weight); 1 − F(v·h) per light would exceed 1 at grazing views
-    diffuse = (1.0 - f_schlick(f0, n_v[:, None])) * (1.0 - metallic)[:, None] * albedo / math.pi
-    return (math.pi * n_l.clamp_min(0.0))[:, None] * (diffuse + spec)
+    col = lambda x: list(x.unbind(-1))  # noqa: E731
+    return torch.stack(reflectance_lanes(col(normal), col(view), col(light_dir), col(albedo), roughness, metallic), dim=-1)
 
 
-__all__ = ["ALPHA_MIN", "COS_MIN", "alpha_of", "d_ggx", "f0_of", "f_schlick", "ggx_reflect", "v_smith"]
+def reflectance_lanes(normal: list, view: list, light_dir: list, albedo: list, roughness, metallic) -> list:
+    """`ggx_reflect` in lanes (three lanes each for the vectors and the albedo; roughness and
+    metallic one): π · BRDF · max(n·l, 0), three lanes."""
+    h = [view[c] + light_dir[c] for c in range(3)]
+    norm = lanes.clamp_min(lanes.length3(*h), 1e-12)  # v = −l: any h, n·l ≤ 0 there
+    h = [c / norm for c in h]
+    dot = lambda a, b: a[0] * b[0] + a[1] * b[1] + a[2] * b[2]  # noqa: E731
+    n_l, n_v = dot(normal, light_dir), dot(normal, view)
+    n_h, v_h = lanes.clamp(dot(normal, h), 0.0, 1.0), dot(view, h)
+    alpha = alpha_of(roughness)
+    lobe = d_ggx(n_h, alpha) * v_smith(n_v, n_l, alpha)
+    cos = math.pi * lanes.clamp_min(n_l, 0.0)
+    out = []
+    for c in range(3):
+        f0 = F0_DIELECTRIC * (1.0 - metallic) + albedo[c] * metallic  # `f0_of`
+        # the diffuse keeps what the specular lobe as a whole does not reflect towards v: 1 − F(n·v)
+        # (the seed's Fresnel weight); 1 − F(v·h) per light would exceed 1 at grazing views
+        diffuse = (1.0 - f_schlick(f0, n_v)) * (1.0 - metallic) * albedo[c] / math.pi
+        out.append(cos * (diffuse + lobe * f_schlick(f0, v_h)))
+    return out
+
+
+__all__ = ["ALPHA_MIN", "COS_MIN", "alpha_of", "d_ggx", "f0_of", "f_schlick", "ggx_reflect", "reflectance_lanes", "v_smith"]

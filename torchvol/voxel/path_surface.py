@@ -3,26 +3,30 @@
 A path meets the voxels where the DDA walk (`walk.walk_step`, the same step, tie rule and
 distance-field jump as every other walk) first finds an occupied cell; the face it entered by
 gives the normal (`shade.face_normal`'s rule: −sign(d) on the entry axis), the cell's material its
-Lambert albedo (`color`) and the light its faces emit (`emission`). Shadow rays are the same walk,
+reflectance (Lambert of its `color`, or GGX: `ggx.reflectance_lanes`, `ggx_bounce`) and the light
+its faces emit (`emission`). Shadow rays are the same walk,
 up to the light. Written once in lanes: torch columns for the eager tracer, Dr.Jit arrays inside
 the path kernel (`volume.path_kernel`), a loop nested in the path's loop.
 
 Under `[path]` the marched look's stand-ins are dropped (`scene.quality.at_level`): `ambient`,
-`ao`, `gi` and the face tones; what a path cannot trace yet is refused by the schema (GGX
-materials, reflections, textures, glow, rounded voxels, the voxel fog, water).
+`ao`, `gi`, the mirror `reflections` and the face tones; what a path cannot trace yet is refused
+by the schema (textures, glow, rounded voxels, the voxel fog, water).
 """
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import torch
 from torch import Tensor
 
+from ..geometry.scatter import facing, turn
 from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..schema.batch import Stacked
 from .dda import start_lanes
+from .ggx import alpha_of, d_ggx, reflectance_lanes
 from .grid import VoxelGrid
 from .materials import material_table
 from .walk import int_table, walk_step
@@ -36,17 +40,14 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     """The voxel grids of scenes `s` [n] as the path tracer's surface, lanes (`per_lane`: per scene
     -> lanes; `kernel`: Dr.Jit arrays, else torch columns like `like`): `hit(o, d, t_max)` -> (the
     first occupied cell's entry t (inf: none), its facts: the face's normal (three lanes) and the
-    material id), `normal(x, facts)`, `albedo(n, facts)`, `emitted(facts)`, `lift(x, n, t)`,
-    `visible(p, direction, distance)` -> 1 or 0; `direct` = 1: a light's a·E·cos θ, as the marched
-    voxel faces and voxel GI take it."""
+    material id), `normal(x, facts)`, `albedo(n, facts)` (Lambert's; 1 for GGX),
+    `emitted(facts)`, `lift(x, n, t, facts)`, `visible(p, direction, distance)` -> 1 or 0,
+    `reflect(facts, n, view, light)` (a Lambert face's cos θ: a light's a·E·cos θ, as the marched
+    faces and voxel GI take it; a GGX face's π·BRDF·cos θ) and `bounce(facts, n, d, u)`."""
     ints = lanes.ints_of if kernel else (lambda x: x.to(torch.int32))
     floats = lanes.floats_of if kernel else (lambda x: x.to(like.dtype))
     r, g = _walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel)
-    materials = material_table(voxels.materials)  # (B, M, 3)
-    count = materials.color.shape[1]
-    first = ints((s * count).to(torch.int32))  # each lane's scene's first row of the tables
-    colour = [floats(c.reshape(-1)) for c in materials.color.unbind(2)]
-    glow = [floats(c.reshape(-1)) for c in materials.emission.unbind(2)]
+    look, emitted = _material_lanes(voxels, s, ints, floats)
 
     def walk(o: list, d: list, t_max):
         """The walk of world rays o, d (three lanes each) up to t_max -> (hit, t, entry axis, material)."""
@@ -64,8 +65,15 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
         normal = [lanes.where(axis == c, lanes.where(d[c] > 0.0, -1.0, 1.0), 0.0) for c in range(3)]
         return lanes.where(found, t, float("inf")), [*normal, material]
 
-    def row(facts: list):  # the material's row of the tables (id 0, no hit: the first material, unused)
-        return first + lanes.clamp(facts[3] - 1, 0, count - 1)
+    def albedo(n: list, facts: list) -> list:  # Lambert's goes into the throughput, GGX's is in `reflect`
+        m = look(facts)
+        return [lanes.where(m.ggx, 1.0, c) for c in m.albedo]
+
+    def reflect(facts: list, n: list, v: list, light: list) -> list:
+        m = look(facts)
+        ggx = reflectance_lanes(n, v, light, m.albedo, m.roughness, m.metallic)
+        lambert = facing(n, light)
+        return [lanes.where(m.ggx, c, lambert) for c in ggx]
 
     def lift(x: list, n: list, dist) -> list:
         off = LIFT * (r.size + dist)
@@ -74,10 +82,61 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     def visible(p: list, direction: list, distance):
         return lanes.where(walk(p, direction, distance)[0], 0.0, 1.0)
 
-    return SimpleNamespace(hit=hit, normal=lambda x, facts: facts[:3],
-                           albedo=lambda n, facts: [lanes.gather(c, row(facts)) for c in colour],
-                           emitted=lambda facts: [lanes.gather(c, row(facts)) for c in glow],
-                           lift=lambda x, n, dist, facts: lift(x, n, dist), visible=visible, direct=lambda facts: 1.0)
+    return SimpleNamespace(hit=hit, normal=lambda x, facts: facts[:3], albedo=albedo,
+                           emitted=emitted,
+                           lift=lambda x, n, dist, facts: lift(x, n, dist), visible=visible, reflect=reflect,
+                           bounce=lambda facts, n, d, u: ggx_bounce(look(facts), n, d, u))
+
+
+def _material_lanes(voxels: Stacked, s: Tensor, ints, floats):
+    """The materials of rays of scenes `s` [n] as lanes (`ints`, `floats`: tensors -> lanes):
+    (look(facts) -> the hit's albedo (three lanes), roughness, metallic and whether it is GGX,
+    emitted(facts) -> the light its faces emit (three lanes)); `facts[3]` the material id."""
+    materials = material_table(voxels.materials)  # (B, M, 3)
+    count = materials.color.shape[1]
+    first = ints((s * count).to(torch.int32))  # each lane's scene's first row of the tables
+    colour = [floats(c.reshape(-1)) for c in materials.color.unbind(2)]
+    glow = [floats(c.reshape(-1)) for c in materials.emission.unbind(2)]
+    rough, metal = floats(materials.roughness.reshape(-1)), floats(materials.metallic.reshape(-1))
+
+    def row(facts: list):  # the material's row of the tables (id 0, no hit: the first material, unused)
+        return first + lanes.clamp(facts[3] - 1, 0, count - 1)
+
+    def look(facts: list) -> SimpleNamespace:
+        i = row(facts)
+        rgh, mtl = lanes.gather(rough, i), lanes.gather(metal, i)
+        return SimpleNamespace(albedo=[lanes.gather(c, i) for c in colour], roughness=rgh, metallic=mtl,
+                               ggx=(rgh < 1.0) | (mtl > 0.0))
+
+    return look, lambda facts: [lanes.gather(c, row(facts)) for c in glow]
+
+
+def ggx_bounce(m: SimpleNamespace, n: list, d: list, u: list):
+    """Where a path arriving along d (three lanes) leaves a face of normal n (three lanes) of
+    material `m` (`path_surface`'s look: albedo, roughness, metallic, ggx), and its weight (three
+    lanes), from uniform lanes u (three). Lambert: the cosine lobe, weight 1 (the albedo is in the
+    throughput). GGX: with probability (1 + metallic)/2 the view mirrored about a half vector drawn
+    from D(h)·(n·h), else the cosine lobe; weighted by π·BRDF·cos (`ggx.reflectance_lanes`) over π
+    times the mixture's density (one-sample MIS: unbiased, each lobe's peaks sampled)."""
+    v = [-c for c in d]
+    lobe = turn(n, lanes.sqrt(u[0]), u[1])
+    alpha = alpha_of(m.roughness)
+    a2 = alpha * alpha
+    cos_h = lanes.sqrt((1.0 - u[0]) / (1.0 + (a2 - 1.0) * u[0]))
+    h = turn(n, cos_h, u[1])
+    v_h = v[0] * h[0] + v[1] * h[1] + v[2] * h[2]
+    mirrored = [2.0 * v_h * h[c] - v[c] for c in range(3)]
+    p_spec = 0.5 + 0.5 * m.metallic
+    light = [lanes.where(m.ggx & (u[2] < p_spec), a, b) for a, b in zip(mirrored, lobe)]
+    half = [v[c] + light[c] for c in range(3)]
+    norm = lanes.clamp_min(lanes.length3(*half), 1e-12)
+    n_h = lanes.clamp((n[0] * half[0] + n[1] * half[1] + n[2] * half[2]) / norm, 0.0, 1.0)
+    v_h = lanes.clamp_min((v[0] * half[0] + v[1] * half[1] + v[2] * half[2]) / norm, 1e-6)
+    n_l = n[0] * light[0] + n[1] * light[1] + n[2] * light[2]
+    pdf = p_spec * d_ggx(n_h, alpha) * n_h / (4.0 * v_h) + (1.0 - p_spec) * lanes.clamp_min(n_l, 0.0) / math.pi
+    gain = [lanes.where(n_l > 0.0, c / (math.pi * lanes.clamp_min(pdf, 1e-30)), 0.0)
+            for c in reflectance_lanes(n, v, light, m.albedo, m.roughness, m.metallic)]
+    return light, [lanes.where(m.ggx, g, 1.0) for g in gain]
 
 
 def _walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *, kernel: bool):
