@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from conftest import assert_close
@@ -113,6 +114,30 @@ def test_what_a_path_cannot_trace_is_refused(key, value):
     scene["voxels"] = {**scene["voxels"], key: value}
     with pytest.raises(SceneError, match=f"voxels.{key}"):
         tv.render(scene)
+
+
+def test_textured_faces_take_their_texels_as_the_march_does(one_thread):
+    """Two scenes of other atlases (sizes, tiles) and materials, one Lambert and one GGX, in one
+    batch: one bounce under a sun, no sky, is each one's marched image (the texel times the
+    material's colour, `shade.texel_lanes` on both sides) and each renders as alone."""
+    rng = np.random.default_rng(0)
+    scenes = []
+    for size, tiles, material in ((16, 4, [0.9, 0.8, 0.7]), (24, 2, {"color": [0.7, 0.7, 0.9], "roughness": 0.4})):
+        scene = _floor(sky=0.0)
+        del scene["sky"]
+        atlas = (rng.random((size, size, 3)) * 255).astype(np.uint8)
+        scene["voxels"] = {**scene["voxels"], "texture": {"atlas": atlas, "tiles": tiles}, "materials": [material],
+                           "ambient": [0.0] * 3}
+        scene["image"] = {"width": 24, "height": 16}
+        scenes.append(scene)
+    traced = tv.render([{**sc, "path": {"bounces": 1, "samples": 1}} for sc in scenes], seed=[1, 2])
+    for b, scene in enumerate(scenes):
+        march = tv.render(scene, seed=b + 1)  # (the same jittered sub-samples)
+        assert float(march.radiance.std()) > 0.05  # the texture shows
+        gap = ((traced.radiance[b] - march.radiance[0]).abs() / march.radiance[0].abs().clamp_min(1e-3)).max()
+        assert float(gap) < 1e-4, f"scene {b}: path-traced and marched textures differ by {float(gap):.2e} relative"
+        alone = tv.render({**scene, "path": {"bounces": 1, "samples": 1}}, seed=b + 1)
+        assert torch.equal(traced.radiance[b], alone.radiance[0])
 
 
 @pytest.mark.parametrize("roughness, metallic", [(0.3, 0.0), (0.6, 1.0), (0.05, 0.5)])

@@ -3,14 +3,15 @@
 A path meets the voxels where the DDA walk (`walk.walk_step`, the same step, tie rule and
 distance-field jump as every other walk) first finds an occupied cell; the face it entered by
 gives the normal (`shade.face_normal`'s rule: −sign(d) on the entry axis), the cell's material its
-reflectance (Lambert of its `color`, or GGX: `ggx.reflectance_lanes`, `ggx_bounce`) and the light
-its faces emit (`emission`). Shadow rays are the same walk,
+reflectance (Lambert of its `color` times the face's texel where the scene has a `texture`:
+`shade.texel_lanes`; or GGX: `ggx.reflectance_lanes`, `ggx_bounce`) and the light its faces emit
+(`emission`). Shadow rays are the same walk,
 up to the light. Written once in lanes: torch columns for the eager tracer, Dr.Jit arrays inside
 the path kernel (`volume.path_kernel`), a loop nested in the path's loop.
 
 Under `[path]` the marched look's stand-ins are dropped (`scene.quality.at_level`): `ambient`,
 `ao`, `gi`, the mirror `reflections` and the face tones; what a path cannot trace yet is refused
-by the schema (textures, glow, rounded voxels, the voxel fog, water).
+by the schema (glow, rounded voxels, the voxel fog, water).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from .dda import start_lanes
 from .ggx import alpha_of, d_ggx, reflectance_lanes
 from .grid import VoxelGrid
 from .materials import material_table
+from .shade import texel_lanes
 from .walk import int_table, walk_step
 
 __all__ = ["path_surface"]
@@ -48,6 +50,7 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     floats = lanes.floats_of if kernel else (lambda x: x.to(like.dtype))
     r, g = _walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel)
     look, emitted = _material_lanes(voxels, s, ints, floats)
+    texel = None if voxels.texture is None else _atlas_lanes(voxels.texture, s, per_lane, ints, floats)
 
     def walk(o: list, d: list, t_max):
         """The walk of world rays o, d (three lanes each) up to t_max -> (hit, t, entry axis, material)."""
@@ -58,12 +61,18 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
         state = [*cell, t0, axis, zero, ok, t0 * 0.0, zero]
         cx, cy, cz, t, axis, n, alive, t_exit, material = lanes.while_loop(
             state, lambda *x: x[6], lambda *x: walk_step(list(x), ray, g)[0])
-        return material > 0, t, axis, material
+        return material > 0, t, axis, material, (ray, [cx, cy, cz])
 
     def hit(o: list, d: list, t_max):
-        found, t, axis, material = walk(o, d, t_max)
+        found, t, axis, material, (ray, cell) = walk(o, d, t_max)
         normal = [lanes.where(axis == c, lanes.where(d[c] > 0.0, -1.0, 1.0), 0.0) for c in range(3)]
-        return lanes.where(found, t, float("inf")), [*normal, material]
+        facts = [*normal, material]
+        if texel is not None:  # the face's texel, where the hit lies in its cell
+            local = [ray.o[c] + t * ray.d[c] - lanes.to_float(cell[c], t) for c in range(3)]
+            u = lanes.where(axis == 0, local[1], lanes.where(axis == 1, local[2], local[0]))  # `shade.face_uv`
+            v = lanes.where(axis == 0, local[2], lanes.where(axis == 1, local[0], local[1]))
+            facts += texel(material, u, v)
+        return lanes.where(found, t, float("inf")), facts
 
     def albedo(n: list, facts: list) -> list:  # Lambert's goes into the throughput, GGX's is in `reflect`
         m = look(facts)
@@ -105,10 +114,24 @@ def _material_lanes(voxels: Stacked, s: Tensor, ints, floats):
     def look(facts: list) -> SimpleNamespace:
         i = row(facts)
         rgh, mtl = lanes.gather(rough, i), lanes.gather(metal, i)
-        return SimpleNamespace(albedo=[lanes.gather(c, i) for c in colour], roughness=rgh, metallic=mtl,
-                               ggx=(rgh < 1.0) | (mtl > 0.0))
+        albedo = [lanes.gather(c, i) for c in colour]
+        if len(facts) > 4:  # a textured face: its texel times the colour, as the marched faces take it
+            albedo = [a * x for a, x in zip(albedo, facts[4:7])]
+        return SimpleNamespace(albedo=albedo, roughness=rgh, metallic=mtl, ggx=(rgh < 1.0) | (mtl > 0.0))
 
     return look, lambda facts: [lanes.gather(c, row(facts)) for c in glow]
+
+
+def _atlas_lanes(texture: Stacked, s: Tensor, per_lane, ints, floats):
+    """The scenes' texture atlases as lanes of rays of scenes `s` [n]: texel(material, u, v) ->
+    three lanes (`shade.texel_lanes` over every scene's atlas flattened one after the other)."""
+    atlases = [torch.as_tensor(a) for a in texture.atlas]
+    table = [floats(torch.cat([a[..., c].reshape(-1) for a in atlases]).float()) for c in range(3)]
+    starts = torch.tensor([0] + [a.shape[0] * a.shape[1] for a in atlases[:-1]]).cumsum(0).to(torch.int32)
+    base = ints(starts.to(s.device).index_select(0, s))
+    size = [per_lane(torch.tensor([float(a.shape[k]) for a in atlases], device=s.device)) for k in (0, 1)]
+    tiles = per_lane(torch.as_tensor(texture.tiles, device=s.device).float())
+    return lambda material, u, v: texel_lanes(table, base, size[0], size[1], tiles, material, u, v)
 
 
 def ggx_bounce(m: SimpleNamespace, n: list, d: list, u: list):

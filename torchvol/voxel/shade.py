@@ -13,7 +13,8 @@ from ..noise import lattice as noise
 from ..ops import lanes
 from ..ops.mathops import pow_
 
-__all__ = ["ao_lanes", "face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_refine"]
+__all__ = ["ao_lanes", "face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_refine",
+           "texel_lanes"]
 
 
 def face_normal(axis: Tensor, directions: Tensor) -> Tensor:
@@ -80,13 +81,25 @@ def lambert(normal: Tensor, sun: Tensor) -> Tensor:
 
 def atlas_sample(atlas: Tensor, tiles: int, material: Tensor, uv: Tensor) -> Tensor:
     """Nearest texel [N, 3] in [0, 1] of a (H, W, 3) uint8 atlas: material m uses tile m − 1
-    (row-major from the top left), u to the right, v up (uv [N, 2] in [0, 1])."""
+    (row-major from the top left), u to the right, v up (uv [N, 2] in [0, 1]). `texel_lanes` on
+    torch columns."""
     H, W = atlas.shape[0], atlas.shape[1]
-    tile = (material - 1).clamp_min(0)
-    row, col = tile // tiles, tile % tiles
-    x = ((col.to(uv.dtype) + uv[:, 0].clamp(0, 1)) / tiles * W).floor().long().clamp(0, W - 1)
-    y = ((row.to(uv.dtype) + 1.0 - uv[:, 1].clamp(0, 1)) / tiles * H).floor().long().clamp(0, H - 1)
-    return atlas[y, x].to(uv.dtype) / 255.0
+    table = [atlas[..., c].reshape(-1).to(uv.dtype) for c in range(3)]
+    return torch.stack(texel_lanes(table, 0, H, W, tiles, material, uv[:, 0], uv[:, 1]), dim=1)
+
+
+def texel_lanes(table: list, base, height, width, tiles, material, u, v) -> list:
+    """`atlas_sample` in lanes (`ops.lanes`: torch columns, or the path kernel's Dr.Jit arrays):
+    `table` the atlases' three channels flattened row-major (values 0–255), `base` (int) the
+    atlas's first texel, its `height`, `width` and `tiles` a side (numbers or lanes), `material`
+    (int), the face UV `u`, `v`. -> three lanes in [0, 1]."""
+    tile = lanes.to_float(lanes.clamp_min(material - 1, 0), u)
+    row = lanes.floor(tile / tiles)
+    col = tile - row * tiles
+    x = lanes.minimum(lanes.clamp_min(lanes.floor((col + lanes.clamp(u, 0.0, 1.0)) / tiles * width), 0.0), width - 1.0)
+    y = lanes.minimum(lanes.clamp_min(lanes.floor((row + 1.0 - lanes.clamp(v, 0.0, 1.0)) / tiles * height), 0.0), height - 1.0)
+    at = base + lanes.to_int32(y * width + x)
+    return [lanes.gather(c, at) / 255.0 for c in table]
 
 
 def rounded_refine(local: Tensor, direction: Tensor, cell: Tensor, *, radius_min: float, radius_range: float,
