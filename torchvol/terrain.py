@@ -230,7 +230,7 @@ def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool)
     """The terrain as the path tracer's opaque surface (`volume.path`) for rays of scenes `s` [n],
     lanes (`per_lane`: per scene -> lanes; `kernel`: Dr.Jit's, else torch columns like `like`):
     `hit(o, d, t_max)` -> (the refined hit's t (inf: none), no facts), `normal(x, facts)`, and
-    `_look`'s `albedo(n, facts)`, `lift(x, n, t)`, `visible(p, direction, distance)` -> 1 or 0; it
+    `_look`'s `albedo(n, facts)`, `lift(x, n, t, facts)`, `visible(p, direction, distance)` -> 1 or 0; it
     emits nothing (`emitted` None); Lambert (`geometry.scatter.lambert_reflect` of 1: a light's a·E·cos θ,
     as the marched terrain shades it; `lambert_bounce`)."""
     q = _kernel_lanes(t, s)[0] if kernel else _torch_lanes(t, s, like)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
-from functools import partial
+from functools import partial, reduce
 from typing import Callable, Sequence
 
 import torch
@@ -282,9 +282,7 @@ def path_surfaces(makers: list) -> Callable | None:
     the paths' one (`path.surfaces`: each ray the nearer, as the march's `surface_pass`), None: none."""
     if not makers:
         return None
-    if len(makers) == 1:
-        return makers[0]
-    return lambda *args, **kw: path.surfaces(makers[0](*args, **kw), makers[1](*args, **kw))
+    return lambda *args, **kw: reduce(path.surfaces, [make(*args, **kw) for make in makers])
 
 
 def air_along(ctx: RenderContext, rays: Rays) -> AirPath:

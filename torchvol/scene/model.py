@@ -426,7 +426,6 @@ class PathSettings(Strict):
     single: Literal["paths", "march"] = "paths"
 
 
-
 # voxel keys whose look a path has no physical version of yet (`voxel.path_surface`)
 PATH_REFUSED_VOXEL_KEYS = ("glow", "rounded", "fog", "water")
 
@@ -438,6 +437,7 @@ def _voxels_a_path_traces(voxels) -> None:
         if getattr(voxels, key) is not None:
             refuse(f"voxels.{key}", "<set>", "path tracing renders voxel faces of their materials' colour, "
                    "GGX and emission; remove it or [path]")
+
 
 class Scene(Strict):
     time: float = 0.0

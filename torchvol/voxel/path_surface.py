@@ -41,15 +41,15 @@ LIFT = 1e-4  # a bounce or shadow ray leaves a face this many voxels (plus as mu
 def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Tensor, *, kernel: bool) -> SimpleNamespace:
     """The voxel grids of scenes `s` [n] as the path tracer's surface, lanes (`per_lane`: per scene
     -> lanes; `kernel`: Dr.Jit arrays, else torch columns like `like`): `hit(o, d, t_max)` -> (the
-    first occupied cell's entry t (inf: none), its facts: the face's normal (three lanes) and the
-    material id), `normal(x, facts)`, `albedo(n, facts)` (Lambert's; 1 for GGX),
+    first occupied cell's entry t (inf: none), its facts: the face's normal (three lanes) and its
+    material, looked up once: `_material_lanes`), `normal(x, facts)`, `albedo(n, facts)` (Lambert's; 1 for GGX),
     `emitted(facts)`, `lift(x, n, t, facts)`, `visible(p, direction, distance)` -> 1 or 0,
     `reflect(facts, n, view, light)` (a Lambert face's cos θ: a light's a·E·cos θ, as the marched
     faces and voxel GI take it; a GGX face's π·BRDF·cos θ) and `bounce(facts, n, d, u)`."""
     ints = lanes.ints_of if kernel else (lambda x: x.to(torch.int32))
     floats = lanes.floats_of if kernel else (lambda x: x.to(like.dtype))
     r, g = _walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel)
-    look, emitted = _material_lanes(voxels, s, ints, floats)
+    look = _material_lanes(voxels, s, ints, floats)
     texel = None if voxels.texture is None else _atlas_lanes(voxels.texture, s, per_lane, ints, floats)
 
     def walk(o: list, d: list, t_max):
@@ -66,20 +66,20 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     def hit(o: list, d: list, t_max):
         found, t, axis, material, (ray, cell) = walk(o, d, t_max)
         normal = [lanes.where(axis == c, lanes.where(d[c] > 0.0, -1.0, 1.0), 0.0) for c in range(3)]
-        facts = [*normal, material]
+        texels = None
         if texel is not None:  # the face's texel, where the hit lies in its cell
             local = [ray.o[c] + t * ray.d[c] - lanes.to_float(cell[c], t) for c in range(3)]
             u = lanes.where(axis == 0, local[1], lanes.where(axis == 1, local[2], local[0]))  # `shade.face_uv`
             v = lanes.where(axis == 0, local[2], lanes.where(axis == 1, local[0], local[1]))
-            facts += texel(material, u, v)
+            texels = texel(material, u, v)
+        facts = look(material, texels)
+        facts.normal = normal
         return lanes.where(found, t, float("inf")), facts
 
-    def albedo(n: list, facts: list) -> list:  # Lambert's goes into the throughput, GGX's is in `reflect`
-        m = look(facts)
+    def albedo(n: list, m: SimpleNamespace) -> list:  # Lambert's goes into the throughput, GGX's is in `reflect`
         return [lanes.where(m.ggx, 1.0, c) for c in m.albedo]
 
-    def reflect(facts: list, n: list, v: list, light: list) -> list:
-        m = look(facts)
+    def reflect(m: SimpleNamespace, n: list, v: list, light: list) -> list:
         ggx = reflectance_lanes(n, v, light, m.albedo, m.roughness, m.metallic)
         lambert = facing(n, light)
         return [lanes.where(m.ggx, c, lambert) for c in ggx]
@@ -91,16 +91,16 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     def visible(p: list, direction: list, distance):
         return lanes.where(walk(p, direction, distance)[0], 0.0, 1.0)
 
-    return SimpleNamespace(hit=hit, normal=lambda x, facts: facts[:3], albedo=albedo,
-                           emitted=emitted,
-                           lift=lambda x, n, dist, facts: lift(x, n, dist), visible=visible, reflect=reflect,
-                           bounce=lambda facts, n, d, u: ggx_bounce(look(facts), n, d, u))
+    return SimpleNamespace(hit=hit, normal=lambda x, m: m.normal, albedo=albedo, emitted=lambda m: m.glow,
+                           lift=lambda x, n, dist, m: lift(x, n, dist), visible=visible, reflect=reflect,
+                           bounce=ggx_bounce)
 
 
 def _material_lanes(voxels: Stacked, s: Tensor, ints, floats):
     """The materials of rays of scenes `s` [n] as lanes (`ints`, `floats`: tensors -> lanes):
-    (look(facts) -> the hit's albedo (three lanes), roughness, metallic and whether it is GGX,
-    emitted(facts) -> the light its faces emit (three lanes)); `facts[3]` the material id."""
+    look(material id, texels or None) -> the hit's albedo (three lanes; the texels times the
+    colour, as the marched faces take it), roughness, metallic, whether it is GGX and the light its
+    faces emit (`glow`, three lanes)."""
     materials = material_table(voxels.materials)  # (B, M, 3)
     count = materials.color.shape[1]
     first = ints((s * count).to(torch.int32))  # each lane's scene's first row of the tables
@@ -108,18 +108,16 @@ def _material_lanes(voxels: Stacked, s: Tensor, ints, floats):
     glow = [floats(c.reshape(-1)) for c in materials.emission.unbind(2)]
     rough, metal = floats(materials.roughness.reshape(-1)), floats(materials.metallic.reshape(-1))
 
-    def row(facts: list):  # the material's row of the tables (id 0, no hit: the first material, unused)
-        return first + lanes.clamp(facts[3] - 1, 0, count - 1)
-
-    def look(facts: list) -> SimpleNamespace:
-        i = row(facts)
+    def look(material, texels) -> SimpleNamespace:
+        i = first + lanes.clamp(material - 1, 0, count - 1)  # (id 0, no hit: the first material, unused)
         rgh, mtl = lanes.gather(rough, i), lanes.gather(metal, i)
         albedo = [lanes.gather(c, i) for c in colour]
-        if len(facts) > 4:  # a textured face: its texel times the colour, as the marched faces take it
-            albedo = [a * x for a, x in zip(albedo, facts[4:7])]
-        return SimpleNamespace(albedo=albedo, roughness=rgh, metallic=mtl, ggx=(rgh < 1.0) | (mtl > 0.0))
+        if texels is not None:
+            albedo = [a * x for a, x in zip(albedo, texels)]
+        return SimpleNamespace(albedo=albedo, roughness=rgh, metallic=mtl, ggx=(rgh < 1.0) | (mtl > 0.0),
+                               glow=[lanes.gather(c, i) for c in glow])
 
-    return look, lambda facts: [lanes.gather(c, row(facts)) for c in glow]
+    return look
 
 
 def _atlas_lanes(texture: Stacked, s: Tensor, per_lane, ints, floats):
@@ -136,7 +134,7 @@ def _atlas_lanes(texture: Stacked, s: Tensor, per_lane, ints, floats):
 
 def ggx_bounce(m: SimpleNamespace, n: list, d: list, u: list):
     """Where a path arriving along d (three lanes) leaves a face of normal n (three lanes) of
-    material `m` (`path_surface`'s look: albedo, roughness, metallic, ggx), and its weight (three
+    material `m` (`_material_lanes`' look: albedo, roughness, metallic, ggx), and its weight (three
     lanes), from uniform lanes u (three). Lambert: the cosine lobe, weight 1 (the albedo is in the
     throughput). GGX: with probability (1 + metallic)/2 the view mirrored about a half vector drawn
     from D(h)·(n·h), else the cosine lobe; weighted by π·BRDF·cos (`ggx.reflectance_lanes`) over π
