@@ -333,6 +333,56 @@ def test_random_surfaces_and_air_give_finite_images(surface, sigma, albedo, g, s
     assert (out.depth >= 0).all() and torch.isfinite(out.image).all()
 
 
+def _two_suns_over_a_cloud(phase: dict, ground: bool) -> dict:
+    """A grid puff (optical depth 4) lit by two suns, over flat ground or in the void."""
+    grid = puff_grid(12)
+    scene = torchvol_scene(grid, sigma_for(grid, 4.0), size=6, spp=1, shadow_steps=64)
+    scene["volumes"][0]["phase"] = phase
+    scene["lights"] = [{"direction": [0.8, 0.3, -0.5], "intensity": 2.0}, {"direction": [-0.2, 1.0, 0.6], "intensity": 1.5}]
+    if ground:
+        low = scene["volumes"][0]["bounds"]["box"]["min"][1]
+        scene["terrain"] = {"amplitude": 0.0, "base": low - 0.3, "color": [0.5] * 3, "rock_color": [0.5] * 3, "steps": 16}
+    return scene
+
+
+def _flights_and_plain(scene: dict, seeds: int, monkeypatch) -> list[tuple[float, float]]:
+    """The mean radiance of `seeds` independent images and its standard error (from the pixels'
+    variance over the images), with the suns' next events by flights (`path._suns_next`) and plain."""
+    from torchvol.volume import path
+
+    out = []
+    for flights in (True, False):
+        monkeypatch.setattr(path, "SUN_FLIGHTS", flights)
+        traced = tv.render([scene] * seeds, seed=list(range(seeds))).radiance.double()
+        out.append((float(traced.mean()), float(traced.var(dim=0).mean().sqrt()) / math.sqrt(traced.numel())))
+    return out
+
+
+@pytest.mark.parametrize(("phase", "ground"), [({"hg": {"g": 0.5}}, False), ("rayleigh", False),
+                                               pytest.param({"mie": {"g": 0.7}}, True, marks=pytest.mark.slow),
+                                               pytest.param({"dual_hg": {"g_forward": 0.9, "g_backward": -0.4, "weight": 0.3}}, True,
+                                                            marks=pytest.mark.slow)])
+def test_the_suns_next_events_by_flights_are_the_plain_next_events(phase, ground, one_thread, monkeypatch):
+    """The suns' next events of a collision's successor, taken by a flight of their own drawn
+    towards the suns (`path._suns_next`), estimate what the plain next events at each collision
+    do: two suns, orders 2 to 3, every phase kind's sampling, over a ground that stops flights or
+    not; the means of independent images within five standard errors of each other."""
+    (flights, e1), (plain, e2) = _flights_and_plain({**_two_suns_over_a_cloud(phase, ground),
+                                                    "path": {"bounces": 3, "samples": 256}}, 4, monkeypatch)
+    error = math.hypot(e1, e2)
+    assert abs(flights - plain) <= 5.0 * error, f"{phase}: flights {flights:.6g}, plain {plain:.6g} (standard error {error:.2g})"
+    assert error < 0.02 * plain  # the check is sharp enough to fail
+
+
+def test_flights_towards_a_sun_take_the_noise_of_a_peaked_phase_function(one_thread, monkeypatch):
+    """HG 0.9, the second order alone as the flights take it: their noise is under half the plain
+    next events' (which meet the phase function's peak only where a path flies towards the sun)."""
+    scene = {**_two_suns_over_a_cloud({"hg": {"g": 0.9}}, False), "path": {"bounces": 2, "samples": 64}}
+    scene["lights"] = scene["lights"][:1]
+    (_, flights), (_, plain) = _flights_and_plain(scene, 4, monkeypatch)
+    assert flights < 0.5 * plain, f"the flights' standard error {flights:.3g}, the plain next events' {plain:.3g}"
+
+
 @pytest.mark.parametrize("g", [-0.999, -0.6, 0.0, 0.3, 0.95, 0.999])
 def test_hg_samples_follow_the_phase_function(g):
     """The drawn cosines' mean is HG's mean cosine g, and a histogram matches the density."""

@@ -52,6 +52,7 @@ MARGIN = 1.5  # an estimated majorant: the largest lattice sample times this
 LATTICE = 24  # samples a side of the lattice an estimated majorant comes from
 MAX_TENTATIVE = 100_000  # tentative collisions a tracking call takes at most (then it stops: counted)
 FADE = 0.05  # a ratio-tracked transmittance below this plays Russian roulette
+SUN_FLIGHTS = True  # the suns' next events by a flight of their own (`_suns_next`); False: plain, the tests' reference
 _KEY, _DRAW = 0x7A17, 0x5CA7  # the hashes' seeds (already int32 values)
 
 
@@ -382,7 +383,7 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
 
     def body(*state):
         o, d, beta, out = list(state[0:3]), list(state[3:6]), list(state[6:9]), list(state[9:12])
-        count, k, alive, gone, *tally = state[12:]
+        count, k, alive, gone, guided, *tally = state[12:]
         # the surface's hit t (inf: none); a finished path's walk ends at once (t_max 0)
         wall, facts = (None, None) if q.surface is None else q.surface.hit(o, d, lanes.where(alive, math.inf, 0.0))
         later = k > 0 if marched_first else alive  # the scatterings the paths add light from
@@ -409,7 +410,10 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
         alive = alive & (k < bounces)
         albedo, normal, x = _collision(q, vol, x, face, wall, facts)
         beta = [lanes.where(alive, b * a, b) for b, a in zip(beta, albedo)]
-        out, count, tally = _lights_at(q, x, d, vol, alive & later, face, normal, facts, beta, out, key, count, tally)
+        out, count, tally = _lights_at(q, x, d, vol, alive & later, face, normal, facts, beta, out, key, count, tally,
+                                       taken=guided)
+        medium = alive if face is None else alive & ~face
+        out, count, tally, guided = _suns_next(q, x, d, vol, medium & (k + 1 < bounces), beta, out, key, count, tally)
         u = []
         for _ in range(3):
             u.append(uniform_lanes(key, count))
@@ -420,12 +424,12 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
         o = [lanes.where(alive, x[c], o[c]) for c in range(3)]
         k = k + lanes.to_int32(alive)
         beta, alive, count = _roulette(beta, alive & (k >= ROULETTE_AFTER), alive, key, count)
-        return (*o, *d, *beta, *out, count, k, alive, gone, *tally)
+        return (*o, *d, *beta, *out, count, k, alive, gone, guided, *tally)
 
-    state = [*o, *d, one, one, one, one * 0.0, one * 0.0, one * 0.0, zero_i, zero_i, alive, ~alive, zero_i, zero_i]
+    state = [*o, *d, one, one, one, one * 0.0, one * 0.0, one * 0.0, zero_i, zero_i, alive, ~alive, ~alive, zero_i, zero_i]
     state = lanes.while_loop(state + [zero_i] * V, lambda *x: x[14], body)
     out, beta = _in_channel(q.channel, state[9:12]), _in_channel(q.channel, state[6:9])
-    return [*out, *beta, *state[3:6], state[15], state[13], state[16], state[17], *state[18:]]
+    return [*out, *beta, *state[3:6], state[15], state[13], state[17], state[18], *state[19:]]
 
 
 def _in_channel(channel, values: list) -> list:
@@ -456,13 +460,15 @@ def _shadow(q, x: list, direction: list, distance, on, key, count, tally, *, occ
     return through, count, _tallied(tally, live, extra, ev)
 
 
-def _lights_at(q, x: list, d: list, vol, alive, face, normal, facts, beta: list, out: list, key, count, tally):
+def _lights_at(q, x: list, d: list, vol, alive, face, normal, facts, beta: list, out: list, key, count, tally, *, taken):
     """Next-event estimation at the collisions x (three lanes) of paths flying along d: each sun's
-    E·p(θ)·T in a medium (its phase function) or a·E·cos θ·T on the surface (`face`; the albedo
-    already in `beta`); a point light's only on the surface (in the media `_lights_along` takes
-    it). -> (the radiance `out` plus it, the counters, the tally)."""
+    E·p(θ)·T in a medium (its phase function; not where the collision before `taken` it,
+    `_suns_next`) or a·E·cos θ·T on the surface (`face`; the albedo already in `beta`); a point
+    light's only on the surface (in the media `_lights_along` takes it). -> (the radiance `out`
+    plus it, the counters, the tally)."""
+    medium = taken if face is None else taken & ~face
     for light in q.lights:
-        at = alive if light.position is None else (None if face is None else alive & face)
+        at = alive & ~medium if light.position is None else (None if face is None else alive & face)
         if at is None:
             continue
         direction, irradiance, distance = light.toward(x)
@@ -474,6 +480,52 @@ def _lights_at(q, x: list, d: list, vol, alive, face, normal, facts, beta: list,
         through, count, tally = _shadow(q, x, direction, distance, at, key, count, tally)
         out = [lanes.where(at, out[c] + beta[c] * irradiance[c] * (phase[c] * through), out[c]) for c in range(3)]
     return out, count, tally
+
+
+def _suns_next(q, x: list, d: list, vol, on, beta: list, out: list, key, count, tally):
+    """The suns' next events of the collision after x (three lanes; in a medium, where `on`), for
+    paths flying along d whose throughput there is `beta`: a flight of its own from x whose
+    direction d' is drawn from a mixture of the phase function about d and its lobe about each
+    sun, weighted p(d·d')/pdf(d'); where it collides in a medium, the suns' E·p(θ)·T there. The
+    path's own next collision leaves them out (`_lights_at`'s `taken`). Unbiased as the next
+    event it replaces; the phase function's forward peak, which a next event meets only where the
+    path happened to fly towards a sun (HG 0.8: 45× its mean, a next event's relative deviation
+    3.4), is drawn where it lies (`SUN_FLIGHTS`). -> (out plus it, the counters, the tally, where
+    the path's next collision leaves them out)."""
+    from ..light.phase import henyey_greenstein
+
+    suns = [light for light in q.lights if light.position is None]
+    if not suns or not SUN_FLIGHTS:
+        return out, count, tally, on & False
+    u = []
+    for _ in range(4):
+        u.append(uniform_lanes(key, count))
+        count = count + lanes.to_int32(on)
+    g = _pick(vol, [lanes.where(u[3] < m.lobe[2], m.lobe[1], m.lobe[0]) for m in q.vols])
+    towards = [sun.toward(x)[0] for sun in suns]
+    axis = d
+    for i, direction in enumerate(towards):  # the lobe about sun i where 0.5 + i/(2S) <= u0 < ...
+        axis = [lanes.where(u[0] >= 0.5 + 0.5 * i / len(suns), a, b) for a, b in zip(direction, axis)]
+    flight = turn(axis, hg_cos(g, u[1]), u[2])
+    own = lambda c: _pick(vol, [henyey_greenstein(c, m.lobe[0]) if m.weighted else m.phase(c) for m in q.vols])  # noqa: E731
+    dot = lambda a, b: a[0] * b[0] + a[1] * b[1] + a[2] * b[2]  # noqa: E731
+    pdf = 0.5 * own(dot(d, flight)) + sum(own(dot(flight, t)) for t in towards) * (0.5 / len(suns))
+    weight = _pick(vol, [m.phase(dot(d, flight)) for m in q.vols]) / lanes.clamp_min(pdf, 1e-30)
+    t0, t1, total = _spans(q, x, flight, on)
+    hit, vol2, _, _, count, live, extra, *ev = track_lanes(x, flight, t0, t1, total, q.sigma, key, count, collide=True,
+                                                           steps=MAX_TENTATIVE)
+    tally = _tallied(tally, live, extra, ev)
+    at = on & (vol2 >= 0)
+    y = [x[c] + lanes.where(at, hit, 0.0) * flight[c] for c in range(3)]
+    if q.surface is not None:
+        at = at & (q.surface.visible(x, flight, lanes.where(at, hit, 0.0)) > 0.0)
+    gain = weight * _pick(vol2, [m.albedo for m in q.vols])
+    for sun in suns:
+        direction, irradiance, distance = sun.toward(y)
+        phase = _pick(vol2, [m.phase(dot(flight, direction)) for m in q.vols])
+        through, count, tally = _shadow(q, y, direction, distance, at, key, count, tally)
+        out = [lanes.where(at, out[c] + beta[c] * irradiance[c] * (gain * phase * through), out[c]) for c in range(3)]
+    return out, count, tally, on
 
 
 def _lights_along(q, o: list, d: list, spans: tuple, on, camera, beta: list, out: list, key, count, tally):
