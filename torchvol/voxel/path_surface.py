@@ -22,7 +22,7 @@ from types import SimpleNamespace
 import torch
 from torch import Tensor
 
-from ..geometry.scatter import facing, turn
+from ..geometry.scatter import basis, facing, turn
 from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..schema.batch import Stacked
@@ -137,14 +137,13 @@ def ggx_bounce(m: SimpleNamespace, n: list, d: list, u: list):
     material `m` (`_material_lanes`' look: albedo, roughness, metallic, ggx), and its weight (three
     lanes), from uniform lanes u (three). Lambert: the cosine lobe, weight 1 (the albedo is in the
     throughput). GGX: with probability (1 + metallic)/2 the view mirrored about a half vector drawn
-    from D(h)·(n·h), else the cosine lobe; weighted by π·BRDF·cos (`ggx.reflectance_lanes`) over π
-    times the mixture's density (one-sample MIS: unbiased, each lobe's peaks sampled)."""
+    from the normals the view sees (`visible_normal`), else the cosine lobe; weighted by π·BRDF·cos
+    (`ggx.reflectance_lanes`) over π times the mixture's density (one-sample MIS: unbiased, each
+    lobe's peaks sampled)."""
     v = [-c for c in d]
     lobe = turn(n, lanes.sqrt(u[0]), u[1])
     alpha = alpha_of(m.roughness)
-    a2 = alpha * alpha
-    cos_h = lanes.sqrt((1.0 - u[0]) / (1.0 + (a2 - 1.0) * u[0]))
-    h = turn(n, cos_h, u[1])
+    h = visible_normal(n, v, alpha, u[0], u[1])
     v_h = v[0] * h[0] + v[1] * h[1] + v[2] * h[2]
     mirrored = [2.0 * v_h * h[c] - v[c] for c in range(3)]
     p_spec = 0.5 + 0.5 * m.metallic
@@ -152,12 +151,44 @@ def ggx_bounce(m: SimpleNamespace, n: list, d: list, u: list):
     half = [v[c] + light[c] for c in range(3)]
     norm = lanes.clamp_min(lanes.length3(*half), 1e-12)
     n_h = lanes.clamp((n[0] * half[0] + n[1] * half[1] + n[2] * half[2]) / norm, 0.0, 1.0)
-    v_h = lanes.clamp_min((v[0] * half[0] + v[1] * half[1] + v[2] * half[2]) / norm, 1e-6)
+    n_v = lanes.clamp_min(n[0] * v[0] + n[1] * v[1] + n[2] * v[2], 1e-6)
     n_l = n[0] * light[0] + n[1] * light[1] + n[2] * light[2]
-    pdf = p_spec * d_ggx(n_h, alpha) * n_h / (4.0 * v_h) + (1.0 - p_spec) * lanes.clamp_min(n_l, 0.0) / math.pi
+    # the visible normals' density of the mirrored direction: G1(v)·D(h)/(4 n·v) (Heitz 2018, eq. 17)
+    pdf = p_spec * _smith_g1(n_v, alpha) * d_ggx(n_h, alpha) / (4.0 * n_v) + (1.0 - p_spec) * lanes.clamp_min(n_l, 0.0) / math.pi
     gain = [lanes.where(n_l > 0.0, c / (math.pi * lanes.clamp_min(pdf, 1e-30)), 0.0)
             for c in reflectance_lanes(n, v, light, m.albedo, m.roughness, m.metallic)]
     return light, [lanes.where(m.ggx, g, 1.0) for g in gain]
+
+
+def visible_normal(n: list, v: list, alpha, u1, u2) -> list:
+    """A GGX microfacet normal of roughness `alpha` about the normal n drawn from the normals the
+    view v sees, D_v(h) = G1(v)·max(0, v·h)·D(h)/(n·v) (Heitz 2018, "Sampling the GGX Distribution
+    of Visible Normals"): no normal facing away from v, so a mirrored direction's weight F·G2/G1
+    stays below 1 where drawing from D(h)·(n·h) gave the grazing views' fireflies. Three lanes."""
+    t1, t2 = basis(n)
+    dot = lambda a, b: a[0] * b[0] + a[1] * b[1] + a[2] * b[2]  # noqa: E731
+    local = [alpha * dot(v, t1), alpha * dot(v, t2), lanes.clamp_min(dot(v, n), 1e-6)]  # the view, stretched
+    length = lanes.length3(*local)
+    vh = [c / length for c in local]
+    across = lanes.sqrt(vh[0] * vh[0] + vh[1] * vh[1])
+    flat = across > 1e-7
+    a = [lanes.where(flat, -vh[1] / lanes.clamp_min(across, 1e-7), 1.0), lanes.where(flat, vh[0] / lanes.clamp_min(across, 1e-7), 0.0)]
+    b = [-vh[2] * a[1], vh[2] * a[0], vh[0] * a[1] - vh[1] * a[0]]  # vh × (a, 0)
+    r, phi = lanes.sqrt(u1), 2.0 * math.pi * u2
+    p1, p2 = r * lanes.cos(phi), r * lanes.sin(phi)
+    s = 0.5 * (1.0 + vh[2])
+    p2 = (1.0 - s) * lanes.sqrt(lanes.clamp_min(1.0 - p1 * p1, 0.0)) + s * p2
+    up = lanes.sqrt(lanes.clamp_min(1.0 - p1 * p1 - p2 * p2, 0.0))
+    nh = [p1 * a[0] + p2 * b[0] + up * vh[0], p1 * a[1] + p2 * b[1] + up * vh[1], p2 * b[2] + up * vh[2]]
+    h = [alpha * nh[0], alpha * nh[1], lanes.clamp_min(nh[2], 0.0)]  # unstretched
+    size = lanes.clamp_min(lanes.length3(*h), 1e-12)
+    return [(h[0] * t1[c] + h[1] * t2[c] + h[2] * n[c]) / size for c in range(3)]
+
+
+def _smith_g1(n_v, alpha):
+    """Smith's masking G1(v) of GGX: 2 n·v / (n·v + √(α² + (1 − α²)(n·v)²)), lanes."""
+    a2 = alpha * alpha
+    return 2.0 * n_v / (n_v + lanes.sqrt(a2 + (1.0 - a2) * n_v * n_v))
 
 
 def _walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *, kernel: bool):
