@@ -414,11 +414,7 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
                                        taken=guided)
         medium = alive if face is None else alive & ~face
         out, count, tally, guided = _suns_next(q, x, d, vol, medium & (k + 1 < bounces), beta, out, key, count, tally)
-        u = []
-        for _ in range(3):
-            u.append(uniform_lanes(key, count))
-            count = count + lanes.to_int32(alive)
-        turned, weight = _scatter(q, vol, d, u, face, normal, facts)
+        turned, weight, count = _scatter(q, vol, d, face, normal, facts, key, count, alive)
         d = [lanes.where(alive, turned[c], d[c]) for c in range(3)]
         beta = [lanes.where(alive, b * w, b) for b, w in zip(beta, weight)]
         o = [lanes.where(alive, x[c], o[c]) for c in range(3)]
@@ -593,16 +589,20 @@ def _collision(q, vol, x: list, face, wall, facts):
     return albedo, normal, [lanes.where(face, a, b) for a, b in zip(q.surface.lift(x, normal, wall, facts), x)]
 
 
-def _scatter(q, vol, d: list, u: list, face, normal: list | None, facts):
-    """The direction a path scatters to from d (three lanes) and its weight (three lanes): the
-    phase function of its volume (`_phase_sample`), or where it met the surface (`face`; None: no
-    surface) the surface's `bounce` about the `normal` (`lambert_bounce`: BRDF·cos/pdf is the
-    albedo, already taken)."""
+def _scatter(q, vol, d: list, face, normal: list | None, facts, key, count, on):
+    """The direction a path scatters to from d (three lanes) and its weight (three lanes), from
+    three draws where `on`: the phase function of its volume (`_phase_sample`), or where it met
+    the surface (`face`; None: no surface) the surface's `bounce` about the `normal`
+    (`lambert_bounce`: BRDF·cos/pdf is the albedo, already taken). -> (them, the counters)."""
+    u = []
+    for _ in range(3):
+        u.append(uniform_lanes(key, count))
+        count = count + lanes.to_int32(on)
     turned, weight = _phase_sample(q, vol, d, u)
     if face is None:
-        return turned, [weight] * 3
+        return turned, [weight] * 3, count
     bounce, gain = q.surface.bounce(facts, normal, d, u)
-    return [lanes.where(face, a, b) for a, b in zip(bounce, turned)], [lanes.where(face, g, weight) for g in gain]
+    return [lanes.where(face, a, b) for a, b in zip(bounce, turned)], [lanes.where(face, g, weight) for g in gain], count
 
 
 def _blended(q, vol, t, camera, later, beta: list, out: list):
