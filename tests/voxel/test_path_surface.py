@@ -108,7 +108,35 @@ def test_shadows_stop_at_the_voxels(one_thread):
     assert_close(out.radiance, tv.render(scene).radiance, atol=1e-5, what="path-traced against marched shadows")
 
 
-@pytest.mark.parametrize("key, value", [("glow", {}), ("rounded", {}), ("fog", {"density": 0.1}), ("water", {"level": 0.0})])
+def _rounded_floor() -> dict:
+    """A floor of rounded voxels (radius 0.05–0.4 by cell) under the sun straight overhead, no sky."""
+    return {"image": {"width": 24, "height": 18}, "camera": {"eye": [0.2, 4.0, -5.0], "target": [0.2, 0.0, 0.0], "fov_y": 40},
+            "sky": {"kind": "constant", "radiance": [0.0, 0.0, 0.0]},
+            "lights": [{"direction": [0.0, 1.0, 0.0], "intensity": 2.0}],
+            "voxels": {"occupancy": {"sdf": {"shape": {"box": {"center": [0.0, -0.5, 0.0], "half_size": [6.0, 0.5, 6.0]}},
+                                             "material": 1}},
+                       "cells": {"min": [-6, -2, -6], "max": [6, 1, 6]}, "materials": [[0.6, 0.5, 0.4]],
+                       "ambient": [0.0] * 3, "face_tones": [1.0, 1.0, 1.0], "shadow": {},
+                       "rounded": {"radius_min": 0.05, "radius_range": 0.35, "steps": 12, "threshold": 0.002}}}
+
+
+def test_rounded_voxels_are_traced_as_the_march_finds_them(one_thread):
+    """Rounded voxels under a sun straight overhead, one bounce: every pixel is the marched
+    image (the same rounded box and normal, `shade.rounded_lanes` on both sides; a shadow ray that
+    leaves its own box's cell sees nothing overhead), in the kernel and eagerly; and the march
+    lights every point whose normal faces the sun (its shadow rays once started inside their own
+    occupied cell and left the boxes' rounded rims dark)."""
+    scene = _rounded_floor()
+    march = tv.render(scene, aovs=("normal",))
+    traced = {c: tv.render({**scene, "path": {"bounces": 1, "samples": 1}}, compile=c).radiance for c in ("kernels", "off")}
+    assert_close(traced["kernels"], march.radiance, atol=1e-5, what="path-traced rounded voxels against the march")
+    assert_close(traced["off"], traced["kernels"], atol=1e-5, what="rounded voxels eagerly against the kernel")
+    facing = (march.aovs["normal"][:, 1] > 1e-3) & (march.depth[:, 0] > 0)
+    lit = march.radiance.amax(1) > 0
+    assert int(facing.sum()) > 100 and torch.equal(lit, facing), f"{int((lit != facing).sum())} pixels lit otherwise than n·l"
+
+
+@pytest.mark.parametrize("key, value", [("glow", {}), ("fog", {"density": 0.1}), ("water", {"level": 0.0})])
 def test_what_a_path_cannot_trace_is_refused(key, value):
     scene = {**_floor(), "path": {"bounces": 2, "samples": 1}}
     scene["voxels"] = {**scene["voxels"], key: value}
@@ -203,7 +231,7 @@ def test_a_ggx_floor_under_a_sky_reflects_its_directional_albedo(roughness, meta
     assert not grazing or noise < 0.04, f"grazing view: a pixel's relative noise {noise:.2%}"
 
 
-@pytest.mark.parametrize("name", ["voxel-gi", "voxel-carved-box", "voxel-cone", "voxel-pbr"])
+@pytest.mark.parametrize("name", ["voxel-gi", "voxel-carved-box", "voxel-cone", "voxel-pbr", "voxel-rounded"])
 def test_voxel_presets_path_trace(name, one_thread):
     """The voxel presets whose looks a path has (their stand-ins dropped) render under `[path]`:
     finite, non-negative, the plan saying so, no shadow pass of the march."""

@@ -22,7 +22,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-__all__ = ["sd_sphere", "sd_box", "sd_rounded_box", "union", "intersection", "subtraction", "evaluate"]
+from ..ops import lanes
+
+__all__ = ["sd_sphere", "sd_box", "sd_rounded_box", "rounded_box_lanes", "union", "intersection", "subtraction", "evaluate"]
 
 
 def _length(v: Tensor) -> Tensor:
@@ -43,11 +45,18 @@ def sd_box(p: Tensor, half_size) -> Tensor:
 
 
 def sd_rounded_box(p: Tensor, half_size, radius) -> Tensor:
-    """Box with edges rounded by `radius` (scalar or [N]); half_size [3], [N, 3] or scalar. -> [N]."""
+    """Box with edges rounded by `radius` (scalar or [N]); half_size [3], [N, 3] or scalar. -> [N]
+    (`rounded_box_lanes` on p's columns)."""
     r = torch.as_tensor(radius, dtype=p.dtype, device=p.device)
-    b = torch.as_tensor(half_size, dtype=p.dtype, device=p.device)
-    q = p.abs() - b + (r[..., None] if r.ndim else r)
-    return _length(q.clamp_min(0.0)) - r
+    b = torch.as_tensor(half_size, dtype=p.dtype, device=p.device).expand(p.shape)
+    return rounded_box_lanes(list(p.unbind(-1)), list(b.unbind(-1)), r)
+
+
+def rounded_box_lanes(p: list, half: list, radius):
+    """`sd_rounded_box` in lanes (`ops.lanes`): points p and half sizes `half` (three lanes or
+    numbers each), `radius` a lane or number: length(max(|p| − b + r, 0)) − r."""
+    q = [lanes.clamp_min(lanes.abs(p[i]) - half[i] + radius, 0.0) for i in range(3)]
+    return lanes.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]) - radius
 
 
 def union(*ds: Tensor) -> Tensor:

@@ -16,7 +16,6 @@ images change where a scene switches hash; the statistics do not (tests/test_fas
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 
 import torch
@@ -24,29 +23,12 @@ from torch import Tensor
 
 from ..ops import lanes
 from . import lattice as noise
+from .lattice import _mix32, _seed32
 
 __all__ = ["hash32", "hash_cells", "hash_pair", "value_noise_hashed", "fbm_value_hashed", "fbm_sum", "fbm_field", "mixed_seeds"]
 
 # odd multipliers below 2**31 (xxHash's primes and murmur3's c2): Python ints that stay int32 in torch
 _P = (0x1B873593, 0x27D4EB2F, 0x165667B1)
-
-
-def _mix32(h: Tensor) -> Tensor:
-    """lowbias32 on int32 holding uint32 bits: int32 multiplies wrap mod 2**32 like uint32 ones;
-    ``(h >> s) & mask`` is the logical shift (torch's ``>>`` on int32 is arithmetic)."""
-    h = h ^ ((h >> 16) & 0xFFFF)
-    h = h * 0x7FEB352D
-    h = h ^ ((h >> 15) & 0x1FFFF)
-    h = h * 0x1B873593
-    return h ^ ((h >> 16) & 0xFFFF)
-
-
-@functools.lru_cache(maxsize=4096)
-def _seed32(seed: int) -> int:
-    """A mixed 32-bit seed as a signed int32 value (so it fits an int32 tensor)."""
-    h = (int(seed) * 0x9E3779B9 + 0x632BE5AB) & 0xFFFFFFFF
-    h = _mix32(torch.tensor(h - (1 << 32) if h >= 1 << 31 else h, dtype=torch.int32))
-    return int(h)
 
 
 def hash32(x, y, z, seed):

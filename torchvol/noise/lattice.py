@@ -24,6 +24,7 @@ from ..ops.mathops import take_rows
 
 __all__ = [
     "hash3",
+    "hash3_lanes",
     "lattice_hash",
     "lattice_values",
     "value_noise",
@@ -55,26 +56,42 @@ _M32 = 0xFFFFFFFF
 
 
 def _mix32(h: Tensor) -> Tensor:
-    """A lowbias32-style finaliser on int64 holding uint32 values (a bijection of uint32).
+    """lowbias32 on int32 holding uint32 bits: int32 multiplies wrap mod 2**32 like uint32 ones;
+    ``(h >> s) & mask`` is the logical shift (torch's ``>>`` on int32 is arithmetic)."""
+    h = h ^ ((h >> 16) & 0xFFFF)
+    h = h * 0x7FEB352D
+    h = h ^ ((h >> 15) & 0x1FFFF)
+    h = h * 0x1B873593
+    return h ^ ((h >> 16) & 0xFFFF)
 
-    Both multipliers are odd and below 2**31, so ``h * k`` < 2**63 never overflows int64 and one
-    multiply plus a mask is the exact product mod 2**32."""
-    h = h ^ (h >> 16)
-    h = (h * 0x7FEB352D) & _M32
-    h = h ^ (h >> 15)
-    h = (h * 0x1B873593) & _M32
-    h = h ^ (h >> 16)
+
+@functools.lru_cache(maxsize=4096)
+def _seed32(seed: int) -> int:
+    """A mixed 32-bit seed as a signed int32 value (so it fits an int32 tensor)."""
+    h = (int(seed) * 0x9E3779B9 + 0x632BE5AB) & 0xFFFFFFFF
+    h = _mix32(torch.tensor(h - (1 << 32) if h >= 1 << 31 else h, dtype=torch.int32))
+    return int(h)
+
+
+_SALTS = tuple(v - (1 << 32) if v >= 1 << 31 else v for v in (0x68E31DA4, 0xB5297A4D, 0x1B56C4E9))  # as int32 values
+
+
+def hash3_lanes(x, y, z, seed: int):
+    """`noise.hash3`'s 32 bits (int32 lanes holding uint32 bits) of integer cells (x, y, z) (int32
+    lanes: values mod 2**32): lowbias32 chained over the mixed seed and each coordinate plus its
+    salt. One source: `noise.hash3` takes its torch columns, the kernels their Dr.Jit arrays."""
+    h = _seed32(seed)
+    for c, salt in zip((x, y, z), _SALTS):
+        h = _mix32(h ^ (c + salt))
     return h
 
 
 def _hash_u32(cells: Tensor, seed: int) -> Tensor:
-    """uint32 hash (as int64) of integer cells ``[..., 3]`` and an integer seed -> ``[...]``."""
-    seed_h = _mix32(torch.tensor((int(seed) * 0x9E3779B9 + 0x632BE5AB) & _M32, dtype=torch.int64))
-    h = seed_h.to(cells.device).expand(cells.shape[:-1])
-    for axis, salt in enumerate((0x68E31DA4, 0xB5297A4D, 0x1B56C4E9)):
-        c = (cells[..., axis].to(torch.int64) + salt) & _M32
-        h = _mix32(h ^ c)
-    return h
+    """uint32 hash (as int64) of integer cells ``[..., 3]`` and an integer seed -> ``[...]``:
+    `fast.hash3_lanes` (lowbias32 chained over the seed and the coordinates) on int32 columns."""
+    c = cells.to(torch.int64) & _M32
+    c = (c - ((c >> 31) << 32)).to(torch.int32)  # the uint32 bits as int32 values
+    return hash3_lanes(c[..., 0], c[..., 1], c[..., 2], seed).to(torch.int64) & _M32
 
 
 def hash3(cells: Tensor, seed: int, *, dtype: torch.dtype | None = None) -> Tensor:

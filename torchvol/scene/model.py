@@ -427,7 +427,7 @@ class PathSettings(Strict):
 
 
 # voxel keys whose look a path has no physical version of yet (`voxel.path_surface`)
-PATH_REFUSED_VOXEL_KEYS = ("glow", "rounded", "fog", "water")
+PATH_REFUSED_VOXEL_KEYS = ("glow", "fog", "water")
 
 
 def _voxels_a_path_traces(voxels) -> None:

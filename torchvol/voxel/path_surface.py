@@ -11,7 +11,8 @@ the path kernel (`volume.path_kernel`), a loop nested in the path's loop.
 
 Under `[path]` the marched look's stand-ins are dropped (`scene.quality.at_level`): `ambient`,
 `ao`, `gi`, the mirror `reflections` and the face tones; what a path cannot trace yet is refused
-by the schema (glow, rounded voxels, the voxel fog, water).
+by the schema (glow, the voxel fog, water). Rounded voxels (`voxels.rounded`) are their rounded
+boxes, for hits and shadow rays alike (`_rounded_walk`).
 """
 
 from __future__ import annotations
@@ -23,14 +24,16 @@ import torch
 from torch import Tensor
 
 from ..geometry.scatter import basis, facing, turn
+from ..noise import lattice as noise
+from ..noise.lattice import hash3_lanes
 from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..schema.batch import Stacked
-from .dda import start_lanes
+from .dda import next_cell_lanes, start_lanes
 from .ggx import alpha_of, d_ggx, reflectance_lanes
 from .grid import VoxelGrid
 from .materials import material_table
-from .shade import texel_lanes
+from .shade import rounded_lanes, texel_lanes
 from .walk import int_table, walk_step
 
 __all__ = ["path_surface"]
@@ -52,20 +55,13 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     look = _material_lanes(voxels, s, ints, floats)
     texel = None if voxels.texture is None else _atlas_lanes(voxels.texture, s, per_lane, ints, floats)
 
-    def walk(o: list, d: list, t_max):
-        """The walk of world rays o, d (three lanes each) up to t_max -> (hit, t, entry axis, material)."""
-        ray = SimpleNamespace(**vars(r), o=[(o[c] - r.origin[c]) / r.size for c in range(3)],
-                              d=[d[c] / r.size for c in range(3)], t_max=t_max)
-        ok, t0, cell, axis = start_lanes(ray.o, ray.d, ray.lo, ray.hi, None, t_max)
-        zero = lanes.int_like(0, cell[0])
-        state = [*cell, t0, axis, zero, ok, t0 * 0.0, zero]
-        cx, cy, cz, t, axis, n, alive, t_exit, material = lanes.while_loop(
-            state, lambda *x: x[6], lambda *x: walk_step(list(x), ray, g)[0])
-        return material > 0, t, axis, material, (ray, [cx, cy, cz])
+    cubes = _cube_walk(r, g)
+    walk = cubes if voxels.rounded is None else _rounded_walk(cubes, r, voxels.rounded, per_lane, kernel=kernel)
 
     def hit(o: list, d: list, t_max):
-        found, t, axis, material, (ray, cell) = walk(o, d, t_max)
+        found, t, axis, material, (ray, cell), rounded = walk(o, d, t_max)
         normal = [lanes.where(axis == c, lanes.where(d[c] > 0.0, -1.0, 1.0), 0.0) for c in range(3)]
+        normal = normal if rounded is None else rounded
         texels = None
         if texel is not None:  # the face's texel, where the hit lies in its cell
             local = [ray.o[c] + t * ray.d[c] - lanes.to_float(cell[c], t) for c in range(3)]
@@ -84,8 +80,11 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
         lambert = facing(n, light)
         return [lanes.where(m.ggx, c, lambert) for c in ggx]
 
+    # off a rounded box by twice its tracing's threshold: a walk from closer would converge at its start
+    clearance = 0.0 if voxels.rounded is None else 2.0 * per_lane(voxels.rounded.threshold) * r.size
+
     def lift(x: list, n: list, dist) -> list:
-        off = LIFT * (r.size + dist)
+        off = LIFT * (r.size + dist) + clearance
         return [x[c] + off * n[c] for c in range(3)]
 
     def visible(p: list, direction: list, distance):
@@ -94,6 +93,64 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     return SimpleNamespace(hit=hit, normal=lambda x, m: m.normal, albedo=albedo, emitted=lambda m: m.glow,
                            lift=lambda x, n, dist, m: lift(x, n, dist), visible=visible, reflect=reflect,
                            bounce=ggx_bounce)
+
+
+def _cube_walk(r: SimpleNamespace, g: SimpleNamespace):
+    """The DDA walk (`walk.walk_step`) of the rays and tables `r`, `g` (`_walk_inputs`) ->
+    walk(o, d, t_max, t_min=None) of world rays o, d (three lanes each) from t_min (None: 0) up to
+    t_max -> (hit, t, entry axis, material, (the rays in grid units, the cell (three int lanes)),
+    None: the face's normal)."""
+
+    def walk(o: list, d: list, t_max, t_min=None):
+        ray = SimpleNamespace(**vars(r), o=[(o[c] - r.origin[c]) / r.size for c in range(3)],
+                              d=[d[c] / r.size for c in range(3)], t_max=t_max)
+        ok, t0, cell, axis = start_lanes(ray.o, ray.d, ray.lo, ray.hi, t_min, t_max)
+        zero = lanes.int_like(0, cell[0])
+        state = [*cell, t0, axis, zero, ok, t0 * 0.0, zero]
+        cx, cy, cz, t, axis, n, alive, t_exit, material = lanes.while_loop(
+            state, lambda *x: x[6], lambda *x: walk_step(list(x), ray, g)[0])
+        return material > 0, t, axis, material, (ray, [cx, cy, cz]), None
+
+    return walk
+
+
+def _rounded_walk(cubes, r: SimpleNamespace, rounded: Stacked, per_lane, *, kernel: bool):
+    """`voxels.rounded`'s walk, as the marched voxels' (`passes.rounded`): the first occupied cell
+    the cube walk `cubes` finds, refined by sphere tracing its rounded box (`shade.rounded_lanes`,
+    radius `radius_min` + `radius_range` · hash3(cell)); a ray that misses it walks on from the
+    cell's exit, up to `retries` times (`r`: the walk's rays, `_walk_inputs`). -> walk(o, d, t_max) ->
+    `cubes`' results, t on the rounded
+    box and its normal (three lanes) instead of None. Shadow rays take it too: a path's surface
+    is the rounded one (the marched shadow rays take the cubes)."""
+    low, span, threshold = per_lane(rounded.radius_min), per_lane(rounded.radius_range), per_lane(rounded.threshold)
+
+    def radius(cell: list):  # `noise.hash3`'s value, from its one source in either backend
+        if not kernel:
+            return low + span * noise.hash3(torch.stack(cell, dim=1), rounded.seed, dtype=low.dtype)
+        return low + span * lanes.to_float((hash3_lanes(*cell, rounded.seed) >> 8) & 0xFFFFFF, low) * 2.0**-24
+
+    def walk(o: list, d: list, t_max):
+        def body(found, t, axis, material, cx, cy, cz, nx, ny, nz, t_min, tries, going):
+            met, t_c, ax, mat, (ray, cell), _ = cubes(o, d, lanes.where(going, t_max, 0.0), t_min)
+            centre = [lanes.to_float(c, t_c) + 0.5 for c in cell]
+            local = [ray.o[i] + t_c * ray.d[i] - centre[i] for i in range(3)]
+            ok, advance, normal = rounded_lanes(local, d, radius(cell), steps=int(rounded.steps), threshold=threshold)
+            now, missed = going & met & ok, going & met & ~ok
+            keep = lambda a, b: lanes.where(now, a, b)  # noqa: E731
+            found, t, axis, material = found | now, keep(t_c + advance * r.size, t), keep(ax, axis), keep(mat, material)
+            cx, cy, cz = keep(cell[0], cx), keep(cell[1], cy), keep(cell[2], cz)
+            nx, ny, nz = keep(normal[0], nx), keep(normal[1], ny), keep(normal[2], nz)
+            t_min = lanes.where(missed, next_cell_lanes(tuple(cell), tuple(ray.o), tuple(ray.d))[1], t_min)  # its exit
+            return found, t, axis, material, cx, cy, cz, nx, ny, nz, t_min, tries + 1, missed & (tries < int(rounded.retries))
+
+        zero = o[0] * 0.0
+        none = lanes.to_int32(zero)
+        state = [zero > 1.0, zero + math.inf, none, none, none, none, none, zero, zero, zero, zero, none, zero == 0.0]
+        found, t, axis, material, cx, cy, cz, nx, ny, nz, _, _, _ = lanes.while_loop(state, lambda *x: x[12], body)
+        ray = SimpleNamespace(o=[(o[c] - r.origin[c]) / r.size for c in range(3)], d=[d[c] / r.size for c in range(3)])
+        return found, t, axis, material, (ray, [cx, cy, cz]), [nx, ny, nz]
+
+    return walk
 
 
 def _material_lanes(voxels: Stacked, s: Tensor, ints, floats):

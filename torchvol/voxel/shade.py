@@ -8,12 +8,12 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ..geometry.sdf import sd_rounded_box
+from ..geometry.sdf import rounded_box_lanes
 from ..noise import lattice as noise
 from ..ops import lanes
 from ..ops.mathops import pow_
 
-__all__ = ["ao_lanes", "face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_refine",
+__all__ = ["ao_lanes", "face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_lanes", "rounded_refine",
            "texel_lanes"]
 
 
@@ -108,17 +108,27 @@ def rounded_refine(local: Tensor, direction: Tensor, cell: Tensor, *, radius_min
 
     local [N, 3]: entry point − cell centre (voxel units); direction [N, 3] unit; cell [N, 3] long.
     w = radius_min + radius_range · hash3(cell). Returns (converged [N] bool, advance [N] in voxel
-    units, normal [N, 3]: the rounded box's gradient at the converged point)."""
+    units, normal [N, 3]: the rounded box's gradient at the converged point): `rounded_lanes`."""
     w = radius_min + radius_range * noise.hash3(cell, seed, dtype=local.dtype)
-    p = local.clone()
-    advance = torch.zeros_like(w)
-    done = torch.zeros_like(w, dtype=torch.bool)
+    done, advance, normal = rounded_lanes(list(local.unbind(1)), list(direction.unbind(1)), w, steps=steps,
+                                          threshold=threshold)
+    return done, advance, torch.stack(normal, dim=1)
+
+
+def rounded_lanes(local: list, direction: list, radius, *, steps: int, threshold) -> tuple:
+    """`rounded_refine` in lanes (`ops.lanes`), its rounded box's radius given (`radius` lanes):
+    `steps` sphere-tracing steps of sdRoundedBox(p, 0.5, radius) from `local` along `direction`
+    (three lanes each), converged where h < `threshold`. -> (converged, advance (voxel units), the
+    unit normal (three lanes))."""
+    p, advance = list(local), radius * 0.0
+    done = advance > 0.0
     for _ in range(steps):
-        h = sd_rounded_box(p, 0.5, w)
+        h = rounded_box_lanes(p, [0.5] * 3, radius)
         done = done | (h < threshold)
-        step = torch.where(done, torch.zeros_like(h), h.clamp_min(0.0))
-        p = p + direction * step[:, None]
+        step = lanes.where(done, 0.0, lanes.clamp_min(h, 0.0))
+        p = [p[i] + direction[i] * step for i in range(3)]
         advance = advance + step
-    q = (p.abs() - 0.5 + w[:, None]).clamp_min(0.0) * torch.sign(p)
-    normal = torch.nn.functional.normalize(q, dim=1)
-    return done, advance, normal
+    q = [lanes.clamp_min(lanes.abs(c) - 0.5 + radius, 0.0) * lanes.where(c > 0.0, 1.0, lanes.where(c < 0.0, -1.0, 0.0))
+         for c in p]
+    size = lanes.clamp_min(lanes.length3(*q), 1e-12)
+    return done, advance, [c / size for c in q]

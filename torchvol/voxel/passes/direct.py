@@ -16,6 +16,7 @@ from ..ggx import ggx_reflect
 from ..materials import VOXEL_MATERIALS
 from ..tracer import VoxelTracer
 from .point import ShadingPoint
+from .rounded import cell_exit
 
 __all__ = ["DirectLight"]
 
@@ -46,6 +47,9 @@ class DirectLight:
                 use = shadows[l]
                 with section(use.name):
                     start = point.x + take(p.shadow.offset, s)[:, None] * point.face_normal
+                    if p.rounded is not None:  # a rounded box lies inside its cell: its shadow ray leaves the cell first
+                        leave = cell_exit(self.tracer.grid, point.x, toward.direction, s, point.cell)
+                        start = point.x + (leave + take(p.shadow.offset, s))[:, None] * toward.direction
                     at_start = None if source.directional else source.toward(start, s)
                     vis = self.tracer.visibility(start, s, source, p.shadow.steps, at_start)
                 if use.terrain or use.occluders:  # the media and the terrain beside the voxels (their own passes)

@@ -9,11 +9,11 @@ import torch
 from torch import Tensor
 
 from ...schema.batch import Stacked, take
-from ..dda import Hits
+from ..dda import Hits, next_cell_lanes
 from ..shade import rounded_refine
 from ..tracer import VoxelTracer
 
-__all__ = ["RoundedVoxels"]
+__all__ = ["RoundedVoxels", "cell_exit"]
 
 
 class RoundedVoxels:
@@ -48,15 +48,17 @@ class RoundedVoxels:
             if not miss.numel() or attempt == r.retries:
                 break
             # continue past this voxel: restart just after its exit
-            og, dg = g.to_grid(o[miss], s[miss]), d[miss] / g.voxel_size[s[miss], None]
-            c = cell[miss]
-            far = torch.where(dg > 0, c + 1, c).to(o.dtype)
-            zero = dg == 0
-            tx = torch.where(zero, torch.full_like(far, torch.inf), (far - og) / torch.where(zero, torch.ones_like(far), dg))
-            t_exit = tx.min(dim=1).values
+            t_exit = cell_exit(g, o[miss], d[miss], s[miss], cell[miss])
             h2 = self.tracer.traverse(o[miss], d[miss], s[miss], max_steps=p.max_steps, t_min=t_exit, plain=True)
             # the restart must not re-enter the voxel it left (it starts just after t_exit)
             extra[miss] += h2.steps
             cell[miss], axis[miss], t[miss], mat[miss] = h2.cell, h2.axis, h2.t, h2.material
             pending = miss[h2.hit]
         return replace(hits, hit=hit, t=t, cell=cell, axis=axis, material=mat, steps=hits.steps + extra), normal
+
+
+def cell_exit(grid, o: Tensor, d: Tensor, s: Tensor, cell: Tensor) -> Tensor:
+    """Where world rays o, d [n, 3] of scenes s [n] leave their cells `cell` [n, 3] (long): the
+    distance [n] to the DDA's next crossing (`dda.next_cell_lanes`)."""
+    og, dg = grid.to_grid(o, s), d / grid.voxel_size[s, None]
+    return next_cell_lanes(tuple(cell.unbind(1)), tuple(og.unbind(1)), tuple(dg.unbind(1)))[1]
