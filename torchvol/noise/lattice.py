@@ -88,7 +88,7 @@ def hash3_lanes(x, y, z, seed: int):
 
 def _hash_u32(cells: Tensor, seed: int) -> Tensor:
     """uint32 hash (as int64) of integer cells ``[..., 3]`` and an integer seed -> ``[...]``:
-    `fast.hash3_lanes` (lowbias32 chained over the seed and the coordinates) on int32 columns."""
+    `hash3_lanes` (lowbias32 chained over the seed and the coordinates) on int32 columns."""
     c = cells.to(torch.int64) & _M32
     c = (c - ((c >> 31) << 32)).to(torch.int32)  # the uint32 bits as int32 values
     return hash3_lanes(c[..., 0], c[..., 1], c[..., 2], seed).to(torch.int64) & _M32

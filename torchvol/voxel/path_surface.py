@@ -135,9 +135,10 @@ def _rounded_walk(cubes, r: SimpleNamespace, rounded: Stacked, per_lane, *, kern
             centre = [lanes.to_float(c, t_c) + 0.5 for c in cell]
             local = [ray.o[i] + t_c * ray.d[i] - centre[i] for i in range(3)]
             ok, advance, normal = rounded_lanes(local, d, radius(cell), steps=int(rounded.steps), threshold=threshold)
-            now, missed = going & met & ok, going & met & ~ok
+            on_box = t_c + advance * r.size
+            now, missed = going & met & ok & (on_box <= t_max), going & met & ~ok  # (a box past t_max: none before it)
             keep = lambda a, b: lanes.where(now, a, b)  # noqa: E731
-            found, t, axis, material = found | now, keep(t_c + advance * r.size, t), keep(ax, axis), keep(mat, material)
+            found, t, axis, material = found | now, keep(on_box, t), keep(ax, axis), keep(mat, material)
             cx, cy, cz = keep(cell[0], cx), keep(cell[1], cy), keep(cell[2], cz)
             nx, ny, nz = keep(normal[0], nx), keep(normal[1], ny), keep(normal[2], nz)
             t_min = lanes.where(missed, next_cell_lanes(tuple(cell), tuple(ray.o), tuple(ray.d))[1], t_min)  # its exit
