@@ -48,6 +48,11 @@ def test_hg_stays_finite_near_g_one(dtype, g):
     a = abs(float(torch.tensor(g, dtype=dtype)))  # g as the dtype holds it
     expected = (1 + a) / (4 * math.pi * (1 - a) ** 2)
     assert abs(float(peak) / expected - 1) < (1e-3 if dtype == torch.float32 else 1e-9)
+    # a dot product of unit vectors rounds past ±1 (a direction drawn about another at cos −1):
+    # the peak's value, not the infinity a negative base gave at |g| near 1
+    ulp = float(torch.finfo(dtype).eps)
+    past = phase.henyey_greenstein(torch.tensor([-1.0 - 2 * ulp, 1.0 + 2 * ulp], dtype=dtype), g)
+    assert torch.equal(past, value[[0, -1]]), past
 
 
 @pytest.mark.parametrize("growth,first", [(1.0, None), (1.3, None), (1.3, 0.05), (2.0, 0.5)])

@@ -49,9 +49,11 @@ def _like(g, cos_theta):
 
 def _hg_base(cos_theta, g):
     """1 + g² − 2g cos θ written (1 − |g|)² + 2|g|(1 − sign(g) cos θ): both terms ≥ 0, so the
-    peak value (1 − |g|)² (cos θ = sign g) has no cancellation for either sign of g (lanes)."""
+    peak value (1 − |g|)² (cos θ = sign g) has no cancellation for either sign of g (lanes). cos θ
+    is taken within [−1, 1]: a dot product of unit vectors can round past it, which at |g| near 1
+    made the second term negative, the base 0 and the phase infinite."""
     a = lanes.abs(g)
-    base = (1.0 - a) * (1.0 - a) + 2.0 * a * (1.0 - lanes.where(g < 0, -1.0, 1.0) * cos_theta)
+    base = (1.0 - a) * (1.0 - a) + 2.0 * a * (1.0 - lanes.where(g < 0, -1.0, 1.0) * lanes.clamp(cos_theta, -1.0, 1.0))
     return lanes.clamp_min(base, lanes.tiny(cos_theta))
 
 
