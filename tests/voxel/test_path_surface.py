@@ -134,6 +134,11 @@ def test_rounded_voxels_are_traced_as_the_march_finds_them(one_thread):
     facing = (march.aovs["normal"][:, 1] > 1e-3) & (march.depth[:, 0] > 0)
     lit = march.radiance.amax(1) > 0
     assert int(facing.sum()) > 100 and torch.equal(lit, facing), f"{int((lit != facing).sum())} pixels lit otherwise than n·l"
+    # radius 0 is the cube, path-traced too (a slanted sun: shadows and bounces off the faces)
+    scene["lights"][0]["direction"], scene["sky"]["radiance"] = [0.3, 0.8, -0.4], [0.2, 0.3, 0.4]
+    cube = {**scene, "voxels": {**scene["voxels"], "rounded": None}, "path": {"bounces": 3, "samples": 2}}
+    zero = {**cube, "voxels": {**scene["voxels"], "rounded": {"radius_min": 0.0, "radius_range": 0.0, "threshold": 0.002}}}
+    assert_close(tv.render(zero).radiance, tv.render(cube).radiance, atol=1e-5, what="radius-0 rounded voxels against cubes")
 
 
 @pytest.mark.parametrize("key, value", [("glow", {}), ("fog", {"density": 0.1}), ("water", {"level": 0.0})])

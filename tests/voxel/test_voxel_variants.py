@@ -97,6 +97,8 @@ def test_rounded_voxels_zero_radius_is_the_cube_and_rounding_recedes():
     cube = tv.render(wall(rounded={"radius_min": 0.0, "radius_range": 0.0}))
     assert torch.equal(cube.alpha, plain.alpha)
     assert_close(cube.depth, plain.depth, atol=1e-5, what="zero-radius rounded depth")
+    # shaded as the cube too: its normal is the face's where the point lies on the inner box (was 0: black)
+    assert_close(cube.radiance, plain.radiance, atol=1e-5, what="zero-radius rounded radiance")
     round_ = tv.render(wall(rounded={"radius_min": 0.3, "radius_range": 0.2}))
     both = (round_.alpha > 0) & (plain.alpha > 0)
     assert (round_.depth[both] >= plain.depth[both] - 1e-5).all()

@@ -130,5 +130,10 @@ def rounded_lanes(local: list, direction: list, radius, *, steps: int, threshold
         advance = advance + step
     q = [lanes.clamp_min(lanes.abs(c) - 0.5 + radius, 0.0) * lanes.where(c > 0.0, 1.0, lanes.where(c < 0.0, -1.0, 0.0))
          for c in p]
-    size = lanes.clamp_min(lanes.length3(*q), 1e-12)
-    return done, advance, [c / size for c in q]
+    size = lanes.length3(*q)
+    # inside the inner box (radius 0, or an entry point rounded a hair inside the cube) q is 0: the
+    # normal is then the face the point is nearest, the cube's (it was 0: a black face)
+    a = [lanes.abs(c) for c in p]
+    face = [(a[0] >= a[1]) & (a[0] >= a[2]), (a[1] > a[0]) & (a[1] >= a[2]), (a[2] > a[0]) & (a[2] > a[1])]
+    return done, advance, [lanes.where(size > 0.0, q[i] / lanes.clamp_min(size, 1e-30),
+                                       lanes.where(face[i], lanes.where(p[i] < 0.0, -1.0, 1.0), 0.0)) for i in range(3)]
