@@ -32,7 +32,7 @@ def turn(d: list, cos, u) -> list:
 
 def facing(normal: list, direction: list):
     """max(0, n·l) of unit lanes `normal` and `direction` (three lanes each)."""
-    return lanes.clamp_min(normal[0] * direction[0] + normal[1] * direction[1] + normal[2] * direction[2], 0.0)
+    return lanes.clamp_min(lanes.dot3(normal, direction), 0.0)
 
 
 def lambert_reflect(direct: float):

@@ -296,5 +296,10 @@ def length3(x, y, z):
     return sqrt(x * x + y * y + z * z)
 
 
-__all__ = ["abs", "atan", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
+def dot3(a, b):
+    """a·b of two vectors of three lanes each (summed x, y, z in order)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+__all__ = ["abs", "atan", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "dot3", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
            "floats_of", "fori", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "sin", "smoothstep01", "sqrt", "tan", "tiny", "to_float", "to_int32", "where", "while_loop"]

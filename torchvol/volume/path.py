@@ -343,13 +343,23 @@ def _phase_sample(q, vol, d: list, u: list):
     """A direction scattered from d by the phase function of each lane's volume (u three uniform
     lanes) and its weight p/pdf: HG and its dual lobe drawn exactly, Mie through its HG, Rayleigh
     and isotropic uniformly."""
+    cos = _drawn_cos(q, vol, u[0], u[2])
+    weight = _pick(vol, [m.phase(cos) / _drawn_density(m, cos) if m.weighted else lanes.full_like(cos, 1.0) for m in q.vols])
+    return turn(d, cos, u[1]), weight
+
+
+def _drawn_cos(q, vol, u, u_lobe):
+    """cos θ drawn from each lane's volume's phase sampler (`_phase_sample`) at uniform lanes u,
+    its dual lobe picked by `u_lobe`."""
+    return hg_cos(_pick(vol, [lanes.where(u_lobe < m.lobe[2], m.lobe[1], m.lobe[0]) for m in q.vols]), u)
+
+
+def _drawn_density(m, cos):
+    """The density over directions of medium m's phase sampler at cos θ: the phase function where it
+    is drawn exactly (HG, its dual lobe, isotropic), else the HG of its g it is drawn through."""
     from ..light.phase import henyey_greenstein
 
-    g = _pick(vol, [lanes.where(u[2] < m.lobe[2], m.lobe[1], m.lobe[0]) for m in q.vols])
-    cos = hg_cos(g, u[0])
-    weight = _pick(vol, [m.phase(cos) / henyey_greenstein(cos, g) if m.weighted else lanes.full_like(cos, 1.0)
-                         for m in q.vols])
-    return turn(d, cos, u[1]), weight
+    return henyey_greenstein(cos, m.lobe[0]) if m.weighted else m.phase(cos)
 
 
 def _spans(q, o: list, d: list, alive, t_max=None):
@@ -468,7 +478,7 @@ def _lights_at(q, x: list, d: list, vol, alive, face, normal, facts, beta: list,
         if at is None:
             continue
         direction, irradiance, distance = light.toward(x)
-        cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
+        cos = lanes.dot3(d, direction)
         phase = [_pick(vol, [m.phase(cos) for m in q.vols])] * 3
         if face is not None:  # the surface's reflectance towards where the path came from
             reflected = q.surface.reflect(facts, normal, [-c for c in d], direction)
@@ -488,8 +498,6 @@ def _suns_next(q, x: list, d: list, vol, on, beta: list, out: list, key, count, 
     path happened to fly towards a sun (HG 0.8: 45× its mean, a next event's relative deviation
     3.4), is drawn where it lies (`SUN_FLIGHTS`). -> (out plus it, the counters, the tally, where
     the path's next collision leaves them out)."""
-    from ..light.phase import henyey_greenstein
-
     suns = [light for light in q.lights if light.position is None]
     if not suns or not SUN_FLIGHTS:
         return out, count, tally, on & False
@@ -497,16 +505,14 @@ def _suns_next(q, x: list, d: list, vol, on, beta: list, out: list, key, count, 
     for _ in range(4):
         u.append(uniform_lanes(key, count))
         count = count + lanes.to_int32(on)
-    g = _pick(vol, [lanes.where(u[3] < m.lobe[2], m.lobe[1], m.lobe[0]) for m in q.vols])
     towards = [sun.toward(x)[0] for sun in suns]
     axis = d
     for i, direction in enumerate(towards):  # the lobe about sun i where 0.5 + i/(2S) <= u0 < ...
         axis = [lanes.where(u[0] >= 0.5 + 0.5 * i / len(suns), a, b) for a, b in zip(direction, axis)]
-    flight = turn(axis, hg_cos(g, u[1]), u[2])
-    own = lambda c: _pick(vol, [henyey_greenstein(c, m.lobe[0]) if m.weighted else m.phase(c) for m in q.vols])  # noqa: E731
-    dot = lambda a, b: a[0] * b[0] + a[1] * b[1] + a[2] * b[2]  # noqa: E731
-    pdf = 0.5 * own(dot(d, flight)) + sum(own(dot(flight, t)) for t in towards) * (0.5 / len(suns))
-    weight = _pick(vol, [m.phase(dot(d, flight)) for m in q.vols]) / lanes.clamp_min(pdf, 1e-30)
+    flight = turn(axis, _drawn_cos(q, vol, u[1], u[3]), u[2])
+    own = lambda c: _pick(vol, [_drawn_density(m, c) for m in q.vols])  # noqa: E731
+    pdf = 0.5 * own(lanes.dot3(d, flight)) + sum(own(lanes.dot3(flight, t)) for t in towards) * (0.5 / len(suns))
+    weight = _pick(vol, [m.phase(lanes.dot3(d, flight)) for m in q.vols]) / lanes.clamp_min(pdf, 1e-30)
     t0, t1, total = _spans(q, x, flight, on)
     hit, vol2, _, _, count, live, extra, *ev = track_lanes(x, flight, t0, t1, total, q.sigma, key, count, collide=True,
                                                            steps=MAX_TENTATIVE)
@@ -518,7 +524,7 @@ def _suns_next(q, x: list, d: list, vol, on, beta: list, out: list, key, count, 
     gain = weight * _pick(vol2, [m.albedo for m in q.vols])
     for sun in suns:
         direction, irradiance, distance = sun.toward(y)
-        phase = _pick(vol2, [m.phase(dot(flight, direction)) for m in q.vols])
+        phase = _pick(vol2, [m.phase(lanes.dot3(flight, direction)) for m in q.vols])
         through, count, tally = _shadow(q, y, direction, distance, at, key, count, tally)
         out = [lanes.where(at, out[c] + beta[c] * irradiance[c] * (gain * phase * through), out[c]) for c in range(3)]
     return out, count, tally, on
@@ -544,7 +550,7 @@ def _lights_along(q, o: list, d: list, spans: tuple, on, camera, beta: list, out
         t, density = equiangular(o, d, light.position, lanes.where(at, start, 0.0), lanes.where(at, end, 1.0), u)
         y = [o[c] + t * d[c] for c in range(3)]
         direction, irradiance, distance = light.toward(y)
-        cos = d[0] * direction[0] + d[1] * direction[1] + d[2] * direction[2]
+        cos = lanes.dot3(d, direction)
         masks = [at & (t >= a) & (t < b) for a, b in zip(t0, t1)]
         scatter = None
         for v, (m, mask) in enumerate(zip(q.vols, masks)):
@@ -568,7 +574,7 @@ def equiangular(o: list, d: list, c: list, start, end, u):
     from ..light.lights import POINT_RADIUS
 
     v = [c[i] - o[i] for i in range(3)]
-    closest = v[0] * d[0] + v[1] * d[1] + v[2] * d[2]
+    closest = lanes.dot3(v, d)
     gap = lanes.clamp_min(lanes.length3(*[v[i] - closest * d[i] for i in range(3)]), POINT_RADIUS)
     a, b = lanes.atan((start - closest) / gap), lanes.atan((end - closest) / gap)
     t = lanes.clamp(closest + gap * lanes.tan(a + u * (b - a)), start, end)

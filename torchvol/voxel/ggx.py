@@ -75,9 +75,8 @@ def reflectance_lanes(normal: list, view: list, light_dir: list, albedo: list, r
     h = [view[c] + light_dir[c] for c in range(3)]
     norm = lanes.clamp_min(lanes.length3(*h), 1e-12)  # v = −l: any h, n·l ≤ 0 there
     h = [c / norm for c in h]
-    dot = lambda a, b: a[0] * b[0] + a[1] * b[1] + a[2] * b[2]  # noqa: E731
-    n_l, n_v = dot(normal, light_dir), dot(normal, view)
-    n_h, v_h = lanes.clamp(dot(normal, h), 0.0, 1.0), dot(view, h)
+    n_l, n_v = lanes.dot3(normal, light_dir), lanes.dot3(normal, view)
+    n_h, v_h = lanes.clamp(lanes.dot3(normal, h), 0.0, 1.0), lanes.dot3(view, h)
     alpha = alpha_of(roughness)
     lobe = d_ggx(n_h, alpha) * v_smith(n_v, n_l, alpha)
     cos = math.pi * lanes.clamp_min(n_l, 0.0)

@@ -202,15 +202,15 @@ def ggx_bounce(m: SimpleNamespace, n: list, d: list, u: list):
     lobe = turn(n, lanes.sqrt(u[0]), u[1])
     alpha = alpha_of(m.roughness)
     h = visible_normal(n, v, alpha, u[0], u[1])
-    v_h = v[0] * h[0] + v[1] * h[1] + v[2] * h[2]
+    v_h = lanes.dot3(v, h)
     mirrored = [2.0 * v_h * h[c] - v[c] for c in range(3)]
     p_spec = 0.5 + 0.5 * m.metallic
     light = [lanes.where(m.ggx & (u[2] < p_spec), a, b) for a, b in zip(mirrored, lobe)]
     half = [v[c] + light[c] for c in range(3)]
     norm = lanes.clamp_min(lanes.length3(*half), 1e-12)
-    n_h = lanes.clamp((n[0] * half[0] + n[1] * half[1] + n[2] * half[2]) / norm, 0.0, 1.0)
-    n_v = lanes.clamp_min(n[0] * v[0] + n[1] * v[1] + n[2] * v[2], 1e-6)
-    n_l = n[0] * light[0] + n[1] * light[1] + n[2] * light[2]
+    n_h = lanes.clamp(lanes.dot3(n, half) / norm, 0.0, 1.0)
+    n_v = lanes.clamp_min(lanes.dot3(n, v), 1e-6)
+    n_l = lanes.dot3(n, light)
     # the visible normals' density of the mirrored direction: G1(v)·D(h)/(4 n·v) (Heitz 2018, eq. 17)
     pdf = p_spec * _smith_g1(n_v, alpha) * d_ggx(n_h, alpha) / (4.0 * n_v) + (1.0 - p_spec) * lanes.clamp_min(n_l, 0.0) / math.pi
     gain = [lanes.where(n_l > 0.0, c / (math.pi * lanes.clamp_min(pdf, 1e-30)), 0.0)
@@ -224,8 +224,7 @@ def visible_normal(n: list, v: list, alpha, u1, u2) -> list:
     of Visible Normals"): no normal facing away from v, so a mirrored direction's weight F·G2/G1
     stays below 1 where drawing from D(h)·(n·h) gave the grazing views' fireflies. Three lanes."""
     t1, t2 = basis(n)
-    dot = lambda a, b: a[0] * b[0] + a[1] * b[1] + a[2] * b[2]  # noqa: E731
-    local = [alpha * dot(v, t1), alpha * dot(v, t2), lanes.clamp_min(dot(v, n), 1e-6)]  # the view, stretched
+    local = [alpha * lanes.dot3(v, t1), alpha * lanes.dot3(v, t2), lanes.clamp_min(lanes.dot3(v, n), 1e-6)]  # the view, stretched
     length = lanes.length3(*local)
     vh = [c / length for c in local]
     across = lanes.sqrt(vh[0] * vh[0] + vh[1] * vh[1])
