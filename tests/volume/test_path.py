@@ -500,3 +500,19 @@ def test_every_preset_with_physical_media_path_traces(name, one_thread):
     out = tv.render(scene)
     assert torch.isfinite(out.radiance).all() and float(out.radiance.sum()) > 0
     assert out.stats["plan"]["path"]["bounces"] == 4 and "path" in out.stats["passes"]
+
+
+@pytest.mark.parametrize("compile_mode", ["kernels", "off"])
+def test_samples_traced_together_give_the_bytes_of_one_at_a_time(compile_mode, one_thread, monkeypatch):
+    """A chunk's samples run as one batch of paths (`path.PATH_LANES`): each path's draws are its
+    own and the samples are summed in order, so the image's bytes are those of one sample a call."""
+    from torchvol.volume import path
+
+    grid = puff_grid(12)
+    scene = torchvol_scene(grid, sigma_for(grid, 6.0), size=6, spp=2)
+    scene["path"] = {"bounces": 32, "samples": 7}
+    scene["sky"] = {"kind": "gradient", "horizon": [0.9, 0.6, 0.3], "slope": [-0.5, 0.0, 0.6]}
+    together = tv.render(scene, compile=compile_mode).radiance
+    for lanes in (1, 150):  # one sample a call; two samples (72 rays each) a call, the last alone
+        monkeypatch.setattr(path, "PATH_LANES", lanes)
+        assert torch.equal(tv.render(scene, compile=compile_mode).radiance, together), f"{lanes} paths a call"

@@ -37,6 +37,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from ..geometry.camera import Rays
 from ..geometry.rays import sphere_interval
 from ..geometry.scatter import lambert_bounce, lambert_reflect, turn
 from ..noise import fast
@@ -44,6 +45,7 @@ from ..ops import lanes
 from ..schema.batch import take
 from .density_lanes import inner_and_edge
 from .emission import EMISSION_MAPS
+from .local_majorant import bound_at, macro_cells, macro_lanes, macro_majorant
 from .physical import sky_blend_weight
 
 ROULETTE_AFTER = 3  # scatterings before Russian roulette may end a path
@@ -52,6 +54,8 @@ MARGIN = 1.5  # an estimated majorant: the largest lattice sample times this
 LATTICE = 24  # samples a side of the lattice an estimated majorant comes from
 MAX_TENTATIVE = 100_000  # tentative collisions a tracking call takes at most (then it stops: counted)
 FADE = 0.05  # a ratio-tracked transmittance below this plays Russian roulette
+LOCAL_MAJORANTS = True  # grid media tracked against their macro cells' bounds (`local_majorant`); False: one bound
+PATH_LANES = 1 << 18  # paths traced as one batch: the samples of a chunk's rays are grouped up to this
 SUN_FLIGHTS = True  # the suns' next events by a flight of their own (`_suns_next`); False: plain, the tests' reference
 _KEY, _DRAW = 0x7A17, 0x5CA7  # the hashes' seeds (already int32 values)
 
@@ -82,6 +86,7 @@ class Media:
     surface: Callable | None = None
     air: object | None = None  # the batch's `[atmosphere]` (Stacked) or None: `air_media`
     marched_first: bool = False  # `[path] single = "march"`: the paths leave out what the march gives
+    local: list = field(default_factory=list)  # each volume's `local_majorant.MacroMajorant` or None
 
 
 def uniform_lanes(key, count):
@@ -159,7 +164,18 @@ def media(vols: list, dtype: torch.dtype, surface: Callable | None = None, air=N
     """The paths' `Media` of the render's physically shaded volume states `vols`, its opaque
     `surface` (`Media.surface`) or None, its `[atmosphere]` (Stacked) or None, and whether the
     march gives the single scattering (`Media.marched_first`)."""
-    return Media(vols, [majorant(v, dtype) for v in vols], surface=surface, air=air, marched_first=marched_first)
+    return Media(vols, [majorant(v, dtype) for v in vols], surface=surface, air=air, marched_first=marched_first,
+                 local=[_local(v, dtype) for v in vols])
+
+
+def _local(vol, dtype: torch.dtype):
+    """The volume's local majorants (`local_majorant`) where its density is a grid (and
+    `LOCAL_MAJORANTS`), else None: one majorant over its bounds."""
+    if not LOCAL_MAJORANTS or vol.params.density.kind != "grid":
+        return None
+    grid = inner_and_edge(vol)[0]
+    low, high = grid.box_min.to(dtype), grid.box_max.to(dtype)
+    return macro_majorant([g.to(dtype) for g in grid.grids], low, high, macro_cells(majorant(vol, dtype), low, high))
 
 
 def hero_channels(keys: Tensor, sample: int) -> Tensor:
@@ -195,7 +211,7 @@ def air_media(layer, per_ray, channel) -> tuple[list, SimpleNamespace]:
             return lanes.where(mask, sigmas[k] * density_lanes(frame(x), q)[k], 0.0)
 
         return SimpleNamespace(interval=lambda o, d: sphere_interval(frame(o), d, (0.0, 0.0, 0.0), top), reach=3e38,
-                               majorant=sigmas[k], sigma_t=sigmas[k], albedo=albedo, emission=[0.0] * 3, glow=None,
+                               majorant=sigmas[k], local=None, sigma_t=sigmas[k], albedo=albedo, emission=[0.0] * 3, glow=None,
                                lobe=lobe, weighted=True, phase=phase, sigma=sigma, blend=None)
 
     air = [medium(0, 1.0, rayleigh, (0.0, 0.0, 0.0)), medium(1, 1.0 / MIE_EXTINCTION, lambda c: mie_cornette_shanks(c, g), (g, g, 0.0))]
@@ -262,15 +278,18 @@ def with_air(q: SimpleNamespace, m: Media, channel, per_ray) -> SimpleNamespace:
     return q
 
 
-def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: bool, steps: int) -> list:
+def track_lanes(o, d, t0: list, t1: list, total, q, key, count, *, collide: bool, steps: int) -> list:
     """Delta tracking (`collide`) or ratio tracking along rays `o`, `d` (three lanes each)
     through volumes spanning [t0[v], t1[v]] (lanes a volume; empty: t0 = t1), their majorants
-    summing to `total`, `sigma(v, x, mask)` volume v's σ_t at points x (three lanes) where `mask`
-    (0 elsewhere), drawing `uniform_lanes(key, count)`: lanes (`ops.lanes`), the eager tracer's
-    and the kernel's one source. -> [t of the real collision (inf: none), its volume (int, −1:
-    none), its σ_t, the weight (the transmittance, ratio tracking), the counters after, whether a
-    lane stopped at `steps` tentative collisions, its tentative collisions above the majorant, each
-    volume's density evaluations]."""
+    summing to `total` (0: nothing to track), `q` the volumes (`path_inputs`: each one's majorant
+    and local majorants, `q.sigma(v, x, mask)` its σ_t at points x (three lanes) where `mask`, 0
+    elsewhere), drawing `uniform_lanes(key, count)`: lanes (`ops.lanes`), the eager tracer's and
+    the kernel's one source. Each step draws a free flight against the majorant where the ray
+    stands (`_majorant_at`); a flight past where that majorant holds moves there without a
+    collision (an exponential restarts anywhere: tracking against a piecewise-constant majorant).
+    -> [t of the real collision (inf: none), its volume (int, −1: none), its σ_t, the weight (the
+    transmittance, ratio tracking), the counters after, whether a lane stopped at `steps` steps,
+    its tentative collisions above the majorant, each volume's density evaluations]."""
     first, end = _extent(t0, t1)
     t = lanes.where(total > 0.0, first, math.inf)
     none = count * 0 - 1
@@ -278,25 +297,29 @@ def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: 
     def body(t, weight, hit, vol, sig_hit, count, live, n, above, *evals):
         u = uniform_lanes(key, count)
         count = count + lanes.to_int32(live)
-        t = lanes.where(live, t - lanes.log(1.0 - u) / total, t)
-        on = live & (t < end)
+        bound, reach = _majorant_at(q, [o[c] + t * d[c] for c in range(3)], t, t0, t1)
+        flight = lanes.where(bound > 0.0, -lanes.log(1.0 - u) / bound, math.inf)
+        passed = flight >= reach
+        t = lanes.where(live, t + lanes.where(passed, reach, flight), t)
+        going = live & (t < end)
+        on = going & ~passed
         x = [o[c] + t * d[c] for c in range(3)]
         masks = [on & (t >= t0[v]) & (t < t1[v]) for v in range(len(t0))]
-        sig = [sigma(v, x, mask) for v, mask in enumerate(masks)]
+        sig = [q.sigma(v, x, mask) for v, mask in enumerate(masks)]
         evals = [e + lanes.to_int32(mask) for e, mask in zip(evals, masks)]
         sig_sum = sum(sig[1:], sig[0])
-        null = total - sig_sum
+        null = bound - sig_sum
         above = above + lanes.to_int32(on & (null < 0.0))
         if not collide:  # the transmittance: a product of null fractions, faded out by roulette
-            weight = lanes.where(on, weight * lanes.clamp_min(null, 0.0) / total, weight)  # 0 above the majorant
+            weight = lanes.where(on, weight * lanes.clamp_min(null, 0.0) / bound, weight)  # 0 above the majorant
             low = on & (weight < FADE)
             u = uniform_lanes(key, count)
             count = count + lanes.to_int32(low)
             weight = lanes.where(low, lanes.where(u < 0.5, 2.0 * weight, 0.0), weight)
-            return t, weight, hit, vol, sig_hit, count, on & (weight != 0.0), n + 1, above, *evals
+            return t, weight, hit, vol, sig_hit, count, going & (weight != 0.0), n + 1, above, *evals
         u = uniform_lanes(key, count)
         count = count + lanes.to_int32(on)
-        real = on & (u * total < sig_sum)  # for sure above the majorant
+        real = on & (u * bound < sig_sum)  # for sure above the majorant
         pick = uniform_lanes(key, count) * sig_sum  # the volume: by its share of σ_t
         count = count + lanes.to_int32(real)
         k, chosen, acc = count * 0, sig[0], sig[0]
@@ -304,12 +327,29 @@ def track_lanes(o, d, t0: list, t1: list, total, sigma, key, count, *, collide: 
             past = acc <= pick
             k, chosen, acc = lanes.where(past, v, k), lanes.where(past, sig[v], chosen), acc + sig[v]
         return (t, weight, lanes.where(real, t, hit), lanes.where(real, k, vol), lanes.where(real, chosen, sig_hit),
-                count, on & ~real, n + 1, above, *evals)
+                count, going & ~real, n + 1, above, *evals)
 
     state = [t, lanes.full_like(t, 1.0), lanes.full_like(t, math.inf), none, lanes.full_like(t, 0.0), count, t < end,
              count * 0, count * 0] + [count * 0 for _ in t0]
     t, weight, hit, vol, sig_hit, count, live, n, above, *evals = lanes.while_loop(state, lambda *x: x[6] & (x[7] < steps), body)
     return [hit, vol, sig_hit, weight, count, live, above, *evals]
+
+
+def _majorant_at(q, x: list, t, t0: list, t1: list) -> tuple:
+    """The majorant summed over the volumes at t along rays (x their points there, three lanes)
+    and how far on it holds: a volume's within its span [t0[v], t1[v]], up to the span's end,
+    the next span's start or its local majorant's reach; its local majorant where it has them
+    (`local_majorant`), else its one. Lanes."""
+    bound, reach = lanes.full_like(t, 0.0), lanes.full_like(t, math.inf)
+    for v, vol in enumerate(q.vols):
+        inside = (t >= t0[v]) & (t < t1[v])
+        here, far = vol.majorant, t1[v] - t
+        if vol.local is not None:
+            here, holds = vol.local(x)
+            far = lanes.minimum(far, holds)
+        bound = bound + lanes.where(inside, here, 0.0)
+        reach = lanes.minimum(reach, lanes.where(t < t0[v], t0[v] - t, lanes.where(inside, far, math.inf)))
+    return bound, reach
 
 
 def _extent(t0: list, t1: list):
@@ -400,7 +440,7 @@ def trace_lanes(q, o: list, d: list, key, *, bounces: int, marched_first: bool =
         t0, t1, total = _spans(q, o, d, alive, wall)
         out, count, tally = _lights_along(q, o, d, (t0, t1), alive & (k < bounces) & later, alive & (k == 0), beta, out,
                                           key, count, tally)
-        hit, vol, sig, w, count, live, extra, *ev = track_lanes(o, d, t0, t1, total, q.sigma, key, count,
+        hit, vol, sig, w, count, live, extra, *ev = track_lanes(o, d, t0, t1, total, q, key, count,
                                                                 collide=True, steps=MAX_TENTATIVE)
         tally = _tallied(tally, live, extra, ev)
         beta = [lanes.where(alive, b * w, b) for b in beta]
@@ -459,7 +499,7 @@ def _shadow(q, x: list, direction: list, distance, on, key, count, tally, *, occ
     medium, ratio-tracked, times the surface's visibility (where the scene has one and the ray
     may be `occluded`), where `on` (else 0). -> (it, the counters, the tally)."""
     s0, s1, tot = _spans(q, x, direction, on, distance)
-    _, _, _, through, count, live, extra, *ev = track_lanes(x, direction, s0, s1, tot, q.sigma, key, count,
+    _, _, _, through, count, live, extra, *ev = track_lanes(x, direction, s0, s1, tot, q, key, count,
                                                             collide=False, steps=MAX_TENTATIVE)
     if q.surface is not None and occluded:  # (a ray not `on` ends its walk at once: distance 0)
         through = through * lanes.where(on, q.surface.visible(x, direction, lanes.where(on, distance, 0.0)), 0.0)
@@ -514,7 +554,7 @@ def _suns_next(q, x: list, d: list, vol, on, beta: list, out: list, key, count, 
     pdf = 0.5 * own(lanes.dot3(d, flight)) + sum(own(lanes.dot3(flight, t)) for t in towards) * (0.5 / len(suns))
     weight = _pick(vol, [m.phase(lanes.dot3(d, flight)) for m in q.vols]) / lanes.clamp_min(pdf, 1e-30)
     t0, t1, total = _spans(q, x, flight, on)
-    hit, vol2, _, _, count, live, extra, *ev = track_lanes(x, flight, t0, t1, total, q.sigma, key, count, collide=True,
+    hit, vol2, _, _, count, live, extra, *ev = track_lanes(x, flight, t0, t1, total, q, key, count, collide=True,
                                                            steps=MAX_TENTATIVE)
     tally = _tallied(tally, live, extra, ev)
     at = on & (vol2 >= 0)
@@ -649,12 +689,13 @@ def _roulette(beta: list, play, alive, key, count):
     return [lanes.where(play & survive, b / q, b) for b in beta], alive & survive, count
 
 
-def path_inputs(m: Media, lights: list, s: Tensor, per_ray, volume) -> SimpleNamespace:
-    """What `trace_lanes` takes for paths of scenes `s` [n]: `per_ray` (per scene -> lanes) and
-    `volume(v, state)` (its interval(o, d), σ_t at points where a mask holds, its emission map's
-    glow(x, density) or None: the backend's) -> the volumes' and lights' lanes. A scene of a
-    surface alone gets a vacuum (`_vacuum`), so the tracking keeps its shape."""
-    vols = []
+def path_inputs(m: Media, lights: list, to, volume) -> SimpleNamespace:
+    """What `trace_lanes` takes for paths of scenes `to.scene` [n]: `to` (as `fields.DENSITIES`'
+    ``lanes`` inputs: per scene -> lanes `per_lane`, tables `floats`, `ints`) and `volume(v,
+    state)` (its interval(o, d), its emission map's glow(x, density) or None: the backend's) ->
+    the volumes' and lights' lanes. A scene of a surface alone gets a vacuum (`_vacuum`), so the
+    tracking keeps its shape."""
+    s, per_ray, vols = to.scene, to.per_lane, []
     for v, state in enumerate(m.vols):
         p = state.params
         kind, fn = p.phase.kind, state.phase.caps["lanes"]
@@ -662,8 +703,11 @@ def path_inputs(m: Media, lights: list, s: Tensor, per_ray, volume) -> SimpleNam
         g = phase_q if kind in ("hg", "mie") else (phase_q if kind == "dual_hg" else 0.0)
         lobe = (g[0], g[1], g[2]) if kind == "dual_hg" else (g, g, 0.0)
         interval, glow = volume(v, state)
+        sigma_t = per_ray(p.sigma_t)
+        local = None if m.local[v] is None else _local_lanes(macro_lanes(m.local[v], to), sigma_t)
         vols.append(SimpleNamespace(interval=interval, reach=min(state.plan.reach, 3e38), majorant=per_ray(m.majorants[v]),
-                                    sigma_t=per_ray(p.sigma_t), albedo=per_ray(p.albedo), emission=per_ray(p.emission),
+                                    local=local,
+                                    sigma_t=sigma_t, albedo=per_ray(p.albedo), emission=per_ray(p.emission),
                                     glow=glow, lobe=lobe, weighted=kind in ("mie", "rayleigh"),
                                     blend=per_ray(p.sky_blend) if state.plan.sky_blend else None,
                                     phase=lambda cos, fn=fn, q=phase_q: fn[1](q, cos, 1.0)))
@@ -672,10 +716,20 @@ def path_inputs(m: Media, lights: list, s: Tensor, per_ray, volume) -> SimpleNam
     return SimpleNamespace(vols=vols, lights=[_light(li, per_ray) for li in lights], surface=None, channel=None, behind=None)
 
 
+def _local_lanes(table, sigma_t):
+    """σ_t's local majorant at points x (three lanes) and how far from them it holds, from the
+    macro cells' `table` (`local_majorant.macro_lanes`), lanes."""
+    def at(x):
+        bound, reach = bound_at(table, x)
+        return bound * sigma_t, reach
+
+    return at
+
+
 def _vacuum(zero) -> SimpleNamespace:
     """A medium no ray crosses (its interval empty, σ_t 0; `zero` lanes of 0), for paths in a
     scene of a surface alone (`with_air` gives it its σ_t)."""
-    return SimpleNamespace(interval=lambda o, d: (zero, zero - 1.0), reach=3e38, majorant=zero, sigma_t=zero, albedo=zero,
+    return SimpleNamespace(interval=lambda o, d: (zero, zero - 1.0), reach=3e38, majorant=zero, local=None, sigma_t=zero, albedo=zero,
                            emission=[zero] * 3, glow=None, lobe=(zero, zero, zero), weighted=False, blend=None,
                            phase=lambda cos: cos * 0.0 + 1.0 / (4.0 * math.pi), sigma=lambda x, mask: x[0] * 0.0)
 
@@ -699,23 +753,36 @@ def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bo
     `lights` (the render's `LightSource`s), seeing `background` [n, 3] (None: black) where the camera
     ray leaves the media (and its volumes' sky blend takes) and `sky(directions [m, 3], s [m]) ->
     [m, 3]` (None: black) where a scattered path does. `trace(m, lights, rays, key, bounces,
-    channel, background)` runs one sample's paths (None:
-    `trace_eager`; `path_kernel.trace_kernel`: one Dr.Jit kernel)."""
-    s, total = rays.scene_index, rays.origins.new_zeros(len(rays), 3)
-    run = trace_eager if trace is None else trace
-    for k in range(samples):
-        channel = None if m.air is None else hero_channels(keys, k)
-        out, beta, direction, gone, scattered, cut, above = run(m, lights, rays, path_keys(keys, k, samples), bounces, channel,
-                                                                background)
-        m.counts.truncated += int(cut.sum())
-        m.counts.above_majorant += int(above.sum())
-        first, later = (gone & (scattered == 0)).nonzero().squeeze(1), (gone & (scattered > 0)).nonzero().squeeze(1)
-        if background is not None and first.numel() and not m.marched_first:
-            out[first] = out[first] + beta[first] * background[first]
-        if sky is not None and later.numel():
-            out[later] = out[later] + beta[later] * sky(direction[later], s[later])
-        total = total + out
+    channel, background)` runs paths (None: `trace_eager`; `path_kernel.trace_kernel`: Dr.Jit
+    kernels), several samples' at once (`PATH_LANES` paths a call at most where a sample has fewer)."""
+    s, n, total = rays.scene_index, len(rays), rays.origins.new_zeros(len(rays), 3)
+    run, group = trace_eager if trace is None else trace, max(1, PATH_LANES // max(1, len(rays)))
+    for start in range(0, samples, group):
+        ks = range(start, min(samples, start + group))
+        channel = None if m.air is None else torch.cat([hero_channels(keys, k) for k in ks])
+        key = torch.cat([path_keys(keys, k, samples) for k in ks])
+        behind = None if background is None else background.repeat(len(ks), 1)
+        results = run(m, lights, _repeated(rays, len(ks)), key, bounces, channel, behind)
+        for j in range(len(ks)):  # each sample's in turn: the sum's order does not depend on the group
+            out, beta, direction, gone, scattered, cut, above = (r[j * n:(j + 1) * n] for r in results)
+            m.counts.truncated += int(cut.sum())
+            m.counts.above_majorant += int(above.sum())
+            first, later = (gone & (scattered == 0)).nonzero().squeeze(1), (gone & (scattered > 0)).nonzero().squeeze(1)
+            if background is not None and first.numel() and not m.marched_first:
+                out[first] = out[first] + beta[first] * background[first]
+            if sky is not None and later.numel():
+                out[later] = out[later] + beta[later] * sky(direction[later], s[later])
+            total = total + out
     return total / samples
+
+
+def _repeated(rays, times: int):
+    """Camera rays [n] repeated `times` over ([times·n]): several samples' paths as one batch."""
+    if times == 1:
+        return rays
+    return Rays(origins=rays.origins.repeat(times, 1), directions=rays.directions.repeat(times, 1),
+                scene_index=rays.scene_index.repeat(times), pixel=rays.pixel.repeat(times, 1),
+                forward_cos=rays.forward_cos.repeat(times))
 
 
 def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int, channel: Tensor | None = None,
@@ -743,7 +810,7 @@ def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int, channel
             out[rows] = take(state.params.sigma_t, s[rows]) * state.field(torch.stack([c[rows] for c in x], dim=1), s[rows])
         return out
 
-    q = path_inputs(m, lights, s, per_ray, volume)
+    q = path_inputs(m, lights, SimpleNamespace(per_lane=per_ray, scene=s, floats=lambda t: t, ints=lambda t: t), volume)
     q.sigma, q.behind = sigma, [0.0] * 3 if behind is None else lanes.columns(behind)
     if m.surface is not None:
         q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=False)

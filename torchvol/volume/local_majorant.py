@@ -1,0 +1,105 @@
+"""Local majorants of a grid medium for the path tracer's tracking (`path.track_lanes`).
+
+One majorant per medium makes delta tracking take a null collision every 1/σ̄ along a ray, so a
+cloud whose densest voxel is 4× its mean pays ~3 density evaluations for each real collision,
+and more in the empty corners of its box. Here the grid is pooled into macro cells (at most
+`MACRO_CELLS` a side, fewer where the medium is thin: `macro_cells`); each holds the largest density over the 3³ block of macro cells about it,
+which bounds the density on any segment of length at most one macro cell (the smallest side,
+times `SPACING`) from any point of the cell: its `reach`. Where that block is empty, the reach
+is the distance to the nearest occupied macro cell (Chebyshev, less one). The tracking looks
+the bound up where it stands, draws a free flight against it and, where the flight passes the
+reach, moves there without a collision and looks again: an exponential restarts at any point,
+so this is delta tracking against a piecewise-constant majorant, unbiased for any bound that
+holds (docs/VOLUMES.md, `[path]`).
+
+A macro cell's bound is exact: the trilinear density inside fine cell i blends the values at
+cell centres i − 1 … i + 1 (`fields.grid.grid_density`), so the largest value a macro cell's
+points can take is the largest of those centres' values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..ops import lanes
+from ..ops.grid_ops import chebyshev_distance
+
+MACRO_CELLS = 16  # macro cells along a grid's longest axis at most (finer cells restart flights more often)
+CELL_DEPTH = 1.5  # the optical depth of the one majorant across a macro cell, at least (`macro_cells`)
+SPACING = 0.99  # of a macro cell's smallest side: a point rounded past its cell's face stays within the block
+_ABOVE = 1.0 + 2.0**-20  # a float32 trilinear sum may round a hair above its largest corner
+
+
+@dataclass(frozen=True)
+class MacroMajorant:
+    """The local majorants of B scenes' grids: `bound` [Σ cells] the largest density over each
+    macro cell's 3³ block, `reach` [Σ cells] how far from any point of the cell it holds, each
+    scene's from `first` (B,) int32, its macro `cells` (B, 3) along x, y, z (float) tiling from
+    `box_min` (B, 3) in steps of `size` (B, 3)."""
+
+    bound: Tensor
+    reach: Tensor
+    first: Tensor
+    cells: Tensor
+    box_min: Tensor
+    size: Tensor
+
+
+def macro_cells(majorant: Tensor, box_min: Tensor, box_max: Tensor) -> list[int]:
+    """How many macro cells a side each scene's grid is pooled to: its one majorant (B,) times
+    its box's longest side ((B, 3) corners) over `CELL_DEPTH`, within 1 … `MACRO_CELLS`. A flight
+    restarts at each macro cell it crosses, so where the whole box is a few mean free paths of its
+    majorant deep the macro cells would cost more restarts than they save null collisions."""
+    depth = majorant * (box_max - box_min).amax(dim=1) / CELL_DEPTH
+    return [int(c) for c in depth.ceil().clamp(1, MACRO_CELLS).tolist()]
+
+
+def macro_majorant(grids: list[Tensor], box_min: Tensor, box_max: Tensor, cells: list[int]) -> MacroMajorant:
+    """The local majorants of grids (D, H, W) = [k, j, i] each spanning its scene's box
+    [box_min[b], box_max[b]] ((B, 3) each), pooled to at most `cells[b]` macro cells a side."""
+    bounds, reaches, shapes, sizes = [], [], [], []
+    for b, grid in enumerate(grids):
+        factor = max(1, -(-max(grid.shape) // cells[b]))
+        seen = F.max_pool3d(grid[None, None], 3, stride=1, padding=1)  # the centres a fine cell's points blend
+        macro = F.max_pool3d(seen, factor, stride=factor, ceil_mode=True)
+        block = F.max_pool3d(macro, 3, stride=1, padding=1)[0, 0]
+        size = (box_max[b] - box_min[b]) / torch.tensor(grid.shape[::-1], dtype=box_min.dtype, device=box_min.device) * factor
+        steps = chebyshev_distance(macro[0, 0] > 0, max_radius=max(block.shape) + 1).to(block.dtype)
+        bounds.append(block.reshape(-1) * _ABOVE)
+        reaches.append((steps - 1.0).clamp_min(1.0).reshape(-1) * (size.min() * SPACING))
+        shapes.append(block.shape[::-1])
+        sizes.append(size)
+    counts = [x.numel() for x in bounds]
+    first = torch.tensor([sum(counts[:b]) for b in range(len(counts))], dtype=torch.int32, device=box_min.device)
+    return MacroMajorant(bound=torch.cat(bounds), reach=torch.cat(reaches), first=first,
+                         cells=torch.tensor(shapes, dtype=box_min.dtype, device=box_min.device),
+                         box_min=box_min, size=torch.stack(sizes))
+
+
+def macro_lanes(m: MacroMajorant, to) -> SimpleNamespace:
+    """What `bound_at` takes per lane (`to`: as `fields.DENSITIES`' ``lanes`` inputs): the tables
+    (`to.floats`), each lane's scene's first macro cell (`to.ints`), its cells, box corner and
+    macro cell size (three lanes each, `to.per_lane`)."""
+    return SimpleNamespace(bound=to.floats(m.bound), reach=to.floats(m.reach), first=to.ints(m.first[to.scene]),
+                           cells=to.per_lane(m.cells), box_min=to.per_lane(m.box_min), size=to.per_lane(m.size))
+
+
+def bound_at(q, p) -> tuple:
+    """(the density's bound, how far along any direction it holds) at points p (three lanes) of
+    the grids `q` (`macro_lanes`), lanes; a point outside its box takes the nearest macro cell's."""
+    at = None
+    for a in (2, 1, 0):
+        x = (p[a] - q.box_min[a]) / q.size[a]
+        x = lanes.where(x < q.cells[a] - 1.0, lanes.where(x > 0.0, x, 0.0), q.cells[a] - 1.0)  # NaN -> 0
+        i = lanes.to_int32(lanes.floor(x))
+        at = i if at is None else at * lanes.to_int32(q.cells[a]) + i
+    at = q.first + at
+    return lanes.gather(q.bound, at), lanes.gather(q.reach, at)
+
+
+__all__ = ["CELL_DEPTH", "MACRO_CELLS", "MacroMajorant", "bound_at", "macro_cells", "macro_lanes", "macro_majorant"]
