@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.fields.grid import sample_grid
+from torchvol.fields.grid import macro_bounds, sample_grid
 from torchvol.measure.mitsuba import puff_grid, sigma_for, torchvol_scene
 from torchvol.volume import path
 from torchvol.volume.local_majorant import bound_at, macro_lanes, macro_majorant
@@ -49,7 +49,7 @@ def test_a_bound_holds_along_every_segment_within_its_reach(shape, cells, fill, 
     largest density is the bound of the macro block about it (tight where it peaks)."""
     grid = _spiky_grid(shape, seed, fill)
     low, high = torch.zeros(1, 3, dtype=F64), torch.tensor([box], dtype=F64)
-    m = macro_majorant([grid], low, high, [cells])
+    m = macro_majorant([macro_bounds(grid, low[0], high[0], cells)])
     q = _lanes(m)
     g = torch.Generator().manual_seed(seed + 1)
     n = 2000
@@ -75,7 +75,7 @@ def test_empty_space_is_crossed_in_long_leaps():
     macro cells (the Chebyshev distance to the occupied cell, less one); next to it one cell."""
     grid = torch.zeros(16, 16, 16, dtype=F64)
     grid[0, 0, 0] = 1.0
-    m = macro_majorant([grid], torch.zeros(1, 3, dtype=F64), torch.ones(1, 3, dtype=F64), [8])
+    m = macro_majorant([macro_bounds(grid, torch.zeros(3, dtype=F64), torch.ones(3, dtype=F64), 8)])
     bound, reach = bound_at(_lanes(m), [torch.tensor([0.99, 0.01], dtype=F64)] * 3)
     cell = 1.0 / 8
     assert float(bound[0]) == 0.0 and float(reach[0]) == pytest.approx(6 * cell * 0.99)
@@ -104,3 +104,70 @@ def test_tracking_against_local_majorants_renders_what_one_majorant_does(one_thr
     assert error < 0.02 * one  # sharp enough to fail
     assert stats["path"]["above_majorant"] == 0
     assert stats["density_evals"] < 0.75 * one_stats["density_evals"], (stats["density_evals"], one_stats["density_evals"])
+
+
+@settings(max_examples=40, deadline=None)
+@given(octaves=st.integers(1, 5), frequency=st.floats(0.3, 4.0), bias=st.floats(-1.0, 0.3),
+       amplitude=st.sampled_from([2.5, 1.0, -1.5]), radial=st.sampled_from([0.0, 0.8]),
+       hash=st.sampled_from(["table", "arithmetic"]), cells=st.integers(1, 12), seed=st.integers(0, 10_000))
+def test_an_fbm_bound_holds_along_every_segment_within_its_reach(octaves, frequency, bias, amplitude, radial, hash, cells,
+                                                                 seed):
+    """Value-noise fbm (both hashes, either sign of amplitude, thinned radially or not): the field
+    along random segments within their reach from points in and around its box stays at or below
+    the bound (`fields.fbm.fbm_macro`), which is not the declared one everywhere (it can fail)."""
+    from torchvol.fields.fbm import FbmDensity, FbmField, fbm_macro
+    from torchvol.schema.batch import stack
+
+    model = FbmDensity(octaves=octaves, frequency=frequency, bias=bias, amplitude=amplitude, radial=radial, hash=hash,
+                       seed=seed, offset=(0.3, -1.7, 2.2), center=(0.5, 0.2, 0.4))
+    field = FbmField(stack([model], dtype=F64), torch.zeros(1, dtype=F64))
+    low, high = torch.tensor([-0.4, 0.0, -0.2], dtype=F64), torch.tensor([1.6, 0.7, 1.1], dtype=F64)
+    m = macro_majorant([fbm_macro(field, 0, low, high, cells)])
+    q = _lanes(m)
+    g = torch.Generator().manual_seed(seed)
+    n = 1500
+    start = low + (torch.rand(n, 3, generator=g, dtype=F64) * 1.2 - 0.1) * (high - low)
+    direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=F64), dim=1)
+    bound, reach = bound_at(q, list(start.unbind(1)))
+    along = torch.linspace(0.0, 1.0, 33, dtype=F64)
+    points = start[:, None] + direction[:, None] * (reach[:, None, None].clamp(max=10.0) * along[None, :, None])
+    density = field(points.reshape(-1, 3), torch.zeros(points.shape[0] * points.shape[1], dtype=torch.long)).reshape(n, -1)
+    excess = density - bound[:, None]
+    worst = int(excess.amax(dim=1).argmax())
+    assert float(excess.max()) <= 0.0, (f"the density passes its bound by {float(excess.max()):.3g} on the segment from "
+                                        f"{start[worst].tolist()} (bound {float(bound[worst]):.4g}, reach {float(reach[worst]):.4g})")
+    declared = bias + abs(amplitude)
+    assert float(m.bound.max()) <= declared + 1e-5 * abs(amplitude)
+
+
+@settings(max_examples=30, deadline=None)
+@given(value=st.floats(0.01, 50.0), base=st.floats(-2.0, 2.0), scale_height=st.floats(0.05, 5.0), cells=st.integers(1, 16),
+       seed=st.integers(0, 10_000))
+def test_an_exponential_bound_holds_along_every_segment_within_its_reach(value, base, scale_height, cells, seed):
+    """An exponential profile in slabs (`fields.exponential.exponential_macro`): along random
+    segments within their reach, from points in and around a wide, flat box, the density stays at
+    or below the bound, which falls with height (it can fail)."""
+    from torchvol.fields.exponential import (
+        Exponential,
+        ExponentialDensity,
+        exponential_macro,
+    )
+    from torchvol.schema.batch import stack
+
+    model = ExponentialDensity(value=value, base=base, scale_height=scale_height)
+    field = Exponential(stack([model], dtype=F64), torch.zeros(1, dtype=F64))
+    low, high = torch.tensor([-20.0, -1.0, -15.0], dtype=F64), torch.tensor([20.0, 3.0, 25.0], dtype=F64)
+    m = macro_majorant([exponential_macro(field, 0, low, high, cells)])
+    g = torch.Generator().manual_seed(seed)
+    n = 1500
+    start = low + (torch.rand(n, 3, generator=g, dtype=F64) * 1.2 - 0.1) * (high - low)
+    direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=F64), dim=1)
+    bound, reach = bound_at(_lanes(m), list(start.unbind(1)))
+    along = torch.linspace(0.0, 1.0, 33, dtype=F64)
+    points = start[:, None] + direction[:, None] * (reach[:, None, None] * along[None, :, None])
+    inside = ((points >= low) & (points <= high)).all(dim=-1)  # the profile is bounded only over the box
+    density = field(points.reshape(-1, 3), torch.zeros(points.shape[0] * points.shape[1], dtype=torch.long)).reshape(n, -1)
+    excess = torch.where(inside, density / bound[:, None] - 1.0, -1.0)
+    assert float(excess.max()) <= 1e-12, f"the density passes its bound by {float(excess.max()):.3g} of it"
+    if m.bound.numel() > 2:  # (a slab's bound is its 3-slab block's: its own or the one below it)
+        assert float(m.bound[-1]) < float(m.bound[0])

@@ -44,10 +44,11 @@ from .exponential import (
                    ExponentialDensity,
                    exponential_density,
                    exponential_lanes,
+                   exponential_macro,
 )
-from .fbm import FbmDensity, FbmField, fbm_density, fbm_lanes
+from .fbm import FbmDensity, FbmField, fbm_density, fbm_lanes, fbm_macro
 from .fur import FurDensity, FurField, fur_density, fur_lanes
-from .grid import Grid, GridDensity, grid_density, grid_lanes
+from .grid import Grid, GridDensity, grid_density, grid_lanes, grid_macro
 from .particles import (
                    ParticleField,
                    ParticlesDensity,
@@ -57,12 +58,15 @@ from .particles import (
 
 DENSITIES = Registry("density")
 DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lanes=(constant_lanes, constant_density))
-DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True, lanes=(grid_lanes, grid_density))
-DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density))
+DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True, lanes=(grid_lanes, grid_density),
+                   macro=grid_macro)
+DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density),
+                   macro=exponential_macro)
 # `bound`: an upper bound (B,) of the density from its parameters (the path tracer's majorant):
-# an fbm's basis noises lie in [−1, 1] and its octave weights sum under 1; a cloudscape's remap is a smoothstep
+# an fbm's basis noises lie in [−1, 1] and its octave weights sum under 1; a cloudscape's remap is a smoothstep.
+# `macro(field, b, low, high, cells)`: scene b's bounds over macro cells of its box (`volume.local_majorant`), or None
 DENSITIES.register("fbm", FbmDensity, FbmField, octaves=True, lanes=(fbm_lanes, fbm_density),
-                   bound=lambda f: f.bias + f.amplitude.abs())
+                   bound=lambda f: f.bias + f.amplitude.abs(), macro=fbm_macro)
 DENSITIES.register("clouds", CloudsDensity, CloudLayer, octaves=True, lanes=(clouds_lanes, clouds_density))
 DENSITIES.register("explosion", ExplosionDensity, ExplosionField, octaves=True, lanes=(explosion_lanes, explosion_density))
 DENSITIES.register("cloudscape", CloudscapeDensity, Cloudscape, lanes=(cloudscape_lanes, cloudscape_density),

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import torch
 from pydantic import Field
 from torch import Tensor
 
@@ -39,6 +40,25 @@ class Exponential:
         return exponential_density(q, points.unbind(1), None)
 
     signed = __call__  # never clamped: the density is its own signed value
+
+
+SLAB = 0.5  # a local majorants' slab's thickness in scale heights (`exponential_macro`)
+
+
+def exponential_macro(field: Exponential, b: int, low: Tensor, high: Tensor, cells: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Scene b's profile's local majorants (`volume.local_majorant`): its box [low, high] ([3]
+    each) in slabs `SLAB` scale heights thick (at most `cells` of them), each the whole box wide ->
+    (bounds (1, H, 1): the density at each slab's lowest point, where it peaks; their corner [3],
+    size [3])."""
+    low, high = low.to(torch.float64), high.to(torch.float64)
+    extent = high - low
+    slabs = max(1, min(cells, math.ceil(float(extent[1]) / (SLAB * float(field.p.scale_height[b])))))
+    thick = float(extent[1]) / slabs
+    y = low[1] + thick * torch.arange(slabs, dtype=torch.float64)
+    h = (y - float(field.p.base[b])) / float(field.p.scale_height[b])
+    bound = (float(field.p.value[b]) * torch.exp((-h).clamp(max=LOG_DENSITY_MAX))).clamp(max=DENSITY_MAX)
+    size = torch.stack([extent[0], torch.tensor(thick, dtype=torch.float64), extent[2]])
+    return bound[None, :, None], low, size
 
 
 def exponential_lanes(field: Exponential, to) -> SimpleNamespace:

@@ -3,15 +3,18 @@
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 from typing import Annotated, Literal
 
 import torch
+import torch.nn.functional as F
 from pydantic import Field, model_validator
 from torch import Tensor
 
 from ..noise import fast as fastnoise
 from ..noise import lattice as noise
+from ..ops.grid_ops import cubes
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
 
@@ -88,6 +91,58 @@ class FbmField:
         per_point = SimpleNamespace(bias=take(p.bias, s), amplitude=take(p.amplitude, s), radial=take(p.radial, s),
                                     center=take(p.center, s).unbind(1))
         return fastnoise.puff(f, *points.unbind(1), per_point)
+
+
+MACRO_LATTICE = 1 << 20  # lattice points an octave's local bounds may take (`fbm_macro`); more: its largest value
+
+
+def fbm_macro(field: FbmField, b: int, low: Tensor, high: Tensor, cells: int) -> tuple[Tensor, Tensor, Tensor] | None:
+    """Scene b's fbm's local majorants (`volume.local_majorant`) over cubes tiling its box [low,
+    high] ([3] each), `cells` along the longest side -> (bounds (D, H, W), their corner [3], size
+    [3]); None unless its noise is value noise. Value noise blends its lattice's values with
+    weights in [0, 1], so over a cube an octave stays within the values at the corners of the
+    lattice cells the cube touches (its span widened by 1e-4 of its coordinates: the kernel's
+    float32 point may round across a lattice face): a sliding maximum over the octave's lattice values (weighted, so a
+    negative amplitude takes the least), summed over the octaves with the bias, less the radial
+    thinning at the cube's nearest point to the centre. An octave whose lattice over the box
+    passes `MACRO_LATTICE` points takes its largest weighted value, the declared bound's share."""
+    p = field.p
+    if p.noise != "value":
+        return None
+    low, high = low.to(torch.float64), high.to(torch.float64)
+    shape, side = cubes(low, high, cells)
+    frequency, amplitude = float(p.frequency[b]), float(p.amplitude[b])
+    corners = [low[a] + side * torch.arange(shape[a], dtype=torch.float64) for a in range(3)]  # each cube's lowest, per axis
+    u = [frequency * (corners[a] - float(field.shift[b, a])) + float(p.offset[b, a]) for a in range(3)]
+    basis = fastnoise.value_noise_hashed if p.hash == "arithmetic" else noise.value_noise
+    total = torch.full(shape[::-1], float(p.bias[b]), dtype=torch.float64)
+    scales = [1.0] + [float(c) for c in noise.folded_scales(int(p.octaves), dtype=torch.float64, device="cpu")]
+    for k, scale in enumerate(scales):
+        weight = amplitude * 0.5 * 0.5**k
+        width = scale * frequency * side
+        slack = [1e-4 * (1.0 + scale * float(c.abs().max()) + width) for c in u]  # the kernel's float32 rounding, and more
+        start = [torch.floor(scale * c - e) for c, e in zip(u, slack)]  # each cube's first lattice point, per axis
+        window = math.ceil(width + 2.0 * max(slack)) + 2  # the most lattice points a cube's span can touch
+        first = [float(c.min()) for c in start]
+        count = [int(float(c.max()) - f) + window for c, f in zip(start, first)]
+        if math.prod(count) > MACRO_LATTICE:
+            total = total + max(weight, 0.0)  # value noise lies in [0, 1)
+            continue
+        axes = torch.meshgrid(*[f + torch.arange(n, dtype=torch.float64) for f, n in zip(first[::-1], count[::-1])],
+                              indexing="ij")  # z, y, x
+        points = torch.stack(axes[::-1], dim=-1).reshape(-1, 3)
+        values = weight * basis(points, seed=int(p.seed[b])).reshape(count[::-1])
+        peak = F.max_pool3d(values[None, None], window, stride=1)[0, 0]  # the largest over each window of lattice points
+        i = [(c - f).long() for c, f in zip(start, first)]
+        total = total + peak[i[2][:, None, None], i[1][None, :, None], i[0][None, None, :]]
+    radial = float(p.radial[b])
+    if radial > 0.0:  # less its thinning at each cube's point nearest the centre
+        centre = [float(p.center[b, a]) for a in range(3)]
+        near = [corners[a] + (centre[a] - corners[a]).clamp(0.0, side) - centre[a] for a in range(3)]
+        total = total - radial * (near[2][:, None, None] ** 2 + near[1][None, :, None] ** 2 + near[0][None, None, :] ** 2).sqrt()
+    # a float32 sum may round a hair above the bound: a margin where there is density at all
+    total = torch.where(total > 0.0, total + 1e-6 * abs(amplitude), 0.0)
+    return total, low, torch.full((3,), side, dtype=torch.float64)
 
 
 def fbm_lanes(field: FbmField, to) -> SimpleNamespace:

@@ -78,6 +78,24 @@ class Grid:
     signed = __call__  # never clamped: the density is its own signed value
 
 
+def grid_macro(field: Grid, b: int, low: Tensor, high: Tensor, cells: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Scene b's grid's local majorants (`volume.local_majorant`, `macro_bounds`); its own box
+    (`low`, `high`, the volume's: the same) tiles them."""
+    return macro_bounds(field.grids[b], field.box_min[b], field.box_max[b], cells)
+
+
+def macro_bounds(grid: Tensor, box_min: Tensor, box_max: Tensor, cells: int) -> tuple[Tensor, Tensor, Tensor]:
+    """A grid (D, H, W) over the box [box_min, box_max] ([3] each) pooled to at most `cells` macro
+    cells a side, each one's bound the largest of the values its points blend (the trilinear lookup
+    in cell i blends the centres i − 1 … i + 1: exact) -> (bounds (D', H', W'), their corner [3],
+    size [3]; the last may reach past the box)."""
+    factor = max(1, -(-max(grid.shape) // cells))
+    seen = F.max_pool3d(grid[None, None], 3, stride=1, padding=1)  # the centres a cell's points blend
+    macro = F.max_pool3d(seen, factor, stride=factor, ceil_mode=True)[0, 0]
+    size = (box_max - box_min) / torch.tensor(grid.shape[::-1], dtype=box_min.dtype, device=box_min.device) * factor
+    return macro, box_min, size
+
+
 def grid_lanes(field: Grid, to) -> SimpleNamespace:
     """What the lookup takes per lane (`to`: as `fields.DENSITIES`' ``lanes`` inputs): the batch's
     grids as one table (`to.floats`), the first cell of each lane's scene in it (`to.ints`), its

@@ -1,8 +1,10 @@
-"""Operations on dense 3D occupancy grids (Z, Y, X): box dilation and a Chebyshev distance field.
-Used by grid media (occupancy, empty-space skipping) and voxel traversal (hybrid jumps)."""
+"""Operations on dense 3D occupancy grids (Z, Y, X): box dilation, a Chebyshev distance field, a box
+cut into cubes. Used by grid media (occupancy, empty-space skipping), voxel traversal (hybrid
+jumps) and the path tracer's local majorants."""
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import torch
@@ -39,3 +41,10 @@ def chebyshev_distance(occupied: Tensor, *, max_radius: int = 16) -> Tensor:
             break
         dist[newly] = k
     return dist
+
+
+def cubes(low: Tensor, high: Tensor, cells: int) -> tuple[list[int], float]:
+    """Cubes of the box [low, high] ([3] each) `cells` along its longest side: (how many along x,
+    y, z, their side); the last may reach past the box."""
+    side = float((high - low).max()) / cells
+    return [max(1, math.ceil(float(high[a] - low[a]) / side - 1e-9)) for a in range(3)], side

@@ -1,20 +1,19 @@
-"""Local majorants of a grid medium for the path tracer's tracking (`path.track_lanes`).
+"""Local majorants of a medium for the path tracer's tracking (`path.track_lanes`).
 
 One majorant per medium makes delta tracking take a null collision every 1/σ̄ along a ray, so a
 cloud whose densest voxel is 4× its mean pays ~3 density evaluations for each real collision,
-and more in the empty corners of its box. Here the grid is pooled into macro cells (at most
-`MACRO_CELLS` a side, fewer where the medium is thin: `macro_cells`); each holds the largest density over the 3³ block of macro cells about it,
-which bounds the density on any segment of length at most one macro cell (the smallest side,
-times `SPACING`) from any point of the cell: its `reach`. Where that block is empty, the reach
-is the distance to the nearest occupied macro cell (Chebyshev, less one). The tracking looks
-the bound up where it stands, draws a free flight against it and, where the flight passes the
-reach, moves there without a collision and looks again: an exponential restarts at any point,
-so this is delta tracking against a piecewise-constant majorant, unbiased for any bound that
-holds (docs/VOLUMES.md, `[path]`).
-
-A macro cell's bound is exact: the trilinear density inside fine cell i blends the values at
-cell centres i − 1 … i + 1 (`fields.grid.grid_density`), so the largest value a macro cell's
-points can take is the largest of those centres' values.
+and more in the empty corners of its box. Here the medium's box is cut into macro cells (at most
+`MACRO_CELLS` along its longest side, fewer where the medium is thin: `macro_cells`), each with a
+bound of the density over it from its density kind (`fields.DENSITIES`' ``macro``: a grid's
+exact, from the cell centres its trilinear lookup blends; value-noise fbm's from its lattice).
+Each macro cell holds the largest bound over the 3³ block of macro cells about it, which bounds
+the density on any segment of length at most one macro cell (the smallest side, times `SPACING`)
+from any point of the cell: its `reach`. Where that block is empty, the reach is the distance to
+the nearest macro cell with density (Chebyshev, less one). The tracking looks the bound up where
+it stands, draws a free flight against it and, where the flight passes the reach, moves there
+without a collision and looks again: an exponential restarts at any point, so this is delta
+tracking against a piecewise-constant majorant, unbiased for any bound that holds
+(docs/VOLUMES.md, `[path]`).
 """
 
 from __future__ import annotations
@@ -59,26 +58,25 @@ def macro_cells(majorant: Tensor, box_min: Tensor, box_max: Tensor) -> list[int]
     return [int(c) for c in depth.ceil().clamp(1, MACRO_CELLS).tolist()]
 
 
-def macro_majorant(grids: list[Tensor], box_min: Tensor, box_max: Tensor, cells: list[int]) -> MacroMajorant:
-    """The local majorants of grids (D, H, W) = [k, j, i] each spanning its scene's box
-    [box_min[b], box_max[b]] ((B, 3) each), pooled to at most `cells[b]` macro cells a side."""
-    bounds, reaches, shapes, sizes = [], [], [], []
-    for b, grid in enumerate(grids):
-        factor = max(1, -(-max(grid.shape) // cells[b]))
-        seen = F.max_pool3d(grid[None, None], 3, stride=1, padding=1)  # the centres a fine cell's points blend
-        macro = F.max_pool3d(seen, factor, stride=factor, ceil_mode=True)
-        block = F.max_pool3d(macro, 3, stride=1, padding=1)[0, 0]
-        size = (box_max[b] - box_min[b]) / torch.tensor(grid.shape[::-1], dtype=box_min.dtype, device=box_min.device) * factor
-        steps = chebyshev_distance(macro[0, 0] > 0, max_radius=max(block.shape) + 1).to(block.dtype)
+def macro_majorant(parts: list[tuple[Tensor, Tensor, Tensor]]) -> MacroMajorant:
+    """The local majorants of B scenes from each one's macro cells `parts[b]` = (bounds (D, H, W)
+    = [k, j, i] of the density over each cell, the cells' corner [3] and size [3]): each cell's
+    bound the largest over the 3³ block about it, its reach the smallest side (× `SPACING`), or
+    where that block is empty, that times the Chebyshev distance to the nearest cell with density
+    less one."""
+    bounds, reaches, shapes = [], [], []
+    for macro, _, size in parts:
+        block = F.max_pool3d(macro[None, None], 3, stride=1, padding=1)[0, 0]
+        steps = chebyshev_distance(macro > 0, max_radius=max(block.shape) + 1).to(block.dtype)
         bounds.append(block.reshape(-1) * _ABOVE)
         reaches.append((steps - 1.0).clamp_min(1.0).reshape(-1) * (size.min() * SPACING))
         shapes.append(block.shape[::-1])
-        sizes.append(size)
     counts = [x.numel() for x in bounds]
-    first = torch.tensor([sum(counts[:b]) for b in range(len(counts))], dtype=torch.int32, device=box_min.device)
+    like = parts[0][1]
+    first = torch.tensor([sum(counts[:b]) for b in range(len(counts))], dtype=torch.int32, device=like.device)
     return MacroMajorant(bound=torch.cat(bounds), reach=torch.cat(reaches), first=first,
-                         cells=torch.tensor(shapes, dtype=box_min.dtype, device=box_min.device),
-                         box_min=box_min, size=torch.stack(sizes))
+                         cells=torch.tensor(shapes, dtype=like.dtype, device=like.device),
+                         box_min=torch.stack([p[1] for p in parts]), size=torch.stack([p[2] for p in parts]))
 
 
 def macro_lanes(m: MacroMajorant, to) -> SimpleNamespace:

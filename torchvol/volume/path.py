@@ -113,7 +113,12 @@ def path_keys(keys: Tensor, sample: int, samples: int) -> Tensor:
 
 
 def majorant(vol, dtype: torch.dtype) -> Tensor:
-    """An upper bound (B,) of the volume's σ_t over its bounds: exact for constant, grid and
+    """An upper bound (B,) of the volume's σ_t over its bounds (`density_bound` times σ_t)."""
+    return vol.params.sigma_t.to(dtype) * density_bound(vol, dtype)
+
+
+def density_bound(vol, dtype: torch.dtype) -> Tensor:
+    """An upper bound (B,) of the volume's density over its bounds: exact for constant, grid and
     exponential densities and for a density kind that declares one (`DENSITIES`' ``bound``: fbm,
     cloudscape); else `MARGIN` × the largest σ_t on a `LATTICE`³ lattice of its box, and where a
     kind declares a bound and has a box, the lower of the two, the declared one where the lattice
@@ -141,7 +146,7 @@ def majorant(vol, dtype: torch.dtype) -> Tensor:
         else:
             known = declared(p.density.value).to(seen).clamp_min(0.0)
             bound = torch.where(seen > 0, torch.minimum(known, seen), known)
-    return p.sigma_t.to(dtype) * bound.clamp(max=1e12)
+    return bound.clamp(max=1e12)
 
 
 def _lattice_maximum(vol, dtype: torch.dtype) -> Tensor:
@@ -169,13 +174,24 @@ def media(vols: list, dtype: torch.dtype, surface: Callable | None = None, air=N
 
 
 def _local(vol, dtype: torch.dtype):
-    """The volume's local majorants (`local_majorant`) where its density is a grid (and
-    `LOCAL_MAJORANTS`), else None: one majorant over its bounds."""
-    if not LOCAL_MAJORANTS or vol.params.density.kind != "grid":
+    """The volume's local majorants (`local_majorant`) where its density kind gives macro cells'
+    bounds (`DENSITIES`' ``macro``: grids, value-noise fbm) and `LOCAL_MAJORANTS`, else None: one
+    majorant over its bounds."""
+    from ..fields import DENSITIES
+
+    macro, aabb = DENSITIES[vol.params.density.kind].caps.get("macro"), vol.bounds.caps["aabb"]
+    if not LOCAL_MAJORANTS or macro is None or aabb is None:
         return None
-    grid = inner_and_edge(vol)[0]
-    low, high = grid.box_min.to(dtype), grid.box_max.to(dtype)
-    return macro_majorant([g.to(dtype) for g in grid.grids], low, high, macro_cells(majorant(vol, dtype), low, high))
+    field = inner_and_edge(vol)[0]
+    low, high = (x.to(torch.float64) for x in aabb(vol.params.bounds.value))
+    bound = density_bound(vol, torch.float64)
+    cells = macro_cells(vol.params.sigma_t.to(torch.float64) * bound, low, high)
+    parts = [macro(field, b, low[b], high[b], cells[b]) for b in range(low.shape[0])]
+    if any(part is None for part in parts):
+        return None
+    # never above the one majorant (an estimated one, a lattice's, may be the lower)
+    return macro_majorant([(part[0].clamp(max=float(bound[b])).to(dtype), *(x.to(dtype) for x in part[1:]))
+                           for b, part in enumerate(parts)])
 
 
 def hero_channels(keys: Tensor, sample: int) -> Tensor:
