@@ -22,6 +22,18 @@ def test_tonemaps_are_monotone_and_bounded():
     assert_close(post.reinhard(torch.tensor([1.0], dtype=torch.float64)), torch.tensor([0.5], dtype=torch.float64))
 
 
+def test_tonemaps_of_huge_radiance_are_white_not_nan():
+    """Radiance up to float32's largest finite value (a fuzz scene's terrain of colour 1e12 gave 3e24,
+    whose square overflowed ACES's fit to inf/inf) maps to 1; below the fit's knee, as before."""
+    x = torch.tensor([3e24, 1e30, 3.4e38, 1e19], dtype=torch.float32)
+    for fn in (post.reinhard, post.aces):
+        y = fn(x)
+        assert torch.isfinite(y).all() and bool((y == 1.0).all()), (fn.__name__, y.tolist())
+    assert bool((post.aces(torch.tensor([7.3, 1e4])) == 1.0).all())
+    low = torch.linspace(0.0, 7.0, 50, dtype=torch.float64)
+    assert_close(post.aces(low), ((low * (2.51 * low + 0.03)) / (low * (2.43 * low + 0.59) + 0.14)).clamp(0, 1), what="aces")
+
+
 def test_vignette_darkens_corners_not_the_centre():
     image = torch.ones(1, 3, 41, 61)
     v = post.vignette(image, 1.0)

@@ -77,7 +77,9 @@ def reinhard(x: Tensor) -> Tensor:
 
 
 def aces(x: Tensor) -> Tensor:
-    """Narkowicz's ACES filmic fit, clamped to [0, 1]."""
+    """Narkowicz's ACES filmic fit, clamped to [0, 1]. It reaches 1 at x ≈ 7.24, so x is taken at
+    most 1e4 first: the same values, where x² of a radiance past ~1e19 overflowed float32 to inf/inf."""
+    x = x.clamp(max=1e4)
     return ((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14)).clamp(0.0, 1.0)
 
 
