@@ -102,10 +102,11 @@ def fbm_macro(field: FbmField, b: int, low: Tensor, high: Tensor, cells: int) ->
     [3]); None unless its noise is value noise. Value noise blends its lattice's values with
     weights in [0, 1], so over a cube an octave stays within the values at the corners of the
     lattice cells the cube touches (its span widened by 1e-4 of its coordinates: the kernel's
-    float32 point may round across a lattice face): a sliding maximum over the octave's lattice values (weighted, so a
-    negative amplitude takes the least), summed over the octaves with the bias, less the radial
-    thinning at the cube's nearest point to the centre. An octave whose lattice over the box
-    passes `MACRO_LATTICE` points takes its largest weighted value, the declared bound's share."""
+    float32 point may round across a lattice face): a sliding maximum over the octave's lattice
+    values (weighted, so a negative amplitude takes the least), summed over the octaves with the
+    bias, less the radial thinning at the cube's nearest point to the centre. An octave whose
+    lattice over the box passes `MACRO_LATTICE` points takes its largest weighted value, the
+    declared bound's share."""
     p = field.p
     if p.noise != "value":
         return None
