@@ -1,7 +1,8 @@
 """Path tracing of the physical media (`[path]`): every order of scattering, unbiased.
 
 Each camera ray sends `[path].samples` paths. A path flies through every medium of the scene at
-once by delta tracking against a majorant per medium (their sum along the ray), and at each real
+once by delta tracking against the media's majorants where it stands (their sum; a medium's from
+its macro cells where its density kind bounds them, `local_majorant`), and at each real
 collision collects the medium's emission (σe/σt), then, while it has scattered fewer than
 `bounces` times, the light of every sun by next-event estimation (the phase function times the
 light's irradiance times the transmittance towards it, by ratio tracking through every medium),

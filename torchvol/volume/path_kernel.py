@@ -1,4 +1,5 @@
-"""The path tracer's paths (`path.trace_lanes`) as one Dr.Jit kernel a sample: every path a loop
+"""The path tracer's paths (`path.trace_lanes`) as one Dr.Jit kernel a call (several samples of a
+chunk's rays, `path.PATH_LANES`): every path a loop
 per lane over its scatterings, its delta and ratio tracking loops inside it, each volume's density
 in lanes (`density_lanes.crossing`), the draws the same hash as eager's. The plan runs it where
 every volume's density and bounds are written in lanes, in float32 on the CPU."""
