@@ -49,7 +49,7 @@ def test_a_bound_holds_along_every_segment_within_its_reach(shape, cells, fill, 
     largest density is the bound of the macro block about it (tight where it peaks)."""
     grid = _spiky_grid(shape, seed, fill)
     low, high = torch.zeros(1, 3, dtype=F64), torch.tensor([box], dtype=F64)
-    m = macro_majorant([macro_bounds(grid, low[0], high[0], cells)])
+    m = macro_majorant([macro_bounds(grid, low[0], high[0], cells=cells)])
     q = _lanes(m)
     g = torch.Generator().manual_seed(seed + 1)
     n = 2000
@@ -75,7 +75,7 @@ def test_empty_space_is_crossed_in_long_leaps():
     macro cells (the Chebyshev distance to the occupied cell, less one); next to it one cell."""
     grid = torch.zeros(16, 16, 16, dtype=F64)
     grid[0, 0, 0] = 1.0
-    m = macro_majorant([macro_bounds(grid, torch.zeros(3, dtype=F64), torch.ones(3, dtype=F64), 8)])
+    m = macro_majorant([macro_bounds(grid, torch.zeros(3, dtype=F64), torch.ones(3, dtype=F64), cells=8)])
     bound, reach = bound_at(_lanes(m), [torch.tensor([0.99, 0.01], dtype=F64)] * 3)
     cell = 1.0 / 8
     assert float(bound[0]) == 0.0 and float(reach[0]) == pytest.approx(6 * cell * 0.99)

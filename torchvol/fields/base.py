@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Protocol
 
 from torch import Tensor
+
+from ..ops import lanes
+from ..schema.batch import take
 
 # the largest density a render reads from any field (`renderer/stats.CountedField` caps every
 # evaluation): 1e12 × `sigma_t` (≤ 1e12) is opaque over any step and still finite in float32, as is
@@ -33,3 +37,11 @@ class Field(Protocol):
         clamped). Smooth where the density has kinks, so error-controlled marching can interpolate
         it to find density between samples that all read 0."""
         ...
+
+
+def torch_inputs(scene_index: Tensor) -> SimpleNamespace:
+    """What a density kind's lanes inputs take (`DENSITIES`' ``lanes``) to run eagerly on torch
+    columns for points of scenes `scene_index` [n]: per scene (B,) or (B, C) -> its lanes
+    (`per_lane`), tables as they are (`floats`, `ints`)."""
+    return SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, scene_index)), scene=scene_index,
+                           floats=lambda t: t, ints=lambda t: t)

@@ -31,6 +31,7 @@ from ..noise import tiles as noise_tiles
 from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import EACH, Strict, Vec3
+from .base import torch_inputs
 
 # Height profiles (smoothstep(a, b, h) · (1 − smoothstep(c, d, h)) over the normalised height h) of
 # stratus, stratocumulus, cumulus, cumulonimbus: `type` 0, 1/3, 2/3, 1; between two, the profile's
@@ -138,9 +139,7 @@ class Cloudscape:
 
     def _lanes(self, points: Tensor, scene_index: Tensor) -> SimpleNamespace:
         """`cloudscape_lanes` on torch columns, for `points` [n, 3] of scenes `scene_index` [n]."""
-        s = scene_index
-        to = SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, s)), scene=s, floats=lambda t: t, ints=lambda t: t)
-        return cloudscape_lanes(self, to)
+        return cloudscape_lanes(self, torch_inputs(scene_index))
 
     def height(self, points: Tensor, scene_index: Tensor) -> Tensor:
         """Normalised height in the layer [n] of `points` [n, 3] (0 at bottom, 1 at top)."""

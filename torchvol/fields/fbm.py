@@ -8,13 +8,12 @@ from types import SimpleNamespace
 from typing import Annotated, Literal
 
 import torch
-import torch.nn.functional as F
 from pydantic import Field, model_validator
 from torch import Tensor
 
 from ..noise import fast as fastnoise
 from ..noise import lattice as noise
-from ..ops.grid_ops import cubes
+from ..ops.grid_ops import cubes, sliding_max
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
 
@@ -111,7 +110,7 @@ def fbm_macro(field: FbmField, b: int, low: Tensor, high: Tensor, cells: int) ->
     if p.noise != "value":
         return None
     low, high = low.to(torch.float64), high.to(torch.float64)
-    shape, side = cubes(low, high, cells)
+    shape, side = cubes(low, high, cells=cells)
     frequency, amplitude = float(p.frequency[b]), float(p.amplitude[b])
     corners = [low[a] + side * torch.arange(shape[a], dtype=torch.float64) for a in range(3)]  # each cube's lowest, per axis
     u = [frequency * (corners[a] - float(field.shift[b, a])) + float(p.offset[b, a]) for a in range(3)]
@@ -133,7 +132,7 @@ def fbm_macro(field: FbmField, b: int, low: Tensor, high: Tensor, cells: int) ->
                               indexing="ij")  # z, y, x
         points = torch.stack(axes[::-1], dim=-1).reshape(-1, 3)
         values = weight * basis(points, seed=int(p.seed[b])).reshape(count[::-1])
-        peak = F.max_pool3d(values[None, None], window, stride=1)[0, 0]  # the largest over each window of lattice points
+        peak = sliding_max(values, window)  # the largest over each window of lattice points
         i = [(c - f).long() for c, f in zip(start, first)]
         total = total + peak[i[2][:, None, None], i[1][None, :, None], i[0][None, None, :]]
     radial = float(p.radial[b])
@@ -141,8 +140,10 @@ def fbm_macro(field: FbmField, b: int, low: Tensor, high: Tensor, cells: int) ->
         centre = [float(p.center[b, a]) for a in range(3)]
         near = [corners[a] + (centre[a] - corners[a]).clamp(0.0, side) - centre[a] for a in range(3)]
         total = total - radial * (near[2][:, None, None] ** 2 + near[1][None, :, None] ** 2 + near[0][None, None, :] ** 2).sqrt()
-    # a float32 sum may round a hair above the bound: a margin where there is density at all
-    total = torch.where(total > 0.0, total + 1e-6 * abs(amplitude), 0.0)
+    # a float32 sum may round a hair above the bound: a margin on the terms' scale, and a cube whose
+    # bound is within it of 0 kept (where bias and thinning nearly cancel, float32 may leave density)
+    margin = 1e-6 * (abs(float(p.bias[b])) + abs(amplitude) + radial * float((high - low).norm()))
+    total = torch.where(total > -margin, total + 2.0 * margin, 0.0)
     return total, low, torch.full((3,), side, dtype=torch.float64)
 
 

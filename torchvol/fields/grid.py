@@ -19,9 +19,10 @@ from torch import Tensor
 
 from ..noise.lattice import _CORNERS
 from ..ops import lanes
-from ..ops.grid_ops import dilate
-from ..schema.batch import Stacked, take
+from ..ops.grid_ops import dilate, pooled_max, sliding_max
+from ..schema.batch import Stacked
 from ..schema.models import GridSource
+from .base import torch_inputs
 
 
 class GridDensity(GridSource):
@@ -71,9 +72,7 @@ class Grid:
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         """The density at points [n, 3] of scenes scene_index [n] -> [n]: `grid_density` on torch
         columns, the lookup the kernels trace."""
-        to = SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, scene_index)), scene=scene_index,
-                             floats=lambda t: t, ints=lambda t: t)
-        return grid_density(grid_lanes(self, to), list(points.unbind(1)), None)
+        return grid_density(grid_lanes(self, torch_inputs(scene_index)), list(points.unbind(1)), None)
 
     signed = __call__  # never clamped: the density is its own signed value
 
@@ -81,17 +80,15 @@ class Grid:
 def grid_macro(field: Grid, b: int, low: Tensor, high: Tensor, cells: int) -> tuple[Tensor, Tensor, Tensor]:
     """Scene b's grid's local majorants (`volume.local_majorant`, `macro_bounds`); its own box
     (`low`, `high`, the volume's: the same) tiles them."""
-    return macro_bounds(field.grids[b], field.box_min[b], field.box_max[b], cells)
+    return macro_bounds(field.grids[b], field.box_min[b], field.box_max[b], cells=cells)
 
 
-def macro_bounds(grid: Tensor, box_min: Tensor, box_max: Tensor, cells: int) -> tuple[Tensor, Tensor, Tensor]:
+def macro_bounds(grid: Tensor, box_min: Tensor, box_max: Tensor, *, cells: int) -> tuple[Tensor, Tensor, Tensor]:
     """A grid (D, H, W) over the box [box_min, box_max] ([3] each) pooled to at most `cells` macro
-    cells a side, each one's bound the largest of the values its points blend (the trilinear lookup
-    in cell i blends the centres i − 1 … i + 1: exact) -> (bounds (D', H', W'), their corner [3],
-    size [3]; the last may reach past the box)."""
-    factor = max(1, -(-max(grid.shape) // cells))
-    seen = F.max_pool3d(grid[None, None], 3, stride=1, padding=1)  # the centres a cell's points blend
-    macro = F.max_pool3d(seen, factor, stride=factor, ceil_mode=True)[0, 0]
+    cells a side (`grid_ops.pooled_max`), each one's bound the largest of the values its points
+    blend (the trilinear lookup in cell i blends the centres i − 1 … i + 1: exact) -> (bounds
+    (D', H', W'), their corner [3], size [3]; the last may reach past the box)."""
+    macro, factor = pooled_max(sliding_max(grid, 3, pad=1), cells=cells)
     size = (box_max - box_min) / torch.tensor(grid.shape[::-1], dtype=box_min.dtype, device=box_min.device) * factor
     return macro, box_min, size
 

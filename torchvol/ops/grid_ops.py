@@ -8,6 +8,7 @@ import math
 from typing import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 
@@ -43,7 +44,29 @@ def chebyshev_distance(occupied: Tensor, *, max_radius: int = 16) -> Tensor:
     return dist
 
 
-def cubes(low: Tensor, high: Tensor, cells: int) -> tuple[list[int], float]:
+def pooled_max(values: Tensor, *, cells: int) -> tuple[Tensor, int]:
+    """(Z, Y, X) values pooled by the integer factor that brings the longest axis to at most
+    `cells`, each pooled cell the largest of its cells (the last ones may reach past the grid) ->
+    (the pooled grid, the factor)."""
+    factor = max(1, -(-max(values.shape) // cells))
+    if factor == 1:
+        return values, 1
+    return F.max_pool3d(values[None, None], kernel_size=factor, stride=factor, ceil_mode=True)[0, 0], factor
+
+
+def sliding_max(values: Tensor, width: int, *, pad: int = 0) -> Tensor:
+    """(Z, Y, X) float values -> the largest over each `width`³ window (stride 1; `pad` cells of
+    nothing about the grid first), one axis at a time: a 3-D window costs width³ a cell, these
+    3·width."""
+    out = values[None, None]
+    for axis in range(3):
+        kernel, padding = [1, 1, 1], [0, 0, 0]
+        kernel[axis], padding[axis] = width, pad
+        out = F.max_pool3d(out, tuple(kernel), stride=1, padding=tuple(padding))
+    return out[0, 0]
+
+
+def cubes(low: Tensor, high: Tensor, *, cells: int) -> tuple[list[int], float]:
     """Cubes of the box [low, high] ([3] each) `cells` along its longest side: (how many along x,
     y, z, their side); the last may reach past the box."""
     side = float((high - low).max()) / cells

@@ -3,16 +3,16 @@
 One majorant per medium makes delta tracking take a null collision every 1/σ̄ along a ray, so a
 cloud whose densest voxel is 4× its mean pays ~3 density evaluations for each real collision,
 and more in the empty corners of its box. Here the medium's box is cut into macro cells (at most
-`MACRO_CELLS` along its longest side, fewer where the medium is thin: `macro_cells`), each with a
+`CELLS_MAX` along its longest side, fewer where the medium is thin: `macro_cells`), each with a
 bound of the density over it from its density kind (`fields.DENSITIES`' ``macro``: a grid's
-exact, from the cell centres its trilinear lookup blends; value-noise fbm's from its lattice).
-Each macro cell holds the largest bound over the 3³ block of macro cells about it, which bounds
-the density on any segment of length at most one macro cell (the smallest side, times `SPACING`)
-from any point of the cell: its `reach`. Where that block is empty, the reach is the distance to
-the nearest macro cell with density (Chebyshev, less one). The tracking looks the bound up where
-it stands, draws a free flight against it and, where the flight passes the reach, moves there
-without a collision and looks again: an exponential restarts at any point, so this is delta
-tracking against a piecewise-constant majorant, unbiased for any bound that holds
+exact, from the cell centres its trilinear lookup blends; value-noise fbm's from its lattice; an
+exponential profile's in slabs). Each macro cell holds the largest bound over the 3³ block of
+macro cells about it, which bounds the density on any segment from any point of the cell as long
+as the smallest macro-cell side times `REACH`: its `reach`. Where that block is empty, the reach
+is the distance to the nearest macro cell with density (Chebyshev, less one). The tracking looks
+the bound up where it stands, draws a free flight against it and, where the flight passes the
+reach, moves there without a collision and looks again: an exponential restarts at any point, so
+this is delta tracking against a piecewise-constant majorant, unbiased for any bound that holds
 (docs/VOLUMES.md, `[path]`).
 """
 
@@ -22,21 +22,20 @@ from dataclasses import dataclass
 from types import SimpleNamespace
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ..ops import lanes
-from ..ops.grid_ops import chebyshev_distance
+from ..ops.grid_ops import chebyshev_distance, sliding_max
 
-MACRO_CELLS = 16  # macro cells along a grid's longest axis at most (finer cells restart flights more often)
+CELLS_MAX = 16  # macro cells along a box's longest side at most (finer cells restart flights more often)
 CELL_DEPTH = 1.5  # the optical depth of the one majorant across a macro cell, at least (`macro_cells`)
-SPACING = 0.99  # of a macro cell's smallest side: a point rounded past its cell's face stays within the block
+REACH = 0.99  # of a macro cell's smallest side: a point rounded past its cell's face stays within the block
 _ABOVE = 1.0 + 2.0**-20  # a float32 trilinear sum may round a hair above its largest corner
 
 
 @dataclass(frozen=True)
 class MacroMajorant:
-    """The local majorants of B scenes' grids: `bound` [Σ cells] the largest density over each
+    """The local majorants of a medium in B scenes: `bound` [Σ cells] the largest density over each
     macro cell's 3³ block, `reach` [Σ cells] how far from any point of the cell it holds, each
     scene's from `first` (B,) int32, its macro `cells` (B, 3) along x, y, z (float) tiling from
     `box_min` (B, 3) in steps of `size` (B, 3)."""
@@ -50,26 +49,26 @@ class MacroMajorant:
 
 
 def macro_cells(majorant: Tensor, box_min: Tensor, box_max: Tensor) -> list[int]:
-    """How many macro cells a side each scene's grid is pooled to: its one majorant (B,) times
-    its box's longest side ((B, 3) corners) over `CELL_DEPTH`, within 1 … `MACRO_CELLS`. A flight
+    """How many macro cells along its box's longest side each scene's medium takes: its one majorant (B,) times
+    its box's longest side ((B, 3) corners) over `CELL_DEPTH`, within 1 … `CELLS_MAX`. A flight
     restarts at each macro cell it crosses, so where the whole box is a few mean free paths of its
     majorant deep the macro cells would cost more restarts than they save null collisions."""
     depth = majorant * (box_max - box_min).amax(dim=1) / CELL_DEPTH
-    return [int(c) for c in depth.ceil().clamp(1, MACRO_CELLS).tolist()]
+    return [int(c) for c in depth.ceil().clamp(1, CELLS_MAX).tolist()]
 
 
 def macro_majorant(parts: list[tuple[Tensor, Tensor, Tensor]]) -> MacroMajorant:
     """The local majorants of B scenes from each one's macro cells `parts[b]` = (bounds (D, H, W)
     = [k, j, i] of the density over each cell, the cells' corner [3] and size [3]): each cell's
-    bound the largest over the 3³ block about it, its reach the smallest side (× `SPACING`), or
+    bound the largest over the 3³ block about it, its reach the smallest side (× `REACH`), or
     where that block is empty, that times the Chebyshev distance to the nearest cell with density
     less one."""
     bounds, reaches, shapes = [], [], []
     for macro, _, size in parts:
-        block = F.max_pool3d(macro[None, None], 3, stride=1, padding=1)[0, 0]
+        block = sliding_max(macro, 3, pad=1)
         steps = chebyshev_distance(macro > 0, max_radius=max(block.shape) + 1).to(block.dtype)
         bounds.append(block.reshape(-1) * _ABOVE)
-        reaches.append((steps - 1.0).clamp_min(1.0).reshape(-1) * (size.min() * SPACING))
+        reaches.append((steps - 1.0).clamp_min(1.0).reshape(-1) * (size.min() * REACH))
         shapes.append(block.shape[::-1])
     counts = [x.numel() for x in bounds]
     like = parts[0][1]
@@ -89,7 +88,8 @@ def macro_lanes(m: MacroMajorant, to) -> SimpleNamespace:
 
 def bound_at(q, p) -> tuple:
     """(the density's bound, how far along any direction it holds) at points p (three lanes) of
-    the grids `q` (`macro_lanes`), lanes; a point outside its box takes the nearest macro cell's."""
+    the macro cells `q` (`macro_lanes`), lanes; a point outside its box takes the nearest macro
+    cell's."""
     at = None
     for a in (2, 1, 0):
         x = (p[a] - q.box_min[a]) / q.size[a]
@@ -100,4 +100,4 @@ def bound_at(q, p) -> tuple:
     return lanes.gather(q.bound, at), lanes.gather(q.reach, at)
 
 
-__all__ = ["CELL_DEPTH", "MACRO_CELLS", "MacroMajorant", "bound_at", "macro_cells", "macro_lanes", "macro_majorant"]
+__all__ = ["CELLS_MAX", "CELL_DEPTH", "REACH", "MacroMajorant", "bound_at", "macro_cells", "macro_lanes", "macro_majorant"]

@@ -38,7 +38,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ..geometry.camera import Rays
+from ..fields.base import torch_inputs
 from ..geometry.rays import sphere_interval
 from ..geometry.scatter import lambert_bounce, lambert_reflect, turn
 from ..noise import fast
@@ -53,9 +53,9 @@ ROULETTE_AFTER = 3  # scatterings before Russian roulette may end a path
 ROULETTE_SCALE = 4.0  # a path goes on with probability min(1, this × its throughput) (tools/bench_path.py)
 MARGIN = 1.5  # an estimated majorant: the largest lattice sample times this
 LATTICE = 24  # samples a side of the lattice an estimated majorant comes from
-MAX_TENTATIVE = 100_000  # tentative collisions a tracking call takes at most (then it stops: counted)
+MAX_TENTATIVE = 100_000  # steps (tentative collisions, moves past a local majorant) a tracking call takes at most (then it stops: counted)
 FADE = 0.05  # a ratio-tracked transmittance below this plays Russian roulette
-LOCAL_MAJORANTS = True  # grid media tracked against their macro cells' bounds (`local_majorant`); False: one bound
+LOCAL_MAJORANTS = True  # media tracked against their macro cells' bounds where their kind gives them (`local_majorant`); False: one
 PATH_LANES = 1 << 18  # paths traced as one batch: the samples of a chunk's rays are grouped up to this
 SUN_FLIGHTS = True  # the suns' next events by a flight of their own (`_suns_next`); False: plain, the tests' reference
 _KEY, _DRAW = 0x7A17, 0x5CA7  # the hashes' seeds (already int32 values)
@@ -87,7 +87,7 @@ class Media:
     surface: Callable | None = None
     air: object | None = None  # the batch's `[atmosphere]` (Stacked) or None: `air_media`
     marched_first: bool = False  # `[path] single = "march"`: the paths leave out what the march gives
-    local: list = field(default_factory=list)  # each volume's `local_majorant.MacroMajorant` or None
+    local: list | None = None  # each volume's `local_majorant.MacroMajorant` or None (None: none has them)
 
 
 def uniform_lanes(key, count):
@@ -170,14 +170,17 @@ def media(vols: list, dtype: torch.dtype, surface: Callable | None = None, air=N
     """The paths' `Media` of the render's physically shaded volume states `vols`, its opaque
     `surface` (`Media.surface`) or None, its `[atmosphere]` (Stacked) or None, and whether the
     march gives the single scattering (`Media.marched_first`)."""
-    return Media(vols, [majorant(v, dtype) for v in vols], surface=surface, air=air, marched_first=marched_first,
-                 local=[_local(v, dtype) for v in vols])
+    bounds = [density_bound(v, dtype) for v in vols]
+    return Media(vols, [v.params.sigma_t.to(dtype) * bound for v, bound in zip(vols, bounds)], surface=surface, air=air,
+                 marched_first=marched_first, local=[_local(v, bound, dtype) for v, bound in zip(vols, bounds)])
 
 
-def _local(vol, dtype: torch.dtype):
+def _local(vol, bound: Tensor, dtype: torch.dtype):
     """The volume's local majorants (`local_majorant`) where its density kind gives macro cells'
-    bounds (`DENSITIES`' ``macro``: grids, value-noise fbm) and `LOCAL_MAJORANTS`, else None: one
-    majorant over its bounds."""
+    bounds (`DENSITIES`' ``macro``: grids, value-noise fbm, exponential profiles; media with a box)
+    and `LOCAL_MAJORANTS`, else None: one majorant over its bounds. `bound` (B,): its one bound of
+    the density (`density_bound`), which no local one passes (an estimated one, a lattice's, may be
+    the lower)."""
     from ..fields import DENSITIES
 
     macro, aabb = DENSITIES[vol.params.density.kind].caps.get("macro"), vol.bounds.caps["aabb"]
@@ -185,12 +188,10 @@ def _local(vol, dtype: torch.dtype):
         return None
     field = inner_and_edge(vol)[0]
     low, high = (x.to(torch.float64) for x in aabb(vol.params.bounds.value))
-    bound = density_bound(vol, torch.float64)
-    cells = macro_cells(vol.params.sigma_t.to(torch.float64) * bound, low, high)
+    cells = macro_cells(vol.params.sigma_t.to(torch.float64) * bound.to(torch.float64), low, high)
     parts = [macro(field, b, low[b], high[b], cells[b]) for b in range(low.shape[0])]
     if any(part is None for part in parts):
         return None
-    # never above the one majorant (an estimated one, a lattice's, may be the lower)
     return macro_majorant([(part[0].clamp(max=float(bound[b])).to(dtype), *(x.to(dtype) for x in part[1:]))
                            for b, part in enumerate(parts)])
 
@@ -317,7 +318,8 @@ def track_lanes(o, d, t0: list, t1: list, total, q, key, count, *, collide: bool
         bound, reach = _majorant_at(q, [o[c] + t * d[c] for c in range(3)], t, t0, t1)
         flight = lanes.where(bound > 0.0, -lanes.log(1.0 - u) / bound, math.inf)
         passed = flight >= reach
-        t = lanes.where(live, t + lanes.where(passed, reach, flight), t)
+        # a move past the reach is at least a float32 step of t (far out, t + reach could round to t)
+        t = lanes.where(live, t + lanes.where(passed, lanes.maximum(reach, lanes.abs(t) * 2.0**-22), flight), t)
         going = live & (t < end)
         on = going & ~passed
         x = [o[c] + t * d[c] for c in range(3)]
@@ -721,7 +723,8 @@ def path_inputs(m: Media, lights: list, to, volume) -> SimpleNamespace:
         lobe = (g[0], g[1], g[2]) if kind == "dual_hg" else (g, g, 0.0)
         interval, glow = volume(v, state)
         sigma_t = per_ray(p.sigma_t)
-        local = None if m.local[v] is None else _local_lanes(macro_lanes(m.local[v], to), sigma_t)
+        table = None if m.local is None else m.local[v]
+        local = None if table is None else _local_lanes(macro_lanes(table, to), sigma_t)
         vols.append(SimpleNamespace(interval=interval, reach=min(state.plan.reach, 3e38), majorant=per_ray(m.majorants[v]),
                                     local=local,
                                     sigma_t=sigma_t, albedo=per_ray(p.albedo), emission=per_ray(p.emission),
@@ -779,7 +782,8 @@ def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bo
         channel = None if m.air is None else torch.cat([hero_channels(keys, k) for k in ks])
         key = torch.cat([path_keys(keys, k, samples) for k in ks])
         behind = None if background is None else background.repeat(len(ks), 1)
-        results = run(m, lights, _repeated(rays, len(ks)), key, bounces, channel, behind)
+        results = run(m, lights, rays if len(ks) == 1 else rays.select(torch.arange(n).repeat(len(ks))), key, bounces,
+                      channel, behind)
         for j in range(len(ks)):  # each sample's in turn: the sum's order does not depend on the group
             out, beta, direction, gone, scattered, cut, above = (r[j * n:(j + 1) * n] for r in results)
             m.counts.truncated += int(cut.sum())
@@ -793,22 +797,14 @@ def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bo
     return total / samples
 
 
-def _repeated(rays, times: int):
-    """Camera rays [n] repeated `times` over ([times·n]): several samples' paths as one batch."""
-    if times == 1:
-        return rays
-    return Rays(origins=rays.origins.repeat(times, 1), directions=rays.directions.repeat(times, 1),
-                scene_index=rays.scene_index.repeat(times), pixel=rays.pixel.repeat(times, 1),
-                forward_cos=rays.forward_cos.repeat(times))
-
-
 def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int, channel: Tensor | None = None,
                 behind: Tensor | None = None) -> list:
     """`trace_lanes` on torch columns for rays [n] (paths of keys `key` [n], colours `channel` [n]
     where the scene has air, `hero_channels`; the sky `behind` each ray [n, 3], None: black) -> its
     results as tensors ([n, 3] for the three-lane ones)."""
     s = rays.scene_index
-    per_ray = lambda x: lanes.columns(take(x, s))  # noqa: E731
+    to = torch_inputs(s)
+    per_ray = to.per_lane
 
     def volume(v, state):
         def interval(o, d):
@@ -827,7 +823,7 @@ def trace_eager(m: Media, lights: list, rays, key: Tensor, bounces: int, channel
             out[rows] = take(state.params.sigma_t, s[rows]) * state.field(torch.stack([c[rows] for c in x], dim=1), s[rows])
         return out
 
-    q = path_inputs(m, lights, SimpleNamespace(per_lane=per_ray, scene=s, floats=lambda t: t, ints=lambda t: t), volume)
+    q = path_inputs(m, lights, to, volume)
     q.sigma, q.behind = sigma, [0.0] * 3 if behind is None else lanes.columns(behind)
     if m.surface is not None:
         q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=False)

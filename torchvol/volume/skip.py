@@ -21,10 +21,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from ..ops.grid_ops import dilate
+from ..ops.grid_ops import dilate, pooled_max
 
 MACRO_CELLS = 64  # along the longest axis: finer cells give a tighter span for more samples per ray
 CHUNK_SAMPLES = 1 << 19  # samples per chunk: whole rays, ~2 MB per float32 temporary
@@ -46,10 +45,8 @@ def macro_grid(occupancy: Tensor, box_min: Tensor, box_max: Tensor, *, cells: in
     factor that brings the longest axis to at most `cells`; a macro cell is occupied when any of its
     cells is. Where the factor does not divide a side the last macro cells reach past the box (they
     are as empty there as outside)."""
-    factor = max(1, -(-max(occupancy.shape) // cells))
-    pooled = occupancy
-    if factor > 1:
-        pooled = F.max_pool3d(occupancy.to(torch.float32)[None, None], kernel_size=factor, stride=factor, ceil_mode=True)[0, 0] > 0
+    pooled, factor = pooled_max(occupancy.to(torch.float32), cells=cells)
+    pooled = pooled > 0
     fine = (box_max - box_min) / torch.tensor(occupancy.shape[::-1], dtype=box_min.dtype, device=box_min.device)
     blocks = [pooled]
     for axis in (2, 1, 0):  # x (the last tensor axis) is bit 1, y bit 2, z bit 4
