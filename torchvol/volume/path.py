@@ -782,8 +782,7 @@ def radiance(m: Media, lights: list, rays, background: Tensor | None, sky, *, bo
         channel = None if m.air is None else torch.cat([hero_channels(keys, k) for k in ks])
         key = torch.cat([path_keys(keys, k, samples) for k in ks])
         behind = None if background is None else background.repeat(len(ks), 1)
-        results = run(m, lights, rays if len(ks) == 1 else rays.select(torch.arange(n).repeat(len(ks))), key, bounces,
-                      channel, behind)
+        results = run(m, lights, rays.repeat(len(ks)), key, bounces, channel, behind)
         for j in range(len(ks)):  # each sample's in turn: the sum's order does not depend on the group
             out, beta, direction, gone, scattered, cut, above = (r[j * n:(j + 1) * n] for r in results)
             m.counts.truncated += int(cut.sum())
