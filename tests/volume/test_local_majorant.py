@@ -55,7 +55,7 @@ def test_a_bound_holds_along_every_segment_within_its_reach(shape, cells, fill, 
     n = 2000
     start = (torch.rand(n, 3, generator=g, dtype=F64) * 1.2 - 0.1) * high
     direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=F64), dim=1)
-    bound, reach = bound_at(q, list(start.unbind(1)))
+    bound, reach = bound_at(q, list(start.unbind(1)), list(direction.unbind(1)))
     along = torch.linspace(0.0, 1.0, 65, dtype=F64)
     points = start[:, None] + direction[:, None] * (reach[:, None, None].clamp(max=10.0) * along[None, :, None])
     density = sample_grid(grid, low[0], high[0], points.reshape(-1, 3)).reshape(n, -1)
@@ -66,20 +66,26 @@ def test_a_bound_holds_along_every_segment_within_its_reach(shape, cells, fill, 
     if grid.max() > 0:
         peak = torch.stack(torch.unravel_index(grid.argmax(), grid.shape)[::-1]).to(F64)  # its cell centre, (x, y, z)
         centre = (peak + 0.5) / torch.tensor(shape[::-1], dtype=F64) * high[0]
-        top, _ = bound_at(q, list(centre[None].unbind(1)))
+        top, _ = bound_at(q, list(centre[None].unbind(1)), [torch.ones(1, dtype=F64)] * 3)
         assert float(top) == pytest.approx(float(grid.max()), rel=1e-5)
 
 
 def test_empty_space_is_crossed_in_long_leaps():
     """A grid with density in one corner only: far from it, the bound is 0 and holds for several
-    macro cells (the Chebyshev distance to the occupied cell, less one); next to it one cell."""
+    macro cells (the Chebyshev distance to the occupied cell, less one); next to it one cell;
+    along a diagonal each cell's side is crossed at 1/√3 the pace, so √3 times as far."""
     grid = torch.zeros(16, 16, 16, dtype=F64)
     grid[0, 0, 0] = 1.0
     m = macro_majorant([macro_bounds(grid, torch.zeros(3, dtype=F64), torch.ones(3, dtype=F64), cells=8)])
-    bound, reach = bound_at(_lanes(m), [torch.tensor([0.99, 0.01], dtype=F64)] * 3)
+    points = [torch.tensor([0.99, 0.01], dtype=F64)] * 3
+    along_x = [torch.ones(2, dtype=F64), torch.zeros(2, dtype=F64), torch.zeros(2, dtype=F64)]
+    bound, reach = bound_at(_lanes(m), points, along_x)
     cell = 1.0 / 8
     assert float(bound[0]) == 0.0 and float(reach[0]) == pytest.approx(6 * cell * 0.99)
     assert float(bound[1]) == pytest.approx(1.0, rel=1e-5) and float(reach[1]) == pytest.approx(cell * 0.99)
+    # along the diagonal a segment moves less along each axis: √3 times as far
+    _, diagonal = bound_at(_lanes(m), points, [torch.full((2,), 3**-0.5, dtype=F64)] * 3)
+    assert diagonal.tolist() == pytest.approx((reach * 3**0.5).tolist())
 
 
 def _parity(local: bool, monkeypatch, seeds: int = 4):
@@ -128,7 +134,7 @@ def test_an_fbm_bound_holds_along_every_segment_within_its_reach(octaves, freque
     n = 1500
     start = low + (torch.rand(n, 3, generator=g, dtype=F64) * 1.2 - 0.1) * (high - low)
     direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=F64), dim=1)
-    bound, reach = bound_at(q, list(start.unbind(1)))
+    bound, reach = bound_at(q, list(start.unbind(1)), list(direction.unbind(1)))
     along = torch.linspace(0.0, 1.0, 33, dtype=F64)
     points = start[:, None] + direction[:, None] * (reach[:, None, None].clamp(max=10.0) * along[None, :, None])
     density = field(points.reshape(-1, 3), torch.zeros(points.shape[0] * points.shape[1], dtype=torch.long)).reshape(n, -1)
@@ -162,7 +168,7 @@ def test_an_exponential_bound_holds_along_every_segment_within_its_reach(value, 
     n = 1500
     start = low + (torch.rand(n, 3, generator=g, dtype=F64) * 1.2 - 0.1) * (high - low)
     direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=F64), dim=1)
-    bound, reach = bound_at(_lanes(m), list(start.unbind(1)))
+    bound, reach = bound_at(_lanes(m), list(start.unbind(1)), list(direction.unbind(1)))
     along = torch.linspace(0.0, 1.0, 33, dtype=F64)
     points = start[:, None] + direction[:, None] * (reach[:, None, None] * along[None, :, None])
     inside = ((points >= low) & (points <= high)).all(dim=-1)  # the profile is bounded only over the box

@@ -315,7 +315,7 @@ def track_lanes(o, d, t0: list, t1: list, total, q, key, count, *, collide: bool
     def body(t, weight, hit, vol, sig_hit, count, live, n, above, *evals):
         u = uniform_lanes(key, count)
         count = count + lanes.to_int32(live)
-        bound, reach = _majorant_at(q, [o[c] + t * d[c] for c in range(3)], t, t0, t1)
+        bound, reach = _majorant_at(q, [o[c] + t * d[c] for c in range(3)], d, t, t0, t1)
         flight = lanes.where(bound > 0.0, -lanes.log(1.0 - u) / bound, math.inf)
         passed = flight >= reach
         # a move past the reach is at least a float32 step of t (far out, t + reach could round to t)
@@ -354,9 +354,9 @@ def track_lanes(o, d, t0: list, t1: list, total, q, key, count, *, collide: bool
     return [hit, vol, sig_hit, weight, count, live, above, *evals]
 
 
-def _majorant_at(q, x: list, t, t0: list, t1: list) -> tuple:
-    """The majorant summed over the volumes at t along rays (x their points there, three lanes)
-    and how far on it holds: a volume's within its span [t0[v], t1[v]], up to the span's end,
+def _majorant_at(q, x: list, d: list, t, t0: list, t1: list) -> tuple:
+    """The majorant summed over the volumes at t along rays of directions d (x their points there,
+    three lanes each) and how far on it holds: a volume's within its span [t0[v], t1[v]], up to the span's end,
     the next span's start or its local majorant's reach; its local majorant where it has them
     (`local_majorant`), else its one. Lanes."""
     bound, reach = lanes.full_like(t, 0.0), lanes.full_like(t, math.inf)
@@ -364,7 +364,7 @@ def _majorant_at(q, x: list, t, t0: list, t1: list) -> tuple:
         inside = (t >= t0[v]) & (t < t1[v])
         here, far = vol.majorant, t1[v] - t
         if vol.local is not None:
-            here, holds = vol.local(x)
+            here, holds = vol.local(x, d)
             far = lanes.minimum(far, holds)
         bound = bound + lanes.where(inside, here, 0.0)
         reach = lanes.minimum(reach, lanes.where(t < t0[v], t0[v] - t, lanes.where(inside, far, math.inf)))
@@ -737,10 +737,10 @@ def path_inputs(m: Media, lights: list, to, volume) -> SimpleNamespace:
 
 
 def _local_lanes(table, sigma_t):
-    """σ_t's local majorant at points x (three lanes) and how far from them it holds, from the
-    macro cells' `table` (`local_majorant.macro_lanes`), lanes."""
-    def at(x):
-        bound, reach = bound_at(table, x)
+    """σ_t's local majorant at points x and how far along directions d from them it holds (three
+    lanes each), from the macro cells' `table` (`local_majorant.macro_lanes`), lanes."""
+    def at(x, d):
+        bound, reach = bound_at(table, x, d)
         return bound * sigma_t, reach
 
     return at
