@@ -109,6 +109,7 @@ def test_tracking_against_local_majorants_renders_what_one_majorant_does(one_thr
     assert abs(local - one) <= 5.0 * error, f"local majorants {local:.6g}, one {one:.6g} (standard error {error:.2g})"
     assert error < 0.02 * one  # sharp enough to fail
     assert stats["path"]["above_majorant"] == 0
+    assert stats["path"]["local_majorants"] == ["volume0"] and one_stats["path"]["local_majorants"] == []
     assert stats["density_evals"] < 0.75 * one_stats["density_evals"], (stats["density_evals"], one_stats["density_evals"])
 
 

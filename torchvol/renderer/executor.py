@@ -478,9 +478,16 @@ def render_stats(ctx: RenderContext, acc: Accumulator | None, *, rays: int, tota
         **({"error_estimate": ctx.counts.error_estimate} if plan.settings.tolerance is not None else {}),
         **({"voxel_steps": ctx.voxel_surface.steps_total} if plan.voxels is not None else {}),
         **({"accumulation": acc.changes} if acc is not None else {}),
-        **({"path": vars(ctx.path_media.counts)} if ctx.path_media is not None else {}),
+        **({"path": path_stats(ctx.path_media)} if ctx.path_media is not None else {}),
         "dtype": str(ctx.dtype).removeprefix("torch."),
     }
+
+
+def path_stats(media: path.Media) -> dict:
+    """`stats["path"]`: what the paths did (`path.PathCounts`) and the volumes tracked against
+    their macro cells' bounds (`local_majorants`, `volume/local_majorant.py`), by name."""
+    local = [vol.plan.name for vol, table in zip(media.vols, media.local or []) if table is not None]
+    return {**vars(media.counts), "local_majorants": local}
 
 
 def post_process(ctx: RenderContext, radiance: Tensor, aovs: dict[str, Tensor], view: View) -> Tensor:
