@@ -86,9 +86,9 @@ def _about(o, d, center):
     """What every sphere about `center` shares along rays o + t d (lanes): b = (o − center)·d,
     |o − center|² and the squared distance of the ray's closest approach."""
     oc = [o[i] - center[i] for i in range(3)]
-    b = oc[0] * d[0] + oc[1] * d[1] + oc[2] * d[2]
+    b = lanes.dot3(oc, d)
     perp = [oc[i] - b * d[i] for i in range(3)]
-    return b, oc[0] * oc[0] + oc[1] * oc[1] + oc[2] * oc[2], perp[0] * perp[0] + perp[1] * perp[1] + perp[2] * perp[2]
+    return b, lanes.dot3(oc, oc), lanes.dot3(perp, perp)
 
 
 def _sphere_roots(b, oc2, perp2, radius):

@@ -56,7 +56,7 @@ def rounded_box_lanes(p: list, half: list, radius):
     """`sd_rounded_box` in lanes (`ops.lanes`): points p and half sizes `half` (three lanes or
     numbers each), `radius` a lane or number: length(max(|p| − b + r, 0)) − r."""
     q = [lanes.clamp_min(lanes.abs(p[i]) - half[i] + radius, 0.0) for i in range(3)]
-    return lanes.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]) - radius
+    return lanes.length3(*q) - radius
 
 
 def union(*ds: Tensor) -> Tensor:

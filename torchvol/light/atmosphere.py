@@ -149,7 +149,7 @@ def air_source_lanes(p, direction, sun_dir, sun, q: SimpleNamespace, light_steps
     """The sun's light scattered by the air towards the camera per unit length (three lanes) at `p`
     (planet frame) of a ray along `direction`, the sun `sun_dir` (unit) of irradiance `sun` (three
     lanes each): σ_s·p(θ)·E·T_sun."""
-    cos = direction[0] * sun_dir[0] + direction[1] * sun_dir[1] + direction[2] * sun_dir[2]
+    cos = lanes.dot3(direction, sun_dir)
     scatter = scattering_lanes(density_lanes(p, q), cos, q)
     trans = sun_transmittance_lanes(p, sun_dir, q, light_steps)
     return [sun[c] * trans[c] * scatter[c] for c in range(3)]
@@ -188,7 +188,7 @@ def single_scatter_lanes(origins, directions, t0, t1, sun_dir, q: SimpleNamespac
     transmittance), three lanes each."""
     dt = lanes.divide(lanes.clamp_min(t1 - t0, 0.0), steps)
     d, sun = directions, sun_dir
-    cos = d[0] * sun[0] + d[1] * sun[1] + d[2] * sun[2]
+    cos = lanes.dot3(d, sun)
 
     def sample(i, state):  # state: the optical depth so far (2), Rayleigh's and Mie's attenuated sums (3 each)
         optical, sums = state[:2], [state[2:5], state[5:8]]

@@ -331,7 +331,7 @@ def worley_lanes(x, y, z, perm, values, rows=None, *, period: int | None = None)
     best = math.inf
     for h, off in zip(_lattice_chain(perm, *_cells(fl, (-1, 0, 1), rows, period)), _NEIGHBOURS):
         d = [(off[a] + lanes.gather(values[a], h)) - f[a] for a in range(3)]
-        best = lanes.minimum(best, d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        best = lanes.minimum(best, lanes.dot3(d, d))
     return lanes.clamp(lanes.sqrt(best), 0.0, 1.0)
 
 

@@ -120,7 +120,7 @@ def bloom_source(q, p):
     """The glow, three lanes, at p (three lanes): strength · intensity · color · e^{−falloff · d³};
     `q` from `bloom_lanes`."""
     v = [p[c] - q.position[c] for c in range(3)]
-    d2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    d2 = lanes.dot3(v, v)
     weight = q.strength * lanes.exp(-q.falloff * d2 * lanes.sqrt(d2))
     return [e * weight for e in q.radiant]
 

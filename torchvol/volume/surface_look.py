@@ -53,7 +53,7 @@ def look_normal(density_at, p, density, epsilon, *, gradient: Literal["central",
         ahead = density_at([p[c] + epsilon if c == a else p[c] for c in range(3)])
         grad.append(ahead - (density_at([p[c] - epsilon if c == a else p[c] for c in range(3)])
                              if gradient == "central" else density))
-    norm = lanes.clamp_min(lanes.sqrt(_dot(grad, grad)), 1e-30)
+    norm = lanes.clamp_min(lanes.sqrt(lanes.dot3(grad, grad)), 1e-30)
     return [-g / norm for g in grad]
 
 
@@ -62,8 +62,8 @@ def surface_light(normal, to_light, to_eye, shininess) -> tuple:
     H = normalize(L + V), lanes: `normal`, `to_light`, `to_eye` three lanes each (unit),
     `shininess` (> 0). -> (diffuse, specular)."""
     half = [to_light[c] + to_eye[c] for c in range(3)]
-    n_dot_h = _dot(normal, half) / lanes.clamp_min(lanes.sqrt(_dot(half, half)), 1e-30)
-    diffuse = lanes.clamp_min(_dot(normal, to_light) * 0.5 + 0.5, 0.0)
+    n_dot_h = lanes.dot3(normal, half) / lanes.clamp_min(lanes.sqrt(lanes.dot3(half, half)), 1e-30)
+    diffuse = lanes.clamp_min(lanes.dot3(normal, to_light) * 0.5 + 0.5, 0.0)
     specular = pow_(lanes.clamp_min(n_dot_h, 0.0), shininess)
     return diffuse, specular
 
@@ -83,12 +83,6 @@ def surface_lanes(vol, to) -> SimpleNamespace:
     look = vol.params.surface
     return SimpleNamespace(**{k: to.per_lane(getattr(look, k)) for k in (
         "diffuse", "specular", "shininess", "ambient", "epsilon", "alpha_scale")}, gradient=look.gradient)
-
-
-def _dot(a, b):
-    """a · b of three lanes each, elementwise (a reduction's rounding could depend on n or
-    strides; batches must match single renders to the bit)."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def surface_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | None, *, signed: bool = False) -> Medium:

@@ -102,8 +102,7 @@ def _cube_walk(r: SimpleNamespace, g: SimpleNamespace):
     None: the face's normal)."""
 
     def walk(o: list, d: list, t_max, t_min=None):
-        ray = SimpleNamespace(**vars(r), o=[(o[c] - r.origin[c]) / r.size for c in range(3)],
-                              d=[d[c] / r.size for c in range(3)], t_max=t_max)
+        ray = SimpleNamespace(**vars(r), **_in_cells(r, o, d), t_max=t_max)
         ok, t0, cell, axis = start_lanes(ray.o, ray.d, ray.lo, ray.hi, t_min, t_max)
         zero = lanes.int_like(0, cell[0])
         state = [*cell, t0, axis, zero, ok, t0 * 0.0, zero]
@@ -112,6 +111,11 @@ def _cube_walk(r: SimpleNamespace, g: SimpleNamespace):
         return material > 0, t, axis, material, (ray, [cx, cy, cz]), None
 
     return walk
+
+
+def _in_cells(r: SimpleNamespace, o: list, d: list) -> dict:
+    """World rays o, d (three lanes each) in the grid's cell units (`r`: `_walk_inputs`' rays)."""
+    return {"o": [(o[c] - r.origin[c]) / r.size for c in range(3)], "d": [d[c] / r.size for c in range(3)]}
 
 
 def _rounded_walk(cubes, r: SimpleNamespace, rounded: Stacked, per_lane, *, kernel: bool):
@@ -148,8 +152,7 @@ def _rounded_walk(cubes, r: SimpleNamespace, rounded: Stacked, per_lane, *, kern
         none = lanes.to_int32(zero)
         state = [zero > 1.0, zero + math.inf, none, none, none, none, none, zero, zero, zero, zero, none, zero == 0.0]
         found, t, axis, material, cx, cy, cz, nx, ny, nz, _, _, _ = lanes.while_loop(state, lambda *x: x[12], body)
-        ray = SimpleNamespace(o=[(o[c] - r.origin[c]) / r.size for c in range(3)], d=[d[c] / r.size for c in range(3)])
-        return found, t, axis, material, (ray, [cx, cy, cz]), [nx, ny, nz]
+        return found, t, axis, material, (SimpleNamespace(**_in_cells(r, o, d)), [cx, cy, cz]), [nx, ny, nz]
 
     return walk
 

@@ -46,8 +46,9 @@ class DirectLight:
             if l in shadows:
                 use = shadows[l]
                 with section(use.name):
-                    start = point.x + take(p.shadow.offset, s)[:, None] * point.face_normal
-                    if p.rounded is not None:  # a rounded box lies inside its cell: its shadow ray leaves the cell first
+                    if p.rounded is None:
+                        start = point.x + take(p.shadow.offset, s)[:, None] * point.face_normal
+                    else:  # a rounded box lies inside its cell: its shadow ray leaves the cell first
                         leave = cell_exit(self.tracer.grid, point.x, toward.direction, s, point.cell)
                         start = point.x + (leave + take(p.shadow.offset, s))[:, None] * toward.direction
                     at_start = None if source.directional else source.toward(start, s)
