@@ -239,11 +239,12 @@ def test_the_lanes_noise_traced_by_drjit_is_the_eager_noise(name, period):
     seeds = (7, 0, 2**40 + 3)
     p = _lattice_test_points(20000, torch.float32, seed=2)
     scene = torch.randint(0, len(seeds), (p.shape[0],), generator=torch.Generator().manual_seed(4))
-    perm, columns = noise.scene_lattice_tables(seeds, "cpu")
-    xyz, perm, rows = [Float(c.numpy()) for c in p.unbind(1)], Int32(perm.numpy()), Int32(scene_rows(scene).numpy())
+    table, columns = noise.scene_lattice_tables(seeds, "cpu")
+    xyz, perm, rows = [Float(c.numpy()) for c in p.unbind(1)], Int32(table.numpy()), Int32(scene_rows(scene).numpy())
     values = [Float(c.float().numpy()) for c in columns]
+    chained = Float(noise.chained_values(table, columns[0]).float().numpy())
     kw = {} if period is None else {"period": period}
-    got = torch.from_numpy(np.array({"value": lambda: noise.value_lanes(*xyz, perm, values[0], rows),
+    got = torch.from_numpy(np.array({"value": lambda: noise.value_lanes(*xyz, perm, chained, rows),
                                      "perlin": lambda: noise.perlin_lanes(*xyz, perm, rows, **kw),
                                      "worley": lambda: noise.worley_lanes(*xyz, perm, values, rows, **kw)}[name]()))
     one = SCENE_NOISES[name][0]

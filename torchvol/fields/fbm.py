@@ -166,15 +166,15 @@ def noise_basis(kind: str, seeds, hash: str, to):
     chain in its scene's block (`to.ints`, `to.floats`: a table as the backend's array)."""
     if hash == "arithmetic":
         return fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(seeds, "cpu"), to.scene)))
-    perm, columns = noise.scene_lattice_tables(tuple(int(x) for x in seeds), "cpu")
-    perm, rows = to.ints(perm), to.ints(noise.scene_rows(to.scene))
+    noise_perm, columns = noise.scene_lattice_tables(tuple(int(x) for x in seeds), "cpu")
+    perm, rows = to.ints(noise_perm), to.ints(noise.scene_rows(to.scene))
     if kind == "perlin":
         return lambda x, y, z: noise.perlin_lanes(x, y, z, perm, rows)
     if kind == "worley":
         values = [to.floats(c) for c in columns]
         return lambda x, y, z: noise.worley_lanes(x, y, z, perm, values, rows)
-    first = to.floats(columns[0])
-    return lambda x, y, z: noise.value_lanes(x, y, z, perm, first, rows)
+    chained = to.floats(noise.chained_values(noise_perm, columns[0]))
+    return lambda x, y, z: noise.value_lanes(x, y, z, perm, chained, rows)
 
 
 def fbm_density(q, p, count):
