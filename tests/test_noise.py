@@ -106,15 +106,21 @@ def test_lattice_hash_is_a_period_256_permutation_chain():
 @pytest.mark.parametrize("offsets", [(0, 1), (-1, 0, 1)])
 def test_the_shared_chain_is_lattice_hash_of_each_cell(offsets, period):
     """`_lattice_chain` over `_cells` (a cell's 8 corners, the 27 cells around): each hash is
-    `lattice_hash` of its cell, wrapped by the period first, in x-fastest order."""
+    `lattice_hash` of its cell, wrapped by the period first, in x-fastest order; with tables
+    composed with the permutation (`chained_values`) as its last gather, their rows at that hash."""
     cells = torch.randint(-1000, 1000, (500, 3), generator=torch.Generator().manual_seed(3))
-    perm = noise.scene_lattice_tables((7,), "cpu")[0]
-    hashes = noise._lattice_chain(perm, *noise._cells(cells.double().unbind(1), offsets, period=period))
+    perm, columns = noise.scene_lattice_tables((7,), "cpu")
+    lattice = noise._cells(cells.double().unbind(1), offsets, period=period)
+    hashes = noise._lattice_chain(perm, *lattice)
+    composed = noise._lattice_chain(perm, *lattice, last=[noise.chained_values(perm, c) for c in columns])
+    first = noise._lattice_chain(perm, *lattice, last=noise.chained_values(perm, columns[0]))
     neighbours = [(dx, dy, dz) for dz in offsets for dy in offsets for dx in offsets]
     assert offsets != (0, 1) or neighbours == noise._CORNERS
-    for off, h in zip(neighbours, hashes, strict=True):
+    for off, h, values, value in zip(neighbours, hashes, composed, first, strict=True):
         c = cells + torch.tensor(off)
         assert torch.equal(h.long(), lattice_hash(c if period is None else torch.remainder(c, period), 7)), off
+        assert all(torch.equal(v, col[h.long()]) for v, col in zip(values, columns, strict=True)), off
+        assert torch.equal(value, columns[0][h.long()]), off
 
 
 def test_perlin_zero_at_lattice_points():
@@ -241,10 +247,9 @@ def test_the_lanes_noise_traced_by_drjit_is_the_eager_noise(name, period):
     scene = torch.randint(0, len(seeds), (p.shape[0],), generator=torch.Generator().manual_seed(4))
     table, columns = noise.scene_lattice_tables(seeds, "cpu")
     xyz, perm, rows = [Float(c.numpy()) for c in p.unbind(1)], Int32(table.numpy()), Int32(scene_rows(scene).numpy())
-    values = [Float(c.float().numpy()) for c in columns]
-    chained = Float(noise.chained_values(table, columns[0]).float().numpy())
+    values = [Float(noise.chained_values(table, c).float().numpy()) for c in columns]
     kw = {} if period is None else {"period": period}
-    got = torch.from_numpy(np.array({"value": lambda: noise.value_lanes(*xyz, perm, chained, rows),
+    got = torch.from_numpy(np.array({"value": lambda: noise.value_lanes(*xyz, perm, values[0], rows),
                                      "perlin": lambda: noise.perlin_lanes(*xyz, perm, rows, **kw),
                                      "worley": lambda: noise.worley_lanes(*xyz, perm, values, rows, **kw)}[name]()))
     one = SCENE_NOISES[name][0]

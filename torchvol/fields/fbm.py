@@ -171,7 +171,7 @@ def noise_basis(kind: str, seeds, hash: str, to):
     if kind == "perlin":
         return lambda x, y, z: noise.perlin_lanes(x, y, z, perm, rows)
     if kind == "worley":
-        values = [to.floats(c) for c in columns]
+        values = [to.floats(noise.chained_values(noise_perm, c)) for c in columns]
         return lambda x, y, z: noise.worley_lanes(x, y, z, perm, values, rows)
     chained = to.floats(noise.chained_values(noise_perm, columns[0]))
     return lambda x, y, z: noise.value_lanes(x, y, z, perm, chained, rows)

@@ -52,7 +52,8 @@ class FurField:
         p, s = self.p, scene_index
         perm, values = noise.scene_lattice_tables(tuple(int(x) for x in p.seed), str(points.device))
         rows = noise.scene_rows(s)
-        worley = lambda q: noise.worley_lanes(*q, perm, [v.to(points.dtype) for v in values], rows)  # noqa: E731
+        points_of = [noise.chained_values(perm, v.to(points.dtype)) for v in values]
+        worley = lambda q: noise.worley_lanes(*q, perm, points_of, rows)  # noqa: E731
         q = SimpleNamespace(**{k: lanes.columns(take(getattr(p, k), s)) for k in ("center", "radius", "length", "frequency",
                                                                                   "thickness")})
         return fur_unscaled(q, points.unbind(1), worley)
@@ -76,7 +77,8 @@ def fur_lanes(field: FurField, to) -> SimpleNamespace:
     q = SimpleNamespace(**{k: to.per_lane(getattr(p, k)) for k in ("center", "radius", "length", "frequency", "thickness",
                                                                     "scale")})
     perm, values = noise.scene_lattice_tables(tuple(int(x) for x in p.seed), "cpu")
-    q.perm, q.values, q.rows = to.ints(perm), [to.floats(v) for v in values], to.ints(noise.scene_rows(to.scene))
+    q.perm, q.rows = to.ints(perm), to.ints(noise.scene_rows(to.scene))
+    q.values = [to.floats(noise.chained_values(perm, v)) for v in values]
     return q
 
 

@@ -152,21 +152,26 @@ def _lattice_chain(perm, xs: list, ys: list, zs: list, last=None) -> list:
     """Perlin's chain perm[perm[perm[x] + y] + z] in a doubled permutation `perm` (int32, several
     scenes' stacked as `scene_lattice_tables` stacks them) for every cell of xs × ys × zs (`_cells`)
     -> their hashes (int32 lanes, x fastest: `_CORNERS`' order for the offsets (0, 1)), or, where
-    `last` is a table composed with the permutation (`chained_values`), last[perm[perm[x] + y] + z].
+    `last` is a table composed with the permutation (`chained_values`), last[perm[perm[x] + y] + z]
+    (a list of such tables: a list of their values per cell).
 
     The chain shares its prefixes: perm[x] once per x, perm[· + y] once per (x, y), so a cell's 8
     corners take 14 gathers instead of 24 and the 27 cells around a point 39 instead of 81; every
     index stays below 512 (the doubled table), within its scene's block. Bitwise `lattice_hash`."""
     px = [lanes.gather(perm, x) for x in xs]
     pxy = [lanes.gather(perm, h + y) for y in ys for h in px]
-    return [lanes.gather(perm if last is None else last, h + z) for z in zs for h in pxy]
+    rows = [h + z for z in zs for h in pxy]
+    if isinstance(last, (list, tuple)):
+        return [[lanes.gather(table, i) for table in last] for i in rows]
+    return [lanes.gather(perm if last is None else last, i) for i in rows]
 
 
 def chained_values(perm: Tensor, first: Tensor) -> Tensor:
     """Lattice values `first` [512·B] composed with the stacked permutation `perm` [512·B] (from
     `scene_lattice_tables`) -> first[perm] [512·B]: value noise reads a corner's value in the
     chain's last gather instead of a gather after it (8 of its 22 gathers a point; Dr.Jit's
-    gathers are most of a value-noise kernel's time), bitwise the same value."""
+    gathers are most of a value-noise kernel's time), Worley its feature points (27 of 120),
+    bitwise the same values."""
     return take_rows(first, perm.long())
 
 
@@ -210,7 +215,7 @@ def worley_noise_scenes(p: Tensor, rows: Tensor | None, seeds: Sequence[int], *,
     """`worley_noise` of points p [N, 3], each with the seed of its scene, as `value_noise_scenes`
     -> [N], bitwise ``worley_noise(p[i], seed=seeds[scene[i]], period=period)``."""
     perm, columns = _scene_tables(p, seeds)
-    return worley_lanes(*p.unbind(-1), perm, [c.to(p.dtype) for c in columns], rows, period=period)
+    return worley_lanes(*p.unbind(-1), perm, [chained_values(perm, c.to(p.dtype)) for c in columns], rows, period=period)
 
 
 def _scene_tables(p: Tensor, seeds: Sequence[int]) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor]]:
@@ -335,13 +340,14 @@ def worley_lanes(x, y, z, perm, values, rows=None, *, period: int | None = None)
     """`worley_noise` in lanes (`ops.lanes`) at points x, y, z (|p| < 2**31): the distance to the
     nearest of the feature points of the 27 cells around, clamped to [0, 1]. `perm`: doubled
     permutations (int32; several scenes' stacked as `scene_lattice_tables` stacks them), `values`:
-    the feature points' three offset columns in the same rows (the points' float type), `rows`:
+    the feature points' three offset columns in chain order (`chained_values`, the points' float
+    type), `rows`:
     each lane's block (None: 0), `period`: the feature points repeat every `period` cells (None: 256)."""
     fl = [lanes.floor(c) for c in (x, y, z)]
     f = [c - lo for c, lo in zip((x, y, z), fl)]
     best = math.inf
-    for h, off in zip(_lattice_chain(perm, *_cells(fl, (-1, 0, 1), rows, period)), _NEIGHBOURS):
-        d = [(off[a] + lanes.gather(values[a], h)) - f[a] for a in range(3)]
+    for point, off in zip(_lattice_chain(perm, *_cells(fl, (-1, 0, 1), rows, period), last=values), _NEIGHBOURS):
+        d = [(off[a] + point[a]) - f[a] for a in range(3)]
         best = lanes.minimum(best, lanes.dot3(d, d))
     return lanes.clamp(lanes.sqrt(best), 0.0, 1.0)
 
