@@ -90,9 +90,10 @@ def test_eager_fbm_is_noise_fbm_of_the_hashed_basis():
     assert torch.equal(got, want)
 
 
-def test_arithmetic_hash_refused_for_gradient_noise():
-    scene = tv.preset("cloud-puff", width=8, height=8).model_dump()
-    scene["volumes"][0]["density"]["fbm"].update(noise="perlin", hash="arithmetic")
+@pytest.mark.parametrize(("name", "kind"), [("cloud-puff", "fbm"), ("particles", "particles")])
+def test_arithmetic_hash_refused_for_gradient_noise(name, kind):
+    scene = tv.preset(name, width=8, height=8).model_dump()
+    scene["volumes"][0]["density"][kind].update(noise="perlin", hash="arithmetic")
     with pytest.raises(ValueError, match="hash"):
         tv.render(scene)
 

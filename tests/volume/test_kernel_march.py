@@ -134,6 +134,18 @@ def test_the_presets_match_the_eager_march(name):
     assert set(eager.stats["passes"]) <= set(kernel.stats["passes"]) <= set(kernel.stats["plan"]["passes"])
 
 
+@pytest.mark.parametrize(("name", "kind"), [("explosion", "explosion"), ("particles", "particles")])
+def test_explosions_and_particles_hashed_arithmetically_match_the_eager_march(name, kind):
+    """`hash = "arithmetic"` on the other value-noise densities: the kernel's noise basis and the
+    eager whole fbm (`fields.fbm.whole_fbm`) agree, and the noise is another draw than the table's."""
+    scene = tv.preset(name, width=32, height=24).model_dump()
+    table = tv.render(scene)
+    scene["volumes"][0]["density"][kind]["hash"] = "arithmetic"
+    kernel, eager = _both(scene)
+    _close(kernel, eager, f"{name}, arithmetic hash")
+    assert not torch.equal(kernel.radiance, table.radiance)
+
+
 SUN = {"kind": "sun", "direction": [0.3, 0.9, 0.2], "intensity": 5.0, "shadow": {"steps": 4}}
 PUFF = {"bounds": {"sphere": {"center": [0.0, 0.0, 0.0], "radius": 1.0}}, "sigma_t": 6.0, "albedo": 0.9,
         "density": {"fbm": {"octaves": 3, "frequency": 2.0, "seed": 4, "bias": 0.1}}, "phase": {"hg": {"g": 0.5}}}

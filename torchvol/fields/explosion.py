@@ -25,7 +25,7 @@ from ..noise.fast import fbm_sum
 from ..ops import lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import EACH, Strict, Vec3
-from .fbm import noise_basis, seeded_fbm
+from .fbm import Hash, noise_basis, seeded_fbm, whole_fbm
 
 
 class ExplosionDensity(Strict):
@@ -42,6 +42,7 @@ class ExplosionDensity(Strict):
     seed: Annotated[int, EACH] = 0
     offset: Vec3 = (0.0, 0.0, 0.0)
     drift: Vec3 = (0.0, 0.6, 0.0)  # noise units per second; +y: flames rise through the ball
+    hash: Hash = "table"  # its value noise's lattice hash, as `density.fbm.hash`
 
 
 class ExplosionField:
@@ -60,7 +61,7 @@ class ExplosionField:
         p, s = self.p, scene_index
         q = (points - take(p.center, s)) / take(self.size, s)[:, None]
         x = take(p.frequency, s)[:, None] * q + take(self.shift, s)
-        n = seeded_fbm(noise.value_noise, x, s, p, lod)
+        n = seeded_fbm(noise.value_noise, x, s, p, lod, whole=whole_fbm(p.hash))
         return fireball(q.unbind(1), n, take(p.displacement, s), take(p.sharpness, s))
 
 
@@ -77,7 +78,7 @@ def explosion_lanes(field: ExplosionField, to) -> SimpleNamespace:
     q = SimpleNamespace(center=to.per_lane(p.center), size=to.per_lane(field.size), frequency=to.per_lane(p.frequency),
                         shift=to.per_lane(field.shift), displacement=to.per_lane(p.displacement),
                         sharpness=to.per_lane(p.sharpness), octaves=int(p.octaves),
-                        basis=noise_basis("value", p.seed, "table", to))
+                        basis=noise_basis("value", p.seed, p.hash, to))
     q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
     return q
 

@@ -24,7 +24,7 @@ from ..noise import lattice as noise
 from ..ops import lanes
 from ..schema.batch import Stacked, per_scene, take
 from ..schema.models import EACH, Strict, Vec3
-from .fbm import NOISES, noise_basis, seeded_fbm
+from .fbm import NOISES, Hash, noise_basis, seeded_fbm, value_noise_hash, whole_fbm
 
 MAX_PARTICLES = 256
 
@@ -47,6 +47,7 @@ class ParticlesDensity(Strict):
     frequency: float = Field(2.0, gt=0.0, le=1e6)
     octaves: int = Field(4, ge=1, le=12)
     noise: Literal["value", "perlin", "worley"] = "value"
+    hash: Hash = "table"  # value noise's lattice hash, as `density.fbm.hash`
     edge: float = Field(0.5, gt=0.0, le=1.0)
     combine: Literal["sum", "max"] = "sum"
 
@@ -56,6 +57,10 @@ class ParticlesDensity(Strict):
         if not 0.0 < v[0] <= v[1]:
             raise ValueError("radius must be (min, max) with 0 < min <= max")
         return v
+
+    @model_validator(mode="after")
+    def _hash_of_value_noise(self):
+        return value_noise_hash(self)
 
     @model_validator(mode="after")
     def _region(self):
@@ -136,7 +141,8 @@ class ParticleField:
         si = s[i]
         local = (points[i] - self.centers[si, k]) / self.radii[si, k][:, None]
         q = take(p.frequency, si)[:, None] * local + self.offsets[si, k]
-        f = seeded_fbm(self.basis, q, si, p, None if lod is None else lod[i]) if pairs.shape[0] else q.new_zeros(0)
+        f = (seeded_fbm(self.basis, q, si, p, None if lod is None else lod[i], whole=whole_fbm(p.hash)) if pairs.shape[0]
+             else q.new_zeros(0))
         raw = particle_value(f, r[i, k], take(p.core, si), take(p.amplitude, si), take(p.edge, si))
         # dense [N, K] then a reduction along K: a point's sum has the same rounding in any batch
         parts = r.new_zeros(r.shape)
@@ -158,7 +164,7 @@ def particles_lanes(field: ParticleField, to) -> SimpleNamespace:
                         centers=to.floats(field.centers.reshape(-1)), radii=to.floats(field.radii.reshape(-1)),
                         offsets=to.floats(field.offsets.reshape(-1)), frequency=to.per_lane(p.frequency),
                         core=to.per_lane(p.core), amplitude=to.per_lane(p.amplitude), edge=to.per_lane(p.edge),
-                        basis=noise_basis(p.noise, p.seed, "table", to))
+                        basis=noise_basis(p.noise, p.seed, p.hash, to))
     q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=torch.float32, device="cpu")]
     return q
 
