@@ -11,7 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
-from torchvol.fields.particles import ParticleField, falloff, particle_draws
+from torchvol.fields.particles import (
+    ParticleField,
+    falloff,
+    particle_cells,
+    particle_draws,
+)
 from torchvol.schema.batch import stack
 
 F64 = torch.float64
@@ -141,3 +146,41 @@ def test_error_controlled_marching_converges_on_particles(one_thread):
     tol = tv.render({**scene, "march": {"tolerance": 0.01}})
     assert "volume0.march" in tol.stats["passes"]
     assert_close(tol.radiance, fine.radiance, atol=0.01, what="tolerance march vs 512 steps")
+
+
+@settings(max_examples=30, deadline=None)
+@given(count=st.integers(1, 40), seed=st.integers(0, 10_000), spread=st.sampled_from([1e-3, 0.3, 1.0, 50.0]),
+       cells=st.integers(1, 9))
+def test_a_cell_lists_every_particle_that_holds_a_point_in_it(count, seed, spread, cells):
+    """`particle_cells`: a point, put in a cell by the kernel's float32 lookup, finds in that cell's
+    list every particle whose sphere holds it by the kernel's float32 test (|p − c| / r < 1), the
+    lists ascending. Points: each cell's nearest to each centre (where a sphere barely reaches a
+    cell), on the cells' faces, spread over the box and beyond it."""
+    g = torch.Generator().manual_seed(seed)
+    centers = (spread * torch.randn(2, count, 3, generator=g)).float()
+    radii = (spread * (0.05 + torch.rand(2, count, generator=g))).float()
+    low, per_unit, first, rows = particle_cells(centers, radii, cells=cells)
+    size = 1.0 / per_unit  # (2, 3)
+    grid = torch.stack(torch.meshgrid(*[torch.arange(cells, dtype=torch.float64)] * 3, indexing="ij")[::-1], -1)
+    corner = low[:, None] + grid.reshape(1, -1, 3) * size[:, None]  # (2, C, 3)
+    nearest = torch.minimum(torch.maximum(centers.double()[:, None], corner[:, :, None]), (corner + size[:, None])[:, :, None])
+    b = torch.arange(2)[:, None].expand(-1, nearest.shape[1] * count).reshape(-1)
+    n = 3000
+    bn = torch.randint(0, 2, (n,), generator=g)
+    faces = low[bn] + size[bn] * torch.randint(0, cells + 1, (n, 3), generator=g)
+    spread_out = low[bn] + size[bn] * cells * (1.2 * torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.1)
+    p = torch.cat([nearest.reshape(-1, 3), faces, spread_out]).float()
+    b = torch.cat([b, bn, bn])
+    cell = ((p - low[b].float()) * per_unit[b].float()).clamp(0.0, cells - 1.0).floor().long()
+    at = b * cells**3 + (cell[:, 2] * cells + cell[:, 1]) * cells + cell[:, 0]
+    listed = torch.zeros(2 * cells**3, count, dtype=torch.bool)  # cell -> its particles
+    owner = torch.repeat_interleave(torch.arange(2 * cells**3), first.diff())
+    listed[owner, rows % count] = True
+    assert torch.equal(rows // count, owner // cells**3)  # a scene's cells list its own particles
+    assert all(bool((rows[first[c]:first[c + 1]].diff() > 0).all()) for c in range(2 * cells**3))
+    holds = ((p[:, None] - centers[b]).norm(dim=-1) / radii[b]) < 1.0  # [N, K]
+    missing = holds & ~listed[at]
+    worst = int(missing.any(dim=1).float().argmax())
+    assert not bool(missing.any()), (f"{int(missing.any(dim=1).sum())} points miss a particle that holds them, e.g. "
+                                     f"{p[worst].tolist()} of scene {int(b[worst])} in cell {int(at[worst])}: "
+                                     f"particles {missing[worst].nonzero().flatten().tolist()}")

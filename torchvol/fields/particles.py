@@ -155,12 +155,40 @@ class ParticleField:
         return density, nearest.amax(dim=1)
 
 
+# cells along each axis of a scene's particle box, each listing the particles that reach into it:
+# a point's loop runs over its cell's particles, not all of them (`particle_cells`)
+CELLS = 8
+
+
+def particle_cells(centers: Tensor, radii: Tensor, *, cells: int = CELLS) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each scene's particle box (the spheres' union's) cut into cells³ cells, and per cell the
+    particles whose sphere reaches into it: centers (B, K, 3), radii (B, K) -> (low (B, 3), cells
+    per unit length (B, 3), first [B·cells³ + 1] (cell c's particles are rows first[c] to
+    first[c + 1] of the list), the list of rows b·K + k, ascending in k within a cell). A sphere
+    counts for a cell it passes within a thousandth of its radius and of a cell of, so a point the
+    float32 lookup puts in a neighbouring cell still finds every particle that holds it."""
+    c, r = centers.to(torch.float64), radii.to(torch.float64)
+    low, high = (c - r[..., None]).amin(dim=1), (c + r[..., None]).amax(dim=1)  # (B, 3)
+    size = (high - low) / cells
+    steps = torch.arange(cells, dtype=torch.float64)
+    z, y, x = torch.meshgrid(steps, steps, steps, indexing="ij")
+    corner = low[:, None] + torch.stack([x, y, z], dim=-1).reshape(1, -1, 3) * size[:, None]  # (B, C, 3): x fastest
+    lo, hi = corner[:, :, None] - 1e-3 * size[:, None, None], corner[:, :, None] + 1.001 * size[:, None, None]
+    gap = (lo - c[:, None]).clamp_min(0.0) + (c[:, None] - hi).clamp_min(0.0)  # (B, C, K, 3): to the cell's box
+    reach = gap.square().sum(-1) <= (r[:, None] * 1.001).square()  # (B, C, K)
+    first = torch.cat([reach.new_zeros(1, dtype=torch.long), reach.sum(-1).flatten().cumsum(0)])
+    b, _, k = reach.nonzero(as_tuple=True)  # (b, cell, k) ascending: each cell's particles in order
+    return low, cells / (high - low), first, b * centers.shape[1] + k
+
+
 def particles_lanes(field: ParticleField, to) -> SimpleNamespace:
     """What the particles take per lane (`to`: as `fields.DENSITIES`' ``lanes`` inputs): each
-    scene's particles as flat tables and the lane's first row in them, the noise and falloff."""
+    scene's particles as flat tables, their cells' lists (`particle_cells`) and the lane's first
+    cell, the noise and falloff."""
     p = field.p
-    count = int(p.count)
-    q = SimpleNamespace(count=count, combine=p.combine, octaves=int(p.octaves), base=to.ints(to.scene * count),
+    low, per_unit, first, rows = particle_cells(field.centers, field.radii)
+    q = SimpleNamespace(combine=p.combine, octaves=int(p.octaves), low=to.per_lane(low), per_unit=to.per_lane(per_unit),
+                        cell_base=to.ints(to.scene * CELLS**3), first=to.ints(first), rows=to.ints(rows),
                         centers=to.floats(field.centers.reshape(-1)), radii=to.floats(field.radii.reshape(-1)),
                         offsets=to.floats(field.offsets.reshape(-1)), frequency=to.per_lane(p.frequency),
                         core=to.per_lane(p.core), amplitude=to.per_lane(p.amplitude), edge=to.per_lane(p.edge),
@@ -171,16 +199,23 @@ def particles_lanes(field: ParticleField, to) -> SimpleNamespace:
 
 def particles_density(q, p, count):
     """The particles' density at p (three Dr.Jit lanes), `count` octaves kept or None: a loop over
-    the particles, each one's fbm evaluated only where p is inside it, summed (or the largest) in
-    particle order. Dr.Jit only (the eager field evaluates the pairs inside a sphere at once); the
-    per-pair term is `particle_value`, the same function eager calls."""
+    the particles of p's cell (`particle_cells`; any other's term is 0 at p, and a sum or largest
+    value skipping zeros is bitwise the one over all), each one's fbm evaluated only where p is
+    inside it, summed (or the largest) in particle order. Dr.Jit only (the eager field evaluates
+    the pairs inside a sphere at once); the per-pair term is `particle_value`, the same function
+    eager calls."""
     import drjit as dr
-    from drjit.llvm import Float, Int32
+    from drjit.llvm import Float
 
     width = dr.width(p[0])
+    unit = [(p[a] - q.low[a]) * q.per_unit[a] for a in range(3)]
+    # far points clamped to the border cells (no particle holds them), NaN to cell 0 (r is NaN: 0)
+    cell = [lanes.to_int32(lanes.floor(lanes.clamp(lanes.where(u == u, u, 0.0), 0.0, CELLS - 1.0))) for u in unit]
+    at = q.cell_base + (cell[2] * CELLS + cell[1]) * CELLS + cell[0]
+    start, stop = lanes.gather(q.first, at), lanes.gather(q.first, at + 1)
 
-    def body(k, total):
-        i = q.base + k
+    def body(j, total):
+        i = lanes.gather(q.rows, j)
         v = [p[a] - lanes.gather(q.centers, i * 3 + a) for a in range(3)]
         radius = lanes.gather(q.radii, i)
         r = lanes.length3(*v) / radius
@@ -191,7 +226,6 @@ def particles_density(q, p, count):
             return lanes.clamp_min(particle_value(f, r, q.core, q.amplitude, q.edge), 0.0)
 
         part = dr.if_stmt((), r < 1.0, inside, lambda: dr.zeros(Float, width))
-        return k + 1, total + part if q.combine == "sum" else lanes.maximum(total, part)
+        return j + 1, total + part if q.combine == "sum" else lanes.maximum(total, part)
 
-    return dr.while_loop((dr.zeros(Int32, width), dr.zeros(Float, width)), lambda k, total: k < q.count, body,
-                         mode="symbolic")[1]
+    return dr.while_loop((start, dr.zeros(Float, width)), lambda j, total: j < stop, body, mode="symbolic")[1]
