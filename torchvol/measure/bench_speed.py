@@ -342,20 +342,24 @@ def checkout(rev: str):
             subprocess.run(["git", "worktree", "remove", "--force", str(tree)], capture_output=True, cwd=ROOT)
 
 
-def baseline_rows(recipes: Sequence[str], rev: str, *, workers: int = 2, count: int = 64, size: int = 128) -> list[dict]:
+def baseline_rows(recipes: Sequence[str], rev: str, *, workers: int = 2, count: int = 64, size: int = 128,
+                  repeat: int = 1) -> list[dict]:
     """Each recipe's fresh-CLI wall-clock (`cli_wall_seconds`: `count` samples at size×size on
     `workers` workers, start-up included) by default at commit `rev` and now, in one run, the two
-    alternating recipe by recipe: rows {recipe, rev, then_s, now_s, gain (then / now)}; a recipe
-    `rev` did not have is left out. Issue 32's "every other recipe ≥ 5× today's default" is this
-    gain against the commit the issue was filed on."""
+    alternating recipe by recipe, `repeat` times each (their medians: a start-up varies by ±0.3 s
+    from process to process, a tenth of a fast recipe's run): rows {recipe, rev, then_s, now_s,
+    gain (then / now)}; a recipe `rev` did not have is left out. Issue 32's "every other recipe ≥
+    5× today's default" is this gain against the commit the issue was filed on."""
     rows, overrides = [], {"image.width": size, "image.height": size}
     with checkout(rev) as tree:
         for name in recipes:
             if not (tree / "datasets" / f"{name}.toml").exists():
                 continue
-            then = cli_wall_seconds(tree / "datasets" / f"{name}.toml", count=count, workers=workers, overrides=overrides,
-                                    root=tree)
-            now = cli_wall_seconds(ROOT / "datasets" / f"{name}.toml", count=count, workers=workers, overrides=overrides)
+            runs = [(cli_wall_seconds(tree / "datasets" / f"{name}.toml", count=count, workers=workers,
+                                      overrides=overrides, root=tree),
+                     cli_wall_seconds(ROOT / "datasets" / f"{name}.toml", count=count, workers=workers, overrides=overrides))
+                    for _ in range(repeat)]
+            then, now = (statistics.median(r[i] for r in runs) for i in (0, 1))
             rows.append(dict(recipe=name, rev=rev, then_s=then, now_s=now, gain=then / now, count=count, workers=workers))
     return rows
 
@@ -599,7 +603,9 @@ def _baseline_section(sections: dict) -> list[str]:
     if rows:
         lines += ["", f"`torchvol generate` without flags from a fresh process, {rows[0]['count']} samples at 128² on "
                   f"{rows[0]['workers']} workers, timed from outside (start-up included): the commit's code in a git "
-                  "worktree (its own recipe of that name) and this checkout's, alternating recipe by recipe in one run. "
+                  "worktree (its own recipe of that name) and this checkout's, alternating recipe by recipe in one run "
+                  f"(medians of {sections['repeat'] if not sections['quick'] else 1} runs each), each checkout's sources "
+                  "byte-compiled first as `pip install` compiles them. "
                   f"`{BASELINE}` (the default `--baseline`): the commit issue 32 was filed on, whose default was eager.", ""]
     return lines
 
@@ -672,7 +678,8 @@ def speed(out: str | Path | None = None, *, quick: bool = False, repeat: int | N
         sections["generate"] = generation_rows(chosen, workers=(1, 2), count=sections["count"], size=32 if quick else 128)
     if "baseline" in parts:
         chosen = recipes or (("clouds", "template-clouds") if quick else RECIPES)
-        sections["baseline"] = baseline_rows(chosen, baseline, count=16 if quick else 64, size=32 if quick else 128)
+        sections["baseline"] = baseline_rows(chosen, baseline, count=16 if quick else 64, size=32 if quick else 128,
+                                             repeat=1 if quick else repeat)
     if "loaded" in parts:
         # quick: a small render (2 threads spinning against a competitor run ~20x longer), 3 runs: the ratio is noisy
         sections["loaded"] = loaded_rows(width=64 if quick else 320, height=36 if quick else 180, repeat=3 if quick else repeat)
