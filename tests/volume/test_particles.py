@@ -150,14 +150,14 @@ def test_error_controlled_marching_converges_on_particles(one_thread):
 
 @settings(max_examples=30, deadline=None)
 @given(count=st.integers(1, 40), seed=st.integers(0, 10_000), spread=st.sampled_from([1e-3, 0.3, 1.0, 50.0]),
-       cells=st.integers(1, 9))
-def test_a_cell_lists_every_particle_that_holds_a_point_in_it(count, seed, spread, cells):
+       cells=st.integers(1, 9), far=st.sampled_from([0.0, 3e4, -1e6]))
+def test_a_cell_lists_every_particle_that_holds_a_point_in_it(count, seed, spread, cells, far):
     """`particle_cells`: a point, put in a cell by the kernel's float32 lookup, finds in that cell's
     list every particle whose sphere holds it by the kernel's float32 test (|p − c| / r < 1), the
     lists ascending. Points: each cell's nearest to each centre (where a sphere barely reaches a
-    cell), on the cells' faces, spread over the box and beyond it."""
+    cell), on the cells' faces, spread over the box and beyond it; boxes near and far from the origin."""
     g = torch.Generator().manual_seed(seed)
-    centers = (spread * torch.randn(2, count, 3, generator=g)).float()
+    centers = (far + spread * torch.randn(2, count, 3, generator=g)).float()  # far: float32 rounds coarsely
     radii = (spread * (0.05 + torch.rand(2, count, generator=g))).float()
     low, per_unit, first, rows = particle_cells(centers, radii, cells=cells)
     size = 1.0 / per_unit  # (2, 3)

@@ -165,15 +165,18 @@ def particle_cells(centers: Tensor, radii: Tensor, *, cells: int = CELLS) -> tup
     particles whose sphere reaches into it: centers (B, K, 3), radii (B, K) -> (low (B, 3), cells
     per unit length (B, 3), first [B·cells³ + 1] (cell c's particles are rows first[c] to
     first[c + 1] of the list), the list of rows b·K + k, ascending in k within a cell). A sphere
-    counts for a cell it passes within a thousandth of its radius and of a cell of, so a point the
-    float32 lookup puts in a neighbouring cell still finds every particle that holds it."""
+    counts for a cell it passes within a thousandth of its radius and of a cell (and float32's
+    rounding where the box lies far from the origin) of, so a point the float32 lookup puts in a
+    neighbouring cell still finds every particle that holds it."""
     c, r = centers.to(torch.float64), radii.to(torch.float64)
     low, high = (c - r[..., None]).amin(dim=1), (c + r[..., None]).amax(dim=1)  # (B, 3)
     size = (high - low) / cells
     steps = torch.arange(cells, dtype=torch.float64)
     z, y, x = torch.meshgrid(steps, steps, steps, indexing="ij")
     corner = low[:, None] + torch.stack([x, y, z], dim=-1).reshape(1, -1, 3) * size[:, None]  # (B, C, 3): x fastest
-    lo, hi = corner[:, :, None] - 1e-3 * size[:, None, None], corner[:, :, None] + 1.001 * size[:, None, None]
+    # a thousandth of a cell, and float32's rounding of a point far from the origin (16 ulps)
+    slack = (1e-3 * size + 1e-6 * torch.maximum(low.abs(), high.abs()))[:, None, None]
+    lo, hi = corner[:, :, None] - slack, corner[:, :, None] + size[:, None, None] + slack
     gap = (lo - c[:, None]).clamp_min(0.0) + (c[:, None] - hi).clamp_min(0.0)  # (B, C, K, 3): to the cell's box
     reach = gap.square().sum(-1) <= (r[:, None] * 1.001).square()  # (B, C, K)
     first = torch.cat([reach.new_zeros(1, dtype=torch.long), reach.sum(-1).flatten().cumsum(0)])
