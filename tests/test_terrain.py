@@ -54,21 +54,24 @@ def test_flat_terrain_hit_is_the_plane_intersection():
     assert not up.any() and not short.any()
 
 
+@pytest.mark.parametrize("hash_", ["table", "arithmetic"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_the_height_is_the_fbm_of_value_noise_of_each_scene(dtype):
+def test_the_height_is_the_fbm_of_value_noise_of_each_scene(dtype, hash_):
     """The height is written once in lanes (eager and the Dr.Jit march's shadow rays); per scene it
-    is `noise.fbm` of that scene's value noise in [−1, 1], to the bit."""
+    is `noise.fbm` of that scene's value noise in [−1, 1] (its table or arithmetic hash), to the bit."""
+    from torchvol.noise import fast as fastnoise
     from torchvol.noise import lattice as noise
 
-    t = stack([Terrain(seed=3, base=0.2, amplitude=1.5, frequency=0.7, octaves=5),
-               Terrain(seed=11, base=-0.4, amplitude=0.8, frequency=1.3, octaves=5)], dtype=dtype)
+    value = {"table": noise.value_noise, "arithmetic": fastnoise.value_noise_hashed}[hash_]
+    t = stack([Terrain(seed=3, base=0.2, amplitude=1.5, frequency=0.7, octaves=5, hash=hash_),
+               Terrain(seed=11, base=-0.4, amplitude=0.8, frequency=1.3, octaves=5, hash=hash_)], dtype=dtype)
     g = torch.Generator().manual_seed(2)
     xz = (torch.rand(600, 2, generator=g, dtype=torch.float64) * 40.0 - 20.0).to(dtype)
     s = torch.arange(600) % 2
     for b, seed in enumerate((3, 11)):
         rows = s == b
         q = t.frequency[b] * torch.stack([xz[rows, 0], torch.zeros_like(xz[rows, 0]), xz[rows, 1]], dim=1)
-        expected = t.base[b] + t.amplitude[b] * noise.fbm(q, lambda x: noise.value_noise(x, seed=seed) * 2.0 - 1.0, octaves=5)
+        expected = t.base[b] + t.amplitude[b] * noise.fbm(q, lambda x: value(x, seed=seed) * 2.0 - 1.0, octaves=5)
         assert torch.equal(T.height(t, xz, s)[rows], expected), f"scene {b}"
 
 
@@ -235,14 +238,16 @@ def test_no_shadow_acne_under_a_high_sun(one_thread):
     assert float(shadowed.sum()) / float(hit.sum()) < 0.01, f"{int(shadowed.sum())} of {int(hit.sum())} hits self-shadowed"
 
 
-def test_the_kernel_trace_is_bitwise_the_eager_trace():
+@pytest.mark.parametrize("hash_", ["table", "arithmetic"])
+def test_the_kernel_trace_is_bitwise_the_eager_trace(hash_):
     """`trace_kernel` (Dr.Jit's loop of the same `trace_step` and `onto_surface`): the same hits and
     distances, bitwise, over rays from above, below and inside the terrain's slab, grazing ones too."""
     from torchvol.runtime.compilation import drjit_available
 
     if not drjit_available():
         pytest.skip("Dr.Jit's LLVM backend is not available")
-    t = stack([Terrain(seed=3, amplitude=2.0, frequency=0.4), Terrain(seed=5, amplitude=1.0, safety=0.8)], dtype=torch.float32)
+    t = stack([Terrain(seed=3, amplitude=2.0, frequency=0.4, hash=hash_), Terrain(seed=5, amplitude=1.0, safety=0.8, hash=hash_)],
+              dtype=torch.float32)
     g = torch.Generator().manual_seed(0)
     n = 3000
     o = torch.rand(n, 3, generator=g) * torch.tensor([20.0, 6.0, 20.0]) - torch.tensor([10.0, 2.0, 10.0])

@@ -30,6 +30,7 @@ import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
+from .fields.fbm import Hash
 from .fields.heightfield import (
     height_lanes,
     normal_lanes,
@@ -58,6 +59,7 @@ class Terrain(Strict):
     over each volume's chord) or "none" (the `ambient` everywhere)."""
 
     seed: Annotated[int, EACH] = 0
+    hash: Hash = "table"  # its value noise's lattice hash, as `density.fbm.hash`
     base: float = 0.0
     amplitude: float = Field(1.0, ge=0.0)
     frequency: float = Field(0.5, gt=0.0, le=1e6)
