@@ -12,6 +12,7 @@ distances, `torch.cdist`); noise is evaluated only on the (point, particle) pair
 
 from __future__ import annotations
 
+import functools
 from types import SimpleNamespace
 from typing import Annotated, Literal
 
@@ -112,6 +113,12 @@ class ParticleField:
         # the smallest particle's finest octave, in world units
         self.feature_size = noise.finest_period(params.octaves) / params.frequency * params.radius[:, 0]
 
+    @functools.cached_property
+    def cells(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """`particle_cells` of the render's particles, made once: every kernel over this field
+        (the march, each shadow and sky crossing) takes the same lists."""
+        return particle_cells(self.centers, self.radii)
+
     def aabb(self) -> tuple[Tensor, Tensor]:
         """The box of the union of the spheres at the render's time: (min (B, 3), max (B, 3)); the
         density is 0 outside it."""
@@ -189,7 +196,7 @@ def particles_lanes(field: ParticleField, to) -> SimpleNamespace:
     scene's particles as flat tables, their cells' lists (`particle_cells`) and the lane's first
     cell, the noise and falloff."""
     p = field.p
-    low, per_unit, first, rows = particle_cells(field.centers, field.radii)
+    low, per_unit, first, rows = field.cells
     q = SimpleNamespace(combine=p.combine, octaves=int(p.octaves), low=to.per_lane(low), per_unit=to.per_lane(per_unit),
                         cell_base=to.ints(to.scene * CELLS**3), first=to.ints(first), rows=to.ints(rows),
                         centers=to.floats(field.centers.reshape(-1)), radii=to.floats(field.radii.reshape(-1)),
