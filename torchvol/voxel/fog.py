@@ -1,6 +1,7 @@
 """The voxel fog's extinction: exponential height fog over the cells a primary ray walks through
 (`voxels.fog`), one formula for the eager per-cell callback (`passes/fog.py`) and the table the
-Dr.Jit walk gathers from (`walk.walk_step`), so the two give the same bits."""
+Dr.Jit walk gathers from (`walk.walk_step`), so the two give the same bits; the glow's per-cell
+term likewise one table (`GlowWalk`)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["FogWalk", "extinction"]
+__all__ = ["FogWalk", "GlowWalk", "extinction"]
 
 
 def extinction(y: Tensor, density: Tensor, base: Tensor, scale_height: Tensor) -> Tensor:
@@ -35,3 +36,14 @@ class FogWalk:
     irradiance: Callable[[Tensor], Tensor] | None = None
     color: Tensor | None = None
     light: Tensor | None = None
+
+
+@dataclass
+class GlowWalk:
+    """The glow the Dr.Jit walk accumulates (`walk.drjit_traverse(..., glow=)`): a visited cell's
+    term depends on the cell alone, so the walk gathers it from `table` [M] (indexed as the
+    flattened material grids; `passes.fog.FogGlow.glow_table`), the table the eager callback
+    reads too. Filled by the walk: total [R], each ray's sum over the cells it visited."""
+
+    table: Tensor
+    total: Tensor | None = None

@@ -269,6 +269,6 @@ def _walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *,
     else:
         steps, table = int(voxels.max_steps), grid.flat_materials.to(torch.int32)
         distance = None if grid.flat_distance is None else grid.flat_distance.to(torch.int32)
-    g = SimpleNamespace(table=table, distance=distance, fog=None, y=int(strides[0]), x=int(strides[1]), max_steps=steps,
+    g = SimpleNamespace(table=table, distance=distance, fog=None, glow=None, y=int(strides[0]), x=int(strides[1]), max_steps=steps,
                         switch=2)
     return r, g

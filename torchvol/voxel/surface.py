@@ -89,11 +89,11 @@ class VoxelSurface:
         """o, d [n, 3] world rays (d unit); s [n] scenes; background [n, 3]; keys [n, 3] long: each
         ray's (sub-pixel column, row, scene seed), the hash cells of its GI paths (needed with `voxels.gi`)."""
         gathered = self.fog.rays(o, s) if self.plan.glow or self.plan.fog else None
-        visit, walked = (None, None) if gathered is None else (gathered.visit, gathered.walked)
+        walks = {} if gathered is None else {"visit": gathered.visit, "fog": gathered.walked, "glow": gathered.glowed}
         with section("voxels.dda"):
-            hits = self.tracer.traverse(o, d, s, max_steps=self.p.max_steps, visit=visit, fog=walked)
-        if self.plan.fog:
-            with section("voxels.fog"):
+            hits = self.tracer.traverse(o, d, s, max_steps=self.p.max_steps, **walks)
+        if gathered is not None:
+            with section("voxels.fog") if self.plan.fog else nullcontext():
                 gathered.finish()
         normal_override = None
         if self.plan.rounded:

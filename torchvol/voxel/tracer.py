@@ -9,7 +9,7 @@ from torch import Tensor
 from ..light.lights import LightSource
 from ..ops.mathops import take_rows
 from .dda import Hits, hybrid_traverse, traverse
-from .fog import FogWalk
+from .fog import FogWalk, GlowWalk
 from .grid import VoxelGrid
 from .shade import voxel_ao
 from .shade_kernel import ao_kernel
@@ -20,8 +20,8 @@ __all__ = ["VoxelTracer"]
 
 class VoxelTracer:
     """Traces rays through `grid` (the batch's `VoxelGrid`) by `traversal` ("dda" or "hybrid",
-    the plan's): every walk but one with a per-cell callback (`visit`: the glow) as one Dr.Jit
-    kernel where `drjit` (`walk.drjit_traverse`), else eagerly (`dda.traverse`, `dda.hybrid_traverse`);
+    the plan's): every walk as one Dr.Jit kernel where `drjit` (`walk.drjit_traverse`), else
+    eagerly (`dda.traverse`, `dda.hybrid_traverse`);
     `steps_total` the DDA steps counted so far."""
 
     def __init__(self, grid: VoxelGrid, traversal: str, drjit: bool = False):
@@ -30,18 +30,20 @@ class VoxelTracer:
         self._tables: dict = {}  # the grids as Dr.Jit arrays, converted on first use
 
     def traverse(self, o: Tensor, d: Tensor, s: Tensor, *, max_steps: int, t_min=None, t_max=None, visit=None,
-                 fog: FogWalk | None = None, plain=False) -> Hits:
+                 fog: FogWalk | None = None, glow: GlowWalk | None = None, plain=False) -> Hits:
         """World rays o, d [n, 3] of scenes s [n] through their grids (t in world units); `visit`
-        the eager walk's per-cell callback, `fog` the Dr.Jit walk's fog; `plain`: no hybrid skip."""
+        the eager walk's per-cell callback, `fog` and `glow` the Dr.Jit walk's sums; `plain`: no
+        hybrid skip."""
         g = self.grid
         og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
         lookup = lambda c, ids: g.lookup(c, take_rows(s, ids))
         lo, hi = take_rows(g.lo, s), take_rows(g.hi, s)
-        hybrid = self.traversal == "hybrid" and visit is None and fog is None and not plain
+        hybrid = self.traversal == "hybrid" and visit is None and fog is None and glow is None and not plain
         if self.drjit and visit is None:
             base, strides = g.flat_base(s)
             return drjit_traverse(og, dg, self._table("table"), base, strides, lo, hi, max_steps=max_steps, t_min=t_min,
-                                  t_max=t_max, distance=self._table("distance") if hybrid else None, fog=fog)
+                                  t_max=t_max, distance=self._table("distance") if hybrid else None, fog=fog,
+                                  glow=glow)
         if hybrid:
             return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, take_rows(s, ids)), lo, hi,
                                    max_steps=max_steps, t_min=t_min)

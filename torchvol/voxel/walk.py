@@ -8,8 +8,8 @@ primary walk: 84 steps, 310 k ray-steps, 36 ms eager). A step's crossings, tie r
 distance-field jump are written once, in lanes (`dda.next_cell_lanes`, `dda.jump_lanes`): the
 eager walk runs them on torch columns, the kernel on Dr.Jit arrays, so the kernel gives
 `dda.traverse`'s and `dda.hybrid_traverse`'s hits bitwise (tests/voxel/test_walk.py), and the
-voxel fog's sums too. A walk that
-calls back at every cell it visits (the glow's) runs `dda.traverse` eagerly.
+voxel fog's and glow's sums too (their per-cell terms gathered from tables the eager callback reads
+as well: `fog.FogWalk`, `fog.GlowWalk`).
 """
 
 from __future__ import annotations
@@ -21,10 +21,9 @@ import torch
 from torch import Tensor
 
 from ..ops import lanes
-from ..ops.mathops import take_rows
 from ..runtime.threads import set_drjit_threads
 from .dda import Hits, jump_lanes, next_cell_lanes, start, start_lanes
-from .fog import FogWalk
+from .fog import FogWalk, GlowWalk
 
 __all__ = ["drjit_traverse", "int_table", "walk_step"]
 
@@ -34,16 +33,18 @@ def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
 
     state (a list): cx, cy, cz (int32), the cell to look up next; t, its entry distance; axis
     (int32), its entry axis; n (int32), lookups so far; alive (bool); t_exit, material (int32, 0:
-    no hit), the result of finished slots; with fog, fog_tau, the fog's optical depth so far. The
+    no hit), the result of finished slots; then the sums: with fog, fog_tau, the fog's optical depth
+    so far; with glow, the glow summed over the cells visited so far (the hit cell included). The
     rays `r`: o, d (grid coordinates), lo, hi (int32, the cell range): three lanes each; base, the
     flat index of cell (0, 0, 0) in the ray's scene (`flat = base + (k·Y + j)·X + i`); t_max or
     None; fog_row or None (`fog.FogWalk.rows`). The tables `g`: table (the flattened material
     grids), distance or None (their Chebyshev distance fields: `dda.hybrid_traverse`'s jump from
     a cell k ≥ `switch` cells from any occupied one across the empty cube around it, a jump
-    counted as a step), fog or None (`fog.FogWalk.table`), y, x (the strides), max_steps, switch.
+    counted as a step), fog or None (`fog.FogWalk.table`), glow or None (`fog.GlowWalk.table`),
+    y, x (the strides), max_steps, switch.
     -> (the state after it, (this step's visit record (visited, cx, cy, cz, t_in, t_out, hit),
     its fog record (empty, cx, cy, cz, tau, fog_tau after it) or None))."""
-    cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = state
+    cx, cy, cz, t, axis, n, alive, t_exit, material, *sums = state
     zero = lanes.int_like(0, cx)
     if g.distance is not None:
         flat = r.base + (cz * g.y + cy) * g.x + cx
@@ -63,8 +64,10 @@ def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
     if g.fog is not None:
         empty = alive & ~hit
         tau = lanes.gather(g.fog, lanes.where(alive, r.fog_row + cy, zero)) * lanes.clamp_min(t_out - t, 0.0)
-        fog_tau = [lanes.where(empty, fog_tau[0] + tau, fog_tau[0])]
-        fog = (empty, cx, cy, cz, tau, fog_tau[0])
+        sums[0] = lanes.where(empty, sums[0] + tau, sums[0])
+        fog = (empty, cx, cy, cz, tau, sums[0])
+    if g.glow is not None:
+        sums[-1] = lanes.where(alive, sums[-1] + lanes.gather(g.glow, lanes.where(alive, flat, zero)), sums[-1])
     inside = ((nx >= r.lo[0]) & (nx < r.hi[0]) & (ny >= r.lo[1]) & (ny < r.hi[1]) & (nz >= r.lo[2])
               & (nz < r.hi[2]))
     if r.t_max is not None:
@@ -75,12 +78,13 @@ def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
     t_exit = lanes.where(hit, t, lanes.where(done, lanes.where(inside, t, t_next), t_exit))
     cx, cy, cz = lanes.where(keep, nx, cx), lanes.where(keep, ny, cy), lanes.where(keep, nz, cz)
     t, axis = lanes.where(keep, t_next, t), lanes.where(keep, ax, axis)
-    return [cx, cy, cz, t, axis, n, keep, t_exit, material, *fog_tau], (visit, fog)
+    return [cx, cy, cz, t, axis, n, keep, t_exit, material, *sums], (visit, fog)
 
 
 def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
                    max_steps: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
-                   distance: Tensor | None = None, switch: int = 2, fog: FogWalk | None = None) -> Hits:
+                   distance: Tensor | None = None, switch: int = 2, fog: FogWalk | None = None,
+                   glow: GlowWalk | None = None) -> Hits:
     """`dda.traverse` as one Dr.Jit kernel: each ray's start (`dda.start_lanes`) and whole walk a
     loop (`drjit.while_loop`) of `walk_step`, the same functions the eager walks run; the lookup a
     gather from `table` [M] uint8 (the flattened material grids: cell (i, j, k) of ray r is
@@ -92,13 +96,16 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     same `Hits` as `dda.traverse`, bitwise (tests/voxel/test_walk.py). With `fog`, its τ and its
     light (`FogWalk.light`, no visits): the walk runs twice, first marking every empty cell it
     visits, whose light `fog.irradiance` then gives, then summing τ · e^(−τ so far) · that light ·
-    colour per ray, in the eager callback's order (its exp Dr.Jit's: within float rounding of eager's)."""
+    colour per ray, in the eager callback's order (its exp Dr.Jit's: within float rounding of eager's).
+    With `glow`, each ray's sum of its table over the cells it visits (`GlowWalk.total`, eager's bits)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
     R = origins.shape[0]
     if fog is not None:
         fog.tau, fog.light = origins.new_zeros(R), origins.new_zeros(R, 3)
+    if glow is not None:
+        glow.total = origins.new_zeros(R)
     if R == 0:
         return start(origins, directions, lo, hi, t_min, t_max)[0]
     set_drjit_threads()
@@ -109,25 +116,29 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
                         lo=[ints(c) for c in lo.unbind(1)], hi=[ints(c) for c in hi.unbind(1)], base=ints(base),
                         t_max=None if t_max is None else floats(t_max), fog_row=None)
     g = SimpleNamespace(table=int_table(table), distance=None if distance is None else int_table(distance), fog=None,
-                        y=int(strides[0]), x=int(strides[1]), max_steps=dr.opaque(Int32, max_steps), switch=switch)
+                        glow=None if glow is None else floats(glow.table), y=int(strides[0]), x=int(strides[1]), max_steps=dr.opaque(Int32, max_steps), switch=switch)
     ok, t0, cell0, axis0 = start_lanes(r.o, r.d, r.lo, r.hi, None if t_min is None else floats(t_min), r.t_max)
-    state = (*cell0, t0, axis0, dr.zeros(Int32, R), ok, dr.zeros(Float, R), dr.zeros(Int32, R))
+    sums = tuple(dr.zeros(Float, R) for walk in (fog, glow) if walk is not None)
+    state = (*cell0, t0, axis0, dr.zeros(Int32, R), ok, dr.zeros(Float, R), dr.zeros(Int32, R), *sums)
     if fog is None:
         result = dr.while_loop(state, lambda *x: x[6], lambda *x: tuple(walk_step(list(x), r, g)[0]), mode="symbolic")
     else:
-        result = _fog_walks(fog, state + (dr.zeros(Float, R),), r, g, floats, origins)
+        result = _fog_walks(fog, state, r, g, floats, origins)
     dr.eval(result, ok, t0, axis0)
     dr.sync_thread()
-    return _hits([torch.from_numpy(np.array(v)).to(origins.device) for v in (*result, ok, t0, axis0)], fog)
+    return _hits([torch.from_numpy(np.array(v)).to(origins.device) for v in (*result, ok, t0, axis0)], fog, glow)
 
 
-def _hits(result: list[Tensor], fog: FogWalk | None) -> Hits:
+def _hits(result: list[Tensor], fog: FogWalk | None, glow: GlowWalk | None) -> Hits:
     """The `Hits` [R] of `drjit_traverse`'s final state and start (ok, t0, axis0): `dda.start`'s
-    for rays that never enter, the walk's where they hit (and the fog's τ in `fog`)."""
+    for rays that never enter, the walk's where they hit (and the fog's τ in `fog`, the glow's sum
+    in `glow`)."""
     cx, cy, cz, t, axis, n, _, t_exit, material, *rest = result
-    *fog_tau, ok, t0, axis0 = rest
+    *sums, ok, t0, axis0 = rest
     if fog is not None:
-        fog.tau = fog_tau[0]
+        fog.tau = sums[0]
+    if glow is not None:
+        glow.total = sums[-1]
     hit = material > 0
     return Hits(hit=hit, cell=torch.stack([cx, cy, cz], 1).long(), axis=torch.where(hit, axis, axis0).long(),
                 t=torch.where(hit, t, torch.where(ok, t0, torch.full_like(t0, torch.inf))), material=material.long(),
@@ -182,22 +193,3 @@ def int_table(table):
 
     return lanes.ints_of(table) if isinstance(table, Tensor) else table
 
-
-def _write_finished(out: Hits, fog: FogWalk | None, g: Tensor, finished: Tensor, result: list[Tensor]) -> None:
-    """Writes the slots `finished` [F] of the walk's final `result` state (`walk_step`'s, as torch
-    tensors) to their rays `g` [F] in `out` (and the fog's τ in `fog`)."""
-    cx, cy, cz, t, axis, n, alive, t_exit, material, *fog_tau = result
-    cells = torch.stack([take_rows(v, finished) for v in (cx, cy, cz)], 1).long()
-    out.cell.index_copy_(0, g, cells)
-    out.steps.index_copy_(0, g, take_rows(n, finished).long())
-    out.t_exit.index_copy_(0, g, take_rows(t_exit, finished))
-    if fog is not None:
-        fog.tau.index_copy_(0, g, take_rows(fog_tau[0], finished))
-    m = take_rows(material, finished)
-    hit = (m > 0).nonzero().squeeze(1)
-    if hit.numel():
-        gh, fh = take_rows(g, hit), take_rows(finished, hit)
-        out.hit.index_fill_(0, gh, True)
-        out.material.index_copy_(0, gh, take_rows(m, hit).long())
-        out.axis.index_copy_(0, gh, take_rows(axis, fh).long())
-        out.t.index_copy_(0, gh, take_rows(t, fh))

@@ -1,10 +1,12 @@
 """The variants gathered along a primary ray's DDA: `voxels.glow` (each visited cell adds the
-seed's intensity / (ε + sdf²) at its corner, the scene's own SDF) and `voxels.fog` (a height fog:
+seed's intensity / (ε + sdf²) at its corner, the scene's own SDF: one table of every cell's term,
+`FogGlow.glow_table`, that the eager callback and the Dr.Jit walk both read) and `voxels.fog` (a height fog:
 each visited empty cell's optical depth, and the light it scatters towards the ray, one shadow ray
 per distinct visited cell). The fog's formula is `voxel/fog.py`'s."""
 
 from __future__ import annotations
 
+from functools import cached_property
 from typing import Sequence
 
 import torch
@@ -14,7 +16,7 @@ from ...geometry import sdf
 from ...light.lights import LightSource
 from ...ops.mathops import take_rows
 from ...schema.batch import Stacked, per_scene, take
-from ..fog import FogWalk, extinction
+from ..fog import FogWalk, GlowWalk, extinction
 from ..tracer import VoxelTracer
 
 __all__ = ["FogGlow", "FogGlowRays"]
@@ -42,6 +44,17 @@ class FogGlow:
         sigma = extinction(y, *(take(v, scenes)[:, None] for v in (f.density, f.base, f.scale_height)))
         return FogWalk(rows=s * Y - take_rows(g.lo[:, 1], s), table=sigma.reshape(-1), color=take(f.color, s),
                        irradiance=lambda flat: self._fog_irradiance(*g.index_cell(flat)))
+
+    @cached_property
+    def glow_table(self) -> Tensor:
+        """The glow's term [M] of every cell of the flattened grids (`VoxelGrid.flat_materials`'s
+        order): intensity / (ε + d²), d the scene's own SDF at the cell's corner (the seed's
+        sdSomeShape(vec3(mapPos))); made once a render."""
+        p, g = self.p, self.tracer.grid
+        cells, sc = g.index_cell(torch.arange(g.materials.numel(), device=g.lo.device))
+        corner = g.to_world(cells.to(g.origin.dtype), sc)
+        dist = per_scene(corner, sc, len(p), lambda b, _, q: sdf.evaluate(p.occupancy[b].sdf.shape, q))
+        return take(p.glow.intensity, sc) / (take(p.glow.epsilon, sc) + dist * dist)
 
     def _fog_light(self, visits: list) -> list:
         """The light [m, 3] each fog visit (ray ids, scenes, cells, weights as `visit` recorded them)
@@ -85,27 +98,26 @@ class FogGlow:
 class FogGlowRays:
     """What the glow and fog of `owner` gather along primary rays from o [n, 3] of scenes s [n]:
     `glow` [n], the fog's optical depth `fog_tau` [n] and in-scattered light `fog_light` [n, 3].
-    The DDA calls `visit` per cell; fog alone on the Dr.Jit walk is accumulated inside the walk's
-    kernel instead (`walked`, the `FogWalk` to hand the walk; `visit` is then None)."""
+    The eager DDA calls `visit` per cell; the Dr.Jit walk accumulates them inside its kernel
+    instead (`walked` and `glowed`, the `FogWalk` and `GlowWalk` to hand the walk; `visit` is then None)."""
 
     def __init__(self, owner: FogGlow, o: Tensor, s: Tensor):
         n = o.shape[0]
         self.owner, self.s, self.dtype = owner, s, o.dtype
         self.glow, self.fog_tau, self.fog_light = o.new_zeros(n), o.new_zeros(n), o.new_zeros(n, 3)
         self.visits = []  # (ray ids [m], scenes [m], cells [m, 3], weights [m]) of the fog's visited empty cells
-        plan = owner.plan
-        self.walked = owner.fog_walk(s) if owner.tracer.drjit and plan.fog and not plan.glow else None
-        self.visit = self._visit if self.walked is None else None
+        plan, drjit = owner.plan, owner.tracer.drjit
+        self.walked = owner.fog_walk(s) if drjit and plan.fog else None
+        self.glowed = GlowWalk(owner.glow_table) if drjit and plan.glow else None
+        self.visit = None if drjit else self._visit
 
     def _visit(self, ids: Tensor, cells: Tensor, t_in: Tensor, t_out: Tensor, hit: Tensor) -> None:
         """The DDA's per-cell callback: rays ids [m] in cells [m, 3] from t_in to t_out [m], `hit` [m]
         where the cell is occupied."""
         p, g, plan = self.owner.p, self.owner.tracer.grid, self.owner.plan
         sc = take_rows(self.s, ids)
-        if plan.glow:  # the seed's sdSomeShape(vec3(mapPos)): the cell corner, each scene's own SDF
-            corner = g.to_world(cells.to(self.dtype), sc)
-            dist = per_scene(corner, sc, len(p), lambda b, _, q: sdf.evaluate(p.occupancy[b].sdf.shape, q))
-            self.glow.index_add_(0, ids, take(p.glow.intensity, sc) / (take(p.glow.epsilon, sc) + dist * dist))
+        if plan.glow:
+            self.glow.index_add_(0, ids, take_rows(self.owner.glow_table, g.cell_index(cells, sc)))
         if plan.fog:
             e = (~hit).nonzero().squeeze(1)
             if e.numel():
@@ -118,8 +130,10 @@ class FogGlowRays:
                 self.visits.append((ie, se, ce, tau * torch.exp(-take_rows(self.fog_tau, ie))))
 
     def finish(self) -> None:
-        """After the traversal: the fog's τ and in-scattered light, as the Dr.Jit walk summed them or
-        from the visits the eager walk recorded."""
+        """After the traversal: the glow, the fog's τ and in-scattered light, as the Dr.Jit walk
+        summed them or from the visits the eager walk recorded."""
+        if self.glowed is not None:
+            self.glow = self.glowed.total
         if self.walked is not None:
             self.fog_tau, self.fog_light = self.walked.tau, self.walked.light
             return
