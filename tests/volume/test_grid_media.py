@@ -30,11 +30,12 @@ from torchvol.measure.mitsuba import (
     torchvol_scene,
 )
 from torchvol.ops import lanes
+from torchvol.ops.lanes import per_scene_lanes
 from torchvol.renderer import plan
 from torchvol.renderer.executor import camera_for
 from torchvol.runtime.compilation import drjit_available
 from torchvol.schema.batch import stack, take
-from torchvol.volume.density_lanes import lanes_inputs, per_scene_lanes
+from torchvol.volume.density_lanes import lanes_inputs
 from torchvol.volume.exact import grid_optical_depth, grid_single_scatter
 from torchvol.volume.skip import macro_grid, occupied_span
 from torchvol.volume.sun_volume import sun_transmittance_grid

@@ -239,6 +239,22 @@ def ints_of(t: torch.Tensor):
     return Int32(t.detach().to(torch.int32).contiguous().cpu().numpy())
 
 
+def lanes_of(value: torch.Tensor, gather):
+    """Per-ray lanes of a per-ray tensor [n] or [n, C] (a list of C lanes)."""
+    return gather(value) if value.ndim == 1 else [gather(value[:, c]) for c in range(value.shape[1])]
+
+
+def per_scene_lanes(s: torch.Tensor):
+    """per scene (B,) or (B, C) -> the lanes of rays of scenes `s` [n], gathered in the kernel from
+    the B values: a table of B floats a value, not n floats made and copied in torch first (a
+    look's ~30 values were ~10% of a template render's time around its kernel)."""
+    import drjit as dr
+    from drjit.llvm import Float, UInt32
+
+    scene = UInt32(s.to(torch.int32).cpu().numpy())
+    return lambda x: lanes_of(x, lambda v: dr.gather(Float, floats_of(v), scene))
+
+
 def gather(table, index):
     """`table[index]`: a 1-D table (a torch tensor, or a Dr.Jit array of the lanes' type) at int32
     lanes `index` (values in range)."""
@@ -302,4 +318,4 @@ def dot3(a, b):
 
 
 __all__ = ["abs", "atan", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "dot3", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
-           "floats_of", "fori", "int_like", "ints_of", "log2", "maximum", "minimum", "remainder", "round", "sin", "smoothstep01", "sqrt", "tan", "tiny", "to_float", "to_int32", "where", "while_loop"]
+           "floats_of", "fori", "int_like", "ints_of", "lanes_of", "log2", "maximum", "minimum", "per_scene_lanes", "remainder", "round", "sin", "smoothstep01", "sqrt", "tan", "tiny", "to_float", "to_int32", "where", "while_loop"]

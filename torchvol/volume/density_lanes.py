@@ -30,22 +30,6 @@ def has_lanes(vol) -> bool:
     return kind is not None and (len(kind) < 3 or kind[2](vol))
 
 
-def lanes_of(value: Tensor, gather):
-    """Per-ray lanes of a per-ray tensor [n] or [n, C] (a list of C lanes)."""
-    return gather(value) if value.ndim == 1 else [gather(value[:, c]) for c in range(value.shape[1])]
-
-
-def per_scene_lanes(s: Tensor):
-    """per scene (B,) or (B, C) -> the lanes of rays of scenes `s` [n], gathered in the kernel from
-    the B values: a table of B floats a value, not n floats made and copied in torch first (a
-    look's ~30 values were ~10% of a template render's time around its kernel)."""
-    import drjit as dr
-    from drjit.llvm import Float, UInt32
-
-    scene = UInt32(s.to(torch.int32).cpu().numpy())
-    return lambda x: lanes_of(x, lambda v: dr.gather(Float, lanes.floats_of(v), scene))
-
-
 def field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
     """What the volume's density takes per lane, for points of scenes `s` [n] (`per_ray`: per
     scene -> per lane): its kind's lanes inputs (`fields.DENSITIES`' ``lanes``), the bounds', the edge's."""
@@ -106,8 +90,8 @@ def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
     import drjit as dr
 
     s = torch.zeros(points.shape[0], dtype=torch.long)
-    density = density_lanes(field_inputs(vol, s, lambda x: lanes_of(take(x, s), lanes.floats_of)), vol)
-    p = lanes_of(points, lanes.floats_of)
+    density = density_lanes(field_inputs(vol, s, lambda x: lanes.lanes_of(take(x, s), lanes.floats_of)), vol)
+    p = lanes.lanes_of(points, lanes.floats_of)
 
     def run() -> Tensor:
         set_drjit_threads()
@@ -131,9 +115,9 @@ def sun_grid_kernel(vol, layouts: list[GridLayout]) -> Tensor:
     set_drjit_threads()
     n, planes, batch = layouts[0].n, layouts[0].planes, len(layouts)
     s = torch.arange(batch).repeat_interleave(n * n)
-    per_ray = per_scene_lanes(s)
+    per_ray = lanes.per_scene_lanes(s)
     density, sigma_t = density_lanes(field_inputs(vol, s, per_ray), vol), per_ray(vol.params.sigma_t)
-    base = lanes_of(torch.cat([g.base for g in layouts]), lanes.floats_of)
+    base = lanes.lanes_of(torch.cat([g.base for g in layouts]), lanes.floats_of)
     toward = per_ray(torch.stack([g.frame[2] for g in layouts]))
     spacing = per_ray(torch.stack([g.spacing for g in layouts]))
     first = lanes.ints_of(torch.cat([g.first for g in layouts]))
@@ -182,5 +166,5 @@ def inner_and_edge(vol):
     return (field.inner, field.edge) if isinstance(field, EdgeField) else (field, None)
 
 
-__all__ = ["density_kernel", "density_lanes", "field_inputs", "has_lanes", "inner_and_edge", "lanes_inputs", "lanes_of",
-           "per_scene_lanes", "crossing", "sun_grid_kernel", "writes_in_lanes"]
+__all__ = ["density_kernel", "density_lanes", "field_inputs", "has_lanes", "inner_and_edge", "lanes_inputs",
+           "crossing", "sun_grid_kernel", "writes_in_lanes"]

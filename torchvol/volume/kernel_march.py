@@ -58,8 +58,6 @@ from .density_lanes import (
     crossing,
     has_lanes,
     lanes_inputs,
-    lanes_of,
-    per_scene_lanes,
     writes_in_lanes,
 )
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
@@ -308,8 +306,8 @@ def _ray_lanes(rays, idx: Tensor):
 
     set_drjit_threads()
     s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
-    lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
-    return s, d, lane, per_scene_lanes(s)
+    lane = lambda x: lanes.lanes_of(x, lanes.floats_of)  # noqa: E731
+    return s, d, lane, lanes.per_scene_lanes(s)
 
 
 def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, evals: dict) -> MarchResult:
@@ -577,8 +575,8 @@ def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tenso
     if p.shape[0] == 0:
         return p.new_ones(0)
     set_drjit_threads()
-    lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
-    per_ray = per_scene_lanes(s)
+    lane = lambda x: lanes.lanes_of(x, lanes.floats_of)  # noqa: E731
+    per_ray = lanes.per_scene_lanes(s)
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in use.occluders}
     grids = None if use.shadow.method != "grid" else {
         j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in use.occluders}

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
-from .density_lanes import crossing, lanes_inputs, lanes_of, per_scene_lanes
+from .density_lanes import crossing, lanes_inputs
 from .emission import EMISSION_MAPS
 from .path import path_inputs, trace_lanes, with_air
 
@@ -28,7 +28,7 @@ def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int, channel: Tens
 
     set_drjit_threads()
     s = rays.scene_index
-    per_ray = per_scene_lanes(s)
+    per_ray = lanes.per_scene_lanes(s)
     solids = [crossing(state, s, per_ray) for state in m.vols]
 
     def volume(v, state):
@@ -43,7 +43,7 @@ def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int, channel: Tens
         return dr.if_stmt((), mask, lambda: solids[v].sigma_t * solids[v].density(x, None),
                           lambda: dr.zeros(type(x[0]), dr.width(x[0])))
 
-    lane = lambda x: lanes_of(x, lanes.floats_of)  # noqa: E731
+    lane = lambda x: lanes.lanes_of(x, lanes.floats_of)  # noqa: E731
     q = path_inputs(m, lights, lanes_inputs(s, per_ray), volume)
     q.sigma, q.behind = sigma, [0.0] * 3 if behind is None else lane(behind)
     if m.surface is not None:

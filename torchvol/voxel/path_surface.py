@@ -12,7 +12,7 @@ the path kernel (`volume.path_kernel`), a loop nested in the path's loop.
 Under `[path]` the marched look's stand-ins are dropped (`scene.quality.at_level`): `ambient`,
 `ao`, `gi`, the mirror `reflections` and the face tones; what a path cannot trace yet is refused
 by the schema (glow, the voxel fog, water). Rounded voxels (`voxels.rounded`) are their rounded
-boxes, for hits and shadow rays alike (`_rounded_walk`).
+boxes, for hits and shadow rays alike (`walk.rounded_walk`, the marched voxels' walk too).
 """
 
 from __future__ import annotations
@@ -24,17 +24,13 @@ import torch
 from torch import Tensor
 
 from ..geometry.scatter import basis, facing, turn
-from ..noise import lattice as noise
-from ..noise.lattice import hash3_lanes
 from ..ops import lanes
-from ..ops.mathops import take_rows
 from ..schema.batch import Stacked
-from .dda import next_cell_lanes, start_lanes
 from .ggx import alpha_of, d_ggx, reflectance_lanes
 from .grid import VoxelGrid
 from .materials import material_table
-from .shade import rounded_lanes, texel_lanes
-from .walk import int_table, walk_step
+from .shade import texel_lanes
+from .walk import cube_walk, rounded_walk, walk_inputs
 
 __all__ = ["path_surface"]
 
@@ -51,15 +47,15 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     faces and voxel GI take it; a GGX face's π·BRDF·cos θ) and `bounce(facts, n, d, u)`."""
     ints = lanes.ints_of if kernel else (lambda x: x.to(torch.int32))
     floats = lanes.floats_of if kernel else (lambda x: x.to(like.dtype))
-    r, g = _walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel)
+    r, g = walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel)
     look = _material_lanes(voxels, s, ints, floats)
     texel = None if voxels.texture is None else _atlas_lanes(voxels.texture, s, per_lane, ints, floats)
 
-    cubes = _cube_walk(r, g)
-    walk = cubes if voxels.rounded is None else _rounded_walk(cubes, r, voxels.rounded, per_lane, kernel=kernel)
+    cubes = cube_walk(r, g)
+    walk = cubes if voxels.rounded is None else rounded_walk(cubes, r, voxels.rounded, per_lane, kernel=kernel)
 
     def hit(o: list, d: list, t_max):
-        found, t, axis, material, (ray, cell), rounded = walk(o, d, t_max)
+        found, t, axis, material, (ray, cell), rounded, _ = walk(o, d, t_max)
         normal = [lanes.where(axis == c, lanes.where(d[c] > 0.0, -1.0, 1.0), 0.0) for c in range(3)]
         normal = normal if rounded is None else rounded
         texels = None
@@ -93,68 +89,6 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     return SimpleNamespace(hit=hit, normal=lambda x, m: m.normal, albedo=albedo, emitted=lambda m: m.glow,
                            lift=lambda x, n, dist, m: lift(x, n, dist), visible=visible, reflect=reflect,
                            bounce=ggx_bounce)
-
-
-def _cube_walk(r: SimpleNamespace, g: SimpleNamespace):
-    """The DDA walk (`walk.walk_step`) of the rays and tables `r`, `g` (`_walk_inputs`) ->
-    walk(o, d, t_max, t_min=None) of world rays o, d (three lanes each) from t_min (None: 0) up to
-    t_max -> (hit, t, entry axis, material, (the rays in grid units, the cell (three int lanes)),
-    None: the face's normal)."""
-
-    def walk(o: list, d: list, t_max, t_min=None):
-        ray = SimpleNamespace(**vars(r), **_in_cells(r, o, d), t_max=t_max)
-        ok, t0, cell, axis = start_lanes(ray.o, ray.d, ray.lo, ray.hi, t_min, t_max)
-        zero = lanes.int_like(0, cell[0])
-        state = [*cell, t0, axis, zero, ok, t0 * 0.0, zero]
-        cx, cy, cz, t, axis, n, alive, t_exit, material = lanes.while_loop(
-            state, lambda *x: x[6], lambda *x: walk_step(list(x), ray, g)[0])
-        return material > 0, t, axis, material, (ray, [cx, cy, cz]), None
-
-    return walk
-
-
-def _in_cells(r: SimpleNamespace, o: list, d: list) -> dict:
-    """World rays o, d (three lanes each) in the grid's cell units (`r`: `_walk_inputs`' rays)."""
-    return {"o": [(o[c] - r.origin[c]) / r.size for c in range(3)], "d": [d[c] / r.size for c in range(3)]}
-
-
-def _rounded_walk(cubes, r: SimpleNamespace, rounded: Stacked, per_lane, *, kernel: bool):
-    """`voxels.rounded`'s walk, as the marched voxels' (`passes.rounded`): the first occupied cell
-    the cube walk `cubes` finds, refined by sphere tracing its rounded box (`shade.rounded_lanes`,
-    radius `radius_min` + `radius_range` · hash3(cell)); a ray that misses it walks on from the
-    cell's exit, up to `retries` times (`r`: the walk's rays, `_walk_inputs`). -> walk(o, d, t_max) ->
-    `cubes`' results, t on the rounded
-    box and its normal (three lanes) instead of None. Shadow rays take it too: a path's surface
-    is the rounded one (the marched shadow rays take the cubes)."""
-    low, span, threshold = per_lane(rounded.radius_min), per_lane(rounded.radius_range), per_lane(rounded.threshold)
-
-    def radius(cell: list):  # `noise.hash3`'s value, from its one source in either backend
-        if not kernel:
-            return low + span * noise.hash3(torch.stack(cell, dim=1), rounded.seed, dtype=low.dtype)
-        return low + span * lanes.to_float((hash3_lanes(*cell, rounded.seed) >> 8) & 0xFFFFFF, low) * 2.0**-24
-
-    def walk(o: list, d: list, t_max):
-        def body(found, t, axis, material, cx, cy, cz, nx, ny, nz, t_min, tries, going):
-            met, t_c, ax, mat, (ray, cell), _ = cubes(o, d, lanes.where(going, t_max, 0.0), t_min)
-            centre = [lanes.to_float(c, t_c) + 0.5 for c in cell]
-            local = [ray.o[i] + t_c * ray.d[i] - centre[i] for i in range(3)]
-            ok, advance, normal = rounded_lanes(local, d, radius(cell), steps=int(rounded.steps), threshold=threshold)
-            on_box = t_c + advance * r.size
-            now, missed = going & met & ok & (on_box <= t_max), going & met & ~ok  # (a box past t_max: none before it)
-            keep = lambda a, b: lanes.where(now, a, b)  # noqa: E731
-            found, t, axis, material = found | now, keep(on_box, t), keep(ax, axis), keep(mat, material)
-            cx, cy, cz = keep(cell[0], cx), keep(cell[1], cy), keep(cell[2], cz)
-            nx, ny, nz = keep(normal[0], nx), keep(normal[1], ny), keep(normal[2], nz)
-            t_min = lanes.where(missed, next_cell_lanes(tuple(cell), tuple(ray.o), tuple(ray.d))[1], t_min)  # its exit
-            return found, t, axis, material, cx, cy, cz, nx, ny, nz, t_min, tries + 1, missed & (tries < int(rounded.retries))
-
-        zero = o[0] * 0.0
-        none = lanes.to_int32(zero)
-        state = [zero > 1.0, zero + math.inf, none, none, none, none, none, zero, zero, zero, zero, none, zero == 0.0]
-        found, t, axis, material, cx, cy, cz, nx, ny, nz, _, _, _ = lanes.while_loop(state, lambda *x: x[12], body)
-        return found, t, axis, material, (SimpleNamespace(**_in_cells(r, o, d)), [cx, cy, cz]), [nx, ny, nz]
-
-    return walk
 
 
 def _material_lanes(voxels: Stacked, s: Tensor, ints, floats):
@@ -249,26 +183,3 @@ def _smith_g1(n_v, alpha):
     """Smith's masking G1(v) of GGX: 2 n·v / (n·v + √(α² + (1 − α²)(n·v)²)), lanes."""
     a2 = alpha * alpha
     return 2.0 * n_v / (n_v + lanes.sqrt(a2 + (1.0 - a2) * n_v * n_v))
-
-
-def _walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *, kernel: bool):
-    """`walk.walk_step`'s rays (each lane's cell range, flat base and placement; the rays' own o, d
-    and t_max are the walk's) and tables (the grids, their distance fields where the traversal is
-    hybrid, the strides and step limit), as lanes of rays of scenes `s` [n]."""
-    base, strides = grid.flat_base(s)
-    rows = [take_rows(x, s).to(torch.int32) for x in (grid.lo, grid.hi)]
-    r = SimpleNamespace(lo=[ints(c) for c in rows[0].unbind(1)], hi=[ints(c) for c in rows[1].unbind(1)], base=ints(base),
-                        origin=per_lane(grid.origin), size=per_lane(grid.voxel_size), fog_row=None)
-    if kernel:
-        import drjit as dr
-        from drjit.llvm import Int32
-
-        steps = dr.opaque(Int32, int(voxels.max_steps))
-        table = int_table(grid.flat_materials)
-        distance = None if grid.flat_distance is None else int_table(grid.flat_distance)
-    else:
-        steps, table = int(voxels.max_steps), grid.flat_materials.to(torch.int32)
-        distance = None if grid.flat_distance is None else grid.flat_distance.to(torch.int32)
-    g = SimpleNamespace(table=table, distance=distance, fog=None, glow=None, y=int(strides[0]), x=int(strides[1]), max_steps=steps,
-                        switch=2)
-    return r, g

@@ -9,11 +9,10 @@ import torch
 from torch import Tensor
 
 from ..geometry.sdf import rounded_box_lanes
-from ..noise import lattice as noise
 from ..ops import lanes
 from ..ops.mathops import pow_
 
-__all__ = ["ao_lanes", "face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_lanes", "rounded_refine",
+__all__ = ["ao_lanes", "face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_lanes",
            "texel_lanes"]
 
 
@@ -102,21 +101,8 @@ def texel_lanes(table: list, base, height, width, tiles, material, u, v) -> list
     return [lanes.gather(c, at) / 255.0 for c in table]
 
 
-def rounded_refine(local: Tensor, direction: Tensor, cell: Tensor, *, radius_min: float, radius_range: float,
-                   steps: int, threshold: float, seed: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Seed variant 2 inside hit voxels: march sdRoundedBox(p, w) from the voxel entry.
-
-    local [N, 3]: entry point − cell centre (voxel units); direction [N, 3] unit; cell [N, 3] long.
-    w = radius_min + radius_range · hash3(cell). Returns (converged [N] bool, advance [N] in voxel
-    units, normal [N, 3]: the rounded box's gradient at the converged point): `rounded_lanes`."""
-    w = radius_min + radius_range * noise.hash3(cell, seed, dtype=local.dtype)
-    done, advance, normal = rounded_lanes(list(local.unbind(1)), list(direction.unbind(1)), w, steps=steps,
-                                          threshold=threshold)
-    return done, advance, torch.stack(normal, dim=1)
-
-
 def rounded_lanes(local: list, direction: list, radius, *, steps: int, threshold) -> tuple:
-    """`rounded_refine` in lanes (`ops.lanes`), its rounded box's radius given (`radius` lanes):
+    """Seed variant 2 inside a hit voxel, in lanes (`ops.lanes`; `walk.rounded_walk` takes it):
     `steps` sphere-tracing steps of sdRoundedBox(p, 0.5, radius) from `local` along `direction`
     (three lanes each), converged where h < `threshold`. -> (converged, advance (voxel units), the
     unit normal (three lanes))."""

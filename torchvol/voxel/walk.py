@@ -14,18 +14,25 @@ as well: `fog.FogWalk`, `fog.GlowWalk`).
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from ..noise import lattice as noise
+from ..noise.lattice import hash3_lanes
 from ..ops import lanes
+from ..ops.mathops import take_rows
 from ..runtime.threads import set_drjit_threads
+from ..schema.batch import Stacked
 from .dda import Hits, jump_lanes, next_cell_lanes, start, start_lanes
 from .fog import FogWalk, GlowWalk
+from .grid import VoxelGrid
+from .shade import rounded_lanes
 
-__all__ = ["drjit_traverse", "int_table", "walk_step"]
+__all__ = ["cube_walk", "drjit_traverse", "in_cells", "int_table", "rounded_walk", "walk_inputs", "walk_step"]
 
 
 def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
@@ -193,3 +200,104 @@ def int_table(table):
 
     return lanes.ints_of(table) if isinstance(table, Tensor) else table
 
+
+
+# -----------------------------------------------------------------------------------------------
+# Walks in lanes, for kernels that walk inside their own loops (the path tracer's, the rounded voxels')
+
+
+def walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *, kernel: bool):
+    """`walk_step`'s rays (each lane's cell range, flat base and placement; the rays' own o, d and
+    t_max are the walk's) and tables (the grids, their distance fields where the traversal is
+    hybrid, the strides and step limit), as lanes of rays of scenes `s` [n] (`per_lane`: per scene
+    -> lanes; `ints`: an integer tensor -> lanes; `kernel`: Dr.Jit's, else torch columns)."""
+    base, strides = grid.flat_base(s)
+    rows = [take_rows(x, s).to(torch.int32) for x in (grid.lo, grid.hi)]
+    r = SimpleNamespace(lo=[ints(c) for c in rows[0].unbind(1)], hi=[ints(c) for c in rows[1].unbind(1)], base=ints(base),
+                        origin=per_lane(grid.origin), size=per_lane(grid.voxel_size), fog_row=None)
+    if kernel:
+        import drjit as dr
+        from drjit.llvm import Int32
+
+        steps = dr.opaque(Int32, int(voxels.max_steps))
+        table = int_table(grid.flat_materials)
+        distance = None if grid.flat_distance is None else int_table(grid.flat_distance)
+    else:
+        steps, table = int(voxels.max_steps), grid.flat_materials.to(torch.int32)
+        distance = None if grid.flat_distance is None else grid.flat_distance.to(torch.int32)
+    g = SimpleNamespace(table=table, distance=distance, fog=None, glow=None, y=int(strides[0]), x=int(strides[1]),
+                        max_steps=steps, switch=2)
+    return r, g
+
+
+def in_cells(r: SimpleNamespace, o: list, d: list) -> dict:
+    """World rays o, d (three lanes each) in the grid's cell units (`r`: `walk_inputs`' rays)."""
+    return {"o": [(o[c] - r.origin[c]) / r.size for c in range(3)], "d": [d[c] / r.size for c in range(3)]}
+
+
+def cube_walk(r: SimpleNamespace, g: SimpleNamespace):
+    """The DDA walk (`walk_step`) of the rays and tables `r`, `g` (`walk_inputs`) -> walk(o, d,
+    t_max, t_min=None) of world rays o, d (three lanes each) from t_min (None: 0) up to t_max ->
+    (hit, t, entry axis, material, (the rays in grid units, the cell (three int lanes)), None: the
+    face's normal, the lookups it took)."""
+
+    def walk(o: list, d: list, t_max, t_min=None):
+        ray = SimpleNamespace(**vars(r), **in_cells(r, o, d), t_max=t_max)
+        ok, t0, cell, axis = start_lanes(ray.o, ray.d, ray.lo, ray.hi, t_min, t_max)
+        zero = lanes.int_like(0, cell[0])
+        state = [*cell, t0, axis, zero, ok, t0 * 0.0, zero]
+        cx, cy, cz, t, axis, n, alive, t_exit, material = lanes.while_loop(
+            state, lambda *x: x[6], lambda *x: walk_step(list(x), ray, g)[0])
+        return material > 0, t, axis, material, (ray, [cx, cy, cz]), None, n
+
+    return walk
+
+
+def rounded_walk(cubes, r: SimpleNamespace, rounded: Stacked, per_lane, *, kernel: bool):
+    """`voxels.rounded`'s walk, the marched voxels' (`passes.rounded`) and the path tracer's
+    (`path_surface`): the first occupied cell the cube walk `cubes` (`cube_walk`) finds, refined by
+    sphere tracing its rounded box (`shade.rounded_lanes`, radius `radius_min` + `radius_range` ·
+    hash3(cell)); a ray that misses it walks on from the cell's exit, up to `retries` times (`r`:
+    the walk's rays, `walk_inputs`). -> walk(o, d, t_max, first=None) -> `cubes`' results with t on
+    the rounded box and its normal (three lanes) instead of None, and the lookups and tracing
+    steps taken after `first` (the first cube walk's results, where the caller walked it already;
+    None: walked here)."""
+    low, span, threshold = per_lane(rounded.radius_min), per_lane(rounded.radius_range), per_lane(rounded.threshold)
+    steps, retries = int(rounded.steps), int(rounded.retries)
+
+    def radius(cell: list):  # `noise.hash3`'s value, from its one source in either backend
+        if not kernel:
+            return low + span * noise.hash3(torch.stack(cell, dim=1), rounded.seed, dtype=low.dtype)
+        return low + span * lanes.to_float((hash3_lanes(*cell, rounded.seed) >> 8) & 0xFFFFFF, low) * 2.0**-24
+
+    def walk(o: list, d: list, t_max, first=None):
+        met, t_c, ax, mat, (_, cell), _, _ = cubes(o, d, t_max) if first is None else first
+        ray = SimpleNamespace(**in_cells(r, o, d))
+
+        def body(found, t, axis, material, cx, cy, cz, nx, ny, nz, met, t_c, ax, mat, ccx, ccy, ccz, tries, going, extra):
+            cell = [ccx, ccy, ccz]
+            centre = [lanes.to_float(c, t_c) + 0.5 for c in cell]
+            local = [ray.o[i] + t_c * ray.d[i] - centre[i] for i in range(3)]
+            ok, advance, normal = rounded_lanes(local, d, radius(cell), steps=steps, threshold=threshold)
+            on_box = t_c + advance * r.size
+            trying = going & met
+            now, missed = trying & ok & (on_box <= t_max), trying & ~ok  # (a box past t_max: none before it)
+            keep = lambda a, b: lanes.where(now, a, b)  # noqa: E731
+            found, t, axis, material = found | now, keep(on_box, t), keep(ax, axis), keep(mat, material)
+            cx, cy, cz = keep(ccx, cx), keep(ccy, cy), keep(ccz, cz)
+            nx, ny, nz = keep(normal[0], nx), keep(normal[1], ny), keep(normal[2], nz)
+            again = missed & (tries < retries)
+            exit_t = next_cell_lanes(tuple(cell), tuple(ray.o), tuple(ray.d))[1]  # walk on from the cell's exit
+            met, t_c, ax, mat, (_, cell), _, n = cubes(o, d, lanes.where(again, t_max, 0.0), lanes.where(again, exit_t, 0.0))
+            extra = extra + lanes.to_int32(trying) * steps + lanes.where(again, n, 0)
+            return (found, t, axis, material, cx, cy, cz, nx, ny, nz, met, t_c, ax, mat, *cell, tries + 1, again, extra)
+
+        zero = o[0] * 0.0
+        none = lanes.to_int32(zero)
+        state = [zero > 1.0, zero + math.inf, none, none, none, none, none, zero, zero, zero, met, t_c, ax, mat, *cell,
+                 none, met, none]
+        out = lanes.while_loop(state, lambda *x: x[18], body)
+        found, t, axis, material, cx, cy, cz, nx, ny, nz = out[:10]
+        return found, t, axis, material, (ray, [cx, cy, cz]), [nx, ny, nz], out[19]
+
+    return walk

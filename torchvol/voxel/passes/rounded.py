@@ -1,17 +1,24 @@
-"""`voxels.rounded`: each DDA hit refined inside a rounded voxel (`shade.rounded_refine`); a ray
-that misses the rounded shape continues the DDA past its voxel, up to `rounded.retries` times."""
+"""`voxels.rounded`: each DDA hit refined inside a rounded voxel; a ray that misses the rounded
+shape continues the DDA past its voxel, up to `rounded.retries` times. The walk is
+`walk.rounded_walk`, the path tracer's too: one Dr.Jit kernel a chunk where the tracer's walks are
+kernels, else the same lanes on torch columns (the reference)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from ...ops import lanes
+from ...ops.mathops import take_rows
+from ...runtime.threads import set_drjit_threads
 from ...schema.batch import Stacked, take
 from ..dda import Hits, next_cell_lanes
-from ..shade import rounded_refine
 from ..tracer import VoxelTracer
+from ..walk import cube_walk, rounded_walk, walk_inputs
 
 __all__ = ["RoundedVoxels", "cell_exit"]
 
@@ -25,36 +32,41 @@ class RoundedVoxels:
     def __call__(self, o: Tensor, d: Tensor, s: Tensor, hits: Hits) -> tuple[Hits, Tensor]:
         """The DDA's `hits` of rays o, d [n, 3] of scenes s [n] refined -> (the rounded hits, their
         `steps` the DDA's plus the refinement's and the restarts'; the shading normals [n, 3])."""
-        p, g, r = self.p, self.tracer.grid, self.p.rounded
-        hit, t, cell, axis, mat = hits.hit.clone(), hits.t.clone(), hits.cell.clone(), hits.axis.clone(), hits.material.clone()
-        normal = torch.zeros_like(o)
-        extra = torch.zeros_like(hits.steps)
-        pending = hit.nonzero().squeeze(1)
-        hit[:] = False
-        for attempt in range(r.retries + 1):
-            if not pending.numel():
-                break
-            sp, dp, tp, cp = s[pending], d[pending], t[pending], cell[pending]
-            size = g.voxel_size[sp]
-            local = g.to_grid(o[pending] + tp[:, None] * dp, sp) - cp.to(o.dtype) - 0.5
-            ok, adv, nrm = rounded_refine(local, dp, cp, radius_min=take(r.radius_min, sp), radius_range=take(r.radius_range, sp),
-                                          steps=r.steps, threshold=take(r.threshold, sp), seed=r.seed)
-            extra[pending] += r.steps
-            good = pending[ok]
-            hit[good] = True
-            t[good] = tp[ok] + adv[ok] * size[ok]
-            normal[good] = nrm[ok]
-            miss = pending[~ok]
-            if not miss.numel() or attempt == r.retries:
-                break
-            # continue past this voxel: restart just after its exit
-            t_exit = cell_exit(g, o[miss], d[miss], s[miss], cell[miss])
-            h2 = self.tracer.traverse(o[miss], d[miss], s[miss], max_steps=p.max_steps, t_min=t_exit, plain=True)
-            # the restart must not re-enter the voxel it left (it starts just after t_exit)
-            extra[miss] += h2.steps
-            cell[miss], axis[miss], t[miss], mat[miss] = h2.cell, h2.axis, h2.t, h2.material
-            pending = miss[h2.hit]
-        return replace(hits, hit=hit, t=t, cell=cell, axis=axis, material=mat, steps=hits.steps + extra), normal
+        ids = hits.hit.nonzero().squeeze(1)
+        hit, normal = torch.zeros_like(hits.hit), torch.zeros_like(o)
+        if not ids.numel():
+            return replace(hits, hit=hit), normal
+        kernel, sh = self.tracer.drjit, take_rows(s, ids)
+        if kernel:
+            set_drjit_threads()
+            ints, floats, per_lane = lanes.ints_of, lanes.floats_of, lanes.per_scene_lanes(sh)
+        else:
+            ints, floats, per_lane = (lambda x: x.to(torch.int32)), (lambda x: x), (lambda v: lanes.columns(take(v, sh)))
+        r, g = walk_inputs(self.p, self.tracer.grid, sh, per_lane, ints, kernel=kernel)
+        ow, dw = ([floats(c) for c in take_rows(x, ids).unbind(1)] for x in (o, d))
+        material = ints(take_rows(hits.material, ids))
+        first = (material > 0, floats(take_rows(hits.t, ids)), ints(take_rows(hits.axis, ids)), material,
+                 (None, [ints(c) for c in take_rows(hits.cell, ids).unbind(1)]), None, None)
+        walk = rounded_walk(cube_walk(r, g), r, self.p.rounded, per_lane, kernel=kernel)
+        found, t, axis, material, (_, cell), nrm, extra = walk(ow, dw, ow[0] * 0.0 + math.inf, first=first)
+        out = [found, t, axis, material, *cell, *nrm, extra]
+        if kernel:
+            import drjit as dr
+
+            dr.eval(out)
+            dr.sync_thread()
+            out = [torch.from_numpy(np.array(v)).to(o.device) for v in out]
+        found, t, axis, material, cx, cy, cz, nx, ny, nz, extra = out
+        good = take_rows(ids, found.nonzero().squeeze(1))
+        on = lambda x: x[found]  # noqa: E731
+        hit[good] = True
+        normal[good] = torch.stack([on(nx), on(ny), on(nz)], 1).to(o.dtype)
+        refined = {"t": hits.t.clone(), "cell": hits.cell.clone(), "axis": hits.axis.clone(), "material": hits.material.clone()}
+        for key, value in (("t", on(t).to(o.dtype)), ("cell", torch.stack([on(cx), on(cy), on(cz)], 1).long()),
+                           ("axis", on(axis).long()), ("material", on(material).long())):
+            refined[key][good] = value
+        steps = hits.steps.index_add(0, ids, extra.to(hits.steps.dtype))
+        return replace(hits, hit=hit, steps=steps, **refined), normal
 
 
 def cell_exit(grid, o: Tensor, d: Tensor, s: Tensor, cell: Tensor) -> Tensor:
