@@ -91,3 +91,26 @@ def test_tune_process_sets_the_wait_policy_before_torch_and_the_heap():
     # the user's own settings win
     assert child(code, {"OMP_WAIT_POLICY": "ACTIVE"})["policy"] == "ACTIVE"
     assert child(code, {heap.OPT_OUT: "system"})["tuned"]["heap"] is False
+
+
+def test_imports_uncollected_freezes_what_it_imported_and_restores_the_collector():
+    """The command's imports run without Python's cyclic collector and leave their objects frozen
+    (never scanned again, shared with forked workers); the collector is on again after, or stays
+    off where it was off; an import that fails still restores it."""
+    seen = child("""
+        import gc, json
+        from torchvol.runtime.process import imports_uncollected
+        with imports_uncollected():
+            inside = gc.isenabled()
+            import fractions
+        frozen, after = gc.get_freeze_count(), gc.isenabled()
+        gc.disable()
+        try:
+            with imports_uncollected():
+                import no_such_module_here
+        except ImportError:
+            pass
+        print(json.dumps(dict(inside=inside, frozen=frozen, after=after, off_stays_off=not gc.isenabled())))
+    """)
+    assert seen == {"inside": False, "frozen": seen["frozen"], "after": True, "off_stays_off": True}, seen
+    assert seen["frozen"] > 1000, seen

@@ -15,7 +15,7 @@ from typing import Callable, NamedTuple, NoReturn, Sequence
 import numpy as np
 
 # no torch at module level: `main` tunes the process (`tune_process`) before anything imports torch
-from .runtime.process import tune_process
+from .runtime.process import imports_uncollected, tune_process
 from .schema.keypath import parse_value
 from .schema.validate import SceneError, fail
 
@@ -409,6 +409,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """The `torchvol` command: run `argv` (default: the process's arguments) -> the exit code; an
     input error prints one line and returns 2."""
     tune_process()  # torchvol's own process: before any command imports torch
+    with imports_uncollected():  # every command renders (and `render`'s help lists the presets)
+        from .renderer import executor  # noqa: F401  (torch with it)
+        from .runtime.compilation import drjit_available
+
+        drjit_available()  # Dr.Jit loaded once, here: the generator's forked workers inherit it
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
