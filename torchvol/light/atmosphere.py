@@ -315,16 +315,19 @@ def rows_of(air: Air, rows: Tensor) -> Air:
 class AirPath:
     """The air along a chunk's camera rays, as a medium of their march (`volume.joint`): `origins`
     (planet frame), `directions` [n, 3]; `enter`, `leave`, `ground` [n] (`shell_span`); the optical
-    depth from the camera at K + 1 even nodes over [enter, leave] (`depth` [3, n, K + 1], a table a
-    colour, a ray's nodes in a row: the march kernel reads each flat, a ray's nodes in one cache line); the
-    sun's direction and irradiance [n, 3]; the air [n] and its `light_steps`."""
+    depth from the camera at `nodes` + 1 even nodes over [enter, leave]: `tables`, three Dr.Jit
+    arrays [(nodes + 1)·n] where a kernel built it (node i of ray r at i·n + r: a vector of rays
+    reads a node's consecutive values; the march kernel reads them as they are), else `depth`
+    [3, n, nodes + 1]; the sun's direction and irradiance [n, 3]; the air [n] and its `light_steps`."""
 
     origins: Tensor
     directions: Tensor
     enter: Tensor
     leave: Tensor
     ground: Tensor
-    depth: Tensor
+    nodes: int
+    depth: Tensor | None
+    tables: list | None
     sun_dir: Tensor
     sun: Tensor
     air: Air
@@ -333,11 +336,24 @@ class AirPath:
     def transmittance(self, rows: Tensor, t: Tensor) -> Tensor:
         """The air's transmittance [m, 3] from the camera to distance `t` [m] along rays `rows` [m]
         (`depth_transmittance_lanes`: the table interpolated linearly, exact where the air is
-        homogeneous)."""
-        enter, span = self.enter[rows], (self.leave[rows] - self.enter[rows]).clamp_min(torch.finfo(t.dtype).tiny)
+        homogeneous); a Dr.Jit kernel where its `tables` are Dr.Jit's."""
+        enter = self.enter.index_select(0, rows)
+        span = (self.leave.index_select(0, rows) - enter).clamp_min(torch.finfo(t.dtype).tiny)
+        if self.tables is not None:
+            fetch = self.fetch(lanes.ints_of(rows))
+            return _traced(lambda lane: depth_transmittance_lanes(lane(t), lane(enter), lane(span), self.nodes, fetch), t)
         tables = [c.index_select(0, rows) for c in self.depth]  # 3 × [m, K + 1]
         fetch = lambda i: [table.gather(1, i.long()[:, None])[:, 0] for table in tables]  # noqa: E731
-        return _columns(depth_transmittance_lanes(t, enter, span, self.depth.shape[2] - 1, fetch))
+        return _columns(depth_transmittance_lanes(t, enter, span, self.nodes, fetch))
+
+    def fetch(self, rows):
+        """`depth_transmittance_lanes`' fetch from the kernel's `tables`: node i (int32 lanes) of
+        rays `rows` (int32 lanes) -> three lanes."""
+        import drjit as dr
+        from drjit.llvm import Float
+
+        n = self.enter.shape[0]
+        return lambda i: [dr.gather(Float, table, i * n + rows) for table in self.tables]
 
     def source(self, rows: Tensor, t: Tensor) -> Tensor:
         """The sun's light scattered by the air towards the camera per unit length [m, 3] at
@@ -370,17 +386,18 @@ def air_path(origins: Tensor, directions: Tensor, sun_dir: Tensor, sun: Tensor, 
     o = planet_frame(origins, air)
     enter, leave, ground = shell_span(origins, directions, air)
     dt = (leave - enter).clamp_min(0.0) / steps
+    depth = tables = None
     if kernel:
-        depth = _depth_table_kernel(o, directions, enter, dt, air, steps)
+        tables = _depth_table_kernel(o, directions, enter, dt, air, steps)
     else:
         nodes = depth_table_lanes(o.unbind(1), directions.unbind(1), enter, dt, air_lanes(air), steps)
         depth = torch.stack([torch.stack([node[c] for node in nodes], dim=1) for c in range(3)])
-    return AirPath(o, directions, enter, leave, ground, depth, sun_dir, sun, air, light_steps)
+    return AirPath(o, directions, enter, leave, ground, steps, depth, tables, sun_dir, sun, air, light_steps)
 
 
-def _depth_table_kernel(o: Tensor, d: Tensor, enter: Tensor, dt: Tensor, air: Air, steps: int) -> Tensor:
-    """`depth_table_lanes` of rays `o`, `d` [n, 3] (`enter`, `dt` [n]) as one Dr.Jit kernel ->
-    [3, n, K + 1]."""
+def _depth_table_kernel(o: Tensor, d: Tensor, enter: Tensor, dt: Tensor, air: Air, steps: int) -> list:
+    """`depth_table_lanes` of rays `o`, `d` [n, 3] (`enter`, `dt` [n]) as one Dr.Jit kernel -> three
+    Dr.Jit arrays [(K + 1)·n], node-major (`AirPath.tables`), never copied into torch."""
     import drjit as dr
 
     set_drjit_threads()
@@ -388,7 +405,9 @@ def _depth_table_kernel(o: Tensor, d: Tensor, enter: Tensor, dt: Tensor, air: Ai
     nodes = depth_table_lanes([lane(c) for c in o.unbind(1)], [lane(c) for c in d.unbind(1)], lane(enter), lane(dt),
                               air_lanes(air, lane), steps)
     dr.eval(nodes)
-    return torch.from_numpy(np.stack([np.stack([np.array(node[c]) for node in nodes], axis=1) for c in range(3)])).to(o)
+    tables = [dr.concat([node[c] for node in nodes]) for c in range(3)]
+    dr.eval(tables)
+    return tables
 
 
 def _traced(fn, like: Tensor) -> Tensor:

@@ -227,7 +227,7 @@ def march_joint(ctx: VolumeContext, vols: Sequence, rays: Rays, background: Tens
     # each piece adds its share of the whole ray's radiance (and σ_t shares) and weights
     radiance, wsum, wt, median = start.new_zeros(start.shape[1], channels), *(torch.zeros_like(front) for _ in range(3))
     dither = ctx.dither(rays)
-    air_steps = 0 if air is None else air.depth.shape[2] - 1
+    air_steps = 0 if air is None else air.nodes
     for p in range(start.shape[0]):
         rows = active[p].any(dim=0) & (front >= floor) if floor > 0 else active[p].any(dim=0)
         if not bool(rows.any()):

@@ -270,19 +270,18 @@ def _air_inputs(air: AirPath, idx: Tensor, lane, on: Tensor, active: Tensor) -> 
     """The air along the kernel's rays `idx` [n] as lanes: its values (`air_lanes`), the rays'
     origins in the planet frame, the sun's direction and irradiance; where it is (`on` [P, R]) and
     alone (no volume of `active` [P, V, R] there), a Bool lane a piece; its optical-depth table,
-    three flat tables of a ray's K + 1 nodes in a row, their span and count (`AirPath.depth`)."""
-    import drjit as dr
-    from drjit.llvm import Bool, Float, Int32
+    the chunk's tables (`AirPath.tables`, each kernel ray reading its own ray's nodes: `fetch`),
+    their span and count."""
+    from drjit.llvm import Bool, Int32
 
     rows = lambda x: x.index_select(0, idx)  # noqa: E731
     bools = lambda x: [Bool(rows(piece).cpu().numpy()) for piece in x]  # noqa: E731
-    nodes, enter = air.depth.shape[2] - 1, rows(air.enter)
+    nodes, enter = air.nodes, rows(air.enter)
     span = (rows(air.leave) - enter).clamp_min(torch.finfo(enter.dtype).tiny)
     return SimpleNamespace(
         q=air_lanes(rows_of(air.air, idx), lane), origin=lane(rows(air.origins)), sun_dir=lane(rows(air.sun_dir)),
         sun=lane(rows(air.sun)), on=bools(on), alone=bools(on & ~active.any(dim=1)), enter=lane(enter), span=lane(span),
-        nodes=nodes, light_steps=air.light_steps, row=dr.arange(Int32, len(idx)) * (nodes + 1),
-        table=[Float(rows(c).reshape(-1).to(torch.float32).cpu().numpy()) for c in air.depth])
+        nodes=nodes, light_steps=air.light_steps, fetch=air.fetch(Int32(idx.to(torch.int32).cpu().numpy())))
 
 
 def _air_sample(a: SimpleNamespace, here, t_sample, direction):
@@ -296,8 +295,7 @@ def _air_sample(a: SimpleNamespace, here, t_sample, direction):
     p = [a.origin[c] + t_sample * direction[c] for c in range(3)]
     source = dr.if_stmt((), here, lambda: tuple(air_source_lanes(p, direction, a.sun_dir, a.sun, a.q, a.light_steps)),
                         lambda: tuple(dr.zeros(Float, width) for _ in range(3)))
-    fetch = lambda i: [dr.gather(Float, a.table[c], a.row + i) for c in range(3)]  # noqa: E731
-    return list(source), depth_transmittance_lanes(t_sample, a.enter, a.span, a.nodes, fetch)
+    return list(source), depth_transmittance_lanes(t_sample, a.enter, a.span, a.nodes, a.fetch)
 
 
 def _ray_lanes(rays, idx: Tensor):
