@@ -94,6 +94,20 @@ def test_value_noise_equals_lattice_value_at_lattice_points(dtype):
     assert torch.equal(v, lattice_values(cells, 9, dtype)[:, 0])
 
 
+@pytest.mark.skipif(not drjit_available(), reason="needs Dr.Jit's LLVM backend")
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**64 - 1), shift=st.integers(0, 40))
+def test_hash3_in_a_kernel_is_the_eager_hash(seed, shift):
+    """The kernel's hash (the march dither's) gives eager's float32 bits for cells of any size and
+    sign, int64 and int32 (taken mod 2**32 alike), and keeps their shape."""
+    g = torch.Generator().manual_seed(seed % 2**63)
+    cells = torch.randint(-(2**shift) - 5, 2**shift + 5, (2, 513, 3), generator=g)
+    for c in (cells, cells.to(torch.int32)):
+        eager, kernel = hash3(c, seed, dtype=torch.float32), hash3(c, seed, dtype=torch.float32, kernel=True)
+        diff = (eager != kernel).nonzero()
+        assert kernel.shape == eager.shape and not len(diff), f"{len(diff)} values differ, first at {diff[:1].tolist()}"
+
+
 def test_lattice_hash_is_a_period_256_permutation_chain():
     cells = torch.randint(-1000, 1000, (2000, 3), generator=torch.Generator().manual_seed(4))
     h = lattice_hash(cells, 5)

@@ -32,10 +32,11 @@ def subpixel_jitter(start: int, stop: int, *, seeds: Tensor, width: int, height:
 
 
 def march_dither(rays: Rays, mode: Literal["none", "hash", "sin"], *, scale: float, seeds: Tensor, height: int,
-                 spp: int) -> Tensor | None:
+                 spp: int, kernel: bool = False) -> Tensor | None:
     """The march's start offset per ray [n] (`march.dither`): None, a hash of (seed, pixel,
-    sub-sample) in [0, 1), or the seeds' fract(sin(px.x·73 + px.y·311)·43758.5453)·`scale` in GL
-    pixel coordinates (row 0 at the bottom). Chunks hold whole pixels."""
+    sub-sample) in [0, 1) (`kernel`: hashed in a Dr.Jit kernel, the same bits), or the seeds'
+    fract(sin(px.x·73 + px.y·311)·43758.5453)·`scale` in GL pixel coordinates (row 0 at the
+    bottom). Chunks hold whole pixels."""
     if mode == "none":
         return None
     if mode == "sin":
@@ -43,7 +44,7 @@ def march_dither(rays: Rays, mode: Literal["none", "hash", "sin"], *, scale: flo
         py = height - 1 - rays.pixel[:, 1]
         x = torch.sin((px * 73 + py * 311).to(rays.origins.dtype)) * 43758.5453
         return scale * (x - torch.floor(x))
-    return noise.hash3(ray_keys(rays, seeds=seeds, spp=spp), 0x5EED, dtype=rays.origins.dtype)
+    return noise.hash3(ray_keys(rays, seeds=seeds, spp=spp), 0x5EED, dtype=rays.origins.dtype, kernel=kernel)
 
 
 def ray_keys(rays: Rays, *, seeds: Tensor, spp: int) -> Tensor:

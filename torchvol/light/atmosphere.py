@@ -29,6 +29,7 @@ from torch import Tensor
 
 from ..geometry.rays import intersect_sphere, sphere_interval
 from ..ops import lanes
+from ..ops.mathops import take_rows
 from ..runtime.threads import set_drjit_threads
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
@@ -308,7 +309,7 @@ def ground_radiance(points: Tensor, sun_dir: Tensor, sun: Tensor, albedo: Tensor
 
 def rows_of(air: Air, rows: Tensor) -> Air:
     """The rays `rows` [m] of `air` (gathered per ray)."""
-    return Air(**{f.name: getattr(air, f.name)[rows] for f in fields(air)})
+    return Air(**{f.name: take_rows(getattr(air, f.name), rows) for f in fields(air)})
 
 
 @dataclass(frozen=True)

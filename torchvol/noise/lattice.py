@@ -16,6 +16,7 @@ import math
 import weakref
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -87,25 +88,39 @@ def hash3_lanes(x, y, z, seed: int):
     return h
 
 
+def _int32_bits(cells: Tensor) -> Tensor:
+    """Integer cells ``[..., 3]`` (any integer dtype) mod 2**32, as int32 holding their uint32 bits."""
+    c = cells.to(torch.int64) & _M32
+    return (c - ((c >> 31) << 32)).to(torch.int32)
+
+
 def _hash_u32(cells: Tensor, seed: int) -> Tensor:
     """uint32 hash (as int64) of integer cells ``[..., 3]`` and an integer seed -> ``[...]``:
     `hash3_lanes` (lowbias32 chained over the seed and the coordinates) on int32 columns."""
-    c = cells.to(torch.int64) & _M32
-    c = (c - ((c >> 31) << 32)).to(torch.int32)  # the uint32 bits as int32 values
+    c = _int32_bits(cells)
     return hash3_lanes(c[..., 0], c[..., 1], c[..., 2], seed).to(torch.int64) & _M32
 
 
-def hash3(cells: Tensor, seed: int, *, dtype: torch.dtype | None = None) -> Tensor:
+def hash3(cells: Tensor, seed: int, *, dtype: torch.dtype | None = None, kernel: bool = False) -> Tensor:
     """Hash integer lattice cells to uniform values in [0, 1).
 
     cells: ``[N, 3]`` integer tensor (any integer dtype; any values, taken mod 2**32 per axis).
     seed: any Python int (taken mod 2**32).
     dtype: float dtype of the result (default: ``torch.get_default_dtype()``).
+    kernel: as one Dr.Jit kernel (float32 on the CPU: its ~30 integer ops in one pass, not 30
+    passes over the cells; the same bits).
     Returns ``[N]`` in [0, 1): a 32-bit integer hash (lowbias32 mixing chained over the seed and
     the three coordinates) scaled by 2**-32 (float64) or its top 24 bits by 2**-24 (float32/16),
     so the value never rounds up to 1.
     """
     dtype = dtype or torch.get_default_dtype()
+    if kernel and dtype == torch.float32 and cells.device.type == "cpu":
+        import drjit as dr
+
+        c = [lanes.ints_of(x) for x in _int32_bits(cells).reshape(-1, 3).unbind(1)]
+        unit = lanes.to_float((hash3_lanes(*c, seed) >> 8) & 0xFFFFFF, 0.0) * 2.0**-24
+        dr.eval(unit)
+        return torch.from_numpy(np.array(unit)).reshape(cells.shape[:-1])
     return _u32_to_unit(_hash_u32(cells, seed), dtype)
 
 

@@ -149,7 +149,8 @@ class RenderContext:
         """The march's start offset per ray [R] (`march.dither`: hashed from the seed and pixel, the
         seeds' sin hash, or None: none)."""
         st, image = self.settings, self.batch.image
-        return march_dither(rays, st.dither, scale=st.dither_scale, seeds=self.seeds, height=image.height, spp=image.spp)
+        return march_dither(rays, st.dither, scale=st.dither_scale, seeds=self.seeds, height=image.height, spp=image.spp,
+                            kernel=self.plan.kernels)
 
     def radiance_scale(self, scene_index: Tensor) -> Tensor:
         """What `march.tolerance` is relative to, per ray [R]: the brightest light channel (a point
