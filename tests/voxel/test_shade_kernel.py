@@ -44,6 +44,10 @@ def test_the_ao_kernel_is_the_eager_ao(seed):
     kernel = ao_kernel(int_table(flat), base, torch.tensor([Y, X]), lo[s], hi[s], cell, normal, axis, uv, gamma)
     assert (eager < 0.5).any() and (eager == 1).any(), "no hit was occluded, or every one was"
     assert_close(kernel, eager, atol=1e-6, what="AO")
+    # each hit's range and base gathered from its scene's inside the kernel (the tracer's way): the same bits
+    bases = ((torch.arange(len(lo)) * Z - lo[:, 2]) * Y - lo[:, 1]) * X - lo[:, 0]
+    by_scene = ao_kernel(int_table(flat), bases, torch.tensor([Y, X]), lo, hi, cell, normal, axis, uv, gamma, scene=s)
+    assert torch.equal(by_scene, kernel), f"{int((by_scene != kernel).sum())} hits differ"
 
 
 @pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")

@@ -20,7 +20,7 @@ FIELDS = ("hit", "cell", "axis", "t", "material", "steps", "t_exit")
 def _world(seed: int, n: int, dtype, *, scenes=2, shape=(6, 7, 8), p=0.12):
     """Random material grids of `scenes` scenes (each its own cell range) and n rays of random
     scenes, some axis-parallel, from inside and outside: (rays, lookup, table arguments, ranges,
-    (distance lookup, distance table))."""
+    (distance lookup, distance table), (the rays' scenes, each scene's flat base, lo and hi))."""
     g = torch.Generator().manual_seed(seed)
     occ = (torch.rand((scenes,) + shape, generator=g) < p) * torch.randint(1, 6, (scenes,) + shape, generator=g)
     occ = occ.to(torch.uint8)
@@ -49,7 +49,8 @@ def _world(seed: int, n: int, dtype, *, scenes=2, shape=(6, 7, 8), p=0.12):
         r = c - lo[sc]
         return field.reshape(-1)[((sc * Z + r[:, 2]) * Y + r[:, 1]) * X + r[:, 0]].long()
 
-    return (o, d), lookup, (occ.reshape(-1), base, torch.tensor([Y, X])), (lo[s], hi[s]), (distance, field.reshape(-1))
+    per_scene = (s, ((torch.arange(scenes) * Z - lo[:, 2]) * Y - lo[:, 1]) * X - lo[:, 0], lo, hi)
+    return (o, d), lookup, (occ.reshape(-1), base, torch.tensor([Y, X])), (lo[s], hi[s]), (distance, field.reshape(-1)), per_scene
 
 
 VOXEL_PRESETS = [name for name in tv.preset_names() if name.startswith("voxel-")]
@@ -60,7 +61,7 @@ def _assert_same_walk(seed, n, *, max_steps, limited, late, hybrid):
     """`walk.drjit_traverse` against `traverse` or, `hybrid`, `hybrid_traverse` (on larger,
     sparser grids, where rays jump), float32."""
     shape, p = ((14, 12, 16), 0.03) if hybrid else ((6, 7, 8), 0.12)
-    (o, d), lookup, table, (lo, hi), (distance, field) = _world(seed, n, torch.float32, shape=shape, p=p)
+    (o, d), lookup, table, (lo, hi), (distance, field), (s, base, lo_s, hi_s) = _world(seed, n, torch.float32, shape=shape, p=p)
     g = torch.Generator().manual_seed(seed)
     t_max = torch.rand(n, generator=g) * 12 if limited else None
     t_min = torch.rand(n, generator=g) * 6 if late else None  # rays that start part-way
@@ -70,10 +71,14 @@ def _assert_same_walk(seed, n, *, max_steps, limited, late, hybrid):
         plain = traverse(o, d, lookup, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max)
     kernel = walk.drjit_traverse(o, d, *table, lo, hi, max_steps=max_steps, t_min=t_min, t_max=t_max,
                                  distance=field if hybrid else None)
+    # each ray's range and base gathered from its scene's inside the kernel (the tracer's way)
+    by_scene = walk.drjit_traverse(o, d, table[0], base, table[2], lo_s, hi_s, max_steps=max_steps, t_min=t_min,
+                                   t_max=t_max, distance=field if hybrid else None, scene=s)
     for name in FIELDS:
-        a, b = getattr(plain, name), getattr(kernel, name)
-        assert a.dtype == b.dtype and torch.equal(a, b), \
-            f"{name}: {int((a != b).sum())} of {n} rays differ (first at ray {int((a != b).nonzero()[0, 0])})"
+        for other in (kernel, by_scene):
+            a, b = getattr(plain, name), getattr(other, name)
+            assert a.dtype == b.dtype and torch.equal(a, b), \
+                f"{name}: {int((a != b).sum())} of {n} rays differ (first at ray {int((a != b).nonzero()[0, 0])})"
     return plain
 
 
@@ -93,7 +98,7 @@ def test_the_drjit_walk_jumps_and_the_comparison_sees_a_wrong_walk(monkeypatch):
     rays one step too long is caught (the test above can fail)."""
     h = _assert_same_walk(6, 1500, max_steps=80, limited=False, late=False, hybrid=True)
     assert h.hit.any() and (~h.hit).any()
-    (o, d), lookup, _, (lo, hi), _ = _world(6, 1500, torch.float32, shape=(14, 12, 16), p=0.03)
+    (o, d), lookup, _, (lo, hi), _, _ = _world(6, 1500, torch.float32, shape=(14, 12, 16), p=0.03)
     assert h.steps.sum() < 0.8 * traverse(o, d, lookup, lo, hi, max_steps=80).steps.sum(), "the rays did not jump"
     step = walk.walk_step
 

@@ -172,9 +172,14 @@ class VoxelGrid:
         """(base [N] long, strides [2] long): cell (i, j, k) of scene[n] is at
         ``base[n] + (k·Y + j)·X + i`` of the flattened grids (`cell_index` as one sum, for kernels
         that look cells up themselves: `walk.drjit_traverse`)."""
-        _, _, Y, X = self.materials.shape
-        base = self._flat(-take_rows(self.lo, scene), scene)  # the flat index of cell (0, 0, 0)
-        return base, torch.tensor([Y, X], dtype=torch.long, device=scene.device)
+        base, strides = self.scene_base()
+        return take_rows(base, scene), strides
+
+    def scene_base(self) -> tuple[Tensor, Tensor]:
+        """`flat_base` of each scene: (base (B,) long, strides [2] long)."""
+        B, _, Y, X = self.materials.shape
+        scenes = torch.arange(B, device=self.lo.device)
+        return self._flat(-self.lo, scenes), torch.tensor([Y, X], dtype=torch.long, device=self.lo.device)
 
     def index_cell(self, index: Tensor) -> tuple[Tensor, Tensor]:
         """`cell_index`'s inverse: flat indices [N] -> (cells [N, 3] long, scenes [N])."""

@@ -15,16 +15,18 @@ from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
 from .cone import cone_step
 from .shade import ao_lanes
+from .walk import cell_ranges
 
 __all__ = ["ao_kernel", "cones_kernel", "mips_lanes"]
 
 
 def ao_kernel(table, base: Tensor, strides: Tensor, lo: Tensor, hi: Tensor, cell: Tensor, normal: Tensor,
-              axis: Tensor, uv: Tensor, gamma: Tensor) -> Tensor:
+              axis: Tensor, uv: Tensor, gamma: Tensor, scene: Tensor | None = None) -> Tensor:
     """`shade.voxel_ao` of N hits as one Dr.Jit kernel: `table` the flattened material grids (an
     `int_table`), cell (i, j, k) of hit n at ``base[n] + (k·Y + j)·X + i`` (`VoxelGrid.flat_base`:
-    base [N] long, strides (Y, X)), inside [lo, hi) [N, 3] long; cell [N, 3] long, normal [N, 3],
-    axis [N], uv [N, 2], gamma [N]. -> [N] in uv's dtype (its exp and log Dr.Jit's: within float
+    base [N] long, strides (Y, X)), inside [lo, hi) [N, 3] long (with `scene` [N]: base (B,) and
+    lo, hi (B, 3) of each hit's scene, `walk.cell_ranges`); cell [N, 3] long, normal [N, 3], axis
+    [N], uv [N, 2], gamma [N]. -> [N] in uv's dtype (its exp and log Dr.Jit's: within float
     rounding of eager's)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
@@ -34,8 +36,8 @@ def ao_kernel(table, base: Tensor, strides: Tensor, lo: Tensor, hi: Tensor, cell
     set_drjit_threads()
     ints = lanes.ints_of
     floats = lanes.floats_of
-    g = SimpleNamespace(base=ints(base), y=int(strides[0]), x=int(strides[1]), lo=[ints(c) for c in lo.unbind(1)],
-                        hi=[ints(c) for c in hi.unbind(1)])
+    lo, hi, base = cell_ranges(lo, hi, base, scene, cell.shape[0], cell.device)
+    g = SimpleNamespace(base=base, y=int(strides[0]), x=int(strides[1]), lo=lo, hi=hi)
 
     def occupied(x, y, z):
         inside = ((x >= g.lo[0]) & (x < g.hi[0]) & (y >= g.lo[1]) & (y < g.hi[1]) & (z >= g.lo[2])

@@ -36,14 +36,14 @@ class VoxelTracer:
         hybrid skip."""
         g = self.grid
         og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
-        lookup = lambda c, ids: g.lookup(c, take_rows(s, ids))
-        lo, hi = take_rows(g.lo, s), take_rows(g.hi, s)
         hybrid = self.traversal == "hybrid" and visit is None and fog is None and glow is None and not plain
         if self.drjit and visit is None:
-            base, strides = g.flat_base(s)
-            return drjit_traverse(og, dg, self._table("table"), base, strides, lo, hi, max_steps=max_steps, t_min=t_min,
-                                  t_max=t_max, distance=self._table("distance") if hybrid else None, fog=fog,
-                                  glow=glow)
+            base, strides = g.scene_base()
+            return drjit_traverse(og, dg, self._table("table"), base, strides, g.lo, g.hi, max_steps=max_steps,
+                                  t_min=t_min, t_max=t_max, distance=self._table("distance") if hybrid else None,
+                                  fog=fog, glow=glow, scene=s)
+        lookup = lambda c, ids: g.lookup(c, take_rows(s, ids))
+        lo, hi = take_rows(g.lo, s), take_rows(g.hi, s)
         if hybrid:
             return hybrid_traverse(og, dg, lookup, lambda c, ids: g.empty_radius(c, take_rows(s, ids)), lo, hi,
                                    max_steps=max_steps, t_min=t_min)
@@ -66,9 +66,8 @@ class VoxelTracer:
         g = self.grid
         if not self.drjit:
             return voxel_ao(lambda c: g.lookup(c, s) > 0, cell, normal, axis, uv, gamma=gamma)
-        base, strides = g.flat_base(s)
-        return ao_kernel(self._table("table"), base, strides, take_rows(g.lo, s), take_rows(g.hi, s), cell, normal,
-                         axis, uv, gamma)
+        base, strides = g.scene_base()
+        return ao_kernel(self._table("table"), base, strides, g.lo, g.hi, cell, normal, axis, uv, gamma, scene=s)
 
     def _table(self, name: str):
         """The grid's flattened materials ("table") or distances ("distance") as a Dr.Jit array,

@@ -32,7 +32,7 @@ from .fog import FogWalk, GlowWalk
 from .grid import VoxelGrid
 from .shade import rounded_lanes
 
-__all__ = ["cube_walk", "drjit_traverse", "in_cells", "int_table", "rounded_walk", "walk_inputs", "walk_step"]
+__all__ = ["cell_ranges", "cube_walk", "drjit_traverse", "in_cells", "int_table", "rounded_walk", "walk_inputs", "walk_step"]
 
 
 def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
@@ -91,12 +91,14 @@ def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
 def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Tensor, strides: Tensor, lo, hi, *,
                    max_steps: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
                    distance: Tensor | None = None, switch: int = 2, fog: FogWalk | None = None,
-                   glow: GlowWalk | None = None) -> Hits:
+                   glow: GlowWalk | None = None, scene: Tensor | None = None) -> Hits:
     """`dda.traverse` as one Dr.Jit kernel: each ray's start (`dda.start_lanes`) and whole walk a
     loop (`drjit.while_loop`) of `walk_step`, the same functions the eager walks run; the lookup a
     gather from `table` [M] uint8 (the flattened material grids: cell (i, j, k) of ray r is
     ``table[base[r] + (k·Y + j)·X + i]``, strides = (Y, X) long, every cell of [lo, hi) inside the
-    table). origins, directions [R, 3] float32; base [R] long; lo, hi [3] or [R, 3] long.
+    table). origins, directions [R, 3] float32; base [R] long; lo, hi [3] or [R, 3] long; or, with
+    `scene` [R] long, base (B,) and lo, hi (B, 3) of each ray's scene, gathered inside the kernel
+    (a ray's own copies cost ~12 torch passes over the rays a walk).
     `distance` [M] uint8 (the grids' Chebyshev distance fields, flattened as `table`):
     `dda.hybrid_traverse`'s walk instead, jumping from cells `switch` or more cells from any
     occupied one, with its hits and steps. `table`, `distance` may be `int_table`s already. The
@@ -114,14 +116,13 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     if glow is not None:
         glow.total = origins.new_zeros(R)
     if R == 0:
+        lo, hi = (lo, hi) if scene is None else (take_rows(lo, scene), take_rows(hi, scene))
         return start(origins, directions, lo, hi, t_min, t_max)[0]
     set_drjit_threads()
     floats = lanes.floats_of
-    ints = lanes.ints_of
-    lo, hi = (torch.as_tensor(x, device=origins.device).to(torch.int32).expand(R, 3) for x in (lo, hi))
+    lo_l, hi_l, base_l = cell_ranges(lo, hi, base, scene, R, origins.device)
     r = SimpleNamespace(o=[floats(c) for c in origins.unbind(1)], d=[floats(c) for c in directions.unbind(1)],
-                        lo=[ints(c) for c in lo.unbind(1)], hi=[ints(c) for c in hi.unbind(1)], base=ints(base),
-                        t_max=None if t_max is None else floats(t_max), fog_row=None)
+                        lo=lo_l, hi=hi_l, base=base_l, t_max=None if t_max is None else floats(t_max), fog_row=None)
     g = SimpleNamespace(table=int_table(table), distance=None if distance is None else int_table(distance), fog=None,
                         glow=None if glow is None else floats(glow.table), y=int(strides[0]), x=int(strides[1]), max_steps=dr.opaque(Int32, max_steps), switch=switch)
     ok, t0, cell0, axis0 = start_lanes(r.o, r.d, r.lo, r.hi, None if t_min is None else floats(t_min), r.t_max)
@@ -134,6 +135,22 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     dr.eval(result, ok, t0, axis0)
     dr.sync_thread()
     return _hits([torch.from_numpy(np.array(v)).to(origins.device) for v in (*result, ok, t0, axis0)], fog, glow)
+
+
+def cell_ranges(lo, hi, base: Tensor, scene: Tensor | None, R: int, device) -> tuple[list, list, object]:
+    """Cell ranges and flat bases as int32 lanes of R rays (`drjit_traverse`'s, `shade_kernel`'s):
+    per ray (`scene` None: lo, hi [3] or [R, 3], base [R]) or gathered inside the kernel by each
+    ray's `scene` [R] from its scene's (lo, hi (B, 3), base (B,))."""
+    ints = lanes.ints_of
+    if scene is None:
+        lo, hi = (torch.as_tensor(x, device=device).to(torch.int32).expand(R, 3) for x in (lo, hi))
+        return [ints(c) for c in lo.unbind(1)], [ints(c) for c in hi.unbind(1)], ints(base)
+    import drjit as dr
+    from drjit.llvm import Int32
+
+    rows = ints(scene)
+    of = lambda t: dr.gather(Int32, ints(t), rows)  # noqa: E731
+    return [of(c) for c in lo.unbind(1)], [of(c) for c in hi.unbind(1)], of(base)
 
 
 def _hits(result: list[Tensor], fog: FogWalk | None, glow: GlowWalk | None) -> Hits:
@@ -211,10 +228,14 @@ def walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *, 
     t_max are the walk's) and tables (the grids, their distance fields where the traversal is
     hybrid, the strides and step limit), as lanes of rays of scenes `s` [n] (`per_lane`: per scene
     -> lanes; `ints`: an integer tensor -> lanes; `kernel`: Dr.Jit's, else torch columns)."""
-    base, strides = grid.flat_base(s)
-    rows = [take_rows(x, s).to(torch.int32) for x in (grid.lo, grid.hi)]
-    r = SimpleNamespace(lo=[ints(c) for c in rows[0].unbind(1)], hi=[ints(c) for c in rows[1].unbind(1)], base=ints(base),
-                        origin=per_lane(grid.origin), size=per_lane(grid.voxel_size), fog_row=None)
+    if kernel:  # gathered by scene in the kernel
+        bases, strides = grid.scene_base()
+        lo, hi, base = cell_ranges(grid.lo, grid.hi, bases, s, s.shape[0], s.device)
+    else:
+        bases, strides = grid.flat_base(s)
+        lo, hi = ([ints(c) for c in take_rows(x, s).to(torch.int32).unbind(1)] for x in (grid.lo, grid.hi))
+        base = ints(bases)
+    r = SimpleNamespace(lo=lo, hi=hi, base=base, origin=per_lane(grid.origin), size=per_lane(grid.voxel_size), fog_row=None)
     if kernel:
         import drjit as dr
         from drjit.llvm import Int32
