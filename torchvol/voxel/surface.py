@@ -125,14 +125,14 @@ class VoxelSurface:
         self.shading.ao(point, sh, section)
         indirect = None
         if self.plan.cone:
-            indirect = self.cones(point, sh, t[ids], section)
+            indirect = self.cones(point, sh, take_rows(t, ids), section)
         elif self.plan.gi:
             with section("voxels.gi"):
-                indirect = self.paths(point, sh, keys[ids], t[ids])
+                indirect = self.paths(point, sh, take_rows(keys, ids), take_rows(t, ids))
         color[ids] = self.shading.lit(point, sh, section, indirect)
         if self.plan.reflections:
             with section("voxels.reflections"):
-                self.secondary.reflect(color, ids, point, d[ids], sh, self.plan.reflections, section)
+                self.secondary.reflect(color, ids, point, take_rows(d, ids), sh, self.plan.reflections, section)
         for k in self.aov_channels:
             value = point.aov(k)
             if value is not None:  # the water's AOVs come from `Water`

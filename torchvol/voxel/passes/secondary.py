@@ -11,6 +11,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from ...ops.mathops import take_rows
 from ...schema.batch import Stacked
 from ..ggx import f0_of, f_schlick
 from ..tracer import VoxelTracer
@@ -41,11 +42,12 @@ class SecondaryRays:
         live = (weight > 0).any(dim=1).nonzero().squeeze(1)
         if not live.numel():
             return
-        n, dl, sl = point.normal[live], d[live], s[live]
+        n, dl, sl = (take_rows(x, live) for x in (point.normal, d, s))  # (index_select: 3× faster than x[live])
         r = dl - 2.0 * (dl * n).sum(-1, keepdim=True) * n
-        start = point.x[live] + (REFLECTION_OFFSET * self.tracer.grid.voxel_size[sl])[:, None] * point.face_normal[live]
-        color[ids[live]] += weight[live] * self.trace_shade(start, r, sl, section, max_steps=self.p.reflections.steps,
-                                                            bounces=bounces)[0]
+        off = (REFLECTION_OFFSET * take_rows(self.tracer.grid.voxel_size, sl))[:, None]
+        start = take_rows(point.x, live) + off * take_rows(point.face_normal, live)
+        seen = self.trace_shade(start, r, sl, section, max_steps=self.p.reflections.steps, bounces=bounces)[0]
+        color[take_rows(ids, live)] += take_rows(weight, live) * seen
 
     def trace_shade(self, o: Tensor, d: Tensor, s: Tensor, section, *, max_steps: int,
                     bounces: int = 0) -> tuple[Tensor, Tensor]:
@@ -58,10 +60,11 @@ class SecondaryRays:
         color = o.new_zeros(o.shape[0], 3) if self.sky is None else self.sky(d, s).clone()  # a sky may be expanded
         ids = h.hit.nonzero().squeeze(1)
         if ids.numel():
-            sh = s[ids]
-            point = self.shading.point(o[ids], d[ids], h.t[ids], h.cell[ids], h.axis[ids], h.material[ids], sh, None)
+            sh, di = take_rows(s, ids), take_rows(d, ids)
+            hit = [take_rows(x, ids) for x in (o, h.t, h.cell, h.axis, h.material)]
+            point = self.shading.point(hit[0], di, *hit[1:], sh, None)
             self.shading.ao(point, sh, section)
             color[ids] = self.shading.lit(point, sh, section)
             if bounces > 1:
-                self.reflect(color, ids, point, d[ids], sh, bounces - 1, section)
+                self.reflect(color, ids, point, di, sh, bounces - 1, section)
         return color, torch.where(h.hit, h.t, torch.full_like(h.t, torch.inf))
