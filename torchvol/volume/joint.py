@@ -115,7 +115,7 @@ def medium_sum(media: Sequence[Medium], subsets: Sequence, *, shares: bool, sign
             sig, src = med(sub, t, dt) if rows is None else med(sub, t[rows], dt[rows])
             positive = sig.clamp_min(0.0)
             if signed:
-                largest = torch.maximum(largest, sig) if rows is None else largest.index_reduce(0, rows, sig, "amax")
+                largest = torch.maximum(largest, sig) if rows is None else largest.scatter_reduce(0, rows, sig, "amax")
             if rows is None:
                 sigma = sigma + positive
                 source[:, :3] += src
