@@ -272,7 +272,7 @@ def _air_inputs(air: AirPath, idx: Tensor, lane, on: Tensor, active: Tensor) -> 
     alone (no volume of `active` [P, V, R] there), a Bool lane a piece; its optical-depth table,
     the chunk's tables (`AirPath.tables`, each kernel ray reading its own ray's nodes: `fetch`),
     their span and count."""
-    from drjit.llvm import Bool, Int32
+    from drjit.llvm import Bool
 
     rows = lambda x: x.index_select(0, idx)  # noqa: E731
     bools = lambda x: [Bool(rows(piece).cpu().numpy()) for piece in x]  # noqa: E731
@@ -281,7 +281,7 @@ def _air_inputs(air: AirPath, idx: Tensor, lane, on: Tensor, active: Tensor) -> 
     return SimpleNamespace(
         q=air_lanes(rows_of(air.air, idx), lane), origin=lane(rows(air.origins)), sun_dir=lane(rows(air.sun_dir)),
         sun=lane(rows(air.sun)), on=bools(on), alone=bools(on & ~active.any(dim=1)), enter=lane(enter), span=lane(span),
-        nodes=nodes, light_steps=air.light_steps, fetch=air.fetch(Int32(idx.to(torch.int32).cpu().numpy())))
+        nodes=nodes, light_steps=air.light_steps, fetch=air.fetch(lanes.ints_of(idx)))
 
 
 def _air_sample(a: SimpleNamespace, here, t_sample, direction):

@@ -57,8 +57,9 @@ class RoundedVoxels:
             dr.sync_thread()
             out = [torch.from_numpy(np.array(v)).to(o.device) for v in out]
         found, t, axis, material, cx, cy, cz, nx, ny, nz, extra = out
-        good = take_rows(ids, found.nonzero().squeeze(1))
-        on = lambda x: x[found]  # noqa: E731
+        kept = found.nonzero().squeeze(1)
+        good = take_rows(ids, kept)
+        on = lambda x: take_rows(x, kept)  # noqa: E731
         hit[good] = True
         normal[good] = torch.stack([on(nx), on(ny), on(nz)], 1).to(o.dtype)
         refined = {"t": hits.t.clone(), "cell": hits.cell.clone(), "axis": hits.axis.clone(), "material": hits.material.clone()}
