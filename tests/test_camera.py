@@ -4,6 +4,8 @@ import math
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from kornia.geometry.depth import depth_to_3d, depth_to_3d_v2
 
 from torchvol.geometry.camera import Camera, Rays, strata_shape
@@ -137,6 +139,25 @@ def test_ray_layout(dtype, W, H, spp):
     chunks = list(rays.chunks(7))
     assert sum(len(c) for c in chunks) == R
     assert torch.equal(torch.cat([c.directions for c in chunks]), rays.directions)
+
+
+@settings(max_examples=60, deadline=None)
+@given(W=st.integers(1, 9), H=st.integers(1, 7), spp=st.sampled_from([1, 2, 4]), cut=st.tuples(st.floats(0, 1), st.floats(0, 1)),
+       jitter=st.booleans())
+def test_a_ray_range_is_the_same_slice_of_all_rays(W, H, spp, cut, jitter):
+    """`ray_range` lays its rays on the grid of the image rows they lie in: any range, partial rows
+    at either end, across scenes, is bitwise the same slice of the whole batch's rays."""
+    cam = _cams(torch.float32, W, H)
+    cam.K[:, 0, 1] = torch.tensor([0.0, 0.05, -0.1])  # a skew: the column term depends on the row
+    n = 3 * H * W * spp
+    start, stop = sorted(int(c * n) for c in cut)
+    stop = max(stop, start + 1) if start < n else n
+    offsets = torch.rand(n, 2, generator=torch.Generator().manual_seed(W * H + spp)) - 0.5 if jitter else None
+    whole = cam.ray_range(0, n, spp=spp, offsets=offsets)
+    part = cam.ray_range(start, stop, spp=spp, offsets=None if offsets is None else offsets[start:stop])
+    for field in ("origins", "directions", "scene_index", "pixel", "forward_cos"):
+        got, want = getattr(part, field), getattr(whole, field)[start:stop]
+        assert got.dtype == want.dtype and torch.equal(got, want), f"{field} of rays {start}:{stop} of {n}"
 
 
 @pytest.mark.parametrize("dtype", DTYPES)

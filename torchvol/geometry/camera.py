@@ -362,31 +362,40 @@ class Camera:
         """
         H, W = self.height, self.width
         dtype, device = self.dtype, self.device
-        ids = torch.arange(start, stop, device=device)
-        sample, pix = ids % spp, ids // spp
-        col, row, b = pix % W, (pix // W) % H, pix // (W * H)
+        # the rays on a grid of the whole image rows they lie in (G rows of L = W·spp rays; at most
+        # two rows only partly in the range): a row's scene, row index and camera broadcast along
+        # it, not divided out of each ray's index and gathered per ray (two thirds of the time)
+        L = W * spp
+        g0 = start // L
+        G, lo, hi = -(-stop // L) - g0, start - g0 * L, stop - g0 * L
+        g = torch.arange(g0, g0 + G, device=device)
+        b, row = g // H, g % H  # [G]
+        lane = torch.arange(L, device=device)
+        col, sample = lane // spp, lane % spp  # [L]
         if offsets is None:
             centres = self.subpixel_offsets(spp)  # [spp, 2]
-            offsets = centres[sample] if spp > 1 else centres.expand(ids.shape[0], 2)
-        px = col.to(dtype) + offsets[:, 0].to(dtype)
-        py = row.to(dtype) + offsets[:, 1].to(dtype)
-        # each camera's five intrinsics and rotation rows gathered per ray (index_select, not K[b]:
-        # a [n, 3, 3] copy of every matrix was a third of a 256² cloudscape's glue)
-        fx, skew, cx, fy, cy = take_rows(self.K.reshape(-1, 9)[:, [0, 1, 2, 4, 5]], b).unbind(1)
+            off = (centres[sample] if spp > 1 else centres.expand(L, 2))[None]  # [1, L, 2]
+        else:
+            off = offsets.new_zeros(G * L, 2)
+            off[lo:hi] = offsets
+            off = off.view(G, L, 2)
+        px = col.to(dtype) + off[..., 0].to(dtype)  # [G or 1, L]
+        py = row.to(dtype)[:, None] + off[..., 1].to(dtype)  # [G, L]
+        fx, skew, cx, fy, cy = take_rows(self.K.reshape(-1, 9)[:, [0, 1, 2, 4, 5]], b)[:, :, None].unbind(1)  # [G, 1]
         yc = (py - cy) / fy
         xc = (px - cx - skew * yc) / fx
-        d_cam = torch.stack([xc, yc, torch.ones_like(xc)], dim=-1)  # [n, 3]
-        forward_cos = torch.rsqrt((d_cam * d_cam).sum(-1))  # d_z = 1
-        rows = take_rows(self.rotation.reshape(-1, 9), b)  # [n, 9]: R's rows, x, y, z
+        forward_cos = torch.rsqrt(xc * xc + yc * yc + 1.0)  # |(xc, yc, 1)|⁻¹, summed in that order
+        rows = take_rows(self.rotation.reshape(-1, 9), b)[:, None]  # [G, 1, 9]: R's rows, x, y, z
         # d^T R, row vectors ((R^T d)^T), summed as the batched matmul sums it (bitwise), d_z = 1
-        d_world = xc[:, None] * rows[:, 0:3] + yc[:, None] * rows[:, 3:6] + rows[:, 6:9]
+        d_world = xc[..., None] * rows[..., 0:3] + yc[..., None] * rows[..., 3:6] + rows[..., 6:9]
         directions = d_world / torch.linalg.vector_norm(d_world, dim=-1, keepdim=True)
+        ranged = lambda x: x.expand(G, L, *x.shape[2:]).reshape(G * L, *x.shape[2:])[lo:hi]  # noqa: E731
         return Rays(
-            origins=take_rows(self.eye, b),
-            directions=directions,
-            scene_index=b,
-            pixel=torch.stack([col, row], dim=-1),
-            forward_cos=forward_cos,
+            origins=ranged(take_rows(self.eye, b)[:, None]),
+            directions=ranged(directions),
+            scene_index=ranged(b[:, None]),
+            pixel=ranged(torch.stack([col, 0 * col], 1)[None] + torch.stack([0 * row, row], 1)[:, None]),  # (column, row)
+            forward_cos=ranged(forward_cos),
         )
 
     # ------------------------------------------------------------------ helpers
