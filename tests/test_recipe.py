@@ -169,3 +169,30 @@ def test_recipe_from_toml_with_override_distribution(tmp_path):
     r = Recipe.load(path, {"volumes[0].albedo": {"uniform": [0.2, 0.4]}})
     assert set(r.sample_params(0)) == {"volumes[0].sigma_t", "volumes[0].albedo"}
     assert Recipe.load(r) is r
+
+
+@pytest.mark.parametrize("path", sorted(Path("datasets").glob("*.toml")), ids=lambda p: p.stem)
+def test_a_sample_copies_the_template_without_its_tables(path):
+    """A sample copies the template's skeleton (None where a distribution sits, every one then set),
+    not the whole template: the same scene as setting its values into a deep copy of the template,
+    and the template untouched."""
+    import copy
+
+    from torchvol.scene.model import validate_scene
+    from torchvol.schema.keypath import copy_plain, set_path
+
+    recipe = Recipe.load(path)
+    if type(recipe) is not Recipe:
+        pytest.skip("another recipe form (its families are recipes of their own)")
+    before = copy.deepcopy(recipe.template)
+    for index in range(3):
+        params = recipe.sample_params(index, seed=5)
+        data = copy.deepcopy(recipe.template)
+        for key, value in params.items():
+            set_path(data, key, value)
+        assert recipe.sample(index, seed=5) == validate_scene(data), f"sample {index}"
+    assert recipe.template == before
+    plain = copy_plain(before)
+    assert plain == before
+    plain["image"]["width"] = -1
+    assert before["image"]["width"] != -1, "copy_plain shared a table"

@@ -34,7 +34,7 @@ from typing import Any, Mapping, Sequence
 import torch
 
 from ..scene.model import schema_keys
-from ..schema.keypath import path_str, set_path
+from ..schema.keypath import copy_plain, path_str, set_path
 from ..schema.validate import (
     did_you_mean,
     fail,
@@ -103,7 +103,7 @@ class Dist:
             lo, hi = s
             return int(torch.randint(lo, hi + 1, (1,), generator=g).item())
         if k == "choice":
-            return copy.deepcopy(s[0][self._pick(g)])
+            return copy_plain(s[0][self._pick(g)])
         if k == "hemisphere":
             return _direction(s, _uniform01(g, 2))
         if k == "orbit":
@@ -126,7 +126,7 @@ class Dist:
         if self.kind != "choice" or not any(self.spec[2]):
             return self.sample(g)
         k = self._pick(g)
-        value = copy.deepcopy(self.spec[0][k])
+        value = copy_plain(self.spec[0][k])
         for rel, inner in self.spec[2][k].items():
             if not rel:
                 return inner.draw(seed, index, *salt)  # the value is itself a distribution

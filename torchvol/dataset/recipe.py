@@ -15,12 +15,13 @@ from __future__ import annotations
 import copy
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from ..renderer.aovs import AOVS
 from ..scene.model import Scene, read_source, validate_scene
-from ..schema.keypath import lookup, set_path
+from ..schema.keypath import copy_plain, lookup, set_path
 from ..schema.validate import SceneError, fail, known_keys
 from .distributions import Dist, check_index, find_dists, mix_seed
 from .sequence_spec import SequenceSpec, parse_sequence
@@ -102,8 +103,18 @@ class Recipe:
                 fail(owner, raw, f"the distribution can give {values[owner]!r}, which is invalid: "
                      f"{err.path}: {err.allowed}")
 
+    @cached_property
+    def _skeleton(self) -> dict:
+        """The template without its distributions' tables (None at their key paths): what a sample
+        copies before setting every one of them (the tables, a choice's alternatives above all,
+        were most of a copy of the template)."""
+        skeleton = copy.deepcopy(self.template)
+        for path in self.dists:
+            set_path(skeleton, path, None)
+        return skeleton
+
     def _scene(self, values: Mapping[str, Any]) -> Scene:
-        data = copy.deepcopy(self.template)
+        data = copy_plain(self._skeleton if values.keys() == self.dists.keys() else self.template)
         for path, value in values.items():
             set_path(data, path, value)
         return validate_scene(data)
