@@ -129,3 +129,24 @@ def test_bad_render_arguments_name_the_argument(kwargs, key):
     with pytest.raises(ValueError) as err:
         tv.render(small("homogeneous-box"), **kwargs)
     assert str(err.value).startswith(key), str(err.value)
+
+
+@pytest.mark.parametrize("spp", [1, 2, 4])
+@pytest.mark.parametrize("key", ["radiance", "material", "ao", "depth"])
+def test_resolve_into_is_the_resolve_of_each_mode(key, spp):
+    """`resolve_into` writes, bitwise (signed zeros included), what each output's resolve rule
+    gives: the mean over the sub-samples (of one: x + 0, −0 becoming +0 as the mean makes it), the
+    first sub-sample (ids), or the mean over the sub-samples that hit."""
+    from torchvol.renderer.aovs import RESOLVE
+    from torchvol.renderer.executor import resolve_into
+
+    g = torch.Generator().manual_seed(spp)
+    values = torch.randn(37, spp, 3, generator=g).clamp_min(0.0)
+    values[::5] = -0.0
+    mode = RESOLVE[key]
+    want = {"first": values[:, 0], "mean": values.mean(dim=1)}.get(
+        mode, values.sum(dim=1) / (values > 0).sum(dim=1).clamp_min(1))
+    out = torch.full((3, 50), torch.nan)
+    resolve_into(out[:, 5:42], values, key, spp)
+    assert torch.equal(out[:, 5:42].T.contiguous().view(torch.int32), want.contiguous().view(torch.int32))
+    assert out[:, :5].isnan().all() and out[:, 42:].isnan().all()

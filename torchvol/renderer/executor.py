@@ -336,15 +336,19 @@ def camera_for(batch: Stacked) -> Camera:
                           focal=cam.focal, roll=cam.roll)
 
 
-def resolve(values: Tensor, key: str, spp: int) -> Tensor:
-    """A pixel's value from its sub-samples: `values` [p, spp, C] -> [p, C] as the output resolves
-    (`aovs.RESOLVE`: mean, the first sub-sample, or the mean over the sub-samples that hit)."""
+def resolve_into(out: Tensor, values: Tensor, key: str, spp: int) -> None:
+    """A pixel's value from its sub-samples, written into `out` [C, p] (a channel-major buffer's
+    columns): `values` [p, spp, C] resolved as the output resolves (`aovs.RESOLVE`: mean, the first
+    sub-sample, or the mean over the sub-samples that hit)."""
     mode = RESOLVE[key]
     if mode == "first":  # ids do not average
-        return values[:, 0]
-    if mode == "mean" or spp == 1:
-        return values.mean(dim=1)
-    return values.sum(dim=1) / (values > 0).sum(dim=1).clamp_min(1)
+        out.copy_(values[:, 0].T)
+    elif spp == 1:  # the mean of one sub-sample, in one pass: x + 0 (−0 as +0, as the mean gave it)
+        torch.add(values[:, 0].T, 0.0, out=out)  # a mean over a dim of one was ~0.5 ms an output of 65 k rays
+    elif mode == "mean":
+        out.copy_(values.mean(dim=1).T)
+    else:
+        out.copy_((values.sum(dim=1) / (values > 0).sum(dim=1).clamp_min(1)).T)
 
 
 def check_options(*, seed, scenes: int, chunk_rays, dtype, device) -> tuple[list[int], torch.device]:
@@ -450,10 +454,10 @@ def run_passes(ctx: RenderContext, camera: Camera, *, chunk_rays: int,
             values = run_chunk(ctx, rays)
             with ctx.timer.section("resolve") if spp > 1 else nullcontext():
                 for key in keys:
-                    value = resolve(values[key].to(torch.float32).reshape(last - first, spp, -1), key, spp)
+                    value = values[key].to(torch.float32).reshape(last - first, spp, -1)
                     if key not in buffers:  # channel-major: for one scene the buffer already is (1, C, H, W)
-                        buffers[key] = torch.empty(value.shape[1], pixels, dtype=torch.float32, device=value.device)
-                    buffers[key][:, first:last] = value.T
+                        buffers[key] = torch.empty(value.shape[2], pixels, dtype=torch.float32, device=value.device)
+                    resolve_into(buffers[key][:, first:last], value, key, spp)
             if progress is not None:
                 progress(last - first)
         if acc is not None:
