@@ -47,7 +47,7 @@ class SecondaryRays:
         off = (REFLECTION_OFFSET * take_rows(self.tracer.grid.voxel_size, sl))[:, None]
         start = take_rows(point.x, live) + off * take_rows(point.face_normal, live)
         seen = self.trace_shade(start, r, sl, section, max_steps=self.p.reflections.steps, bounces=bounces)[0]
-        color[take_rows(ids, live)] += take_rows(weight, live) * seen
+        color.index_add_(0, take_rows(ids, live), take_rows(weight, live) * seen)  # (unique rows: color[...] += bitwise, 3× faster)
 
     def trace_shade(self, o: Tensor, d: Tensor, s: Tensor, section, *, max_steps: int,
                     bounces: int = 0) -> tuple[Tensor, Tensor]:
@@ -64,7 +64,7 @@ class SecondaryRays:
             hit = [take_rows(x, ids) for x in (o, h.t, h.cell, h.axis, h.material)]
             point = self.shading.point(hit[0], di, *hit[1:], sh, None)
             self.shading.ao(point, sh, section)
-            color[ids] = self.shading.lit(point, sh, section)
+            color.index_copy_(0, ids, self.shading.lit(point, sh, section))
             if bounces > 1:
                 self.reflect(color, ids, point, di, sh, bounces - 1, section)
         return color, torch.where(h.hit, h.t, torch.full_like(h.t, torch.inf))

@@ -8,6 +8,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ...ops.mathops import take_rows
 from ...schema.batch import Stacked, take
 from ..water import beer, fresnel, plane_hit, reflect, refract, wave_normal
 from .secondary import SecondaryRays
@@ -47,9 +48,10 @@ class Water:
         """`__call__` for the rays ids [m] that meet the water (`on` [n]) at t_water [n]."""
         w = self.p.water
         level, absorb = take(w.level, s), take(w.absorption, s)
-        di, si, ui, tw = d[ids], s[ids], under[ids], t_water[ids]
-        x = o[ids] + tw[:, None] * di
-        x[:, 1] = level[ids]  # exactly on the plane
+        at = lambda x: take_rows(x, ids)  # noqa: E731  (index_select: 3× faster than x[ids])
+        di, si, ui, tw = at(d), at(s), at(under), at(t_water)
+        x = at(o) + tw[:, None] * di
+        x[:, 1] = at(level)  # exactly on the plane
         up = wave_normal(x, take(w.waves.amplitude, si), take(w.waves.frequency, si), take(w.waves.speed, si),
                          take(self.time, si))
         flat = torch.zeros_like(up)
@@ -64,7 +66,7 @@ class Water:
         f = fresnel(cos_i, eta, w.fresnel)
         refr, tir = refract(di, n, eta)
         off = take(w.offset, si)[:, None] * n
-        a = absorb[ids]
+        a = at(absorb)
         # the reflected ray stays on the ray's side (in water from below), the refracted one crosses
         refl_col, refl_len = self.secondary.trace_shade(x + off, reflect(di, n), si, section, max_steps=self.p.max_steps)
         refl_col = torch.where(ui[:, None], refl_col * beer(a, refl_len), refl_col)
@@ -72,17 +74,21 @@ class Water:
         floor = torch.full_like(tw, torch.inf)
         k = (~tir).nonzero().squeeze(1)
         if k.numel():
-            col, length = self.secondary.trace_shade(x[k] - off[k], refr[k], si[k], section, max_steps=self.p.max_steps)
-            refr_col[k] = torch.where(ui[k, None], col, col * beer(a[k], length))
-            floor[k] = torch.where(ui[k], floor[k], length)
+            ik = lambda x: take_rows(x, k)  # noqa: E731
+            col, length = self.secondary.trace_shade(ik(x) - ik(off), ik(refr), ik(si), section, max_steps=self.p.max_steps)
+            refr_col.index_copy_(0, k, torch.where(ik(ui)[:, None], col, col * beer(ik(a), length)))
+            floor.index_copy_(0, k, torch.where(ik(ui), ik(floor), length))
         mixed = f[:, None] * refl_col + (1.0 - f)[:, None] * refr_col
-        color[ids] = torch.where(ui[:, None], mixed * beer(a, tw), mixed)
+        color.index_copy_(0, ids, torch.where(ui[:, None], mixed * beer(a, tw), mixed))
         if "water_floor_distance" in aovs:
             seen = floor < torch.inf
-            aovs["water_floor_distance"][ids] = torch.where(
-                seen, torch.linalg.vector_norm(x + floor[:, None] * refr - o[ids], dim=1), torch.zeros_like(tw))[:, None]
+            aovs["water_floor_distance"].index_copy_(0, ids, torch.where(
+                seen, torch.linalg.vector_norm(x + floor[:, None] * refr - at(o), dim=1), torch.zeros_like(tw))[:, None])
         for key in ("normal", "uv", "material", "ao", "shadow"):  # the water's hit, not the voxel's behind it
             if key in aovs:
-                aovs[key][ids] = up * sign if key == "normal" else 0.0
+                if key == "normal":
+                    aovs[key].index_copy_(0, ids, up * sign)
+                else:
+                    aovs[key].index_fill_(0, ids, 0.0)
         t_hit = torch.where(on, t_water, t_hit)
         return t_hit < torch.inf, t_hit, color
