@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 import torch
 from conftest import assert_close
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import torchvol as tv
 
@@ -297,3 +299,18 @@ def test_the_error_controlled_march_holds_the_air_too(one_thread):
     expected = torch.from_numpy(air_quadrature(rayleigh, box))
     assert_close(out.radiance[0, :, 0, 0] / expected, torch.ones(3, dtype=torch.float64), atol=1e-3,
                  what="radiance / quadrature, error-controlled march")
+
+
+@settings(max_examples=40, deadline=None)
+@given(m=st.integers(1, 10), n=st.integers(1, 40), seed=st.integers(0, 2**16))
+def test_a_rays_cuts_are_sorted_as_torch_sorts_them(m, n, seed):
+    """`sorted_rows` (a min/max network for up to 8 cuts, torch.sort beyond) gives the values of
+    `sort(dim=0)`: ties, infinities and zeros of either sign included."""
+    from torchvol.volume.joint import sorted_rows
+
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randint(-3, 4, (m, n), generator=g).float()
+    x[torch.rand(m, n, generator=g) < 0.2] = math.inf
+    x[torch.rand(m, n, generator=g) < 0.1] = -0.0
+    got, want = sorted_rows(x), x.sort(dim=0).values
+    assert torch.equal(got, want), f"largest error {(got - want).abs().nan_to_num().max()} with {m} cuts"
