@@ -35,7 +35,7 @@ class VoxelTracer:
         the eager walk's per-cell callback, `fog` and `glow` the Dr.Jit walk's sums; `plain`: no
         hybrid skip."""
         g = self.grid
-        og, dg = g.to_grid(o, s), d / g.voxel_size[s, None]
+        og, dg = g.to_grid(o, s), d / take_rows(g.voxel_size, s)[:, None]
         hybrid = self.traversal == "hybrid" and visit is None and fog is None and glow is None and not plain
         if self.drjit and visit is None:
             base, strides = g.scene_base()

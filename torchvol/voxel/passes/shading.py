@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ...ops.mathops import take_rows
 from ...schema.batch import Stacked, per_scene, take
 from ..grid import VoxelGrid
 from ..materials import default_material, material_table
@@ -37,8 +38,10 @@ class Shading:
         local = (g.to_grid(x, s) - cell.to(x.dtype)).clamp(0.0, 1.0)
         face_n = face_normal(axis, d)
         uv = face_uv(local, axis)
-        index = (mat - 1).clamp(0, self.materials.color.shape[1] - 1)
-        albedo = self.materials.color[s, index]
+        M = self.materials.color.shape[1]
+        row = s * M + (mat - 1).clamp(0, M - 1)  # the hit's material's row of the (B·M, ...) tables
+        of = lambda table: take_rows(table.reshape(-1, *table.shape[2:]), row)  # noqa: E731  (3× table[s, index])
+        albedo = of(self.materials.color)
         if self.plan.texture:  # one atlas per scene
             albedo = albedo * per_scene(torch.cat([mat[:, None].to(x.dtype), uv], dim=1), s, len(p),
                                         lambda b, i, q: atlas_sample(self.atlases[b], p.texture.tiles[b], q[:, 0].long(), q[:, 1:]))
@@ -47,11 +50,11 @@ class Shading:
         out = ShadingPoint(x=x, cell=cell, axis=axis, face_normal=face_n, normal=normal, uv=uv, albedo=albedo,
                            material=mat.to(x.dtype)[:, None])
         if self.plan.emission:
-            out.emission = self.materials.emission[s, index]
+            out.emission = of(self.materials.emission)
         if self.plan.ggx:
             out.view = -d
-            out.roughness = self.materials.roughness[s, index][:, None]
-            out.metallic = self.materials.metallic[s, index][:, None]
+            out.roughness = of(self.materials.roughness)[:, None]
+            out.metallic = of(self.materials.metallic)[:, None]
         return out
 
     def ao(self, point: ShadingPoint, s: Tensor, section) -> None:
