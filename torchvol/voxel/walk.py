@@ -234,9 +234,9 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
 
     dr.eval(dr.while_loop(state, lambda *x: x[6], marking, mode="symbolic"), seen)
     unique = torch.from_numpy(np.array(seen)).nonzero().squeeze(1)
-    light = torch.zeros(cells, 3, dtype=torch.float32)
-    light[unique] = fog.irradiance(unique.to(like.device)).to(torch.float32).cpu()
-    light = [Float(light[:, c].contiguous().numpy()) for c in range(3)]
+    light = torch.zeros(3, cells, dtype=torch.float32)  # channel-major: each channel's row a table as it is
+    light.index_copy_(1, unique, fog.irradiance(unique.to(like.device)).to(torch.float32).cpu().T)
+    light = [Float(row.numpy()) for row in light]
     color = [floats(c) for c in fog.color.unbind(1)]
 
     def summing(*x):
