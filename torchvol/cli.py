@@ -198,7 +198,7 @@ class Command:
     help: str
     options: tuple
     description: str | None = None
-    epilog: str | None = None
+    epilog: str | Callable[[], str] | None = None  # a function: called when the help is printed
     raw: bool = False
     progress: bool = True
 
@@ -223,9 +223,19 @@ def _wrap(text: str) -> str:
     return textwrap.fill(text, 100)
 
 
+class HelpParser(argparse.ArgumentParser):
+    """A parser whose epilog may be a function, called when the help is printed: the presets'
+    list reads every preset's file (~25 ms of every command's start otherwise)."""
+
+    def format_help(self) -> str:
+        if callable(self.epilog):
+            self.epilog = self.epilog()
+        return super().format_help()
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `torchvol` parser: every `Command` of `commands()` added as a subcommand."""
-    parser = argparse.ArgumentParser(prog="torchvol", description="Batched PyTorch renderer of volumes and voxels.")
+    parser = HelpParser(prog="torchvol", description="Batched PyTorch renderer of volumes and voxels.")
     subs = {(): parser.add_subparsers(dest="command", required=True)}
     for command in commands():
         *group, name = command.path
@@ -257,7 +267,7 @@ def commands() -> list[Command]:
 def _render_command() -> Command:
     from .renderer.executor import DEFAULT_CHUNK_RAYS
 
-    return Command(("render",), cmd_render, raw=True, epilog=presets_help(),
+    return Command(("render",), cmd_render, raw=True, epilog=presets_help,
                    help="render one scene to PNG (+ 16-bit depth PNG, + float arrays with --npy)",
                    description=_wrap("Render one scene: FILE.png (8-bit image), FILE_depth.png (16-bit: depth = "
                                      "value / 65535 * depth_scale, from the PNG's depth_scale text), and with --npy the "
@@ -327,7 +337,7 @@ def _sweep_command() -> Command:
     from .measure.sweep import QUANTISATION_RMSE
     from .scene.quality import QUALITY
 
-    return Command(("sweep",), cmd_sweep, raw=True, epilog=presets_help(),
+    return Command(("sweep",), cmd_sweep, raw=True, epilog=presets_help,
                    help="time and error of every combination of swept values; results.csv, verdict, plots",
                    description=_wrap("Render every combination of the swept values and measure each against a "
                                      "reference whose own error bound is --factor times under it. SOURCE is a scene, a "
