@@ -30,6 +30,7 @@ from torch import Tensor
 from ..geometry.rays import intersect_sphere, sphere_interval
 from ..ops import lanes
 from ..ops.mathops import take_rows
+from ..runtime.compilation import traced
 from ..runtime.threads import set_drjit_threads
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
@@ -412,11 +413,5 @@ def _depth_table_kernel(o: Tensor, d: Tensor, enter: Tensor, dt: Tensor, air: Ai
 
 
 def _traced(fn, like: Tensor) -> Tensor:
-    """`fn(lane)` (`lane`: a tensor [n] -> Dr.Jit float32 lanes) run as one Dr.Jit kernel: its list
-    of lanes back as one tensor [n, C] of `like`'s dtype and device."""
-    import drjit as dr
-
-    set_drjit_threads()
-    out = fn(lanes.floats_of)
-    dr.eval(out)
-    return torch.from_numpy(np.stack([np.array(x) for x in out], axis=1)).to(like)
+    """`fn`'s lanes run as one Dr.Jit kernel (`runtime.compilation.traced`), as one tensor [n, C]."""
+    return torch.stack(traced(fn, like), dim=1)

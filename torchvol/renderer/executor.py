@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ..fields import DENSITIES
 from ..fields.edge import EdgeField
-from ..geometry.bounds import BOUNDS
+from ..geometry.bounds import BOUNDS, intersect_kernel
 from ..geometry.camera import Camera, Rays
 from ..geometry.sampling import march_dither, ray_keys, subpixel_jitter
 from ..light.atmosphere import (
@@ -91,8 +91,11 @@ class VolumeState:
     macro: dict = field(default_factory=dict)
     ambient_bottom: Tensor | None = None  # (B, 3) the ambient radiance (at the bottom of the bounds)
 
-    def intersect(self, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
-        """Entry/exit distances [n] of rays `o`, `d` [n, 3] of scenes `s` [n]."""
+    def intersect(self, o: Tensor, d: Tensor, s: Tensor, *, kernel: bool = False) -> tuple[Tensor, Tensor]:
+        """Entry/exit distances [n] of rays `o`, `d` [n, 3] of scenes `s` [n]; `kernel` (the volume
+        marches in a Dr.Jit kernel): as one too where the bounds' kind says it pays (`traced_interval`)."""
+        if kernel and self.bounds.traced_interval:
+            return intersect_kernel(self.bounds, self.params.bounds.value, o, d, s)
         return self.bounds.fn(self.params.bounds.value, o, d, s)
 
 

@@ -23,7 +23,7 @@ import torch
 
 from ..schema.validate import fail
 
-__all__ = ["CompileMode", "compile_mode", "drjit_available"]
+__all__ = ["CompileMode", "compile_mode", "drjit_available", "traced"]
 
 CompileMode = Literal["kernels", "off"]
 MODES = ("kernels", "off")
@@ -39,6 +39,20 @@ def compile_mode(value, *, path: str = "compile") -> CompileMode:
     if not isinstance(value, str) or value not in MODES:
         fail(path, value, "expected " + " or ".join(repr(m) for m in MODES) + " (or True for kernels, False or None for off)")
     return value
+
+
+def traced(fn, like: torch.Tensor) -> list[torch.Tensor]:
+    """`fn(lane)` run as one Dr.Jit kernel (`lane`: a tensor [n] -> Dr.Jit float32 lanes; `fn`
+    written in lanes, `ops.lanes`): its list of lanes back as tensors [n] of `like`'s dtype and device."""
+    import drjit as dr
+
+    from ..ops.lanes import floats_of
+    from .threads import set_drjit_threads
+
+    set_drjit_threads()
+    out = fn(floats_of)
+    dr.eval(out)
+    return [torch.from_numpy(np.array(x)).to(like) for x in out]
 
 
 # whether this process may use Dr.Jit: None until the first `drjit_available` probes it. A child

@@ -23,8 +23,9 @@ from .skip import macro_grid, occupied_span
 
 
 def entry_exit(vol, rays: Rays, t_limit: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-    """(t0, t1, hit) [n] of the rays through the volume, up to `t_limit` [n] where given."""
-    t_near, t_far = vol.intersect(rays.origins, rays.directions, rays.scene_index)
+    """(t0, t1, hit) [n] of the rays through the volume, up to `t_limit` [n] where given; where
+    the volume marches in a Dr.Jit kernel, its bounds' interval is one too."""
+    t_near, t_far = vol.intersect(rays.origins, rays.directions, rays.scene_index, kernel=vol.plan.backend == "drjit")
     if vol.shading.semantics == "shader":  # the seeds: march whenever the exit is ahead, from max(t_near, 0)
         t0, t1 = t_near.clamp_min(0.0), t_far.clamp_max(vol.plan.reach)
         hit = (t_far >= 0) & (t_far >= t_near)
