@@ -27,7 +27,7 @@ import torch
 from pydantic import Field, field_validator
 from torch import Tensor
 
-from ..geometry.rays import intersect_sphere, sphere_interval
+from ..geometry.rays import sphere_interval
 from ..ops import lanes
 from ..ops.mathops import take_rows
 from ..runtime.compilation import traced
@@ -275,18 +275,27 @@ def ground_distance(origins: Tensor, directions: Tensor, planet_radius: Tensor) 
     return ground_distance_lanes(origins.unbind(1), directions.unbind(1), planet_radius)
 
 
-def shell_span(origins: Tensor, directions: Tensor, air: Air) -> tuple[Tensor, Tensor, Tensor]:
+def shell_span(origins: Tensor, directions: Tensor, air: Air, *, kernel: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """Where world rays `origins`, `directions` [n, 3] (unit) are in the air: (enter, leave [n]:
     both 0 for a ray that misses the shell; leave is the ground where the ray meets it first,
-    ground [n]: the distance to the planet's surface, inf where the ray does not reach it)."""
-    o = planet_frame(origins, air)
-    top_near, top_far = intersect_sphere(o, directions, torch.zeros_like(o), air.top_radius)
+    ground [n]: the distance to the planet's surface, inf where the ray does not reach it).
+    `kernel`: as one Dr.Jit kernel (its sqrt correctly rounded: within an ulp of eager's)."""
+    span = lambda lane: shell_span_lanes([lane(c) for c in origins.unbind(1)], [lane(c) for c in directions.unbind(1)],  # noqa: E731
+                                         lane(air.planet_radius), lane(air.top_radius))
+    return tuple(traced(span, origins)) if kernel else span(lambda x: x)
+
+
+def shell_span_lanes(o, d, planet_radius, top_radius) -> tuple:
+    """`shell_span` in lanes (`ops.lanes`): world rays o, d (three lanes each), the radii one lane
+    each -> (enter, leave, ground)."""
+    p = [o[0] + 0.0, o[1] + planet_radius, o[2] + 0.0]  # the planet's frame (`planet_frame`'s sums)
+    top_near, top_far = sphere_interval(p, d, (0.0, 0.0, 0.0), top_radius)
     inside = top_far > 0  # a miss is (inf, -inf)
-    enter = torch.where(inside, top_near.clamp_min(0.0), torch.zeros_like(top_far))
-    leave = torch.where(inside, top_far, torch.zeros_like(top_far))
-    g_near = ground_distance(origins, directions, air.planet_radius)
-    ground = torch.where(inside & (g_near < leave), g_near, torch.full_like(g_near, math.inf))
-    return enter, torch.minimum(leave, ground), ground
+    enter = lanes.where(inside, lanes.clamp_min(top_near, 0.0), 0.0)
+    leave = lanes.where(inside, top_far, 0.0)
+    g_near = ground_distance_lanes(o, d, planet_radius)
+    ground = lanes.where(inside & (g_near < leave), g_near, math.inf)
+    return enter, lanes.minimum(leave, ground), ground
 
 
 def sun_transmittance(points: Tensor, sun_dir: Tensor, air: Air, light_steps: int, *, kernel: bool = False) -> Tensor:
@@ -386,7 +395,7 @@ def air_path(origins: Tensor, directions: Tensor, sun_dir: Tensor, sun: Tensor, 
     `light_steps` for the march towards the sun. `kernel`: the table as one Dr.Jit kernel (float32
     on the CPU: the joint march's kernel reads it), else eagerly."""
     o = planet_frame(origins, air)
-    enter, leave, ground = shell_span(origins, directions, air)
+    enter, leave, ground = shell_span(origins, directions, air, kernel=kernel)
     dt = (leave - enter).clamp_min(0.0) / steps
     depth = tables = None
     if kernel:
