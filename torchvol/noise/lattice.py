@@ -114,10 +114,15 @@ def hash3(cells: Tensor, seed: int, *, dtype: torch.dtype | None = None, kernel:
     so the value never rounds up to 1.
     """
     dtype = dtype or torch.get_default_dtype()
-    if kernel and dtype == torch.float32 and cells.device.type == "cpu":
+    if kernel and dtype == torch.float32 and cells.device.type == "cpu" and cells.numel():
         import drjit as dr
+        from drjit.llvm import Int32, Int64, UInt32
 
-        c = [lanes.ints_of(x) for x in _int32_bits(cells).reshape(-1, 3).unbind(1)]
+        # the int64 cells read as they lie, each coordinate gathered and truncated to its low 32
+        # bits in the kernel (`_int32_bits`' value): no torch pass over the cells
+        flat = Int64(cells.to(torch.int64).reshape(-1).contiguous().numpy())
+        rows = dr.arange(UInt32, dr.width(flat) // 3) * 3
+        c = [Int32(dr.gather(Int64, flat, rows + k)) for k in range(3)]
         unit = lanes.to_float((hash3_lanes(*c, seed) >> 8) & 0xFFFFFF, 0.0) * 2.0**-24
         dr.eval(unit)
         return torch.from_numpy(np.array(unit)).reshape(cells.shape[:-1])
