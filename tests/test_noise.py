@@ -102,7 +102,7 @@ def test_hash3_in_a_kernel_is_the_eager_hash(seed, shift):
     sign, int64 and int32 (taken mod 2**32 alike), and keeps their shape."""
     g = torch.Generator().manual_seed(seed % 2**63)
     cells = torch.randint(-(2**shift) - 5, 2**shift + 5, (2, 513, 3), generator=g)
-    for c in (cells, cells.to(torch.int32)):
+    for c in (cells, cells.to(torch.int32), cells[:, :0]):  # none: an empty chunk
         eager, kernel = hash3(c, seed, dtype=torch.float32), hash3(c, seed, dtype=torch.float32, kernel=True)
         diff = (eager != kernel).nonzero()
         assert kernel.shape == eager.shape and not len(diff), f"{len(diff)} values differ, first at {diff[:1].tolist()}"
