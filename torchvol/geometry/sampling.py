@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from ..noise import lattice as noise
+from ..ops.mathops import take_rows
 from .camera import Rays, strata_shape
 
 
@@ -50,5 +51,7 @@ def march_dither(rays: Rays, mode: Literal["none", "hash", "sin"], *, scale: flo
 def ray_keys(rays: Rays, *, seeds: Tensor, spp: int) -> Tensor:
     """Each ray's hash cell [n, 3] long: (column·spp + sub-sample, row, its scene's seed); `seeds`
     (B,). Chunks hold whole pixels."""
-    sub = torch.arange(len(rays), device=rays.pixel.device) % spp
-    return torch.stack([rays.pixel[:, 0] * spp + sub, rays.pixel[:, 1], seeds[rays.scene_index]], dim=1)
+    column = rays.pixel[:, 0]
+    if spp > 1:  # (one sub-sample: the column itself)
+        column = column * spp + torch.arange(len(rays), device=rays.pixel.device) % spp
+    return torch.stack([column, rays.pixel[:, 1], take_rows(seeds, rays.scene_index)], dim=1)
