@@ -315,11 +315,19 @@ def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, 
     index in `ctx.volumes`) counted in the render's stats. -> `result`."""
     trans, wsum, wt, median, steps = (torch.from_numpy(np.array(v)) for v in state)
     truncated = torch.from_numpy(np.array(truncated)).long()
-    result.radiance.index_copy_(0, idx, torch.stack([torch.from_numpy(np.array(r)) for r in radiance], 1).to(result.radiance))
+    full = idx.shape[0] == result.steps.shape[0]  # every ray of the chunk: idx is 0..n−1, the rows as they lie
+
+    def put(target: Tensor, value: Tensor) -> None:  # (copy_ and index_copy_ into a column: no stacked copy)
+        if full:
+            target.copy_(value)
+        else:
+            target.index_copy_(0, idx, value.to(target.dtype))
+
+    for c, r in enumerate(radiance):
+        put(result.radiance[:, c], torch.from_numpy(np.array(r)))
     for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
-                        ("steps", steps.long()), ("truncated", truncated > 0)):
-        target = getattr(result, name)
-        target.index_copy_(0, idx, value.to(target.dtype))
+                        ("steps", steps), ("truncated", truncated > 0)):
+        put(getattr(result, name), value)
     ctx.counts.march_steps += int(steps.long().sum())
     ctx.counts.truncated_rays += int(truncated.sum())
     for j, e in evals.items():
