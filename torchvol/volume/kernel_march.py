@@ -17,8 +17,9 @@ sphere, slab, a planet's shell; `volume.shadow.shadow_segments`), the ambient gr
 and phase (`light.phase`'s ``lanes``), the multiple-scattering octaves
 (`volume.multiple.octave_weights`), the emission colour map and bloom, the step rule
 (`march.StepRule.length`), the integrator's step (`integrate.WEIGHTS`) and the median
-(`march.median_crossing`). What is constant along a ray is computed by the eager code itself
-before the kernel runs: the suns' phase responses (`physical.light_responses`), the dither, the
+(`march.median_crossing`). The suns' phase responses, constant along a ray, are the phases'
+lanes too (`physical.light_responses`' values), evaluated once a ray before the loop. What else is
+constant along a ray is computed by the eager code itself before the kernel runs: the dither, the
 pieces, a grid's occupied span (`volume.skip`: empty space skipped as the eager march skips it),
 the sun grids, the sky behind each ray (what a sky blend fades towards). `march_look` is
 the seeds' alpha loop (the shader look: the template; the surface look: the fur ball) in the same
@@ -64,7 +65,7 @@ from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
 from .integrate import WEIGHTS
 from .march import MarchResult, median_crossing, occupied_start
 from .multiple import octave_weights
-from .physical import light_responses, sky_blend
+from .physical import sky_blend
 from .shader_look import ambient_light, derivative_light, look_lanes, shaded
 from .shadow import occluder_transmittance, segment_end, segment_reach, sun_grids
 from .sun_volume import grid_transmittance
@@ -107,25 +108,29 @@ def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> Sim
     computed by the eager code: σ_t, albedo, what its lights and sky light take (the suns' phase
     responses, `physical.light_responses`; the ambient, `ambient.ambient_lanes`), its emission,
     colour map and bloom, and its sky blend towards the sky `behind` the rays (three lanes)."""
+    import drjit as dr
+
     k = SimpleNamespace(direction=lane(d), sigma_t=per_ray(vol.params.sigma_t), albedo=per_ray(vol.params.albedo))
-    responses = light_responses(ctx, vol, d, s)
+    inputs, k.phase = vol.phase.caps["lanes"]
+    k.phase_params = inputs(vol.params.phase.value, SimpleNamespace(per_lane=per_ray))
+    ms = vol.params.multiple_scattering
+    k.octave_scales = [] if not vol.plan.multiple else [(per_ray(ms.a**i), per_ray(ms.c**i)) for i in range(1, ms.octaves)]
     k.lights = []
     for use in vol.plan.lights:
-        light, resp = ctx.lights[use.light], responses[use.light]  # [n, 3] or per octave [n, K, 3]; None: a point light
-        if resp is None:  # its θ changes along the ray: the phase is traced per sample
+        light = ctx.lights[use.light]
+        if not light.directional:  # its θ changes along the ray: the phase is traced per sample
             k.lights.append(SimpleNamespace(response=None, position=per_ray(light.params.position),
                                             radiant=per_ray(light.radiant), use=use, grids=None))
             continue
-        resp = [resp] if resp.ndim == 2 else list(resp.unbind(1))
+        # a sun's θ is the same all along a ray: its response once a ray (`physical.light_responses`),
+        # evaluated before the march's loop, which reads it at every sample
+        direction = per_ray(light.direction)
+        response = _response(k, lanes.dot3(k.direction, direction), per_ray(light.radiant))
+        dr.eval(response)
         grids = None if use.shadow is None or use.shadow.method != "grid" else {
             j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in (vol.plan.index, *use.occluders)}
-        k.lights.append(SimpleNamespace(response=[lane(r) for r in resp], direction=per_ray(light.direction), use=use,
-                                        grids=grids, through=light.through is not None))
-    if any(light.response is None for light in k.lights):
-        inputs, k.phase = vol.phase.caps["lanes"]
-        k.phase_params = inputs(vol.params.phase.value, SimpleNamespace(per_lane=per_ray))
-        ms = vol.params.multiple_scattering
-        k.octave_scales = [] if not vol.plan.multiple else [(per_ray(ms.a**i), per_ray(ms.c**i)) for i in range(1, ms.octaves)]
+        k.lights.append(SimpleNamespace(response=response, direction=direction, use=use, grids=grids,
+                                        through=light.through is not None))
     if vol.plan.emissive:
         k.emission = per_ray(vol.params.emission)
     to = SimpleNamespace(per_lane=per_ray)
@@ -468,13 +473,17 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
 
 
 def _point_response(k: SimpleNamespace, light: SimpleNamespace, p):
-    """A point light's direction, distance and `physical.response` (per octave, three lanes each)
-    at lanes `p` seen along the ray (`_member_inputs` `k`)."""
+    """A point light's direction, distance and `_response` at lanes `p` seen along the ray
+    (`_member_inputs` `k`)."""
     direction, irradiance, distance = point_lanes(light.position, light.radiant, p)
-    cos = k.direction[0] * direction[0] + k.direction[1] * direction[1] + k.direction[2] * direction[2]
+    return direction, distance, _response(k, lanes.dot3(k.direction, direction), irradiance)
+
+
+def _response(k: SimpleNamespace, cos, irradiance: list) -> list:
+    """`physical.response` in lanes: E · p(θ) of a light of `irradiance` (three lanes) at cos θ
+    `cos`, and with multiple scattering each octave's aⁱ · E · p(θ; cⁱ): per octave, three lanes."""
     response = [[e * k.phase(k.phase_params, cos, 1.0) for e in irradiance]]
-    response += [[e * (a * k.phase(k.phase_params, cos, c)) for e in irradiance] for a, c in k.octave_scales]
-    return direction, distance, response
+    return response + [[e * (a * k.phase(k.phase_params, cos, c)) for e in irradiance] for a, c in k.octave_scales]
 
 
 def optical_depth(solid, p, direction, exit_t, sigma_scale, steps, growth=1.0, first_step=None):
