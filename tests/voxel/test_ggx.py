@@ -212,3 +212,26 @@ def test_ggx_functions_match_llvmpipe(roughness):
     a = alpha_of(torch.tensor(roughness, dtype=torch.float32))
     ours = torch.stack([d_ggx(c1, a), v_smith(c1, c2, a), f_schlick(torch.tensor(0.04), c1)], dim=-1).double().numpy()
     np.testing.assert_allclose(out[..., :3], ours, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("roughness", [0.0, 0.05, 0.2])
+def test_the_lobe_peak_is_exact_in_float32(roughness):
+    """Half vectors a few 1e-4 from the normal, where 1 − (n·h)² cancels in float32: the marched
+    faces' reflectance (`reflectance_lanes`, D from |n × h|²) in float32 within 2e-4 of its float64
+    value at every roughness (the (n·h)² form of D was 19% off at roughness 0, 11% at 0.05)."""
+    from torchvol.voxel.ggx import ggx_reflect
+
+    g = torch.Generator().manual_seed(7)
+    n = 20000
+    normal = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=F64), dim=1)
+    tilt = torch.randn(n, 3, generator=g, dtype=F64) * 10 ** (-4 * torch.rand(n, 1, generator=g, dtype=F64))
+    view = torch.nn.functional.normalize(normal + tilt, dim=1)
+    light = 2.0 * (view * normal).sum(1, keepdim=True) * normal - view  # mirrored: h about n, the peak
+    light = torch.nn.functional.normalize(light + 1e-4 * torch.randn(n, 3, generator=g, dtype=F64), dim=1)
+    albedo, rough, metal = torch.full((n, 3), 0.9, dtype=F64), torch.full((n,), roughness, dtype=F64), torch.ones(n, dtype=F64)
+    inputs = [x.float() for x in (normal, view, light, albedo, rough, metal)]  # the exact value of these very inputs:
+    exact = ggx_reflect(*(x.double() for x in inputs))  # near the peak rounding them alone moves it by 1e-3
+    f32 = ggx_reflect(*inputs).double()
+    err = ((f32 - exact).abs() / exact.abs().clamp_min(1e-3)).max(dim=1).values
+    worst = int(err.argmax())
+    assert err[worst] <= 2e-4, f"relative error {err[worst]:.3g} at hit {worst}: {f32[worst].tolist()} vs {exact[worst].tolist()}"

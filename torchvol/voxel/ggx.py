@@ -29,11 +29,24 @@ def alpha_of(roughness: Tensor) -> Tensor:
     return lanes.clamp_min(roughness * roughness, ALPHA_MIN)
 
 
-def d_ggx(n_h: Tensor, alpha: Tensor) -> Tensor:
-    """GGX normal distribution D(h) = α² / (π ((n·h)² (α² − 1) + 1)²); n_h, alpha [n]."""
+def d_ggx(n_h: Tensor, alpha: Tensor, sin2: Tensor | None = None) -> Tensor:
+    """GGX normal distribution D(h) = α² / (π ((n·h)² (α² − 1) + 1)²); n_h, alpha [n] (or lanes).
+    With `sin2` = |n × h|² (`sin2_between`: 1 − (n·h)² for unit vectors) as α² / (π (|n × h|² +
+    (n·h)² α²)²): near the lobe's peak 1 − (n·h)² cancels in float32 (D 19% off its float64 value
+    at roughness 0, 11% at 0.05, at h a few 1e-4 from n); the cross product's is exact to a few
+    ulps (8e-5 and 6e-5 there; Filament's form)."""
     a2 = alpha * alpha
-    f = n_h * n_h * (a2 - 1.0) + 1.0
+    f = n_h * n_h * (a2 - 1.0) + 1.0 if sin2 is None else sin2 + n_h * n_h * a2
     return a2 / (math.pi * f * f)
+
+
+def sin2_between(n: list, h: list, n_h_raw) -> object:
+    """|n × h|² of a unit normal n and half vector h (three lanes each), `d_ggx`'s `sin2`; where
+    n·h (`n_h_raw`, unclamped) ≤ 0 or h is no unit vector (v = −l: its length clamped, near 0)
+    1 − (n·h)² of n·h clamped to [0, 1], as D takes it there."""
+    x = [n[1] * h[2] - n[2] * h[1], n[2] * h[0] - n[0] * h[2], n[0] * h[1] - n[1] * h[0]]
+    n_h = lanes.clamp(n_h_raw, 0.0, 1.0)
+    return lanes.where((n_h_raw > 0.0) & (lanes.dot3(h, h) > 0.25), lanes.dot3(x, x), 1.0 - n_h * n_h)
 
 
 def v_smith(n_v: Tensor, n_l: Tensor, alpha: Tensor) -> Tensor:
@@ -76,9 +89,10 @@ def reflectance_lanes(normal: list, view: list, light_dir: list, albedo: list, r
     norm = lanes.clamp_min(lanes.length3(*h), 1e-12)  # v = −l: any h, n·l ≤ 0 there
     h = [c / norm for c in h]
     n_l, n_v = lanes.dot3(normal, light_dir), lanes.dot3(normal, view)
-    n_h, v_h = lanes.clamp(lanes.dot3(normal, h), 0.0, 1.0), lanes.dot3(view, h)
+    n_h_raw, v_h = lanes.dot3(normal, h), lanes.dot3(view, h)
+    n_h = lanes.clamp(n_h_raw, 0.0, 1.0)
     alpha = alpha_of(roughness)
-    lobe = d_ggx(n_h, alpha) * v_smith(n_v, n_l, alpha)
+    lobe = d_ggx(n_h, alpha, sin2_between(normal, h, n_h_raw)) * v_smith(n_v, n_l, alpha)
     cos = math.pi * lanes.clamp_min(n_l, 0.0)
     out = []
     for c in range(3):
@@ -90,4 +104,4 @@ def reflectance_lanes(normal: list, view: list, light_dir: list, albedo: list, r
     return out
 
 
-__all__ = ["ALPHA_MIN", "COS_MIN", "alpha_of", "d_ggx", "f0_of", "f_schlick", "ggx_reflect", "reflectance_lanes", "v_smith"]
+__all__ = ["ALPHA_MIN", "COS_MIN", "alpha_of", "d_ggx", "f0_of", "f_schlick", "ggx_reflect", "reflectance_lanes", "sin2_between", "v_smith"]

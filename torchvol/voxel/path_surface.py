@@ -26,7 +26,7 @@ from torch import Tensor
 from ..geometry.scatter import basis, facing, turn
 from ..ops import lanes
 from ..schema.batch import Stacked
-from .ggx import alpha_of, d_ggx, reflectance_lanes
+from .ggx import alpha_of, d_ggx, reflectance_lanes, sin2_between
 from .grid import VoxelGrid
 from .materials import material_table
 from .shade import texel_lanes
@@ -145,11 +145,13 @@ def ggx_bounce(m: SimpleNamespace, n: list, d: list, u: list):
     light = [lanes.where(m.ggx & (u[2] < p_spec), a, b) for a, b in zip(mirrored, lobe)]
     half = [v[c] + light[c] for c in range(3)]
     norm = lanes.clamp_min(lanes.length3(*half), 1e-12)
-    n_h = lanes.clamp(lanes.dot3(n, half) / norm, 0.0, 1.0)
+    half = [c / norm for c in half]
+    n_h_raw = lanes.dot3(n, half)
+    n_h = lanes.clamp(n_h_raw, 0.0, 1.0)
     n_v = lanes.clamp_min(lanes.dot3(n, v), 1e-6)
     n_l = lanes.dot3(n, light)
     # the visible normals' density of the mirrored direction: G1(v)·D(h)/(4 n·v) (Heitz 2018, eq. 17)
-    pdf = p_spec * _smith_g1(n_v, alpha) * d_ggx(n_h, alpha) / (4.0 * n_v) + (1.0 - p_spec) * lanes.clamp_min(n_l, 0.0) / math.pi
+    pdf = p_spec * _smith_g1(n_v, alpha) * d_ggx(n_h, alpha, sin2_between(n, half, n_h_raw)) / (4.0 * n_v) + (1.0 - p_spec) * lanes.clamp_min(n_l, 0.0) / math.pi
     gain = [lanes.where(n_l > 0.0, c / (math.pi * lanes.clamp_min(pdf, 1e-30)), 0.0)
             for c in reflectance_lanes(n, v, light, m.albedo, m.roughness, m.metallic)]
     return light, [lanes.where(m.ggx, g, 1.0) for g in gain]
