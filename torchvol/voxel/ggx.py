@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from ..ops import lanes
+from ..runtime.compilation import traced
 
 ALPHA_MIN = 2e-3  # roughness 0: alpha² = 4e-6 keeps D finite in float32 (peak 1/(π α²) ≈ 8e4)
 COS_MIN = 1e-4  # grazing: n·v, n·l floor (Filament's choice) keeps the visibility term finite
@@ -73,11 +74,18 @@ def f0_of(albedo: Tensor, metallic: Tensor) -> Tensor:
 
 
 def ggx_reflect(normal: Tensor, view: Tensor, light_dir: Tensor, albedo: Tensor, roughness: Tensor,
-                metallic: Tensor) -> Tensor:
+                metallic: Tensor, *, kernel: bool = False) -> Tensor:
     """π · BRDF · max(n·l, 0) [n, 3] (what unit irradiance from `light_dir` reflects towards `view`).
 
     normal, view (towards the eye), light_dir (towards the light) [n, 3] unit; albedo [n, 3];
-    roughness, metallic [n]. Diffuse (1 − F(n·v))(1 − metallic) · albedo / π + specular D · V · F(v·h)."""
+    roughness, metallic [n]. Diffuse (1 − F(n·v))(1 − metallic) · albedo / π + specular D · V · F(v·h).
+    `kernel`: `reflectance_lanes` as one Dr.Jit kernel (float32 on the CPU; its ~90 ops one pass
+    over the hits, not ninety; its sqrt correctly rounded, torch's float32 one not)."""
+    if kernel:
+        col = lambda lane, x: [lane(c) for c in x.unbind(-1)]  # noqa: E731
+        return torch.stack(traced(lambda lane: reflectance_lanes(
+            col(lane, normal), col(lane, view), col(lane, light_dir), col(lane, albedo), lane(roughness), lane(metallic)),
+            normal), dim=-1)
     col = lambda x: list(x.unbind(-1))  # noqa: E731
     return torch.stack(reflectance_lanes(col(normal), col(view), col(light_dir), col(albedo), roughness, metallic), dim=-1)
 

@@ -61,6 +61,6 @@ class DirectLight:
             light = light + self.material.fn(point.normal, toward.direction, toward.irradiance, vis)
             if self.plan.ggx:
                 specular = specular + (ggx_reflect(point.normal, point.view, toward.direction, point.albedo,
-                                                   point.roughness[:, 0], point.metallic[:, 0])
+                                                   point.roughness[:, 0], point.metallic[:, 0], kernel=self.tracer.drjit)
                                        * toward.irradiance * vis[:, None])
         return light, specular
