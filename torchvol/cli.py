@@ -228,6 +228,7 @@ class HelpParser(argparse.ArgumentParser):
     list reads every preset's file (~25 ms of every command's start otherwise)."""
 
     def format_help(self) -> str:
+        """argparse's help, the epilog made first where it is a function."""
         if callable(self.epilog):
             self.epilog = self.epilog()
         return super().format_help()
