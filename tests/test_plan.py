@@ -229,4 +229,4 @@ def test_the_plan_records_the_sun_each_marchs_backend_the_walk_and_the_thread_po
     out = tv.render(tv.preset("cloud-puff", width=8, height=8))
     assert out.stats["plan"] == make_plan(tv.preset("cloud-puff", width=8, height=8), compile="kernels").summary()
     assert json.loads(json.dumps(out.stats["plan"])) == out.stats["plan"]
-    assert set(out.stats["plan"]) == {"passes", "sun", "marches", "threads", "compile", "dtype"}
+    assert set(out.stats["plan"]) == {"passes", "sun", "marches", "sky", "threads", "compile", "dtype"}  # its gradient sky a kernel too

@@ -44,3 +44,25 @@ def test_atmosphere_needs_a_sun():
     scene["lights"] = []
     with pytest.raises(ValueError, match="atmosphere"):
         tv.load_scene(scene)
+
+
+@pytest.mark.parametrize("kind", ["constant", "gradient"])
+def test_the_sky_kernel_is_the_eager_sky(kind):
+    """Where a render runs kernels a constant or gradient sky and its halo are one Dr.Jit kernel
+    (`sky.sky_kernel`): the sky bitwise eager's, the halo within float rounding (its power Dr.Jit's
+    exp and log), every direction, two scenes of different skies; the plan says so."""
+    from torchvol.runtime.compilation import drjit_available
+
+    if not drjit_available():
+        pytest.skip("Dr.Jit's LLVM backend is not available here")
+    skies = [{"kind": kind, **({"radiance": [0.2, 0.4, 0.9]} if kind == "constant" else {"horizon": [0.9, 0.6, 0.3], "slope": [-0.5, 0.0, 0.6]}),
+              "halo": {"color": [1.0, 0.8, 0.5], "power": 8.0}},
+             {"kind": kind, "halo": {"color": [0.3, 0.3, 0.3], "power": 300.0}}]
+    scenes = [tv.load_scene({"image": {"width": 37, "height": 23}, "camera": {"fov_y": 170.0}, "sky": sky,
+                             "lights": [{"kind": "sun", "direction": [0.3, 0.5 + 0.3 * i, 0.2]}]}) for i, sky in enumerate(skies)]
+    fast, slow = tv.render(scenes), tv.render(scenes, compile="off")
+    assert fast.stats["plan"]["sky"] == "drjit" and slow.stats["plan"]["sky"] == "eager"
+    err = (fast.radiance - slow.radiance).abs()
+    assert err.max() <= 1e-6 * slow.radiance.abs().max(), f"largest error {err.max():.3g}"
+    no_halo = [tv.load_scene({**s.model_dump(), "sky": {**s.model_dump()["sky"], "halo": None}}) for s in scenes]
+    assert torch.equal(tv.render(no_halo).radiance, tv.render(no_halo, compile="off").radiance), "the sky alone is bitwise"

@@ -13,7 +13,9 @@ from pydantic import Field, field_validator, model_validator
 from torch import Tensor
 
 from ..geometry.rays import intersect_sphere
+from ..ops import lanes
 from ..ops.mathops import pow_
+from ..runtime.compilation import traced
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
 from ..schema.registry import Registry
@@ -69,14 +71,24 @@ class AtmosphereSky(SkyBase):
 def gradient_sky(directions: Tensor, horizon: Tensor, slope: Tensor) -> Tensor:
     """The template's `bgcol = horizon − rd.y · slope`, never below 0 (a radiance; a steep slope
     would take it there). `directions`: [R, 3]; `horizon`, `slope`: [R, 3] (gathered per ray). -> [R, 3]."""
-    return (horizon - directions[:, 1:2] * slope).clamp_min(0.0)
+    return torch.stack(gradient_lanes(directions.unbind(1), horizon.unbind(1), slope.unbind(1)), dim=1)
+
+
+def gradient_lanes(d: list, horizon: list, slope: list) -> list:
+    """`gradient_sky` in lanes (`ops.lanes`): three lanes each -> three."""
+    return [lanes.clamp_min(horizon[c] - d[1] * slope[c], 0.0) for c in range(3)]
 
 
 def sun_glow(directions: Tensor, sun_dir: Tensor, color: Tensor, power: Tensor) -> Tensor:
     """color · clamp(dot(sun, rd), 0, 1)^power: the template's halo (power 8) and flare (power 3).
     `directions`, `sun_dir`, `color`: [R, 3]; `power`: [R]. -> [R, 3]."""
-    sun = (directions * sun_dir).sum(dim=1).clamp(0.0, 1.0)
-    return color * pow_(sun, power)[:, None]
+    return torch.stack(glow_lanes(directions.unbind(1), sun_dir.unbind(1), color.unbind(1), power), dim=1)
+
+
+def glow_lanes(d: list, sun_dir: list, color: list, power) -> list:
+    """`sun_glow` in lanes (`ops.lanes`): three lanes each, `power` one -> three."""
+    glow = pow_(lanes.clamp(lanes.dot3(d, sun_dir), 0.0, 1.0), power)
+    return [color[c] * glow for c in range(3)]
 
 
 def atmosphere_sky(directions: Tensor, sun_dir: Tensor, air: Air, *, eye_height: Tensor, sun_intensity: Tensor,
@@ -106,7 +118,29 @@ def _atmosphere(sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor, *, ker
 
 
 SKIES = Registry("sky")
-SKIES.register("constant", ConstantSky, lambda sky, d, s, sun: take(sky.radiance, s))
-SKIES.register("gradient", GradientSky, lambda sky, d, s, sun: gradient_sky(d, take(sky.horizon, s), take(sky.slope, s)))
-# `kernel`: the kind's fn(..., kernel=True) runs as a Dr.Jit kernel (where the render runs kernels)
+# `lanes(sky, per_lane, d)`: the kind in lanes (its parameters per scene made lanes by `per_lane`,
+# directions d three lanes): where the render runs kernels, it and the halo run as one
+# (`sky_kernel`: 65 k rays 1.7 -> 0.4 ms on one thread); `kernel`: the kind's fn(..., kernel=True)
+# is a Dr.Jit kernel of its own
+SKIES.register("constant", ConstantSky, lambda sky, d, s, sun: take(sky.radiance, s), kernel=True,
+               lanes=lambda sky, per_lane, d: per_lane(sky.radiance))
+SKIES.register("gradient", GradientSky, lambda sky, d, s, sun: gradient_sky(d, take(sky.horizon, s), take(sky.slope, s)),
+               kernel=True, lanes=lambda sky, per_lane, d: gradient_lanes(d, per_lane(sky.horizon), per_lane(sky.slope)))
 SKIES.register("atmosphere", AtmosphereSky, _atmosphere, needs_sun=True, kernel=True)
+
+
+def sky_kernel(kind, sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor | None) -> Tensor:
+    """The sky of `kind` (one with ``lanes``) seen along unit `directions` [n, 3] of scenes `s`
+    [n], with the halo where `sun` (B, 3) is given, as one Dr.Jit kernel -> [n, 3]. The gradient
+    bitwise eager's; the halo's power Dr.Jit's exp and log (within float rounding)."""
+    per_lane = lanes.per_scene_lanes(s)
+
+    def radiance(lane):
+        d = [lane(c) for c in directions.unbind(1)]
+        base = kind.lanes(sky, per_lane, d)
+        if sun is None:
+            return base
+        glow = glow_lanes(d, per_lane(sun), per_lane(sky.halo.color), per_lane(sky.halo.power))
+        return [base[c] + glow[c] for c in range(3)]
+
+    return torch.stack(traced(radiance, directions), dim=1)

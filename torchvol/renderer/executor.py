@@ -33,7 +33,7 @@ from ..light.atmosphere import (
 )
 from ..light.lights import LIGHTS, LightSource, sun_index
 from ..light.phase import PHASES
-from ..light.sky import SKIES, sun_glow
+from ..light.sky import SKIES, sky_kernel, sun_glow
 from ..ops.mathops import take_rows
 from ..post import POST, View
 from ..runtime.compilation import CompileMode, compile_mode
@@ -187,6 +187,8 @@ def sky_toward(ctx: RenderContext, directions: Tensor, s: Tensor) -> Tensor:
     """The sky [n, 3] seen along unit directions [n, 3] of scenes s [n] (with the halo)."""
     sky = ctx.batch.sky
     kind = SKIES[ctx.plan.sky]
+    if ctx.plan.sky_backend == "drjit" and "lanes" in kind.caps:  # the sky and its halo one kernel
+        return sky_kernel(kind, sky, directions, s, ctx.sun() if ctx.plan.halo else None)
     if ctx.plan.sky_backend == "drjit":
         base = kind.fn(sky, directions, s, ctx.sun(), kernel=True)
     else:
