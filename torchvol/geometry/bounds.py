@@ -14,7 +14,7 @@ from pydantic import Field, model_validator
 from torch import Tensor
 
 from ..ops import lanes
-from ..runtime.compilation import traced
+from ..runtime.compilation import traced, vector_lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3
 from ..schema.registry import Registry
@@ -173,8 +173,7 @@ def intersect_kernel(kind, b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple
     cloudscape). Its sqrt is Dr.Jit's (correctly rounded, torch's float32 one is not): a sphere's
     and a shell's ends within an ulp of eager's, a box's and a slab's bitwise."""
     per_lane = lanes.per_scene_lanes(s)
-    near, far = traced(lambda lane: kind.lanes[0](bounds_lanes(b, per_lane), [lane(c) for c in o.unbind(1)],
-                                                  [lane(c) for c in d.unbind(1)]), o)
+    near, far = traced(lambda lane: kind.lanes[0](bounds_lanes(b, per_lane), vector_lanes(o), vector_lanes(d)), o)
     return near, far
 
 

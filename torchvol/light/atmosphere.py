@@ -30,7 +30,7 @@ from torch import Tensor
 from ..geometry.rays import sphere_interval
 from ..ops import lanes
 from ..ops.mathops import take_rows
-from ..runtime.compilation import traced
+from ..runtime.compilation import traced, traced_vectors, vector_lanes
 from ..runtime.threads import set_drjit_threads
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
@@ -280,9 +280,10 @@ def shell_span(origins: Tensor, directions: Tensor, air: Air, *, kernel: bool = 
     both 0 for a ray that misses the shell; leave is the ground where the ray meets it first,
     ground [n]: the distance to the planet's surface, inf where the ray does not reach it).
     `kernel`: as one Dr.Jit kernel (its sqrt correctly rounded: within an ulp of eager's)."""
-    span = lambda lane: shell_span_lanes([lane(c) for c in origins.unbind(1)], [lane(c) for c in directions.unbind(1)],  # noqa: E731
-                                         lane(air.planet_radius), lane(air.top_radius))
-    return tuple(traced(span, origins)) if kernel else span(lambda x: x)
+    if kernel:
+        return tuple(traced(lambda lane: shell_span_lanes(vector_lanes(origins), vector_lanes(directions),
+                                                          lane(air.planet_radius), lane(air.top_radius)), origins))
+    return shell_span_lanes(origins.unbind(1), directions.unbind(1), air.planet_radius, air.top_radius)
 
 
 def shell_span_lanes(o, d, planet_radius, top_radius) -> tuple:
@@ -302,8 +303,8 @@ def sun_transmittance(points: Tensor, sun_dir: Tensor, air: Air, light_steps: in
     """`sun_transmittance_lanes` of `points`, `sun_dir` [n, 3] (planet frame; unit) -> [n, 3];
     `kernel`: as one Dr.Jit kernel (float32 on the CPU), else eagerly."""
     if kernel:
-        return _traced(lambda lane: sun_transmittance_lanes([lane(c) for c in points.unbind(1)], [lane(c) for c in sun_dir.unbind(1)],
-                                                            air_lanes(air, lane), light_steps), points)
+        return traced_vectors(lambda: sun_transmittance_lanes(vector_lanes(points), vector_lanes(sun_dir),
+                                                              air_lanes(air, lanes.floats_of), light_steps), points)
     return _columns(sun_transmittance_lanes(points.unbind(1), sun_dir.unbind(1), air_lanes(air), light_steps))
 
 
@@ -352,7 +353,8 @@ class AirPath:
         span = (self.leave.index_select(0, rows) - enter).clamp_min(torch.finfo(t.dtype).tiny)
         if self.tables is not None:
             fetch = self.fetch(lanes.ints_of(rows))
-            return _traced(lambda lane: depth_transmittance_lanes(lane(t), lane(enter), lane(span), self.nodes, fetch), t)
+            lane = lanes.floats_of
+            return traced_vectors(lambda: depth_transmittance_lanes(lane(t), lane(enter), lane(span), self.nodes, fetch), t)
         tables = [c.index_select(0, rows) for c in self.depth]  # 3 × [m, K + 1]
         fetch = lambda i: [table.gather(1, i.long()[:, None])[:, 0] for table in tables]  # noqa: E731
         return _columns(depth_transmittance_lanes(t, enter, span, self.nodes, fetch))
@@ -419,8 +421,3 @@ def _depth_table_kernel(o: Tensor, d: Tensor, enter: Tensor, dt: Tensor, air: Ai
     tables = [dr.concat([node[c] for node in nodes]) for c in range(3)]
     dr.eval(tables)
     return tables
-
-
-def _traced(fn, like: Tensor) -> Tensor:
-    """`fn`'s lanes run as one Dr.Jit kernel (`runtime.compilation.traced`), as one tensor [n, C]."""
-    return torch.stack(traced(fn, like), dim=1)

@@ -15,7 +15,7 @@ from torch import Tensor
 from ..geometry.rays import intersect_sphere
 from ..ops import lanes
 from ..ops.mathops import pow_
-from ..runtime.compilation import traced
+from ..runtime.compilation import traced_vectors, vector_lanes
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
 from ..schema.registry import Registry
@@ -135,12 +135,12 @@ def sky_kernel(kind, sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor | 
     bitwise eager's; the halo's power Dr.Jit's exp and log (within float rounding)."""
     per_lane = lanes.per_scene_lanes(s)
 
-    def radiance(lane):
-        d = [lane(c) for c in directions.unbind(1)]
+    def radiance():
+        d = vector_lanes(directions)
         base = kind.lanes(sky, per_lane, d)
         if sun is None:
             return base
         glow = glow_lanes(d, per_lane(sun), per_lane(sky.halo.color), per_lane(sky.halo.power))
         return [base[c] + glow[c] for c in range(3)]
 
-    return torch.stack(traced(radiance, directions), dim=1)
+    return traced_vectors(radiance, directions)
