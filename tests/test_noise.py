@@ -11,6 +11,7 @@ from torchvol.noise.lattice import (
     default_noise_texture,
     fbm,
     hash3,
+    hash3_columns,
     lattice_hash,
     lattice_values,
     perlin_noise,
@@ -106,6 +107,9 @@ def test_hash3_in_a_kernel_is_the_eager_hash(seed, shift):
         eager, kernel = hash3(c, seed, dtype=torch.float32), hash3(c, seed, dtype=torch.float32, kernel=True)
         diff = (eager != kernel).nonzero()
         assert kernel.shape == eager.shape and not len(diff), f"{len(diff)} values differ, first at {diff[:1].tolist()}"
+        x, y, z = c.reshape(-1, 3).unbind(1)  # strided columns, as the dither's keys are
+        columns = hash3_columns(x, y, z, seed, dtype=torch.float32, kernel=True)
+        assert torch.equal(columns, eager.reshape(-1)), "hash3_columns differs from hash3 of the stacked cells"
 
 
 def test_lattice_hash_is_a_period_256_permutation_chain():

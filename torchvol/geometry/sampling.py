@@ -45,13 +45,19 @@ def march_dither(rays: Rays, mode: Literal["none", "hash", "sin"], *, scale: flo
         py = height - 1 - rays.pixel[:, 1]
         x = torch.sin((px * 73 + py * 311).to(rays.origins.dtype)) * 43758.5453
         return scale * (x - torch.floor(x))
-    return noise.hash3(ray_keys(rays, seeds=seeds, spp=spp), 0x5EED, dtype=rays.origins.dtype, kernel=kernel)
+    return noise.hash3_columns(*ray_key_columns(rays, seeds=seeds, spp=spp), 0x5EED, dtype=rays.origins.dtype,
+                               kernel=kernel)
 
 
 def ray_keys(rays: Rays, *, seeds: Tensor, spp: int) -> Tensor:
     """Each ray's hash cell [n, 3] long: (column·spp + sub-sample, row, its scene's seed); `seeds`
     (B,). Chunks hold whole pixels."""
+    return torch.stack(ray_key_columns(rays, seeds=seeds, spp=spp), dim=1)
+
+
+def ray_key_columns(rays: Rays, *, seeds: Tensor, spp: int) -> tuple[Tensor, Tensor, Tensor]:
+    """`ray_keys`' three columns [n] long."""
     column = rays.pixel[:, 0]
     if spp > 1:  # (one sub-sample: the column itself)
         column = column * spp + torch.arange(len(rays), device=rays.pixel.device) % spp
-    return torch.stack([column, rays.pixel[:, 1], take_rows(seeds, rays.scene_index)], dim=1)
+    return column, rays.pixel[:, 1], take_rows(seeds, rays.scene_index)
