@@ -129,7 +129,7 @@ def hash3_columns(x: Tensor, y: Tensor, z: Tensor, seed: int, *, dtype: torch.dt
                   kernel: bool = False) -> Tensor:
     """`hash3` of the cells whose coordinates are the integer columns x, y, z [n]: as
     ``hash3(torch.stack([x, y, z], 1), ...)`` (the eager path), without stacking them where it
-    runs as a kernel (a [65 k, 3] int64 stack was 1.1 ms of a 256² render's dither)."""
+    runs as a kernel (65 k rays' dither 0.44 -> 0.32 ms)."""
     dtype = dtype or torch.get_default_dtype()
     if kernel and dtype == torch.float32 and x.device.type == "cpu" and x.numel():
         from drjit.llvm import Int64
