@@ -303,8 +303,8 @@ def sun_transmittance(points: Tensor, sun_dir: Tensor, air: Air, light_steps: in
     """`sun_transmittance_lanes` of `points`, `sun_dir` [n, 3] (planet frame; unit) -> [n, 3];
     `kernel`: as one Dr.Jit kernel (float32 on the CPU), else eagerly."""
     if kernel:
-        return traced_vectors(lambda: sun_transmittance_lanes(vector_lanes(points), vector_lanes(sun_dir),
-                                                              air_lanes(air, lanes.floats_of), light_steps), points)
+        return traced_vectors(lambda lane: sun_transmittance_lanes(vector_lanes(points), vector_lanes(sun_dir),
+                                                                   air_lanes(air, lane), light_steps), points)
     return _columns(sun_transmittance_lanes(points.unbind(1), sun_dir.unbind(1), air_lanes(air), light_steps))
 
 
@@ -353,8 +353,7 @@ class AirPath:
         span = (self.leave.index_select(0, rows) - enter).clamp_min(torch.finfo(t.dtype).tiny)
         if self.tables is not None:
             fetch = self.fetch(lanes.ints_of(rows))
-            lane = lanes.floats_of
-            return traced_vectors(lambda: depth_transmittance_lanes(lane(t), lane(enter), lane(span), self.nodes, fetch), t)
+            return traced_vectors(lambda lane: depth_transmittance_lanes(lane(t), lane(enter), lane(span), self.nodes, fetch), t)
         tables = [c.index_select(0, rows) for c in self.depth]  # 3 × [m, K + 1]
         fetch = lambda i: [table.gather(1, i.long()[:, None])[:, 0] for table in tables]  # noqa: E731
         return _columns(depth_transmittance_lanes(t, enter, span, self.nodes, fetch))

@@ -118,10 +118,10 @@ def _atmosphere(sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor, *, ker
 
 
 SKIES = Registry("sky")
-# `lanes(sky, per_lane, d)`: the kind in lanes (its parameters per scene made lanes by `per_lane`,
-# directions d three lanes): where the render runs kernels, it and the halo run as one
-# (`sky_kernel`: a 256² cloudscape's sky 1.7 -> 1.1 ms on the glue's thread); `kernel`: the kind's fn(..., kernel=True)
-# is a Dr.Jit kernel of its own
+# `kernel`: where the render runs kernels, the sky is one: with `lanes(sky, per_lane, d)` (the kind
+# in lanes, its parameters per scene made lanes by `per_lane`, directions d three lanes) it and
+# the halo as one (`sky_kernel`: a 256² cloudscape's sky 1.7 -> 1.1 ms on the glue's thread),
+# without, the kind's fn(..., kernel=True)
 SKIES.register("constant", ConstantSky, lambda sky, d, s, sun: take(sky.radiance, s), kernel=True,
                lanes=lambda sky, per_lane, d: per_lane(sky.radiance))
 SKIES.register("gradient", GradientSky, lambda sky, d, s, sun: gradient_sky(d, take(sky.horizon, s), take(sky.slope, s)),
@@ -135,7 +135,7 @@ def sky_kernel(kind, sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor | 
     bitwise eager's; the halo's power Dr.Jit's exp and log (within float rounding)."""
     per_lane = lanes.per_scene_lanes(s)
 
-    def radiance():
+    def radiance(lane):
         d = vector_lanes(directions)
         base = kind.lanes(sky, per_lane, d)
         if sun is None:

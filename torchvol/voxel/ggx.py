@@ -18,7 +18,6 @@ import torch
 from torch import Tensor
 
 from ..ops import lanes
-from ..ops.lanes import floats_of
 from ..runtime.compilation import traced_vectors, vector_lanes
 
 ALPHA_MIN = 2e-3  # roughness 0: alpha² = 4e-6 keeps D finite in float32 (peak 1/(π α²) ≈ 8e4)
@@ -83,8 +82,8 @@ def ggx_reflect(normal: Tensor, view: Tensor, light_dir: Tensor, albedo: Tensor,
     `kernel`: `reflectance_lanes` as one Dr.Jit kernel (float32 on the CPU; its ~90 ops one pass
     over the hits, not ninety; its sqrt correctly rounded, torch's float32 one not)."""
     if kernel:
-        return traced_vectors(lambda: reflectance_lanes(*(vector_lanes(x) for x in (normal, view, light_dir, albedo)),
-                                                        floats_of(roughness), floats_of(metallic)), normal)
+        return traced_vectors(lambda lane: reflectance_lanes(*(vector_lanes(x) for x in (normal, view, light_dir, albedo)),
+                                                             lane(roughness), lane(metallic)), normal)
     col = lambda x: list(x.unbind(-1))  # noqa: E731
     return torch.stack(reflectance_lanes(col(normal), col(view), col(light_dir), col(albedo), roughness, metallic), dim=-1)
 

@@ -107,6 +107,9 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     visits, whose light `fog.irradiance` then gives, then summing τ · e^(−τ so far) · that light ·
     colour per ray, in the eager callback's order (its exp Dr.Jit's: within float rounding of eager's).
     With `glow`, each ray's sum of its table over the cells it visits (`GlowWalk.total`, eager's bits)."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
     R = origins.shape[0]
     if fog is not None:
         fog.tau, fog.light = origins.new_zeros(R), origins.new_zeros(R, 3)
@@ -115,78 +118,41 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     if R == 0:
         lo, hi = (lo, hi) if scene is None else (take_rows(lo, scene), take_rows(hi, scene))
         return start(origins, directions, lo, hi, t_min, t_max)[0]
-    import drjit as dr
-    from drjit.llvm import Int32
-
     set_drjit_threads()
     floats = lanes.floats_of
-    lane = lambda x: None if x is None else floats(x)  # noqa: E731
-    rays = ([floats(c) for c in origins.unbind(1)], [floats(c) for c in directions.unbind(1)],
-            range_tables(lo, hi, base, scene, R, origins.device), lane(t_min), lane(t_max))
-    tables = (int_table(table), None if distance is None else int_table(distance), None if glow is None else lane(glow.table))
-    shape = (int(strides[0]), int(strides[1]), switch)
-    limit = dr.opaque(Int32, max_steps)
-    out = _walk_lanes(rays, tables, shape, limit, None if fog is None else (fog, origins))
-    dr.sync_thread()
-    return _hits(out, fog, glow, origins.device)
-
-
-def _walk_lanes(rays: tuple, tables: tuple, shape: tuple, limit, fog: tuple | None = None) -> tuple:
-    """`drjit_traverse`'s kernel, traced: `rays` (o, d three lanes each, `range_tables`'s ranges,
-    t_min, t_max lanes or None), `tables` (the material grids, the distance fields or None, the glow
-    or None), `shape` (the strides Y, X and the hybrid walk's switch), `limit` the step limit (an
-    opaque int). -> `_hit_lanes`, evaluated. With `fog` (its `FogWalk`, a torch tensor like the
-    rays), its two walks (`_fog_walks`)."""
-    import drjit as dr
-    from drjit.llvm import Float, Int32
-
-    o, d, ranges, t_min, t_max = rays
-    lo, hi, base = gather_ranges(*ranges)
-    table, distance, glow = tables
-    r = SimpleNamespace(o=list(o), d=list(d), lo=lo, hi=hi, base=base, t_max=t_max, fog_row=None)
-    g = SimpleNamespace(table=table, distance=distance, fog=None, glow=glow, y=shape[0], x=shape[1], max_steps=limit,
-                        switch=shape[2])
-    ok, t0, cell0, axis0 = start_lanes(r.o, r.d, r.lo, r.hi, t_min, r.t_max)
-    R = dr.width(t0)
-    sums = tuple(dr.zeros(Float, R) for table in (fog, glow) if table is not None)
+    lo_l, hi_l, base_l = cell_ranges(lo, hi, base, scene, R, origins.device)
+    r = SimpleNamespace(o=[floats(c) for c in origins.unbind(1)], d=[floats(c) for c in directions.unbind(1)],
+                        lo=lo_l, hi=hi_l, base=base_l, t_max=None if t_max is None else floats(t_max), fog_row=None)
+    g = SimpleNamespace(table=int_table(table), distance=None if distance is None else int_table(distance), fog=None,
+                        glow=None if glow is None else floats(glow.table), y=int(strides[0]), x=int(strides[1]),
+                        max_steps=dr.opaque(Int32, max_steps), switch=switch)
+    ok, t0, cell0, axis0 = start_lanes(r.o, r.d, r.lo, r.hi, None if t_min is None else floats(t_min), r.t_max)
+    sums = tuple(dr.zeros(Float, R) for walk in (fog, glow) if walk is not None)
     state = (*cell0, t0, axis0, dr.zeros(Int32, R), ok, dr.zeros(Float, R), dr.zeros(Int32, R), *sums)
     if fog is None:
         result = dr.while_loop(state, lambda *x: x[6], lambda *x: tuple(walk_step(list(x), r, g)[0]), mode="symbolic")
     else:
-        result = _fog_walks(fog[0], state, r, g, lanes.floats_of, fog[1])
+        result = _fog_walks(fog, state, r, g, floats, origins)
     out = _hit_lanes(result, ok, t0, axis0)
     dr.eval(out)
-    return out
-
-
-def range_tables(lo, hi, base: Tensor, scene: Tensor | None, R: int, device) -> tuple:
-    """Cell ranges and flat bases of R rays as Dr.Jit int32 arrays, for `gather_ranges`: per ray
-    (`scene` None: lo, hi [3] or [R, 3], base [R]; rows None) or per scene (lo, hi (B, 3), base
-    (B,)) with each ray's `scene` [R] as its rows."""
-    ints = lanes.ints_of
-    if scene is None:
-        lo, hi = (torch.as_tensor(x, device=device).to(torch.int32).expand(R, 3) for x in (lo, hi))
-        return [ints(c) for c in lo.unbind(1)], [ints(c) for c in hi.unbind(1)], ints(base), None
-    return [ints(c) for c in lo.unbind(1)], [ints(c) for c in hi.unbind(1)], ints(base), ints(scene)
-
-
-def gather_ranges(lo: list, hi: list, base, rows) -> tuple[list, list, object]:
-    """`range_tables`'s ranges as lanes of the rays: as they are (rows None), or gathered inside
-    the kernel by each ray's scene (a ray's own copies cost ~12 torch passes over the rays a walk)."""
-    if rows is None:
-        return lo, hi, base
-    import drjit as dr
-    from drjit.llvm import Int32
-
-    of = lambda t: dr.gather(Int32, t, rows)  # noqa: E731
-    return [of(c) for c in lo], [of(c) for c in hi], of(base)
+    dr.sync_thread()
+    return _hits(out, fog, glow, origins.device)
 
 
 def cell_ranges(lo, hi, base: Tensor, scene: Tensor | None, R: int, device) -> tuple[list, list, object]:
-    """Cell ranges and flat bases as int32 lanes of R rays (`shade_kernel`'s, the walks in lanes'):
+    """Cell ranges and flat bases as int32 lanes of R rays (`drjit_traverse`'s, `shade_kernel`'s):
     per ray (`scene` None: lo, hi [3] or [R, 3], base [R]) or gathered inside the kernel by each
     ray's `scene` [R] from its scene's (lo, hi (B, 3), base (B,))."""
-    return gather_ranges(*range_tables(lo, hi, base, scene, R, device))
+    ints = lanes.ints_of
+    if scene is None:
+        lo, hi = (torch.as_tensor(x, device=device).to(torch.int32).expand(R, 3) for x in (lo, hi))
+        return [ints(c) for c in lo.unbind(1)], [ints(c) for c in hi.unbind(1)], ints(base)
+    import drjit as dr
+    from drjit.llvm import Int32
+
+    rows = ints(scene)
+    of = lambda t: dr.gather(Int32, ints(t), rows)  # noqa: E731
+    return [of(c) for c in lo.unbind(1)], [of(c) for c in hi.unbind(1)], of(base)
 
 
 def _hit_lanes(result: tuple, ok, t0, axis0) -> tuple:
