@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import assert_close
-from hypothesis import given, settings
+from conftest import TOL, assert_close
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import torchvol as tv
@@ -239,10 +239,13 @@ def test_the_lobe_peak_is_exact_in_float32(roughness):
 
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 2**16), rough=st.floats(0.0, 1.0))
+@example(seed=7652, rough=0.0)
 def test_ggx_in_a_kernel_is_the_eager_reflectance(seed, rough):
     """`ggx_reflect(kernel=True)` (`reflectance_lanes` traced by Dr.Jit, the marched GGX faces'
-    default) within 2e-5 of eager's value at every roughness, the lobe's peak, grazing and
-    back-facing directions included (its sqrt correctly rounded, torch's float32 one not)."""
+    default) within float32's kernel tolerance of the float64 value of the same inputs at every
+    roughness, the lobe's peak, grazing and back-facing directions included. Not against eager's
+    float32 value: at roughness 0 both sit ~2e-4 from the exact peak, apart by up to 2.3e-5 (CI
+    found seed 7652), while a wrong term is off by far more."""
     from torchvol.runtime.compilation import drjit_available
     from torchvol.voxel.ggx import ggx_reflect
 
@@ -256,8 +259,11 @@ def test_ggx_in_a_kernel_is_the_eager_reflectance(seed, rough):
     light[::5] = 2.0 * (view[::5] * normal[::5]).sum(1, keepdim=True) * normal[::5] - view[::5]  # mirrored: the peak
     albedo, metallic = torch.rand(n, 3, generator=g), (torch.rand(n, generator=g) < 0.5).float()
     roughness = torch.full((n,), rough)
-    eager = ggx_reflect(normal, view, light, albedo, roughness, metallic)
-    kernel = ggx_reflect(normal, view, light, albedo, roughness, metallic, kernel=True)
-    err = ((kernel - eager).abs() / eager.abs().clamp_min(1e-3)).max(dim=1).values
+    inputs = (normal, view, light, albedo, roughness, metallic)
+    exact = ggx_reflect(*(x.double() for x in inputs))
+    kernel = ggx_reflect(*inputs, kernel=True).double()
+    err = ((kernel - exact).abs() / exact.abs().clamp_min(1e-3)).max(dim=1).values
     worst = int(err.argmax())
-    assert err[worst] <= 2e-5, f"relative error {err[worst]:.3g} at hit {worst}: {kernel[worst].tolist()} vs {eager[worst].tolist()}"
+    assert err[worst] <= 5 * TOL[torch.float32], (
+        f"relative error {err[worst]:.3g} at hit {worst}: {kernel[worst].tolist()} vs {exact[worst].tolist()}"
+    )
