@@ -1,7 +1,17 @@
-"""Shared test helpers: one tolerance table keyed by dtype, and error reports that say where."""
+"""Shared test helpers: one tolerance table keyed by dtype, error reports that say where, and the
+hypothesis profiles."""
+
+import os
 
 import pytest
 import torch
+from hypothesis import settings
+
+# CI gates a landing on one run: there (`HYPOTHESIS_PROFILE=ci`, set by .ci/run) every property
+# test draws the same examples each time, so a red CI is the change's defect, not a draw's luck.
+# Local runs draw fresh examples and keep finding the hard cases.
+settings.register_profile("ci", derandomize=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 # Absolute tolerances for quantities in [0, 1] (alpha, transmittance, normalised radiance).
 TOL = {torch.float32: 1e-4, torch.float64: 1e-9}
@@ -39,8 +49,6 @@ def one_thread():
 def pytest_configure(config):
     """Under pytest-xdist (`-n auto`), split the CPUs between the workers: each worker's torch
     threads spinning against the other's would make the suite slower, not faster."""
-    import os
-
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1:
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))

@@ -240,12 +240,14 @@ def test_the_lobe_peak_is_exact_in_float32(roughness):
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 2**16), rough=st.floats(0.0, 1.0))
 @example(seed=7652, rough=0.0)
+@example(seed=1499, rough=0.0)
 def test_ggx_in_a_kernel_is_the_eager_reflectance(seed, rough):
     """`ggx_reflect(kernel=True)` (`reflectance_lanes` traced by Dr.Jit, the marched GGX faces'
-    default) within float32's kernel tolerance of the float64 value of the same inputs at every
-    roughness, the lobe's peak, grazing and back-facing directions included. Not against eager's
-    float32 value: at roughness 0 both sit ~2e-4 from the exact peak, apart by up to 2.3e-5 (CI
-    found seed 7652), while a wrong term is off by far more."""
+    default) as accurate as eager float32 at every roughness, the lobe's peak, grazing and
+    back-facing directions included: its worst error against the float64 value of the same inputs
+    within twice eager's worst error or float32's tolerance, whichever is larger. Not against
+    eager's float32 value: where the peak meets grazing both sit up to 7e-4 from the float64 value
+    (seed 1499), and at seed 7652 they are 2.3e-5 apart; a wrong term is off by far more."""
     from torchvol.runtime.compilation import drjit_available
     from torchvol.voxel.ggx import ggx_reflect
 
@@ -261,9 +263,11 @@ def test_ggx_in_a_kernel_is_the_eager_reflectance(seed, rough):
     roughness = torch.full((n,), rough)
     inputs = (normal, view, light, albedo, roughness, metallic)
     exact = ggx_reflect(*(x.double() for x in inputs))
-    kernel = ggx_reflect(*inputs, kernel=True).double()
-    err = ((kernel - exact).abs() / exact.abs().clamp_min(1e-3)).max(dim=1).values
+    error = lambda got: ((got.double() - exact).abs() / exact.abs().clamp_min(1e-3)).max(dim=1).values  # noqa: E731
+    kernel = ggx_reflect(*inputs, kernel=True)
+    err = error(kernel)
+    allowed = max(2 * float(error(ggx_reflect(*inputs)).max()), TOL[torch.float32])
     worst = int(err.argmax())
-    assert err[worst] <= 5 * TOL[torch.float32], (
-        f"relative error {err[worst]:.3g} at hit {worst}: {kernel[worst].tolist()} vs {exact[worst].tolist()}"
+    assert err[worst] <= allowed, (
+        f"relative error {err[worst]:.3g} (eager's allows {allowed:.3g}) at hit {worst}: {kernel[worst].tolist()} vs {exact[worst].tolist()}"
     )
