@@ -160,6 +160,35 @@ def test_a_ray_range_is_the_same_slice_of_all_rays(W, H, spp, cut, jitter):
         assert got.dtype == want.dtype and torch.equal(got, want), f"{field} of rays {start}:{stop} of {n}"
 
 
+@settings(max_examples=40, deadline=None)
+@given(W=st.integers(1, 40), H=st.integers(1, 9), spp=st.sampled_from([1, 2, 4, 9]), scenes=st.sampled_from([1, 3]),
+       cut=st.tuples(st.floats(0, 1), st.floats(0, 1)), jitter=st.booleans())
+def test_the_kernel_rays_are_the_eager_rays(W, H, spp, scenes, cut, jitter):
+    """`ray_range(kernel=True)` (`camera_ray` in one Dr.Jit kernel, each lane's scene, row, column
+    and sub-sample from its index; one camera's values as parameters, several gathered) is bitwise
+    the eager ray range: any range of one or several scenes, stratum centres or given offsets."""
+    from torchvol.runtime.compilation import drjit_available
+
+    if not drjit_available():
+        pytest.skip("Dr.Jit's LLVM backend is not available here")
+    cam = _cams(torch.float32, W, H)
+    cam.K[:, 0, 1] = torch.tensor([0.0, 0.05, -0.1])
+    cam = cam.select(list(range(scenes)))
+    n = scenes * H * W * spp
+    start, stop = sorted(int(c * n) for c in cut)
+    stop = max(stop, start + 1) if start < n else n
+    offsets = torch.rand(stop - start, 2, generator=torch.Generator().manual_seed(n)) - 0.5 if jitter else None
+    eager = cam.ray_range(start, stop, spp=spp, offsets=offsets)
+    kernel = cam.ray_range(start, stop, spp=spp, offsets=offsets, kernel=True)
+    for field in ("origins", "directions", "scene_index", "pixel", "forward_cos"):
+        got, want = getattr(kernel, field), getattr(eager, field)
+        bad = (got != want).reshape(got.shape[0], -1).any(1).nonzero()
+        assert got.shape == want.shape and not len(bad), (
+            f"{field} of rays {start}:{stop} of {n}: {len(bad)} differ, first at {bad[:1].tolist()}: "
+            f"{got[bad[0]].tolist() if len(bad) else ''} vs {want[bad[0]].tolist() if len(bad) else ''}"
+        )
+
+
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("W,H", [(7, 5), (6, 11), (16, 16)])
 def test_spp1_rays_pass_through_pixel_centres(dtype, W, H):

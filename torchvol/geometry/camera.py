@@ -23,9 +23,26 @@ from typing import Iterator, Sequence
 import torch
 from torch import Tensor
 
+from ..ops import lanes
 from ..ops.mathops import take_rows
 
-__all__ = ["Camera", "Rays", "strata_shape"]
+__all__ = ["Camera", "Rays", "camera_ray", "strata_shape"]
+
+
+def camera_ray(px, py, k: Sequence, r: Sequence) -> list:
+    """The ray through image point (px, py) (lanes, `ops.lanes`: torch tensors or a kernel's) of a
+    camera with intrinsics k = (fx, skew, cx, fy, cy) and rotation R (r: its nine entries,
+    row-major), each lanes or numbers: camera-space ((x − cx − s·y') / fx, y', 1) with
+    y' = (y − cy) / fy (K⁻¹ in closed form), world R^T d normalised, and its cosine to the camera's
+    forward axis -> [dx, dy, dz, forward_cos]. Written out with correctly rounded square roots (not
+    torch's norm, rsqrt or float32 sqrt, whose roundings a kernel does not share): eager and kernel
+    rays are the same bits."""
+    fx, skew, cx, fy, cy = k
+    yc = (py - cy) / fy
+    xc = (px - cx - skew * yc) / fx
+    d = [xc * r[c] + yc * r[3 + c] + r[6 + c] for c in range(3)]  # d^T R: (R^T d)^T, d_z = 1
+    norm = lanes.sqrt_rounded(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    return [d[0] / norm, d[1] / norm, d[2] / norm, 1.0 / lanes.sqrt_rounded(xc * xc + yc * yc + 1.0)]
 
 
 @dataclass(frozen=True)
@@ -353,15 +370,17 @@ class Camera:
         off = off.reshape(-1, 2).repeat(n // off.reshape(-1, 2).shape[0], 1)  # [R, 2] in ray order
         return self.ray_range(0, n, spp=spp, offsets=off)
 
-    def ray_range(self, start: int, stop: int, *, spp: int = 1, offsets: Tensor | None = None) -> Rays:
+    def ray_range(self, start: int, stop: int, *, spp: int = 1, offsets: Tensor | None = None,
+                  kernel: bool = False) -> Rays:
         """Rays ``start:stop`` of the flat order of :meth:`rays` (scene, row, column, sub-sample),
         built without the others: a renderer makes one chunk at a time, so memory stays bounded.
 
         offsets: ``[stop - start, 2]`` sub-pixel offsets (x, y) in (-0.5, 0.5); None gives the
-        stratum centres (the pixel centre for spp == 1).
+        stratum centres (the pixel centre for spp == 1). kernel: the directions and forward_cos
+        (`camera_ray`) made by one Dr.Jit kernel (float32, CPU), the same bits.
         """
         H, W = self.height, self.width
-        dtype, device = self.dtype, self.device
+        device = self.device
         # the rays on a grid of the whole image rows they lie in (G rows of L = W·spp rays; at most
         # two rows only partly in the range): a row's scene, row index and camera broadcast along
         # it, not divided out of each ray's index and gathered per ray (two thirds of the time)
@@ -372,6 +391,26 @@ class Camera:
         b, row = g // H, g % H  # [G]
         lane = torch.arange(L, device=device)
         col, sample = lane // spp, lane % spp  # [L]
+        ranged = lambda x: x.expand(G, L, *x.shape[2:]).reshape(G * L, *x.shape[2:])[lo:hi]  # noqa: E731
+        if kernel and stop > start:
+            directions, forward_cos = self._kernel_directions(g0, lo, stop - start, spp, offsets)
+        else:
+            directions, forward_cos = map(ranged, self._directions(b, row, col, sample, spp, offsets, (G, L, lo, hi)))
+        return Rays(
+            origins=ranged(take_rows(self.eye, b)[:, None]),
+            directions=directions,
+            scene_index=ranged(b[:, None]),
+            pixel=ranged(torch.stack([col, 0 * col], 1)[None] + torch.stack([0 * row, row], 1)[:, None]),  # (column, row)
+            forward_cos=forward_cos,
+        )
+
+    def _directions(self, b: Tensor, row: Tensor, col: Tensor, sample: Tensor, spp: int, offsets: Tensor | None,
+                    grid: tuple[int, int, int, int]) -> tuple[Tensor, Tensor]:
+        """`camera_ray` eagerly on the grid of image rows (b, row [G]; col, sample [L]; `grid` (G,
+        L, lo, hi): the flat rays lo:hi of its G·L have `offsets`) -> directions (G, L, 3) and
+        forward_cos (G, L)."""
+        G, L, lo, hi = grid
+        dtype = self.dtype
         if offsets is None:
             centres = self.subpixel_offsets(spp)  # [spp, 2]
             off = (centres[sample] if spp > 1 else centres.expand(L, 2))[None]  # [1, L, 2]
@@ -381,22 +420,42 @@ class Camera:
             off = off.view(G, L, 2)
         px = col.to(dtype) + off[..., 0].to(dtype)  # [G or 1, L]
         py = row.to(dtype)[:, None] + off[..., 1].to(dtype)  # [G, L]
-        fx, skew, cx, fy, cy = take_rows(self.K.reshape(-1, 9)[:, [0, 1, 2, 4, 5]], b)[:, :, None].unbind(1)  # [G, 1]
-        yc = (py - cy) / fy
-        xc = (px - cx - skew * yc) / fx
-        forward_cos = torch.rsqrt(xc * xc + yc * yc + 1.0)  # |(xc, yc, 1)|⁻¹, summed in that order
-        rows = take_rows(self.rotation.reshape(-1, 9), b)[:, None]  # [G, 1, 9]: R's rows, x, y, z
-        # d^T R, row vectors ((R^T d)^T), summed as the batched matmul sums it (bitwise), d_z = 1
-        d_world = xc[..., None] * rows[..., 0:3] + yc[..., None] * rows[..., 3:6] + rows[..., 6:9]
-        directions = d_world / torch.linalg.vector_norm(d_world, dim=-1, keepdim=True)
-        ranged = lambda x: x.expand(G, L, *x.shape[2:]).reshape(G * L, *x.shape[2:])[lo:hi]  # noqa: E731
-        return Rays(
-            origins=ranged(take_rows(self.eye, b)[:, None]),
-            directions=ranged(directions),
-            scene_index=ranged(b[:, None]),
-            pixel=ranged(torch.stack([col, 0 * col], 1)[None] + torch.stack([0 * row, row], 1)[:, None]),  # (column, row)
-            forward_cos=ranged(forward_cos),
-        )
+        k = take_rows(self.K.reshape(-1, 9)[:, [0, 1, 2, 4, 5]], b)[:, :, None].unbind(1)  # [G, 1] each
+        r = take_rows(self.rotation.reshape(-1, 9), b)[:, :, None].unbind(1)  # R's rows, x, y, z
+        *d, forward_cos = camera_ray(px, py, k, r)
+        return torch.stack(d, -1), forward_cos
+
+    def _kernel_directions(self, g0: int, lo: int, n: int, spp: int, offsets: Tensor | None) -> tuple[Tensor, Tensor]:
+        """`camera_ray` of rays ``lo:lo + n`` of the grid of image rows from row ``g0`` as one Dr.Jit
+        kernel, each lane's scene, row, column and sub-sample from its index (opaque sizes: one
+        kernel for every image size and range) -> directions [n, 3], forward_cos [n]."""
+        import drjit as dr
+        from drjit.llvm import Array2f, Float, UInt32
+
+        from ..ops.lanes import floats_of
+        from ..runtime.compilation import traced_columns
+
+        def kernel(_lane):
+            W, H, P = (dr.opaque(UInt32, v) for v in (self.width, self.height, spp))
+            local = dr.arange(UInt32, n) + dr.opaque(UInt32, lo)
+            g = local // (W * P) + dr.opaque(UInt32, g0)
+            b, lane = g // H, local % (W * P)
+            row, col, sample = g - b * H, lane // P, lane % P
+            if offsets is not None:
+                off = dr.unravel(Array2f, floats_of(offsets.reshape(-1)))
+            else:
+                off = dr.gather(Array2f, floats_of(self.subpixel_offsets(spp).reshape(-1)), sample)
+            px, py = Float(col) + off[0], Float(row) + off[1]
+            K, R = self.K.reshape(-1, 9), self.rotation.reshape(-1, 9)
+            if K.shape[0] == 1:  # one camera: its values as the kernel's parameters, no gathers
+                k = [dr.opaque(Float, float(K[0, j])) for j in (0, 1, 2, 4, 5)]
+                r = [dr.opaque(Float, float(R[0, j])) for j in range(9)]
+            else:
+                k = [dr.gather(Float, floats_of(K[:, j]), b) for j in (0, 1, 2, 4, 5)]
+                r = [dr.gather(Float, floats_of(R[:, j]), b) for j in range(9)]
+            return camera_ray(px, py, k, r)
+
+        return traced_columns(kernel, self.K, (3, 1))
 
     # ------------------------------------------------------------------ helpers
     def project(self, points: Tensor, scene_index: Tensor | None = None) -> Tensor:

@@ -457,7 +457,7 @@ def run_passes(ctx: RenderContext, camera: Camera, *, chunk_rays: int,
             with ctx.timer.section("rays"):
                 jitter = subpixel_jitter(first * spp, last * spp, seeds=ctx.seeds, width=w, height=h, spp=spp,
                                          dtype=ctx.dtype)
-                rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter)
+                rays = camera.ray_range(first * spp, last * spp, spp=spp, offsets=jitter, kernel=ctx.plan.kernels)
             values = run_chunk(ctx, rays)
             with ctx.timer.section("resolve") if spp > 1 else nullcontext():
                 for key in keys:

@@ -23,7 +23,7 @@ import torch
 
 from ..schema.validate import fail
 
-__all__ = ["CompileMode", "compile_mode", "drjit_available", "traced", "traced_vectors", "vector_lanes"]
+__all__ = ["CompileMode", "compile_mode", "drjit_available", "traced", "traced_columns", "traced_vectors", "vector_lanes"]
 
 CompileMode = Literal["kernels", "off"]
 MODES = ("kernels", "off")
@@ -44,15 +44,7 @@ def compile_mode(value, *, path: str = "compile") -> CompileMode:
 def traced(fn, like: torch.Tensor) -> list[torch.Tensor]:
     """`fn(lane)` run as one Dr.Jit kernel (`lane`: a tensor [n] -> Dr.Jit float32 lanes; `fn`
     written in lanes, `ops.lanes`): its list of lanes back as tensors [n] of `like`'s dtype and device."""
-    import drjit as dr
-
-    from ..ops.lanes import floats_of
-    from .threads import set_drjit_threads
-
-    set_drjit_threads()
-    out = fn(floats_of)
-    dr.eval(out)
-    return [torch.from_numpy(np.array(x)).to(like) for x in out]
+    return traced_columns(fn, like)
 
 
 def vector_lanes(t: torch.Tensor) -> list:
@@ -71,6 +63,13 @@ def traced_vectors(fn, like: torch.Tensor) -> torch.Tensor:
     """`traced` of an `fn(lane)` giving three lanes, written interleaved by the kernel -> one tensor
     [n, 3] of `like`'s dtype and device (no column stacked in torch: a float32 [65 k, 3] stack is
     ~0.3 ms)."""
+    return traced_columns(fn, like, (3,))[0]
+
+
+def traced_columns(fn, like: torch.Tensor, widths: tuple[int, ...] | None = None) -> list[torch.Tensor]:
+    """`traced` of an `fn(lane)` giving sum(`widths`) lanes, one kernel: each group of 3 lanes one
+    tensor [n, 3] written interleaved (as `traced_vectors`), a group of 1 a tensor [n], of `like`'s
+    dtype and device (`widths` None: every lane a tensor [n])."""
     import drjit as dr
     from drjit.llvm import Array3f
 
@@ -78,9 +77,16 @@ def traced_vectors(fn, like: torch.Tensor) -> torch.Tensor:
     from .threads import set_drjit_threads
 
     set_drjit_threads()
-    out = dr.ravel(Array3f(*fn(floats_of)))
+    lanes, out, k = fn(floats_of), [], 0
+    widths = (1,) * len(lanes) if widths is None else widths
+    for w in widths:
+        if w not in (1, 3):
+            raise ValueError(f"traced_columns: a group of {w} lanes; groups are 1 or 3 wide")
+        out.append(lanes[k] if w == 1 else dr.ravel(Array3f(*lanes[k:k + 3])))
+        k += w
     dr.eval(out)
-    return torch.from_numpy(np.array(out)).view(-1, 3).to(like)
+    tensors = [torch.from_numpy(np.array(x)).to(like) for x in out]
+    return [t if w == 1 else t.view(-1, 3) for t, w in zip(tensors, widths)]
 
 
 # whether this process may use Dr.Jit: None until the first `drjit_available` probes it. A child
