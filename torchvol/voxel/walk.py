@@ -25,6 +25,7 @@ from ..noise import lattice as noise
 from ..noise.lattice import hash3_lanes
 from ..ops import lanes
 from ..ops.mathops import take_rows
+from ..runtime.compilation import vector_lanes
 from ..runtime.threads import set_drjit_threads
 from ..schema.batch import Stacked
 from .dda import Hits, jump_lanes, next_cell_lanes, start, start_lanes
@@ -121,7 +122,7 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     set_drjit_threads()
     floats = lanes.floats_of
     lo_l, hi_l, base_l = cell_ranges(lo, hi, base, scene, R, origins.device)
-    r = SimpleNamespace(o=[floats(c) for c in origins.unbind(1)], d=[floats(c) for c in directions.unbind(1)],
+    r = SimpleNamespace(o=vector_lanes(origins), d=vector_lanes(directions),
                         lo=lo_l, hi=hi_l, base=base_l, t_max=None if t_max is None else floats(t_max), fog_row=None)
     g = SimpleNamespace(table=int_table(table), distance=None if distance is None else int_table(distance), fog=None,
                         glow=None if glow is None else floats(glow.table), y=int(strides[0]), x=int(strides[1]),
@@ -158,25 +159,26 @@ def cell_ranges(lo, hi, base: Tensor, scene: Tensor | None, R: int, device) -> t
 def _hit_lanes(result: tuple, ok, t0, axis0) -> tuple:
     """The walk's hits in lanes, from its final state and start (ok, t0, axis0): `dda.start`'s for
     rays that never enter, the walk's where they hit; chosen and widened to int64 in the walk's
-    own kernel (in torch each was another pass over the rays). -> (hit, cx, cy, cz, axis, t,
-    material, steps, t_exit, *sums)."""
+    own kernel (in torch each was another pass over the rays). -> (hit, cell (three int64 lanes
+    raveled: [R, 3] as rows), axis, t, material, steps, t_exit, *sums)."""
     import drjit as dr
-    from drjit.llvm import Float, Int64
+    from drjit.llvm import Array3i64, Float, Int64
 
     cx, cy, cz, t, axis, n, _, t_exit, material, *sums = result
     hit = material > 0
-    return (hit, Int64(cx), Int64(cy), Int64(cz), Int64(dr.select(hit, axis, axis0)),
+    cell = dr.ravel(Array3i64(Int64(cx), Int64(cy), Int64(cz)))  # written as rows [R, 3]: no stack in torch
+    return (hit, cell, Int64(dr.select(hit, axis, axis0)),
             dr.select(hit, t, dr.select(ok, t0, Float(math.inf))), Int64(material), Int64(n), t_exit, *sums)
 
 
 def _hits(out: tuple, fog: FogWalk | None, glow: GlowWalk | None, device) -> Hits:
     """The `Hits` [R] of `_hit_lanes` (evaluated), and the fog's τ in `fog`, the glow's sum in `glow`."""
-    hit, cx, cy, cz, axis, t, material, n, t_exit, *sums = (torch.from_numpy(np.array(v)).to(device) for v in out)
+    hit, cell, axis, t, material, n, t_exit, *sums = (torch.from_numpy(np.array(v)).to(device) for v in out)
     if fog is not None:
         fog.tau = sums[0]
     if glow is not None:
         glow.total = sums[-1]
-    return Hits(hit=hit, cell=torch.stack([cx, cy, cz], 1), axis=axis, t=t, material=material, steps=n, t_exit=t_exit)
+    return Hits(hit=hit, cell=cell.view(-1, 3), axis=axis, t=t, material=material, steps=n, t_exit=t_exit)
 
 
 def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespace, floats, like: Tensor):
