@@ -254,6 +254,25 @@ def lanes_of(value: torch.Tensor, gather):
     return gather(value) if value.ndim == 1 else [gather(value[:, c]) for c in range(value.shape[1])]
 
 
+def row_lanes(idx: torch.Tensor):
+    """A kernel's reader of rows `idx` [n] of per-ray tensors: of(x), x [R] or [R, C] float, -> a
+    lane, or a list of C, of its rows idx gathered in the kernel from x as it lies (one copy into
+    Dr.Jit: no index_select and C column copies in torch first)."""
+    import drjit as dr
+    from drjit.llvm import Float, UInt32
+
+    rows = UInt32(idx.to(torch.int32).cpu().numpy())
+
+    def of(x: torch.Tensor):
+        flat = floats_of(x.reshape(-1))
+        if x.ndim == 1:
+            return dr.gather(Float, flat, rows)
+        width = x.shape[1]
+        return [dr.gather(Float, flat, rows * width + c) for c in range(width)]
+
+    return of
+
+
 def per_scene_lanes(s: torch.Tensor):
     """per scene (B,) or (B, C) -> the lanes of rays of scenes `s` [n], gathered in the kernel from
     the B values: a table of B floats a value, not n floats made and copied in torch first (a

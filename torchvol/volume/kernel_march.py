@@ -103,14 +103,14 @@ def _grid_lanes(ctx, j: int, light: int, s: Tensor, per_ray) -> SimpleNamespace:
     return sun_grids(ctx, ctx.volumes[j], light).lanes(s, per_ray, lanes.floats_of, lanes.ints_of)
 
 
-def _member_inputs(ctx, vol, d: Tensor, s: Tensor, lane, per_ray, behind) -> SimpleNamespace:
-    """What a member's sample takes per ray, for rays of directions `d` [n, 3] and scenes `s` [n],
+def _member_inputs(ctx, vol, direction: list, s: Tensor, per_ray, behind) -> SimpleNamespace:
+    """What a member's sample takes per ray, for rays of `direction` (three lanes) and scenes `s` [n],
     computed by the eager code: σ_t, albedo, what its lights and sky light take (the suns' phase
     responses, `physical.light_responses`; the ambient, `ambient.ambient_lanes`), its emission,
     colour map and bloom, and its sky blend towards the sky `behind` the rays (three lanes)."""
     import drjit as dr
 
-    k = SimpleNamespace(direction=lane(d), sigma_t=per_ray(vol.params.sigma_t), albedo=per_ray(vol.params.albedo))
+    k = SimpleNamespace(direction=direction, sigma_t=per_ray(vol.params.sigma_t), albedo=per_ray(vol.params.albedo))
     inputs, k.phase = vol.phase.caps["lanes"]
     k.phase_params = inputs(vol.params.phase.value, SimpleNamespace(per_lane=per_ray))
     ms = vol.params.multiple_scattering
@@ -182,15 +182,14 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     result = MarchResult.empty(start[0], 3 + (len(vols) if shares else 0))
     if idx.shape[0] == 0:
         return result
-    s, d, lane, per_ray = _ray_lanes(rays, idx)
+    s, row, lane, per_ray = _ray_lanes(rays, idx)
     pieces = held[:, idx]  # [P, n]
     k = SimpleNamespace(
-        origin=lane(rays.origins.index_select(0, idx)), direction=lane(d),
-        dither=None if dither is None else lane(dither.index_select(0, idx)),
-        start=[lane(x.index_select(0, idx)) for x in start], end=[lane(x.index_select(0, idx)) for x in end],
+        origin=row(rays.origins), direction=row(rays.directions), dither=None if dither is None else row(dither),
+        start=[row(x) for x in start], end=[row(x) for x in end],
         present=[Bool(x.cpu().numpy()) for x in pieces],
         active=[[Bool(a.index_select(0, idx).cpu().numpy()) for a in v] for v in active.unbind(1)],
-        air=None if air is None else _air_inputs(air, idx, lane, air_on, active))
+        air=None if air is None else _air_inputs(air, idx, lane, row, air_on, active))
     q0 = _next_piece(k.present, dr.full(Int32, -1, len(idx)))  # the first piece with a medium on each ray
     t0, first = _first_segment(ctx, k, idx, _pick(k.start, q0), start, end, dither, occupied, lane)
     needed = {v.plan.index for v in vols} | {j for v in vols for u in v.plan.lights + (v.plan.ambient_sky,)
@@ -198,8 +197,8 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
     par = _parameters(ctx.settings)
     terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)
-    behind = [0.0] * 3 if background is None else lane(background.index_select(0, idx))
-    members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, d, s, lane, per_ray, behind)),
+    behind = [0.0] * 3 if background is None else row(background)
+    members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, k.direction, s, per_ray, behind)),
                                medium=_medium(m, v, par, solids, terrain, count, k.air)) for v in vols]
     n = len(idx)
     zero = dr.zeros(Float, n)
@@ -227,15 +226,15 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
     result = MarchResult.empty(t0, 3)
     if idx.shape[0] == 0:
         return result
-    s, d, lane, per_ray = _ray_lanes(rays, idx)
+    s, row, lane, per_ray = _ray_lanes(rays, idx)
     start, end = t0.index_select(0, idx), t1.index_select(0, idx)
     span = end - start
     if dither is not None:  # `march.march`'s shader start: dithered by a fraction of a step, or in world units
         start = start + dither.index_select(0, idx) * (st.rule.length(start, span) if st.dither != "sin" else 1.0)
-    behind = torch.zeros_like(d) if background is None else background.index_select(0, idx)
+    behind = [dr.zeros(Float, len(idx)) for _ in range(3)] if background is None else row(background)
     to = SimpleNamespace(per_lane=per_ray)
-    k = SimpleNamespace(origin=lane(rays.origins.index_select(0, idx)), direction=lane(d), t_end=lane(end),
-                        span=lane(span), behind=lane(behind), surface=vol.params.shading == "surface")
+    k = SimpleNamespace(origin=row(rays.origins), direction=row(rays.directions), t_end=row(t1),
+                        span=lane(span), behind=behind, surface=vol.params.shading == "surface")
     k.look = surface_lanes(vol, to) if k.surface else look_lanes(vol, to)
     k.lights = []
     for use in vol.plan.lights:  # the shader look's derivative light: the first light only; the surface look's: every one
@@ -271,22 +270,23 @@ def _first_segment(ctx, k: SimpleNamespace, idx: Tensor, t0, start: Tensor, end:
     return t0, first
 
 
-def _air_inputs(air: AirPath, idx: Tensor, lane, on: Tensor, active: Tensor) -> SimpleNamespace:
-    """The air along the kernel's rays `idx` [n] as lanes: its values (`air_lanes`), the rays'
-    origins in the planet frame, the sun's direction and irradiance; where it is (`on` [P, R]) and
-    alone (no volume of `active` [P, V, R] there), a Bool lane a piece; its optical-depth table,
-    the chunk's tables (`AirPath.tables`, each kernel ray reading its own ray's nodes: `fetch`),
-    their span and count."""
+def _air_inputs(air: AirPath, idx: Tensor, lane, row, on: Tensor, active: Tensor) -> SimpleNamespace:
+    """The air along the kernel's rays `idx` [n] as lanes (`lane`: of a tensor [n]; `row`: of the
+    rows idx of a chunk's tensor, `_ray_lanes`): its values (`air_lanes`), the rays' origins in the
+    planet frame, the sun's direction and irradiance; where it is (`on` [P, R]) and alone (no
+    volume of `active` [P, V, R] there), a Bool lane a piece; its optical-depth table, the chunk's
+    tables (`AirPath.tables`, each kernel ray reading its own ray's nodes: `fetch`), their span and
+    count."""
     from drjit.llvm import Bool
 
     rows = lambda x: x.index_select(0, idx)  # noqa: E731
     bools = lambda x: [Bool(rows(piece).cpu().numpy()) for piece in x]  # noqa: E731
-    nodes, enter = air.nodes, rows(air.enter)
+    enter = rows(air.enter)
     span = (rows(air.leave) - enter).clamp_min(torch.finfo(enter.dtype).tiny)
     return SimpleNamespace(
-        q=air_lanes(rows_of(air.air, idx), lane), origin=lane(rows(air.origins)), sun_dir=lane(rows(air.sun_dir)),
-        sun=lane(rows(air.sun)), on=bools(on), alone=bools(on & ~active.any(dim=1)), enter=lane(enter), span=lane(span),
-        nodes=nodes, light_steps=air.light_steps, fetch=air.fetch(lanes.ints_of(idx)))
+        q=air_lanes(rows_of(air.air, idx), lane), origin=row(air.origins), sun_dir=row(air.sun_dir),
+        sun=row(air.sun), on=bools(on), alone=bools(on & ~active.any(dim=1)), enter=lane(enter), span=lane(span),
+        nodes=air.nodes, light_steps=air.light_steps, fetch=air.fetch(lanes.ints_of(idx)))
 
 
 def _air_sample(a: SimpleNamespace, here, t_sample, direction):
@@ -305,12 +305,13 @@ def _air_sample(a: SimpleNamespace, here, t_sample, direction):
 
 def _ray_lanes(rays, idx: Tensor):
     """Dr.Jit's threads set for a kernel over the chunk's rays `idx` [n]; -> (their scenes [n],
-    directions [n, 3], `lane` (a tensor [n] or [n, C] -> lanes), `per_ray` (per scene -> lanes))."""
+    `row` (a chunk's tensor [R] or [R, C] -> the lanes of its rows idx, `lanes.row_lanes`), `lane`
+    (a tensor [n] or [n, C] -> lanes), `per_ray` (per scene -> lanes))."""
 
     set_drjit_threads()
-    s, d = rays.scene_index.index_select(0, idx), rays.directions.index_select(0, idx)
+    s = rays.scene_index.index_select(0, idx)
     lane = lambda x: lanes.lanes_of(x, lanes.floats_of)  # noqa: E731
-    return s, d, lane, lanes.per_scene_lanes(s)
+    return s, lanes.row_lanes(idx), lane, lanes.per_scene_lanes(s)
 
 
 def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, evals: dict) -> MarchResult:
