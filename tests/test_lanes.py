@@ -104,3 +104,17 @@ def test_a_python_number_keeps_its_precision_in_float64():
 def test_clamp_passes_nan_through_in_both():
     x = torch.tensor([float("nan"), -5.0, 5.0, 0.5])
     assert torch.equal(_back(lanes.clamp(_jit(x), 0.0, 1.0)).isnan(), lanes.clamp(x, 0.0, 1.0).isnan())
+
+
+def test_row_lanes_are_the_selected_rows():
+    """`row_lanes(idx)`: rows gathered in the kernel from a tensor as it lies are the columns of
+    its index_select, bitwise, for [R] and [R, C] tensors, repeated and unordered rows."""
+    g = torch.Generator().manual_seed(5)
+    idx = torch.tensor([7, 0, 3, 3, 11, 2])
+    row = lanes.row_lanes(idx)
+    for x in (torch.randn(12, generator=g), torch.randn(12, 3, generator=g), torch.randn(12, 3, generator=g)[:, 1:]):
+        got = row(x)
+        want = lanes.columns(x.index_select(0, idx))
+        pairs = [(got, want)] if x.ndim == 1 else list(zip(got, want, strict=True))
+        for k, (a, b) in enumerate(pairs):
+            assert torch.equal(_back(a), b), f"column {k} of a {tuple(x.shape)} tensor: {_back(a).tolist()} vs {b.tolist()}"
