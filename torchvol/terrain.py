@@ -188,11 +188,10 @@ def _kernel_lanes(t: Stacked, s: Tensor):
 def _to_torch(values, like: Tensor) -> list[Tensor]:
     """Evaluated Dr.Jit lanes -> torch tensors on `like`'s device."""
     import drjit as dr
-    import numpy as np
 
     dr.eval(*values)
     dr.sync_thread()
-    return [torch.from_numpy(np.array(v)).to(like.device) for v in values]
+    return [lanes.tensor_of(v).to(like.device) for v in values]
 
 
 def trace_kernel(t: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:

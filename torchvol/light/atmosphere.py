@@ -22,7 +22,6 @@ import math
 from dataclasses import dataclass, fields
 from types import SimpleNamespace
 
-import numpy as np
 import torch
 from pydantic import Field, field_validator
 from torch import Tensor
@@ -234,7 +233,7 @@ def single_scatter_kernel(origins: Tensor, directions: Tensor, t0: Tensor, t1: T
                                         cols(sun_dir), air_lanes(air, lanes.floats_of), steps=steps,
                                         light_steps=light_steps)
     dr.eval(inscatter)
-    return torch.stack([torch.from_numpy(np.array(x)) for x in inscatter], dim=1).to(origins)
+    return torch.stack([lanes.tensor_of(x) for x in inscatter], dim=1).to(origins)
 
 
 def _segments(mask: Tensor, origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, sun_dir: Tensor, air: Air,

@@ -16,7 +16,6 @@ import math
 import weakref
 from collections.abc import Callable, Sequence
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -147,7 +146,7 @@ def _unit_kernel(cells: list, seed: int) -> Tensor:
 
     unit = lanes.to_float((hash3_lanes(*(Int32(c) for c in cells), seed) >> 8) & 0xFFFFFF, 0.0) * 2.0**-24
     dr.eval(unit)
-    return torch.from_numpy(np.array(unit))
+    return lanes.tensor_of(unit)
 
 
 @functools.lru_cache(maxsize=64)

@@ -242,6 +242,12 @@ def floats_of(t: torch.Tensor):
     return Float(t.detach().to(torch.float32).contiguous().cpu().numpy())
 
 
+def tensor_of(x) -> torch.Tensor:
+    """Dr.Jit lanes (evaluated: a kernel's output) as a CPU tensor [n] of their type, sharing their
+    memory (DLPack: no copy; `floats_of`'s inverse)."""
+    return torch.from_dlpack(x)
+
+
 def ints_of(t: torch.Tensor):
     """A torch integer (or bool) tensor [n] as Dr.Jit int32 lanes (a copy, on the CPU)."""
     from drjit.llvm import Int32

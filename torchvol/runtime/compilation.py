@@ -73,19 +73,19 @@ def traced_columns(fn, like: torch.Tensor, widths: tuple[int, ...] | None = None
     import drjit as dr
     from drjit.llvm import Array3f
 
-    from ..ops.lanes import floats_of
+    from ..ops.lanes import floats_of, tensor_of
     from .threads import set_drjit_threads
 
     set_drjit_threads()
-    lanes, out, k = fn(floats_of), [], 0
-    widths = (1,) * len(lanes) if widths is None else widths
+    values, out, k = fn(floats_of), [], 0
+    widths = (1,) * len(values) if widths is None else widths
     for w in widths:
         if w not in (1, 3):
             raise ValueError(f"traced_columns: a group of {w} lanes; groups are 1 or 3 wide")
-        out.append(lanes[k] if w == 1 else dr.ravel(Array3f(*lanes[k:k + 3])))
+        out.append(values[k] if w == 1 else dr.ravel(Array3f(*values[k:k + 3])))
         k += w
     dr.eval(out)
-    tensors = [torch.from_numpy(np.array(x)).to(like) for x in out]
+    tensors = [tensor_of(x).to(like) for x in out]
     return [t if w == 1 else t.view(-1, 3) for t, w in zip(tensors, widths)]
 
 

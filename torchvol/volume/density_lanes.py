@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from types import SimpleNamespace
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -98,7 +97,7 @@ def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
         out = density(p, None)
         dr.eval(out)
         dr.sync_thread()
-        return torch.from_numpy(np.array(out))
+        return lanes.tensor_of(out)
 
     return run
 

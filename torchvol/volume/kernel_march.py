@@ -319,8 +319,8 @@ def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, 
     transmittance, weight sums, median and steps; `truncated`: truncations a ray, or whether;
     `radiance` its channels), its steps, truncations and each volume's evaluations (`evals`, by
     index in `ctx.volumes`) counted in the render's stats. -> `result`."""
-    trans, wsum, wt, median, steps = (torch.from_numpy(np.array(v)) for v in state)
-    truncated = torch.from_numpy(np.array(truncated)).long()
+    trans, wsum, wt, median, steps = (lanes.tensor_of(v) for v in state)
+    truncated = lanes.tensor_of(truncated).long()
     full = idx.shape[0] == result.steps.shape[0]  # every ray of the chunk: idx is 0..n−1, the rows as they lie
 
     def put(target: Tensor, value: Tensor) -> None:  # (copy_ and index_copy_ into a column: no stacked copy)
@@ -330,14 +330,14 @@ def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, 
             target.index_copy_(0, idx, value.to(target.dtype))
 
     for c, r in enumerate(radiance):
-        put(result.radiance[:, c], torch.from_numpy(np.array(r)))
+        put(result.radiance[:, c], lanes.tensor_of(r))
     for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
                         ("steps", steps), ("truncated", truncated > 0)):
         put(getattr(result, name), value)
     ctx.counts.march_steps += int(steps.long().sum())
     ctx.counts.truncated_rays += int(truncated.sum())
     for j, e in evals.items():
-        count = int(torch.from_numpy(np.array(e)).long().sum())
+        count = int(lanes.tensor_of(e).long().sum())
         ctx.counts.density_evals += count
         ctx.volumes[j].field.evals += count
     return result
@@ -608,7 +608,7 @@ def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tenso
         count = int(np.array(e).astype(np.int64).sum())
         ctx.counts.density_evals += count
         ctx.volumes[j].field.evals += count
-    return torch.from_numpy(np.array(through)).to(p.dtype)
+    return lanes.tensor_of(through).to(p.dtype)
 
 
 def _pick(values: list, q):

@@ -57,7 +57,7 @@ def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int, channel: Tens
         n = int(np.array(evals).astype(np.int64).sum())
         state.field.counts.density_evals += n
         state.field.evals += n
-    out = [torch.from_numpy(np.array(x)).to(rays.origins.device) for x in res[:13]]
+    out = [lanes.tensor_of(x).to(rays.origins.device) for x in res[:13]]
     return [torch.stack(out[0:3], 1), torch.stack(out[3:6], 1), torch.stack(out[6:9], 1), out[9], out[10], out[11], out[12]]
 
 

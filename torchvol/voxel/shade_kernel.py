@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -49,7 +48,7 @@ def ao_kernel(table, base: Tensor, strides: Tensor, lo: Tensor, hi: Tensor, cell
                   floats(uv[:, 0]), floats(uv[:, 1]), floats(gamma))
     dr.eval(ao)
     dr.sync_thread()
-    return torch.from_numpy(np.array(ao)).to(uv)
+    return lanes.tensor_of(ao).to(uv)
 
 
 def mips_lanes(table: Tensor, offsets: list[int], sizes: list[int]) -> SimpleNamespace:
@@ -88,5 +87,5 @@ def cones_kernel(mips: SimpleNamespace, origin: Tensor, direction: Tensor, s: Te
     out = dr.while_loop(state, lambda *x: x[5] & (x[6] < limit), body, mode="symbolic")
     dr.eval(out)
     dr.sync_thread()
-    colour = torch.stack([torch.from_numpy(np.array(c)) for c in out[2:5]], 1).to(origin)
-    return colour, torch.from_numpy(np.array(out[1])).to(origin)
+    colour = torch.stack([lanes.tensor_of(c) for c in out[2:5]], 1).to(origin)
+    return colour, lanes.tensor_of(out[1]).to(origin)

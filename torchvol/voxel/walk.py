@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -173,7 +172,7 @@ def _hit_lanes(result: tuple, ok, t0, axis0) -> tuple:
 
 def _hits(out: tuple, fog: FogWalk | None, glow: GlowWalk | None, device) -> Hits:
     """The `Hits` [R] of `_hit_lanes` (evaluated), and the fog's τ in `fog`, the glow's sum in `glow`."""
-    hit, cell, axis, t, material, n, t_exit, *sums = (torch.from_numpy(np.array(v)).to(device) for v in out)
+    hit, cell, axis, t, material, n, t_exit, *sums = (lanes.tensor_of(v).to(device) for v in out)
     if fog is not None:
         fog.tau = sums[0]
     if glow is not None:
@@ -201,7 +200,7 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
         return tuple(new)
 
     dr.eval(dr.while_loop(state, lambda *x: x[6], marking, mode="symbolic"), seen)
-    unique = torch.from_numpy(np.array(seen)).nonzero().squeeze(1)
+    unique = lanes.tensor_of(seen).nonzero().squeeze(1)
     light = torch.zeros(3, cells, dtype=torch.float32)  # channel-major: each channel's row a table as it is
     light.index_copy_(1, unique, fog.irradiance(unique.to(like.device)).to(torch.float32).cpu().T)
     light = [Float(row.numpy()) for row in light]
@@ -219,7 +218,7 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
     result = dr.while_loop(state + tuple(dr.zeros(Float, dr.width(state[0])) for _ in range(3)), lambda *x: x[6],
                            summing, mode="symbolic")
     dr.eval(result)
-    fog.light = torch.stack([torch.from_numpy(np.array(v)) for v in result[-3:]], 1).to(like)
+    fog.light = torch.stack([lanes.tensor_of(v) for v in result[-3:]], 1).to(like)
     return result[:-3]
 
 

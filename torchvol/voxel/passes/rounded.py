@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -55,7 +54,7 @@ class RoundedVoxels:
 
             dr.eval(out)
             dr.sync_thread()
-            out = [torch.from_numpy(np.array(v)).to(o.device) for v in out]
+            out = [lanes.tensor_of(v).to(o.device) for v in out]
         found, t, axis, material, cx, cy, cz, nx, ny, nz, extra = out
         kept = found.nonzero().squeeze(1)
         good = take_rows(ids, kept)
