@@ -118,3 +118,17 @@ def test_row_lanes_are_the_selected_rows():
         pairs = [(got, want)] if x.ndim == 1 else list(zip(got, want, strict=True))
         for k, (a, b) in enumerate(pairs):
             assert torch.equal(_back(a), b), f"column {k} of a {tuple(x.shape)} tensor: {_back(a).tolist()} vs {b.tolist()}"
+
+
+def test_gather_pair_reads_both_values_of_a_pair_bitwise():
+    """`gather_pair` on a `pairs_of` table in a kernel (one 64-bit word a pair) gives the two
+    columns torch's index_select gives, bitwise: signed zeros, infinities, denormals and a NaN's
+    payload included (a word split at the wrong half or sign-extended would not)."""
+    table = torch.tensor([[1.5, -0.0], [float("inf"), -3e-45], [float("-inf"), 7.0], [2.0**-149, -2.5]])
+    table = torch.cat([table, torch.tensor([[0.0, 0.0]]).view(torch.int32).add(0x7FC00123).view(torch.float32)])
+    idx = torch.tensor([4, 0, 3, 3, 1, 2], dtype=torch.int32)
+    eager = lanes.gather_pair(table, idx)
+    kernel = lanes.gather_pair(lanes.pairs_of(table), _jit(idx))
+    for k in range(2):
+        got, want = _back(kernel[k]).view(torch.int32), eager[k].contiguous().view(torch.int32)
+        assert torch.equal(got, want), f"value {k} of each pair: bits {got.tolist()} vs {want.tolist()}"

@@ -129,7 +129,7 @@ def test_the_lookup_is_grid_samples_bicubic(dtype):
     q = torch.minimum(q.clamp_min(0.0), q.new_tensor([n - 1.0, n - 1.0, grid.planes - 1.0]))
     plane = torch.ceil(q[:, 2])
     # the planes side by side, each with a replicated border (what the border rule reads past an edge)
-    planes = grid.atlas.reshape(2, n, grid.planes, n).permute(2, 0, 1, 3)
+    planes = grid.atlas.reshape(n, grid.planes, n, 2).permute(1, 3, 0, 2)  # (v, plane, u, channel) -> (plane, channel, v, u)
     atlas = torch.nn.functional.pad(planes, (pad,) * 4, mode="replicate").permute(1, 2, 0, 3).reshape(1, 2, n + 2 * pad, -1)
     x, y = q[:, 0] + pad + plane * (n + 2 * pad), q[:, 1] + pad
     coords = torch.stack([x / (atlas.shape[-1] - 1), y / (atlas.shape[-2] - 1)], dim=1).reshape(1, 1, -1, 2) * 2.0 - 1.0

@@ -109,7 +109,7 @@ def sun_grid_kernel(vol, layouts: list[GridLayout]) -> Tensor:
     `simpson` in float64 (as torch's cumsum sums float32), each stored plane written straight into
     the atlas. -> (the atlases one after the other [B·2·n·planes·n], the nodes evaluated)."""
     import drjit as dr
-    from drjit.llvm import Float, Float64, Int32
+    from drjit.llvm import Float, Float64, Int32, UInt32, UInt64
 
     set_drjit_threads()
     n, planes, batch = layouts[0].n, layouts[0].planes, len(layouts)
@@ -123,9 +123,10 @@ def sun_grid_kernel(vol, layouts: list[GridLayout]) -> Tensor:
     stop = first + lanes.ints_of(torch.cat([g.count for g in layouts]))
     column = dr.arange(Int32, batch * n * n)
     channel = n * planes * n
-    # (channel, v, plane, u) of each scene: the column's u and v, its plane added as it is written
-    at = (column // (n * n)) * (2 * channel) + ((column // n) % n) * (planes * n) + column % n
-    atlas = dr.zeros(Float, batch * 2 * channel)
+    # (v, plane, u) of each scene's (τ, σ_t) pairs, each one 64-bit word (τ in its low half): the
+    # column's u and v, its plane added as it is written, one scatter a node
+    at = (column // (n * n)) * channel + ((column // n) % n) * (planes * n) + column % n
+    atlas = dr.zeros(UInt64, batch * channel)
 
     def sigma(k):
         """σ_t at sub-plane `k` (an Int32 lane) of each column, 0 outside the medium."""
@@ -135,8 +136,8 @@ def sun_grid_kernel(vol, layouts: list[GridLayout]) -> Tensor:
                           lambda: dr.zeros(Float, dr.width(kf)))
 
     def write(plane, tau, sig):
-        dr.scatter(atlas, Float(tau), at + plane * n)
-        dr.scatter(atlas, sig, at + plane * n + channel)
+        bits = lambda x: UInt64(dr.reinterpret_array(UInt32, x))  # noqa: E731
+        dr.scatter(atlas, bits(Float(tau)) | (bits(sig) << 32), at + plane * n)
 
     top = dr.full(Int32, planes - 1, dr.width(column))
     hi = sigma(2 * top)
@@ -151,7 +152,7 @@ def sun_grid_kernel(vol, layouts: list[GridLayout]) -> Tensor:
     dr.while_loop((top, dr.zeros(Float64, dr.width(hi)), hi), lambda plane, *_: plane > 0, step, mode="symbolic")
     dr.eval(atlas)
     dr.sync_thread()
-    return atlas.torch(), int(sum(int(g.count.sum()) for g in layouts))
+    return lanes.tensor_of(atlas).view(torch.float32), int(sum(int(g.count.sum()) for g in layouts))
 
 
 def writes_in_lanes(vol) -> bool:

@@ -100,7 +100,7 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
 def _grid_lanes(ctx, j: int, light: int, s: Tensor, per_ray) -> SimpleNamespace:
     """Volume `j`'s sun grids towards `light` (`shadow.sun_grids`) as `grid_transmittance` takes
     them for lanes of scenes `s` [n]."""
-    return sun_grids(ctx, ctx.volumes[j], light).lanes(s, per_ray, lanes.floats_of, lanes.ints_of)
+    return sun_grids(ctx, ctx.volumes[j], light).lanes(s, per_ray, lanes.pairs_of, lanes.ints_of)
 
 
 def _member_inputs(ctx, vol, direction: list, s: Tensor, per_ray, behind) -> SimpleNamespace:

@@ -59,7 +59,8 @@ class GridLayout:
 class SunGrid:
     """Optical depth to the sun, a table per scene of a batch (B scenes): `atlas`
     [B·2·n·planes·n] holds, per scene, τ (channel 0) and σ_t (channel 1) on `planes` stored planes
-    of n × n nodes, w towards the sun, laid (channel, v, plane, u). A world point p of scene b
+    of n × n nodes, w towards the sun, laid (v, plane, u, channel): a node's two values side by
+    side, read together by one 64-bit gather in a kernel (`lanes.gather_pair`). A world point p of scene b
     maps to q = p @ `to_atlas`[b] + `offset`[b] (to_atlas (B, 3, 3), offset (B, 3)), clamped to
     [0, (n − 1, n − 1, planes − 1)]: u and v in texels of a plane, w in planes; the planes are
     `plane_gap` [B] apart in the world."""
@@ -78,17 +79,17 @@ class SunGrid:
         per_lane = lambda x: take(x, s) if x.ndim == 1 else list(take(x, s).unbind(1))  # noqa: E731
         return grid_transmittance(self.lanes(s, per_lane, lambda t: t, lambda t: t), list(points.unbind(1)), sigma_t)
 
-    def lanes(self, s: Tensor, per_lane, table, ints) -> SimpleNamespace:
+    def lanes(self, s: Tensor, per_lane, pairs, ints) -> SimpleNamespace:
         """What `grid_transmittance` takes for lanes of scenes `s` [n]: `per_lane` (per scene [B]
-        or [B, C] -> a lane or C lanes), `table` (a flat tensor -> the lanes' table type), `ints`
-        (an int32 tensor [n] -> an int lane)."""
+        or [B, C] -> a lane or C lanes), `pairs` (the atlas's (τ, σ_t) pairs [B·n·planes·n, 2] ->
+        the table `lanes.gather_pair` reads: themselves eagerly, `lanes.pairs_of` in a kernel),
+        `ints` (an int32 tensor [n] -> an int lane)."""
         rows = per_lane(self.to_atlas.reshape(-1, 9))
-        channel = self.n * self.planes * self.n
         return SimpleNamespace(
             to_atlas=[rows[3 * r:3 * r + 3] for r in range(3)], offset=per_lane(self.offset),
             high=[float(self.n - 1), float(self.n - 1), float(self.planes - 1)], plane_gap=per_lane(self.plane_gap),
-            atlas=table(self.atlas), base=ints((s * 2 * channel).to(torch.int32)), n=self.n, row=self.planes * self.n,
-            channel=channel)
+            pairs=pairs(self.atlas.view(-1, 2)), base=ints((s * (self.n * self.planes * self.n)).to(torch.int32)),
+            n=self.n, row=self.planes * self.n)
 
 
 def _cubic(t) -> list:
@@ -117,11 +118,9 @@ def grid_transmittance(g: SimpleNamespace, p: list, sigma_t):
     tau = feet = 0.0
     for j in range(4):
         row = lanes.minimum(lanes.maximum(y0 + (j - 1), 0), g.n - 1) * g.row
-        taps = [row + c for c in cols]
-        tau = tau + wy[j] * sum((wx[i] * lanes.gather(g.atlas, taps[i]) for i in range(1, 4)),
-                                wx[0] * lanes.gather(g.atlas, taps[0]))
-        feet = feet + wy[j] * sum((wx[i] * lanes.gather(g.atlas, taps[i] + g.channel) for i in range(1, 4)),
-                                  wx[0] * lanes.gather(g.atlas, taps[0] + g.channel))
+        taps = [lanes.gather_pair(g.pairs, row + c) for c in cols]  # (τ, σ_t) of each tap
+        tau = tau + wy[j] * sum((wx[i] * taps[i][0] for i in range(1, 4)), wx[0] * taps[0][0])
+        feet = feet + wy[j] * sum((wx[i] * taps[i][1] for i in range(1, 4)), wx[0] * taps[0][1])
     # bicubic weights are negative in places: an overshoot below 0 would mean T > 1
     tau = lanes.clamp_min(tau, 0.0) + 0.5 * gap * (sigma_t + lanes.clamp_min(feet, 0.0))
     return lanes.exp(-tau)
@@ -191,7 +190,7 @@ def grid_atlas(extinction: Callable[[Tensor], Tensor], layout: GridLayout) -> Te
         sigma[k, column] = torch.cat([extinction(nodes[i:i + NODE_CHUNK]) for i in range(0, nodes.shape[0], NODE_CHUNK)])
     pairs = simpson(sigma[0:-1:2], sigma[1::2], sigma[2::2], g.spacing)
     tau = torch.cat([torch.flip(torch.cumsum(torch.flip(pairs, [0]), 0), [0]), torch.zeros_like(sigma[:1])])
-    return torch.stack([tau, sigma[::2]]).reshape(2, g.planes, n, n).permute(0, 2, 1, 3).reshape(-1)
+    return torch.stack([tau, sigma[::2]]).reshape(2, g.planes, n, n).permute(2, 1, 3, 0).reshape(-1)  # (v, plane, u, channel)
 
 
 def sun_grid(layouts: list[GridLayout], atlas: Tensor) -> SunGrid:
