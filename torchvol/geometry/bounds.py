@@ -14,7 +14,7 @@ from pydantic import Field, model_validator
 from torch import Tensor
 
 from ..ops import lanes
-from ..runtime.compilation import traced, vector_lanes
+from ..runtime.compilation import traced
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3
 from ..schema.registry import Registry
@@ -174,7 +174,7 @@ def intersect_kernel(kind, b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple
     and a shell's ends within a few ulps of eager's (4 in tests/test_rays.py), a box's and a slab's
     bitwise."""
     per_lane = lanes.per_scene_lanes(s)
-    near, far = traced(lambda lane: kind.lanes[0](bounds_lanes(b, per_lane), vector_lanes(o), vector_lanes(d)), o)
+    near, far = traced(lambda lane: kind.lanes[0](bounds_lanes(b, per_lane), lanes.vector_lanes(o), lanes.vector_lanes(d)), o)
     return near, far
 
 

@@ -446,13 +446,9 @@ class Camera:
             else:
                 off = dr.gather(Array2f, floats_of(self.subpixel_offsets(spp).reshape(-1)), sample)
             px, py = Float(col) + off[0], Float(row) + off[1]
-            K, R = self.K.reshape(-1, 9), self.rotation.reshape(-1, 9)
-            if K.shape[0] == 1:  # one camera: its values as the kernel's parameters, no gathers
-                k = [dr.opaque(Float, float(K[0, j])) for j in (0, 1, 2, 4, 5)]
-                r = [dr.opaque(Float, float(R[0, j])) for j in range(9)]
-            else:
-                k = [dr.gather(Float, floats_of(K[:, j]), b) for j in (0, 1, 2, 4, 5)]
-                r = [dr.gather(Float, floats_of(R[:, j]), b) for j in range(9)]
+            K, R = self.K.reshape(-1, 9), self.rotation.reshape(-1, 9)  # each lane's camera gathered by its scene
+            k = [dr.gather(Float, floats_of(K[:, j]), b) for j in (0, 1, 2, 4, 5)]
+            r = [dr.gather(Float, floats_of(R[:, j]), b) for j in range(9)]
             return camera_ray(px, py, k, r)
 
         return traced_columns(kernel, self.K, (3, 1))

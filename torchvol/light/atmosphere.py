@@ -29,7 +29,7 @@ from torch import Tensor
 from ..geometry.rays import sphere_interval
 from ..ops import lanes
 from ..ops.mathops import take_rows
-from ..runtime.compilation import traced, traced_vectors, vector_lanes
+from ..runtime.compilation import traced, traced_vectors
 from ..runtime.threads import set_drjit_threads
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
@@ -280,7 +280,7 @@ def shell_span(origins: Tensor, directions: Tensor, air: Air, *, kernel: bool = 
     ground [n]: the distance to the planet's surface, inf where the ray does not reach it).
     `kernel`: as one Dr.Jit kernel (its sqrt correctly rounded: within an ulp of eager's)."""
     if kernel:
-        return tuple(traced(lambda lane: shell_span_lanes(vector_lanes(origins), vector_lanes(directions),
+        return tuple(traced(lambda lane: shell_span_lanes(lanes.vector_lanes(origins), lanes.vector_lanes(directions),
                                                           lane(air.planet_radius), lane(air.top_radius)), origins))
     return shell_span_lanes(origins.unbind(1), directions.unbind(1), air.planet_radius, air.top_radius)
 
@@ -302,7 +302,7 @@ def sun_transmittance(points: Tensor, sun_dir: Tensor, air: Air, light_steps: in
     """`sun_transmittance_lanes` of `points`, `sun_dir` [n, 3] (planet frame; unit) -> [n, 3];
     `kernel`: as one Dr.Jit kernel (float32 on the CPU), else eagerly."""
     if kernel:
-        return traced_vectors(lambda lane: sun_transmittance_lanes(vector_lanes(points), vector_lanes(sun_dir),
+        return traced_vectors(lambda lane: sun_transmittance_lanes(lanes.vector_lanes(points), lanes.vector_lanes(sun_dir),
                                                                    air_lanes(air, lane), light_steps), points)
     return _columns(sun_transmittance_lanes(points.unbind(1), sun_dir.unbind(1), air_lanes(air), light_steps))
 

@@ -15,7 +15,7 @@ from torch import Tensor
 from ..geometry.rays import intersect_sphere
 from ..ops import lanes
 from ..ops.mathops import pow_
-from ..runtime.compilation import traced_vectors, vector_lanes
+from ..runtime.compilation import traced_vectors
 from ..schema.batch import Stacked, take
 from ..schema.models import Strict, Vec3, nonneg
 from ..schema.registry import Registry
@@ -136,7 +136,7 @@ def sky_kernel(kind, sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor | 
     per_lane = lanes.per_scene_lanes(s)
 
     def radiance(lane):
-        d = vector_lanes(directions)
+        d = lanes.vector_lanes(directions)
         base = kind.lanes(sky, per_lane, d)
         if sun is None:
             return base

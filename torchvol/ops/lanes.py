@@ -265,6 +265,16 @@ def lanes_of(value: torch.Tensor, gather):
     return gather(value) if value.ndim == 1 else [gather(value[:, c]) for c in range(value.shape[1])]
 
 
+def vector_lanes(t: torch.Tensor) -> list:
+    """Vectors [n, 3] as three Dr.Jit float32 lanes read from their rows as they lie (unravelled in
+    the kernel: no column copied out in torch, ~45 µs each at 65 k)."""
+    import drjit as dr
+    from drjit.llvm import Array3f
+
+    v = dr.unravel(Array3f, floats_of(t.reshape(-1)))
+    return [v[0], v[1], v[2]]
+
+
 def row_lanes(idx: torch.Tensor):
     """A kernel's reader of rows `idx` [n] of per-ray tensors: of(x), x [R] or [R, C] float, -> a
     lane, or a list of C, of its rows idx gathered in the kernel from x as it lies (one copy into
@@ -311,7 +321,7 @@ def pairs_of(t: torch.Tensor):
     word (Dr.Jit UInt64 lanes, the first value in its low half)."""
     from drjit.llvm import UInt64
 
-    return UInt64(t.detach().to(torch.float32).contiguous().cpu().view(torch.int64).reshape(-1).numpy().view("uint64"))
+    return UInt64(t.detach().to(torch.float32).contiguous().cpu().view(torch.uint64).reshape(-1).numpy())
 
 
 def gather_pair(table, index) -> tuple:

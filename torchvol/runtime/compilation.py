@@ -23,7 +23,7 @@ import torch
 
 from ..schema.validate import fail
 
-__all__ = ["CompileMode", "compile_mode", "drjit_available", "traced", "traced_columns", "traced_vectors", "vector_lanes"]
+__all__ = ["CompileMode", "compile_mode", "drjit_available", "traced", "traced_columns", "traced_vectors"]
 
 CompileMode = Literal["kernels", "off"]
 MODES = ("kernels", "off")
@@ -45,18 +45,6 @@ def traced(fn, like: torch.Tensor) -> list[torch.Tensor]:
     """`fn(lane)` run as one Dr.Jit kernel (`lane`: a tensor [n] -> Dr.Jit float32 lanes; `fn`
     written in lanes, `ops.lanes`): its list of lanes back as tensors [n] of `like`'s dtype and device."""
     return traced_columns(fn, like)
-
-
-def vector_lanes(t: torch.Tensor) -> list:
-    """Vectors [n, 3] as three Dr.Jit float32 lanes read from their rows as they lie (unravelled in
-    the kernel: no column copied out in torch, ~45 µs each at 65 k)."""
-    import drjit as dr
-    from drjit.llvm import Array3f
-
-    from ..ops.lanes import floats_of
-
-    v = dr.unravel(Array3f, floats_of(t.reshape(-1)))
-    return [v[0], v[1], v[2]]
 
 
 def traced_vectors(fn, like: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ..ops import lanes
-from ..runtime.compilation import traced_vectors, vector_lanes
+from ..runtime.compilation import traced_vectors
 
 ALPHA_MIN = 2e-3  # roughness 0: alpha² = 4e-6 keeps D finite in float32 (peak 1/(π α²) ≈ 8e4)
 COS_MIN = 1e-4  # grazing: n·v, n·l floor (Filament's choice) keeps the visibility term finite
@@ -82,7 +82,7 @@ def ggx_reflect(normal: Tensor, view: Tensor, light_dir: Tensor, albedo: Tensor,
     `kernel`: `reflectance_lanes` as one Dr.Jit kernel (float32 on the CPU; its ~90 ops one pass
     over the hits, not ninety; its sqrt correctly rounded, torch's float32 one not)."""
     if kernel:
-        return traced_vectors(lambda lane: reflectance_lanes(*(vector_lanes(x) for x in (normal, view, light_dir, albedo)),
+        return traced_vectors(lambda lane: reflectance_lanes(*(lanes.vector_lanes(x) for x in (normal, view, light_dir, albedo)),
                                                              lane(roughness), lane(metallic)), normal)
     col = lambda x: list(x.unbind(-1))  # noqa: E731
     return torch.stack(reflectance_lanes(col(normal), col(view), col(light_dir), col(albedo), roughness, metallic), dim=-1)

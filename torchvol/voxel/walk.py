@@ -24,7 +24,6 @@ from ..noise import lattice as noise
 from ..noise.lattice import hash3_lanes
 from ..ops import lanes
 from ..ops.mathops import take_rows
-from ..runtime.compilation import vector_lanes
 from ..runtime.threads import set_drjit_threads
 from ..schema.batch import Stacked
 from .dda import Hits, jump_lanes, next_cell_lanes, start, start_lanes
@@ -121,7 +120,7 @@ def drjit_traverse(origins: Tensor, directions: Tensor, table: Tensor, base: Ten
     set_drjit_threads()
     floats = lanes.floats_of
     lo_l, hi_l, base_l = cell_ranges(lo, hi, base, scene, R, origins.device)
-    r = SimpleNamespace(o=vector_lanes(origins), d=vector_lanes(directions),
+    r = SimpleNamespace(o=lanes.vector_lanes(origins), d=lanes.vector_lanes(directions),
                         lo=lo_l, hi=hi_l, base=base_l, t_max=None if t_max is None else floats(t_max), fog_row=None)
     g = SimpleNamespace(table=int_table(table), distance=None if distance is None else int_table(distance), fog=None,
                         glow=None if glow is None else floats(glow.table), y=int(strides[0]), x=int(strides[1]),
