@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from contextlib import nullcontext
+from functools import partial
 from types import SimpleNamespace
 from typing import Annotated, Callable, Literal, Sequence
 
@@ -260,15 +261,32 @@ def path_surface(t: Stacked, s: Tensor, per_lane, like: Tensor, *, kernel: bool)
                            reflect=lambert_reflect(1.0), bounce=lambert_bounce)
 
 
+def _colour(look: SimpleNamespace, n: list, ambient: list, sky, lights: list) -> list:
+    """A hit's colour (three lanes): `look`'s albedo at the unit normal `n` (three lanes) times its
+    light: `ambient` (three lanes) times the sky's visibility `sky` (a lane; None: 1) plus each
+    light's irradiance times n·l times what its shadow lets through (`lights`: (direction,
+    irradiance, visible(lit) -> lit × visibility), the vectors three lanes each). The eager
+    shading's and the kernel's one source."""
+    light = ambient if sky is None else [a * sky for a in ambient]
+    for direction, irradiance, visible in lights:
+        lit = visible(lanes.clamp_min(lanes.dot3(n, direction), 0.0))
+        light = [a + e * lit for a, e in zip(light, irradiance)]
+    return [a * b for a, b in zip(look.albedo(n), light)]
+
+
 class TerrainSurface:
     """One batch's terrain (`params`: the batch's `Stacked` terrain) lit by `lights`; `plan` the
     batch's `TerrainPass`; `aovs` the AOV names to output; `transmittance(use, p, s, direction,
     distance, times=None) -> [n]` `times` × what a shadow ray of LightPass `use` sees (volumes and
-    terrain), traced only where `times` > 0."""
+    terrain), traced only where `times` > 0; `kernels`: the tracing and shading as Dr.Jit kernels,
+    the shadow and sky rays inside the shading's where `occluder_lanes(use, s)` gives their lanes
+    (`volume.kernel_march.occluder_lanes`; None: they take `transmittance`)."""
 
     def __init__(self, params: Stacked, lights: Sequence, plan, aovs: Sequence[str],
-                 transmittance: Callable[..., Tensor], kernels: bool = False):
+                 transmittance: Callable[..., Tensor], kernels: bool = False,
+                 occluder_lanes: Callable[..., SimpleNamespace | None] | None = None):
         self.p, self.lights, self.plan, self.transmittance, self.kernels = params, list(lights), plan, transmittance, kernels
+        self.occluder_lanes = occluder_lanes
         self.aov_names = [a for a in aovs if a in TERRAIN_AOVS]
 
     def visibility(self, p: Tensor, direction: Tensor, s: Tensor, distance: Tensor) -> Tensor:
@@ -294,29 +312,93 @@ class TerrainSurface:
             sh, th = at(s), at(t)
             with section("terrain.shade"):
                 x = at(o) + th[:, None] * at(d)
-                nrm = normal_kernel(p, x, sh) if self.kernels else normal(p, x, sh)
-                look = _look(p, lambda v: lanes.columns(take(v, sh)))
-                albedo = torch.stack(look.albedo(nrm.unbind(1)), dim=1)
-                light = take(p.ambient, sh)
-                start = torch.stack(look.lift(x.unbind(1), nrm.unbind(1), th), dim=1)
-            if self.plan.sky is not None:  # the sky light's visibility: straight up through the volumes
-                with section(self.plan.sky.name):
-                    up = torch.zeros_like(start)
-                    up[:, 1] = 1.0
-                    light = light * self.transmittance(self.plan.sky, start, sh, up, torch.full_like(th, torch.inf))[:, None]
-            shadows = {use.light: use for use in self.plan.shadows}
-            for l, source in enumerate(self.lights):
-                toward = source.toward(x, sh)
-                lit = (nrm * toward.direction).sum(dim=1).clamp_min(0.0)
-                if l in shadows:
-                    use = shadows[l]
-                    with section(use.name):
-                        lit = self.transmittance(use, start, sh, toward.direction, toward.distance, lit)
-                light = light + toward.irradiance * lit[:, None]
-            color.index_copy_(0, ids, albedo * light)
+                inside = self._kernel_occluders(sh)
+                shade = self._shade if inside is None else partial(self._shade_kernel, inside=inside)
+                rgb, nrm = shade(x, th, sh, section)
+            color.index_copy_(0, ids, rgb)
             for k in self.aov_names:
                 aovs[k].index_copy_(0, ids, nrm)
         return SurfaceHit(hit=hit, t=torch.where(hit, t, torch.full_like(t, torch.inf)), color=color, aovs=aovs)
+
+    def _uses(self) -> dict:
+        """The sky's visibility ray (key None) and each shadowed light's shadow ray (key: its
+        index): their LightPasses."""
+        return {**({None: self.plan.sky} if self.plan.sky is not None else {}),
+                **{use.light: use for use in self.plan.shadows}}
+
+    def _kernel_occluders(self, sh: Tensor) -> dict | None:
+        """Each of `_uses`' occluder lanes for hits of scenes `sh` [m], or None: shading eagerly
+        (no kernels, or one of them cannot be seen from a kernel)."""
+        if not self.kernels or self.occluder_lanes is None:
+            return None
+        inside = {}
+        for key, use in self._uses().items():
+            inside[key] = self.occluder_lanes(use, sh)
+            if inside[key] is None:
+                return None
+        return inside
+
+    def _shade(self, x: Tensor, th: Tensor, sh: Tensor, section) -> tuple[Tensor, Tensor]:
+        """(colour, normal) [m, 3] of hits x [m, 3] at distances th [m] of scenes sh [m]: `_colour`
+        on torch columns, the sky and shadow rays through `transmittance`, each its own pass."""
+        p, uses = self.p, self._uses()
+        nrm = normal_kernel(p, x, sh) if self.kernels else normal(p, x, sh)
+        look = _look(p, lambda v: lanes.columns(take(v, sh)))
+        start = torch.stack(look.lift(x.unbind(1), nrm.unbind(1), th), dim=1)
+        sky = None
+        if None in uses:  # the sky light's visibility: straight up through the volumes
+            with section(uses[None].name):
+                up = torch.zeros_like(start)
+                up[:, 1] = 1.0
+                sky = self.transmittance(uses[None], start, sh, up, torch.full_like(th, torch.inf))
+        lights = []
+        for l, source in enumerate(self.lights):
+            toward = source.toward(x, sh)
+            visible = lambda lit: lit  # noqa: E731
+            if l in uses:
+                def visible(lit, use=uses[l], toward=toward):
+                    with section(use.name):
+                        return self.transmittance(use, start, sh, toward.direction, toward.distance, lit)
+            lights.append((toward.direction.unbind(1), toward.irradiance.unbind(1), visible))
+        return torch.stack(_colour(look, nrm.unbind(1), lanes.columns(take(p.ambient, sh)), sky, lights), dim=1), nrm
+
+    def _shade_kernel(self, x: Tensor, th: Tensor, sh: Tensor, section, *, inside: dict) -> tuple[Tensor, Tensor]:
+        """`_shade` as one Dr.Jit kernel: the normal, look, the sky's and each light's rays
+        (`inside`: their occluder lanes, by `_uses`' key) and `_colour`; their passes listed in
+        `stats`, their time the shading's. A shadow ray is traced only where n·l > 0, as eager's."""
+        import drjit as dr
+
+        p, uses = self.p, self._uses()
+        q, columns = _kernel_lanes(p, sh)
+        xl = columns(x)
+        nrm = normal_lanes(q, xl[0], xl[2])
+        look = _look(p, lambda v: columns(take(v, sh)))
+        start = look.lift(xl, nrm, columns(th))
+        sky = None
+        if None in uses:
+            up = torch.zeros_like(x)
+            up[:, 1] = 1.0
+            sky = inside[None].through(start, columns(up), torch.full_like(th, torch.inf))
+        lights = []
+        for l, source in enumerate(self.lights):
+            toward = source.toward(x, sh)
+            direction = columns(toward.direction)
+            visible = lambda lit: lit  # noqa: E731
+            if l in uses:
+                def visible(lit, k=inside[l], direction=direction, distance=toward.distance):
+                    lit_here = lit > 0.0
+                    return dr.select(lit_here, k.through(start, direction, distance, lit_here) * lit, lit)
+            lights.append((direction, columns(toward.irradiance), visible))
+        rgb = _colour(look, nrm, columns(take(p.ambient, sh)), sky, lights)
+        dr.eval(rgb, nrm, [e for k in inside.values() for e in k.evals()])
+        dr.sync_thread()
+        for key, use in uses.items():
+            inside[key].count()
+            for name in use.names():
+                with section(name):
+                    pass
+        return (torch.stack([lanes.tensor_of(c) for c in rgb], dim=1).to(x),
+                torch.stack([lanes.tensor_of(c) for c in nrm], dim=1).to(x))
 
 
 __all__ = ["Terrain", "TerrainSurface", "gap", "height", "normal", "normal_kernel", "path_surface", "trace", "trace_kernel", "visibility"]

@@ -323,14 +323,15 @@ def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, 
     truncated = lanes.tensor_of(truncated).long()
     full = idx.shape[0] == result.steps.shape[0]  # every ray of the chunk: idx is 0..n−1, the rows as they lie
 
-    def put(target: Tensor, value: Tensor) -> None:  # (copy_ and index_copy_ into a column: no stacked copy)
+    def put(target: Tensor, value: Tensor) -> None:
         if full:
             target.copy_(value)
         else:
             target.index_copy_(0, idx, value.to(target.dtype))
 
-    for c, r in enumerate(radiance):
-        put(result.radiance[:, c], lanes.tensor_of(r))
+    # the radiance as rows, one write: three into strided columns stalled ~2.6 ms each on 2 threads
+    # under OpenMP's default (spinning) wait policy, in a process not tuned by `tune_process`
+    put(result.radiance, torch.stack([lanes.tensor_of(r) for r in radiance], dim=1))
     for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
                         ("steps", steps), ("truncated", truncated > 0)):
         put(getattr(result, name), value)
@@ -544,6 +545,13 @@ def occluders_supported(ctx, use) -> bool:
     return ctx.plan.kernels and all(writes_in_lanes(ctx.volumes[j]) for j in use.occluders)
 
 
+def surface_lanes_of(ctx, use, s: Tensor) -> SimpleNamespace | None:
+    """`occluder_lanes` of LightPass `use` for a surface's own kernel (the terrain's shading),
+    rays of scenes `s` [n]; None where a kernel cannot see all it asks (the voxels, a volume not
+    written in lanes, eager rendering): the surface then takes `surface_shadows`."""
+    return None if use.voxels or not occluders_supported(ctx, use) else occluder_lanes(ctx, use, s)
+
+
 def surface_shadows(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor,
                     times: Tensor | None = None) -> Tensor:
     """`times` [n] (None: 1; the light already reaching the points, their n·l or the voxels'
@@ -580,35 +588,62 @@ def _list(ctx, names: list[str]) -> None:
             pass
 
 
-def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
-    """`shadow.occluder_transmittance`'s volumes and terrain (`use.occluders`, `use.terrain`) as
-    one Dr.Jit kernel (`occluders_supported` said yes): the same `_through_others` a kernel
-    march's shadow rays take, from points `p` [n, 3] of scenes `s` [n] along `direction` [n, 3]
-    up to `distance` [n] (inf: a sun, the sky). -> [n]; each volume's evaluations counted."""
+def occluder_lanes(ctx, use, s: Tensor) -> SimpleNamespace:
+    """`shadow.occluder_transmittance`'s volumes and terrain (`use.occluders`, `use.terrain`) for
+    lanes of scenes `s` [n], inside a kernel its caller traces: `through(p, direction, distance,
+    active=None)` the transmittance lane of rays from lanes `p` along `direction` (three each) up
+    to `distance` [n] (a tensor; inf: a sun, the sky), traced only where the Bool lane `active`
+    (None: everywhere); `evals()` the lanes to evaluate with what it traced (the counts so far) and,
+    after, `count()` each volume's evaluations into the render's stats."""
     import drjit as dr
     from drjit.llvm import Int32
 
-    if p.shape[0] == 0:
-        return p.new_ones(0)
-    set_drjit_threads()
-    lane = lambda x: lanes.lanes_of(x, lanes.floats_of)  # noqa: E731
     per_ray = lanes.per_scene_lanes(s)
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in use.occluders}
     grids = None if use.shadow.method != "grid" else {
         j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in use.occluders}
     terrain = terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32) if use.terrain else None
-    evals = {j: dr.zeros(Int32, p.shape[0]) for j in use.occluders}
-    finite = torch.isfinite(distance)
-    far = None if not bool(finite.any()) else lane(torch.where(finite, distance, torch.full_like(distance, 3e38)))
-    through = _through_others(solids, use.occluders, terrain, lane(p), lane(direction), far, use.shadow, grids, evals)
-    through = through if not isinstance(through, float) else dr.full(type(far or lane(p)[0]), through, p.shape[0])
-    dr.eval(through, evals)
+    evals = {j: dr.zeros(Int32, s.shape[0]) for j in use.occluders}
+
+    def through(p, direction, distance: Tensor, active=None):
+        far = _far(distance, lambda x: lanes.lanes_of(x, lanes.floats_of))
+        if active is not None:  # a ray that is not traced reaches nowhere: nothing evaluated
+            far = dr.select(active, math.inf if far is None else far, 0.0)
+        out = _through_others(solids, use.occluders, terrain, p, direction, far, use.shadow, grids, evals)
+        return out if not isinstance(out, float) else dr.full(type(p[0]), out, s.shape[0])
+
+    def count() -> None:
+        for j, e in evals.items():
+            n = int(np.array(e).astype(np.int64).sum())
+            ctx.counts.density_evals += n
+            ctx.volumes[j].field.evals += n
+
+    return SimpleNamespace(through=through, evals=lambda: list(evals.values()), count=count)
+
+
+def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
+    """`occluder_lanes` as one Dr.Jit kernel (`occluders_supported` said yes): the same
+    `_through_others` a kernel march's shadow rays take, from points `p` [n, 3] of scenes `s` [n]
+    along `direction` [n, 3] up to `distance` [n] (inf: a sun, the sky). -> [n]; each volume's
+    evaluations counted."""
+    import drjit as dr
+
+    if p.shape[0] == 0:
+        return p.new_ones(0)
+    set_drjit_threads()
+    lane = lambda x: lanes.lanes_of(x, lanes.floats_of)  # noqa: E731
+    k = occluder_lanes(ctx, use, s)
+    through = k.through(lane(p), lane(direction), distance)
+    dr.eval(through, k.evals())
     dr.sync_thread()
-    for j, e in evals.items():
-        count = int(np.array(e).astype(np.int64).sum())
-        ctx.counts.density_evals += count
-        ctx.volumes[j].field.evals += count
+    k.count()
     return lanes.tensor_of(through).to(p.dtype)
+
+
+def _far(distance: Tensor, lane):
+    """A shadow ray's reach [n] as a lane (inf as 3e38), or None where every ray's is inf."""
+    finite = torch.isfinite(distance)
+    return None if not bool(finite.any()) else lane(torch.where(finite, distance, torch.full_like(distance, 3e38)))
 
 
 def _pick(values: list, q):
