@@ -17,6 +17,7 @@ import torch
 from conftest import assert_close
 
 import torchvol as tv
+from torchvol.renderer import plan as plan_module
 from torchvol.renderer.plan import make_plan
 
 UP = [0.0, 1.0, 0.0]
@@ -116,11 +117,12 @@ def test_terrain_sky_light_costs_nothing_where_not_asked_for(one_thread):
 
 def test_every_shadow_and_sky_ray_sees_every_volume_whatever_its_shading():
     """The plan: the terrain's shadow rays, its sky light and the sun-visibility label see the
-    shader-look and surface-look volumes too; a volume's sky light sees the terrain."""
+    shader-look and surface-look volumes too; the sky light of a volume that reaches down among
+    the hills sees the terrain."""
     scene = tv.load_scene({
         "lights": [{"kind": "sun", "direction": [0.3, 1.0, 0.2], "shadow": {"steps": 4}}],
         "terrain": {},
-        "volumes": [_box([-1.0, 2.0, -1.0], [1.0, 3.0, 1.0], 1.0, ambient={"radiance": [1.0, 1.0, 1.0]}),
+        "volumes": [_box([-1.0, 0.5, -1.0], [1.0, 3.0, 1.0], 1.0, ambient={"radiance": [1.0, 1.0, 1.0]}),
                     _box([-1.0, 4.0, -1.0], [1.0, 5.0, 1.0], 1.0, shading="shader"),
                     _box([-1.0, 6.0, -1.0], [1.0, 7.0, 1.0], 1.0, shading="surface")],
     })
@@ -130,6 +132,38 @@ def test_every_shadow_and_sky_ray_sees_every_volume_whatever_its_shading():
     assert plan.volumes[0].lights[0].occluders == (1, 2)
     assert plan.volumes[0].ambient_sky.occluders == (1, 2) and plan.volumes[0].ambient_sky.terrain
     assert plan.labels.sun.occluders == (0, 1, 2)
+
+
+@pytest.mark.parametrize("low, direction, meets", [
+    (2.5, [0.3, 1.0, 0.2], False),   # above every hill, the sun overhead: no ray of it descends
+    (2.5, [0.3, 0.0, 0.2], False),   # a sun on the horizon: the rays stay level
+    (2.5, [0.3, -0.2, 0.2], True),   # a sun below the horizon: the rays descend
+    (1.5, [0.3, 1.0, 0.2], True),    # the box reaches down among the hills (base + amplitude = 2)
+])
+def test_a_volume_above_the_terrain_leaves_it_out_of_its_shadow_and_sky_rays(low, direction, meets, monkeypatch):
+    """A volume wholly above the terrain's top, lit from at or above the horizon, traces no terrain
+    on its shadow and sky rays (a ray that starts above a heightfield and never descends stays
+    above it): the plan leaves the terrain out, and its image is bitwise the one that traces it."""
+    scene = tv.load_scene({
+        "image": {"width": 24, "height": 16},
+        "camera": {"eye": [0.0, 3.0, -8.0], "target": [0.0, 1.5, 0.0]},
+        "lights": [{"kind": "sun", "direction": direction, "shadow": {"steps": 4}}],
+        "terrain": {"amplitude": 2.0},
+        "volumes": [{"bounds": {"box": {"min": [-2.0, low, -2.0], "max": [2.0, low + 1.5, 2.0]}},
+                     "density": {"fbm": {"octaves": 2}}, "sigma_t": 3.0,
+                     "ambient": {"radiance": [0.3, 0.4, 0.5], "visibility": "march", "steps": 2}}],
+        "march": {"quality": "draft"},
+    })
+    plan = make_plan(scene)
+    assert plan.volumes[0].lights[0].terrain == meets
+    assert plan.volumes[0].ambient_sky.terrain == (low < 2.0)
+    outs = [tv.render(scene, compile=mode) for mode in ("off", "kernels")]
+    assert ("volume0.shadow0.terrain" in outs[0].stats["time_s"]) == meets
+    monkeypatch.setattr(plan_module, "meets_terrain", lambda batch, v, light: batch.terrain is not None)
+    for out, mode in zip(outs, ("off", "kernels")):
+        traced = tv.render(scene, compile=mode)
+        assert "volume0.shadow0.terrain" in traced.stats["time_s"]
+        assert torch.equal(out.radiance, traced.radiance), mode
 
 
 def voxel_floor_scene(volume, *, intensity=2.0, cells_min=(-4, 0, -4), cells_max=(4, 1, 4)):

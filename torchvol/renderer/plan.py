@@ -344,6 +344,35 @@ def shadow_occluders(batch: Stacked, *, exclude: int | None = None) -> tuple[int
     return tuple(j for j in range(len(batch.volumes)) if j != exclude)
 
 
+def meets_terrain(batch: Stacked, v: int, light: int | None) -> bool:
+    """Whether a shadow ray of volume `v` towards light `light` (None: the sky's, straight up) can
+    meet the terrain in some scene of the batch. Not where the volume lies wholly above every
+    height the terrain reaches (base + amplitude: its fbm stays inside (−1, 1)) and the ray never
+    descends (the sky's; a sun's at or above the horizon; a point light's at or above that
+    height): a ray that starts above a heightfield's top and never descends stays above it, so
+    leaving the terrain out changes no value, and the rays skip its height there (6 octaves a
+    shadow ray)."""
+    if batch.terrain is None:
+        return False
+    t, vol = batch.terrain, batch.volumes[v]
+    top = t.base + t.amplitude * (1.0 + 1e-3)  # clear of the tracer's slab padding and of rounding
+    aabb = BOUNDS[vol.bounds.kind].caps["aabb"]
+    if aabb is not None:
+        low = aabb(vol.bounds.value)[0][:, 1]
+    elif vol.bounds.kind == "slab":  # unbounded across, bounded in y
+        low = vol.bounds.value.y_min
+    else:
+        return True
+    if not bool((low > top + 1e-3).all()):
+        return True
+    if light is None:
+        return False
+    li = batch.lights[light]
+    if LIGHTS[li.kind].caps["directional"]:
+        return not bool((li.direction[:, 1] >= 0).all())
+    return not bool((li.position[:, 1] > top + 1e-3).all())
+
+
 def ambient_sky(batch: Stacked, v: int) -> LightPass | None:
     """The visibility march of volume `v`'s sky light (None: no ambient, or `visibility = "none"`):
     its own `ambient.steps` through itself, then through every other volume and the terrain."""
@@ -351,7 +380,7 @@ def ambient_sky(batch: Stacked, v: int) -> LightPass | None:
     if amb is None or amb.visibility != "march":
         return None
     return LightPass(None, f"volume{v}.ambient", Shadow(steps=amb.steps), shadow_occluders(batch, exclude=v),
-                     batch.terrain is not None, batch.voxels is not None)
+                     meets_terrain(batch, v, None), batch.voxels is not None)
 
 
 def march_backend(batch: Stacked, vol: Stacked, strategy: Strategy, uses: tuple[LightPass, ...], *, compile: CompileMode,
@@ -389,7 +418,7 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: Com
     else:
         occluders = shadow_occluders(batch, exclude=v)
         uses = tuple(LightPass(l, None, None) if li.shadow is None
-                     else LightPass(l, f"{name}.shadow{l}", li.shadow, occluders, batch.terrain is not None,
+                     else LightPass(l, f"{name}.shadow{l}", li.shadow, occluders, meets_terrain(batch, v, l),
                                     batch.voxels is not None)
                      for l, li in lights)
     bounds, density = BOUNDS[vol.bounds.kind], DENSITIES[vol.density.kind]

@@ -27,7 +27,7 @@ from ..noise import lattice as noise
 from ..ops.grid_ops import chebyshev_distance
 from ..ops.mathops import take_rows
 
-__all__ = ["VoxelGrid", "cell_range", "dense_materials", "ore_cells", "terrain_height", "terrain_materials", "cell_centres"]
+__all__ = ["VoxelGrid", "cell_range", "dense_materials", "ore_cells", "terrain_columns", "terrain_height", "terrain_heights", "terrain_materials", "cell_centres"]
 
 
 def cell_range(spec) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
@@ -54,13 +54,34 @@ def cell_centres(cells: Tensor, origin, voxel_size, dtype) -> Tensor:
 
 def terrain_height(x: Tensor, z: Tensor, spec) -> Tensor:
     """Heightmap [N] at cell columns x, z [N]: base + amplitude · Σ_k gain^k · value_noise_k."""
-    h = torch.zeros_like(x)
-    freq, amp = spec.frequency, 1.0
-    for k in range(spec.octaves):
-        p = torch.stack([x * freq, torch.full_like(x, 0.5), z * freq], dim=1)
-        h = h + amp * noise.value_noise(p, seed=spec.seed * 131 + k)
-        freq, amp = freq * spec.lacunarity, amp * spec.gain
-    return spec.base + spec.amplitude * h
+    return terrain_heights([(x, z, spec)])[0]
+
+
+def terrain_heights(columns: Sequence[tuple[Tensor, Tensor, object]]) -> list[Tensor]:
+    """`terrain_height` of several (x [N], z [N], spec) at once: every octave of every spec one
+    block of a single `value_noise_scenes` call (the same values as one call each, ~0.2 ms of small
+    ops apiece: a batch's grids drew 16 such calls)."""
+    points, seeds, weights = [], [], []
+    for x, z, spec in columns:
+        freq, amp, amps = spec.frequency, 1.0, []
+        for k in range(spec.octaves):
+            points.append(torch.stack([x * freq, torch.full_like(x, 0.5), z * freq], dim=1))
+            seeds.append(spec.seed * 131 + k)
+            amps.append(amp)
+            freq, amp = freq * spec.lacunarity, amp * spec.gain
+        weights.append(amps)
+    if not points:
+        return []
+    sizes = [q.shape[0] for q in points]
+    block = torch.cat([torch.full((n,), i, device=points[0].device) for i, n in enumerate(sizes)])
+    values = iter(noise.value_noise_scenes(torch.cat(points), noise.scene_rows(block), seeds).split(sizes))
+    out = []
+    for (x, _, spec), amps in zip(columns, weights):
+        h = torch.zeros_like(x)
+        for amp in amps:
+            h = h + amp * next(values)
+        out.append(spec.base + spec.amplitude * h)
+    return out
 
 
 def terrain_materials(cells: Tensor, spec, dtype=torch.float32) -> Tensor:
@@ -85,8 +106,18 @@ def ore_cells(cells: Tensor, h: Tensor, ores) -> Tensor:
     return near & (noise.hash3(cells, ores.seed, dtype=torch.float64) < ores.density)
 
 
-def dense_materials(spec, *, dtype=torch.float32, device="cpu", batch_cells: int = 1 << 22) -> Tensor:
-    """The (Z, Y, X) uint8 material grid of one `Voxels` spec over its cell range."""
+def terrain_columns(spec, *, dtype, device) -> tuple[Tensor, Tensor, object]:
+    """(x [Z·X], z [Z·X], terrain spec): the cell columns of a `Voxels` spec with terrain occupancy,
+    z-major, as `terrain_heights` takes them."""
+    lo, hi = cell_range(spec)
+    z, x = torch.meshgrid(torch.arange(lo[2], hi[2], device=device), torch.arange(lo[0], hi[0], device=device), indexing="ij")
+    return x.reshape(-1).to(dtype), z.reshape(-1).to(dtype), spec.occupancy.terrain
+
+
+def dense_materials(spec, *, dtype=torch.float32, device="cpu", batch_cells: int = 1 << 22,
+                    height: Tensor | None = None) -> Tensor:
+    """The (Z, Y, X) uint8 material grid of one `Voxels` spec over its cell range; `height` [Z·X]
+    its terrain's heights at `terrain_columns` where computed already (None: here)."""
     occ = spec.occupancy
     lo, hi = cell_range(spec)
     if occ.kind == "grid":
@@ -94,8 +125,8 @@ def dense_materials(spec, *, dtype=torch.float32, device="cpu", batch_cells: int
     shape = (hi[2] - lo[2], hi[1] - lo[1], hi[0] - lo[0])
     if occ.kind == "terrain":  # one height per column, layers broadcast over y
         t = occ.terrain
-        z, x = torch.meshgrid(torch.arange(lo[2], hi[2], device=device), torch.arange(lo[0], hi[0], device=device), indexing="ij")
-        h = terrain_height(x.reshape(-1).to(dtype), z.reshape(-1).to(dtype), t).reshape(shape[0], 1, shape[2])
+        h = terrain_height(*terrain_columns(spec, dtype=dtype, device=device)) if height is None else height
+        h = h.reshape(shape[0], 1, shape[2])
         y = torch.arange(lo[1], hi[1], device=device).to(dtype).reshape(1, -1, 1)
         grass, dirt, stone = t.materials
         m = torch.where(y > h, 0, torch.where(y > h - 1.0, grass, torch.where(y > h - 1.0 - t.dirt_depth, dirt, stone)))
@@ -110,8 +141,6 @@ def dense_materials(spec, *, dtype=torch.float32, device="cpu", batch_cells: int
         if occ.kind == "sdf":
             d = sdf.evaluate(occ.sdf.shape, cell_centres(c, spec.origin, spec.voxel_size, dtype))
             m = torch.where(d < 0, occ.sdf.material, 0)
-        elif occ.kind == "terrain":
-            m = terrain_materials(c, occ.terrain, dtype)
         else:
             m = torch.as_tensor(occ.function.fn(c), device=device).reshape(-1)
         out[a:a + batch_cells] = m.to(torch.long).clamp(0, 255).to(torch.uint8)
@@ -142,7 +171,9 @@ class VoxelGrid:
         """The grids of B voxel `specs` (one a scene) zero-padded to one (B, Z, Y, X) shape, with
         their placement in `dtype` on `device`; `with_distance`: their Chebyshev distance fields
         too."""
-        grids = [dense_materials(s, dtype=dtype, device=device) for s in specs]
+        terrain = [s for s in specs if s.occupancy.kind == "terrain"]  # their heights in one call
+        heights = dict(zip(map(id, terrain), terrain_heights([terrain_columns(s, dtype=dtype, device=device) for s in terrain])))
+        grids = [dense_materials(s, dtype=dtype, device=device, height=heights.get(id(s))) for s in specs]
         shape = [max(g.shape[a] for g in grids) for a in range(3)]
         flat = torch.zeros(len(grids) * shape[0] * shape[1] * shape[2], dtype=torch.uint8, device=device)
         mats = flat.view(len(grids), *shape)
