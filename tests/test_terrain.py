@@ -276,3 +276,28 @@ def test_the_kernel_normal_is_the_eager_normal():
     eager, kernel = T.normal(t, p, s), T.normal_kernel(t, p, s)
     assert float(eager[:, 1].min()) < 0.9  # slopes, not a flat test
     assert_close(kernel, eager, atol=1e-5, what="kernel normal")
+
+
+def test_the_shading_kernel_is_the_shading_of_its_parts(monkeypatch):
+    """The terrain's shading as one kernel (normal, look, the sky's and the sun's rays through a
+    cloud and the terrain, `_colour`) against the same passes each its own kernel
+    (`surface_shadows`): the same image and depth bitwise, the same passes listed, the same
+    density evaluations; two scenes of different suns in a batch, one low (many slopes face away
+    from it: their shadow rays, which would cross the cloud, are not traced)."""
+    from torchvol.runtime.compilation import drjit_available
+    from torchvol.volume import kernel_march
+
+    if not drjit_available():
+        pytest.skip("Dr.Jit's LLVM backend is not available")
+    scenes = []
+    for sun in ([0.35, 1.0, 0.45], [1.0, 0.2, 0.3]):
+        scene = tv.preset("terrain-clouds", width=40, height=28).model_dump()
+        scene["lights"][0]["direction"] = sun
+        scenes.append(scene)
+    fused = tv.render(scenes, seed=1)
+    monkeypatch.setattr(kernel_march, "surface_lanes_of", lambda ctx, use, s: None)
+    parts = tv.render(scenes, seed=1)
+    assert torch.equal(fused.radiance, parts.radiance), f"largest difference {float((fused.radiance - parts.radiance).abs().max()):.3g}"
+    assert torch.equal(fused.depth, parts.depth)
+    assert list(fused.stats["time_s"]) == list(parts.stats["time_s"])
+    assert fused.stats["density_evals"] == parts.stats["density_evals"]
