@@ -15,6 +15,8 @@ import math
 import pytest
 import torch
 from conftest import assert_close
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import torchvol as tv
 from torchvol.renderer import plan as plan_module
@@ -164,6 +166,31 @@ def test_a_volume_above_the_terrain_leaves_it_out_of_its_shadow_and_sky_rays(low
         traced = tv.render(scene, compile=mode)
         assert "volume0.shadow0.terrain" in traced.stats["time_s"]
         assert torch.equal(out.radiance, traced.radiance), mode
+
+
+@settings(max_examples=8, deadline=None)
+@given(amplitude=st.floats(0.0, 3.0), above=st.floats(-0.5, 1.0), elevation=st.floats(-20.0, 85.0),
+       azimuth=st.floats(0.0, 360.0))
+def test_leaving_the_terrain_out_never_changes_a_value(amplitude, above, elevation, azimuth):
+    """Any terrain height, any box height near its top, any sun: where the plan leaves the terrain
+    out of the volume's shadow and sky rays, the image is bitwise the one that traces it."""
+    e, a = math.radians(elevation), math.radians(azimuth)
+    scene = tv.load_scene({
+        "image": {"width": 16, "height": 12},
+        "camera": {"eye": [0.0, amplitude + 3.0, -8.0], "target": [0.0, amplitude, 0.0]},
+        "lights": [{"kind": "sun", "direction": [math.cos(e) * math.cos(a), math.sin(e), math.cos(e) * math.sin(a)],
+                    "shadow": {"steps": 3}}],
+        "terrain": {"amplitude": amplitude, "frequency": 0.8},
+        "volumes": [{"bounds": {"box": {"min": [-3.0, amplitude + above, -3.0], "max": [3.0, amplitude + above + 1.0, 3.0]}},
+                     "density": {"constant": 1.0}, "sigma_t": 1.5,
+                     "ambient": {"radiance": [0.3, 0.4, 0.5], "visibility": "march", "steps": 2}}],
+        "march": {"quality": "draft"},
+    })
+    out = tv.render(scene, compile="off")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(plan_module, "meets_terrain", lambda batch, v, light: batch.terrain is not None)
+        traced = tv.render(scene, compile="off")
+    assert torch.equal(out.radiance, traced.radiance), float((out.radiance - traced.radiance).abs().max())
 
 
 def voxel_floor_scene(volume, *, intensity=2.0, cells_min=(-4, 0, -4), cells_max=(4, 1, 4)):
