@@ -295,7 +295,7 @@ def test_the_shading_kernel_is_the_shading_of_its_parts(monkeypatch):
         scene["lights"][0]["direction"] = sun
         scenes.append(scene)
     fused = tv.render(scenes, seed=1)
-    monkeypatch.setattr(kernel_march, "surface_lanes_of", lambda ctx, use, s: None)
+    monkeypatch.setattr(kernel_march, "surface_lanes_of", lambda ctx, uses, s: None)
     parts = tv.render(scenes, seed=1)
     assert torch.equal(fused.radiance, parts.radiance), f"largest difference {float((fused.radiance - parts.radiance).abs().max()):.3g}"
     assert torch.equal(fused.depth, parts.depth)

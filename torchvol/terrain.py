@@ -279,8 +279,9 @@ class TerrainSurface:
     batch's `TerrainPass`; `aovs` the AOV names to output; `transmittance(use, p, s, direction,
     distance, times=None) -> [n]` `times` × what a shadow ray of LightPass `use` sees (volumes and
     terrain), traced only where `times` > 0; `kernels`: the tracing and shading as Dr.Jit kernels,
-    the shadow and sky rays inside the shading's where `occluder_lanes(use, s)` gives their lanes
-    (`volume.kernel_march.occluder_lanes`; None: they take `transmittance`)."""
+    the shadow and sky rays inside the shading's where `occluder_lanes(uses, s)` gives their lanes
+    (`volume.kernel_march.surface_lanes_of`: by the key of each LightPass of `uses`; None: they
+    take `transmittance`)."""
 
     def __init__(self, params: Stacked, lights: Sequence, plan, aovs: Sequence[str],
                  transmittance: Callable[..., Tensor], kernels: bool = False,
@@ -331,12 +332,7 @@ class TerrainSurface:
         (no kernels, or one of them cannot be seen from a kernel)."""
         if not self.kernels or self.occluder_lanes is None:
             return None
-        inside = {}
-        for key, use in self._uses().items():
-            inside[key] = self.occluder_lanes(use, sh)
-            if inside[key] is None:
-                return None
-        return inside
+        return self.occluder_lanes(self._uses(), sh)
 
     def _shade(self, x: Tensor, th: Tensor, sh: Tensor, section) -> tuple[Tensor, Tensor]:
         """(colour, normal) [m, 3] of hits x [m, 3] at distances th [m] of scenes sh [m]: `_colour`

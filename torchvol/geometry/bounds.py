@@ -76,6 +76,7 @@ class Shell(Strict):
 
 # Every function takes the bounds of B scenes (`Stacked`): `intersect(b, o [n, 3], d [n, 3], s [n])
 # -> (t_near [n], t_far [n])`; `aabb(b) -> (min (B, 3), max (B, 3))`; `height_range(b) -> (B, 2)`;
+# `lowest_y(b) -> (B,)`: the least world y inside (a slab's too, which has no box);
 # `depth(b, p [n, 3], s [n]) -> [n]`: distance from p in to the surface (negative outside; `edge`).
 
 def _box_intersect(b: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
@@ -195,19 +196,23 @@ BOUNDS = Registry("bounds")
 # box's 1.1 -> 0.8; a slab's two divisions stay eager, 0.4 ms against the kernel's 0.5)
 _height = lambda q, p: p[1]  # noqa: E731
 BOUNDS.register("box", Box, _box_intersect, finite=True, layer=False, aabb=lambda b: (b.min, b.max), traced_interval=True,
+                lowest_y=lambda b: b.min[:, 1],
                 height_range=lambda b: _heights(b.min[:, 1], b.max[:, 1]), depth=_box_depth,
                 lanes=(lambda q, o, d: box_interval(o, d, q.min, q.max), lambda q, p: box_depth(p, q.min, q.max), _height))
 BOUNDS.register("sphere", Sphere, _sphere_intersect, finite=True, layer=False, aabb=_sphere_aabb, traced_interval=True,
+                lowest_y=lambda b: b.center[:, 1] - b.radius,
                 height_range=lambda b: _heights(b.center[:, 1] - b.radius, b.center[:, 1] + b.radius), depth=_sphere_depth,
                 lanes=(lambda q, o, d: sphere_interval(o, d, q.center, q.radius),
                        lambda q, p: sphere_depth(p, q.center, q.radius), _height))
 # `layer`: a layer over the ground (a slab, a planet's shell), far wider than what a view of it marches
 # a slab's exit is at infinity along its planes: rays stop at SLAB_REACH unless march.max_distance says
 BOUNDS.register("slab", Slab, _slab_intersect, finite=False, layer=True, aabb=None, traced_interval=False,
+                lowest_y=lambda b: b.y_min,
                 height_range=lambda b: _heights(b.y_min, b.y_max),
                 depth=_slab_depth, lanes=(lambda q, o, d: slab_interval(o, d, q.y_min, q.y_max),
                                           lambda q, p: slab_depth(p, q.y_min, q.y_max), _height))
 BOUNDS.register("shell", Shell, _shell_intersect, finite=True, layer=True, aabb=_shell_aabb, traced_interval=True,
+                lowest_y=lambda b: _shell_aabb(b)[0][:, 1],
                 height_range=lambda b: _heights(b.bottom, b.top), depth=_shell_depth,
                 lanes=(shell_lanes_interval, lambda q, p: shell_depth(p, q.planet_radius, q.bottom, q.top),
                        lambda q, p: shell_altitude(p, q.planet_radius)))

@@ -129,7 +129,7 @@ class RenderContext:
             self.voxels = VoxelOccluder(self.voxel_surface.tracer, voxel_shadow_steps(batch.voxels))
         if plan.terrain is not None:
             self.terrain = TerrainSurface(batch.terrain, self.lights, plan.terrain, plan.aovs, shadow_rays, plan.kernels,
-                                          lambda use, s: kernel_march.surface_lanes_of(self, use, s))
+                                          lambda uses, s: kernel_march.surface_lanes_of(self, uses, s))
         # the one the scene has, or both as one: each ray the nearer hit (renderer/surfaces.py)
         self.surface = surface_pass(self.voxel_surface, self.terrain, terrain_id(batch))
 

@@ -356,14 +356,7 @@ def meets_terrain(batch: Stacked, v: int, light: int | None) -> bool:
         return False
     t, vol = batch.terrain, batch.volumes[v]
     top = t.base + t.amplitude * (1.0 + 1e-3)  # clear of the tracer's slab padding and of rounding
-    aabb = BOUNDS[vol.bounds.kind].caps["aabb"]
-    if aabb is not None:
-        low = aabb(vol.bounds.value)[0][:, 1]
-    elif vol.bounds.kind == "slab":  # unbounded across, bounded in y
-        low = vol.bounds.value.y_min
-    else:
-        return True
-    if not bool((low > top + 1e-3).all()):
+    if not bool((BOUNDS[vol.bounds.kind].caps["lowest_y"](vol.bounds.value) > top + 1e-3).all()):
         return True
     if light is None:
         return False

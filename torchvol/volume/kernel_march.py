@@ -37,7 +37,6 @@ import math
 from dataclasses import replace
 from types import SimpleNamespace
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -337,11 +336,17 @@ def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, 
         put(getattr(result, name), value)
     ctx.counts.march_steps += int(steps.long().sum())
     ctx.counts.truncated_rays += int(truncated.sum())
+    _count(ctx, evals)
+    return result
+
+
+def _count(ctx, evals: dict) -> None:
+    """Each volume's evaluations (`evals`: by index in `ctx.volumes`, evaluated Int32 lanes) into
+    the render's stats."""
     for j, e in evals.items():
         count = int(lanes.tensor_of(e).long().sum())
         ctx.counts.density_evals += count
         ctx.volumes[j].field.evals += count
-    return result
 
 
 def _look_body(k: SimpleNamespace, solid: SimpleNamespace, par: SimpleNamespace, st):
@@ -545,11 +550,15 @@ def occluders_supported(ctx, use) -> bool:
     return ctx.plan.kernels and all(writes_in_lanes(ctx.volumes[j]) for j in use.occluders)
 
 
-def surface_lanes_of(ctx, use, s: Tensor) -> SimpleNamespace | None:
-    """`occluder_lanes` of LightPass `use` for a surface's own kernel (the terrain's shading),
-    rays of scenes `s` [n]; None where a kernel cannot see all it asks (the voxels, a volume not
+def surface_lanes_of(ctx, uses: dict, s: Tensor) -> dict | None:
+    """`occluder_lanes` of each LightPass of `uses` (by its key) for a surface's own kernel (the
+    terrain's shading), rays of scenes `s` [n], the volumes' crossings and the terrain's lanes made
+    once for all of them; None where a kernel cannot see all they ask (the voxels, a volume not
     written in lanes, eager rendering): the surface then takes `surface_shadows`."""
-    return None if use.voxels or not occluders_supported(ctx, use) else occluder_lanes(ctx, use, s)
+    if any(use.voxels or not occluders_supported(ctx, use) for use in uses.values()):
+        return None
+    shared: dict = {}
+    return {key: occluder_lanes(ctx, use, s, shared) for key, use in uses.items()}
 
 
 def surface_shadows(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor,
@@ -588,21 +597,25 @@ def _list(ctx, names: list[str]) -> None:
             pass
 
 
-def occluder_lanes(ctx, use, s: Tensor) -> SimpleNamespace:
+def occluder_lanes(ctx, use, s: Tensor, shared: dict | None = None) -> SimpleNamespace:
     """`shadow.occluder_transmittance`'s volumes and terrain (`use.occluders`, `use.terrain`) for
     lanes of scenes `s` [n], inside a kernel its caller traces: `through(p, direction, distance,
     active=None)` the transmittance lane of rays from lanes `p` along `direction` (three each) up
     to `distance` [n] (a tensor; inf: a sun, the sky), traced only where the Bool lane `active`
     (None: everywhere); `evals()` the lanes to evaluate with what it traced (the counts so far) and,
-    after, `count()` each volume's evaluations into the render's stats."""
+    after, `count()` each volume's evaluations into the render's stats. `shared`: what several
+    calls for the same rays share (its ``per_ray``; each volume's crossing and the terrain's lanes,
+    kept there as they are made)."""
     import drjit as dr
     from drjit.llvm import Int32
 
-    per_ray = lanes.per_scene_lanes(s)
-    solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in use.occluders}
+    shared = {} if shared is None else shared
+    made = lambda key, make: shared[key] if key in shared else shared.setdefault(key, make())  # noqa: E731
+    per_ray = made("per_ray", lambda: lanes.per_scene_lanes(s))
+    solids = {j: made(j, lambda j=j: crossing(ctx.volumes[j], s, per_ray)) for j in use.occluders}
     grids = None if use.shadow.method != "grid" else {
         j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in use.occluders}
-    terrain = terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32) if use.terrain else None
+    terrain = made("terrain", lambda: terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)) if use.terrain else None
     evals = {j: dr.zeros(Int32, s.shape[0]) for j in use.occluders}
 
     def through(p, direction, distance: Tensor, active=None):
@@ -612,13 +625,7 @@ def occluder_lanes(ctx, use, s: Tensor) -> SimpleNamespace:
         out = _through_others(solids, use.occluders, terrain, p, direction, far, use.shadow, grids, evals)
         return out if not isinstance(out, float) else dr.full(type(p[0]), out, s.shape[0])
 
-    def count() -> None:
-        for j, e in evals.items():
-            n = int(np.array(e).astype(np.int64).sum())
-            ctx.counts.density_evals += n
-            ctx.volumes[j].field.evals += n
-
-    return SimpleNamespace(through=through, evals=lambda: list(evals.values()), count=count)
+    return SimpleNamespace(through=through, evals=lambda: list(evals.values()), count=lambda: _count(ctx, evals))
 
 
 def occluders(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
