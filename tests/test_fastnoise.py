@@ -120,3 +120,39 @@ def test_the_lanes_fbm_is_the_eager_fbm_bitwise(dtype):
         eager = fastnoise.fbm_value_hashed(p, seed=11, octaves=4, lod=lod)
         lanes = fastnoise.fbm_sum(fastnoise.hashed(seed), *p.unbind(1), scales, lod, 4, 0.5)
         assert torch.equal(lanes, eager), f"LOD {'off' if lod is None else 'on'}"
+
+
+@pytest.mark.parametrize("hash", ["table", "arithmetic"])
+@pytest.mark.parametrize("backend", ["torch32", "torch64", "drjit"])
+def test_the_planar_noise_is_the_noise_at_y_zero_bitwise(hash, backend):
+    """A heightfield's value noise on the plane y = 0 (`noise_basis(plane=True)`: four corners,
+    not eight) against the 3-D noise at y = 0: bitwise, eagerly in both dtypes and in a Dr.Jit
+    kernel, for both hashes (it fails when the plane reads other corners, or blends them in
+    another order)."""
+    from types import SimpleNamespace
+
+    from torchvol.fields.fbm import noise_basis
+    from torchvol.runtime.compilation import drjit_available, traced
+
+    if backend == "drjit" and not drjit_available():
+        pytest.skip("Dr.Jit's LLVM backend is not available")
+    dtype = torch.float64 if backend == "torch64" else torch.float32
+    p = _points(4000, seed=5, dtype=dtype) * 37.0  # many cells, negative coordinates too
+    x, z = p[:, 0].contiguous(), p[:, 2].contiguous()
+    scene = torch.arange(4000) % 2  # two scenes' seeds (their tables' blocks)
+
+    def bases(to):
+        return [noise_basis("value", [3, 9], hash, to, plane=plane) for plane in (False, True)]
+
+    if backend == "drjit":
+        import drjit as dr
+        from drjit.llvm import Float, Int32
+
+        to = SimpleNamespace(scene=scene, ints=lambda v: Int32(v.to(torch.int32).numpy()),
+                             floats=lambda v: Float(v.to(torch.float32).numpy()))
+        full, flat = traced(lambda lane: [b(lane(x), dr.zeros(Float, 4000), lane(z)) for b in bases(to)], x)
+    else:
+        to = SimpleNamespace(scene=scene, ints=lambda v: v.to(torch.int32), floats=lambda v: v.to(dtype))
+        full, flat = (b(x, torch.zeros_like(x), z) for b in bases(to))
+    assert torch.equal(full, flat), f"largest difference {(full - flat).abs().max():.3g} at {int((full - flat).abs().argmax())}"
+    assert float(full.std()) > 0.1

@@ -174,13 +174,15 @@ def fbm_lanes(field: FbmField, to) -> SimpleNamespace:
     return q
 
 
-def noise_basis(kind: str, seeds, hash: str, to):
+def noise_basis(kind: str, seeds, hash: str, to, *, plane: bool = False):
     """The noise `kind` ("value", "perlin", "worley") of the lanes' scenes (`to.scene`, each with
     its seed of `seeds`) as `fbm_sum`'s basis: value noise of the arithmetic hash's mixed seeds, or
     a lattice noise over the scenes' tables stacked (`noise.scene_lattice_tables`), each lane's
-    chain in its scene's block (`to.ints`, `to.floats`: a table as the backend's array)."""
+    chain in its scene's block (`to.ints`, `to.floats`: a table as the backend's array). `plane`
+    (value noise): on the plane y = 0, a heightfield's (its y argument, 0, unread), bitwise
+    the same values from half the lattice's corners."""
     if hash == "arithmetic":
-        return fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(seeds, "cpu"), to.scene)))
+        return fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(seeds, "cpu"), to.scene)), plane=plane)
     noise_perm, columns = noise.scene_lattice_tables(tuple(int(x) for x in seeds), "cpu")
     perm, rows = to.ints(noise_perm), to.ints(noise.scene_rows(to.scene))
     if kind == "perlin":
@@ -189,6 +191,8 @@ def noise_basis(kind: str, seeds, hash: str, to):
         values = [to.floats(noise.chained_values(noise_perm, c)) for c in columns]
         return lambda x, y, z: noise.worley_lanes(x, y, z, perm, values, rows)
     chained = to.floats(noise.chained_values(noise_perm, columns[0]))
+    if plane:
+        return lambda x, y, z: noise.value_lanes(x, None, z, perm, chained, rows)
     return lambda x, y, z: noise.value_lanes(x, y, z, perm, chained, rows)
 
 

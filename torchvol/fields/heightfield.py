@@ -23,7 +23,7 @@ def terrain_lanes(t: Stacked, to, dtype: torch.dtype) -> SimpleNamespace:
                                                                  "max_distance")})
     q.octaves, q.steps = int(t.octaves), int(t.steps)
     q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=dtype, device="cpu")]
-    q.basis = noise_basis("value", t.seed, t.hash, to)
+    q.basis = noise_basis("value", t.seed, t.hash, to, plane=True)  # the heights' noise lies on y = 0
     return q
 
 

@@ -51,18 +51,21 @@ def hash_cells(x: Tensor, y: Tensor, z: Tensor, seed: Tensor | int) -> Tensor:
     return (hash32(x, y, z, seed) >> 8) & 0xFFFFFF
 
 
-def _value(p: Sequence[Tensor], seed: Tensor | int) -> Tensor:
+def _value(p: Sequence[Tensor | None], seed: Tensor | int) -> Tensor:
     """Value noise of points given as their three coordinates (each ``[N]``) with a mixed seed
-    -> ``[N]`` in [0, 1) (`value_noise_hashed`); lanes (`ops.lanes`)."""
-    fl = [lanes.floor(c) for c in p]
-    u = [(c - f) * (c - f) * (3.0 - 2.0 * (c - f)) for c, f in zip(p, fl)]
-    x0, y0, z0 = (lanes.to_int32(f) for f in fl)
-    # hash_cells' products per axis once, not per corner (xor is associative: the same bits)
+    -> ``[N]`` in [0, 1) (`value_noise_hashed`); lanes (`ops.lanes`). y None: on the plane y = 0,
+    bitwise the value there from its four y = 0 corners (`noise.planar`)."""
+    axes = [c for c in p if c is not None]
+    fl = [lanes.floor(c) for c in axes]
+    u = [noise.fade(c - f) for c, f in zip(axes, fl)]
+    x0, *_, z0 = (lanes.to_int32(f) for f in fl)
+    # hash_cells' products per axis once, not per corner (xor is associative: the same bits); on
+    # the plane the y = 0 cells' xor with 0 · P1 leaves them as they are
     hx = [x * _P[0] for x in (x0, x0 + 1)]
-    hxy = [h ^ (y * _P[1]) for y in (y0, y0 + 1) for h in hx]
+    hxy = hx if p[1] is None else [h ^ (y * _P[1]) for y in (lanes.to_int32(fl[1]), lanes.to_int32(fl[1]) + 1) for h in hx]
     vals = [lanes.to_float((_mix32(h ^ hz) >> 8) & 0xFFFFFF, p[0]) * 2.0**-24
             for hz in ((z0 * _P[2]) ^ seed, ((z0 + 1) * _P[2]) ^ seed) for h in hxy]  # noise._CORNERS order
-    return noise._trilinear(vals, u)
+    return noise.planar(vals, *u) if p[1] is None else noise._trilinear(vals, u)
 
 
 def value_noise_hashed(p: Tensor, *, seed: int = 0) -> Tensor:
@@ -85,9 +88,10 @@ def fbm_sum(basis, x, y, z, scales, lod, octaves: int, gain: float):
     return f
 
 
-def hashed(seed):
-    """The arithmetic-hash value noise with mixed seed `seed` (per point or one) as `fbm_sum`'s basis."""
-    return lambda x, y, z: _value((x, y, z), seed)
+def hashed(seed, *, plane: bool = False):
+    """The arithmetic-hash value noise with mixed seed `seed` (per point or one) as `fbm_sum`'s
+    basis; `plane`: on the plane y = 0 (its y argument, 0, unread: `_value`)."""
+    return (lambda x, y, z: _value((x, None, z), seed)) if plane else (lambda x, y, z: _value((x, y, z), seed))
 
 
 def fbm_field(x, y, z, basis, scales, count, q, *, octaves: int, gain: float = 0.5):

@@ -268,10 +268,27 @@ def value_lanes(x, y, z, perm, chained, rows=None):
     """`value_noise` in lanes (`ops.lanes`: torch [N] or Dr.Jit) at points x, y, z (|p| < 2**31)
     from a doubled permutation `perm` (int32) and its lattice values in chain order `chained`
     (`chained_values`, the points' float type), each point's chain starting at its row `rows`
-    (None: 0): what the Dr.Jit march traces."""
+    (None: 0): what the Dr.Jit march traces. `y` None: on the plane y = 0 (a heightfield's
+    slice), bitwise the value there from 8 of the 14 table reads (`planar`)."""
+    if y is None:
+        fl = [lanes.floor(c) for c in (x, z)]
+        xs, zs = _cells(fl, (0, 1), rows)
+        return planar(_lattice_chain(perm, xs, [0], zs, last=chained), *(fade(c - lo) for c, lo in zip((x, z), fl)))
     fl = [lanes.floor(c) for c in (x, y, z)]
-    u = [g * g * (3.0 - 2.0 * g) for g in (c - lo for c, lo in zip((x, y, z), fl))]
+    u = [fade(c - lo) for c, lo in zip((x, y, z), fl)]
     return _trilinear(_lattice_chain(perm, *_cells(fl, (0, 1), rows), last=chained), u)
+
+
+def fade(g):
+    """Value noise's smoothstep fade 3g² − 2g³ of a cell fraction `g` (lanes)."""
+    return g * g * (3.0 - 2.0 * g)
+
+
+def planar(vals: list, ux, uz):
+    """`_trilinear` on the plane y = 0: its four y = 0 corners `vals` (x fastest, then z) blended
+    by the fades `ux`, `uz` (lanes). There the fade along y is 0, and a lerp at weight 0 is exactly
+    its first end (`lanes.lerp`, torch.lerp), so the y = 1 corners never change a bit: skipped."""
+    return lanes.lerp(lanes.lerp(vals[0], vals[1], ux), lanes.lerp(vals[2], vals[3], ux), uz)
 
 
 def lattice_values(cells: Tensor, seed: int, dtype: torch.dtype) -> Tensor:
