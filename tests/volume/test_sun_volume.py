@@ -144,7 +144,8 @@ def test_the_lookup_is_grid_samples_bicubic(dtype):
 def test_the_kernel_builds_the_eager_tables():
     """`density_lanes.sun_grid_kernel` (the default) against `grid_atlas` (the reference) on a
     batch of two scenes with different suns: the same nodes evaluated, the tables within float
-    rounding (the nodes' points are one fused multiply-add in both; τ is summed in float64 in both)."""
+    rounding (the nodes' points are one fused multiply-add in both; τ is summed in float64 in both).
+    The fog a constant haze: its exponential profile would take its closed form, and no grid."""
     import torchvol as tv
     from torchvol.scene.presets import preset_dict
     from torchvol.volume.sun_volume import grid_atlas
@@ -153,6 +154,7 @@ def test_the_kernel_builds_the_eager_tables():
     for sun in ([0.3, 0.6, 0.75], [-0.5, 0.4, 0.2]):
         scene = preset_dict("multi-layer", width=24, height=16)
         scene["lights"][0].update(direction=sun, shadow={"method": "grid", "resolution": 40})
+        scene["volumes"][1]["density"] = {"constant": 0.6}
         scenes.append(scene)
     out = tv.render(scenes, keep_context=True)
     assert out.stats["plan"]["marches"] == {"volume0": "drjit", "volume1": "drjit"}

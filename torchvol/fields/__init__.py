@@ -45,6 +45,7 @@ from .exponential import (
                    exponential_density,
                    exponential_lanes,
                    exponential_macro,
+                   exponential_optical_depth,
 )
 from .fbm import FbmDensity, FbmField, fbm_density, fbm_lanes, fbm_macro
 from .fur import FurDensity, FurField, fur_density, fur_lanes
@@ -61,7 +62,10 @@ DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lane
 DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True, lanes=(grid_lanes, grid_density),
                    macro=grid_macro)
 DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density),
-                   macro=exponential_macro)
+                   macro=exponential_macro, optical_depth=exponential_optical_depth)
+# `optical_depth(q, start, direction, length)`: ∫ density along a line in closed form, lanes over the
+# kind's lanes inputs `q` from the density `start` where it leaves (every shadow and sky ray through
+# such a volume takes it, `VolumePass.line_integral`: no march, no sun grid)
 # `bound`: an upper bound (B,) of the density from its parameters (the path tracer's majorant):
 # an fbm's basis noises lie in [−1, 1] and its octave weights sum under 1; a cloudscape's remap is a smoothstep.
 # `macro(field, b, low, high, cells)`: scene b's bounds over macro cells of its box (`volume.local_majorant`), or None

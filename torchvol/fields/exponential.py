@@ -67,6 +67,18 @@ def exponential_lanes(field: Exponential, to) -> SimpleNamespace:
                            scale_height=to.per_lane(field.p.scale_height))
 
 
+def exponential_optical_depth(q, start, direction, length):
+    """∫ density ds over `length` (lanes) of a line leaving a point of density `start` along the
+    unit `direction` (three lanes), in closed form: start · length · (1 − e^{−x})/x, x =
+    d_y·length/H the exponent's fall over it (the factor 1 at x = 0); `q` from
+    `exponential_lanes`. Exact where a shadow march or a sun grid approximates. A ray falling
+    more than 80 scale heights saturates (its τ already makes T 0), so nothing overflows to inf
+    × 0: with start or length 0 the depth is 0."""
+    x = lanes.clamp_min(direction[1] * length / q.scale_height, -80.0)
+    fall = lanes.where(x == 0.0, 1.0, -lanes.expm1(-x) / lanes.where(x == 0.0, 1.0, x))
+    return start * length * fall
+
+
 def exponential_density(q, p, count):
     """value · e^{−(y − base)/H} in lanes (`ops.lanes`) at p (three lanes), `q` from
     `exponential_lanes`: the exponent capped before exp (no inf, so value 0 gives 0), the product

@@ -89,6 +89,9 @@ class VolumePass:
     # its visibility march ("volume0.ambient"), through the other volumes and the terrain too
     ambient_sky: LightPass | None = None
     multiple: bool = False  # Wrenninge's octaves on the lights' in-scatter (`volumes[i].multiple_scattering`)
+    # its optical depth along a line has a closed form (`fields.DENSITIES`' ``optical_depth``, no
+    # edge fade): every shadow and sky ray through it takes that, exact, whatever `shadow.method`
+    line_integral: bool = False
     backend: Backend = "eager"  # what its march runs on
     eager_because: str | None = None  # why it is eager where it is (`march_backend`)
     joint: bool = False  # marched with the other media in the scene's joint pass (`JointPass`), not on its own
@@ -290,6 +293,7 @@ class Plan:
         return {"passes": self.names(), "sun": self.sun, "marches": {v.name: v.backend for v in self.volumes},
                 **({"eager_because": eager} if eager else {}),
                 **({"joint": [self.volumes[v].name for v in self.joint.volumes]} if self.joint is not None else {}),
+                **({"closed_form_shadows": closed} if (closed := [v.name for v in self.volumes if v.line_integral]) else {}),
                 **({"air": self.joint.backend} if self.joint is not None and self.joint.air else {}),
                 **({"walk": self.walk} if self.walk is not None else {}),
                 **({"sky": self.sky_backend} if self.sky_backend is not None else {}),
@@ -431,7 +435,8 @@ def volume_pass(batch: Stacked, v: int, settings: MarchSettings, *, compile: Com
                       bloom=None if vol.bloom is None else vol.bloom.light,
                       sky_blend=vol.sky_blend is not None, ambient=ambient,
                       ambient_sky=sky,
-                      multiple=vol.multiple_scattering is not None)
+                      multiple=vol.multiple_scattering is not None,
+                      line_integral=density.caps.get("optical_depth") is not None and vol.edge is None)
 
 
 def kernel_strategy(v: VolumePass, settings: MarchSettings) -> VolumePass:

@@ -27,7 +27,7 @@ from ..ops import lanes
 from ..schema.batch import take
 from ..schema.models import Strict, Vec3, nonneg, nonzero
 from .context import VolumeContext
-from .shadow import occluder_transmittance, shadow_transmittance
+from .shadow import line_depth, occluder_transmittance, shadow_transmittance
 
 SKY_DIRECTIONS = 64  # the Fibonacci sphere the sky's mean radiance is averaged over
 
@@ -95,8 +95,11 @@ def ambient_in_scatter(ctx: VolumeContext, vol, p: Tensor, s: Tensor, sigma_s: T
         direction = take(torch.nn.functional.normalize(amb.direction, dim=1), s)
         exit_t = vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach)
         scale = take(amb.sigma_scale * vol.params.sigma_t, s)
-        v = shadow_transmittance(p, direction, exit_t, lambda q, owner: scale[owner] * vol.field(q, s[owner]),
-                                 steps=amb.steps)
+        if vol.plan.line_integral:  # exact: no march
+            v = torch.exp(-scale * line_depth(vol, p, s, direction, exit_t))
+        else:
+            v = shadow_transmittance(p, direction, exit_t, lambda q, owner: scale[owner] * vol.field(q, s[owner]),
+                                     steps=amb.steps)
         if use.occluders or use.terrain:  # the sky seen through the other volumes and past the terrain
             v = v * occluder_transmittance(ctx, use, p, s, direction, torch.full_like(v, math.inf))
     return out * v[:, None]

@@ -71,15 +71,20 @@ def density_lanes(k: SimpleNamespace, vol) -> Callable:
 
 def crossing(vol, s: Tensor, per_ray) -> SimpleNamespace:
     """Volume `vol` as a ray crossing it sees it, for lanes of scenes `s` [n]: its density
-    (`density_lanes`), its bounds' interval(p, direction) -> (near, far), σ_t per lane, its reach and index."""
+    (`density_lanes`), its bounds' interval(p, direction) -> (near, far), σ_t per lane, its reach and
+    index, and where its plan has a `line_integral`, depth(p, direction, length): ∫ density along
+    the line in closed form (`shadow.line_depth`'s; one evaluation, at p), else None."""
     import drjit as dr
     from drjit.llvm import Float
 
     k = field_inputs(vol, s, per_ray)
     interval = vol.bounds.caps["lanes"][0]
-    return SimpleNamespace(density=density_lanes(k, vol), interval=lambda p, d: interval(k.bounds, p, d),
+    density = density_lanes(k, vol)
+    closed = DENSITIES[vol.params.density.kind].caps["optical_depth"] if vol.plan.line_integral else None
+    return SimpleNamespace(density=density, interval=lambda p, d: interval(k.bounds, p, d),
                            sigma_t=per_ray(vol.params.sigma_t), reach=dr.opaque(Float, min(vol.plan.reach, 3e38)),
-                           index=vol.plan.index, octaves=getattr(k.field, "octaves", None))
+                           index=vol.plan.index, octaves=getattr(k.field, "octaves", None),
+                           depth=None if closed is None else lambda p, d, length: closed(k.field, density(p, None), d, length))
 
 
 def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:

@@ -127,7 +127,8 @@ def _member_inputs(ctx, vol, direction: list, s: Tensor, per_ray, behind) -> Sim
         response = _response(k, lanes.dot3(k.direction, direction), per_ray(light.radiant))
         dr.eval(response)
         grids = None if use.shadow is None or use.shadow.method != "grid" else {
-            j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in (vol.plan.index, *use.occluders)}
+            j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in (vol.plan.index, *use.occluders)
+            if not ctx.volumes[j].plan.line_integral}
         k.lights.append(SimpleNamespace(response=response, direction=direction, use=use, grids=grids,
                                         through=light.through is not None))
     if vol.plan.emissive:
@@ -432,17 +433,8 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
     def transmittance(p, direction, sigma_scale, shadow, occluders, terrain, evals, distance=None, sigma_t=None,
                       grids=None):
         """From lanes `p` along `direction` out of the bounds or to the light at `distance` (None: a
-        sun), σ_t = `sigma_scale` × density: `shadow.shadow_transmittance`'s march, or the sun's grid
-        (`grids`; `sigma_t` at p), times what `occluders` and `terrain` let through; `evals` added to."""
-        if shadow.method == "grid":
-            through = grid_transmittance(grids[own.index], p, sigma_t)
-        else:
-            exit_t = lanes.clamp(own.interval(p, direction)[1], 0.0, own.reach)
-            if distance is not None:
-                exit_t = lanes.minimum(exit_t, distance)
-            through = lanes.exp(-optical_depth(own, p, direction, exit_t, sigma_scale, shadow.steps, shadow.growth,
-                                               shadow.first_step))
-            evals[own.index] = evals[own.index] + shadow.steps
+        sun): `_own_transmittance` times what `occluders` and `terrain` let through; `evals` added to."""
+        through = _own_transmittance(own, p, direction, sigma_scale, shadow, evals, distance, sigma_t, grids)
         return through * _through_others(solids, occluders, terrain, p, direction, distance, shadow, grids, evals)
 
     def in_scatter(p, sigma_t):
@@ -477,6 +469,23 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
         return out, evals
 
     return SimpleNamespace(density=own.density, in_scatter=in_scatter, octaves=own.octaves)
+
+
+def _own_transmittance(own, p, direction, sigma_scale, shadow, evals, distance, sigma_t, grids):
+    """Transmittance through volume `own` (`crossing`) from lanes `p` along `direction` out of its
+    bounds or to the light at `distance` (None: a sun), σ_t = `sigma_scale` × density: its closed
+    form where it has one (`own.depth`), else `shadow.shadow_transmittance`'s march or the sun's
+    grid (`grids`; `sigma_t` at p); its evaluations added to `evals`."""
+    if shadow.method == "grid" and own.depth is None:
+        return grid_transmittance(grids[own.index], p, sigma_t)
+    exit_t = lanes.clamp(own.interval(p, direction)[1], 0.0, own.reach)
+    if distance is not None:
+        exit_t = lanes.minimum(exit_t, distance)
+    if own.depth is not None:  # exact: no march, no grid
+        evals[own.index] = evals[own.index] + 1
+        return lanes.exp(-sigma_scale * own.depth(p, direction, exit_t))
+    evals[own.index] = evals[own.index] + shadow.steps
+    return lanes.exp(-optical_depth(own, p, direction, exit_t, sigma_scale, shadow.steps, shadow.growth, shadow.first_step))
 
 
 def _point_response(k: SimpleNamespace, light: SimpleNamespace, p):
@@ -531,6 +540,11 @@ def _through_others(solids: dict, occluders, terrain, p, direction, distance, sh
         crosses = (t1 > t0) if isinstance(through, float) else (t1 > t0) & (through > 0.0)
         entry = [p[c] + t0 * direction[c] for c in range(3)]
         zero = lambda: dr.zeros(Float, dr.width(t0))  # noqa: E731
+        if other.depth is not None:  # exact, from its density where the ray enters it
+            tau = dr.if_stmt((), crosses, lambda: other.sigma_t * other.depth(entry, direction, t1 - t0), zero)
+            through = through * lanes.exp(-tau)
+            evals[j] = evals[j] + dr.select(crosses, Int32(1), Int32(0))
+            continue
         if shadow.method == "grid":
             sigma = dr.if_stmt((), crosses, lambda: other.sigma_t * other.density(entry, None), zero)
             through = through * dr.select(crosses, grid_transmittance(grids[j], entry, sigma), 1.0)
@@ -614,7 +628,7 @@ def occluder_lanes(ctx, use, s: Tensor, shared: dict | None = None) -> SimpleNam
     per_ray = made("per_ray", lambda: lanes.per_scene_lanes(s))
     solids = {j: made(j, lambda j=j: crossing(ctx.volumes[j], s, per_ray)) for j in use.occluders}
     grids = None if use.shadow.method != "grid" else {
-        j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in use.occluders}
+        j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in use.occluders if not ctx.volumes[j].plan.line_integral}
     terrain = made("terrain", lambda: terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)) if use.terrain else None
     evals = {j: dr.zeros(Int32, s.shape[0]) for j in use.occluders}
 

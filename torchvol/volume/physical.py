@@ -28,7 +28,7 @@ from .march import (
     median_crossing,
 )
 from .multiple import octave_response, octave_sum, octave_weights
-from .shadow import occluder_transmittance, shadow_transmittance, sun_grids
+from .shadow import line_depth, occluder_transmittance, shadow_transmittance, sun_grids
 
 
 def phase(vol, cos: Tensor, s: Tensor) -> Tensor:
@@ -95,10 +95,13 @@ def light_transmittance(ctx: VolumeContext, vol, use, p: Tensor, s: Tensor, sigm
     light = ctx.lights[use.light]
     direction = take(light.direction, s) if toward is None else toward.direction
     distance = p.new_full((p.shape[0],), math.inf) if toward is None else toward.distance
-    if shadow.method == "grid":
+    grid = shadow.method == "grid" and not vol.plan.line_integral  # (a closed form is exact: no grid)
+    exit_t = None if grid else torch.minimum(vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach), distance)
+    if grid:
         own = sun_grids(ctx, vol, use.light).lookup(p, sigma_t, s)
+    elif vol.plan.line_integral:  # exact: no march
+        own = torch.exp(-take(vol.params.sigma_t, s) * line_depth(vol, p, s, direction, exit_t))
     else:
-        exit_t = torch.minimum(vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach), distance)
         own = shadow_transmittance(
             p, direction, exit_t, lambda q, owner: take(vol.params.sigma_t, s[owner]) * vol.field(q, s[owner]),
             steps=shadow.steps, growth=shadow.growth, first_step=shadow.first_step,

@@ -4,16 +4,18 @@ other volumes, whatever their shading, and the terrain)."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Callable
 
 import torch
 from torch import Tensor
 
+from ..fields import DENSITIES
 from ..geometry.rays import clip_to_ray
 from ..ops import lanes
 from ..schema.batch import take
 from .context import VolumeContext
-from .density_lanes import sun_grid_kernel, writes_in_lanes
+from .density_lanes import inner_and_edge, sun_grid_kernel, writes_in_lanes
 from .sun_volume import SunGrid, grid_atlas, grid_layout, sun_grid
 
 
@@ -80,13 +82,24 @@ def shadow_transmittance(
     return torch.exp(-(sigma * length).sum(dim=1))
 
 
+def line_depth(vol, p: Tensor, s: Tensor, direction: Tensor, length: Tensor) -> Tensor:
+    """∫ density along `length` [n] of the lines from `p` [n, 3] (scenes `s` [n]) along `direction`
+    [n, 3] through volume `vol`, in closed form (`vol.plan.line_integral`: its kind's
+    ``optical_depth``): its density at `p` (one evaluation, counted) and the profile's analytic
+    factor. -> [n] (σ_t not applied)."""
+    inner, _ = inner_and_edge(vol)
+    kind = DENSITIES[vol.params.density.kind].caps
+    q = kind["lanes"][0](inner, SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, s))))
+    return kind["optical_depth"](q, vol.field(p, s), direction.unbind(1), length)
+
+
 def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
     """What a shadow ray of LightPass `use` (or a sky-visibility ray: `use.light` None) from `p`
     [n, 3] along `direction` [n, 3], up to `distance` [n] (inf: a sun, the sky), lets through
     besides its own volume: each volume `use.occluders` names (σ_t = its `sigma_t` × density,
     whatever its shading), marched over its chord in `use.shadow.steps` equal steps (exact for homogeneous media)
     or, with `shadow.method = "grid"`, looked up in that volume's sun grid where the ray enters
-    it, times 0 where the terrain blocks it (`use.terrain`) and where the voxels do (`use.voxels`)
+    it (a volume whose plan has a `line_integral`: that, exact, either way), times 0 where the terrain blocks it (`use.terrain`) and where the voxels do (`use.voxels`)
     -> [n]. The terrain's and the voxels' visibility (0 or 1) come first: a volume is marched only
     where they let light through. Each is its own pass, reported only where some shadow ray crosses it."""
     # the blockers first: a volume is marched only where the terrain and the voxels let light through
@@ -105,7 +118,9 @@ def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direct
             continue
         with ctx.timer.section(f"{use.name}.volume{j}"):
             sj, entry = s[ids], torch.addcmul(p[ids], t0[ids, None], direction[ids])
-            if use.shadow.method == "grid":  # the other volume's sun grid, looked up where the ray enters it
+            if other.plan.line_integral:  # exact, from its density where the ray enters it
+                through = torch.exp(-take(other.params.sigma_t, sj) * line_depth(other, entry, sj, direction[ids], t1[ids] - t0[ids]))
+            elif use.shadow.method == "grid":  # the other volume's sun grid, looked up where the ray enters it
                 sigma = take(other.params.sigma_t, sj) * other.field(entry, sj)
                 through = sun_grids(ctx, other, use.light).lookup(entry, sigma, sj)
             else:
