@@ -1,5 +1,5 @@
-"""A density whose optical depth along a line has a closed form (the exponential height profile)
-takes it on every shadow and sky ray: exact, whatever the light's `shadow.method`, with no march
+"""A density whose optical depth along a line has a closed form (the exponential height profile, a
+constant) takes it on every shadow and sky ray: exact, whatever the light's `shadow.method`, with no march
 and no sun grid (`VolumePass.line_integral`).
 
 Oracles: the integral of value·e^{−(y − base)/H} along a line by Gauss-Legendre quadrature in
@@ -186,17 +186,19 @@ def test_the_fogs_own_shadow_is_exact_in_its_single_scattering(method, one_threa
 
 
 def test_the_plan_takes_the_closed_form_where_the_density_has_one():
-    """The exponential fog's shadow and sky rays take the closed form and build no sun grid; a
-    cloud beside it keeps its grid; an exponential profile faded at its edge does not (the fade
-    is not part of the closed form)."""
+    """The exponential fog's and a constant haze's shadow and sky rays take the closed form and
+    build no sun grid; a cloud beside them keeps its grid; an exponential profile faded at its
+    edge does not (the fade is not part of the closed form)."""
     cloud = {"bounds": {"box": {"min": [-1.0, 0.4, -1.0], "max": [1.0, 1.0, 1.0]}},
              "density": {"fbm": {"octaves": 2, "frequency": 1.0, "seed": 1}}, "sigma_t": 2.0}
+    haze = {"bounds": {"box": {"min": [-3.0, 1.5, -3.0], "max": [3.0, 2.0, 3.0]}}, "density": {"constant": 0.3},
+            "sigma_t": 0.5}
     scene = _fog([_sun((0.3, 1.0, 0.2), "grid")])
-    scene["volumes"].append(cloud)
+    scene["volumes"] += [cloud, haze]
     scene["volumes"][0]["ambient"] = {"visibility": "march", "steps": 2, "radiance": [0.2, 0.2, 0.3]}
     out = tv.render(scene, keep_context=True)
-    assert out.stats["plan"]["closed_form_shadows"] == ["volume0"]
-    assert [sorted(v.sun_grids) for v in out.context.volumes] == [[], [0]]
+    assert out.stats["plan"]["closed_form_shadows"] == ["volume0", "volume2"]
+    assert [sorted(v.sun_grids) for v in out.context.volumes] == [[], [0], []]
     faded = _fog([_sun((0.3, 1.0, 0.2), "grid")])
     faded["volumes"][0]["edge"] = {"width": 0.1}
     out = tv.render(faded, keep_context=True)

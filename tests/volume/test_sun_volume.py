@@ -145,7 +145,7 @@ def test_the_kernel_builds_the_eager_tables():
     """`density_lanes.sun_grid_kernel` (the default) against `grid_atlas` (the reference) on a
     batch of two scenes with different suns: the same nodes evaluated, the tables within float
     rounding (the nodes' points are one fused multiply-add in both; τ is summed in float64 in both).
-    The fog a constant haze: its exponential profile would take its closed form, and no grid."""
+    The fog an fbm: its exponential profile would take its closed form, and no grid."""
     import torchvol as tv
     from torchvol.scene.presets import preset_dict
     from torchvol.volume.sun_volume import grid_atlas
@@ -154,7 +154,7 @@ def test_the_kernel_builds_the_eager_tables():
     for sun in ([0.3, 0.6, 0.75], [-0.5, 0.4, 0.2]):
         scene = preset_dict("multi-layer", width=24, height=16)
         scene["lights"][0].update(direction=sun, shadow={"method": "grid", "resolution": 40})
-        scene["volumes"][1]["density"] = {"constant": 0.6}
+        scene["volumes"][1]["density"] = {"fbm": {"octaves": 2, "frequency": 0.5, "seed": 3}}
         scenes.append(scene)
     out = tv.render(scenes, keep_context=True)
     assert out.stats["plan"]["marches"] == {"volume0": "drjit", "volume1": "drjit"}

@@ -32,7 +32,13 @@ from .cloudscape import (
                    cloudscape_density,
                    cloudscape_lanes,
 )
-from .constant import Constant, ConstantDensity, constant_density, constant_lanes
+from .constant import (
+                   Constant,
+                   ConstantDensity,
+                   constant_density,
+                   constant_lanes,
+                   constant_optical_depth,
+)
 from .explosion import (
                    ExplosionDensity,
                    ExplosionField,
@@ -58,7 +64,8 @@ from .particles import (
 )
 
 DENSITIES = Registry("density")
-DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lanes=(constant_lanes, constant_density))
+DENSITIES.register("constant", ConstantDensity, Constant, homogeneous=True, lanes=(constant_lanes, constant_density),
+                   optical_depth=constant_optical_depth)
 DENSITIES.register("grid", GridDensity, Grid, skippable=True, needs_box=True, cheap=True, lanes=(grid_lanes, grid_density),
                    macro=grid_macro)
 DENSITIES.register("exponential", ExponentialDensity, Exponential, lanes=(exponential_lanes, exponential_density),

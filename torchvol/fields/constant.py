@@ -30,6 +30,12 @@ def constant_lanes(field: Constant, to) -> SimpleNamespace:
     return SimpleNamespace(value=to.per_lane(field.value))
 
 
+def constant_optical_depth(q, start, direction, length):
+    """∫ density along `length` (lanes) of a line leaving a point of density `start`: start · length,
+    exactly (`q` and `direction` unread; `fields.DENSITIES`' ``optical_depth``)."""
+    return start * length
+
+
 def constant_density(q, p, count):
     """The constant's density in lanes (`ops.lanes`): `q` from `constant_lanes`."""
     return q.value

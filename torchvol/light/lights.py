@@ -32,8 +32,8 @@ class Shadow(Strict):
     nodes over each volume's bounds (Simpson's rule along the sun), looked up bicubically across
     the sun plus a trapezoid over the gap to the next plane: far cheaper; box and sphere bounds
     only; hard surfaces of the medium smear over a grid cell). docs/VOLUMES.md has the measured
-    error and time of both. A volume whose optical depth along a line has a closed form (an
-    exponential height profile without an edge fade) takes it instead, whichever the method:
+    error and time of both. A volume whose optical depth along a line has a closed form (a
+    constant or an exponential height profile, without an edge fade) takes it instead, whichever the method:
     exact, one density evaluation a ray, no grid (`stats["plan"]["closed_form_shadows"]`).
     Shadow settings are accuracy settings, shared by a batch."""
 
