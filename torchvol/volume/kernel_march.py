@@ -482,10 +482,13 @@ def _own_transmittance(own, p, direction, sigma_scale, shadow, evals, distance, 
     if distance is not None:
         exit_t = lanes.minimum(exit_t, distance)
     if own.depth is not None:  # exact: no march, no grid
+        through = lanes.exp(-sigma_scale * own.depth(p, direction, exit_t))
         evals[own.index] = evals[own.index] + 1
-        return lanes.exp(-sigma_scale * own.depth(p, direction, exit_t))
-    evals[own.index] = evals[own.index] + shadow.steps
-    return lanes.exp(-optical_depth(own, p, direction, exit_t, sigma_scale, shadow.steps, shadow.growth, shadow.first_step))
+    else:
+        through = lanes.exp(-optical_depth(own, p, direction, exit_t, sigma_scale, shadow.steps, shadow.growth,
+                                           shadow.first_step))
+        evals[own.index] = evals[own.index] + shadow.steps
+    return through
 
 
 def _point_response(k: SimpleNamespace, light: SimpleNamespace, p):
