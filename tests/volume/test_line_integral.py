@@ -86,15 +86,17 @@ def test_the_closed_form_is_the_integral_of_the_profile():
        length=st.sampled_from([0.0, 1e-6, 1.0, 1e3, 1e7]))
 def test_the_closed_form_never_gives_nan_and_keeps_transmittance_in_range(value, h, y0, dy, length):
     """Hard cases: zero and huge densities, scale heights from 1e-4 to 1e4, lines falling through
-    thousands of scale heights, level lines, zero and huge lengths: τ ≥ 0 and finite or +inf,
-    never NaN, and e^{−σ·τ} in [0, 1], eagerly in both dtypes and in the kernel."""
+    thousands of scale heights, level lines, zero and huge lengths: τ finite and ≥ 0, and
+    e^{−σ_t·τ} in [0, 1] for σ_t from 0 to 1e12, never NaN (a float32 τ that overflowed to inf
+    made σ_t = 0 NaN), eagerly in both dtypes and in the kernel."""
     q = {"value": value, "base": 0.0, "scale_height": h}
     backends = [(torch.float64, "torch"), (torch.float32, "torch")] + ([(torch.float32, "drjit")] if drjit_available() else [])
     for dtype, backend in backends:
         tau = _lanes_depth(q, [y0], [dy], [length], dtype, backend)
-        assert not bool(torch.isnan(tau).any()) and float(tau.min()) >= 0.0, f"{backend} {dtype}: τ = {tau.tolist()}"
-        t = torch.exp(-2.0 * tau)
-        assert 0.0 <= float(t.min()) and float(t.max()) <= 1.0, f"{backend} {dtype}: T = {t.tolist()}"
+        assert bool(torch.isfinite(tau).all()) and float(tau.min()) >= 0.0, f"{backend} {dtype}: τ = {tau.tolist()}"
+        for sigma_t in (0.0, 2.0, 1e12):
+            t = torch.exp(-sigma_t * tau)
+            assert 0.0 <= float(t.min()) and float(t.max()) <= 1.0, f"{backend} {dtype}, σ_t {sigma_t}: T = {t.tolist()}"
 
 
 def _fog(lights, *, method="march", camera=None, terrain=None, albedo=0.8):
@@ -204,3 +206,14 @@ def test_the_plan_takes_the_closed_form_where_the_density_has_one():
     out = tv.render(faded, keep_context=True)
     assert "closed_form_shadows" not in out.stats["plan"]
     assert sorted(out.context.volumes[0].sun_grids) == [0]
+
+
+@pytest.mark.parametrize("compile", ["off", "kernels"])
+def test_a_transparent_fog_whose_depth_overflows_renders_finite(compile):
+    """σ_t = 0 on a profile of scale height 1e-3 whose density reaches its cap below, lit by suns
+    under the horizon (their rays fall into it): the closed form's depth is capped, so the image
+    is finite (it was NaN everywhere the fog was: 0 × inf)."""
+    scene = _fog([_sun((-0.18, -0.09, -0.31), "march"), _sun((0.56, -0.06, 0.6), "grid")])
+    scene["volumes"][0].update(density={"exponential": {"value": 0.5, "base": 0.24, "scale_height": 0.001}}, sigma_t=0.0)
+    out = tv.render(scene, compile=compile)
+    assert bool(torch.isfinite(out.radiance).all()) and bool(torch.isfinite(out.image).all())

@@ -42,6 +42,11 @@ class Exponential:
     signed = __call__  # never clamped: the density is its own signed value
 
 
+# the closed-form depth's cap (`exponential_optical_depth`): e^{−σ_t·1e30} is 0 for any σ_t the
+# schema allows above 1e-28, and the cap keeps a dense fog's depth finite (float32 overflowed to inf,
+# and σ_t = 0 times inf is NaN)
+DEPTH_MAX = 1e30
+
 SLAB = 0.5  # a local majorants' slab's thickness in scale heights (`exponential_macro`)
 
 
@@ -72,11 +77,11 @@ def exponential_optical_depth(q, start, direction, length):
     unit `direction` (three lanes), in closed form: start · length · (1 − e^{−x})/x, x =
     d_y·length/H the exponent's fall over it (the factor 1 at x = 0); `q` from
     `exponential_lanes`. Exact where a shadow march or a sun grid approximates. A ray falling
-    more than 80 scale heights saturates (its τ already makes T 0), so nothing overflows to inf
-    × 0: with start or length 0 the depth is 0."""
+    more than 80 scale heights saturates, and the depth stops at `DEPTH_MAX` (either already makes
+    T 0): no inf, so σ_t = 0 still gives T = 1, never 0 × inf; start or length 0 gives 0."""
     x = lanes.clamp_min(direction[1] * length / q.scale_height, -80.0)
     fall = lanes.where(x == 0.0, 1.0, -lanes.expm1(-x) / lanes.where(x == 0.0, 1.0, x))
-    return start * length * fall
+    return lanes.clamp_max(start * length * fall, DEPTH_MAX)
 
 
 def exponential_density(q, p, count):
