@@ -84,8 +84,9 @@ def ambient_radiance(q: SimpleNamespace, p) -> list:
     return [lanes.lerp(q.bottom[c], q.top[c], h) for c in range(3)]
 
 
-def ambient_in_scatter(ctx: VolumeContext, vol, p: Tensor, s: Tensor, sigma_s: Tensor) -> Tensor:
-    """σs · L_amb · V [n, 3] at points `p` [n, 3] of scenes `s` [n], scattering `sigma_s` [n]."""
+def ambient_in_scatter(ctx: VolumeContext, vol, p: Tensor, s: Tensor, sigma_s: Tensor, density: Tensor) -> Tensor:
+    """σs · L_amb · V [n, 3] at points `p` [n, 3] of scenes `s` [n], scattering `sigma_s` [n], the
+    field's `density` [n] there (a closed-form visibility starts from it)."""
     amb, use = vol.params.ambient, vol.plan.ambient_sky
     q = ambient_lanes(vol, lambda v: lanes.columns(take(v, s)))
     out = torch.stack(ambient_radiance(q, p.unbind(1)), 1) * sigma_s[:, None]
@@ -96,7 +97,7 @@ def ambient_in_scatter(ctx: VolumeContext, vol, p: Tensor, s: Tensor, sigma_s: T
         exit_t = vol.intersect(p, direction, s)[1].clamp(0.0, vol.plan.reach)
         scale = take(amb.sigma_scale * vol.params.sigma_t, s)
         if vol.plan.line_integral:  # exact: no march
-            v = torch.exp(-scale * line_depth(vol, p, s, direction, exit_t))
+            v = torch.exp(-scale * line_depth(vol, p, s, direction, exit_t, density))
         else:
             v = shadow_transmittance(p, direction, exit_t, lambda q, owner: scale[owner] * vol.field(q, s[owner]),
                                      steps=amb.steps)

@@ -72,8 +72,9 @@ def density_lanes(k: SimpleNamespace, vol) -> Callable:
 def crossing(vol, s: Tensor, per_ray) -> SimpleNamespace:
     """Volume `vol` as a ray crossing it sees it, for lanes of scenes `s` [n]: its density
     (`density_lanes`), its bounds' interval(p, direction) -> (near, far), σ_t per lane, its reach and
-    index, and where its plan has a `line_integral`, depth(p, direction, length): ∫ density along
-    the line in closed form (`shadow.line_depth`'s; one evaluation, at p), else None."""
+    index, and where its plan has a `line_integral`, depth(p, direction, length, start=None): ∫
+    density along the line in closed form from the density `start` at p (None: evaluated there;
+    `shadow.line_depth`'s), else None."""
     import drjit as dr
     from drjit.llvm import Float
 
@@ -84,7 +85,8 @@ def crossing(vol, s: Tensor, per_ray) -> SimpleNamespace:
     return SimpleNamespace(density=density, interval=lambda p, d: interval(k.bounds, p, d),
                            sigma_t=per_ray(vol.params.sigma_t), reach=dr.opaque(Float, min(vol.plan.reach, 3e38)),
                            index=vol.plan.index, octaves=getattr(k.field, "octaves", None),
-                           depth=None if closed is None else lambda p, d, length: closed(k.field, density(p, None), d, length))
+                           depth=None if closed is None else lambda p, d, length, start=None: closed(
+                               k.field, density(p, None) if start is None else start, d, length))
 
 
 def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:

@@ -424,22 +424,24 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
     parameters `par`, the volumes a ray may cross `solids` (`solid`, by index), the terrain
     (`fields.heightfield.terrain_lanes`, None: none) and the air the sun shines through
     (`_air_inputs`, None: none):
-    density(p, count), in_scatter(p, sigma_t) -> (three lanes, `count` lanes of evaluations per volume)."""
+    density(p, count), in_scatter(p, sigma_t, raw) -> (three lanes, `count` lanes of evaluations per volume)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
     own = solids[vol.plan.index]
 
-    def transmittance(p, direction, sigma_scale, shadow, occluders, terrain, evals, distance=None, sigma_t=None,
+    def transmittance(p, direction, sigma_scale, shadow, occluders, terrain, evals, raw, distance=None, sigma_t=None,
                       grids=None):
-        """From lanes `p` along `direction` out of the bounds or to the light at `distance` (None: a
-        sun): `_own_transmittance` times what `occluders` and `terrain` let through; `evals` added to."""
-        through = _own_transmittance(own, p, direction, sigma_scale, shadow, evals, distance, sigma_t, grids)
+        """From lanes `p` (the density `raw` there) along `direction` out of the bounds or to the
+        light at `distance` (None: a sun): `_own_transmittance` times what `occluders` and `terrain`
+        let through; `evals` added to."""
+        through = _own_transmittance(own, p, raw, direction, sigma_scale, shadow, evals, distance, sigma_t, grids)
         return through * _through_others(solids, occluders, terrain, p, direction, distance, shadow, grids, evals)
 
-    def in_scatter(p, sigma_t):
-        """Σ over the lights of σs·p(θ)·E·T_light (octaves summed), plus σs·L_amb·V: three lanes
-        (`physical.in_scatter`'s terms, in its order), and each volume's evaluations."""
+    def in_scatter(p, sigma_t, raw):
+        """Σ over the lights of σs·p(θ)·E·T_light (octaves summed), plus σs·L_amb·V at lanes `p`
+        (extinction `sigma_t`, density `raw`): three lanes (`physical.in_scatter`'s terms, in its
+        order), and each volume's evaluations."""
         sigma_s = k.albedo * sigma_t
         width = dr.width(sigma_t)
         out, evals = [dr.zeros(Float, width) for _ in range(3)], [dr.zeros(Int32, width) for _ in range(count)]
@@ -449,7 +451,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
                 direction, distance, response = _point_response(k, light, p)
             use = light.use
             trans = None if use.shadow is None else transmittance(
-                p, direction, k.sigma_t, use.shadow, use.occluders, terrain if use.terrain else None, evals, distance,
+                p, direction, k.sigma_t, use.shadow, use.occluders, terrain if use.terrain else None, evals, raw, distance,
                 sigma_t, light.grids)
             weights = octave_weights(sigma_s, trans, k.exponents if vol.plan.multiple else [])
             radiance = [sum((response[i][c] * weights[i] for i in range(1, len(weights))), response[0][c] * weights[0])
@@ -463,7 +465,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
             sky = vol.plan.ambient_sky
             if sky is not None:
                 v = transmittance(p, k.ambient_direction, k.ambient_sigma, sky.shadow, sky.occluders,
-                                  terrain if sky.terrain else None, evals)
+                                  terrain if sky.terrain else None, evals, raw)
                 amb = [a * v for a in amb]
             out = [out[c] + amb[c] for c in range(3)]
         return out, evals
@@ -471,19 +473,19 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
     return SimpleNamespace(density=own.density, in_scatter=in_scatter, octaves=own.octaves)
 
 
-def _own_transmittance(own, p, direction, sigma_scale, shadow, evals, distance, sigma_t, grids):
+def _own_transmittance(own, p, raw, direction, sigma_scale, shadow, evals, distance, sigma_t, grids):
     """Transmittance through volume `own` (`crossing`) from lanes `p` along `direction` out of its
     bounds or to the light at `distance` (None: a sun), σ_t = `sigma_scale` × density: its closed
-    form where it has one (`own.depth`), else `shadow.shadow_transmittance`'s march or the sun's
-    grid (`grids`; `sigma_t` at p); its evaluations added to `evals`."""
+    form where it has one (`own.depth`, from the sample's density `raw`: no evaluation), else
+    `shadow.shadow_transmittance`'s march or the sun's grid (`grids`; `sigma_t` at p); its
+    evaluations added to `evals`."""
     if shadow.method == "grid" and own.depth is None:
         return grid_transmittance(grids[own.index], p, sigma_t)
     exit_t = lanes.clamp(own.interval(p, direction)[1], 0.0, own.reach)
     if distance is not None:
         exit_t = lanes.minimum(exit_t, distance)
     if own.depth is not None:  # exact: no march, no grid
-        through = lanes.exp(-sigma_scale * own.depth(p, direction, exit_t))
-        evals[own.index] = evals[own.index] + 1
+        through = lanes.exp(-sigma_scale * own.depth(p, direction, exit_t, raw))
     else:
         through = lanes.exp(-optical_depth(own, p, direction, exit_t, sigma_scale, shadow.steps, shadow.growth,
                                            shadow.first_step))
@@ -705,7 +707,7 @@ def _sample(m: SimpleNamespace, par: SimpleNamespace, count: int, p, t_sample, d
     lit = (raw > par.threshold) & (dt > 0.0)
     width = dr.width(raw)
     dark = lambda: ([dr.zeros(Float, width) for _ in range(3)], [dr.zeros(Int32, width) for _ in range(count)])  # noqa: E731
-    source, evals = dr.if_stmt((), lit, lambda: med.in_scatter(p, sigma_t), dark)
+    source, evals = dr.if_stmt((), lit, lambda: med.in_scatter(p, sigma_t, raw), dark)
     evals = list(evals)
     evals[vol.plan.index] = evals[vol.plan.index] + 1
     if vol.plan.emissive:  # σe = emission × density, then its colour map and the bloom, as `physical_medium` adds them

@@ -58,11 +58,13 @@ def light_responses(ctx: VolumeContext, vol, d: Tensor, s: Tensor) -> list[Tenso
     return out
 
 
-def in_scatter(ctx: VolumeContext, vol, p: Tensor, d: Tensor | None, s: Tensor, sigma_t: Tensor, responses: list[Tensor | None]) -> Tensor:
+def in_scatter(ctx: VolumeContext, vol, p: Tensor, d: Tensor | None, s: Tensor, sigma_t: Tensor, responses: list[Tensor | None],
+               density: Tensor) -> Tensor:
     """Σ over the volume's lights of σs · p(θ) · E · T_light at points `p` [n, 3] seen along `d`
     [n, 3], of extinction `sigma_t` [n] (summed over octaves with multiple scattering), plus the
     ambient's σs · L_amb · V; `responses`: `light_responses` at these samples (`d` is needed only
-    where one is None: a light that is not directional). -> [n, 3]."""
+    where one is None: a light that is not directional); `density` [n] the field's there (where a
+    closed-form shadow starts). -> [n, 3]."""
     out = p.new_zeros(p.shape[0], 3)
     sigma_s = take(vol.params.albedo, s) * sigma_t
     for use in vol.plan.lights:
@@ -74,7 +76,7 @@ def in_scatter(ctx: VolumeContext, vol, p: Tensor, d: Tensor | None, s: Tensor, 
         trans = None
         if use.shadow is not None:
             with ctx.timer.section(use.name):
-                trans = light_transmittance(ctx, vol, use, p, s, sigma_t, toward)
+                trans = light_transmittance(ctx, vol, use, p, s, sigma_t, toward, density)
         if vol.plan.multiple:
             radiance = octave_sum(vol, resp, sigma_s, trans, s)
         else:  # octave 0 alone: single scattering is the octaves' first term, to the bit
@@ -83,13 +85,14 @@ def in_scatter(ctx: VolumeContext, vol, p: Tensor, d: Tensor | None, s: Tensor, 
             radiance = radiance * light.through(p, s)
         out = out + radiance
     if vol.plan.ambient:
-        out = out + ambient_in_scatter(ctx, vol, p, s, sigma_s)
+        out = out + ambient_in_scatter(ctx, vol, p, s, sigma_s, density)
     return out
 
 
-def light_transmittance(ctx: VolumeContext, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, toward) -> Tensor:
+def light_transmittance(ctx: VolumeContext, vol, use, p: Tensor, s: Tensor, sigma_t: Tensor, toward, density: Tensor) -> Tensor:
     """Transmittance [n] from `p` [n, 3] towards light `use.light` through this volume, ending where
-    the ray leaves the bounds or reaches the light; `sigma_t` [n] the extinction at `p`. Times what
+    the ray leaves the bounds or reaches the light; `sigma_t` [n] the extinction at `p`, `density`
+    [n] the field's (a closed form starts from it: no evaluation). Times what
     the plan's other occluders let through (other volumes, the terrain, the voxels), where it names any."""
     shadow = use.shadow
     light = ctx.lights[use.light]
@@ -100,7 +103,7 @@ def light_transmittance(ctx: VolumeContext, vol, use, p: Tensor, s: Tensor, sigm
     if grid:
         own = sun_grids(ctx, vol, use.light).lookup(p, sigma_t, s)
     elif vol.plan.line_integral:  # exact: no march
-        own = torch.exp(-take(vol.params.sigma_t, s) * line_depth(vol, p, s, direction, exit_t))
+        own = torch.exp(-take(vol.params.sigma_t, s) * line_depth(vol, p, s, direction, exit_t, density))
     else:
         own = shadow_transmittance(
             p, direction, exit_t, lambda q, owner: take(vol.params.sigma_t, s[owner]) * vol.field(q, s[owner]),
@@ -135,7 +138,7 @@ def physical_medium(ctx: VolumeContext, vol, rays: Rays, background: Tensor | No
             if lit.numel():
                 d_lit = d_ids[lit] if any(r is None for r in resp) else None  # only point lights need it per sample
                 source[lit] = in_scatter(ctx, vol, p[lit], d_lit, s[lit], sigma_t[lit],
-                                         [None if r is None else r[lit] for r in resp])
+                                         [None if r is None else r[lit] for r in resp], density[lit])
         if vol.plan.emissive:
             source = source + take(vol.params.emission, s) * density[:, None]
         if vol.plan.emission_map is not None:
@@ -201,7 +204,7 @@ def closed_form(ctx: VolumeContext, vol, rays: Rays, t0: Tensor, t1: Tensor, hit
     sigma_t = take(vol.params.sigma_t, s) * density
     source = take(vol.params.emission, s) * density[:, None]
     if vol.plan.lights:
-        source = source + in_scatter(ctx, vol, mid, d, s, sigma_t, light_responses(ctx, vol, d, s))
+        source = source + in_scatter(ctx, vol, mid, d, s, sigma_t, light_responses(ctx, vol, d, s), density)
     for key, value in dict(exact_segment(source, sigma_t, a, length), t0=a).items():
         out[key][ids] = value
     return VolumePart(**out)

@@ -82,15 +82,15 @@ def shadow_transmittance(
     return torch.exp(-(sigma * length).sum(dim=1))
 
 
-def line_depth(vol, p: Tensor, s: Tensor, direction: Tensor, length: Tensor) -> Tensor:
+def line_depth(vol, p: Tensor, s: Tensor, direction: Tensor, length: Tensor, start: Tensor | None = None) -> Tensor:
     """∫ density along `length` [n] of the lines from `p` [n, 3] (scenes `s` [n]) along `direction`
     [n, 3] through volume `vol`, in closed form (`vol.plan.line_integral`: its kind's
-    ``optical_depth``): its density at `p` (one evaluation, counted) and the profile's analytic
-    factor. -> [n] (σ_t not applied)."""
+    ``optical_depth``): from its density at `p` (`start` [n], the sample's own; None: evaluated
+    there, one evaluation, counted) and the profile's analytic factor. -> [n] (σ_t not applied)."""
     inner, _ = inner_and_edge(vol)
     kind = DENSITIES[vol.params.density.kind].caps
     q = kind["lanes"][0](inner, SimpleNamespace(per_lane=lambda v: lanes.columns(take(v, s))))
-    return kind["optical_depth"](q, vol.field(p, s), direction.unbind(1), length)
+    return kind["optical_depth"](q, vol.field(p, s) if start is None else start, direction.unbind(1), length)
 
 
 def occluder_transmittance(ctx: VolumeContext, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
