@@ -34,7 +34,7 @@ class Shadow(Strict):
     only; hard surfaces of the medium smear over a grid cell). docs/VOLUMES.md has the measured
     error and time of both. A volume whose optical depth along a line has a closed form (a
     constant or an exponential height profile, without an edge fade) takes it instead, whichever the method:
-    exact, one density evaluation a ray, no grid (`stats["plan"]["closed_form_shadows"]`).
+    exact, from the density where the ray starts, no grid (`stats["plan"]["closed_form_shadows"]`).
     Shadow settings are accuracy settings, shared by a batch."""
 
     method: Literal["march", "grid"] = "march"
