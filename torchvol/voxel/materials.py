@@ -7,21 +7,27 @@ they differ from the default (roughness 1, metallic 0: the seed's "fully diffuse
 `material_table` reads a batch's entries as (B, M, ...) tensors.
 
 The `VOXEL_MATERIALS` registry holds the reflectance models: each kind is its schema model and its
-function `fn(normal [n, 3], light_dir [n, 3], irradiance [n, 3], visibility [n]) -> reflected light
-[n, 3]` per unit albedo: what one light adds at a surface point, multiplied into the material's
-albedo by the surface pass."""
+function in lanes (`ops.lanes`) `fn(normal, light_dir, irradiance, visibility) -> reflected light`
+(three lanes each, `visibility` one) per unit albedo: what one light adds at a surface point,
+multiplied into the material's albedo by the surface pass (`passes.look.direct_lanes`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import torch
 from pydantic import Field, field_validator, model_validator
 from torch import Tensor
 
+from ..geometry.scatter import facing
+from ..ops import lanes
 from ..schema.models import Strict, Vec3, nonneg
 from ..schema.registry import Registry
-from .shade import lambert
+
+if TYPE_CHECKING:
+    from ..schema.batch import Stacked
 
 
 class Material(Strict):
@@ -69,9 +75,35 @@ def default_material(roughness: Tensor, metallic: Tensor) -> Tensor:
     return (roughness >= 1) & (metallic <= 0)
 
 
-def diffuse(normal: Tensor, light_dir: Tensor, irradiance: Tensor, visibility: Tensor) -> Tensor:
-    """Lambert: irradiance · max(n · l, 0) · visibility (the seed's faces)."""
-    return irradiance * (lambert(normal, light_dir) * visibility)[:, None]
+def diffuse(normal: list, light_dir: list, irradiance: list, visibility) -> list:
+    """Lambert in lanes (`ops.lanes`): irradiance · max(n · l, 0) · visibility (three lanes each,
+    `visibility` one or a number; the seed's faces)."""
+    lit = facing(normal, light_dir) * visibility
+    return [e * lit for e in irradiance]
+
+
+def material_lanes(voxels: Stacked, s: Tensor, ints, floats):
+    """The materials of rays of scenes `s` [n] as lanes (`ints`, `floats`: tensors -> lanes):
+    look(material id, texels or None) -> the hit's albedo (three lanes; the texels times the
+    colour, as the marched faces take it), roughness, metallic, whether it is GGX and the light its
+    faces emit (`glow`, three lanes)."""
+    materials = material_table(voxels.materials)  # (B, M, 3)
+    count = materials.color.shape[1]
+    first = ints((s * count).to(torch.int32))  # each lane's scene's first row of the tables
+    colour = [floats(c.reshape(-1)) for c in materials.color.unbind(2)]
+    glow = [floats(c.reshape(-1)) for c in materials.emission.unbind(2)]
+    rough, metal = floats(materials.roughness.reshape(-1)), floats(materials.metallic.reshape(-1))
+
+    def look(material, texels) -> SimpleNamespace:
+        i = first + lanes.clamp(material - 1, 0, count - 1)  # (id 0, no hit: the first material, unused)
+        rgh, mtl = lanes.gather(rough, i), lanes.gather(metal, i)
+        albedo = [lanes.gather(c, i) for c in colour]
+        if texels is not None:
+            albedo = [a * x for a, x in zip(albedo, texels)]
+        return SimpleNamespace(albedo=albedo, roughness=rgh, metallic=mtl, ggx=(rgh < 1.0) | (mtl > 0.0),
+                               glow=[lanes.gather(c, i) for c in glow])
+
+    return look
 
 
 VOXEL_MATERIALS = Registry("voxel material")

@@ -2,7 +2,7 @@
 
 A path meets the voxels where the DDA walk (`walk.walk_step`, the same step, tie rule and
 distance-field jump as every other walk) first finds an occupied cell; the face it entered by
-gives the normal (`shade.face_normal`'s rule: −sign(d) on the entry axis), the cell's material its
+gives the normal (`shade.face_lanes`: −sign(d) on the entry axis), the cell's material its
 reflectance (Lambert of its `color` times the face's texel where the scene has a `texture`:
 `shade.texel_lanes`; or GGX: `ggx.reflectance_lanes`, `ggx_bounce`) and the light its faces emit
 (`emission`). Shadow rays are the same walk,
@@ -28,8 +28,8 @@ from ..ops import lanes
 from ..schema.batch import Stacked
 from .ggx import alpha_of, d_ggx, reflectance_lanes, sin2_between
 from .grid import VoxelGrid
-from .materials import material_table
-from .shade import texel_lanes
+from .materials import material_lanes
+from .shade import atlas_lanes, face_lanes, face_uv_lanes
 from .walk import cube_walk, rounded_walk, walk_inputs
 
 __all__ = ["path_surface"]
@@ -41,29 +41,26 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     """The voxel grids of scenes `s` [n] as the path tracer's surface, lanes (`per_lane`: per scene
     -> lanes; `kernel`: Dr.Jit arrays, else torch columns like `like`): `hit(o, d, t_max)` -> (the
     first occupied cell's entry t (inf: none), its facts: the face's normal (three lanes) and its
-    material, looked up once: `_material_lanes`), `normal(x, facts)`, `albedo(n, facts)` (Lambert's; 1 for GGX),
+    material, looked up once: `material_lanes`), `normal(x, facts)`, `albedo(n, facts)` (Lambert's; 1 for GGX),
     `emitted(facts)`, `lift(x, n, t, facts)`, `visible(p, direction, distance)` -> 1 or 0,
     `reflect(facts, n, view, light)` (a Lambert face's cos θ: a light's a·E·cos θ, as the marched
     faces and voxel GI take it; a GGX face's π·BRDF·cos θ) and `bounce(facts, n, d, u)`."""
     ints = lanes.ints_of if kernel else (lambda x: x.to(torch.int32))
     floats = lanes.floats_of if kernel else (lambda x: x.to(like.dtype))
     r, g = walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel)
-    look = _material_lanes(voxels, s, ints, floats)
-    texel = None if voxels.texture is None else _atlas_lanes(voxels.texture, s, per_lane, ints, floats)
+    look = material_lanes(voxels, s, ints, floats)
+    texel = None if voxels.texture is None else atlas_lanes(voxels.texture, s, per_lane, ints, floats)
 
     cubes = cube_walk(r, g)
     walk = cubes if voxels.rounded is None else rounded_walk(cubes, r, voxels.rounded, per_lane, kernel=kernel)
 
     def hit(o: list, d: list, t_max):
         found, t, axis, material, (ray, cell), rounded, _ = walk(o, d, t_max)
-        normal = [lanes.where(axis == c, lanes.where(d[c] > 0.0, -1.0, 1.0), 0.0) for c in range(3)]
-        normal = normal if rounded is None else rounded
+        normal = face_lanes(axis, d) if rounded is None else rounded
         texels = None
         if texel is not None:  # the face's texel, where the hit lies in its cell
             local = [ray.o[c] + t * ray.d[c] - lanes.to_float(cell[c], t) for c in range(3)]
-            u = lanes.where(axis == 0, local[1], lanes.where(axis == 1, local[2], local[0]))  # `shade.face_uv`
-            v = lanes.where(axis == 0, local[2], lanes.where(axis == 1, local[0], local[1]))
-            texels = texel(material, u, v)
+            texels = texel(material, *face_uv_lanes(local, axis))
         facts = look(material, texels)
         facts.normal = normal
         return lanes.where(found, t, float("inf")), facts
@@ -91,45 +88,9 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
                            bounce=ggx_bounce)
 
 
-def _material_lanes(voxels: Stacked, s: Tensor, ints, floats):
-    """The materials of rays of scenes `s` [n] as lanes (`ints`, `floats`: tensors -> lanes):
-    look(material id, texels or None) -> the hit's albedo (three lanes; the texels times the
-    colour, as the marched faces take it), roughness, metallic, whether it is GGX and the light its
-    faces emit (`glow`, three lanes)."""
-    materials = material_table(voxels.materials)  # (B, M, 3)
-    count = materials.color.shape[1]
-    first = ints((s * count).to(torch.int32))  # each lane's scene's first row of the tables
-    colour = [floats(c.reshape(-1)) for c in materials.color.unbind(2)]
-    glow = [floats(c.reshape(-1)) for c in materials.emission.unbind(2)]
-    rough, metal = floats(materials.roughness.reshape(-1)), floats(materials.metallic.reshape(-1))
-
-    def look(material, texels) -> SimpleNamespace:
-        i = first + lanes.clamp(material - 1, 0, count - 1)  # (id 0, no hit: the first material, unused)
-        rgh, mtl = lanes.gather(rough, i), lanes.gather(metal, i)
-        albedo = [lanes.gather(c, i) for c in colour]
-        if texels is not None:
-            albedo = [a * x for a, x in zip(albedo, texels)]
-        return SimpleNamespace(albedo=albedo, roughness=rgh, metallic=mtl, ggx=(rgh < 1.0) | (mtl > 0.0),
-                               glow=[lanes.gather(c, i) for c in glow])
-
-    return look
-
-
-def _atlas_lanes(texture: Stacked, s: Tensor, per_lane, ints, floats):
-    """The scenes' texture atlases as lanes of rays of scenes `s` [n]: texel(material, u, v) ->
-    three lanes (`shade.texel_lanes` over every scene's atlas flattened one after the other)."""
-    atlases = [torch.as_tensor(a) for a in texture.atlas]
-    table = [floats(torch.cat([a[..., c].reshape(-1) for a in atlases]).float()) for c in range(3)]
-    starts = torch.tensor([0] + [a.shape[0] * a.shape[1] for a in atlases[:-1]]).cumsum(0).to(torch.int32)
-    base = ints(starts.to(s.device).index_select(0, s))
-    size = [per_lane(torch.tensor([float(a.shape[k]) for a in atlases], device=s.device)) for k in (0, 1)]
-    tiles = per_lane(torch.as_tensor(texture.tiles, device=s.device).float())
-    return lambda material, u, v: texel_lanes(table, base, size[0], size[1], tiles, material, u, v)
-
-
 def ggx_bounce(m: SimpleNamespace, n: list, d: list, u: list):
     """Where a path arriving along d (three lanes) leaves a face of normal n (three lanes) of
-    material `m` (`_material_lanes`' look: albedo, roughness, metallic, ggx), and its weight (three
+    material `m` (`material_lanes`' look: albedo, roughness, metallic, ggx), and its weight (three
     lanes), from uniform lanes u (three). Lambert: the cosine lobe, weight 1 (the albedo is in the
     throughput). GGX: with probability (1 + metallic)/2 the view mirrored about a half vector drawn
     from the normals the view sees (`visible_normal`), else the cosine lobe; weighted by π·BRDF·cos

@@ -1,9 +1,10 @@
-"""Voxel face shading as plain functions: face normal, face UV, three-tone faces, neighbour AO,
-Lambert sun, rounded-voxel refinement and texture-atlas lookup (seed 001 Steps 5–8, variant 2)."""
+"""Voxel face shading in lanes (`ops.lanes`): the face's normal and UV, neighbour AO, rounded-voxel
+refinement and texture-atlas lookup (seed 001 Steps 5–7, variant 2); the marched look
+(`passes.look`) and the path tracer's surface (`path_surface`) take them."""
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 from torch import Tensor
@@ -12,29 +13,26 @@ from ..geometry.sdf import rounded_box_lanes
 from ..ops import lanes
 from ..ops.mathops import pow_
 
-__all__ = ["ao_lanes", "face_normal", "face_uv", "face_tone", "vertex_ao", "voxel_ao", "lambert", "atlas_sample", "rounded_lanes",
-           "texel_lanes"]
+if TYPE_CHECKING:
+    from ..schema.batch import Stacked
+
+__all__ = ["ao_lanes", "atlas_lanes", "face_lanes", "face_uv_lanes", "rounded_lanes", "texel_lanes", "vertex_ao", "voxel_ao"]
 
 
-def face_normal(axis: Tensor, directions: Tensor) -> Tensor:
-    """Outward normal [N, 3] of the face entered along `axis` [N] by rays `directions` [N, 3]:
-    −sign(d_axis) on that axis (the seed's ``-mask * rayStep``)."""
-    n = torch.zeros_like(directions)
-    s = -torch.sign(directions.gather(1, axis[:, None]))
-    return n.scatter_(1, axis[:, None], s)
+def face_lanes(axis, d: list) -> list:
+    """The outward normal (three lanes) of the face entered on `axis` (int lanes) by rays along d
+    (three lanes): −sign(d) on that axis (the seed's ``-mask * rayStep``; −0 where d is 0, as
+    torch's −sign), 0 on the others."""
+    return [lanes.where(axis == c, lanes.where(d[c] > 0.0, -1.0, lanes.where(d[c] < 0.0, 1.0, d[c] * -0.0)), 0.0)
+            for c in range(3)]  # (d · −0: the lanes' float type, where two numbers would give torch's default)
 
 
-def face_uv(local: Tensor, axis: Tensor) -> Tensor:
-    """Face UV [N, 2] from voxel-local hit coordinates `local` [N, 3] (hit − cell, in [0, 1]) of a face
-    on `axis` [N]: x faces (y, z), y faces (z, x), z faces (x, y) — seed Step 6."""
-    a1 = (axis + 1) % 3
-    a2 = (axis + 2) % 3
-    return torch.stack([local.gather(1, a1[:, None])[:, 0], local.gather(1, a2[:, None])[:, 0]], dim=1)
-
-
-def face_tone(axis: Tensor, tones: Tensor) -> Tensor:
-    """Three-tone face brightness [N] from per-ray tones [N, 3] (x, y, z faces) — seed Step 5."""
-    return tones.gather(1, axis[:, None])[:, 0]
+def face_uv_lanes(local: list, axis) -> tuple:
+    """The face UV (two lanes) of a hit at cell-local coordinates `local` (three lanes, in [0, 1])
+    on a face on `axis` (int lanes): x faces (y, z), y faces (z, x), z faces (x, y) (seed Step 6)."""
+    u = lanes.where(axis == 0, local[1], lanes.where(axis == 1, local[2], local[0]))
+    v = lanes.where(axis == 0, local[2], lanes.where(axis == 1, local[0], local[1]))
+    return u, v
 
 
 def vertex_ao(side1, side2, corner):
@@ -73,22 +71,8 @@ def voxel_ao(occupied: Callable[[Tensor], Tensor], cell: Tensor, normal: Tensor,
                     normal.to(torch.long).unbind(1), axis, uv[:, 0], uv[:, 1], gamma)
 
 
-def lambert(normal: Tensor, sun: Tensor) -> Tensor:
-    """max(dot(n, l), 0) [N] for normals and sun directions [N, 3] (towards the sun)."""
-    return (normal * sun).sum(dim=1).clamp_min(0.0)
-
-
-def atlas_sample(atlas: Tensor, tiles: int, material: Tensor, uv: Tensor) -> Tensor:
-    """Nearest texel [N, 3] in [0, 1] of a (H, W, 3) uint8 atlas: material m uses tile m − 1
-    (row-major from the top left), u to the right, v up (uv [N, 2] in [0, 1]). `texel_lanes` on
-    torch columns."""
-    H, W = atlas.shape[0], atlas.shape[1]
-    table = [atlas[..., c].reshape(-1).to(uv.dtype) for c in range(3)]
-    return torch.stack(texel_lanes(table, 0, H, W, tiles, material, uv[:, 0], uv[:, 1]), dim=1)
-
-
 def texel_lanes(table: list, base, height, width, tiles, material, u, v) -> list:
-    """`atlas_sample` in lanes (`ops.lanes`: torch columns, or the path kernel's Dr.Jit arrays):
+    """The nearest texel of a texture atlas, in lanes (`ops.lanes`: torch columns, or Dr.Jit arrays):
     `table` the atlases' three channels flattened row-major (values 0–255), `base` (int) the
     atlas's first texel, its `height`, `width` and `tiles` a side (numbers or lanes), `material`
     (int), the face UV `u`, `v`. -> three lanes in [0, 1]."""
@@ -99,6 +83,18 @@ def texel_lanes(table: list, base, height, width, tiles, material, u, v) -> list
     y = lanes.minimum(lanes.clamp_min(lanes.floor((row + 1.0 - lanes.clamp(v, 0.0, 1.0)) / tiles * height), 0.0), height - 1.0)
     at = base + lanes.to_int32(y * width + x)
     return [lanes.gather(c, at) / 255.0 for c in table]
+
+
+def atlas_lanes(texture: Stacked, s: Tensor, per_lane, ints, floats):
+    """The scenes' texture atlases as lanes of rays of scenes `s` [n]: texel(material, u, v) ->
+    three lanes (`shade.texel_lanes` over every scene's atlas flattened one after the other)."""
+    atlases = [torch.as_tensor(a) for a in texture.atlas]
+    table = [floats(torch.cat([a[..., c].reshape(-1) for a in atlases]).float()) for c in range(3)]
+    starts = torch.tensor([0] + [a.shape[0] * a.shape[1] for a in atlases[:-1]]).cumsum(0).to(torch.int32)
+    base = ints(starts.to(s.device).index_select(0, s))
+    size = [per_lane(torch.tensor([float(a.shape[k]) for a in atlases], device=s.device)) for k in (0, 1)]
+    tiles = per_lane(torch.as_tensor(texture.tiles, device=s.device).float())
+    return lambda material, u, v: texel_lanes(table, base, size[0], size[1], tiles, material, u, v)
 
 
 def rounded_lanes(local: list, direction: list, radius, *, steps: int, threshold) -> tuple:

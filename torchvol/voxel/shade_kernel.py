@@ -14,7 +14,7 @@ from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
 from .cone import cone_step
 from .shade import ao_lanes
-from .walk import cell_ranges
+from .walk import cell_ranges, occupied_lanes
 
 __all__ = ["ao_kernel", "cones_kernel", "mips_lanes"]
 
@@ -28,7 +28,6 @@ def ao_kernel(table, base: Tensor, strides: Tensor, lo: Tensor, hi: Tensor, cell
     [N], uv [N, 2], gamma [N]. -> [N] in uv's dtype (its exp and log Dr.Jit's: within float
     rounding of eager's)."""
     import drjit as dr
-    from drjit.llvm import Float, Int32
 
     if cell.shape[0] == 0:
         return uv.new_zeros(0)
@@ -36,14 +35,8 @@ def ao_kernel(table, base: Tensor, strides: Tensor, lo: Tensor, hi: Tensor, cell
     ints = lanes.ints_of
     floats = lanes.floats_of
     lo, hi, base = cell_ranges(lo, hi, base, scene, cell.shape[0], cell.device)
-    g = SimpleNamespace(base=base, y=int(strides[0]), x=int(strides[1]), lo=lo, hi=hi)
-
-    def occupied(x, y, z):
-        inside = ((x >= g.lo[0]) & (x < g.hi[0]) & (y >= g.lo[1]) & (y < g.hi[1]) & (z >= g.lo[2])
-                  & (z < g.hi[2]))
-        mat = dr.gather(Int32, table, dr.select(inside, g.base + (z * g.y + y) * g.x + x, 0), inside)
-        return dr.select(mat > 0, Float(1.0), Float(0.0))
-
+    occupied = occupied_lanes(SimpleNamespace(lo=lo, hi=hi, base=base),
+                              SimpleNamespace(table=table, y=int(strides[0]), x=int(strides[1])))
     ao = ao_lanes(occupied, [ints(c) for c in cell.unbind(1)], [ints(c) for c in normal.unbind(1)], ints(axis),
                   floats(uv[:, 0]), floats(uv[:, 1]), floats(gamma))
     dr.eval(ao)

@@ -66,7 +66,7 @@ class VoxelSurface:
         self.aov_channels = {a: c for a, c in aovs.items() if a in SURFACE_AOVS}
         self.tracer = VoxelTracer(self.grid, plan.traversal, drjit)
         direct = DirectLight(voxels, plan, self.lights, self.tracer, transmittance)
-        self.shading = Shading(voxels, plan, self.grid, direct, device=device)
+        self.shading = Shading(voxels, plan, self.grid, direct)
         self.secondary = SecondaryRays(voxels, self.tracer, self.shading, sky)
         self.fog = FogGlow(voxels, plan, self.lights, self.tracer)
         self.rounded = RoundedVoxels(voxels, self.tracer)
@@ -119,17 +119,21 @@ class VoxelSurface:
         if not ids.numel():
             return color, aovs
         sh = take_rows(s, ids)
-        with section("voxels.shade"):
-            point = self.shading.point(*(take_rows(x, ids) for x in (o, d, t, hits.cell, hits.axis, hits.material)), sh,
-                                       None if normal_override is None else take_rows(normal_override, ids))
-        self.shading.ao(point, sh, section)
-        indirect = None
-        if self.plan.cone:
-            indirect = self.cones(point, sh, take_rows(t, ids), section)
-        elif self.plan.gi:
-            with section("voxels.gi"):
-                indirect = self.paths(point, sh, take_rows(keys, ids), take_rows(t, ids))
-        color.index_copy_(0, ids, self.shading.lit(point, sh, section, indirect))  # (1.6× faster than color[ids] =)
+        rows = [take_rows(x, ids) for x in (o, d, t, hits.cell, hits.axis, hits.material)]
+        normal = None if normal_override is None else take_rows(normal_override, ids)
+        if self.plan.cone or self.plan.gi:  # the ambient replaced by the GI's light: its own passes first
+            with section("voxels.shade"):
+                point = self.shading.point(*rows, sh, normal)
+            self.shading.ao(point, sh, section)
+            if self.plan.cone:
+                indirect = self.cones(point, sh, take_rows(t, ids), section)
+            else:
+                with section("voxels.gi"):
+                    indirect = self.paths(point, sh, take_rows(keys, ids), take_rows(t, ids))
+            lit = self.shading.lit(point, sh, section, indirect)
+        else:
+            lit, point = self.shading.shade(*rows, sh, normal, section)
+        color.index_copy_(0, ids, lit)  # (1.6× faster than color[ids] =)
         if self.plan.reflections:
             with section("voxels.reflections"):
                 self.secondary.reflect(color, ids, point, take_rows(d, ids), sh, self.plan.reflections, section)

@@ -31,7 +31,8 @@ from .fog import FogWalk, GlowWalk
 from .grid import VoxelGrid
 from .shade import rounded_lanes
 
-__all__ = ["cell_ranges", "cube_walk", "drjit_traverse", "in_cells", "int_table", "rounded_walk", "walk_inputs", "walk_step"]
+__all__ = ["cell_ranges", "cube_walk", "drjit_traverse", "in_cells", "int_table", "occupied_lanes", "rounded_walk", "walk_inputs",
+           "walk_step"]
 
 
 def walk_step(state, r: SimpleNamespace, g: SimpleNamespace):
@@ -219,6 +220,19 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
     dr.eval(result)
     fog.light = torch.stack([lanes.tensor_of(v) for v in result[-3:]], 1).to(like)
     return result[:-3]
+
+
+def occupied_lanes(r: SimpleNamespace, g: SimpleNamespace):
+    """occupied(x, y, z) -> 1.0 where int lanes (x, y, z) are an occupied cell of each lane's grid,
+    else 0.0 (outside its range too), in lanes: `r`'s lo, hi and base (`walk_inputs`' rays, or
+    `cell_ranges`'), `g`'s table and strides y, x. AO's lookups (`shade.ao_lanes`)."""
+
+    def occupied(x, y, z):
+        inside = (x >= r.lo[0]) & (x < r.hi[0]) & (y >= r.lo[1]) & (y < r.hi[1]) & (z >= r.lo[2]) & (z < r.hi[2])
+        at = lanes.where(inside, r.base + (z * g.y + y) * g.x + x, lanes.int_like(0, x))
+        return lanes.where(inside & (lanes.gather(g.table, at) > 0), 1.0, 0.0)
+
+    return occupied
 
 
 def int_table(table):

@@ -62,9 +62,8 @@ class SecondaryRays:
         if ids.numel():
             sh, di = take_rows(s, ids), take_rows(d, ids)
             hit = [take_rows(x, ids) for x in (o, h.t, h.cell, h.axis, h.material)]
-            point = self.shading.point(hit[0], di, *hit[1:], sh, None)
-            self.shading.ao(point, sh, section)
-            color.index_copy_(0, ids, self.shading.lit(point, sh, section))
+            lit, point = self.shading.shade(hit[0], di, *hit[1:], sh, None, section)
+            color.index_copy_(0, ids, lit)
             if bounces > 1:
                 self.reflect(color, ids, point, di, sh, bounces - 1, section)
         return color, torch.where(h.hit, h.t, torch.full_like(h.t, torch.inf))

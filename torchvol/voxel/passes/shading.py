@@ -1,60 +1,67 @@
 """Shading a voxel hit: its `ShadingPoint` (position, face, UV, material and albedo: face tone and
 texture applied), the neighbour AO (`voxels.ao`) into its albedo, and its lit colour: the ambient
-(or the GI's incoming light) plus the direct light (`direct.py`), GGX materials reflecting it."""
+(or the GI's incoming light) plus the direct light (`direct.py`), GGX materials reflecting it.
+Each is `look.py`'s lanes: on torch columns here, piece by piece, or all of them as one Dr.Jit
+kernel over a chunk's hits (`Shading.shade`, where `look.fusable`)."""
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import torch
 from torch import Tensor
 
-from ...ops.mathops import take_rows
-from ...schema.batch import Stacked, per_scene, take
+from ...ops import lanes
+from ...runtime.compilation import traced_columns
+from ...schema.batch import Stacked, take
 from ..grid import VoxelGrid
-from ..materials import default_material, material_table
-from ..shade import atlas_sample, face_normal, face_tone, face_uv
-from .direct import DirectLight
+from .direct import DirectLight, point_lanes_view
+from .look import (
+    ao_of,
+    direct_lanes,
+    fusable,
+    lit_lanes,
+    look_inputs,
+    point_lanes_of,
+    visible_lanes,
+)
 from .point import ShadingPoint
 
 __all__ = ["Shading"]
 
 
 class Shading:
-    """The materials (`voxels`: the batch's `Stacked` voxels; `plan` its `VoxelPass`), texture
-    atlases and AO of `grid`'s hits, lit by `direct`."""
+    """The look of `grid`'s hits (`voxels`: the batch's `Stacked` voxels; `plan` its `VoxelPass`):
+    their materials, texels, AO and the light of `direct`; `fused` where `shade` is one kernel."""
 
-    def __init__(self, voxels: Stacked, plan, grid: VoxelGrid, direct: DirectLight, *, device):
+    def __init__(self, voxels: Stacked, plan, grid: VoxelGrid, direct: DirectLight):
         self.p, self.plan, self.grid, self.direct, self.tracer = voxels, plan, grid, direct, direct.tracer
-        self.materials = material_table(voxels.materials)  # (B, M, ...)
-        if plan.texture:
-            self.atlases = [torch.as_tensor(a, device=device) for a in voxels.texture.atlas]
+        self.fused = self.tracer.drjit and fusable(plan, direct.lights)
 
     def point(self, o: Tensor, d: Tensor, t: Tensor, cell: Tensor, axis: Tensor, mat: Tensor, s: Tensor,
               normal_override: Tensor | None) -> ShadingPoint:
         """The shading record of hits of rays o, d [n, 3] (scenes s [n]) at t [n] on face `axis` [n]
         of `cell` [n, 3] of material `mat` [n]; `normal_override` [n, 3] the shading normal where
         it is not the face's (rounded voxels)."""
-        p, g = self.p, self.grid
-        x = o + t[:, None] * d
-        local = (g.to_grid(x, s) - cell.to(x.dtype)).clamp(0.0, 1.0)
-        face_n = face_normal(axis, d)
-        uv = face_uv(local, axis)
-        M = self.materials.color.shape[1]
-        row = s * M + (mat - 1).clamp(0, M - 1)  # the hit's material's row of the (B·M, ...) tables
-        of = lambda table: take_rows(table.reshape(-1, *table.shape[2:]), row)  # noqa: E731  (3× table[s, index])
-        albedo = of(self.materials.color)
-        if self.plan.texture:  # one atlas per scene
-            albedo = albedo * per_scene(torch.cat([mat[:, None].to(x.dtype), uv], dim=1), s, len(p),
-                                        lambda b, i, q: atlas_sample(self.atlases[b], p.texture.tiles[b], q[:, 0].long(), q[:, 1:]))
-        albedo = albedo * face_tone(axis, take(p.face_tones, s))[:, None]
-        normal = face_n if normal_override is None else normal_override
-        out = ShadingPoint(x=x, cell=cell, axis=axis, face_normal=face_n, normal=normal, uv=uv, albedo=albedo,
-                           material=mat.to(x.dtype)[:, None])
+        q = self.direct.inputs(s, o)
+        col = lanes.columns
+        point = point_lanes_of(q, col(o), col(d), t, col(cell), axis, mat,
+                               None if normal_override is None else col(normal_override))
+        return self._record(point, cell, axis)
+
+    def _record(self, point, cell: Tensor, axis: Tensor) -> ShadingPoint:
+        """`look.point_lanes_of`'s point on torch columns as a `ShadingPoint`; the emission, view,
+        roughness and metallic where the plan reads them."""
+        vec = lambda x: torch.stack(x, dim=1)  # noqa: E731
+        face = vec(point.face_normal)
+        out = ShadingPoint(x=vec(point.x), cell=cell, axis=axis, face_normal=face,
+                           normal=face if point.normal is point.face_normal else vec(point.normal),
+                           uv=vec([point.u, point.v]), albedo=vec(point.albedo), material=point.material[:, None])
         if self.plan.emission:
-            out.emission = of(self.materials.emission)
+            out.emission = vec(point.emission)
         if self.plan.ggx:
-            out.view = -d
-            out.roughness = of(self.materials.roughness)[:, None]
-            out.metallic = of(self.materials.metallic)[:, None]
+            out.view = vec(point.view)
+            out.roughness, out.metallic = point.roughness[:, None], point.metallic[:, None]
         return out
 
     def ao(self, point: ShadingPoint, s: Tensor, section) -> None:
@@ -72,8 +79,56 @@ class Shading:
         diffuse: albedo · ambient)."""
         ambient = take(self.p.ambient, s) if indirect is None else indirect
         light, specular = self.direct(point, s, section, ambient)
-        lit = point.albedo * light
-        if self.plan.ggx:
-            pbr = point.albedo * ambient + specular
-            lit = torch.where(default_material(point.roughness, point.metallic), lit, pbr)
-        return lit + point.emission if self.plan.emission else lit
+        q = SimpleNamespace(ggx=self.plan.ggx, emission=self.plan.emission)
+        col = lanes.columns
+        return torch.stack(lit_lanes(q, point_lanes_view(point), col(ambient), col(light),
+                                     None if isinstance(specular, int) else col(specular)), dim=1)
+
+    def shade(self, o: Tensor, d: Tensor, t: Tensor, cell: Tensor, axis: Tensor, mat: Tensor, s: Tensor,
+              normal_override: Tensor | None, section) -> tuple[Tensor, ShadingPoint]:
+        """`point`, `ao` and `lit` of the hits (as `point` takes them) -> (colour [n, 3], their
+        `ShadingPoint`): one Dr.Jit kernel where `fused` (the walks are kernels and every shadow
+        ray stays in the voxels: its walks inside it), else each on torch columns."""
+        if not self.fused or o.shape[0] == 0:
+            with section("voxels.shade"):
+                point = self.point(o, d, t, cell, axis, mat, s, normal_override)
+            self.ao(point, s, section)
+            return self.lit(point, s, section), point
+        with section("voxels.shade"):
+            out = self._fused(o, d, t, cell, axis, mat, s, normal_override)
+        for name in (["voxels.ao"] if self.plan.ao else []) + [use.name for use in self.plan.shadows]:
+            with section(name):  # listed in the stats; their time is the shading's
+                pass
+        return out
+
+    def _fused(self, o, d, t, cell, axis, mat, s, normal_override) -> tuple[Tensor, ShadingPoint]:
+        """`shade` as one Dr.Jit kernel: `look`'s lanes in the order `point`, `ao` and `lit` run them;
+        out of it only what the colour, the AOVs and the reflections read."""
+        plan, shadowed = self.plan, {use.light: use for use in self.plan.shadows}
+        wanted = {"colour": 3, "x": 3, "face_normal": 3, "normal": 3 * (normal_override is not None), "u": 1, "v": 1,
+                  "albedo": 3, "material": 1, "emission": 3 * plan.emission, "roughness": plan.ggx, "metallic": plan.ggx,
+                  "ao": plan.ao, "shadow": bool(shadowed)}
+        wanted = {k: int(w) for k, w in wanted.items() if w}
+
+        def kernel(lane):
+            q = look_inputs(self.p, plan, self.grid, self.direct.lights, s, lanes.per_scene_lanes(s), lanes.ints_of,
+                            lanes.floats_of, kernel=True)
+            point = point_lanes_of(q, lanes.vector_lanes(o), lanes.vector_lanes(d), lane(t),
+                                   [lanes.ints_of(c) for c in cell.unbind(1)], lanes.ints_of(axis), lanes.ints_of(mat),
+                                   None if normal_override is None else lanes.vector_lanes(normal_override))
+            if plan.ao:
+                point.ao = ao_of(q, point)
+                point.albedo = [a * point.ao for a in point.albedo]
+            walk = visible_lanes(q) if shadowed else None
+            light, specular, point.shadow = direct_lanes(q, point, q.ambient, lambda l, *ray: walk(*ray), shadowed)
+            point.colour = lit_lanes(q, point, q.ambient, light, specular)
+            return [x for k in wanted for x in (getattr(point, k) if wanted[k] == 3 else [getattr(point, k)])]
+
+        out = dict(zip(wanted, traced_columns(kernel, o, tuple(wanted.values()))))
+        one = lambda k: out[k][:, None] if k in out else None  # noqa: E731
+        point = ShadingPoint(x=out["x"], cell=cell, axis=axis, face_normal=out["face_normal"],
+                             normal=out.get("normal", out["face_normal"]), uv=torch.stack([out["u"], out["v"]], dim=1),
+                             albedo=out["albedo"], material=one("material"), emission=out.get("emission"),
+                             view=-d if plan.ggx else None, roughness=one("roughness"), metallic=one("metallic"),
+                             ao=one("ao"), shadow=one("shadow"))
+        return out["colour"], point
