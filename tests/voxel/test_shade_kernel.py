@@ -120,8 +120,8 @@ def test_the_fused_shading_kernel_is_the_shading_piece_by_piece(monkeypatch, rou
     scenes = [_lit_scene(seed, rounded=rounded) for seed in (3, 4)]
     aovs = ["normal", "uv", "material", "ao", "shadow", "roughness", "metallic"]
     calls = []
-    fused_call = shading.Shading._fused
-    monkeypatch.setattr(shading.Shading, "_fused", lambda self, *a: calls.append(1) or fused_call(self, *a))
+    kernel_call = shading.Shading._kernel
+    monkeypatch.setattr(shading.Shading, "_kernel", lambda self, *a, lit: (lit and calls.append(1)) or kernel_call(self, *a, lit=lit))
     fused = tv.render(scenes, aovs=aovs)
     assert calls, "the fused kernel did not run"
     monkeypatch.setattr(shading, "fusable", lambda plan, lights: False)
@@ -143,8 +143,8 @@ def test_shadow_rays_that_leave_the_voxels_are_not_fused(monkeypatch):
     from torchvol.voxel.passes import shading
 
     calls = []
-    fused_call = shading.Shading._fused
-    monkeypatch.setattr(shading.Shading, "_fused", lambda self, *a: calls.append(1) or fused_call(self, *a))
+    kernel_call = shading.Shading._kernel
+    monkeypatch.setattr(shading.Shading, "_kernel", lambda self, *a, lit: (lit and calls.append(1)) or kernel_call(self, *a, lit=lit))
     scene = _lit_scene(0, rounded=False)
     fog = {"density": {"constant": 0.2}, "bounds": {"box": {"min": [-7, 3, -7], "max": [7, 9, 7]}}}
     tv.render({**scene, "volumes": [fog]})

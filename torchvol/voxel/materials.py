@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import TYPE_CHECKING
 
 import torch
 from pydantic import Field, field_validator, model_validator
@@ -25,9 +24,6 @@ from ..geometry.scatter import facing
 from ..ops import lanes
 from ..schema.models import Strict, Vec3, nonneg
 from ..schema.registry import Registry
-
-if TYPE_CHECKING:
-    from ..schema.batch import Stacked
 
 
 class Material(Strict):
@@ -82,12 +78,11 @@ def diffuse(normal: list, light_dir: list, irradiance: list, visibility) -> list
     return [e * lit for e in irradiance]
 
 
-def material_lanes(voxels: Stacked, s: Tensor, ints, floats):
-    """The materials of rays of scenes `s` [n] as lanes (`ints`, `floats`: tensors -> lanes):
-    look(material id, texels or None) -> the hit's albedo (three lanes; the texels times the
-    colour, as the marched faces take it), roughness, metallic, whether it is GGX and the light its
-    faces emit (`glow`, three lanes)."""
-    materials = material_table(voxels.materials)  # (B, M, 3)
+def material_lanes(materials: MaterialTable, s: Tensor, ints, floats):
+    """The materials (a batch's `material_table`) of rays of scenes `s` [n] as lanes (`ints`,
+    `floats`: tensors -> lanes): look(material id, texels or None) -> the hit's albedo (three
+    lanes; the texels times the colour, as the marched faces take it), roughness, metallic,
+    whether it is GGX and the light its faces emit (`glow`, three lanes)."""
     count = materials.color.shape[1]
     first = ints((s * count).to(torch.int32))  # each lane's scene's first row of the tables
     colour = [floats(c.reshape(-1)) for c in materials.color.unbind(2)]

@@ -28,8 +28,8 @@ from ..ops import lanes
 from ..schema.batch import Stacked
 from .ggx import alpha_of, d_ggx, reflectance_lanes, sin2_between
 from .grid import VoxelGrid
-from .materials import material_lanes
-from .shade import atlas_lanes, face_lanes, face_uv_lanes
+from .materials import material_lanes, material_table
+from .shade import atlas_lanes, atlas_table, face_lanes, face_uv_lanes
 from .walk import cube_walk, rounded_walk, walk_inputs
 
 __all__ = ["path_surface"]
@@ -48,8 +48,8 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     ints = lanes.ints_of if kernel else (lambda x: x.to(torch.int32))
     floats = lanes.floats_of if kernel else (lambda x: x.to(like.dtype))
     r, g = walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel)
-    look = material_lanes(voxels, s, ints, floats)
-    texel = None if voxels.texture is None else atlas_lanes(voxels.texture, s, per_lane, ints, floats)
+    look = material_lanes(material_table(voxels.materials), s, ints, floats)
+    texel = None if voxels.texture is None else atlas_lanes(atlas_table(voxels.texture), s, per_lane, ints, floats)
 
     cubes = cube_walk(r, g)
     walk = cubes if voxels.rounded is None else rounded_walk(cubes, r, voxels.rounded, per_lane, kernel=kernel)

@@ -4,6 +4,7 @@ refinement and texture-atlas lookup (seed 001 Steps 5–7, variant 2); the march
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Callable
 
 import torch
@@ -16,7 +17,7 @@ from ..ops.mathops import pow_
 if TYPE_CHECKING:
     from ..schema.batch import Stacked
 
-__all__ = ["ao_lanes", "atlas_lanes", "face_lanes", "face_uv_lanes", "rounded_lanes", "texel_lanes", "vertex_ao", "voxel_ao"]
+__all__ = ["ao_lanes", "atlas_lanes", "atlas_table", "face_lanes", "face_uv_lanes", "rounded_lanes", "texel_lanes", "vertex_ao", "voxel_ao"]
 
 
 def face_lanes(axis, d: list) -> list:
@@ -85,16 +86,26 @@ def texel_lanes(table: list, base, height, width, tiles, material, u, v) -> list
     return [lanes.gather(c, at) / 255.0 for c in table]
 
 
-def atlas_lanes(texture: Stacked, s: Tensor, per_lane, ints, floats):
-    """The scenes' texture atlases as lanes of rays of scenes `s` [n]: texel(material, u, v) ->
-    three lanes (`shade.texel_lanes` over every scene's atlas flattened one after the other)."""
+def atlas_table(texture: Stacked) -> SimpleNamespace:
+    """A batch's texture atlases as `atlas_lanes` reads them, built once a render: every scene's
+    atlas flattened one after the other (three float32 channels, values 0-255), each one's first
+    texel, height, width (B,) and tiles a side (B,)."""
     atlases = [torch.as_tensor(a) for a in texture.atlas]
-    table = [floats(torch.cat([a[..., c].reshape(-1) for a in atlases]).float()) for c in range(3)]
-    starts = torch.tensor([0] + [a.shape[0] * a.shape[1] for a in atlases[:-1]]).cumsum(0).to(torch.int32)
-    base = ints(starts.to(s.device).index_select(0, s))
-    size = [per_lane(torch.tensor([float(a.shape[k]) for a in atlases], device=s.device)) for k in (0, 1)]
-    tiles = per_lane(torch.as_tensor(texture.tiles, device=s.device).float())
-    return lambda material, u, v: texel_lanes(table, base, size[0], size[1], tiles, material, u, v)
+    return SimpleNamespace(channels=[torch.cat([a[..., c].reshape(-1) for a in atlases]).float() for c in range(3)],
+                           starts=torch.tensor([0] + [a.shape[0] * a.shape[1] for a in atlases[:-1]]).cumsum(0).to(torch.int32),
+                           height=torch.tensor([float(a.shape[0]) for a in atlases]),
+                           width=torch.tensor([float(a.shape[1]) for a in atlases]),
+                           tiles=torch.as_tensor(texture.tiles).float())
+
+
+def atlas_lanes(atlas: SimpleNamespace, s: Tensor, per_lane, ints, floats):
+    """The scenes' texture atlases (`atlas_table`) as lanes of rays of scenes `s` [n] (`per_lane`:
+    per scene -> lanes; `ints`, `floats`: a tensor -> lanes): texel(material, u, v) -> three lanes
+    (`texel_lanes`)."""
+    table = [floats(c) for c in atlas.channels]
+    base = ints(atlas.starts.to(s.device).index_select(0, s))
+    height, width, tiles = (per_lane(x.to(s.device)) for x in (atlas.height, atlas.width, atlas.tiles))
+    return lambda material, u, v: texel_lanes(table, base, height, width, tiles, material, u, v)
 
 
 def rounded_lanes(local: list, direction: list, radius, *, steps: int, threshold) -> tuple:

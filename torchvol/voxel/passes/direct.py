@@ -19,7 +19,7 @@ from ...ops import lanes
 from ...schema.batch import Stacked, take
 from ..ggx import ggx_reflect
 from ..tracer import VoxelTracer
-from .look import direct_lanes, look_inputs
+from .look import direct_lanes, look_inputs, look_tables
 from .point import ShadingPoint
 
 __all__ = ["DirectLight", "point_lanes_view"]
@@ -44,14 +44,17 @@ class DirectLight:
                  transmittance: Callable[..., Tensor] | None = None):
         self.p, self.plan, self.lights, self.tracer = voxels, plan, list(lights), tracer
         self.transmittance = transmittance
+        self.tables = look_tables(voxels, plan)  # the materials and atlases, once a render
 
-    def inputs(self, s: Tensor, like: Tensor) -> SimpleNamespace:
-        """`look.look_inputs` on torch columns for hits of scenes s [n] (`like`'s dtype): GGX's
-        reflectance one Dr.Jit kernel where the tracer's walks are (its sqrt correctly rounded,
-        torch's float32 one not: the fused kernel's bits)."""
-        q = look_inputs(self.p, self.plan, self.tracer.grid, self.lights, s, lambda v: lanes.columns(take(v, s)),
-                        lambda x: x.to(torch.int32), lambda x: x.to(like.dtype), kernel=False, walks=False)
-        if self.tracer.drjit:
+    def inputs(self, s: Tensor, like: Tensor, *, surface: bool = False) -> SimpleNamespace:
+        """`look.look_inputs` on torch columns for hits of scenes s [n] (`like`'s dtype): the
+        lights' (`surface`: the point's instead); GGX's reflectance one Dr.Jit kernel where the
+        tracer's walks are (its sqrt correctly rounded, torch's float32 one not: the fused
+        kernel's bits)."""
+        q = look_inputs(self.p, self.plan, self.tables, self.tracer.grid, self.lights, s, lambda v: lanes.columns(take(v, s)),
+                        lambda x: x.to(torch.int32), lambda x: x.to(like.dtype), kernel=False, walks=False,
+                        surface=surface, light=not surface)
+        if self.tracer.drjit and not surface:
             def reflect(*vectors_and_numbers):
                 *vectors, rough, metal = vectors_and_numbers
                 stack = lambda v: torch.stack(v, dim=1)  # noqa: E731

@@ -23,37 +23,45 @@ from ...schema.batch import Stacked
 from ..dda import next_cell_lanes
 from ..ggx import reflectance_lanes
 from ..grid import VoxelGrid
-from ..materials import VOXEL_MATERIALS, material_lanes
-from ..shade import ao_lanes, atlas_lanes, face_lanes, face_uv_lanes
+from ..materials import VOXEL_MATERIALS, material_lanes, material_table
+from ..shade import ao_lanes, atlas_lanes, atlas_table, face_lanes, face_uv_lanes
 from ..walk import cube_walk, occupied_lanes, walk_inputs
 
-__all__ = ["direct_lanes", "fusable", "lit_lanes", "look_inputs", "point_lanes_of", "visible_lanes"]
+__all__ = ["direct_lanes", "fusable", "lit_lanes", "look_inputs", "look_tables", "point_lanes_of", "visible_lanes"]
 
 
-def look_inputs(voxels: Stacked, plan, grid: VoxelGrid, lights: list[LightSource], s: Tensor, per_lane, ints,
-                floats, *, kernel: bool, walks: bool = True) -> SimpleNamespace:
-    """What the look's lanes functions take for hits of scenes `s` [n] (`per_lane`: per scene ->
-    lanes; `ints`, `floats`: a tensor -> lanes; `kernel`: Dr.Jit's lanes, else torch columns): the
-    grids' placement (`origin`, `size`), the walk's rays and tables (`walk.walk_inputs`: AO's
-    lookups, the shadow walks), the materials (`materials.material_lanes`) and texels, the face
-    tones, ambient, AO's gamma, the shadows' offset and steps, each light's `toward(p)` (on torch
-    with what lies on its way, `LightSource.through`), the diffuse material's and GGX's
-    reflectance (`reflect`: `ggx.reflectance_lanes`). `walks` False: no walk inputs (no AO or
-    shadow walk in lanes: the tracer's)."""
+def look_tables(voxels: Stacked, plan) -> SimpleNamespace:
+    """What `look_inputs` reads of a batch, built once a render: its materials' table
+    (`materials.material_table`) and its texture atlases (`shade.atlas_table`, None: none)."""
+    return SimpleNamespace(materials=material_table(voxels.materials),
+                           atlas=atlas_table(voxels.texture) if plan.texture else None)
+
+
+def look_inputs(voxels: Stacked, plan, tables: SimpleNamespace, grid: VoxelGrid, lights: list[LightSource], s: Tensor,
+                per_lane, ints, floats, *, kernel: bool, walks: bool = True, surface: bool = True,
+                light: bool = True) -> SimpleNamespace:
+    """What the look's lanes functions take for hits of scenes `s` [n] (`tables`: `look_tables`;
+    `per_lane`: per scene -> lanes; `ints`, `floats`: a tensor -> lanes; `kernel`: Dr.Jit's lanes,
+    else torch columns): the grids' placement (`origin`, `size`); with `walks` the walk's rays and
+    tables (`walk.walk_inputs`: AO's lookups, the shadow walks); with `surface` the materials
+    (`materials.material_lanes`), texels and face tones (`point_lanes_of`'s); with `light` the
+    ambient, AO's gamma, the shadows' offset and steps, each light's `toward(p)` (on torch with
+    what lies on its way, `LightSource.through`), the diffuse material's and GGX's reflectance
+    (`reflect`: `ggx.reflectance_lanes`) (`direct_lanes`' and `lit_lanes`'). Only what a caller
+    reads: on torch each is a pass over the hits."""
     r, g = walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel) if walks else (None, None)
     origin, size = (r.origin, r.size) if walks else (per_lane(grid.origin), per_lane(grid.voxel_size))
     q = SimpleNamespace(r=r, g=g, origin=origin, size=size, ggx=plan.ggx, emission=plan.emission,
-                        look=material_lanes(voxels, s, ints, floats), texel=None, tones=per_lane(voxels.face_tones),
-                        ambient=per_lane(voxels.ambient), gamma=None, offset=None, rounded=voxels.rounded is not None,
-                        diffuse=VOXEL_MATERIALS["diffuse"].fn, reflect=reflectance_lanes)
-    if plan.texture:
-        q.texel = atlas_lanes(voxels.texture, s, per_lane, ints, floats)
-    if plan.ao:
-        q.gamma = per_lane(voxels.ao.gamma)
-    if plan.shadows:
-        q.offset = per_lane(voxels.shadow.offset)
-        q.shadow_steps = int(voxels.shadow.steps)
-    q.lights = [_toward_lanes(light, per_lane, s) for light in lights]
+                        rounded=voxels.rounded is not None)
+    if surface:
+        q.look, q.tones = material_lanes(tables.materials, s, ints, floats), per_lane(voxels.face_tones)
+        q.texel = atlas_lanes(tables.atlas, s, per_lane, ints, floats) if plan.texture else None
+    if light:
+        q.ambient, q.diffuse, q.reflect = per_lane(voxels.ambient), VOXEL_MATERIALS["diffuse"].fn, reflectance_lanes
+        q.gamma = per_lane(voxels.ao.gamma) if plan.ao else None
+        if plan.shadows:
+            q.offset, q.shadow_steps = per_lane(voxels.shadow.offset), int(voxels.shadow.steps)
+        q.lights = [_toward_lanes(source, per_lane, s) for source in lights]
     return q
 
 

@@ -43,7 +43,9 @@ class Shading:
         """The shading record of hits of rays o, d [n, 3] (scenes s [n]) at t [n] on face `axis` [n]
         of `cell` [n, 3] of material `mat` [n]; `normal_override` [n, 3] the shading normal where
         it is not the face's (rounded voxels)."""
-        q = self.direct.inputs(s, o)
+        if self.tracer.drjit:  # one small kernel, not ~60 torch passes over the hits
+            return self._kernel(o, d, t, cell, axis, mat, s, normal_override, lit=False)[1]
+        q = self.direct.inputs(s, o, surface=True)
         col = lanes.columns
         point = point_lanes_of(q, col(o), col(d), t, col(cell), axis, mat,
                                None if normal_override is None else col(normal_override))
@@ -95,33 +97,36 @@ class Shading:
             self.ao(point, s, section)
             return self.lit(point, s, section), point
         with section("voxels.shade"):
-            out = self._fused(o, d, t, cell, axis, mat, s, normal_override)
+            out = self._kernel(o, d, t, cell, axis, mat, s, normal_override, lit=True)
         for name in (["voxels.ao"] if self.plan.ao else []) + [use.name for use in self.plan.shadows]:
             with section(name):  # listed in the stats; their time is the shading's
                 pass
         return out
 
-    def _fused(self, o, d, t, cell, axis, mat, s, normal_override) -> tuple[Tensor, ShadingPoint]:
-        """`shade` as one Dr.Jit kernel: `look`'s lanes in the order `point`, `ao` and `lit` run them;
-        out of it only what the colour, the AOVs and the reflections read."""
-        plan, shadowed = self.plan, {use.light: use for use in self.plan.shadows}
-        wanted = {"colour": 3, "x": 3, "face_normal": 3, "normal": 3 * (normal_override is not None), "u": 1, "v": 1,
+    def _kernel(self, o, d, t, cell, axis, mat, s, normal_override, *, lit: bool) -> tuple[Tensor | None, ShadingPoint]:
+        """`shade` as one Dr.Jit kernel: `look`'s lanes in the order `point`, `ao` and `lit` run
+        them; out of it only what the colour, the AOVs and the reflections read. `lit` False: the
+        point alone (`point` where the walks are kernels) -> (None, its `ShadingPoint`)."""
+        plan = self.plan
+        shadowed = {use.light: use for use in plan.shadows} if lit else {}
+        wanted = {"colour": 3 * lit, "x": 3, "face_normal": 3, "normal": 3 * (normal_override is not None), "u": 1, "v": 1,
                   "albedo": 3, "material": 1, "emission": 3 * plan.emission, "roughness": plan.ggx, "metallic": plan.ggx,
-                  "ao": plan.ao, "shadow": bool(shadowed)}
+                  "ao": plan.ao and lit, "shadow": bool(shadowed)}
         wanted = {k: int(w) for k, w in wanted.items() if w}
 
         def kernel(lane):
-            q = look_inputs(self.p, plan, self.grid, self.direct.lights, s, lanes.per_scene_lanes(s), lanes.ints_of,
-                            lanes.floats_of, kernel=True)
+            q = look_inputs(self.p, plan, self.direct.tables, self.grid, self.direct.lights, s, lanes.per_scene_lanes(s),
+                            lanes.ints_of, lanes.floats_of, kernel=True, walks=lit, light=lit)
             point = point_lanes_of(q, lanes.vector_lanes(o), lanes.vector_lanes(d), lane(t),
                                    [lanes.ints_of(c) for c in cell.unbind(1)], lanes.ints_of(axis), lanes.ints_of(mat),
                                    None if normal_override is None else lanes.vector_lanes(normal_override))
-            if plan.ao:
-                point.ao = ao_of(q, point)
-                point.albedo = [a * point.ao for a in point.albedo]
-            walk = visible_lanes(q) if shadowed else None
-            light, specular, point.shadow = direct_lanes(q, point, q.ambient, lambda l, *ray: walk(*ray), shadowed)
-            point.colour = lit_lanes(q, point, q.ambient, light, specular)
+            if lit:
+                if plan.ao:
+                    point.ao = ao_of(q, point)
+                    point.albedo = [a * point.ao for a in point.albedo]
+                walk = visible_lanes(q) if shadowed else None
+                light, specular, point.shadow = direct_lanes(q, point, q.ambient, lambda l, *ray: walk(*ray), shadowed)
+                point.colour = lit_lanes(q, point, q.ambient, light, specular)
             return [x for k in wanted for x in (getattr(point, k) if wanted[k] == 3 else [getattr(point, k)])]
 
         out = dict(zip(wanted, traced_columns(kernel, o, tuple(wanted.values()))))
@@ -131,4 +136,4 @@ class Shading:
                              albedo=out["albedo"], material=one("material"), emission=out.get("emission"),
                              view=-d if plan.ggx else None, roughness=one("roughness"), metallic=one("metallic"),
                              ao=one("ao"), shadow=one("shadow"))
-        return out["colour"], point
+        return out.get("colour"), point
