@@ -11,6 +11,7 @@ import torchvol as tv
 from tests.conftest import assert_close
 from torchvol.runtime.compilation import drjit_available
 from torchvol.voxel.cone import build_mips, mip_table, trace_cones
+from torchvol.voxel.passes import shading
 from torchvol.voxel.shade import voxel_ao
 from torchvol.voxel.shade_kernel import ao_kernel, cones_kernel, mips_lanes
 from torchvol.voxel.walk import int_table
@@ -82,6 +83,14 @@ def test_the_cone_preset_renders_as_its_eager_reference():
         assert_close(kernel.aovs[key], value, atol=1e-6, what=key)
 
 
+def fused_calls(monkeypatch) -> list:
+    """A list that grows by one each time `Shading.shade` runs its fused kernel."""
+    calls, kernel_call = [], shading.Shading._kernel
+    monkeypatch.setattr(shading.Shading, "_kernel",
+                        lambda self, *a, lit, **k: (lit and calls.append(1)) or kernel_call(self, *a, lit=lit, **k))
+    return calls
+
+
 def _lit_scene(seed: int, *, rounded: bool) -> dict:
     """A voxel scene of every marched-look effect the fused shading kernel takes: a textured
     Lambert material, a GGX and an emissive one, AO, a shadowed sun and a shadowed point light,
@@ -115,13 +124,9 @@ def test_the_fused_shading_kernel_is_the_shading_piece_by_piece(monkeypatch, rou
     piece around the tracer's kernels (`look.fusable` off), every AOV included, and with the eager
     reference, within the tolerance table: the pieces take a point light's direction and the
     texels in torch (its float32 sqrt not correctly rounded: measured at most 4.8e-7 apart)."""
-    from torchvol.voxel.passes import shading
-
     scenes = [_lit_scene(seed, rounded=rounded) for seed in (3, 4)]
     aovs = ["normal", "uv", "material", "ao", "shadow", "roughness", "metallic"]
-    calls = []
-    kernel_call = shading.Shading._kernel
-    monkeypatch.setattr(shading.Shading, "_kernel", lambda self, *a, lit: (lit and calls.append(1)) or kernel_call(self, *a, lit=lit))
+    calls = fused_calls(monkeypatch)
     fused = tv.render(scenes, aovs=aovs)
     assert calls, "the fused kernel did not run"
     monkeypatch.setattr(shading, "fusable", lambda plan, lights: False)
@@ -137,18 +142,29 @@ def test_the_fused_shading_kernel_is_the_shading_piece_by_piece(monkeypatch, rou
 
 
 @pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
-def test_shadow_rays_that_leave_the_voxels_are_not_fused(monkeypatch):
-    """A shadow ray that also crosses a volume beside the voxels (its own pass) keeps the pieces;
-    so does GI, whose light replaces the ambient first."""
-    from torchvol.voxel.passes import shading
-
-    calls = []
-    kernel_call = shading.Shading._kernel
-    monkeypatch.setattr(shading.Shading, "_kernel", lambda self, *a, lit: (lit and calls.append(1)) or kernel_call(self, *a, lit=lit))
+@pytest.mark.parametrize("density", [{"constant": 0.3}, {"fbm": {"frequency": 0.5}}], ids=["closed form", "fbm"])
+def test_shadow_rays_through_volumes_are_fused_with_their_evaluations(monkeypatch, density):
+    """A shadow ray that also crosses a volume beside the voxels takes the volume's lanes inside the
+    fused kernel (`kernel_march.surface_lanes_of`), only where the voxels let the light through:
+    the pieces' image within the tolerance table, their density evaluations and passes exactly."""
+    calls = fused_calls(monkeypatch)
     scene = _lit_scene(0, rounded=False)
-    fog = {"density": {"constant": 0.2}, "bounds": {"box": {"min": [-7, 3, -7], "max": [7, 9, 7]}}}
-    tv.render({**scene, "volumes": [fog]})
-    assert not calls, "a shadow ray through a volume was shaded in the fused kernel"
+    scene["volumes"] = [{"density": density, "bounds": {"box": {"min": [-7, 3, -7], "max": [7, 9, 7]}}, "sigma_t": 0.8}]
+    scene["march"] = {"quality": "draft"}  # (the volume's own march is eager beside voxels: few steps)
+    fused = tv.render(scene)
+    assert calls, "a shadow ray through a volume was not shaded in the fused kernel"
+    monkeypatch.setattr(shading, "fusable", lambda plan, lights: False)
+    pieces = tv.render(scene)
+    assert_close(fused.radiance, pieces.radiance, what="fused against piece by piece")
+    assert fused.stats["density_evals"] == pieces.stats["density_evals"] > 0
+    assert fused.stats["passes"] == pieces.stats["passes"]
+
+
+@pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
+def test_gi_keeps_the_pieces(monkeypatch):
+    """GI's light replaces the ambient before the direct light: its hits are shaded piece by piece."""
+    calls = fused_calls(monkeypatch)
+    scene = _lit_scene(0, rounded=False)
     tv.render({**scene, "voxels": {**scene["voxels"], "gi": {"method": "path", "samples": 1, "bounces": 1}}})
     assert not calls, "a GI scene was shaded in the fused kernel"
     tv.render(scene)

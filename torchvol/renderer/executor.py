@@ -125,7 +125,8 @@ class RenderContext:
             self.voxel_surface = VoxelSurface(
                 batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs}, dtype=plan.dtype,
                 device=device, drjit=plan.walk == "drjit", time=self.times,
-                sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s), transmittance=shadow_rays)
+                sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s), transmittance=shadow_rays,
+                occluder_lanes=lambda uses, s: kernel_march.surface_lanes_of(self, uses, s))
             self.voxels = VoxelOccluder(self.voxel_surface.tracer, voxel_shadow_steps(batch.voxels))
         if plan.terrain is not None:
             self.terrain = TerrainSurface(batch.terrain, self.lights, plan.terrain, plan.aovs, shadow_rays, plan.kernels,

@@ -54,10 +54,11 @@ def traced_vectors(fn, like: torch.Tensor) -> torch.Tensor:
     return traced_columns(fn, like, (3,))[0]
 
 
-def traced_columns(fn, like: torch.Tensor, widths: tuple[int, ...] | None = None) -> list[torch.Tensor]:
+def traced_columns(fn, like: torch.Tensor, widths: tuple[int, ...] | None = None, also=None) -> list[torch.Tensor]:
     """`traced` of an `fn(lane)` giving sum(`widths`) lanes, one kernel: each group of 3 lanes one
     tensor [n, 3] written interleaved (as `traced_vectors`), a group of 1 a tensor [n], of `like`'s
-    dtype and device (`widths` None: every lane a tensor [n])."""
+    dtype and device (`widths` None: every lane a tensor [n]). `also()`: more lanes the same kernel
+    evaluates (counts the caller reads after it), traced after `fn`."""
     import drjit as dr
     from drjit.llvm import Array3f
 
@@ -72,7 +73,7 @@ def traced_columns(fn, like: torch.Tensor, widths: tuple[int, ...] | None = None
             raise ValueError(f"traced_columns: a group of {w} lanes; groups are 1 or 3 wide")
         out.append(values[k] if w == 1 else dr.ravel(Array3f(*values[k:k + 3])))
         k += w
-    dr.eval(out)
+    dr.eval(out, [] if also is None else also())
     tensors = [tensor_of(x).to(like) for x in out]
     return [t if w == 1 else t.view(-1, 3) for t, w in zip(tensors, widths)]
 

@@ -620,7 +620,7 @@ def occluder_lanes(ctx, use, s: Tensor, shared: dict | None = None) -> SimpleNam
     """`shadow.occluder_transmittance`'s volumes and terrain (`use.occluders`, `use.terrain`) for
     lanes of scenes `s` [n], inside a kernel its caller traces: `through(p, direction, distance,
     active=None)` the transmittance lane of rays from lanes `p` along `direction` (three each) up
-    to `distance` [n] (a tensor; inf: a sun, the sky), traced only where the Bool lane `active`
+    to `distance` (a tensor [n] or a lane, finite; inf: a sun, the sky), traced only where the Bool lane `active`
     (None: everywhere); `evals()` the lanes to evaluate with what it traced (the counts so far) and,
     after, `count()` each volume's evaluations into the render's stats. `shared`: what several
     calls for the same rays share (its ``per_ray``; each volume's crossing and the terrain's lanes,
@@ -637,8 +637,11 @@ def occluder_lanes(ctx, use, s: Tensor, shared: dict | None = None) -> SimpleNam
     terrain = made("terrain", lambda: terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)) if use.terrain else None
     evals = {j: dr.zeros(Int32, s.shape[0]) for j in use.occluders}
 
-    def through(p, direction, distance: Tensor, active=None):
-        far = _far(distance, lambda x: lanes.lanes_of(x, lanes.floats_of))
+    def through(p, direction, distance, active=None):
+        if isinstance(distance, Tensor):
+            far = _far(distance, lambda x: lanes.lanes_of(x, lanes.floats_of))
+        else:  # a lane of the kernel's own (a point light's), or inf (a sun)
+            far = None if isinstance(distance, float) and math.isinf(distance) else distance
         if active is not None:  # a ray that is not traced reaches nowhere: nothing evaluated
             far = dr.select(active, math.inf if far is None else far, 0.0)
         out = _through_others(solids, use.occluders, terrain, p, direction, far, use.shadow, grids, evals)

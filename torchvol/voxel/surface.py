@@ -56,17 +56,18 @@ class VoxelSurface:
     scenes' times (water waves); `sky(directions [n, 3], s [n]) -> [n, 3]` what secondary rays that
     leave the grid see (None: black); `transmittance(use, p, s, direction, distance, times=None) -> [n]`
     `times` × what a shadow ray of LightPass `use` sees besides the voxels (the terrain beside them,
-    where `use.terrain`), traced only where `times` > 0."""
+    where `use.terrain`), traced only where `times` > 0; `occluder_lanes(uses, s)` the same inside
+    the shading's kernel (`volume.kernel_march.surface_lanes_of`; None: none)."""
 
     def __init__(self, voxels: Stacked, lights: Sequence[LightSource], plan, aovs: Mapping[str, int], *, dtype, device,
                  drjit: bool = False, time: Tensor | None = None, sky: Callable[[Tensor, Tensor], Tensor] | None = None,
-                 transmittance: Callable[..., Tensor] | None = None):
+                 transmittance: Callable[..., Tensor] | None = None, occluder_lanes: Callable | None = None):
         self.p, self.lights, self.plan = voxels, list(lights), plan
         self.grid = VoxelGrid.from_specs(voxels.models, dtype=dtype, device=device, with_distance=plan.traversal == "hybrid")
         self.aov_channels = {a: c for a, c in aovs.items() if a in SURFACE_AOVS}
         self.tracer = VoxelTracer(self.grid, plan.traversal, drjit)
         direct = DirectLight(voxels, plan, self.lights, self.tracer, transmittance)
-        self.shading = Shading(voxels, plan, self.grid, direct)
+        self.shading = Shading(voxels, plan, self.grid, direct, occluder_lanes)
         self.secondary = SecondaryRays(voxels, self.tracer, self.shading, sky)
         self.fog = FogGlow(voxels, plan, self.lights, self.tracer)
         self.rounded = RoundedVoxels(voxels, self.tracer)

@@ -168,9 +168,8 @@ def lit_lanes(q: SimpleNamespace, point: SimpleNamespace, ambient: list, light: 
 
 
 def fusable(plan, lights: list[LightSource]) -> bool:
-    """Whether a batch's voxel hits shade as one kernel (`Shading.shade`): no GI or cones (their
-    light comes from passes of their own) and every shadow ray inside the voxels (none crossing
-    the terrain or volumes beside them, no air on a light's way)."""
-    return (not plan.gi and not plan.cone and all(not (use.terrain or use.occluders) for use in plan.shadows)
-            and all(light.through is None for light in lights))
-
+    """Whether a batch's voxel hits may shade as one kernel (`Shading.shade`): no GI or cones (their
+    light comes from passes of their own) and no air on a light's way; a shadow ray that also
+    crosses the terrain or volumes beside the voxels needs their lanes too (`Shading`'s
+    `occluder_lanes`)."""
+    return not plan.gi and not plan.cone and all(light.through is None for light in lights)

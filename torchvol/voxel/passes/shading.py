@@ -34,9 +34,11 @@ class Shading:
     """The look of `grid`'s hits (`voxels`: the batch's `Stacked` voxels; `plan` its `VoxelPass`):
     their materials, texels, AO and the light of `direct`; `fused` where `shade` is one kernel."""
 
-    def __init__(self, voxels: Stacked, plan, grid: VoxelGrid, direct: DirectLight):
+    def __init__(self, voxels: Stacked, plan, grid: VoxelGrid, direct: DirectLight, occluder_lanes=None):
         self.p, self.plan, self.grid, self.direct, self.tracer = voxels, plan, grid, direct, direct.tracer
         self.fused = self.tracer.drjit and fusable(plan, direct.lights)
+        self.beside = {use.light: use for use in plan.shadows if use.terrain or use.occluders}  # shadow rays leaving the voxels
+        self.occluder_lanes = occluder_lanes
 
     def point(self, o: Tensor, d: Tensor, t: Tensor, cell: Tensor, axis: Tensor, mat: Tensor, s: Tensor,
               normal_override: Tensor | None) -> ShadingPoint:
@@ -91,22 +93,30 @@ class Shading:
         """`point`, `ao` and `lit` of the hits (as `point` takes them) -> (colour [n, 3], their
         `ShadingPoint`): one Dr.Jit kernel where `fused` (the walks are kernels and every shadow
         ray stays in the voxels: its walks inside it), else each on torch columns."""
-        if not self.fused or o.shape[0] == 0:
+        inside = None
+        if self.fused and self.beside and o.shape[0]:  # the terrain's and the volumes' lanes in the kernel, where they have them
+            inside = None if self.occluder_lanes is None else self.occluder_lanes(self.beside, s)
+        if not self.fused or o.shape[0] == 0 or (self.beside and inside is None):
             with section("voxels.shade"):
                 point = self.point(o, d, t, cell, axis, mat, s, normal_override)
             self.ao(point, s, section)
             return self.lit(point, s, section), point
         with section("voxels.shade"):
-            out = self._kernel(o, d, t, cell, axis, mat, s, normal_override, lit=True)
-        for name in (["voxels.ao"] if self.plan.ao else []) + [use.name for use in self.plan.shadows]:
+            out = self._kernel(o, d, t, cell, axis, mat, s, normal_override, lit=True, inside=inside)
+        for k in (inside or {}).values():
+            k.count()
+        for name in (["voxels.ao"] if self.plan.ao else []) + [n for use in self.plan.shadows for n in use.names()]:
             with section(name):  # listed in the stats; their time is the shading's
                 pass
         return out
 
-    def _kernel(self, o, d, t, cell, axis, mat, s, normal_override, *, lit: bool) -> tuple[Tensor | None, ShadingPoint]:
+    def _kernel(self, o, d, t, cell, axis, mat, s, normal_override, *, lit: bool,
+                inside: dict | None = None) -> tuple[Tensor | None, ShadingPoint]:
         """`shade` as one Dr.Jit kernel: `look`'s lanes in the order `point`, `ao` and `lit` run
         them; out of it only what the colour, the AOVs and the reflections read. `lit` False: the
-        point alone (`point` where the walks are kernels) -> (None, its `ShadingPoint`)."""
+        point alone (`point` where the walks are kernels) -> (None, its `ShadingPoint`). `inside`:
+        the occluder lanes of the shadow rays that leave the voxels (by light), traced where the
+        voxels let the light through, as the pieces trace them."""
         plan = self.plan
         shadowed = {use.light: use for use in plan.shadows} if lit else {}
         wanted = {"colour": 3 * lit, "x": 3, "face_normal": 3, "normal": 3 * (normal_override is not None), "u": 1, "v": 1,
@@ -125,11 +135,19 @@ class Shading:
                     point.ao = ao_of(q, point)
                     point.albedo = [a * point.ao for a in point.albedo]
                 walk = visible_lanes(q) if shadowed else None
-                light, specular, point.shadow = direct_lanes(q, point, q.ambient, lambda l, *ray: walk(*ray), shadowed)
+
+                def visible(l, start, direction, distance):
+                    vis = walk(start, direction, distance)
+                    if l not in (inside or {}):
+                        return vis
+                    return vis * inside[l].through(start, direction, distance, vis > 0.0)
+
+                light, specular, point.shadow = direct_lanes(q, point, q.ambient, visible, shadowed)
                 point.colour = lit_lanes(q, point, q.ambient, light, specular)
             return [x for k in wanted for x in (getattr(point, k) if wanted[k] == 3 else [getattr(point, k)])]
 
-        out = dict(zip(wanted, traced_columns(kernel, o, tuple(wanted.values()))))
+        also = lambda: [e for k in (inside or {}).values() for e in k.evals()]  # noqa: E731
+        out = dict(zip(wanted, traced_columns(kernel, o, tuple(wanted.values()), also)))
         one = lambda k: out[k][:, None] if k in out else None  # noqa: E731
         point = ShadingPoint(x=out["x"], cell=cell, axis=axis, face_normal=out["face_normal"],
                              normal=out.get("normal", out["face_normal"]), uv=torch.stack([out["u"], out["v"]], dim=1),
