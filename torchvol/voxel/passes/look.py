@@ -3,11 +3,12 @@
 AO (Step 7), each light's Lambert and GGX light with its shadow ray (Step 8, Variant 5) and the
 colour they make.
 
-`Shading` runs these functions on torch columns (the eager reference: any device and dtype, each
-shadow ray traced by the `VoxelTracer` and, where the plan asks, through the passes beside the
-voxels), or, where every shadow ray stays inside the voxels, as one Dr.Jit kernel over a chunk's
-hits with its shadow walks (`walk.cube_walk`) inside it (`Shading.shade`): the same functions,
-the same order of operations."""
+`Shading` runs these functions on torch columns piece by piece (the eager reference: any device
+and dtype, each shadow ray traced by the `VoxelTracer` and, where the plan asks, through the
+passes beside the voxels), or, where the walks are kernels and no GI replaces the ambient, as one
+Dr.Jit kernel over a chunk's hits (`Shading.shade`): the shadow walks (`walk.cube_walk`) and what
+the rays meet beside the voxels (`volume.kernel_march.surface_lanes_of`) inside it; the same
+functions, the same order of operations."""
 
 from __future__ import annotations
 

@@ -91,11 +91,12 @@ class Shading:
     def shade(self, o: Tensor, d: Tensor, t: Tensor, cell: Tensor, axis: Tensor, mat: Tensor, s: Tensor,
               normal_override: Tensor | None, section) -> tuple[Tensor, ShadingPoint]:
         """`point`, `ao` and `lit` of the hits (as `point` takes them) -> (colour [n, 3], their
-        `ShadingPoint`): one Dr.Jit kernel where `fused` (the walks are kernels and every shadow
-        ray stays in the voxels: its walks inside it), else each on torch columns."""
+        `ShadingPoint`): one Dr.Jit kernel where `fused` (the walks are kernels, no GI) and every
+        shadow ray that leaves the voxels has the lanes of what it crosses (`occluder_lanes`): the
+        shadow walks and those lanes inside it; else piece by piece."""
         inside = None
-        if self.fused and self.beside and o.shape[0]:  # the terrain's and the volumes' lanes in the kernel, where they have them
-            inside = None if self.occluder_lanes is None else self.occluder_lanes(self.beside, s)
+        if self.fused and self.beside and o.shape[0] and self.occluder_lanes is not None:
+            inside = self.occluder_lanes(self.beside, s)  # the terrain's and the volumes' lanes, where they have them
         if not self.fused or o.shape[0] == 0 or (self.beside and inside is None):
             with section("voxels.shade"):
                 point = self.point(o, d, t, cell, axis, mat, s, normal_override)
