@@ -122,18 +122,14 @@ class VoxelSurface:
         sh = take_rows(s, ids)
         rows = [take_rows(x, ids) for x in (o, d, t, hits.cell, hits.axis, hits.material)]
         normal = None if normal_override is None else take_rows(normal_override, ids)
-        if self.plan.cone or self.plan.gi:  # the ambient replaced by the GI's light: its own passes first
-            with section("voxels.shade"):
-                point = self.shading.point(*rows, sh, normal)
-            self.shading.ao(point, sh, section)
-            if self.plan.cone:
-                indirect = self.cones(point, sh, take_rows(t, ids), section)
-            else:
+        indirect = None  # the GI's light in place of the ambient, from the hits' points
+        if self.plan.cone:
+            indirect = lambda point: self.cones(point, sh, take_rows(t, ids), section)  # noqa: E731
+        elif self.plan.gi:
+            def indirect(point):
                 with section("voxels.gi"):
-                    indirect = self.paths(point, sh, take_rows(keys, ids), take_rows(t, ids))
-            lit = self.shading.lit(point, sh, section, indirect)
-        else:
-            lit, point = self.shading.shade(*rows, sh, normal, section)
+                    return self.paths(point, sh, take_rows(keys, ids), take_rows(t, ids))
+        lit, point = self.shading.shade(*rows, sh, normal, section, indirect)
         color.index_copy_(0, ids, lit)  # (1.6× faster than color[ids] =)
         if self.plan.reflections:
             with section("voxels.reflections"):

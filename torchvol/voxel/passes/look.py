@@ -52,7 +52,7 @@ def look_inputs(voxels: Stacked, plan, tables: SimpleNamespace, grid: VoxelGrid,
     reads: on torch each is a pass over the hits."""
     r, g = walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel) if walks else (None, None)
     origin, size = (r.origin, r.size) if walks else (per_lane(grid.origin), per_lane(grid.voxel_size))
-    q = SimpleNamespace(r=r, g=g, origin=origin, size=size, ggx=plan.ggx, emission=plan.emission,
+    q = SimpleNamespace(r=r, g=g, origin=origin, size=size, ggx=plan.ggx,
                         rounded=voxels.rounded is not None)
     if surface:
         q.look, q.tones = material_lanes(tables.materials, s, ints, floats), per_lane(voxels.face_tones)
@@ -154,16 +154,16 @@ def direct_lanes(q: SimpleNamespace, point: SimpleNamespace, light: list, visibl
     return light, specular, first
 
 
-def lit_lanes(q: SimpleNamespace, point: SimpleNamespace, ambient: list, light: list, specular) -> list:
-    """A hit's colour (three lanes): its albedo times `light` (`direct_lanes`); a GGX material's
-    the albedo times `ambient` (ambient and indirect light stay diffuse) plus `specular`; plus
-    what its faces emit."""
+def lit_lanes(point: SimpleNamespace, ambient: list, light: list, specular, *, ggx: bool, emission: bool) -> list:
+    """A hit's colour (three lanes): its albedo times `light` (`direct_lanes`); with `ggx`, a GGX
+    material's the albedo times `ambient` (ambient and indirect light stay diffuse) plus
+    `specular`; with `emission`, plus what its faces emit."""
     out = [point.albedo[c] * light[c] for c in range(3)]
-    if q.ggx:
+    if ggx:
         default = (point.roughness >= 1.0) & (point.metallic <= 0.0)  # `materials.default_material`
         glossy = [0.0] * 3 if specular is None else specular  # (no light)
         out = [lanes.where(default, out[c], point.albedo[c] * ambient[c] + glossy[c]) for c in range(3)]
-    if q.emission:
+    if emission:
         out = [out[c] + point.emission[c] for c in range(3)]
     return out
 

@@ -6,8 +6,6 @@ kernel over a chunk's hits (`Shading.shade`, where `look.fusable`)."""
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import torch
 from torch import Tensor
 
@@ -83,17 +81,18 @@ class Shading:
         diffuse: albedo · ambient)."""
         ambient = take(self.p.ambient, s) if indirect is None else indirect
         light, specular = self.direct(point, s, section, ambient)
-        q = SimpleNamespace(ggx=self.plan.ggx, emission=self.plan.emission)
         col = lanes.columns
-        return torch.stack(lit_lanes(q, point_lanes_view(point), col(ambient), col(light),
-                                     None if isinstance(specular, int) else col(specular)), dim=1)
+        return torch.stack(lit_lanes(point_lanes_view(point), col(ambient), col(light),
+                                     None if isinstance(specular, int) else col(specular),
+                                     ggx=self.plan.ggx, emission=self.plan.emission), dim=1)
 
     def shade(self, o: Tensor, d: Tensor, t: Tensor, cell: Tensor, axis: Tensor, mat: Tensor, s: Tensor,
-              normal_override: Tensor | None, section) -> tuple[Tensor, ShadingPoint]:
+              normal_override: Tensor | None, section, indirect=None) -> tuple[Tensor, ShadingPoint]:
         """`point`, `ao` and `lit` of the hits (as `point` takes them) -> (colour [n, 3], their
         `ShadingPoint`): one Dr.Jit kernel where `fused` (the walks are kernels, no GI) and every
         shadow ray that leaves the voxels has the lanes of what it crosses (`occluder_lanes`): the
-        shadow walks and those lanes inside it; else piece by piece."""
+        shadow walks and those lanes inside it; else piece by piece. `indirect(point) -> [n, 3]`:
+        the GI's incoming light at the hits (their AO applied), in place of the ambient."""
         inside = None
         if self.fused and self.beside and o.shape[0] and self.occluder_lanes is not None:
             inside = self.occluder_lanes(self.beside, s)  # the terrain's and the volumes' lanes, where they have them
@@ -101,7 +100,7 @@ class Shading:
             with section("voxels.shade"):
                 point = self.point(o, d, t, cell, axis, mat, s, normal_override)
             self.ao(point, s, section)
-            return self.lit(point, s, section), point
+            return self.lit(point, s, section, None if indirect is None else indirect(point)), point
         with section("voxels.shade"):
             out = self._kernel(o, d, t, cell, axis, mat, s, normal_override, lit=True, inside=inside)
         for k in (inside or {}).values():
@@ -144,7 +143,7 @@ class Shading:
                     return vis * inside[l].through(start, direction, distance, vis > 0.0)
 
                 light, specular, point.shadow = direct_lanes(q, point, q.ambient, visible, shadowed)
-                point.colour = lit_lanes(q, point, q.ambient, light, specular)
+                point.colour = lit_lanes(point, q.ambient, light, specular, ggx=plan.ggx, emission=plan.emission)
             return [x for k in wanted for x in (getattr(point, k) if wanted[k] == 3 else [getattr(point, k)])]
 
         also = lambda: [e for k in (inside or {}).values() for e in k.evals()]  # noqa: E731
