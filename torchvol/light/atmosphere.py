@@ -83,23 +83,30 @@ def gather_air(layer: Stacked, s: Tensor) -> Air:
 
 def air_lanes(air: Air, lane=lambda x: x) -> SimpleNamespace:
     """An `Air` as the lanes functions take it (`ops.lanes`): one lane a value (`lane`: a tensor
-    [n] -> lanes; the columns themselves for the eager code), `rayleigh` three, `heights` two
-    (Rayleigh's, Mie's scale heights)."""
+    [n] -> lanes; the columns themselves for the eager code), `rayleigh` three, `falloff` two
+    (`falloff_rates` of Rayleigh's and Mie's scale heights)."""
     return SimpleNamespace(planet_radius=lane(air.planet_radius), top_radius=lane(air.top_radius),
                            rayleigh=[lane(x) for x in air.rayleigh.unbind(1)], mie=lane(air.mie),
-                           heights=[lane(x) for x in air.scale_heights.unbind(1)], mie_g=lane(air.mie_g))
+                           falloff=[lane(x) for x in falloff_rates(air.scale_heights).unbind(-1)], mie_g=lane(air.mie_g))
+
+
+def falloff_rates(scale_heights: Tensor) -> Tensor:
+    """1/H of scale heights H (any shape): `density_lanes` multiplies by them once per ray where
+    dividing by H cost two divisions an evaluation (most of the air's nested march)."""
+    return 1.0 / scale_heights
 
 
 def density_lanes(p, q: SimpleNamespace) -> list:
     """The seeds' `density(p, H) = exp(−max(|p| − R, 0) / H)` at `p` (three lanes, planet frame)
-    for both scale heights of `q` (`air_lanes`) -> two lanes (Rayleigh, Mie). The height as
+    for both scale heights of `q` (`air_lanes`; as their `falloff` rates 1/H) -> two lanes
+    (Rayleigh, Mie). The height as
     (|p|² − R²)/(|p| + R), |p|² − R² = x² + z² + (y − R)(y + R): |p| − R cancels to an ulp of R
     (0.5 m at Earth's radius in float32, 4e-4 of Mie's scale height), and Dr.Jit's sqrt rounds
     that ulp otherwise than torch's; the quotient leaves |p| in the denominator alone."""
     r = q.planet_radius
     excess = p[0] * p[0] + p[2] * p[2] + (p[1] - r) * (p[1] + r)
     height = lanes.clamp_min(excess / (lanes.length3(*p) + r), 0.0)
-    return [lanes.exp(-height / h) for h in q.heights]
+    return [lanes.exp(-(height * rate)) for rate in q.falloff]
 
 
 def optic_depth_lanes(start, direction, length, q: SimpleNamespace, steps: int) -> list:

@@ -214,11 +214,16 @@ def air_media(layer, per_ray, channel) -> tuple[list, SimpleNamespace]:
     drawn through the HG of its g) with the march's exponential densities (`density_lanes`, at
     most 1: the majorant is the ground's σ), and the planet's ground, a Lambertian sphere (the
     march's albedo/π: `direct`) that stops flights and shadow rays."""
-    from ..light.atmosphere import MIE_EXTINCTION, density_lanes, ground_distance_lanes
+    from ..light.atmosphere import (
+        MIE_EXTINCTION,
+        density_lanes,
+        falloff_rates,
+        ground_distance_lanes,
+    )
     from ..light.phase import mie_cornette_shanks, rayleigh
 
     radius, top = per_ray(layer.planet_radius), per_ray(layer.planet_radius + layer.atmosphere_height)
-    q = SimpleNamespace(planet_radius=radius, heights=[per_ray(layer.rayleigh_height), per_ray(layer.mie_height)])
+    q = SimpleNamespace(planet_radius=radius, falloff=[per_ray(falloff_rates(h)) for h in (layer.rayleigh_height, layer.mie_height)])
     frame = lambda x: [x[0], x[1] + radius, x[2]]  # noqa: E731  the planet's frame
     colours = per_ray(layer.rayleigh)
     sigmas = [_pick(channel, colours), MIE_EXTINCTION * per_ray(layer.mie)]
