@@ -252,6 +252,20 @@ def test_volume_shadow_rays_see_the_voxels_without_a_terrain(one_thread):
     assert out.radiance[0, 0][under].max() < 1e-3 * out.radiance[0, 0][beside].mean()
 
 
+@pytest.mark.parametrize("compile", ["kernels", "off"])
+def test_volume_sky_light_sees_the_voxels(compile, one_thread):
+    # the same layer and roof, lit by its sky light alone: the sky rays from under the roof meet it
+    layer = {"bounds": {"box": {"min": [-6.0, 0.0, -6.0], "max": [6.0, 1.0, 6.0]}}, "sigma_t": 0.5, "albedo": 1.0,
+             "ambient": {"radiance": [0.4, 0.4, 0.4], "visibility": "march", "steps": 2}}
+    out = tv.render(voxel_floor_scene(layer, intensity=0.0, cells_min=(0, 2, -6), cells_max=(6, 3, 6)), compile=compile)
+    assert "volume0.ambient.voxels" in out.stats["passes"]
+    xs = world_x(out, fallback=True)
+    mist = (out.aovs["normal"][0].abs().sum(dim=0) == 0) & (out.alpha[0, 0] > 0.5)
+    under, beside = mist & (xs > 1.0), mist & (xs < -1.0)
+    assert under.sum() > 10 and beside.sum() > 10
+    assert out.radiance[0, 0][under].max() < 1e-3 * out.radiance[0, 0][beside].mean()
+
+
 def world_x(out, fallback=False):
     """[H, W] world x of each pixel's depth point (with `fallback`, of its ray 9 units out)."""
     K, w2c = out.camera.K[0], out.camera.world_to_camera[0]

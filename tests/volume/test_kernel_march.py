@@ -186,6 +186,41 @@ def test_media_sharing_space_match_the_eager_joint_march(name):
     assert kernel.stats["march_steps"] == eager.stats["march_steps"]
 
 
+def _roofed(volumes, lights=(SUN,)):
+    """`volumes` over a voxel floor with a roof over its −x half and a pillar: every shadow and
+    sky ray of theirs walks the voxels."""
+    def cells(c):
+        return ((c[:, 1] == -2) | ((c[:, 1] == 1) & (c[:, 0] < 0)) | ((c[:, 0] == 1) & (c[:, 2] == 0))).long()
+
+    return _media(volumes, lights, voxels={"occupancy": {"function": {"fn": cells}}, "cells": {"min": [-3, -2, -3],
+                  "max": [3, 1, 3]}, "voxel_size": 0.9, "materials": [[0.7, 0.7, 0.7]], "shadow": {"steps": 12}})
+
+
+BESIDE_VOXELS = {
+    "a cloud, a sun and a point light": _roofed([PUFF], lights=[SUN, {"kind": "point", "position": [0.5, 1.2, -0.5],
+                                                                     "intensity": 2.0, "shadow": {"steps": 3}}]),
+    "a cloud in fog, grid shadows, sky light": _roofed(
+        [{**PUFF, "ambient": {"visibility": "march", "steps": 2}, "multiple_scattering": {"octaves": 3}}, FOG],
+        lights=[{**SUN, "shadow": {"method": "grid", "resolution": 32}}]),
+}
+
+
+@pytest.mark.parametrize("name", list(BESIDE_VOXELS))
+def test_media_whose_shadow_rays_cross_the_voxels_match_the_eager_march(name, monkeypatch):
+    """The voxels' shadow walk (`walk.visible_walk`) inside the march's kernel, before the other
+    volumes, as eager's `occluder_transmittance` walks it; the sky rays too."""
+    kernel, eager = _both(BESIDE_VOXELS[name])
+    _close(kernel, eager, name)
+    assert kernel.stats["density_evals_by_volume"] == eager.stats["density_evals_by_volume"]
+    assert "volume0.shadow0.voxels" in set(kernel.stats["passes"]) & set(eager.stats["passes"])
+    # the walk is what makes them agree: a kernel whose voxels let every ray through is far off
+    from torchvol.renderer.surfaces import VoxelOccluder
+
+    monkeypatch.setattr(VoxelOccluder, "visibility_lanes", lambda self, s, per_lane: lambda p, d, far: 1.0)
+    unwalked = tv.render(BESIDE_VOXELS[name])
+    assert (unwalked.radiance - eager.radiance).abs().max() > 20 * KERNEL_TOL["radiance"]
+
+
 # a small planet's air (ground y = 0) thick enough to tint a scene of a few units; media lifted above it
 AIR = {"planet_radius": 2000.0, "atmosphere_height": 40.0, "rayleigh": [0.02, 0.045, 0.11], "mie": 0.05,
        "rayleigh_height": 8.0, "mie_height": 1.5, "steps": 6, "light_steps": 3}

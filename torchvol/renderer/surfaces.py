@@ -20,10 +20,12 @@ import torch
 from torch import Tensor
 
 from ..geometry.surface_hit import SurfaceHit
+from ..ops import lanes
 from ..schema.batch import Stacked
 from ..terrain import TerrainSurface
 from ..voxel.surface import VoxelSurface
 from ..voxel.tracer import VoxelTracer
+from ..voxel.walk import visible_walk, walk_inputs
 
 __all__ = ["BothSurfaces", "SurfacesHit", "VoxelOccluder", "surface_pass", "terrain_id", "voxel_shadow_steps"]
 
@@ -54,6 +56,13 @@ class VoxelOccluder:
             return p.new_zeros(0)
         t_max = None if bool(torch.isinf(distance).all()) else distance
         return (~self.tracer.traverse(p, direction, s, max_steps=self.steps, t_max=t_max, plain=True).hit).to(p.dtype)
+
+    def visibility_lanes(self, s: Tensor, per_lane):
+        """`visibility` inside a Dr.Jit kernel its caller traces, for lanes of scenes `s` [n]
+        (`per_lane`: per scene -> lanes): visible(p, direction, distance) -> 1.0 or 0.0 (lanes; a
+        distance of inf: a sun), the same plain walk (`walk.visible_walk`)."""
+        r, g = walk_inputs(self.tracer.grid, s, per_lane, lanes.ints_of, kernel=True, max_steps=self.steps)
+        return visible_walk(r, g, g.max_steps)
 
 
 @dataclass(frozen=True)

@@ -101,7 +101,7 @@ def ambient_in_scatter(ctx: VolumeContext, vol, p: Tensor, s: Tensor, sigma_s: T
         else:
             v = shadow_transmittance(p, direction, exit_t, lambda q, owner: scale[owner] * vol.field(q, s[owner]),
                                      steps=amb.steps)
-        if use.occluders or use.terrain:  # the sky seen through the other volumes and past the terrain
+        if use.occluders or use.terrain or use.voxels:  # the sky seen through the other volumes, past the surfaces
             v = v * occluder_transmittance(ctx, use, p, s, direction, torch.full_like(v, math.inf))
     return out * v[:, None]
 

@@ -42,6 +42,14 @@ class Occluder(Protocol):
         up to `distance` [n] (inf: a sun): 0 where the surface blocks them, else 1."""
 
 
+class WalkedOccluder(Occluder, Protocol):
+    """The voxels: an `Occluder` whose walk also runs inside a march's Dr.Jit kernel."""
+
+    def visibility_lanes(self, s: Tensor, per_lane) -> Any:
+        """`visibility` in lanes for rays of scenes `s` [n] (`per_lane`: per scene -> lanes):
+        visible(p, direction, distance) -> 1.0 or 0.0."""
+
+
 class VolumeContext(Protocol):
     """A render as the volume passes see it: its march settings, lights and volumes (each a
     `renderer.executor.VolumeState`: parameters, plan, field, bounds, phase, shading, caches),
@@ -52,7 +60,7 @@ class VolumeContext(Protocol):
     lights: Sequence[LightSource]
     volumes: Sequence[Any]
     terrain: Occluder | None
-    voxels: Occluder | None
+    voxels: WalkedOccluder | None
     timer: Timer
     counts: Counts
     dtype: torch.dtype

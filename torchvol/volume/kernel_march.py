@@ -79,7 +79,7 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
     empty space skipped) in bounds written in lanes (sphere, box, slab, shell), physically shaded
     or in the seeds' looks, by any integrator, lit by suns and point lights with shadows (marched,
     or the sun's grid) through it and through the other volumes (each written in lanes too) and
-    past the terrain, sky light (graded by altitude or not), a sky blend, emission, its colour map
+    past the terrain and the voxels, sky light (graded by altitude or not), a sky blend, emission, its colour map
     and bloom; `settings` the render's `MarchSettings`."""
     passes = [u for u in uses if u.shadow is not None] + ([] if ambient is None else [ambient])
     checks = [
@@ -91,7 +91,6 @@ def supports(batch, vol, uses, settings, ambient=None) -> str | None:
         (all(batch.lights[u.light].kind in ("sun", "point") for u in uses), "a light other than a sun or a point"),
         (all(has_lanes(batch.volumes[j]) and "lanes" in BOUNDS[batch.volumes[j].bounds.kind].caps
              for u in passes for j in u.occluders), "shadows through a volume not written in lanes"),
-        (not any(u.voxels for u in passes), "shadows through the voxels"),
     ]
     return next((why for ok, why in checks if not ok), None)
 
@@ -192,14 +191,16 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
         air=None if air is None else _air_inputs(air, idx, lane, row, air_on, active))
     q0 = _next_piece(k.present, dr.full(Int32, -1, len(idx)))  # the first piece with a medium on each ray
     t0, first = _first_segment(ctx, k, idx, _pick(k.start, q0), start, end, dither, occupied, lane)
-    needed = {v.plan.index for v in vols} | {j for v in vols for u in v.plan.lights + (v.plan.ambient_sky,)
-                                               if u is not None for j in u.occluders}
+    uses = [u for v in vols for u in v.plan.lights + (v.plan.ambient_sky,) if u is not None]
+    needed = {v.plan.index for v in vols} | {j for u in uses for j in u.occluders}
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
     par = _parameters(ctx.settings)
     terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)
+    blockers = SimpleNamespace(terrain=terrain, voxels=None if not any(u.voxels for u in uses) else
+                               ctx.voxels.visibility_lanes(s, per_ray))
     behind = [0.0] * 3 if background is None else row(background)
     members = [SimpleNamespace(vol=v, k=(m := _member_inputs(ctx, v, k.direction, s, per_ray, behind)),
-                               medium=_medium(m, v, par, solids, terrain, count, k.air)) for v in vols]
+                               medium=_medium(m, v, par, solids, blockers, count, k.air)) for v in vols]
     n = len(idx)
     zero = dr.zeros(Float, n)
     state = (t0, q0, dr.zeros(Int32, n), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n),
@@ -418,25 +419,25 @@ def _parameters(st) -> SimpleNamespace:
         min_transmittance=dr.opaque(Float, st.min_transmittance), max_iterations=dr.opaque(Int32, st.rule.max_iterations))
 
 
-def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain, count: int,
+def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, blockers: SimpleNamespace, count: int,
             air: SimpleNamespace | None = None) -> SimpleNamespace:
     """The per-sample functions of member `vol` over its inputs `k` (`_member_inputs`), the
-    parameters `par`, the volumes a ray may cross `solids` (`solid`, by index), the terrain
-    (`fields.heightfield.terrain_lanes`, None: none) and the air the sun shines through
-    (`_air_inputs`, None: none):
+    parameters `par`, the volumes a ray may cross `solids` (`solid`, by index), the surfaces
+    (`blockers`: the terrain's `fields.heightfield.terrain_lanes` and the voxels' walk, None each
+    where the scene has none) and the air the sun shines through (`_air_inputs`, None: none):
     density(p, count), in_scatter(p, sigma_t, raw) -> (three lanes, `count` lanes of evaluations per volume)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
     own = solids[vol.plan.index]
 
-    def transmittance(p, direction, sigma_scale, shadow, occluders, terrain, evals, raw, distance=None, sigma_t=None,
-                      grids=None):
+    def transmittance(p, direction, sigma_scale, use, evals, raw, distance=None, sigma_t=None, grids=None):
         """From lanes `p` (the density `raw` there) along `direction` out of the bounds or to the
-        light at `distance` (None: a sun): `_own_transmittance` times what `occluders` and `terrain`
-        let through; `evals` added to."""
-        through = _own_transmittance(own, p, raw, direction, sigma_scale, shadow, evals, distance, sigma_t, grids)
-        return through * _through_others(solids, occluders, terrain, p, direction, distance, shadow, grids, evals)
+        light at `distance` (None: a sun): `_own_transmittance` times what LightPass `use`'s
+        occluders and surfaces let through; `evals` added to."""
+        through = _own_transmittance(own, p, raw, direction, sigma_scale, use.shadow, evals, distance, sigma_t, grids)
+        return through * _through_others(solids, use.occluders, _asked(blockers, use), p, direction, distance, use.shadow,
+                                         grids, evals)
 
     def in_scatter(p, sigma_t, raw):
         """Σ over the lights of σs·p(θ)·E·T_light (octaves summed), plus σs·L_amb·V at lanes `p`
@@ -450,9 +451,8 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
             if response is None:  # a point light: `physical.response` at this sample
                 direction, distance, response = _point_response(k, light, p)
             use = light.use
-            trans = None if use.shadow is None else transmittance(
-                p, direction, k.sigma_t, use.shadow, use.occluders, terrain if use.terrain else None, evals, raw, distance,
-                sigma_t, light.grids)
+            trans = None if use.shadow is None else transmittance(p, direction, k.sigma_t, use, evals, raw, distance,
+                                                                  sigma_t, light.grids)
             weights = octave_weights(sigma_s, trans, k.exponents if vol.plan.multiple else [])
             radiance = [sum((response[i][c] * weights[i] for i in range(1, len(weights))), response[0][c] * weights[0])
                         for c in range(3)]
@@ -464,8 +464,7 @@ def _medium(k: SimpleNamespace, vol, par: SimpleNamespace, solids: dict, terrain
             amb = [a * sigma_s for a in ambient_radiance(k.ambient, p)]
             sky = vol.plan.ambient_sky
             if sky is not None:
-                v = transmittance(p, k.ambient_direction, k.ambient_sigma, sky.shadow, sky.occluders,
-                                  terrain if sky.terrain else None, evals, raw)
+                v = transmittance(p, k.ambient_direction, k.ambient_sigma, sky, evals, raw)
                 amb = [a * v for a in amb]
             out = [out[c] + amb[c] for c in range(3)]
         return out, evals
@@ -525,18 +524,27 @@ def optical_depth(solid, p, direction, exit_t, sigma_scale, steps, growth=1.0, f
     return lanes.fori(steps, [zero, zero], segment)[0]
 
 
-def _through_others(solids: dict, occluders, terrain, p, direction, distance, shadow, grids, evals):
+def _asked(blockers: SimpleNamespace, use) -> SimpleNamespace:
+    """The surfaces of `blockers` (`_medium`'s) that LightPass `use` asks its rays to see."""
+    return SimpleNamespace(terrain=blockers.terrain if use.terrain else None, voxels=blockers.voxels if use.voxels else None)
+
+
+def _through_others(solids: dict, occluders, blockers: SimpleNamespace, p, direction, distance, shadow, grids, evals):
     """What a shadow or sky ray from lanes `p` along `direction` up to `distance` (a lane; None:
     a sun, the sky) lets through besides its own volume (`shadow.occluder_transmittance`): each
     volume of `occluders` it crosses (`solids`, by index), its σ_t over its chord in
     `shadow.steps` equal segments or its sun grid where the ray enters it (`grids`, by volume),
-    each one's evaluations added to `evals`; 0 where it meets the `terrain` (None: not asked)."""
+    each one's evaluations added to `evals`; 0 where it meets the terrain or the voxels (`blockers`,
+    `_asked`'s: the terrain's lanes and the voxels' walk, None each where not asked)."""
     import drjit as dr
     from drjit.llvm import Float, Int32
 
-    # the terrain first: a volume is marched only where the terrain and the volumes before it let
-    # light through (as eager does)
-    through = 1.0 if terrain is None else visible_lanes(terrain, p, direction, math.inf if distance is None else distance)
+    # the terrain and the voxels first: a volume is marched only where they and the volumes before
+    # it let light through (as eager does)
+    reach = math.inf if distance is None else distance
+    through = 1.0 if blockers.terrain is None else visible_lanes(blockers.terrain, p, direction, reach)
+    if blockers.voxels is not None:
+        through = through * blockers.voxels(p, direction, reach)
     for j in occluders:
         other = solids[j]
         near, far = other.interval(p, direction)
@@ -635,6 +643,7 @@ def occluder_lanes(ctx, use, s: Tensor, shared: dict | None = None) -> SimpleNam
     grids = None if use.shadow.method != "grid" else {
         j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in use.occluders if not ctx.volumes[j].plan.line_integral}
     terrain = made("terrain", lambda: terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)) if use.terrain else None
+    blockers = SimpleNamespace(terrain=terrain, voxels=None)  # the voxels' walk ran before (`surface_shadows`)
     evals = {j: dr.zeros(Int32, s.shape[0]) for j in use.occluders}
 
     def through(p, direction, distance, active=None):
@@ -644,7 +653,7 @@ def occluder_lanes(ctx, use, s: Tensor, shared: dict | None = None) -> SimpleNam
             far = None if isinstance(distance, float) and math.isinf(distance) else distance
         if active is not None:  # a ray that is not traced reaches nowhere: nothing evaluated
             far = dr.select(active, math.inf if far is None else far, 0.0)
-        out = _through_others(solids, use.occluders, terrain, p, direction, far, use.shadow, grids, evals)
+        out = _through_others(solids, use.occluders, blockers, p, direction, far, use.shadow, grids, evals)
         return out if not isinstance(out, float) else dr.full(type(p[0]), out, s.shape[0])
 
     return SimpleNamespace(through=through, evals=lambda: list(evals.values()), count=lambda: _count(ctx, evals))

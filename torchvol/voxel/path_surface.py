@@ -47,7 +47,7 @@ def path_surface(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, like: Te
     faces and voxel GI take it; a GGX face's π·BRDF·cos θ) and `bounce(facts, n, d, u)`."""
     ints = lanes.ints_of if kernel else (lambda x: x.to(torch.int32))
     floats = lanes.floats_of if kernel else (lambda x: x.to(like.dtype))
-    r, g = walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel)
+    r, g = walk_inputs(grid, s, per_lane, ints, kernel=kernel, max_steps=int(voxels.max_steps))
     look = material_lanes(material_table(voxels.materials), s, ints, floats)
     texel = None if voxels.texture is None else atlas_lanes(atlas_table(voxels.texture), s, per_lane, ints, floats)
 

@@ -31,7 +31,7 @@ from .fog import FogWalk, GlowWalk
 from .grid import VoxelGrid
 from .shade import rounded_lanes
 
-__all__ = ["cell_ranges", "cube_walk", "drjit_traverse", "in_cells", "int_table", "occupied_lanes", "rounded_walk", "walk_inputs",
+__all__ = ["cell_ranges", "cube_walk", "drjit_traverse", "in_cells", "int_table", "occupied_lanes", "rounded_walk", "visible_walk", "walk_inputs",
            "walk_step"]
 
 
@@ -247,11 +247,12 @@ def int_table(table):
 # Walks in lanes, for kernels that walk inside their own loops (the path tracer's, the rounded voxels')
 
 
-def walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *, kernel: bool):
+def walk_inputs(grid: VoxelGrid, s: Tensor, per_lane, ints, *, kernel: bool, max_steps: int):
     """`walk_step`'s rays (each lane's cell range, flat base and placement; the rays' own o, d and
     t_max are the walk's) and tables (the grids, their distance fields where the traversal is
-    hybrid, the strides and step limit), as lanes of rays of scenes `s` [n] (`per_lane`: per scene
-    -> lanes; `ints`: an integer tensor -> lanes; `kernel`: Dr.Jit's, else torch columns)."""
+    hybrid, the strides and the step limit `max_steps`), as lanes of rays of scenes `s` [n]
+    (`per_lane`: per scene -> lanes; `ints`: an integer tensor -> lanes; `kernel`: Dr.Jit's, else
+    torch columns)."""
     if kernel:  # gathered by scene in the kernel
         bases, strides = grid.scene_base()
         lo, hi, base = cell_ranges(grid.lo, grid.hi, bases, s, s.shape[0], s.device)
@@ -264,11 +265,11 @@ def walk_inputs(voxels: Stacked, grid: VoxelGrid, s: Tensor, per_lane, ints, *, 
         import drjit as dr
         from drjit.llvm import Int32
 
-        steps = dr.opaque(Int32, int(voxels.max_steps))
+        steps = dr.opaque(Int32, max_steps)
         table = int_table(grid.flat_materials)
         distance = None if grid.flat_distance is None else int_table(grid.flat_distance)
     else:
-        steps, table = int(voxels.max_steps), grid.flat_materials.to(torch.int32)
+        steps, table = max_steps, grid.flat_materials.to(torch.int32)
         distance = None if grid.flat_distance is None else grid.flat_distance.to(torch.int32)
     g = SimpleNamespace(table=table, distance=distance, fog=None, glow=None, y=int(strides[0]), x=int(strides[1]),
                         max_steps=steps, switch=2)
@@ -296,6 +297,15 @@ def cube_walk(r: SimpleNamespace, g: SimpleNamespace):
         return material > 0, t, axis, material, (ray, [cx, cy, cz]), None, n
 
     return walk
+
+
+def visible_walk(r: SimpleNamespace, g: SimpleNamespace, max_steps):
+    """The shadow ray's walk: visible(o, d, t_max) -> 1.0 where the plain cube walk (`cube_walk`, no
+    distance-field skip) of world rays o, d (three lanes each) meets no occupied cell within
+    `max_steps` cells (an int lane) before t_max (a lane; inf: a sun), else 0.0 (`r`, `g`:
+    `walk_inputs`)."""
+    walk = cube_walk(r, SimpleNamespace(**{**vars(g), "distance": None, "max_steps": max_steps}))
+    return lambda o, d, t_max: lanes.where(walk(o, d, t_max)[0], 0.0, 1.0)
 
 
 def rounded_walk(cubes, r: SimpleNamespace, rounded: Stacked, per_lane, *, kernel: bool):

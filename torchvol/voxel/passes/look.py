@@ -26,7 +26,7 @@ from ..ggx import reflectance_lanes
 from ..grid import VoxelGrid
 from ..materials import VOXEL_MATERIALS, material_lanes, material_table
 from ..shade import ao_lanes, atlas_lanes, atlas_table, face_lanes, face_uv_lanes
-from ..walk import cube_walk, occupied_lanes, walk_inputs
+from ..walk import occupied_lanes, visible_walk, walk_inputs
 
 __all__ = ["direct_lanes", "fusable", "lit_lanes", "look_inputs", "look_tables", "point_lanes_of", "visible_lanes"]
 
@@ -50,7 +50,7 @@ def look_inputs(voxels: Stacked, plan, tables: SimpleNamespace, grid: VoxelGrid,
     what lies on its way, `LightSource.through`), the diffuse material's and GGX's reflectance
     (`reflect`: `ggx.reflectance_lanes`) (`direct_lanes`' and `lit_lanes`'). Only what a caller
     reads: on torch each is a pass over the hits."""
-    r, g = walk_inputs(voxels, grid, s, per_lane, ints, kernel=kernel) if walks else (None, None)
+    r, g = walk_inputs(grid, s, per_lane, ints, kernel=kernel, max_steps=int(voxels.max_steps)) if walks else (None, None)
     origin, size = (r.origin, r.size) if walks else (per_lane(grid.origin), per_lane(grid.voxel_size))
     q = SimpleNamespace(r=r, g=g, origin=origin, size=size, ggx=plan.ggx,
                         rounded=voxels.rounded is not None)
@@ -113,11 +113,9 @@ def ao_of(q: SimpleNamespace, point: SimpleNamespace):
 def visible_lanes(q: SimpleNamespace):
     """visible(start, direction, distance) -> 1.0 where a shadow ray of `q.shadow_steps` cells
     from `start` along `direction` (three lanes each) reaches `distance` (a lane; inf: a sun)
-    without meeting an occupied cell, else 0.0: the plain DDA walk in lanes (`walk.cube_walk`),
+    without meeting an occupied cell, else 0.0: the plain DDA walk in lanes (`walk.visible_walk`),
     the tracer's shadow walk."""
-    g = SimpleNamespace(**{**vars(q.g), "distance": None, "max_steps": lanes.int_like(q.shadow_steps, q.r.base)})
-    walk = cube_walk(q.r, g)
-    return lambda start, direction, distance: lanes.where(walk(start, direction, distance)[0], 0.0, 1.0)
+    return visible_walk(q.r, q.g, lanes.int_like(q.shadow_steps, q.r.base))
 
 
 def shadow_start(q: SimpleNamespace, point: SimpleNamespace, direction: list) -> list:

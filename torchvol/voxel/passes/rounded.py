@@ -41,7 +41,7 @@ class RoundedVoxels:
             ints, floats, per_lane = lanes.ints_of, lanes.floats_of, lanes.per_scene_lanes(sh)
         else:
             ints, floats, per_lane = (lambda x: x.to(torch.int32)), (lambda x: x), (lambda v: lanes.columns(take(v, sh)))
-        r, g = walk_inputs(self.p, self.tracer.grid, sh, per_lane, ints, kernel=kernel)
+        r, g = walk_inputs(self.tracer.grid, sh, per_lane, ints, kernel=kernel, max_steps=int(self.p.max_steps))
         ow, dw = ([floats(c) for c in take_rows(x, ids).unbind(1)] for x in (o, d))
         material = ints(take_rows(hits.material, ids))
         first = (material > 0, floats(take_rows(hits.t, ids)), ints(take_rows(hits.axis, ids)), material,
