@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 from conftest import assert_close
 
@@ -173,6 +174,35 @@ def test_finite_with_hills_point_lights_media_and_labels(one_thread):
                             **out.aovs}.items():
             assert bool(torch.isfinite(value).all()), name
         assert bool((out.depth >= 0).all())
+
+
+def test_the_terrains_shadow_rays_walk_the_voxels_inside_its_shading_kernel(monkeypatch, one_thread):
+    """The terrain's shading as one kernel whose shadow and sky rays walk the voxels
+    (`kernel_march.occluder_lanes`) before crossing the medium: bitwise its passes each their own
+    kernel (`surface_shadows`), within the tolerance table of eager, the block's shadow on the
+    ground and the medium kept."""
+    from torchvol.runtime.compilation import drjit_available
+    from torchvol.volume import kernel_march
+
+    if not drjit_available():
+        pytest.skip("Dr.Jit's LLVM backend is not available")
+    s = volume_scene(terrain=True, lights=[
+        {"kind": "sun", "direction": [1.0, 1.0, 0.3], "intensity": 2.0, "shadow": {"steps": 3}},
+        {"kind": "point", "position": [0.5, 2.5, -1.5], "intensity": 3.0, "shadow": {"steps": 3}}])
+    s["terrain"] = {**s["terrain"], "ambient_visibility": "march"}
+    eager = tv.render(s, compile="off")
+    calls = []
+    shadows = kernel_march.surface_shadows
+    monkeypatch.setattr(kernel_march, "surface_shadows", lambda ctx, use, *a: calls.append(use.name) or shadows(ctx, use, *a))
+    fused = tv.render(s)
+    assert not [n for n in calls if n.startswith("terrain.")], calls  # none of the terrain's rays traced apart
+    monkeypatch.setattr(kernel_march, "surface_lanes_of", lambda ctx, uses, s: None)
+    parts = tv.render(s)
+    assert {"terrain.shadow0", "terrain.shadow1", "terrain.ambient"} <= set(calls)
+    assert torch.equal(fused.radiance, parts.radiance), f"largest difference {float((fused.radiance - parts.radiance).abs().max()):.3g}"
+    assert fused.stats["density_evals"] == parts.stats["density_evals"] == eager.stats["density_evals"]
+    assert_close(fused.radiance, eager.radiance, atol=5e-4 * float(eager.radiance.abs().max()), what="fused against eager")
+    assert {"terrain.shadow0.voxels", "terrain.shadow1.voxels", "terrain.ambient.voxels"} <= set(fused.stats["passes"])
 
 
 def test_a_batch_renders_each_scene_as_alone(one_thread):

@@ -34,7 +34,6 @@ parameters (`drjit.opaque`), so one kernel serves a whole dataset; Dr.Jit caches
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from types import SimpleNamespace
 
 import torch
@@ -571,18 +570,17 @@ def _through_others(solids: dict, occluders, blockers: SimpleNamespace, p, direc
 
 
 def occluders_supported(ctx, use) -> bool:
-    """Whether `occluders` renders what LightPass `use` asks of `shadow.occluder_transmittance`
-    besides the voxels: every occluding volume written in lanes, float32 on the CPU (the plan's
-    `kernels`)."""
+    """Whether `occluders` renders what LightPass `use` asks of `shadow.occluder_transmittance`:
+    every occluding volume written in lanes, float32 on the CPU (the plan's `kernels`)."""
     return ctx.plan.kernels and all(writes_in_lanes(ctx.volumes[j]) for j in use.occluders)
 
 
 def surface_lanes_of(ctx, uses: dict, s: Tensor) -> dict | None:
     """`occluder_lanes` of each LightPass of `uses` (by its key) for a surface's own kernel (the
-    terrain's shading), rays of scenes `s` [n], the volumes' crossings and the terrain's lanes made
-    once for all of them; None where a kernel cannot see all they ask (the voxels, a volume not
-    written in lanes, eager rendering): the surface then takes `surface_shadows`."""
-    if any(use.voxels or not occluders_supported(ctx, use) for use in uses.values()):
+    terrain's shading, the voxels'), rays of scenes `s` [n], the volumes' crossings and the
+    surfaces' lanes made once for all of them; None where a kernel cannot see all they ask (a
+    volume not written in lanes, eager rendering): the surface then takes `surface_shadows`."""
+    if not all(occluders_supported(ctx, use) for use in uses.values()):
         return None
     shared: dict = {}
     return {key: occluder_lanes(ctx, use, s, shared) for key, use in uses.items()}
@@ -592,25 +590,17 @@ def surface_shadows(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance:
                     times: Tensor | None = None) -> Tensor:
     """`times` [n] (None: 1; the light already reaching the points, their n·l or the voxels'
     visibility) × `shadow.occluder_transmittance` of a surface's shadow or sky ray (LightPass
-    `use`), traced only where that light is > 0. Its volumes and the terrain as one Dr.Jit kernel
-    (`occluders`) where `occluders_supported`, their passes listed (their time their caller's),
-    the voxels' walk first, the kernel only for the rays it lets through. -> [n]."""
+    `use`), traced only where that light is > 0. Its volumes, the terrain and the voxels as one
+    Dr.Jit kernel (`occluders`) where `occluders_supported`, their passes listed (their time their
+    caller's). -> [n]."""
     out = p.new_ones(p.shape[0]) if times is None else times.clone()
     ids = None if times is None else (times > 0).nonzero().squeeze(1)
     rays = lambda: [x if ids is None else x[ids] for x in (p, s, direction, distance)]  # noqa: E731
-    if not (use.occluders or use.terrain) or not occluders_supported(ctx, use):
+    if not (use.occluders or use.terrain or use.voxels) or not occluders_supported(ctx, use):
         through = occluder_transmittance(ctx, use, *rays())
     else:
-        listed = [n for n in use.names()[1:] if not n.endswith(".voxels")]  # in the order eager runs them
-        _list(ctx, listed[:use.terrain])
-        if use.voxels:  # the voxels' walk first (0 or 1), the kernel only where it lets light through
-            voxels = occluder_transmittance(ctx, replace(use, occluders=(), terrain=False), *rays())
-            if ids is None:
-                out, ids = out * voxels, (voxels > 0).nonzero().squeeze(1)
-            else:
-                out[ids], ids = out[ids] * voxels, ids[voxels > 0]
         through = occluders(ctx, use, *rays())
-        _list(ctx, listed[use.terrain:])
+        _list(ctx, use.names()[1:])
     if ids is None:
         return out * through
     out[ids] = through * out[ids]
@@ -625,14 +615,14 @@ def _list(ctx, names: list[str]) -> None:
 
 
 def occluder_lanes(ctx, use, s: Tensor, shared: dict | None = None) -> SimpleNamespace:
-    """`shadow.occluder_transmittance`'s volumes and terrain (`use.occluders`, `use.terrain`) for
-    lanes of scenes `s` [n], inside a kernel its caller traces: `through(p, direction, distance,
+    """`shadow.occluder_transmittance`'s volumes and surfaces (`use.occluders`, `use.terrain`,
+    `use.voxels`) for lanes of scenes `s` [n], inside a kernel its caller traces: `through(p, direction, distance,
     active=None)` the transmittance lane of rays from lanes `p` along `direction` (three each) up
     to `distance` (a tensor [n] or a lane, finite; inf: a sun, the sky), traced only where the Bool lane `active`
     (None: everywhere); `evals()` the lanes to evaluate with what it traced (the counts so far) and,
     after, `count()` each volume's evaluations into the render's stats. `shared`: what several
-    calls for the same rays share (its ``per_ray``; each volume's crossing and the terrain's lanes,
-    kept there as they are made)."""
+    calls for the same rays share (its ``per_ray``; each volume's crossing, the terrain's lanes and
+    the voxels' walk, kept there as they are made)."""
     import drjit as dr
     from drjit.llvm import Int32
 
@@ -643,7 +633,8 @@ def occluder_lanes(ctx, use, s: Tensor, shared: dict | None = None) -> SimpleNam
     grids = None if use.shadow.method != "grid" else {
         j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in use.occluders if not ctx.volumes[j].plan.line_integral}
     terrain = made("terrain", lambda: terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)) if use.terrain else None
-    blockers = SimpleNamespace(terrain=terrain, voxels=None)  # the voxels' walk ran before (`surface_shadows`)
+    blockers = SimpleNamespace(terrain=terrain, voxels=made("voxels", lambda: ctx.voxels.visibility_lanes(s, per_ray))
+                               if use.voxels else None)
     evals = {j: dr.zeros(Int32, s.shape[0]) for j in use.occluders}
 
     def through(p, direction, distance, active=None):
