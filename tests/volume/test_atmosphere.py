@@ -293,3 +293,50 @@ def test_the_air_span_kernel_is_the_eager_one():
         assert torch.equal(torch.isfinite(got), fin) and torch.equal(got[~fin], want[~fin]), f"{name}: another miss"
         err = (got - want)[fin].abs() / want[fin].abs().clamp_min(1.0)
         assert err.max() <= 2 * torch.finfo(torch.float32).eps, f"{name}: relative error {err.max():.3g} at ray {int(err.argmax())}"
+
+
+def test_the_sun_depth_table_is_the_nested_march_at_its_nodes_and_near_it_between():
+    """`sun_depth = "table"` (`sun_depth_table`, `table_depth_lanes`): at its nodes the nested march
+    of the same steps; between them, over heights 0-60 km and suns from 10° below the horizon to
+    90°, the transmittance it gives within 2e-3 of the march's (measured: 9.0e-4 Mie, 1.7e-4
+    Rayleigh with Earth's coefficients), where the march itself is 1e-2 from the exact integral."""
+    from torchvol.light.atmosphere import (
+        TABLE_ANGLES,
+        TABLE_HEIGHTS,
+        air_lanes,
+        optic_depth_lanes,
+        sun_path_lanes,
+        table_depth_lanes,
+    )
+
+    layer, steps = AtmosphereMedium(sun_depth="table", light_steps=8), 8
+    R, top = layer.planet_radius, layer.planet_radius + layer.atmosphere_height
+    H = math.sqrt((top - R) * (top + R))
+    # nodes: (ρ, d) of rows 0, 5, 40 and columns 0, 77, 200 (Bruneton's parameterisation, inverted)
+    nodes = []
+    for i in (0, 5, 40):
+        rho = H * i / (TABLE_HEIGHTS - 1)
+        r = math.sqrt(rho * rho + R * R)
+        for j in (1, 77, 200):
+            d = (top - r) + j / (TABLE_ANGLES - 1) * (rho + H - (top - r))
+            mu = (H * H - rho * rho - d * d) / (2.0 * r * d)
+            nodes.append((r, mu))
+    g = torch.Generator().manual_seed(0)
+    n = 4000
+    h = torch.rand(n, generator=g, dtype=F64) * 60000.0
+    elevation = torch.deg2rad(torch.rand(n, generator=g, dtype=F64) * 100.0 - 10.0)
+    radius = torch.cat([torch.tensor([r for r, _ in nodes], dtype=F64), R + h])
+    mu = torch.cat([torch.tensor([m for _, m in nodes], dtype=F64), elevation.sin()])
+    p = [torch.zeros_like(radius), radius, torch.zeros_like(radius)]
+    direction = [(1.0 - mu * mu).clamp_min(0.0).sqrt(), mu, torch.zeros_like(mu)]
+    q = air_lanes(air_of(layer, radius.shape[0]))
+    length, blocked = sun_path_lanes(p, direction, q)
+    march, table = optic_depth_lanes(p, direction, length, q, steps), table_depth_lanes(p, length, q)
+    k = len(nodes)
+    for c, name in enumerate(("Rayleigh", "Mie")):
+        assert_close(table[c][:k] / march[c][:k], torch.ones(k, dtype=F64), atol=1e-9, what=f"{name} at the nodes")
+    lit = ~blocked[k:]
+    sigma = {"Rayleigh": layer.rayleigh[2], "Mie": 1.1 * layer.mie}
+    for c, name in enumerate(("Rayleigh", "Mie")):
+        through = [(-sigma[name] * x[c][k:]).exp()[lit] for x in (table, march)]
+        assert_close(through[0], through[1], atol=2e-3, what=f"{name} transmittance between the nodes")

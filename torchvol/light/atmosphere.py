@@ -19,8 +19,9 @@ the ground. Mie extinction is 1.1 × its scattering (the seeds' aerosol absorpti
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from types import SimpleNamespace
+from typing import Literal
 
 import torch
 from pydantic import Field, field_validator
@@ -51,6 +52,9 @@ class AirLayer(Strict):
     mie_g: float = Field(0.76, gt=-1.0, lt=1.0)
     steps: int | None = Field(None, ge=1, le=1024, description="None: the quality level's")
     light_steps: int | None = Field(None, ge=1, le=1024, description="None: the quality level's")
+    sun_depth: Literal["march", "table"] = Field(
+        "march", description="the optical depth towards the sun: the seeds' nested march of light_steps at every "
+        "sample, or looked up in a table over (height, sun angle) whose nodes are marched so (`sun_depth_table`)")
     _r = field_validator("rayleigh")(lambda v: nonneg(v))
 
 
@@ -64,7 +68,9 @@ class AtmosphereMedium(AirLayer):
 
 @dataclass(frozen=True)
 class Air:
-    """An `AirLayer` gathered per ray: radii, scale heights, `mie`, `mie_g` [n]; `rayleigh` [n, 3]."""
+    """An `AirLayer` gathered per ray: radii, scale heights, `mie`, `mie_g` [n]; `rayleigh` [n, 3];
+    with a sun-depth table (`sun_depth_table`, the batch's: not gathered; None: the nested march)
+    each ray's scene's first node `table_base` [n] (int32) and `horizon` [n] (√(top² − R²))."""
 
     planet_radius: Tensor
     top_radius: Tensor
@@ -72,22 +78,39 @@ class Air:
     mie: Tensor
     scale_heights: Tensor  # [n, 2]: Rayleigh's, Mie's
     mie_g: Tensor
+    table: Tensor | None = None
+    table_base: Tensor | None = None
+    horizon: Tensor | None = None
 
 
-def gather_air(layer: Stacked, s: Tensor) -> Air:
-    """The layer's values (B, ...) at the scenes `s` [n] of the rays."""
-    return Air(planet_radius=take(layer.planet_radius, s), top_radius=take(layer.planet_radius + layer.atmosphere_height, s),
-               rayleigh=take(layer.rayleigh, s), mie=take(layer.mie, s), mie_g=take(layer.mie_g, s),
-               scale_heights=take(torch.stack([layer.rayleigh_height, layer.mie_height], dim=1), s))
+def gather_air(layer: Stacked, s: Tensor, *, kernel: bool = False) -> Air:
+    """The layer's values (B, ...) at the scenes `s` [n] of the rays; its sun-depth table
+    (`sun_depth_table`) built as a Dr.Jit kernel where `kernel` (the caller's lanes run in one)."""
+    air = Air(planet_radius=take(layer.planet_radius, s), top_radius=take(layer.planet_radius + layer.atmosphere_height, s),
+              rayleigh=take(layer.rayleigh, s), mie=take(layer.mie, s), mie_g=take(layer.mie_g, s),
+              scale_heights=take(torch.stack([layer.rayleigh_height, layer.mie_height], dim=1), s))
+    table = sun_depth_table(layer, kernel=kernel)
+    if table is None:
+        return air
+    return replace(air, table=table, table_base=(s * (TABLE_HEIGHTS * TABLE_ANGLES)).to(torch.int32),
+                   horizon=take(_horizon(layer.planet_radius, layer.planet_radius + layer.atmosphere_height), s))
 
 
 def air_lanes(air: Air, lane=lambda x: x) -> SimpleNamespace:
     """An `Air` as the lanes functions take it (`ops.lanes`): one lane a value (`lane`: a tensor
     [n] -> lanes; the columns themselves for the eager code), `rayleigh` three, `falloff` two
-    (`falloff_rates` of Rayleigh's and Mie's scale heights)."""
-    return SimpleNamespace(planet_radius=lane(air.planet_radius), top_radius=lane(air.top_radius),
-                           rayleigh=[lane(x) for x in air.rayleigh.unbind(1)], mie=lane(air.mie),
-                           falloff=[lane(x) for x in falloff_rates(air.scale_heights).unbind(-1)], mie_g=lane(air.mie_g))
+    (`falloff_rates` of Rayleigh's and Mie's scale heights); its sun-depth `table` as
+    `table_depth_lanes` reads it (None: none)."""
+    q = SimpleNamespace(planet_radius=lane(air.planet_radius), top_radius=lane(air.top_radius),
+                        rayleigh=[lane(x) for x in air.rayleigh.unbind(1)], mie=lane(air.mie),
+                        falloff=[lane(x) for x in falloff_rates(air.scale_heights).unbind(-1)], mie_g=lane(air.mie_g),
+                        table=None)
+    if air.table is not None:
+        kernel = not isinstance(q.planet_radius, Tensor)
+        q.table = lanes.pairs_of(air.table) if kernel else air.table
+        q.table_base = lanes.ints_of(air.table_base) if kernel else air.table_base
+        q.horizon = lane(air.horizon)
+    return q
 
 
 def falloff_rates(scale_heights: Tensor) -> Tensor:
@@ -128,6 +151,82 @@ def extinction_lanes(depth, q: SimpleNamespace) -> list:
     return [q.rayleigh[c] * depth[0] + mie for c in range(3)]
 
 
+def sun_depth_lanes(p, sun_dir, length, q: SimpleNamespace, light_steps: int) -> list:
+    """Optic depths (two lanes: Rayleigh, Mie) from `p` towards the sun `sun_dir` (three lanes
+    each, planet frame; unit) over `length` (a lane, `sun_path_lanes`' distance to the top): the
+    seeds' nested march of `light_steps` (`optic_depth_lanes`), or looked up in `q`'s table."""
+    if q.table is None:
+        return optic_depth_lanes(p, sun_dir, length, q, light_steps)
+    return table_depth_lanes(p, length, q)
+
+
+# the sun-depth table's nodes: heights × sun angles, in Bruneton's parameterisation (2017,
+# "Precomputed Atmospheric Scattering: a New Implementation"): the height by ρ = √(r² − R²) / H,
+# the angle by where the distance to the top lies between its least and most at that height
+TABLE_HEIGHTS, TABLE_ANGLES = 64, 256
+
+
+def _horizon(planet_radius: Tensor, top_radius: Tensor) -> Tensor:
+    """H = √(top² − R²): the distance to the top along the ground's horizon."""
+    return ((top_radius - planet_radius) * (top_radius + planet_radius)).sqrt()
+
+
+def sun_depth_table(layer: Stacked, *, kernel: bool = False) -> Tensor | None:
+    """The optical depths towards the sun of each scene of `layer` (an `AirLayer` batch of B
+    scenes; None where its `sun_depth` is "march") at `TABLE_HEIGHTS` × `TABLE_ANGLES` nodes, as
+    their logarithms (linear between nodes is exponential in height, as the air is) ->
+    [B·heights·angles, 2] (Rayleigh, Mie; height-major), built once a batch: each node the nested
+    march of `light_steps` (`optic_depth_lanes`) from its point and direction in float64, marched
+    in float64 on torch, or where `kernel` in one Dr.Jit kernel (float32, as the kernels march)."""
+    if layer.sun_depth != "table":
+        return None
+    key = "sun_table_kernel" if kernel else "sun_table"
+    if key not in layer.__dict__:  # (Stacked keeps what it computes for the batch there)
+        wide = lambda x: x.to(torch.float64)[:, None, None]  # noqa: E731  (B, 1, 1)
+        radius, top = wide(layer.planet_radius), wide(layer.planet_radius + layer.atmosphere_height)
+        h = _horizon(radius, top)
+        u_r = torch.linspace(0.0, 1.0, TABLE_HEIGHTS, dtype=torch.float64)[:, None]
+        u_mu = torch.linspace(0.0, 1.0, TABLE_ANGLES, dtype=torch.float64)
+        rho = h * u_r
+        r = (rho * rho + radius * radius).sqrt()
+        d_min, d_max = top - r, rho + h
+        d = d_min + u_mu * (d_max - d_min)  # (B, heights, angles)
+        mu = torch.where(d > 0, (h * h - rho * rho - d * d) / (2.0 * r * d.clamp_min(1e-30)), 1.0).clamp(-1.0, 1.0)
+        dtype = torch.float32 if kernel else torch.float64
+        node = lambda x: x.expand_as(d).reshape(-1).to(dtype).contiguous()  # noqa: E731
+        columns = [node(radius), node(falloff_rates(wide(layer.rayleigh_height))), node(falloff_rates(wide(layer.mie_height))),
+                   node(r), node((1.0 - mu * mu).clamp_min(0.0).sqrt()), node(mu), node(d)]
+
+        def march(lane):
+            radius, rayleigh, mie, r, across, up, length = (lane(c) for c in columns)
+            zero = up * 0.0
+            q = SimpleNamespace(planet_radius=radius, falloff=[rayleigh, mie])
+            return optic_depth_lanes([zero, r, zero], [across, up, zero], length, q, int(layer.light_steps))
+
+        depth = traced(march, columns[0]) if kernel else march(lambda x: x)
+        layer.__dict__[key] = (torch.stack(depth, dim=1).double() + 1e-30).log().to(layer.planet_radius.dtype)
+    return layer.__dict__[key]
+
+
+def table_depth_lanes(p, length, q: SimpleNamespace) -> list:
+    """`sun_depth_table`'s optical depths (two lanes) at `p` (three lanes, planet frame) towards a
+    sun whose path to the top is `length` (a lane; 0: none, nothing to cross), their logarithms
+    bilinear between its nodes; a point above the top takes the top's. ρ² = |p|² − R² as
+    `density_lanes` writes it."""
+    r = q.planet_radius
+    rho = lanes.sqrt(lanes.clamp_min(p[0] * p[0] + p[2] * p[2] + (p[1] - r) * (p[1] + r), 0.0))
+    d_min, d_max = q.top_radius - lanes.length3(*p), rho + q.horizon
+    x = lanes.clamp((length - d_min) / (d_max - d_min), 0.0, 1.0) * float(TABLE_ANGLES - 1)
+    y = lanes.clamp(rho / q.horizon, 0.0, 1.0) * float(TABLE_HEIGHTS - 1)
+    x0, y0 = lanes.minimum(lanes.floor(x), float(TABLE_ANGLES - 2)), lanes.minimum(lanes.floor(y), float(TABLE_HEIGHTS - 2))
+    fx, fy = x - x0, y - y0
+    first = q.table_base + lanes.to_int32(y0) * TABLE_ANGLES + lanes.to_int32(x0)
+    a, b = lanes.gather_pair(q.table, first), lanes.gather_pair(q.table, first + 1)
+    c, e = lanes.gather_pair(q.table, first + TABLE_ANGLES), lanes.gather_pair(q.table, first + TABLE_ANGLES + 1)
+    return [lanes.where(length > 0, lanes.exp(lanes.lerp(lanes.lerp(a[k], b[k], fx), lanes.lerp(c[k], e[k], fx), fy)), 0.0)
+            for k in range(2)]
+
+
 def sun_path_lanes(p, sun_dir, q: SimpleNamespace):
     """From `p` towards the sun `sun_dir` (three lanes each, planet frame; unit): the distance to
     the top of the atmosphere (0 outside it, going away) and whether the planet blocks the sun."""
@@ -141,7 +240,7 @@ def sun_transmittance_lanes(p, sun_dir, q: SimpleNamespace, light_steps: int) ->
     """The air's transmittance (three lanes) from `p` to the sun `sun_dir` (three lanes each, planet
     frame; unit): the nested optical-depth march, 0 where the planet is in the way."""
     length, blocked = sun_path_lanes(p, sun_dir, q)
-    tau = extinction_lanes(optic_depth_lanes(p, sun_dir, length, q, light_steps), q)
+    tau = extinction_lanes(sun_depth_lanes(p, sun_dir, length, q, light_steps), q)
     return [lanes.where(blocked, 0.0, lanes.exp(-x)) for x in tau]
 
 
@@ -205,7 +304,7 @@ def single_scatter_lanes(origins, directions, t0, t1, sun_dir, q: SimpleNamespac
         step = [x * dt for x in density_lanes(p, q)]
         optical = [optical[k] + step[k] for k in range(2)]
         length, blocked = sun_path_lanes(p, sun, q)
-        toward = optic_depth_lanes(p, sun, length, q, light_steps)
+        toward = sun_depth_lanes(p, sun, length, q, light_steps)
         tau = extinction_lanes([optical[k] + toward[k] for k in range(2)], q)
         attenuation = [lanes.where(blocked, 0.0, lanes.exp(-x)) for x in tau]
         return optical + [sums[k][c] + attenuation[c] * step[k] for k in range(2) for c in range(3)]
@@ -249,7 +348,7 @@ def _segments(mask: Tensor, origins: Tensor, directions: Tensor, t0: Tensor, t1:
     inscatter, trans = torch.zeros_like(origins), torch.ones_like(origins)
     rays = mask.nonzero().squeeze(1)
     if rays.numel():
-        part = Air(**{f.name: getattr(air, f.name)[rays] for f in fields(air)})
+        part = rows_of(air, rays)
         inscatter[rays], trans[rays] = single_scatter(origins[rays], directions[rays], t0[rays], t1[rays], sun_dir[rays],
                                                       part, steps=steps, light_steps=light_steps)
     return inscatter, trans
@@ -325,8 +424,9 @@ def ground_radiance(points: Tensor, sun_dir: Tensor, sun: Tensor, albedo: Tensor
 
 
 def rows_of(air: Air, rows: Tensor) -> Air:
-    """The rays `rows` [m] of `air` (gathered per ray)."""
-    return Air(**{f.name: take_rows(getattr(air, f.name), rows) for f in fields(air)})
+    """The rays `rows` [m] of `air` (gathered per ray; its table is the batch's)."""
+    return Air(**{f.name: getattr(air, f.name) if f.name == "table" or getattr(air, f.name) is None
+                  else take_rows(getattr(air, f.name), rows) for f in fields(air)})
 
 
 @dataclass(frozen=True)

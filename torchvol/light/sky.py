@@ -112,7 +112,7 @@ def atmosphere_sky(directions: Tensor, sun_dir: Tensor, air: Air, *, eye_height:
 
 def _atmosphere(sky: Stacked, directions: Tensor, s: Tensor, sun: Tensor, *, kernel: bool = False) -> Tensor:
     atm = sky.atmosphere
-    return atmosphere_sky(directions, take(sun, s), gather_air(atm, s), eye_height=take(atm.eye_height, s),
+    return atmosphere_sky(directions, take(sun, s), gather_air(atm, s, kernel=kernel), eye_height=take(atm.eye_height, s),
                           sun_intensity=take(atm.sun_intensity, s), steps=atm.steps, light_steps=atm.light_steps,
                           kernel=kernel)
 

@@ -297,8 +297,9 @@ def path_surfaces(makers: list) -> Callable | None:
 def air_along(ctx: RenderContext, rays: Rays) -> AirPath:
     """The `[atmosphere]`'s air along a chunk's rays, lit by the scene's sun (`AirPath`)."""
     atm, s, sun = ctx.batch.atmosphere, rays.scene_index, ctx.lights[ctx.plan.sun]
-    return air_path(rays.origins, rays.directions, take(sun.direction, s), take(sun.radiant, s), gather_air(atm, s),
-                    steps=atm.steps, light_steps=atm.light_steps, kernel=ctx.plan.joint.backend == "drjit")
+    kernel = ctx.plan.joint.backend == "drjit"
+    return air_path(rays.origins, rays.directions, take(sun.direction, s), take(sun.radiant, s),
+                    gather_air(atm, s, kernel=kernel), steps=atm.steps, light_steps=atm.light_steps, kernel=kernel)
 
 
 def behind_the_air(ctx: RenderContext, air: AirPath, s: Tensor, behind: Tensor | None, surf) -> tuple[Tensor, Tensor]:
