@@ -201,12 +201,13 @@ def test_the_air_leaves_a_scene_without_air_unchanged_and_costs_nothing_when_abs
 @settings(max_examples=30, deadline=None)
 @given(height=st.sampled_from([0.0, 1.0, 3.0e3, 3.0e4, 6.0e4, 4.0e5, 1.0e7]),
        elevation=st.floats(-90.0, 90.0), sun_elevation=st.floats(-90.0, 90.0),
-       azimuth=st.floats(0.0, 360.0))
-def test_hard_cases_are_finite_and_non_negative(height, elevation, sun_elevation, azimuth):
+       azimuth=st.floats(0.0, 360.0), sun_depth=st.sampled_from(["march", "table"]))
+def test_hard_cases_are_finite_and_non_negative(height, elevation, sun_elevation, azimuth, sun_depth):
     # cameras on the ground, in the air, at the top, in space; rays and suns at any elevation,
-    # among them below the horizon and grazing the planet (the limb)
+    # among them below the horizon and grazing the planet (the limb); the sun's depth marched or
+    # from its table (points above the top, on the ground, the sun at its horizon)
     n = 5
-    air = air_of(EARTH, n, torch.float32)
+    air = air_of(EARTH.model_copy(update={"sun_depth": sun_depth, "light_steps": 4}), n, torch.float32)
     limb = -math.degrees(math.acos(EARTH.planet_radius / (EARTH.planet_radius + height)))
     elevations = torch.tensor([elevation, limb, limb + 1e-3, limb - 1e-3, 0.0]).deg2rad()
     az = math.radians(azimuth)
