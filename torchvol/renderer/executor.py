@@ -117,19 +117,16 @@ class RenderContext:
         if plan.atmosphere:  # the sun reaches every point of the scene through the air
             self.lights[plan.sun].through = sun_through_air(batch.atmosphere, self.lights[plan.sun])
         self.volumes = [self._volume(vp) for vp in plan.volumes]
-        # what a surface's shadow ray sees besides that surface (volumes, the other surface), as the plan says
-        shadow_rays = lambda use, p, s, direction, distance, times=None: kernel_march.surface_shadows(
-            self, use, p, s, direction, distance, times)
         self.voxel_surface = self.voxels = self.terrain = None
         if plan.voxels is not None:
             self.voxel_surface = VoxelSurface(
                 batch.voxels, self.lights, plan.voxels, {a: AOVS[a].channels for a in plan.aovs}, dtype=plan.dtype,
                 device=device, drjit=plan.walk == "drjit", time=self.times,
-                sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s), transmittance=shadow_rays,
+                sky=None if plan.sky is None else lambda d, s: sky_toward(self, d, s), transmittance=self.shadow_rays,
                 occluder_lanes=lambda uses, s: kernel_march.surface_lanes_of(self, uses, s))
             self.voxels = VoxelOccluder(self.voxel_surface.tracer, voxel_shadow_steps(batch.voxels))
         if plan.terrain is not None:
-            self.terrain = TerrainSurface(batch.terrain, self.lights, plan.terrain, plan.aovs, shadow_rays, plan.kernels,
+            self.terrain = TerrainSurface(batch.terrain, self.lights, plan.terrain, plan.aovs, self.shadow_rays, plan.kernels,
                                           lambda uses, s: kernel_march.surface_lanes_of(self, uses, s))
         # the one the scene has, or both as one: each ray the nearer hit (renderer/surfaces.py)
         self.surface = surface_pass(self.voxel_surface, self.terrain, terrain_id(batch))
@@ -150,6 +147,13 @@ class RenderContext:
             state.ambient_bottom = amb.radiance if amb.radiance is not None else sky_mean(
                 SKIES[self.batch.sky.kind].fn, self.batch.sky, self.sun(), len(params), dtype=self.dtype, device=self.device)
         return state
+
+    def shadow_rays(self, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor,
+                    times: Tensor | None = None) -> Tensor:
+        """What a surface's or a label's shadow ray (LightPass `use`) sees besides that surface (the
+        volumes, the other surfaces), as the plan says: `kernel_march.surface_shadows`, one Dr.Jit
+        kernel where the render runs them."""
+        return kernel_march.surface_shadows(self, use, p, s, direction, distance, times)
 
     def dither(self, rays: Rays) -> Tensor | None:
         """The march's start offset per ray [R] (`march.dither`: hashed from the seed and pixel, the

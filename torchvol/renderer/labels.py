@@ -41,7 +41,6 @@ from ..scene.model import VoxelShadow
 from ..schema.batch import take
 from ..volume.composite import Composited, Media, entry_order
 from ..volume.context import VolumeContext
-from ..volume.physical import occluder_transmittance
 from ..volume.strategy import entry_exit
 from .plan import Plan
 from .surfaces import SurfacesHit, terrain_id
@@ -52,6 +51,11 @@ class LabelContext(VolumeContext, Protocol):
     shadow ray meets) with its plan."""
 
     plan: Plan
+
+    def shadow_rays(self, use, p: Tensor, s: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
+        """`shadow.occluder_transmittance` of the shadow rays of LightPass `use` from `p` [n, 3]
+        along `direction` [n, 3] up to `distance` [n], as a Dr.Jit kernel where the render runs
+        them -> [n]."""
 
 
 def optical_thickness(ctx: LabelContext, rays: Rays, t_limit: Tensor | None) -> Tensor:
@@ -149,8 +153,8 @@ def sun_visibility(ctx: LabelContext, rays: Rays, volumes: Composited, surf: Sur
         p = p + lift[:, None] * surf.aovs["normal"][ids]
     direction = take(ctx.lights[ctx.plan.sun].direction, si)
     distance = torch.full_like(ti, torch.inf)
-    # the volumes, the terrain (`use.terrain`) and the voxels (`use.voxels`, ctx.voxels: the same DDA shadow ray)
-    out[ids] = occluder_transmittance(ctx, use, p, si, direction, distance)
+    # the volumes, the terrain (`use.terrain`) and the voxels (`use.voxels`: the same DDA shadow ray)
+    out[ids] = ctx.shadow_rays(use, p, si, direction, distance)
     return out
 
 
