@@ -225,3 +225,27 @@ def test_sun_visibility_runs_its_shadow_rays_in_the_kernel_where_the_render_does
     assert float(vis.min()) < 0.5 < float(vis.max())  # shadowed and lit pixels both
     assert_close(kernel.aovs["sun_visibility"], vis, atol=5 * TOL[torch.float32], what="sun_visibility, kernel against eager")
     assert [n for n in kernel.stats["passes"] if n.startswith("labels.")] == [n for n in eager.stats["passes"] if n.startswith("labels.")]
+
+
+@pytest.mark.parametrize("name", ["cloud-puff", "multi-layer", "cloudscape", "fur-ball", "god-rays"])
+def test_optical_thickness_sums_each_chord_in_the_kernel_where_the_render_does(name, monkeypatch):
+    """`kernel_march.chord_density`: each volume's midpoint sum of the label as one Dr.Jit kernel,
+    within 1e-5 of τ relative to eager's (measured: 3.1e-6, cloudscape's τ up to 96), the same
+    density evaluations; not a sample of the eager loop (cloud-puff's label at 128²: 166 -> 11 ms)."""
+    from torchvol.renderer import labels
+    from torchvol.runtime.compilation import drjit_available
+
+    if not drjit_available():
+        pytest.skip("Dr.Jit's LLVM backend is not available")
+    scene = tv.preset(name, width=32, height=24)
+    eager = tv.render(scene, aovs=["optical_thickness"], compile="off")
+    kernels = labels.kernel_march.chord_density
+    calls = []
+    monkeypatch.setattr(labels.kernel_march, "chord_density", lambda *a: calls.append(a[1].plan.name) or kernels(*a))
+    kernel = tv.render(scene, aovs=["optical_thickness"])
+    tau = eager.aovs["optical_thickness"]
+    assert float(tau.max()) > 0.5
+    assert_close(kernel.aovs["optical_thickness"] / tau.clamp_min(1.0), tau / tau.clamp_min(1.0), atol=1e-5,
+                 what=f"{name}: τ, kernel against eager")
+    assert kernel.stats["density_evals"] == eager.stats["density_evals"]
+    assert calls, "no volume's label summed in the kernel"

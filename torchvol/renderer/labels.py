@@ -39,8 +39,10 @@ from ..geometry.camera import Rays
 from ..geometry.surface_hit import SurfaceHit
 from ..scene.model import VoxelShadow
 from ..schema.batch import take
+from ..volume import kernel_march
 from ..volume.composite import Composited, Media, entry_order
 from ..volume.context import VolumeContext
+from ..volume.density_lanes import writes_in_lanes
 from ..volume.strategy import entry_exit
 from .plan import Plan
 from .surfaces import SurfacesHit, terrain_id
@@ -59,23 +61,26 @@ class LabelContext(VolumeContext, Protocol):
 
 
 def optical_thickness(ctx: LabelContext, rays: Rays, t_limit: Tensor | None) -> Tensor:
-    """τ [n] along the chunk's rays through every volume, up to `t_limit` [n] (a surface hit)."""
+    """τ [n] along the chunk's rays through every volume, up to `t_limit` [n] (a surface hit): each
+    volume's midpoint sum as one Dr.Jit kernel where the render runs them and the volume is written
+    in lanes (`kernel_march.chord_density`), else eagerly (the reference)."""
     tau = rays.origins.new_zeros(len(rays))
-    steps = ctx.settings.rule.steps
     for vol in ctx.volumes:
         t0, t1, hit = entry_exit(vol, rays, t_limit)
         ids = hit.nonzero().squeeze(1)
         if ids.numel() == 0:
             continue
-        s, o, d, a, length = rays.scene_index[ids], rays.origins[ids], rays.directions[ids], t0[ids], t1[ids] - t0[ids]
-        sigma = take(vol.params.sigma_t, s)
-        if vol.plan.strategy == "closed_form":  # homogeneous: σ_t at any point is σ_t everywhere
-            tau[ids] += sigma * vol.field(torch.addcmul(o, (a + 0.5 * length)[:, None], d), s) * length
-            continue
-        dt, acc = length / steps, torch.zeros_like(a)
-        for k in range(steps):  # one sample per segment: [n] at a time, whatever the step count
-            acc = acc + vol.field(torch.addcmul(o, (a + (k + 0.5) * dt)[:, None], d), s)
-        tau[ids] += sigma * acc * dt
+        s, a, length = rays.scene_index[ids], t0[ids], t1[ids] - t0[ids]
+        # homogeneous: σ_t at any point is σ_t everywhere, one sample (the midpoint) is exact
+        steps = 1 if vol.plan.strategy == "closed_form" else ctx.settings.rule.steps
+        dt = length / steps
+        if ctx.plan.kernels and writes_in_lanes(vol):
+            acc = kernel_march.chord_density(ctx, vol, rays, a, length, ids, steps)
+        else:
+            o, d, acc = rays.origins[ids], rays.directions[ids], torch.zeros_like(a)
+            for k in range(steps):  # one sample per segment: [n] at a time, whatever the step count
+                acc = acc + vol.field(torch.addcmul(o, (a + (k + 0.5) * dt)[:, None], d), s)
+        tau[ids] += take(vol.params.sigma_t, s) * acc * dt
     return tau
 
 

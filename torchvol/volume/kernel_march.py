@@ -607,6 +607,29 @@ def surface_shadows(ctx, use, p: Tensor, s: Tensor, direction: Tensor, distance:
     return out
 
 
+def chord_density(ctx, vol, rays, t0: Tensor, length: Tensor, ids: Tensor, steps: int) -> Tensor:
+    """Σ density over `steps` equal segments' midpoints of the chunk's rays `ids` [m] from `t0` [m]
+    over `length` [m] through volume `vol` (`renderer.labels.optical_thickness`'s sum) as one
+    Dr.Jit kernel (`occluders_supported`'s conditions: the volume written in lanes, the plan's
+    kernels); its evaluations counted as eager's are. -> [m]."""
+    import drjit as dr
+
+    s, row, lane, per_ray = _ray_lanes(rays, ids)
+    density = crossing(vol, s, per_ray).density
+    o, d, a, dt = row(rays.origins), row(rays.directions), lane(t0), lane(length / steps)
+
+    def segment(k, state):  # the midpoint rounded as eager's addcmul rounds it
+        t = a + (k + 0.5) * dt
+        return [state[0] + density([dr.fma(t, d[c], o[c]) for c in range(3)], None)]
+
+    total = lanes.fori(steps, [a * 0.0], segment)[0]
+    dr.eval(total)
+    dr.sync_thread()
+    ctx.counts.density_evals += ids.shape[0] * steps
+    vol.field.evals += ids.shape[0] * steps
+    return lanes.tensor_of(total).to(t0.dtype)
+
+
 def _list(ctx, names: list[str]) -> None:
     """Passes `names` in `stats`, run inside a kernel their caller times."""
     for name in names:
