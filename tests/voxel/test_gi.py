@@ -11,8 +11,9 @@ import torch
 from conftest import assert_close
 
 import torchvol as tv
+from torchvol.ops import lanes
 from torchvol.renderer.plan import make_plan
-from torchvol.voxel.gi import cosine_directions
+from torchvol.voxel.gi import bounce_direction_lanes, bounce_uniform_lanes
 
 INNER = {"box": {"box": {"center": [0.0, 0.0, 0.0], "half_size": [3.0, 2.0, 3.0]}},
          "sphere": {"sphere": {"center": [0.0, 0.0, 0.0], "radius": 3.2}},
@@ -109,10 +110,13 @@ def test_a_point_light_inside_a_closed_room_odd_size():
     assert bool((out.radiance >= direct - 1e-12).all()) and bool((out.radiance > direct).any())
 
 
-def test_cosine_directions_are_cosine_distributed():
+def test_bounce_directions_are_cosine_distributed():
+    # the paths' uniforms (hashed from their cells) and directions (the path tracer's Lambert bounce)
     n = torch.nn.functional.normalize(torch.tensor([[0.3, -0.8, 0.2]], dtype=torch.float64), dim=1).expand(20000, 3)
-    g = torch.Generator().manual_seed(0)
-    d = cosine_directions(n, torch.rand(20000, generator=g, dtype=torch.float64), torch.rand(20000, generator=g, dtype=torch.float64))
+    cells = [torch.arange(20000, dtype=torch.int32), torch.full((20000,), 7, dtype=torch.int32), torch.zeros(20000, dtype=torch.int32)]
+    u1, u2 = bounce_uniform_lanes(cells, 1, n[:, 0])
+    assert float(u1.min()) >= 0.0 and float(u1.max()) < 1.0 and abs(float(u2.mean()) - 0.5) < 0.01
+    d = torch.stack(bounce_direction_lanes(lanes.columns(n), u1, u2), dim=1)
     assert_close(d.norm(dim=1), torch.ones(20000, dtype=torch.float64), what="unit length")
     cos = (d * n).sum(1)
     assert bool((cos >= 0).all())
@@ -135,3 +139,49 @@ def test_furnace_per_scene_in_a_batch():
     for b, (a, e, _) in enumerate(cases):
         expected = torch.full_like(out.radiance[b], e * (1 + a + a * a))
         assert torch.allclose(out.radiance[b].double(), expected.double(), rtol=0.01, atol=0.0)
+
+
+def _open_room(**extra) -> dict:
+    """A room open at the front (paths leave it for the sky), lit by a shadowed point light and a
+    sun, a glossy and an emissive material, seen from outside."""
+    def cells(c):
+        shell = (c.abs().amax(dim=1) == 4) & (c[:, 2] > -4)
+        return torch.where(shell, 1 + (c[:, 1] > 0).long(), torch.where((c[:, 0] == 1) & (c[:, 1] < -2), 3, 0))
+
+    return {"image": {"width": 20, "height": 16}, "camera": {"eye": [0.5, 0.3, -9.0], "target": [0.0, -0.5, 0.0], "fov_y": 60.0},
+            "sky": {"kind": "gradient", "horizon": [0.6, 0.7, 0.8], "slope": [0.2, 0.1, 0.0]},
+            "lights": [{"kind": "point", "position": [0.5, 2.5, -1.0], "intensity": 8.0},
+                       {"kind": "sun", "direction": [0.3, 1.0, -0.6], "intensity": 2.0}],
+            "voxels": {"occupancy": {"function": {"fn": cells}}, "cells": {"min": [-4, -4, -4], "max": [5, 5, 5]},
+                       "materials": [[0.7, 0.6, 0.5], {"color": [0.8, 0.8, 0.8], "roughness": 0.3, "metallic": 0.5},
+                                     {"color": [0.3, 0.5, 0.3], "emission": [0.5, 0.2, 0.1]}],
+                       "shadow": {"steps": 24}, "gi": {"bounces": 2, "samples": 3}, **extra}}
+
+
+GI_KERNEL = {
+    "sky, glossy and emissive faces, two lights": _open_room(),
+    "distance LOD": _open_room(gi={"bounces": 2, "samples": 4, "lod": {"near": 6.0, "far": 12.0, "samples": 1}}),
+    "shadow rays through a medium": {**_open_room(), "volumes": [
+        {"bounds": {"box": {"min": [-3.0, 0.5, -3.0], "max": [3.0, 1.5, 3.0]}}, "sigma_t": 1.5, "albedo": 0.0,
+         "density": {"fbm": {"octaves": 2, "frequency": 1.0, "seed": 3}}}]},
+}
+
+
+@pytest.mark.parametrize("name", list(GI_KERNEL))
+def test_the_paths_in_the_kernel_are_the_eager_paths(name):
+    """`passes.paths.path_lanes` as one Dr.Jit kernel over a chunk's paths against the same lanes
+    on torch columns (the reference): the image within float rounding (the directions' sin, cos
+    and sqrt), the same DDA steps and density evaluations; the paths matter (without GI the image
+    is far off)."""
+    from torchvol.runtime.compilation import drjit_available
+
+    if not drjit_available():
+        pytest.skip("Dr.Jit's LLVM backend is not available")
+    scene = GI_KERNEL[name]
+    kernel, eager = tv.render(scene, seed=2), tv.render(scene, seed=2, compile="off")
+    peak = float(eager.radiance.abs().max())
+    assert_close(kernel.radiance / peak, eager.radiance / peak, atol=1e-5, what=f"{name}: radiance / peak")
+    assert kernel.stats["voxel_steps"] == eager.stats["voxel_steps"]
+    assert kernel.stats["density_evals"] == eager.stats["density_evals"]
+    flat = tv.render({**scene, "voxels": {k: v for k, v in scene["voxels"].items() if k != "gi"}}, seed=2)
+    assert float((flat.radiance - kernel.radiance).abs().max()) > 1e-2 * peak

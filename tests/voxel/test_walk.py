@@ -119,9 +119,9 @@ def test_default_renders_are_eager_renders(name, overrides, monkeypatch):
     """Every walk gives the eager walk's bits: the default (Dr.Jit's walk, the glow's and the fog's
     sums inside it: the eager per-cell callback never runs) renders every output bitwise as the
     eager reference does (a fog's light, the neighbour AO and the cones excepted, whose exp and log
-    are Dr.Jit's in the kernels, and the rounded voxels, whose sqrt is correctly rounded in Dr.Jit
-    and not in torch: within float rounding); with fog or glow a hybrid scene walks plainly on
-    every path."""
+    are Dr.Jit's in the kernels, the GI paths, whose directions' sin, cos and sqrt are, and the
+    rounded voxels, whose sqrt is correctly rounded in Dr.Jit and not in torch: within float
+    rounding); with fog or glow a hybrid scene walks plainly on every path."""
     scene = tv.load_scene(tv.preset(name, width=40, height=30), overrides=overrides)
     slow = tv.render(scene, compile="off")
     if drjit_available():
@@ -134,7 +134,7 @@ def test_default_renders_are_eager_renders(name, overrides, monkeypatch):
     fog = scene.voxels.fog is not None
     cones = scene.voxels.gi is not None and scene.voxels.gi.method == "cone"
     rounded = scene.voxels.rounded is not None
-    inexact = fog or cones or rounded or scene.voxels.ao is not None
+    inexact = fog or scene.voxels.gi is not None or rounded or scene.voxels.ao is not None
     for key in ("image", "radiance", "depth", "alpha"):
         a, b = getattr(fast, key), getattr(slow, key)
         tol = 1e-6 * float(b.abs().max()) if inexact and key in ("image", "radiance") or rounded and key == "depth" else 0.0

@@ -25,6 +25,7 @@ from ..ops.mathops import take_rows
 __all__ = [
     "hash3",
     "hash3_lanes",
+    "int32_bits",
     "lattice_hash",
     "lattice_values",
     "value_noise",
@@ -87,7 +88,7 @@ def hash3_lanes(x, y, z, seed: int):
     return h
 
 
-def _int32_bits(cells: Tensor) -> Tensor:
+def int32_bits(cells: Tensor) -> Tensor:
     """Integer cells ``[..., 3]`` (any integer dtype) mod 2**32, as int32 holding their uint32 bits."""
     c = cells.to(torch.int64) & _M32
     return (c - ((c >> 31) << 32)).to(torch.int32)
@@ -96,7 +97,7 @@ def _int32_bits(cells: Tensor) -> Tensor:
 def _hash_u32(cells: Tensor, seed: int) -> Tensor:
     """uint32 hash (as int64) of integer cells ``[..., 3]`` and an integer seed -> ``[...]``:
     `hash3_lanes` (lowbias32 chained over the seed and the coordinates) on int32 columns."""
-    c = _int32_bits(cells)
+    c = int32_bits(cells)
     return hash3_lanes(c[..., 0], c[..., 1], c[..., 2], seed).to(torch.int64) & _M32
 
 
@@ -139,7 +140,7 @@ def hash3_columns(x: Tensor, y: Tensor, z: Tensor, seed: int, *, dtype: torch.dt
 
 def _unit_kernel(cells: list, seed: int) -> Tensor:
     """`hash3`'s float32 values of cells given as three Int64 lanes, as one Dr.Jit kernel: each
-    coordinate truncated to its low 32 bits (`_int32_bits`' value, tested for any sign and size),
+    coordinate truncated to its low 32 bits (`int32_bits`' value, tested for any sign and size),
     hashed, its top 24 bits scaled -> [n] float32."""
     import drjit as dr
     from drjit.llvm import Int32

@@ -49,9 +49,10 @@ import torch.nn.functional as F
 from pydantic import Discriminator, Field, Tag
 from torch import Tensor
 
+from ..geometry.scatter import basis
 from ..ops import lanes, mathops
 from ..schema.models import Strict
-from .gi import DistanceLOD, VoxelGI, tangent_frame
+from .gi import DistanceLOD, VoxelGI
 
 __all__ = ["ConeLOD", "VoxelCone", "VoxelGIs", "build_mips", "cone_ao", "cone_directions", "cone_step", "default_aperture",
            "face_cells", "mip_table", "trace_cones"]
@@ -114,7 +115,7 @@ def cone_directions(normal: Tensor, count: int) -> Tensor:
     local = torch.cat([torch.tensor([[0.0, 0.0, 1.0]], dtype=dt, device=normal.device),
                        torch.stack([r * torch.cos(phi), r * torch.sin(phi),
                                     torch.full_like(phi, math.sqrt(1.0 - r * r))], dim=1)])  # [count, 3]
-    t, bt = tangent_frame(normal)
+    t, bt = (torch.stack(v, dim=1) for v in basis(lanes.columns(normal)))
     return local[None, :, 0:1] * t[:, None] + local[None, :, 1:2] * bt[:, None] + local[None, :, 2:3] * normal[:, None]
 
 

@@ -13,17 +13,19 @@ one shadow ray per light per bounce where `voxels.shadow` is set; unshadowed oth
 
 from __future__ import annotations
 
-import math
 from typing import Literal
 
 import torch
 from pydantic import Field, model_validator
 from torch import Tensor
 
+from ..geometry.scatter import lambert_bounce
 from ..noise import lattice as noise
+from ..ops import lanes
 from ..schema.models import Strict
 
-__all__ = ["DistanceLOD", "PathLOD", "VoxelGI", "cosine_directions", "tangent_frame", "lod_counts", "lod_keys", "path_keys"]
+__all__ = ["DistanceLOD", "PathLOD", "VoxelGI", "bounce_direction_lanes", "bounce_uniform_lanes", "lod_counts", "lod_keys",
+           "path_keys"]
 
 
 class DistanceLOD(Strict):
@@ -72,27 +74,6 @@ def lod_keys(keys: Tensor, counts: Tensor, samples: int) -> tuple[Tensor, Tensor
     return torch.stack([k[:, 0] * samples + j, k[:, 1], k[:, 2]], dim=1), owner
 
 
-def tangent_frame(normal: Tensor) -> tuple[Tensor, Tensor]:
-    """Two unit tangents [n, 3], [n, 3] completing unit `normal` [n, 3] to an orthonormal basis
-    (Duff et al.'s branchless construction)."""
-    nx, ny, nz = normal.unbind(1)
-    sign = torch.where(nz >= 0, torch.ones_like(nz), -torch.ones_like(nz))
-    a = -1.0 / (sign + nz)
-    b = nx * ny * a
-    t = torch.stack([1.0 + sign * nx * nx * a, sign * b, -sign * nx], dim=1)
-    bt = torch.stack([b, sign + ny * ny * a, -ny], dim=1)
-    return t, bt
-
-
-def cosine_directions(normal: Tensor, u1: Tensor, u2: Tensor) -> Tensor:
-    """Cosine-weighted unit directions [n, 3] about unit `normal` [n, 3] from uniforms u1, u2 [n] in [0, 1)
-    (pdf cos θ / π)."""
-    r, phi = torch.sqrt(u1), 2.0 * math.pi * u2
-    local_z = torch.sqrt((1.0 - u1).clamp_min(0.0))
-    t, bt = tangent_frame(normal)
-    return (r * torch.cos(phi))[:, None] * t + (r * torch.sin(phi))[:, None] * bt + local_z[:, None] * normal
-
-
 def path_keys(keys: Tensor, samples: int) -> Tensor:
     """Hash cells [n·S, 3] of each primary ray's S paths (ray-major) from its key [n, 3] (sub-pixel
     column, row, scene seed)."""
@@ -101,6 +82,15 @@ def path_keys(keys: Tensor, samples: int) -> Tensor:
     return torch.stack([k[:, 0] * samples + j, k[:, 1], k[:, 2]], dim=1)
 
 
-def bounce_uniforms(cells: Tensor, bounce: int, dtype) -> tuple[Tensor, Tensor]:
-    """The two uniforms [n] of one bounce of the paths `cells` [n, 3]."""
-    return tuple(noise.hash3(cells, 0x6100 + 2 * bounce + k, dtype=dtype) for k in (0, 1))
+def bounce_uniform_lanes(cells: list, bounce: int, like) -> tuple:
+    """The two uniforms in [0, 1) (lanes of `like`'s float type) of one bounce of the paths whose
+    hash cells are `cells` (three int32 lanes holding the keys' low 32 bits, `noise.int32_bits`):
+    `noise.hash3_lanes`' top 24 bits · 2⁻²⁴, as float32 `noise.hash3` gives them."""
+    return tuple(lanes.to_float((noise.hash3_lanes(*cells, 0x6100 + 2 * bounce + k) >> 8) & 0xFFFFFF, like) * 2.0**-24
+                 for k in (0, 1))
+
+
+def bounce_direction_lanes(normal: list, u1, u2) -> list:
+    """The cosine-weighted direction (three lanes) about unit `normal` (three lanes) from uniforms
+    u1, u2 (lanes): the Lambert bounce every surface of the path tracer takes (`geometry.scatter`)."""
+    return lambert_bounce(None, normal, None, [u1, u2])[0]
