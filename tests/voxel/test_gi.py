@@ -185,3 +185,23 @@ def test_the_paths_in_the_kernel_are_the_eager_paths(name):
     assert kernel.stats["density_evals"] == eager.stats["density_evals"]
     flat = tv.render({**scene, "voxels": {k: v for k, v in scene["voxels"].items() if k != "gi"}}, seed=2)
     assert float((flat.radiance - kernel.radiance).abs().max()) > 1e-2 * peak
+
+
+@pytest.mark.parametrize("compile", ["kernels", "off"])
+@pytest.mark.parametrize("where", ["a floor under the sky", "a closed room under a sky"])
+def test_paths_that_all_leave_or_none_leave_the_grid(where, compile):
+    """Every path leaves at its first bounce (the second walks no cell: no path is alive), or none
+    ever does (no sky is looked up): finite, and the floor's paths see the sky."""
+    if where == "a floor under the sky":
+        scene = {"image": {"width": 12, "height": 10}, "camera": {"eye": [0.2, 3.0, -4.0], "target": [0.0, 0.0, 0.0]},
+                 "sky": {"kind": "constant", "radiance": [0.5, 0.6, 0.7]},
+                 "voxels": {"occupancy": {"function": {"fn": lambda c: (c[:, 1] == 0).long()}},
+                            "cells": {"min": [-3, 0, -3], "max": [4, 1, 4]}, "materials": [[0.6, 0.6, 0.6]],
+                            "ambient": [0.0, 0.0, 0.0], "gi": {"bounces": 2, "samples": 2}}}
+    else:
+        scene = {**room([{"color": [0.5] * 3, "emission": [1.0] * 3}], gi={"bounces": 2, "samples": 2}),
+                 "sky": {"kind": "gradient"}}  # (a kernel of its own: it once met an empty batch of paths)
+    out = tv.render(scene, compile=compile)
+    assert bool(torch.isfinite(out.radiance).all()) and float(out.radiance.min()) >= 0.0
+    hit = out.depth[0, 0] > 0
+    assert bool((out.radiance[0, 0][hit] > 0).all())  # the sky's (or the panel's) light through the paths

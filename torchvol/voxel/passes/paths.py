@@ -55,11 +55,12 @@ def path_lanes(q: SimpleNamespace, x: list, normal: list, cells: list, eps, *, b
     for bounce in range(bounces):
         d = bounce_direction_lanes(normal, *bounce_uniform_lanes(cells, bounce, zero))
         o = [x[c] + eps * normal[c] for c in range(3)]
-        hit, t, axis, material, (_, cell), _, walked = walk(o, d, lanes.where(alive, zero + math.inf, zero - 1.0))
+        met, t, axis, material, (_, cell), _, walked = walk(o, d, lanes.where(alive, zero + math.inf, zero - 1.0))
         steps = steps + walked
+        hit = alive & met  # (a lane: on torch a walk that no path entered gives a number)
         if escapes:
             left.append((lanes.where(alive & ~hit, 1.0, 0.0), throughput, d))
-        alive = alive & hit
+        alive = hit
         # a miss's hit is no cell: its point is taken at the start, of the first material, and masked
         point = point_lanes_of(q, o, d, lanes.where(alive, t, 0.0), cell, axis, lanes.where(alive, material, 1))
         incoming, _, _ = direct_lanes(q, point, [zero] * 3, lit, shadowed)
@@ -99,7 +100,8 @@ class PathGI:
         self.tracer.count(steps)
         for escaped, throughput, d in escapes:  # the sky of the paths that left the grid, bounce by bounce
             ids = (escaped > 0).nonzero().squeeze(1)
-            radiance.index_add_(0, ids, throughput[ids] * self.sky(d[ids], ps[ids]))
+            if ids.numel():
+                radiance.index_add_(0, ids, throughput[ids] * self.sky(d[ids], ps[ids]))
         if owner is None:
             return radiance.view(n, S, 3).mean(dim=1)
         return torch.zeros_like(point.x).index_add_(0, owner, radiance) / counts[:, None].to(radiance.dtype)
