@@ -63,11 +63,10 @@ class DirectLight:
             q.reflect = reflect
         return q
 
-    def __call__(self, point: ShadingPoint, s: Tensor, section, light: Tensor) -> tuple[Tensor, Tensor | int]:
-        """`light` [n, 3] plus the lights' Lambert irradiance per unit albedo at the points of
-        scenes s [n] (summed in this order: renders without GI are bitwise as before), and the
-        lights' GGX reflected radiance [n, 3] (0 without GGX). The first shadowed light's
-        visibility becomes the point's `shadow`."""
+    def shadow_rays(self, s: Tensor, section):
+        """`direct_lanes`' visible(l, start, direction, distance) on torch columns of scenes s [n]:
+        the tracer's shadow walk towards light l (each its pass, timed by `section`), then what the
+        ray meets beside the voxels (the render's `transmittance`, where it is > 0)."""
         shadows = {use.light: use for use in self.plan.shadows}
 
         def visible(l: int, start: list, direction: list, distance) -> Tensor:
@@ -80,8 +79,17 @@ class DirectLight:
                 vis = self.transmittance(use, start, s, direction, distance, vis)
             return vis
 
+        return visible
+
+    def __call__(self, point: ShadingPoint, s: Tensor, section, light: Tensor) -> tuple[Tensor, Tensor | int]:
+        """`light` [n, 3] plus the lights' Lambert irradiance per unit albedo at the points of
+        scenes s [n] (summed in this order: renders without GI are bitwise as before), and the
+        lights' GGX reflected radiance [n, 3] (0 without GGX). The first shadowed light's
+        visibility becomes the point's `shadow`."""
+        shadows = {use.light: use for use in self.plan.shadows}
         q = self.inputs(s, point.x)
-        light, specular, first = direct_lanes(q, point_lanes_view(point), lanes.columns(light), visible, shadows)
+        light, specular, first = direct_lanes(q, point_lanes_view(point), lanes.columns(light), self.shadow_rays(s, section),
+                                              shadows)
         if point.shadow is None and first is not None:
             point.shadow = first[:, None]
         return torch.stack(light, dim=1), (0 if specular is None else torch.stack(specular, dim=1))

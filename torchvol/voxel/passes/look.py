@@ -28,7 +28,7 @@ from ..materials import VOXEL_MATERIALS, material_lanes, material_table
 from ..shade import ao_lanes, atlas_lanes, atlas_table, face_lanes, face_uv_lanes
 from ..walk import occupied_lanes, visible_walk, walk_inputs
 
-__all__ = ["direct_lanes", "fusable", "lit_lanes", "look_inputs", "look_tables", "point_lanes_of", "visible_lanes"]
+__all__ = ["direct_lanes", "fusable", "lit_lanes", "look_inputs", "look_tables", "point_lanes_of", "visible_beside"]
 
 
 def look_tables(voxels: Stacked, plan) -> SimpleNamespace:
@@ -110,12 +110,20 @@ def ao_of(q: SimpleNamespace, point: SimpleNamespace):
     return ao_lanes(occupied_lanes(q.r, q.g), point.cell, face, point.axis, point.u, point.v, q.gamma)
 
 
-def visible_lanes(q: SimpleNamespace):
-    """visible(start, direction, distance) -> 1.0 where a shadow ray of `q.shadow_steps` cells
-    from `start` along `direction` (three lanes each) reaches `distance` (a lane; inf: a sun)
-    without meeting an occupied cell, else 0.0: the plain DDA walk in lanes (`walk.visible_walk`),
-    the tracer's shadow walk."""
-    return visible_walk(q.r, q.g, lanes.int_like(q.shadow_steps, q.r.base))
+def visible_beside(q: SimpleNamespace, inside: dict | None):
+    """`direct_lanes`' visible(l, start, direction, distance) inside a kernel: 1.0 where the shadow
+    ray of `q.shadow_steps` cells (`walk.visible_walk`, the tracer's shadow walk) from `start`
+    along `direction` (three lanes each) reaches `distance` (a lane; inf: a sun) without meeting an
+    occupied cell, else 0.0; times what it meets beside the voxels where light l has occluder lanes
+    in `inside` (`volume.kernel_march.occluder_lanes`, by light; None: none), traced only where
+    the voxels let the light through."""
+    walk = visible_walk(q.r, q.g, lanes.int_like(q.shadow_steps, q.r.base))
+
+    def visible(l, start, direction, distance):
+        vis = walk(start, direction, distance)
+        return vis if l not in (inside or {}) else vis * inside[l].through(start, direction, distance, vis > 0.0)
+
+    return visible
 
 
 def shadow_start(q: SimpleNamespace, point: SimpleNamespace, direction: list) -> list:

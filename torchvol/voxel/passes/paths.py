@@ -7,6 +7,7 @@ are kernels, else on torch columns (the reference). The keys, uniforms and LOD a
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 from types import SimpleNamespace
 from typing import Callable
 
@@ -27,7 +28,7 @@ from ..gi import (
 from ..tracer import VoxelTracer
 from ..walk import cube_walk
 from .direct import DirectLight
-from .look import direct_lanes, look_inputs, point_lanes_of, visible_lanes
+from .look import direct_lanes, look_inputs, point_lanes_of, visible_beside
 from .point import ShadingPoint
 from .shading import Shading
 
@@ -135,34 +136,19 @@ class PathGI:
         """`path_lanes` traced in the kernel: its outputs as `traced_columns` takes them."""
         q = look_inputs(self.p, self.plan, self.direct.tables, self.tracer.grid, self.direct.lights, s,
                         lanes.per_scene_lanes(s), lanes.ints_of, lanes.floats_of, kernel=True)
-        walk = visible_lanes(q) if kw["shadowed"] else None
-
-        def visible(l, start, direction, distance):
-            vis = walk(start, direction, distance)
-            return vis if l not in (inside or {}) else vis * inside[l].through(start, direction, distance, vis > 0.0)
-
         out = path_lanes(q, lanes.vector_lanes(x), lanes.vector_lanes(normal), [lanes.ints_of(c) for c in cells.unbind(1)],
-                         lane(eps), visible=visible, **kw)
+                         lane(eps), visible=visible_beside(q, inside) if kw["shadowed"] else None, **kw)
         return [*out.radiance, lanes.to_float(out.steps, out.radiance[0]), *(v for e in out.escapes
                                                                            for v in (e[0], *e[1], *e[2]))]
 
     def _torch_lanes(self, x, normal, cells, s, eps, kw) -> list:
-        """`path_lanes` on torch columns (the reference), its shadow rays beside the voxels through
-        the render's `transmittance`: the kernel's outputs as tensors."""
+        """`path_lanes` on torch columns (the reference), its shadow rays the direct light's
+        (`DirectLight.shadow_rays`): the kernel's outputs as tensors."""
         q = look_inputs(self.p, self.plan, self.direct.tables, self.tracer.grid, self.direct.lights, s,
                         lambda v: lanes.columns(take(v, s)), lambda c: c.to(torch.int32), lambda c: c.to(x.dtype),
                         kernel=False)
-        walk = visible_lanes(q) if kw["shadowed"] else None
         stack = lambda v: torch.stack(v, dim=1)  # noqa: E731
-
-        def visible(l, start, direction, distance):
-            vis = walk(start, direction, distance)
-            use = kw["shadowed"][l]
-            if not (use.terrain or use.occluders):
-                return vis
-            far = torch.full_like(vis, math.inf) if isinstance(distance, float) else distance
-            return self.direct.transmittance(use, stack(start), s, stack(direction), far, vis)
-
-        out = path_lanes(q, lanes.columns(x), lanes.columns(normal), list(cells.unbind(1)), eps, visible=visible, **kw)
+        out = path_lanes(q, lanes.columns(x), lanes.columns(normal), list(cells.unbind(1)), eps,
+                         visible=self.direct.shadow_rays(s, lambda name: nullcontext()), **kw)
         return [stack(out.radiance), out.steps.to(x.dtype),
                 *(v for e in out.escapes for v in (e[0], stack(e[1]), stack(e[2])))]

@@ -21,7 +21,7 @@ from .look import (
     lit_lanes,
     look_inputs,
     point_lanes_of,
-    visible_lanes,
+    visible_beside,
 )
 from .point import ShadingPoint
 
@@ -134,14 +134,7 @@ class Shading:
                 if plan.ao:
                     point.ao = ao_of(q, point)
                     point.albedo = [a * point.ao for a in point.albedo]
-                walk = visible_lanes(q) if shadowed else None
-
-                def visible(l, start, direction, distance):
-                    vis = walk(start, direction, distance)
-                    if l not in (inside or {}):
-                        return vis
-                    return vis * inside[l].through(start, direction, distance, vis > 0.0)
-
+                visible = visible_beside(q, inside) if shadowed else None
                 light, specular, point.shadow = direct_lanes(q, point, q.ambient, visible, shadowed)
                 point.colour = lit_lanes(point, q.ambient, light, specular, ggx=plan.ggx, emission=plan.emission)
             return [x for k in wanted for x in (getattr(point, k) if wanted[k] == 3 else [getattr(point, k)])]
