@@ -172,18 +172,16 @@ def visibility(t: Stacked, p: Tensor, direction: Tensor, s: Tensor, distance: Te
 
 
 def _kernel_lanes(t: Stacked, s: Tensor):
-    """`terrain_lanes` of scenes `s` [n] as a Dr.Jit kernel takes them, and the torch -> lanes map."""
-    import drjit as dr
-    from drjit.llvm import Float, Int32
-
+    """`terrain_lanes` of scenes `s` [n] as a Dr.Jit kernel takes them, and the torch -> lanes map
+    of per-point tensors ([n] one lane; [n, 3] three, read from its rows as they lie), and of
+    per-scene ones (B,) or (B, C) (gathered in the kernel: no [n] copy made in torch first)."""
     from .runtime.threads import set_drjit_threads
+    from .volume.density_lanes import lanes_inputs
 
     set_drjit_threads()
-    floats = lanes.floats_of
-    columns = lambda x: floats(x) if x.ndim == 1 else [floats(c) for c in x.unbind(1)]  # noqa: E731
-    to = SimpleNamespace(per_lane=lambda v: columns(take(v, s)), scene=s.cpu(), floats=floats,
-                         ints=lambda v: Int32(v.to(torch.int32).cpu().numpy()), number=lambda c: dr.opaque(Float, float(c)))
-    return terrain_lanes(t, to, torch.float32), columns
+    per_scene = lanes.per_scene_lanes(s)
+    columns = lambda x: lanes.floats_of(x) if x.ndim == 1 else lanes.vector_lanes(x)  # noqa: E731
+    return terrain_lanes(t, lanes_inputs(s, per_scene), torch.float32), columns, per_scene
 
 
 def _to_torch(values, like: Tensor) -> list[Tensor]:
@@ -199,14 +197,14 @@ def trace_kernel(t: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, T
     """`trace` of primary rays `o`, `d` [n, 3] of scenes `s` [n] (no farther than the terrain's
     reach, the hit refined onto the surface) as one Dr.Jit kernel (`trace_lanes`): float32 on the
     CPU. -> (hit [n] bool, t [n])."""
-    q, columns = _kernel_lanes(t, s)
+    q, columns, _ = _kernel_lanes(t, s)
     hit, dist = _to_torch(trace_lanes(q, columns(o), columns(d), math.inf, refine=True), o)
     return hit, dist.to(o)
 
 
 def normal_kernel(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
     """`normal` at points `p` [n, 3] of scenes `s` [n] as one Dr.Jit kernel (`normal_lanes`). -> [n, 3]."""
-    q, columns = _kernel_lanes(t, s)
+    q, columns, _ = _kernel_lanes(t, s)
     return torch.stack(_to_torch(normal_lanes(q, columns(p[:, 0]), columns(p[:, 2])), p), dim=1).to(p)
 
 
@@ -365,10 +363,10 @@ class TerrainSurface:
         import drjit as dr
 
         p, uses = self.p, self._uses()
-        q, columns = _kernel_lanes(p, sh)
+        q, columns, per_scene = _kernel_lanes(p, sh)
         xl = columns(x)
         nrm = normal_lanes(q, xl[0], xl[2])
-        look = _look(p, lambda v: columns(take(v, sh)))
+        look = _look(p, per_scene)
         start = look.lift(xl, nrm, columns(th))
         sky = None
         if None in uses:
@@ -385,7 +383,7 @@ class TerrainSurface:
                     lit_here = lit > 0.0
                     return dr.select(lit_here, k.through(start, direction, distance, lit_here) * lit, lit)
             lights.append((direction, columns(toward.irradiance), visible))
-        rgb = _colour(look, nrm, columns(take(p.ambient, sh)), sky, lights)
+        rgb = _colour(look, nrm, per_scene(p.ambient), sky, lights)
         dr.eval(rgb, nrm, [e for k in inside.values() for e in k.evals()])
         dr.sync_thread()
         for key, use in uses.items():
