@@ -5,6 +5,7 @@ import pytest
 import torchvol as tv
 from torchvol.cli import build_parser
 from torchvol.measure import bench_speed
+from torchvol.runtime import compilation
 
 
 def test_cli_parses_bench_speed():
@@ -67,6 +68,8 @@ def test_speed_quick_logic_on_tiny_sizes(tmp_path):
         assert by_name["cloud-puff"]["marches"] == "drjit" and by_name["cloud-puff"]["eager_s"] > 0
         assert by_name["cloud-puff"]["x_floor"] > 0 and by_name["template-clouds"]["x_floor"] > 0
         assert by_name["cloudscape"]["marches"] == "drjit" and by_name["cloudscape"]["x_floor"] > 0  # its layer's floor
+        # the part of × floor its kernels ran: some, never more than the whole
+        assert all(0 < r["x_floor_kernels"] <= r["x_floor"] for r in presets if r["x_floor"] is not None)
     text = bench_speed.markdown({"quick": True, "repeat": 1, "profile": profile, "render": rows, "floor": floor,
                                  "presets": presets, "preset_size": 8, "generate": generation})
     assert "## Where the time goes" in text and "## Renders" in text and "## The floor" in text
@@ -102,3 +105,14 @@ def test_time_render_runs_the_floor_after_each_render():
     timing = bench_speed.time_render("homogeneous-box", compile=False, repeat=3, floor=floor)
     assert len(calls) == 3 and timing.seconds > 0 and timing.first_s > 0 and timing.evals > 0 and timing.x_floor > 0
     assert bench_speed.time_render("homogeneous-box", compile=False, repeat=1).x_floor is None  # no floor given
+    # eagerly no kernel runs: a floor's kernels' part is 0 (or None where Dr.Jit cannot run)
+    assert timing.x_floor_kernels in (0.0, None)
+
+
+@pytest.mark.skipif(not compilation.drjit_available(), reason="needs Dr.Jit's LLVM backend")
+def test_kernel_seconds_are_the_kernels_time_within_the_call():
+    scene = tv.preset("cloud-puff", width=16, height=16)
+    tv.render(scene)
+    seconds, kernels = bench_speed.kernel_seconds(lambda: tv.render(scene))
+    assert 0 < kernels <= seconds
+    assert bench_speed.kernel_seconds(lambda: None)[1] == 0.0  # nothing launched: its history empty

@@ -71,6 +71,9 @@ class RenderTiming(NamedTuple):
     evals: int  # density evaluations of one render
     first_s: float  # the first render (the kernels' build, or Dr.Jit's disk cache), not in the median
     x_floor: float | None  # median over the runs of the render's time over its floor's (None: no floor)
+    # the part of x_floor its Dr.Jit kernels ran (their launches' history): the rest is glue, the
+    # kernels' Python tracing and torch's ops around them (None: no floor, or no Dr.Jit)
+    x_floor_kernels: float | None = None
 
 
 class Floor(NamedTuple):
@@ -90,18 +93,41 @@ def floor_ratio(render_s: Sequence[float], floor_s: Sequence[float], *, evals: i
 def time_render(scene, *, compile: str | bool, repeat: int, floor: Floor | None = None) -> RenderTiming:
     """`render(scene)` timed `repeat` times after a first call. With a `floor`, its kernel runs after
     each render (on its threads), and × floor is taken run by run: on a VM whose speed drifts, a
-    floor measured minutes apart from the render skewed the ratio by up to 2× (docs/SPEED.md)."""
+    floor measured minutes apart from the render skewed the ratio by up to 2× (docs/SPEED.md); so is
+    the part of it that the render's Dr.Jit kernels ran (`kernel_seconds`)."""
     start = time.perf_counter()
     out = render(scene, compile=compile)
-    first, render_s, floor_s = time.perf_counter() - start, [], []
+    first, render_s, kernel_s, floor_s = time.perf_counter() - start, [], [], []
     for _ in range(repeat):
-        render_s.append(_seconds(lambda: render(scene, compile=compile)))
+        seconds, kernels = kernel_seconds(lambda: render(scene, compile=compile))
+        render_s.append(seconds)
+        kernel_s.append(kernels)
         if floor is not None:
             with torch_threads(floor.threads):
                 floor_s.append(_seconds(floor.kernel))
     evals = out.stats["density_evals"]
-    x_floor = floor_ratio(render_s, floor_s, evals=evals, points=floor.points) if floor is not None and evals else None
-    return RenderTiming(statistics.median(render_s), evals, first, x_floor)
+    ratio = lambda times: floor_ratio(times, floor_s, evals=evals, points=floor.points)  # noqa: E731
+    x_floor = ratio(render_s) if floor is not None and evals else None
+    x_kernels = ratio(kernel_s) if x_floor is not None and None not in kernel_s else None
+    return RenderTiming(statistics.median(render_s), evals, first, x_floor, x_kernels)
+
+
+def kernel_seconds(fn: Callable[[], object]) -> tuple[float, float | None]:
+    """`fn()`'s seconds, and how long the Dr.Jit kernels it launched ran (Dr.Jit's kernel history;
+    None where Dr.Jit cannot run)."""
+    if not compilation.drjit_available():
+        return _seconds(fn), None
+    import drjit as dr
+
+    before = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()  # (emptied: only fn's launches below)
+    try:
+        seconds = _seconds(fn)
+        launched = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, before)
+    return seconds, sum(k.get("execution_time", 0.0) for k in launched) / 1e3  # (history in ms)
 
 
 def time_llvmpipe(width: int, height: int, *, repeat: int) -> float | None:
@@ -297,7 +323,8 @@ def backends(summary: dict) -> list[str]:
 def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[dict]:
     """Every preset at size×size as `render` runs it by default: rows {preset, marches (what each
     march ran on), seconds, first_s, eager_s (one eager render, where a march ran as a kernel),
-    x_floor (against its density alone in the Dr.Jit kernel, where every march is one)}."""
+    x_floor (against its density alone in the Dr.Jit kernel, where every march is one),
+    x_floor_kernels (the part of it its Dr.Jit kernels ran)}."""
     rows, kernels = [], floor_kernels(points=floor_points)
     for name in preset_names():
         scene = preset(name, width=size, height=size)
@@ -307,7 +334,7 @@ def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[di
         marches = backends(out.stats["plan"])
         eager = _seconds(lambda: render(scene, compile="off")) if "drjit" in marches else None
         rows.append(dict(preset=name, marches=", ".join(sorted(set(marches))) or "none", seconds=t.seconds,
-                         first_s=t.first_s, eager_s=eager, x_floor=t.x_floor))
+                         first_s=t.first_s, eager_s=eager, x_floor=t.x_floor, x_floor_kernels=t.x_floor_kernels))
     return rows
 
 
@@ -556,18 +583,20 @@ def _presets_section(sections: dict) -> list[str]:
     """The report's section on every preset's default render: its Markdown lines."""
     size = sections["preset_size"]
     lines = [f"## Presets: the default render, {size}×{size}", "",
-             "| preset | marches on | default s | eager s | × eager | × floor | first call s |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+             "| preset | marches on | default s | eager s | × eager | × floor | of it, kernels | first call s |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
     lines += [f"| {r['preset']} | {r['marches']} | {r['seconds']:.3f} | {_fmt(r['eager_s'])} | "
               f"{_fmt(None if r['eager_s'] is None else r['eager_s'] / r['seconds'], '.1f')} | {_fmt(r['x_floor'], '.2f')} | "
-              f"{_fmt(r['first_s'], '.2f')} |" for r in sections["presets"]]
+              f"{_fmt(r.get('x_floor_kernels'), '.2f')} | {_fmt(r['first_s'], '.2f')} |" for r in sections["presets"]]
     lines += ["", "What `render(scene)` does without flags (`compile=\"kernels\"`): a march whose technique has a Dr.Jit "
               "kernel runs in it (\"drjit\": torchvol/volume/kernel_march.py, the physical media and the seeds' "
               "looks), the others eagerly; `stats[\"plan\"][\"marches\"]` "
               "says which. × eager: one eager render (`compile=\"off\"`, the reference) over the default's median. × floor: "
               "the render's time over the time its density evaluations alone take in the Dr.Jit kernel (the same "
               "density function, traced alone, on random points of its bounds' box), run beside each render; only "
-              "where every march is a kernel. First call: the first render in this process, the kernel's build "
+              "where every march is a kernel. Of it, kernels: the part of × floor the render's Dr.Jit kernels ran "
+              "(Dr.Jit's kernel history); the rest is glue, the kernels' Python tracing and torch's ops around them. "
+              "First call: the first render in this process, the kernel's build "
               "(or Dr.Jit's disk cache) included.", ""]
     return lines
 
