@@ -176,12 +176,11 @@ def _kernel_lanes(t: Stacked, s: Tensor):
     of per-point tensors ([n] one lane; [n, 3] three, read from its rows as they lie), and of
     per-scene ones (B,) or (B, C) (gathered in the kernel: no [n] copy made in torch first)."""
     from .runtime.threads import set_drjit_threads
-    from .volume.density_lanes import lanes_inputs
 
     set_drjit_threads()
     per_scene = lanes.per_scene_lanes(s)
     columns = lambda x: lanes.floats_of(x) if x.ndim == 1 else lanes.vector_lanes(x)  # noqa: E731
-    return terrain_lanes(t, lanes_inputs(s, per_scene), torch.float32), columns, per_scene
+    return terrain_lanes(t, lanes.lanes_inputs(s, per_scene), torch.float32), columns, per_scene
 
 
 def _to_torch(values, like: Tensor) -> list[Tensor]:

@@ -35,7 +35,6 @@ from torchvol.renderer import plan
 from torchvol.renderer.executor import camera_for
 from torchvol.runtime.compilation import drjit_available
 from torchvol.schema.batch import stack, take
-from torchvol.volume.density_lanes import lanes_inputs
 from torchvol.volume.exact import grid_optical_depth, grid_single_scatter
 from torchvol.volume.skip import macro_grid, occupied_span
 from torchvol.volume.sun_volume import sun_transmittance_grid
@@ -199,13 +198,13 @@ def test_the_grid_in_lanes_is_grid_sample_bitwise_on_torch(dtype):
 
 @pytest.mark.skipif(not drjit_available(), reason="Dr.Jit's LLVM backend is not available")
 def test_the_grid_in_lanes_traced_by_drjit_is_grid_sample_bitwise():
-    """`grid_density` traced by Dr.Jit over the inputs a kernel builds (`density_lanes.lanes_inputs`:
+    """`grid_density` traced by Dr.Jit over the inputs a kernel builds (`ops.lanes.lanes_inputs`:
     the batch's grids one table, each lane's scene's offset and cells) against `sample_grid`."""
     import numpy as np
     from drjit.llvm import Float
 
     field, p, s, _ = _two_grids(torch.float32)
-    q = grid_lanes(field, lanes_inputs(s, per_scene_lanes(s)))
+    q = grid_lanes(field, lanes.lanes_inputs(s, per_scene_lanes(s)))
     got = torch.from_numpy(np.array(grid_density(q, [Float(c.contiguous().numpy()) for c in p.unbind(1)], None)))
     expected = _sample_grid_per_scene(field, p, s)
     assert torch.equal(got, expected), f"{int((got != expected).sum())} differ, by up to {float((got - expected).abs().max()):.3g}"

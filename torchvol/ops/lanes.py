@@ -12,6 +12,7 @@ backend from its array arguments; the results agree within float rounding (the D
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import torch
 
@@ -305,6 +306,17 @@ def per_scene_lanes(s: torch.Tensor):
     return lambda x: lanes_of(x, lambda v: dr.gather(Float, floats_of(v), scene))
 
 
+def lanes_inputs(s: torch.Tensor, per_ray) -> SimpleNamespace:
+    """How a kernel's inputs are made for lanes of scenes `s` [n] (a density's, `fields.DENSITIES`'
+    ``lanes``; the terrain's): per scene -> per lane (`per_lane`, e.g. `per_scene_lanes(s)`), int
+    and float tables, numbers as kernel parameters."""
+    import drjit as dr
+    from drjit.llvm import Float, Int32
+
+    return SimpleNamespace(per_lane=per_ray, scene=s.cpu(), ints=lambda t: Int32(t.to(torch.int32).numpy()),
+                           floats=lambda t: Float(t.to(torch.float32).numpy()), number=lambda c: dr.opaque(Float, float(c)))
+
+
 def gather(table, index):
     """`table[index]`: a 1-D table (a torch tensor, or a Dr.Jit array of the lanes' type) at int32
     lanes `index` (values in range)."""
@@ -391,4 +403,4 @@ def dot3(a, b):
 
 
 __all__ = ["abs", "atan", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "dot3", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
-           "floats_of", "fori", "int_like", "ints_of", "lanes_of", "log2", "maximum", "minimum", "per_scene_lanes", "remainder", "round", "sin", "smoothstep01", "sqrt", "tan", "tiny", "to_float", "to_int32", "where", "while_loop"]
+           "floats_of", "fori", "int_like", "ints_of", "lanes_inputs", "lanes_of", "log2", "maximum", "minimum", "per_scene_lanes", "remainder", "round", "sin", "smoothstep01", "sqrt", "tan", "tiny", "to_float", "to_int32", "where", "while_loop"]

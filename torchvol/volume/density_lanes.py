@@ -36,19 +36,9 @@ def field_inputs(vol, s: Tensor, per_ray) -> SimpleNamespace:
     inner, edge = inner_and_edge(vol)
     inputs, density = DENSITIES[vol.params.density.kind].caps["lanes"][:2]
     return SimpleNamespace(
-        field=inputs(inner, lanes_inputs(s, per_ray)), field_density=density, bounds=bounds_lanes(vol.params.bounds.value, per_ray),
+        field=inputs(inner, lanes.lanes_inputs(s, per_ray)), field_density=density, bounds=bounds_lanes(vol.params.bounds.value, per_ray),
         edge=None if edge is None else SimpleNamespace(width=per_ray(edge.width),
                                                        base=None if edge.base is None else per_ray(edge.base)))
-
-
-def lanes_inputs(s: Tensor, per_ray) -> SimpleNamespace:
-    """How lanes inputs are made for lanes of scenes `s` [n] (`fields.DENSITIES`' ``lanes``):
-    per scene -> per lane (`per_lane`), int and float tables, numbers as kernel parameters."""
-    import drjit as dr
-    from drjit.llvm import Float, Int32
-
-    return SimpleNamespace(per_lane=per_ray, scene=s.cpu(), ints=lambda t: Int32(t.to(torch.int32).numpy()),
-                           floats=lambda t: Float(t.to(torch.float32).numpy()), number=lambda c: dr.opaque(Float, float(c)))
 
 
 def density_lanes(k: SimpleNamespace, vol) -> Callable:
@@ -173,5 +163,5 @@ def inner_and_edge(vol):
     return (field.inner, field.edge) if isinstance(field, EdgeField) else (field, None)
 
 
-__all__ = ["density_kernel", "density_lanes", "field_inputs", "has_lanes", "inner_and_edge", "lanes_inputs",
+__all__ = ["density_kernel", "density_lanes", "field_inputs", "has_lanes", "inner_and_edge",
            "crossing", "sun_grid_kernel", "writes_in_lanes"]

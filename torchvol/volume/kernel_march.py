@@ -56,7 +56,6 @@ from .ambient import ambient_lanes, ambient_radiance
 from .density_lanes import (
     crossing,
     has_lanes,
-    lanes_inputs,
     writes_in_lanes,
 )
 from .emission import EMISSION_MAPS, bloom_lanes, bloom_source
@@ -194,7 +193,7 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
     needed = {v.plan.index for v in vols} | {j for u in uses for j in u.occluders}
     solids = {j: crossing(ctx.volumes[j], s, per_ray) for j in sorted(needed)}
     par = _parameters(ctx.settings)
-    terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)
+    terrain = None if ctx.terrain is None else terrain_lanes(ctx.terrain.p, lanes.lanes_inputs(s, per_ray), torch.float32)
     blockers = SimpleNamespace(terrain=terrain, voxels=None if not any(u.voxels for u in uses) else
                                ctx.voxels.visibility_lanes(s, per_ray))
     behind = [0.0] * 3 if background is None else row(background)
@@ -655,7 +654,7 @@ def occluder_lanes(ctx, use, s: Tensor, shared: dict | None = None) -> SimpleNam
     solids = {j: made(j, lambda j=j: crossing(ctx.volumes[j], s, per_ray)) for j in use.occluders}
     grids = None if use.shadow.method != "grid" else {
         j: _grid_lanes(ctx, j, use.light, s, per_ray) for j in use.occluders if not ctx.volumes[j].plan.line_integral}
-    terrain = made("terrain", lambda: terrain_lanes(ctx.terrain.p, lanes_inputs(s, per_ray), torch.float32)) if use.terrain else None
+    terrain = made("terrain", lambda: terrain_lanes(ctx.terrain.p, lanes.lanes_inputs(s, per_ray), torch.float32)) if use.terrain else None
     blockers = SimpleNamespace(terrain=terrain, voxels=made("voxels", lambda: ctx.voxels.visibility_lanes(s, per_ray))
                                if use.voxels else None)
     evals = {j: dr.zeros(Int32, s.shape[0]) for j in use.occluders}

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from ..ops import lanes
 from ..runtime.threads import set_drjit_threads
-from .density_lanes import crossing, lanes_inputs
+from .density_lanes import crossing
 from .emission import EMISSION_MAPS
 from .path import path_inputs, trace_lanes, with_air
 
@@ -44,7 +44,7 @@ def trace_kernel(m, lights: list, rays, key: Tensor, bounces: int, channel: Tens
                           lambda: dr.zeros(type(x[0]), dr.width(x[0])))
 
     lane = lambda x: lanes.lanes_of(x, lanes.floats_of)  # noqa: E731
-    q = path_inputs(m, lights, lanes_inputs(s, per_ray), volume)
+    q = path_inputs(m, lights, lanes.lanes_inputs(s, per_ray), volume)
     q.sigma, q.behind = sigma, [0.0] * 3 if behind is None else lane(behind)
     if m.surface is not None:
         q.surface = m.surface(s, per_ray, rays.origins[:, 0], kernel=True)
