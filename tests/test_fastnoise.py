@@ -125,24 +125,25 @@ def test_the_lanes_fbm_is_the_eager_fbm_bitwise(dtype):
 @pytest.mark.parametrize("hash", ["table", "arithmetic"])
 @pytest.mark.parametrize("backend", ["torch32", "torch64", "drjit"])
 def test_the_planar_noise_is_the_noise_at_y_zero_bitwise(hash, backend):
-    """A heightfield's value noise on the plane y = 0 (`noise_basis(plane=True)`: four corners,
-    not eight) against the 3-D noise at y = 0: bitwise, eagerly in both dtypes and in a Dr.Jit
-    kernel, for both hashes (it fails when the plane reads other corners, or blends them in
-    another order)."""
+    """A heightfield's value noise on the plane y = 0 (`planar_basis`: four corners, the table's
+    read ahead a cell at a time, `noise.planar_corners`) against the 3-D noise at y = 0
+    (`noise_basis`): bitwise, eagerly in both dtypes and in a Dr.Jit kernel, for both hashes, three
+    scenes of two seeds (it fails when the plane reads other corners, another seed's table, a cell
+    across the lattice's wrap, or blends them in another order)."""
     from types import SimpleNamespace
 
-    from torchvol.fields.fbm import noise_basis
+    from torchvol.fields.fbm import noise_basis, planar_basis
     from torchvol.runtime.compilation import drjit_available, traced
 
     if backend == "drjit" and not drjit_available():
         pytest.skip("Dr.Jit's LLVM backend is not available")
     dtype = torch.float64 if backend == "torch64" else torch.float32
-    p = _points(4000, seed=5, dtype=dtype) * 37.0  # many cells, negative coordinates too
+    p = _points(4000, seed=5, dtype=dtype) * 700.0  # cells on both sides of the lattice's 256-cell wrap, negative too
     x, z = p[:, 0].contiguous(), p[:, 2].contiguous()
-    scene = torch.arange(4000) % 2  # two scenes' seeds (their tables' blocks)
+    scene, seeds = torch.arange(4000) % 3, [3, 9, 3]  # two tables, one of them twice
 
     def bases(to):
-        return [noise_basis("value", [3, 9], hash, to, plane=plane) for plane in (False, True)]
+        return [noise_basis("value", seeds, hash, to), planar_basis(seeds, hash, to, dtype)]
 
     if backend == "drjit":
         import drjit as dr
@@ -156,3 +157,4 @@ def test_the_planar_noise_is_the_noise_at_y_zero_bitwise(hash, backend):
         full, flat = (b(x, torch.zeros_like(x), z) for b in bases(to))
     assert torch.equal(full, flat), f"largest difference {(full - flat).abs().max():.3g} at {int((full - flat).abs().argmax())}"
     assert float(full.std()) > 0.1
+    assert float(p[:, 0].abs().max()) > 256 and float(p[:, 2].min()) < 0

@@ -174,15 +174,13 @@ def fbm_lanes(field: FbmField, to) -> SimpleNamespace:
     return q
 
 
-def noise_basis(kind: str, seeds, hash: str, to, *, plane: bool = False):
+def noise_basis(kind: str, seeds, hash: str, to):
     """The noise `kind` ("value", "perlin", "worley") of the lanes' scenes (`to.scene`, each with
     its seed of `seeds`) as `fbm_sum`'s basis: value noise of the arithmetic hash's mixed seeds, or
     a lattice noise over the scenes' tables stacked (`noise.scene_lattice_tables`), each lane's
-    chain in its scene's block (`to.ints`, `to.floats`: a table as the backend's array). `plane`
-    (value noise): on the plane y = 0, a heightfield's (its y argument, 0, unread), bitwise
-    the same values from half the lattice's corners."""
+    chain in its scene's block (`to.ints`, `to.floats`: a table as the backend's array)."""
     if hash == "arithmetic":
-        return fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(seeds, "cpu"), to.scene)), plane=plane)
+        return fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(seeds, "cpu"), to.scene)))
     noise_perm, columns = noise.scene_lattice_tables(tuple(int(x) for x in seeds), "cpu")
     perm, rows = to.ints(noise_perm), to.ints(noise.scene_rows(to.scene))
     if kind == "perlin":
@@ -191,9 +189,22 @@ def noise_basis(kind: str, seeds, hash: str, to, *, plane: bool = False):
         values = [to.floats(noise.chained_values(noise_perm, c)) for c in columns]
         return lambda x, y, z: noise.worley_lanes(x, y, z, perm, values, rows)
     chained = to.floats(noise.chained_values(noise_perm, columns[0]))
-    if plane:
-        return lambda x, y, z: noise.value_lanes(x, None, z, perm, chained, rows)
     return lambda x, y, z: noise.value_lanes(x, y, z, perm, chained, rows)
+
+
+def planar_basis(seeds, hash: str, to, dtype: torch.dtype):
+    """`noise_basis`' value noise on the plane y = 0 (a heightfield's; its y argument, 0, unread),
+    bitwise its values there, its tables in `dtype`: the arithmetic hash's from the four y = 0
+    corners, or the table's read ahead a cell at a time (`noise.planar_corners`, one table a
+    distinct seed of the lanes' scenes)."""
+    if hash == "arithmetic":
+        return fastnoise.hashed(to.ints(take(fastnoise.mixed_seeds(seeds, "cpu"), to.scene)), plane=True)
+    seeds = [int(x) for x in seeds]
+    distinct = sorted(set(seeds))
+    tables = [noise.planar_corners(seed, dtype) for seed in distinct]
+    first = torch.tensor([65536 * distinct.index(seed) for seed in seeds], dtype=torch.int32, device=to.scene.device)
+    corners, rows = to.floats(tables[0] if len(tables) == 1 else torch.cat(tables)), to.ints(take(first, to.scene))
+    return lambda x, y, z: noise.planar_value_lanes(x, z, corners, rows)
 
 
 def fbm_density(q, p, count):

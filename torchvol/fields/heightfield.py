@@ -13,7 +13,7 @@ from ..noise import fast as fastnoise
 from ..noise import lattice as noise
 from ..ops import lanes
 from ..schema.batch import Stacked
-from .fbm import noise_basis
+from .fbm import planar_basis
 
 
 def terrain_lanes(t: Stacked, to, dtype: torch.dtype) -> SimpleNamespace:
@@ -23,7 +23,7 @@ def terrain_lanes(t: Stacked, to, dtype: torch.dtype) -> SimpleNamespace:
                                                                  "max_distance")})
     q.octaves, q.steps = int(t.octaves), int(t.steps)
     q.scales = [to.number(c) for c in noise.folded_scales(q.octaves, dtype=dtype, device="cpu")]
-    q.basis = noise_basis("value", t.seed, t.hash, to, plane=True)  # the heights' noise lies on y = 0
+    q.basis = planar_basis(t.seed, t.hash, to, dtype)  # the heights' noise lies on y = 0
     return q
 
 

@@ -20,7 +20,10 @@ Lane = object  # a torch Tensor [n], a Dr.Jit array of n lanes, or a Python numb
 
 
 def _is_torch(*xs) -> bool:
-    return any(isinstance(x, torch.Tensor) for x in xs)
+    for x in xs:  # (a loop, not any() over a generator: half the time, on every lane op a kernel traces)
+        if isinstance(x, torch.Tensor):
+            return True
+    return False
 
 
 def _is_number(*xs) -> bool:
@@ -351,6 +354,20 @@ def gather_pair(table, index) -> tuple:
     return (dr.reinterpret_array(Float, UInt32(word & 0xFFFFFFFF)), dr.reinterpret_array(Float, UInt32(word >> 32)))
 
 
+def gather_quad(table, index) -> list:
+    """The four values of row `index` of a table of quadruples laid flat (a torch tensor [4·M] or
+    Dr.Jit float lanes of it) at int32 lanes `index`. In a kernel one packet gather a row (a 16-byte
+    load a lane), not four 32-bit gathers: the terrain's planar value noise reads a cell's four
+    corners with it (`noise.planar_value_lanes`), the same bits."""
+    if _is_torch(table, index):
+        return list(table.view(-1, 4).index_select(0, index).unbind(1))
+    import drjit as dr
+    from drjit.llvm import Array4f, UInt32
+
+    row = dr.gather(Array4f, table, UInt32(index))
+    return [row[0], row[1], row[2], row[3]]
+
+
 def fori(count: int, state: list, body):
     """`state` after `count` steps of `state = body(i, state)`, i = 0, 1, ... as a float (`state`: a
     flat list of lanes). On torch a Python loop; on Dr.Jit one symbolic loop (`drjit.while_loop`),
@@ -402,5 +419,5 @@ def dot3(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-__all__ = ["abs", "atan", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "dot3", "exp", "expm1", "floor", "full_like", "gather", "length3", "lerp", "log",
+__all__ = ["abs", "atan", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "dot3", "exp", "expm1", "floor", "full_like", "gather", "gather_pair", "gather_quad", "length3", "lerp", "log",
            "floats_of", "fori", "int_like", "ints_of", "lanes_inputs", "lanes_of", "log2", "maximum", "minimum", "per_scene_lanes", "remainder", "round", "sin", "smoothstep01", "sqrt", "tan", "tiny", "to_float", "to_int32", "where", "while_loop"]
