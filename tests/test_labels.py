@@ -230,8 +230,10 @@ def test_sun_visibility_runs_its_shadow_rays_in_the_kernel_where_the_render_does
 @pytest.mark.parametrize("name", ["cloud-puff", "multi-layer", "cloudscape", "fur-ball", "god-rays"])
 def test_optical_thickness_sums_each_chord_in_the_kernel_where_the_render_does(name, monkeypatch):
     """`kernel_march.chord_density`: each volume's midpoint sum of the label as one Dr.Jit kernel,
-    within 1e-5 of τ relative to eager's (measured: 3.1e-6, cloudscape's τ up to 96), the same
-    density evaluations; not a sample of the eager loop (cloud-puff's label at 128²: 166 -> 11 ms)."""
+    within 5e-5 of τ relative to eager's, the same density evaluations; not a sample of the eager
+    loop (cloud-puff's label at 128²: 166 -> 11 ms). Measured: 5.7e-7 or less but for cloudscape
+    (τ up to 96): 3.1e-6 on the machine this test was written on, 1.5e-5 on an AVX-512 CPU (torch's
+    CPU capability AVX512, 2026-12-08)."""
     from torchvol.renderer import labels
     from torchvol.runtime.compilation import drjit_available
 
@@ -245,7 +247,7 @@ def test_optical_thickness_sums_each_chord_in_the_kernel_where_the_render_does(n
     kernel = tv.render(scene, aovs=["optical_thickness"])
     tau = eager.aovs["optical_thickness"]
     assert float(tau.max()) > 0.5
-    assert_close(kernel.aovs["optical_thickness"] / tau.clamp_min(1.0), tau / tau.clamp_min(1.0), atol=1e-5,
+    assert_close(kernel.aovs["optical_thickness"] / tau.clamp_min(1.0), tau / tau.clamp_min(1.0), atol=5e-5,
                  what=f"{name}: τ, kernel against eager")
     assert kernel.stats["density_evals"] == eager.stats["density_evals"]
     assert calls, "no volume's label summed in the kernel"
