@@ -296,7 +296,7 @@ def planar_corners(seed: int, dtype: torch.dtype) -> Tensor:
 def planar_value_lanes(x, z, corners, rows):
     """`value_lanes` on the plane y = 0 at points x, z (lanes, `ops.lanes`) from `planar_corners`
     tables stacked (`corners`, laid flat; each lane's table from its row `rows`, int32 lanes:
-    65536 · its block): bitwise the value `value_lanes(x, None, z, ...)`'s chain gives."""
+    65536 · its block): bitwise `value_lanes` at (x, 0, z), from one row read a point, not eight."""
     fx, fz = lanes.floor(x), lanes.floor(z)
     cell = rows + (lanes.to_int32(fx) & 255) * 256 + (lanes.to_int32(fz) & 255)
     return planar(lanes.gather_quad(corners, cell), fade(x - fx), fade(z - fz))
