@@ -132,3 +132,19 @@ def test_gather_pair_reads_both_values_of_a_pair_bitwise():
     for k in range(2):
         got, want = _back(kernel[k]).view(torch.int32), eager[k].contiguous().view(torch.int32)
         assert torch.equal(got, want), f"value {k} of each pair: bits {got.tolist()} vs {want.tolist()}"
+
+
+@pytest.mark.parametrize("channels", [1, 3, 5])
+def test_interleaved_rows_are_the_columns_stacked(channels):
+    """`interleaved` lanes, evaluated by the kernel that computes them (here a product), read back
+    by `rows_of` as the tensor [n, C] torch.stack of the columns gives, bitwise."""
+    import drjit as dr
+
+    cols = [_points(seed=c) for c in range(channels)]
+    computed = [_jit(c) * 1.5 for c in cols]  # lazy: the ravel is written by the kernel that computes them
+    flat = lanes.interleaved(computed)
+    dr.eval(flat)
+    got = lanes.rows_of(flat, channels)
+    expected = torch.stack([c * 1.5 for c in cols], dim=1)
+    assert got.shape == (cols[0].shape[0], channels)
+    assert torch.equal(got, expected), f"largest difference {float((got - expected).abs().max()):.3g}"

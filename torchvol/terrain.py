@@ -382,7 +382,7 @@ class TerrainSurface:
                     lit_here = lit > 0.0
                     return dr.select(lit_here, k.through(start, direction, distance, lit_here) * lit, lit)
             lights.append((direction, columns(toward.irradiance), visible))
-        rgb = _colour(look, nrm, per_scene(p.ambient), sky, lights)
+        rgb, nrm = lanes.interleaved(_colour(look, nrm, per_scene(p.ambient), sky, lights)), lanes.interleaved(nrm)
         dr.eval(rgb, nrm, [e for k in inside.values() for e in k.evals()])
         dr.sync_thread()
         for key, use in uses.items():
@@ -390,8 +390,7 @@ class TerrainSurface:
             for name in use.names():
                 with section(name):
                     pass
-        return (torch.stack([lanes.tensor_of(c) for c in rgb], dim=1).to(x),
-                torch.stack([lanes.tensor_of(c) for c in nrm], dim=1).to(x))
+        return lanes.rows_of(rgb, 3).to(x), lanes.rows_of(nrm, 3).to(x)
 
 
 __all__ = ["Terrain", "TerrainSurface", "gap", "height", "normal", "normal_kernel", "path_surface", "trace", "trace_kernel", "visibility"]

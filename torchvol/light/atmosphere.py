@@ -338,8 +338,9 @@ def single_scatter_kernel(origins: Tensor, directions: Tensor, t0: Tensor, t1: T
     inscatter, _ = single_scatter_lanes(cols(origins), cols(directions), lanes.floats_of(t0), lanes.floats_of(t1),
                                         cols(sun_dir), air_lanes(air, lanes.floats_of), steps=steps,
                                         light_steps=light_steps)
-    dr.eval(inscatter)
-    return torch.stack([lanes.tensor_of(x) for x in inscatter], dim=1).to(origins)
+    rows = lanes.interleaved(inscatter)
+    dr.eval(rows)
+    return lanes.rows_of(rows, 3).to(origins)
 
 
 def _segments(mask: Tensor, origins: Tensor, directions: Tensor, t0: Tensor, t1: Tensor, sun_dir: Tensor, air: Air,

@@ -256,6 +256,21 @@ def tensor_of(x) -> torch.Tensor:
     return torch.from_dlpack(x)
 
 
+def interleaved(columns: list):
+    """C Dr.Jit lanes as one array of their rows laid flat (row i's C values together), for the
+    kernel that evaluates them to write: `rows_of` reads it back as a tensor [n, C]. Stacking C
+    columns in torch instead writes strided rows (a float32 [65 k, 3] stack: ~0.25 ms)."""
+    import drjit as dr
+    from drjit.llvm import ArrayXf
+
+    return dr.ravel(ArrayXf(list(columns)))
+
+
+def rows_of(flat, channels: int) -> torch.Tensor:
+    """`interleaved`'s array, evaluated, as a CPU tensor [n, channels] sharing its memory."""
+    return tensor_of(flat).view(-1, channels)
+
+
 def ints_of(t: torch.Tensor):
     """A torch integer (or bool) tensor [n] as Dr.Jit int32 lanes, on the CPU (an int32 contiguous
     CPU tensor's own memory, as `floats_of`, else an int32 copy)."""
@@ -420,4 +435,4 @@ def dot3(a, b):
 
 
 __all__ = ["abs", "atan", "clamp", "clamp_max", "clamp_min", "columns", "cos", "divide", "dot3", "exp", "expm1", "floor", "full_like", "gather", "gather_pair", "gather_quad", "length3", "lerp", "log",
-           "floats_of", "fori", "int_like", "ints_of", "lanes_inputs", "lanes_of", "log2", "maximum", "minimum", "per_scene_lanes", "remainder", "round", "sin", "smoothstep01", "sqrt", "tan", "tiny", "to_float", "to_int32", "where", "while_loop"]
+           "floats_of", "fori", "int_like", "interleaved", "ints_of", "lanes_inputs", "lanes_of", "log2", "maximum", "minimum", "per_scene_lanes", "remainder", "round", "rows_of", "sin", "smoothstep01", "sqrt", "tan", "tiny", "to_float", "to_int32", "where", "while_loop"]

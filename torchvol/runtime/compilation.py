@@ -60,9 +60,8 @@ def traced_columns(fn, like: torch.Tensor, widths: tuple[int, ...] | None = None
     dtype and device (`widths` None: every lane a tensor [n]). `also()`: more lanes the same kernel
     evaluates (counts the caller reads after it), traced after `fn`."""
     import drjit as dr
-    from drjit.llvm import Array3f
 
-    from ..ops.lanes import floats_of, tensor_of
+    from ..ops.lanes import floats_of, interleaved, tensor_of
     from .threads import set_drjit_threads
 
     set_drjit_threads()
@@ -71,7 +70,7 @@ def traced_columns(fn, like: torch.Tensor, widths: tuple[int, ...] | None = None
     for w in widths:
         if w not in (1, 3):
             raise ValueError(f"traced_columns: a group of {w} lanes; groups are 1 or 3 wide")
-        out.append(values[k] if w == 1 else dr.ravel(Array3f(*values[k:k + 3])))
+        out.append(values[k] if w == 1 else interleaved(values[k:k + 3]))
         k += w
     dr.eval(out, [] if also is None else also())
     tensors = [tensor_of(x).to(like) for x in out]

@@ -205,9 +205,10 @@ def march(ctx, vols, rays, background: Tensor | None, start: Tensor, end: Tensor
              dr.full(Bool, True, n), dr.zeros(Int32, n), first,
              *(dr.zeros(Int32, n) for _ in range(count)), *(zero for _ in range(3 + (len(vols) if shares else 0))))
     out = dr.while_loop(state, lambda *x: x[8], _body(k, members, par, ctx.settings, count, shares), mode="symbolic")
-    dr.eval(out)
+    radiance = lanes.interleaved(out[11 + count:])  # (the kernel writes them as rows, not as columns too)
+    dr.eval(out[:11 + count], radiance)
     dr.sync_thread()
-    return _written(ctx, result, idx, out[3:8], out[9], out[11 + count:], dict(enumerate(out[11:11 + count])))
+    return _written(ctx, result, idx, out[3:8], out[9], radiance, dict(enumerate(out[11:11 + count])))
 
 
 def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor, hit: Tensor,
@@ -246,9 +247,10 @@ def march_look(ctx, vol, rays, background: Tensor | None, t0: Tensor, t1: Tensor
     state = (lane(start), dr.full(Float, 1.0, n), zero, zero, zero, dr.zeros(Int32, n), dr.full(Bool, True, n),
              dr.full(Bool, False, n), dr.zeros(Int32, n), zero, zero, zero)
     out = dr.while_loop(state, lambda *x: x[6], _look_body(k, solid, par, st), mode="symbolic")
-    dr.eval(out)
+    radiance = lanes.interleaved(out[9:])
+    dr.eval(out[:9], radiance)
     dr.sync_thread()
-    return _written(ctx, result, idx, out[1:6], out[7], out[9:], {vol.plan.index: out[8]})
+    return _written(ctx, result, idx, out[1:6], out[7], radiance, {vol.plan.index: out[8]})
 
 
 def _first_segment(ctx, k: SimpleNamespace, idx: Tensor, t0, start: Tensor, end: Tensor,
@@ -316,7 +318,7 @@ def _ray_lanes(rays, idx: Tensor):
 def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, evals: dict) -> MarchResult:
     """A march kernel's lanes for the rays `idx` [n] written into `result` (`state`: the
     transmittance, weight sums, median and steps; `truncated`: truncations a ray, or whether;
-    `radiance` its channels), its steps, truncations and each volume's evaluations (`evals`, by
+    `radiance` its C channels as rows, `lanes.interleaved`), its steps, truncations and each volume's evaluations (`evals`, by
     index in `ctx.volumes`) counted in the render's stats. -> `result`."""
     trans, wsum, wt, median, steps = (lanes.tensor_of(v) for v in state)
     truncated = lanes.tensor_of(truncated).long()
@@ -330,7 +332,7 @@ def _written(ctx, result: MarchResult, idx: Tensor, state, truncated, radiance, 
 
     # the radiance as rows, one write: three into strided columns stalled ~2.6 ms each on 2 threads
     # under OpenMP's default (spinning) wait policy, in a process not tuned by `tune_process`
-    put(result.radiance, torch.stack([lanes.tensor_of(r) for r in radiance], dim=1))
+    put(result.radiance, lanes.rows_of(radiance, result.radiance.shape[1]))
     for name, value in (("transmittance", trans), ("weight_sum", wsum), ("weighted_t", wt), ("median_t", median),
                         ("steps", steps), ("truncated", truncated > 0)):
         put(getattr(result, name), value)

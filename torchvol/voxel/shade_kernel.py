@@ -78,7 +78,7 @@ def cones_kernel(mips: SimpleNamespace, origin: Tensor, direction: Tensor, s: Te
         return (*cone_step(list(x[:6]), ray, mips), x[6] + 1)
 
     out = dr.while_loop(state, lambda *x: x[5] & (x[6] < limit), body, mode="symbolic")
-    dr.eval(out)
+    colour = lanes.interleaved(out[2:5])
+    dr.eval(out, colour)
     dr.sync_thread()
-    colour = torch.stack([lanes.tensor_of(c) for c in out[2:5]], 1).to(origin)
-    return colour, lanes.tensor_of(out[1]).to(origin)
+    return lanes.rows_of(colour, 3).to(origin), lanes.tensor_of(out[1]).to(origin)

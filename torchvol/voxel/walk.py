@@ -217,8 +217,9 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
 
     result = dr.while_loop(state + tuple(dr.zeros(Float, dr.width(state[0])) for _ in range(3)), lambda *x: x[6],
                            summing, mode="symbolic")
-    dr.eval(result)
-    fog.light = torch.stack([lanes.tensor_of(v) for v in result[-3:]], 1).to(like)
+    light = lanes.interleaved(result[-3:])
+    dr.eval(result, light)
+    fog.light = lanes.rows_of(light, 3).to(like)
     return result[:-3]
 
 
