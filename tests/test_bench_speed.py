@@ -70,6 +70,8 @@ def test_speed_quick_logic_on_tiny_sizes(tmp_path):
         assert by_name["cloudscape"]["marches"] == "drjit" and by_name["cloudscape"]["x_floor"] > 0  # its layer's floor
         # the part of × floor its kernels ran: some, never more than the whole
         assert all(0 < r["x_floor_kernels"] <= r["x_floor"] for r in presets if r["x_floor"] is not None)
+        # and against the floor on its own points (every preset with a floor but the template's)
+        assert by_name["cloud-puff"]["x_floor_own"] > 0 and by_name["template-clouds"]["x_floor_own"] is None
     text = bench_speed.markdown({"quick": True, "repeat": 1, "profile": profile, "render": rows, "floor": floor,
                                  "presets": presets, "preset_size": 8, "generate": generation})
     assert "## Where the time goes" in text and "## Renders" in text and "## The floor" in text
@@ -116,3 +118,19 @@ def test_kernel_seconds_are_the_kernels_time_within_the_call():
     seconds, kernels = bench_speed.kernel_seconds(lambda: tv.render(scene))
     assert 0 < kernels <= seconds
     assert bench_speed.kernel_seconds(lambda: None)[1] == 0.0  # nothing launched: its history empty
+
+
+def test_recording_points_keeps_every_evaluation_of_a_render_in_order():
+    """`renderer.stats.recording_points`: the points each volume's field evaluated (what the
+    bench's floor on a render's own points runs), as many as the render counts, each a copy."""
+    from torchvol.renderer.stats import recording_points
+
+    scene = tv.preset("multi-layer", width=12, height=9)
+    with recording_points() as record:
+        out = tv.render(scene, compile="off", keep_context=True)
+    by_volume = {vol.plan.name: sum(p.shape[0] for p, _, _ in record.get(vol.field, [])) for vol in out.context.volumes}
+    assert by_volume == out.stats["density_evals_by_volume"] and sum(by_volume.values()) == out.stats["density_evals"]
+    assert all(p.shape[1] == 3 and s.shape == p.shape[:1] for calls in record.values() for p, s, _ in calls)
+    with recording_points() as again:
+        pass
+    assert again == {} and tv.render(scene, compile="off").stats["density_evals"] == out.stats["density_evals"]

@@ -315,6 +315,36 @@ def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
     return Floor(lambda: [kernel() for kernel in parts], points, n)
 
 
+def _own_points_floor(name: str, scene, floor: Floor | None) -> Floor | None:
+    """The floor on the render's own points, as issue 32 defines it: each volume's density alone
+    in the Dr.Jit kernel at the points (their scenes, the octaves kept) an eager render of `scene`
+    evaluates, in its order (`renderer.stats.recording_points`; the kernel render evaluates the same
+    points to float rounding), where `floor` (`_kernel_floor`'s, on random points of each volume's
+    box) is defined; None elsewhere. A render's points are coherent (neighbouring rays, one step
+    at a time) and cost less than random ones: this floor is the lower, its × floor the higher."""
+    from ..renderer.stats import recording_points
+    from ..volume import density_lanes
+
+    if floor is None or name == "template-clouds":  # (its floor: the seed's texture fbm, `FLOORS`)
+        return None
+    with recording_points() as record:
+        out = render(scene, compile="off", keep_context=True)
+    parts, total = [], 0
+    for vol in out.context.volumes:
+        calls = record.get(vol.field, [])
+        if not calls:
+            continue
+        points, scenes = torch.cat([c[0] for c in calls]).float(), torch.cat([c[1] for c in calls])
+        # a call without LOD keeps every octave: as many as any count can ask for
+        kept = None if all(c[2] is None for c in calls) else torch.cat(
+            [torch.full_like(c[1], 64) if c[2] is None else c[2] for c in calls])
+        parts.append(density_lanes.density_kernel(vol, points, scenes, kept))
+        total += points.shape[0]
+    for kernel in parts:
+        kernel()  # builds: not in the timed runs
+    return Floor(lambda: [kernel() for kernel in parts], total, floor.threads) if parts else None
+
+
 def backends(summary: dict) -> list[str]:
     """What each march of a render ran on (its plan's `summary`): its volumes', then the air's."""
     return list(summary["marches"].values()) + ([summary["air"]] if "air" in summary else [])
@@ -324,7 +354,8 @@ def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[di
     """Every preset at size×size as `render` runs it by default: rows {preset, marches (what each
     march ran on), seconds, first_s, eager_s (one eager render, where a march ran as a kernel),
     x_floor (against its density alone in the Dr.Jit kernel, where every march is one),
-    x_floor_kernels (the part of it its Dr.Jit kernels ran)}."""
+    x_floor_kernels (the part of it its Dr.Jit kernels ran), x_floor_own (against the floor on
+    the render's own points, `_own_points_floor`)}."""
     rows, kernels = [], floor_kernels(points=floor_points)
     for name in preset_names():
         scene = preset(name, width=size, height=size)
@@ -333,8 +364,11 @@ def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[di
         t = time_render(scene, compile="kernels", repeat=repeat, floor=floor)
         marches = backends(out.stats["plan"])
         eager = _seconds(lambda: render(scene, compile="off")) if "drjit" in marches else None
+        own = _own_points_floor(name, scene, floor)
+        x_own = None if own is None else time_render(scene, compile="kernels", repeat=repeat, floor=own).x_floor
         rows.append(dict(preset=name, marches=", ".join(sorted(set(marches))) or "none", seconds=t.seconds,
-                         first_s=t.first_s, eager_s=eager, x_floor=t.x_floor, x_floor_kernels=t.x_floor_kernels))
+                         first_s=t.first_s, eager_s=eager, x_floor=t.x_floor, x_floor_kernels=t.x_floor_kernels,
+                         x_floor_own=x_own))
     return rows
 
 
@@ -583,11 +617,12 @@ def _presets_section(sections: dict) -> list[str]:
     """The report's section on every preset's default render: its Markdown lines."""
     size = sections["preset_size"]
     lines = [f"## Presets: the default render, {size}×{size}", "",
-             "| preset | marches on | default s | eager s | × eager | × floor | of it, kernels | first call s |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| preset | marches on | default s | eager s | × eager | × floor | of it, kernels | × floor, own points | first call s |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     lines += [f"| {r['preset']} | {r['marches']} | {r['seconds']:.3f} | {_fmt(r['eager_s'])} | "
               f"{_fmt(None if r['eager_s'] is None else r['eager_s'] / r['seconds'], '.1f')} | {_fmt(r['x_floor'], '.2f')} | "
-              f"{_fmt(r.get('x_floor_kernels'), '.2f')} | {_fmt(r['first_s'], '.2f')} |" for r in sections["presets"]]
+              f"{_fmt(r.get('x_floor_kernels'), '.2f')} | {_fmt(r.get('x_floor_own'), '.2f')} | {_fmt(r['first_s'], '.2f')} |"
+              for r in sections["presets"]]
     lines += ["", "What `render(scene)` does without flags (`compile=\"kernels\"`): a march whose technique has a Dr.Jit "
               "kernel runs in it (\"drjit\": torchvol/volume/kernel_march.py, the physical media and the seeds' "
               "looks), the others eagerly; `stats[\"plan\"][\"marches\"]` "
@@ -595,7 +630,10 @@ def _presets_section(sections: dict) -> list[str]:
               "the render's time over the time its density evaluations alone take in the Dr.Jit kernel (the same "
               "density function, traced alone, on random points of its bounds' box), run beside each render; only "
               "where every march is a kernel. Of it, kernels: the part of × floor the render's Dr.Jit kernels ran "
-              "(Dr.Jit's kernel history); the rest is glue, the kernels' Python tracing and torch's ops around them. "
+              "(Dr.Jit's kernel history); the rest is glue, the kernels' Python tracing and torch's ops around them. × floor, own "
+              "points: against the same density kernel at the very points (scenes, octaves kept) the render evaluates, "
+              "recorded from its eager reference in its order (issue 32's definition): coherent points, cheaper than "
+              "random ones, so the higher ratio. "
               "First call: the first render in this process, the kernel's build "
               "(or Dr.Jit's disk cache) included.", ""]
     return lines

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -50,6 +51,23 @@ class Counts:
     error_estimate: float = 0.0
 
 
+# the points each counted field evaluates while `recording_points` asks for them (None: nobody asks)
+_RECORDING: ContextVar[dict | None] = ContextVar("recording_points", default=None)
+
+
+@contextmanager
+def recording_points() -> Iterator[dict]:
+    """Inside the block every `CountedField` keeps a copy of what it evaluates: yields {field:
+    [(points [m, 3], scene_index [m], lod [m] or None), ...]} in the order evaluated. For the
+    bench's floor on a render's own points (`measure.bench_speed`)."""
+    record: dict = {}
+    token = _RECORDING.set(record)
+    try:
+        yield record
+    finally:
+        _RECORDING.reset(token)
+
+
 class CountedField:
     """A field that counts the points it evaluates: the render's `stats["density_evals"]`, and its
     own `evals` (`stats["density_evals_by_volume"]`); every density it returns is capped at
@@ -61,13 +79,19 @@ class CountedField:
         self.feature_size = inner.feature_size
 
     def __call__(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
-        self.counts.density_evals += points.shape[0]
-        self.evals += points.shape[0]
+        self._count(points, scene_index, lod)
         return self.inner(points, scene_index, lod).clamp_max(DENSITY_MAX)
 
     def signed(self, points: Tensor, scene_index: Tensor, lod: Tensor | None = None) -> Tensor:
         """The inner field's signed density [n] at `points` [n, 3] of scenes `scene_index` [n]
         (`lod` [n] or None), its evaluations counted, capped at DENSITY_MAX as the density is."""
+        self._count(points, scene_index, lod)
+        return self.inner.signed(points, scene_index, lod).clamp_max(DENSITY_MAX)
+
+    def _count(self, points: Tensor, scene_index: Tensor, lod: Tensor | None) -> None:
         self.counts.density_evals += points.shape[0]
         self.evals += points.shape[0]
-        return self.inner.signed(points, scene_index, lod).clamp_max(DENSITY_MAX)
+        record = _RECORDING.get()
+        if record is not None:
+            record.setdefault(self, []).append((points.detach().clone(), scene_index.clone(),
+                                                None if lod is None else lod.clone()))

@@ -79,19 +79,20 @@ def crossing(vol, s: Tensor, per_ray) -> SimpleNamespace:
                                k.field, density(p, None) if start is None else start, d, length))
 
 
-def density_kernel(vol, points: Tensor) -> Callable[[], Tensor]:
-    """The volume's density alone at `points` [N, 3] of scene 0, as one Dr.Jit kernel: the march's
-    floor (`torchvol bench speed`: what the march would cost if nothing but its density did).
-    -> a function that evaluates it once, returning [N]."""
+def density_kernel(vol, points: Tensor, scene: Tensor | None = None, kept: Tensor | None = None) -> Callable[[], Tensor]:
+    """The volume's density alone at `points` [N, 3] of scenes `scene` [N] (None: scene 0), each
+    with its octaves `kept` [N] (None: all), as one Dr.Jit kernel: the march's floor (`torchvol
+    bench speed`: what the march would cost if nothing but its density did). -> a function that
+    evaluates it once, returning [N]."""
     import drjit as dr
 
-    s = torch.zeros(points.shape[0], dtype=torch.long)
+    s = torch.zeros(points.shape[0], dtype=torch.long) if scene is None else scene
     density = density_lanes(field_inputs(vol, s, lambda x: lanes.lanes_of(take(x, s), lanes.floats_of)), vol)
-    p = lanes.lanes_of(points, lanes.floats_of)
+    p, count = lanes.lanes_of(points, lanes.floats_of), None if kept is None else lanes.ints_of(kept)
 
     def run() -> Tensor:
         set_drjit_threads()
-        out = density(p, None)
+        out = density(p, count)
         dr.eval(out)
         dr.sync_thread()
         return lanes.tensor_of(out)
