@@ -203,8 +203,12 @@ def trace_kernel(t: Stacked, o: Tensor, d: Tensor, s: Tensor) -> tuple[Tensor, T
 
 def normal_kernel(t: Stacked, p: Tensor, s: Tensor) -> Tensor:
     """`normal` at points `p` [n, 3] of scenes `s` [n] as one Dr.Jit kernel (`normal_lanes`). -> [n, 3]."""
+    import drjit as dr
+
     q, columns, _ = _kernel_lanes(t, s)
-    return torch.stack(_to_torch(normal_lanes(q, columns(p[:, 0]), columns(p[:, 2])), p), dim=1).to(p)
+    rows = lanes.interleaved(normal_lanes(q, columns(p[:, 0]), columns(p[:, 2])))
+    dr.eval(rows)
+    return lanes.rows_of(rows, 3).to(p)
 
 
 def _look(t: Stacked, per_lane) -> SimpleNamespace:

@@ -315,22 +315,30 @@ def _kernel_floor(out, name: str, kernels: dict, points: int) -> Floor | None:
     return Floor(lambda: [kernel() for kernel in parts], points, n)
 
 
-def _own_points_floor(name: str, scene, floor: Floor | None) -> Floor | None:
+def _eager_seconds(scene) -> tuple[float, object, dict]:
+    """One eager render of `scene` (`compile="off"`, the reference): (its seconds, its output with
+    its context, what its fields evaluated: `renderer.stats.recording_points`' record)."""
+    from ..renderer.stats import recording_points
+
+    with recording_points() as record:
+        start = time.perf_counter()
+        out = render(scene, compile="off", keep_context=True)
+        return time.perf_counter() - start, out, record
+
+
+def _own_points_floor(name: str, eager, record: dict, floor: Floor | None) -> Floor | None:
     """The floor on the render's own points, as issue 32 defines it: each volume's density alone
-    in the Dr.Jit kernel at the points (their scenes, the octaves kept) an eager render of `scene`
-    evaluates, in its order (`renderer.stats.recording_points`; the kernel render evaluates the same
+    in the Dr.Jit kernel at the points (their scenes, the octaves kept) the eager render `eager`
+    evaluated (`record`, `_eager_seconds`'), in its order (the kernel render evaluates the same
     points to float rounding), where `floor` (`_kernel_floor`'s, on random points of each volume's
     box) is defined; None elsewhere. A render's points are coherent (neighbouring rays, one step
     at a time) and cost less than random ones: this floor is the lower, its × floor the higher."""
-    from ..renderer.stats import recording_points
     from ..volume import density_lanes
 
     if floor is None or name == "template-clouds":  # (its floor: the seed's texture fbm, `FLOORS`)
         return None
-    with recording_points() as record:
-        out = render(scene, compile="off", keep_context=True)
     parts, total = [], 0
-    for vol in out.context.volumes:
+    for vol in eager.context.volumes:
         calls = record.get(vol.field, [])
         if not calls:
             continue
@@ -363,8 +371,10 @@ def preset_rows(*, size: int, repeat: int, floor_points: int = 2**20) -> list[di
         floor = _kernel_floor(out, name, kernels, floor_points)
         t = time_render(scene, compile="kernels", repeat=repeat, floor=floor)
         marches = backends(out.stats["plan"])
-        eager = _seconds(lambda: render(scene, compile="off")) if "drjit" in marches else None
-        own = _own_points_floor(name, scene, floor)
+        eager, own = None, None
+        if "drjit" in marches:  # (the points' copies are ~1% of an eager render)
+            eager, eager_out, record = _eager_seconds(scene)
+            own = _own_points_floor(name, eager_out, record, floor)
         x_own = None if own is None else time_render(scene, compile="kernels", repeat=repeat, floor=own).x_floor
         rows.append(dict(preset=name, marches=", ".join(sorted(set(marches))) or "none", seconds=t.seconds,
                          first_s=t.first_s, eager_s=eager, x_floor=t.x_floor, x_floor_kernels=t.x_floor_kernels,

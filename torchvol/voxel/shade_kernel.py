@@ -79,6 +79,6 @@ def cones_kernel(mips: SimpleNamespace, origin: Tensor, direction: Tensor, s: Te
 
     out = dr.while_loop(state, lambda *x: x[5] & (x[6] < limit), body, mode="symbolic")
     colour = lanes.interleaved(out[2:5])
-    dr.eval(out, colour)
+    dr.eval(out[1], colour)  # (the colour as rows only)
     dr.sync_thread()
     return lanes.rows_of(colour, 3).to(origin), lanes.tensor_of(out[1]).to(origin)

@@ -218,7 +218,7 @@ def _fog_walks(fog: FogWalk, state: tuple, r: SimpleNamespace, g: SimpleNamespac
     result = dr.while_loop(state + tuple(dr.zeros(Float, dr.width(state[0])) for _ in range(3)), lambda *x: x[6],
                            summing, mode="symbolic")
     light = lanes.interleaved(result[-3:])
-    dr.eval(result, light)
+    dr.eval(result[:-3], light)  # (the light as rows only)
     fog.light = lanes.rows_of(light, 3).to(like)
     return result[:-3]
 
